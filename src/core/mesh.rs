@@ -1,0 +1,291 @@
+//! The triangle mesh every renderer draws, stored relative to a local origin.
+//!
+//! Georeferenced meshes have coordinates like (512345, 5401234, 250) m, where f32 keeps only about
+//! half a metre. The mesh therefore keeps an f64 `origin_m` and f32 positions relative to it
+//! (DESIGN §6): world = origin + local. Renderers fold the origin into the pose in f64 before they
+//! touch f32, so a georeferenced mesh renders exactly like the same mesh at the origin.
+
+use glam::Vec3;
+use nalgebra::Vector3;
+
+/// Errors of mesh construction.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum MeshError {
+    #[error("the mesh has no faces (a point cloud cannot be rendered); give a triangle mesh")]
+    NoFaces,
+    #[error("face {face_index} refers to vertex {vertex_index}, but the mesh has {vertex_count} vertices")]
+    IndexOutOfRange {
+        face_index: usize,
+        vertex_index: u32,
+        vertex_count: usize,
+    },
+    #[error("vertex {vertex_index} has a non-finite coordinate ({value})")]
+    NonFiniteVertex { vertex_index: usize, value: f64 },
+    #[error("{normal_count} vertex normals for {vertex_count} vertices")]
+    NormalCount {
+        normal_count: usize,
+        vertex_count: usize,
+    },
+}
+
+/// A triangle mesh: positions relative to `origin_m`, counter-clockwise faces, optional normals.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mesh {
+    origin_m: Vector3<f64>,
+    positions_local_m: Vec<Vec3>,
+    faces: Vec<[u32; 3]>,
+    vertex_normals: Option<Vec<Vec3>>,
+}
+
+impl Mesh {
+    /// Builds a mesh from world coordinates in f64; the local origin is the centre of the bounding
+    /// box, so local coordinates stay small whatever the georeferencing.
+    pub fn from_world(
+        positions_world_m: &[Vector3<f64>],
+        faces: Vec<[u32; 3]>,
+        vertex_normals: Option<Vec<Vec3>>,
+    ) -> Result<Self, MeshError> {
+        for (vertex_index, p) in positions_world_m.iter().enumerate() {
+            if let Some(value) = p.iter().copied().find(|v| !v.is_finite()) {
+                return Err(MeshError::NonFiniteVertex {
+                    vertex_index,
+                    value,
+                });
+            }
+        }
+        let origin_m = bounds_center(positions_world_m.iter().copied());
+        let positions_local_m = positions_world_m
+            .iter()
+            .map(|p| {
+                let local = p - origin_m;
+                Vec3::new(local.x as f32, local.y as f32, local.z as f32)
+            })
+            .collect();
+        Self::from_local(origin_m, positions_local_m, faces, vertex_normals)
+    }
+
+    /// Builds a mesh from positions already relative to `origin_m`.
+    pub fn from_local(
+        origin_m: Vector3<f64>,
+        positions_local_m: Vec<Vec3>,
+        faces: Vec<[u32; 3]>,
+        vertex_normals: Option<Vec<Vec3>>,
+    ) -> Result<Self, MeshError> {
+        if faces.is_empty() {
+            return Err(MeshError::NoFaces);
+        }
+        let vertex_count = positions_local_m.len();
+        for (vertex_index, p) in positions_local_m.iter().enumerate() {
+            if !p.is_finite() {
+                let value = f64::from(
+                    p.to_array()
+                        .into_iter()
+                        .find(|v| !v.is_finite())
+                        .unwrap_or(f32::NAN),
+                );
+                return Err(MeshError::NonFiniteVertex {
+                    vertex_index,
+                    value,
+                });
+            }
+        }
+        for (face_index, face) in faces.iter().enumerate() {
+            if let Some(&vertex_index) = face.iter().find(|&&v| v as usize >= vertex_count) {
+                return Err(MeshError::IndexOutOfRange {
+                    face_index,
+                    vertex_index,
+                    vertex_count,
+                });
+            }
+        }
+        if let Some(normals) = &vertex_normals {
+            if normals.len() != vertex_count {
+                return Err(MeshError::NormalCount {
+                    normal_count: normals.len(),
+                    vertex_count,
+                });
+            }
+        }
+        Ok(Self {
+            origin_m,
+            positions_local_m,
+            faces,
+            vertex_normals,
+        })
+    }
+
+    /// The f64 world position the local coordinates are relative to.
+    pub fn origin_m(&self) -> Vector3<f64> {
+        self.origin_m
+    }
+
+    pub fn positions_local_m(&self) -> &[Vec3] {
+        &self.positions_local_m
+    }
+
+    pub fn faces(&self) -> &[[u32; 3]] {
+        &self.faces
+    }
+
+    pub fn vertex_normals(&self) -> Option<&[Vec3]> {
+        self.vertex_normals.as_deref()
+    }
+
+    pub fn vertex_count(&self) -> usize {
+        self.positions_local_m.len()
+    }
+
+    pub fn face_count(&self) -> usize {
+        self.faces.len()
+    }
+
+    /// A vertex in world coordinates (f64).
+    pub fn world_position(&self, vertex_index: usize) -> Vector3<f64> {
+        let p = self.positions_local_m[vertex_index];
+        self.origin_m + Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z))
+    }
+
+    /// World-coordinate bounding box `(min, max)`.
+    pub fn bounds_world_m(&self) -> (Vector3<f64>, Vector3<f64>) {
+        let mut min = Vec3::splat(f32::INFINITY);
+        let mut max = Vec3::splat(f32::NEG_INFINITY);
+        for p in &self.positions_local_m {
+            min = min.min(*p);
+            max = max.max(*p);
+        }
+        let to_world =
+            |v: Vec3| self.origin_m + Vector3::new(f64::from(v.x), f64::from(v.y), f64::from(v.z));
+        (to_world(min), to_world(max))
+    }
+
+    /// Unit normal of a face (counter-clockwise winding, right hand), in the world frame's axes.
+    /// Zero for a degenerate face.
+    pub fn face_normal(&self, face_index: usize) -> Vec3 {
+        let [a, b, c] = self.faces[face_index].map(|v| self.positions_local_m[v as usize]);
+        (b - a).cross(c - a).normalize_or_zero()
+    }
+
+    /// Area-weighted vertex normals from the faces (replaces any normals read from the file).
+    pub fn compute_vertex_normals(&mut self) {
+        let mut normals = vec![Vec3::ZERO; self.positions_local_m.len()];
+        for face in &self.faces {
+            let [a, b, c] = face.map(|v| self.positions_local_m[v as usize]);
+            let weighted = (b - a).cross(c - a);
+            for &v in face {
+                normals[v as usize] += weighted;
+            }
+        }
+        for n in &mut normals {
+            *n = n.normalize_or_zero();
+        }
+        self.vertex_normals = Some(normals);
+    }
+
+    /// Drops vertex normals (the renderer then shades with face normals).
+    pub fn clear_vertex_normals(&mut self) {
+        self.vertex_normals = None;
+    }
+
+    /// Appends another mesh (re-expressed in this mesh's local frame).
+    pub fn append(&mut self, other: &Mesh) {
+        let offset = other.origin_m - self.origin_m;
+        let offset = Vec3::new(offset.x as f32, offset.y as f32, offset.z as f32);
+        let base = self.positions_local_m.len() as u32;
+        self.positions_local_m
+            .extend(other.positions_local_m.iter().map(|p| *p + offset));
+        self.faces
+            .extend(other.faces.iter().map(|f| f.map(|v| v + base)));
+        self.vertex_normals = match (self.vertex_normals.take(), &other.vertex_normals) {
+            (Some(mut mine), Some(theirs)) => {
+                mine.extend_from_slice(theirs);
+                Some(mine)
+            }
+            _ => None,
+        };
+    }
+
+    /// Consumes the mesh into its parts `(origin, local positions, faces, normals)`.
+    pub fn into_parts(self) -> (Vector3<f64>, Vec<Vec3>, Vec<[u32; 3]>, Option<Vec<Vec3>>) {
+        (
+            self.origin_m,
+            self.positions_local_m,
+            self.faces,
+            self.vertex_normals,
+        )
+    }
+}
+
+fn bounds_center(points: impl Iterator<Item = Vector3<f64>>) -> Vector3<f64> {
+    let mut min = Vector3::repeat(f64::INFINITY);
+    let mut max = Vector3::repeat(f64::NEG_INFINITY);
+    for p in points {
+        min = min.inf(&p);
+        max = max.sup(&p);
+    }
+    if min.x.is_finite() {
+        (min + max) / 2.0
+    } else {
+        Vector3::zeros()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn triangle_at(offset: Vector3<f64>) -> Mesh {
+        let positions = [
+            offset + Vector3::new(0.0, 0.0, 0.0),
+            offset + Vector3::new(1.0, 0.0, 0.0),
+            offset + Vector3::new(0.0, 1.0, 0.0),
+        ];
+        Mesh::from_world(&positions, vec![[0, 1, 2]], None).unwrap()
+    }
+
+    #[test]
+    fn georeferenced_vertices_keep_millimetres() {
+        let utm = Vector3::new(512_345.123, 5_401_234.567, 250.001);
+        let mesh = triangle_at(utm);
+        let p = mesh.world_position(1);
+        assert!((p - (utm + Vector3::new(1.0, 0.0, 0.0))).norm() < 1e-6);
+        assert!((mesh.face_normal(0) - Vec3::Z).length() < 1e-6);
+    }
+
+    #[test]
+    fn bad_meshes_are_rejected_with_the_culprit() {
+        let positions = [Vector3::zeros(), Vector3::x(), Vector3::y()];
+        assert_eq!(
+            Mesh::from_world(&positions, vec![], None),
+            Err(MeshError::NoFaces)
+        );
+        assert_eq!(
+            Mesh::from_world(&positions, vec![[0, 1, 3]], None),
+            Err(MeshError::IndexOutOfRange {
+                face_index: 0,
+                vertex_index: 3,
+                vertex_count: 3
+            })
+        );
+        let with_nan = [
+            Vector3::zeros(),
+            Vector3::new(f64::NAN, 0.0, 0.0),
+            Vector3::y(),
+        ];
+        assert!(matches!(
+            Mesh::from_world(&with_nan, vec![[0, 1, 2]], None),
+            Err(MeshError::NonFiniteVertex {
+                vertex_index: 1,
+                ..
+            })
+        ));
+    }
+
+    #[test]
+    fn append_keeps_world_positions() {
+        let mut a = triangle_at(Vector3::new(100.0, 0.0, 0.0));
+        let b = triangle_at(Vector3::new(0.0, 50.0, 0.0));
+        a.append(&b);
+        assert_eq!(a.face_count(), 2);
+        assert!((a.world_position(4) - Vector3::new(1.0, 50.0, 0.0)).norm() < 1e-5);
+    }
+}

@@ -1,0 +1,558 @@
+//! CPU z-buffer rasteriser: depth, normals and a validity mask of a mesh for any pose and pinhole
+//! camera. Every ASG rendering, every visibility test (δ) and the synthetic photo renderer's
+//! geometry pass go through here, so it is parallel and allocation-free when reused.
+//!
+//! Design:
+//! - the pose is folded with the mesh's local origin in f64 (`cam_from_local`), then vertices are
+//!   transformed in f32: georeferenced meshes render like meshes at the origin;
+//! - triangles are clipped against the near plane (a ground plane passes under a low camera) and
+//!   binned into horizontal bands of rows; bands are rasterised in parallel (rayon), each band
+//!   walking its triangles in face order, so the result is deterministic;
+//! - a pixel `(col, row)` is covered when its centre `(col + 0.5, row + 0.5)` lies inside the
+//!   projected triangle (see `camera.rs` for the convention); depth and normals are interpolated
+//!   perspective-correctly; the nearest surface wins (ties: the lower face index);
+//! - [`Rasterizer`] keeps its scratch buffers and [`RenderBuffers`] is written in place: rendering
+//!   the same mesh again allocates nothing.
+//!
+//! Distortion is not rasterised: renderings are ideal pinhole images; photos with lens distortion
+//! are undistorted first (or their cameras are used without distortion, a choice the caller makes).
+
+use glam::{Mat3, Vec2, Vec3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::camera::PinholeIntrinsics;
+use super::mesh::Mesh;
+use super::rigid::Rigid3;
+
+/// `face_index` value of pixels that show no surface.
+pub const NO_FACE: u32 = u32::MAX;
+
+/// Rows per band of the parallel rasteriser.
+const BAND_ROWS: usize = 16;
+
+/// Which normals the normal map holds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum NormalSource {
+    /// The flat normal of each triangle.
+    Face,
+    /// Vertex normals interpolated across the triangle; falls back to face normals for meshes
+    /// without vertex normals.
+    #[default]
+    Vertex,
+}
+
+/// Rendering options; `Default` is what registration uses.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RenderOptions {
+    pub normal_source: NormalSource,
+    /// Skip triangles whose front (counter-clockwise) side faces away from the camera.
+    pub cull_back_faces: bool,
+    /// Near clipping distance along the optical axis, metres.
+    pub near_m: f32,
+}
+
+impl Default for RenderOptions {
+    fn default() -> Self {
+        Self {
+            normal_source: NormalSource::Vertex,
+            cull_back_faces: false,
+            near_m: 0.05,
+        }
+    }
+}
+
+/// The output of one rendering, row-major, `width_px * height_px` entries each.
+#[derive(Clone, Debug, Default)]
+pub struct RenderBuffers {
+    width_px: usize,
+    height_px: usize,
+    /// Distance along the optical axis (camera z) in metres; 0 where no surface.
+    pub depth_m: Vec<f32>,
+    /// Unit surface normal in the camera frame; zero where no surface.
+    pub normal_cam: Vec<Vec3>,
+    /// Index of the visible face; [`NO_FACE`] where no surface (the validity mask).
+    pub face_index: Vec<u32>,
+}
+
+impl RenderBuffers {
+    pub fn new(width_px: usize, height_px: usize) -> Self {
+        let mut buffers = Self::default();
+        buffers.resize(width_px, height_px);
+        buffers
+    }
+
+    /// Sets the size; allocates only when the pixel count grows.
+    pub fn resize(&mut self, width_px: usize, height_px: usize) {
+        self.width_px = width_px;
+        self.height_px = height_px;
+        let n = width_px * height_px;
+        self.depth_m.resize(n, 0.0);
+        self.normal_cam.resize(n, Vec3::ZERO);
+        self.face_index.resize(n, NO_FACE);
+    }
+
+    pub fn width_px(&self) -> usize {
+        self.width_px
+    }
+
+    pub fn height_px(&self) -> usize {
+        self.height_px
+    }
+
+    /// Whether pixel `(col, row)` shows a surface.
+    pub fn is_valid(&self, col: usize, row: usize) -> bool {
+        self.face_index[row * self.width_px + col] != NO_FACE
+    }
+
+    /// Number of pixels that show a surface.
+    pub fn valid_count(&self) -> usize {
+        self.face_index.iter().filter(|&&f| f != NO_FACE).count()
+    }
+}
+
+/// A camera-space vertex with its normal, as clipping produces them.
+#[derive(Clone, Copy, Debug)]
+struct ClipVertex {
+    position_cam: Vec3,
+    normal_cam: Vec3,
+}
+
+/// Scratch state reused between renderings.
+#[derive(Default)]
+pub struct Rasterizer {
+    vertices_cam: Vec<Vec3>,
+    normals_cam: Vec<Vec3>,
+    /// `bins[chunk][band]`: faces of a chunk of the face list that touch a band.
+    bins: Vec<Vec<Vec<u32>>>,
+}
+
+/// The projection used inside the rasteriser (f32, no distortion).
+#[derive(Clone, Copy, Debug)]
+struct Projector {
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    skew: f32,
+    near_m: f32,
+}
+
+impl Projector {
+    fn project(&self, p: Vec3) -> Vec2 {
+        let inv_z = 1.0 / p.z;
+        let x = p.x * inv_z;
+        let y = p.y * inv_z;
+        Vec2::new(self.fx * x + self.skew * y + self.cx, self.fy * y + self.cy)
+    }
+}
+
+impl Rasterizer {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Renders `mesh` seen from `cam_from_world` through `intrinsics` into `out`, which must already
+    /// have the image size.
+    pub fn render(
+        &mut self,
+        mesh: &Mesh,
+        intrinsics: &PinholeIntrinsics,
+        cam_from_world: &Rigid3,
+        options: &RenderOptions,
+        out: &mut RenderBuffers,
+    ) {
+        let width = out.width_px;
+        let height = out.height_px;
+        out.depth_m.fill(0.0);
+        out.normal_cam.fill(Vec3::ZERO);
+        out.face_index.fill(NO_FACE);
+        if width == 0 || height == 0 {
+            return;
+        }
+
+        // cam_from_local = cam_from_world ∘ world_from_local, in f64, then to f32.
+        let rotation = cam_from_world.rotation_matrix();
+        let translation_local = cam_from_world.transform_point(&mesh.origin_m());
+        let rotation_f32 = Mat3::from_cols_array(&[
+            rotation[(0, 0)] as f32,
+            rotation[(1, 0)] as f32,
+            rotation[(2, 0)] as f32,
+            rotation[(0, 1)] as f32,
+            rotation[(1, 1)] as f32,
+            rotation[(2, 1)] as f32,
+            rotation[(0, 2)] as f32,
+            rotation[(1, 2)] as f32,
+            rotation[(2, 2)] as f32,
+        ]);
+        let translation_f32 = Vec3::new(
+            translation_local.x as f32,
+            translation_local.y as f32,
+            translation_local.z as f32,
+        );
+
+        self.vertices_cam.resize(mesh.vertex_count(), Vec3::ZERO);
+        self.vertices_cam
+            .par_iter_mut()
+            .zip(mesh.positions_local_m().par_iter())
+            .for_each(|(out, p)| *out = rotation_f32 * *p + translation_f32);
+
+        let use_vertex_normals =
+            options.normal_source == NormalSource::Vertex && mesh.vertex_normals().is_some();
+        if let (true, Some(normals)) = (use_vertex_normals, mesh.vertex_normals()) {
+            self.normals_cam.resize(normals.len(), Vec3::ZERO);
+            self.normals_cam
+                .par_iter_mut()
+                .zip(normals.par_iter())
+                .for_each(|(out, n)| *out = rotation_f32 * *n);
+        }
+
+        let projector = Projector {
+            fx: intrinsics.fx_px as f32,
+            fy: intrinsics.fy_px as f32,
+            cx: intrinsics.cx_px as f32,
+            cy: intrinsics.cy_px as f32,
+            skew: intrinsics.skew_px as f32,
+            near_m: options.near_m,
+        };
+
+        // Bin faces into bands of rows, per chunk of faces, in parallel.
+        let band_count = height.div_ceil(BAND_ROWS);
+        let chunk_count = (rayon::current_num_threads() * 4).max(1);
+        self.bins.resize_with(chunk_count, Vec::new);
+        let faces = mesh.faces();
+        let vertices_cam = &self.vertices_cam;
+        let chunk_len = faces.len().div_ceil(chunk_count).max(1);
+        self.bins
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(chunk_index, chunk_bins)| {
+                chunk_bins.resize_with(band_count, Vec::new);
+                chunk_bins.truncate(band_count);
+                for band in chunk_bins.iter_mut() {
+                    band.clear();
+                }
+                let start = (chunk_index * chunk_len).min(faces.len());
+                let end = (start + chunk_len).min(faces.len());
+                for (offset, face) in faces[start..end].iter().enumerate() {
+                    let corners = face.map(|v| vertices_cam[v as usize]);
+                    if let Some((first_row, last_row)) =
+                        face_row_range(&corners, &projector, options, width, height)
+                    {
+                        let face_index = (start + offset) as u32;
+                        for band in chunk_bins
+                            .iter_mut()
+                            .take(last_row / BAND_ROWS + 1)
+                            .skip(first_row / BAND_ROWS)
+                        {
+                            band.push(face_index);
+                        }
+                    }
+                }
+            });
+
+        // Rasterise bands in parallel.
+        let bins = &self.bins;
+        let normals_cam = &self.normals_cam;
+        out.depth_m
+            .par_chunks_mut(BAND_ROWS * width)
+            .zip(out.normal_cam.par_chunks_mut(BAND_ROWS * width))
+            .zip(out.face_index.par_chunks_mut(BAND_ROWS * width))
+            .enumerate()
+            .for_each(|(band, ((depth, normal), face_out))| {
+                let mut band_target = BandTarget {
+                    first_row: band * BAND_ROWS,
+                    rows: depth.len() / width,
+                    width,
+                    depth,
+                    normal,
+                    face_index: face_out,
+                };
+                for chunk in bins {
+                    let Some(band_faces) = chunk.get(band) else {
+                        continue;
+                    };
+                    for &face_index in band_faces {
+                        let face = faces[face_index as usize];
+                        let corners = face.map(|v| ClipVertex {
+                            position_cam: vertices_cam[v as usize],
+                            normal_cam: if use_vertex_normals {
+                                normals_cam[v as usize]
+                            } else {
+                                Vec3::ZERO
+                            },
+                        });
+                        draw_face(
+                            &corners,
+                            face_index,
+                            &projector,
+                            use_vertex_normals,
+                            &mut band_target,
+                        );
+                    }
+                }
+            });
+    }
+}
+
+/// The band of an output image a face is drawn into.
+struct BandTarget<'a> {
+    first_row: usize,
+    rows: usize,
+    width: usize,
+    depth: &'a mut [f32],
+    normal: &'a mut [Vec3],
+    face_index: &'a mut [u32],
+}
+
+/// Rows `[first, last]` a face may cover, or `None` when it cannot be seen.
+fn face_row_range(
+    corners: &[Vec3; 3],
+    projector: &Projector,
+    options: &RenderOptions,
+    width: usize,
+    height: usize,
+) -> Option<(usize, usize)> {
+    let near = projector.near_m;
+    let in_front = corners.iter().filter(|p| p.z >= near).count();
+    if in_front == 0 {
+        return None;
+    }
+    if options.cull_back_faces && is_back_facing(corners) {
+        return None;
+    }
+    let mut min = Vec2::splat(f32::INFINITY);
+    let mut max = Vec2::splat(f32::NEG_INFINITY);
+    let mut extend = |p: Vec3| {
+        let s = projector.project(p);
+        min = min.min(s);
+        max = max.max(s);
+    };
+    if in_front == 3 {
+        corners.iter().for_each(|p| extend(*p));
+    } else {
+        // Project the near-clipped polygon: its corners are the in-front vertices and the
+        // crossings of the near plane.
+        for i in 0..3 {
+            let a = corners[i];
+            let b = corners[(i + 1) % 3];
+            if a.z >= near {
+                extend(a);
+            }
+            if (a.z >= near) != (b.z >= near) {
+                let t = (near - a.z) / (b.z - a.z);
+                extend(a + (b - a) * t);
+            }
+        }
+    }
+    if !min.is_finite() || !max.is_finite() {
+        return None;
+    }
+    // Pixel centres at +0.5: covered rows are ceil(min - 0.5) ..= floor(max - 0.5).
+    if max.x < 0.5 || max.y < 0.5 || min.x > width as f32 - 0.5 || min.y > height as f32 - 0.5 {
+        return None;
+    }
+    let first_row = (min.y - 0.5).ceil().max(0.0) as usize;
+    let last_row = ((max.y - 0.5).floor() as usize).min(height - 1);
+    (first_row <= last_row).then_some((first_row, last_row))
+}
+
+fn is_back_facing(corners: &[Vec3; 3]) -> bool {
+    let normal = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
+    normal.dot(corners[0]) >= 0.0
+}
+
+/// Clips a face against the near plane (up to 4 corners) and draws the resulting triangles.
+fn draw_face(
+    corners: &[ClipVertex; 3],
+    face_index: u32,
+    projector: &Projector,
+    use_vertex_normals: bool,
+    target: &mut BandTarget,
+) {
+    let a = corners[0].position_cam;
+    let face_normal = (corners[1].position_cam - a)
+        .cross(corners[2].position_cam - a)
+        .normalize_or_zero();
+    let near = projector.near_m;
+    if corners.iter().all(|c| c.position_cam.z >= near) {
+        draw_triangle(
+            corners,
+            face_normal,
+            face_index,
+            projector,
+            use_vertex_normals,
+            target,
+        );
+        return;
+    }
+    let mut polygon = [corners[0]; 4];
+    let mut count = 0;
+    for i in 0..3 {
+        let current = corners[i];
+        let next = corners[(i + 1) % 3];
+        let current_in = current.position_cam.z >= near;
+        let next_in = next.position_cam.z >= near;
+        if current_in {
+            polygon[count] = current;
+            count += 1;
+        }
+        if current_in != next_in {
+            let t =
+                (near - current.position_cam.z) / (next.position_cam.z - current.position_cam.z);
+            polygon[count] = ClipVertex {
+                position_cam: current.position_cam.lerp(next.position_cam, t),
+                normal_cam: current.normal_cam.lerp(next.normal_cam, t),
+            };
+            count += 1;
+        }
+    }
+    for i in 1..count.saturating_sub(1) {
+        draw_triangle(
+            &[polygon[0], polygon[i], polygon[i + 1]],
+            face_normal,
+            face_index,
+            projector,
+            use_vertex_normals,
+            target,
+        );
+    }
+}
+
+/// Draws one triangle that lies entirely in front of the near plane.
+fn draw_triangle(
+    corners: &[ClipVertex; 3],
+    face_normal: Vec3,
+    face_index: u32,
+    projector: &Projector,
+    use_vertex_normals: bool,
+    target: &mut BandTarget,
+) {
+    let screen = corners.map(|c| projector.project(c.position_cam));
+    let inv_z = corners.map(|c| 1.0 / c.position_cam.z);
+    let edge = |a: Vec2, b: Vec2, p: Vec2| (b.x - a.x) * (p.y - a.y) - (b.y - a.y) * (p.x - a.x);
+    let signed_area = edge(screen[0], screen[1], screen[2]);
+    if !signed_area.is_finite() || signed_area.abs() < 1e-12 {
+        return;
+    }
+    let orientation = signed_area.signum();
+    let inv_area = 1.0 / signed_area.abs();
+
+    let min = screen[0].min(screen[1]).min(screen[2]);
+    let max = screen[0].max(screen[1]).max(screen[2]);
+    let band_first = target.first_row as f32;
+    let band_last = (target.first_row + target.rows) as f32 - 1.0;
+    let row_start = (min.y - 0.5).ceil().max(band_first);
+    let row_end = (max.y - 0.5).floor().min(band_last);
+    let col_start = (min.x - 0.5).ceil().max(0.0);
+    let col_end = (max.x - 0.5).floor().min(target.width as f32 - 1.0);
+    if row_start > row_end || col_start > col_end {
+        return;
+    }
+    let (row_start, row_end) = (row_start as usize, row_end as usize);
+    let (col_start, col_end) = (col_start as usize, col_end as usize);
+
+    for row in row_start..=row_end {
+        let y = row as f32 + 0.5;
+        let line = (row - target.first_row) * target.width;
+        for col in col_start..=col_end {
+            let p = Vec2::new(col as f32 + 0.5, y);
+            let w0 = edge(screen[1], screen[2], p) * orientation;
+            let w1 = edge(screen[2], screen[0], p) * orientation;
+            let w2 = edge(screen[0], screen[1], p) * orientation;
+            if w0 < 0.0 || w1 < 0.0 || w2 < 0.0 {
+                continue;
+            }
+            let b0 = w0 * inv_area * inv_z[0];
+            let b1 = w1 * inv_area * inv_z[1];
+            let b2 = w2 * inv_area * inv_z[2];
+            let sum_inv_z = b0 + b1 + b2;
+            if sum_inv_z <= 0.0 {
+                continue;
+            }
+            let depth = 1.0 / sum_inv_z;
+            let index = line + col;
+            let current = target.face_index[index];
+            if current != NO_FACE && depth >= target.depth[index] {
+                continue;
+            }
+            target.depth[index] = depth;
+            target.face_index[index] = face_index;
+            target.normal[index] = if use_vertex_normals {
+                ((corners[0].normal_cam * b0
+                    + corners[1].normal_cam * b1
+                    + corners[2].normal_cam * b2)
+                    * depth)
+                    .normalize_or(face_normal)
+            } else {
+                face_normal
+            };
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    /// A 2 m × 2 m square in the plane z = 5 m (world = camera), facing the camera.
+    fn square_facing_camera() -> Mesh {
+        let positions = [
+            Vector3::new(-1.0, -1.0, 5.0),
+            Vector3::new(1.0, -1.0, 5.0),
+            Vector3::new(1.0, 1.0, 5.0),
+            Vector3::new(-1.0, 1.0, 5.0),
+        ];
+        Mesh::from_world(&positions, vec![[0, 2, 1], [0, 3, 2]], None).unwrap()
+    }
+
+    #[test]
+    fn square_covers_the_expected_pixels_at_the_expected_depth() {
+        let mesh = square_facing_camera();
+        let intrinsics = PinholeIntrinsics::centered(100.0, 100, 80);
+        let mut out = RenderBuffers::new(100, 80);
+        Rasterizer::new().render(
+            &mesh,
+            &intrinsics,
+            &Rigid3::identity(),
+            &RenderOptions::default(),
+            &mut out,
+        );
+        // The square spans x in [50 - 20, 50 + 20) and y in [40 - 20, 40 + 20) pixels.
+        assert_eq!(out.valid_count(), 40 * 40);
+        assert!(out.is_valid(30, 20) && out.is_valid(69, 59));
+        assert!(!out.is_valid(29, 40) && !out.is_valid(70, 40));
+        let centre = 40 * 100 + 50;
+        assert!((out.depth_m[centre] - 5.0).abs() < 1e-5);
+        // Counter-clockwise seen from the camera (y down): the normal points at the camera.
+        assert!((out.normal_cam[centre] - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-5);
+    }
+
+    #[test]
+    fn a_plane_through_the_camera_is_clipped_not_dropped() {
+        // A ground plane 2 m below a camera looking along +z, extending behind it.
+        let positions = [
+            Vector3::new(-50.0, 2.0, -50.0),
+            Vector3::new(50.0, 2.0, -50.0),
+            Vector3::new(50.0, 2.0, 50.0),
+            Vector3::new(-50.0, 2.0, 50.0),
+        ];
+        let mesh = Mesh::from_world(&positions, vec![[0, 1, 2], [0, 2, 3]], None).unwrap();
+        let intrinsics = PinholeIntrinsics::centered(50.0, 100, 100);
+        let mut out = RenderBuffers::new(100, 100);
+        Rasterizer::new().render(
+            &mesh,
+            &intrinsics,
+            &Rigid3::identity(),
+            &RenderOptions::default(),
+            &mut out,
+        );
+        // Below the horizon (row 50) everything is ground; the bottom row is at depth 2 * 50 / 49.5.
+        assert!(out.is_valid(10, 99) && out.is_valid(90, 60));
+        assert!(!out.is_valid(50, 40));
+        let depth = out.depth_m[99 * 100 + 50];
+        assert!((depth - 2.0 * 50.0 / 49.5).abs() < 1e-3, "{depth}");
+    }
+}

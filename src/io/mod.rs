@@ -1,0 +1,9 @@
+//! File formats: COLMAP text models, meshes (PLY, OBJ), depth maps (PFM) and images. Every reader
+//! names the file, and where it can the line or field, in its errors.
+
+pub mod colmap;
+pub mod images;
+pub mod mesh_file;
+pub mod obj;
+pub mod pfm;
+pub mod ply;

@@ -1,0 +1,7 @@
+//! asgreg registers aerial photographs to an untextured 3D mesh: from a frame's rough GPS/IMU pose
+//! to an accurate camera pose and a verdict on whether it succeeded (Average Shading Gradients +
+//! SIFT flow + RANSAC + a plausibility check). See `ARCHITECTURE.md` for the module map.
+
+pub mod core;
+pub mod io;
+pub mod synth;

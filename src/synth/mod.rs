@@ -1,0 +1,1 @@
+//! Honest synthetic scenes (being written).
