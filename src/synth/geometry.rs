@@ -587,7 +587,8 @@ fn add_gable_building(scene: &mut Scene, building: &GableBuilding) {
         &[
             Vec2::new(-b.half_y_m, b.wall_height_m),
             Vec2::new(b.half_y_m, b.wall_height_m),
-            Vec2::new(0.0, ridge_z),
+            // Below the roof slab's top surface (not coplanar with it: no z-fighting).
+            Vec2::new(0.0, ridge_z - b.roof_thickness_m * 0.5),
         ],
         b.half_x_m,
         &[b.wall_material],
@@ -1225,29 +1226,43 @@ fn add_ground(scene: &mut Scene) {
     // The patch, split into 2 m cells so the model's trimmed ground stays local.
     let cells = (2.0 * h / 2.0).ceil() as i32;
     let cell = 2.0 * h / cells as f32;
+    let quad = |x0: f32, y0: f32, x1: f32, y1: f32| {
+        [
+            Vec3::new(x0, y0, 0.0),
+            Vec3::new(x1, y0, 0.0),
+            Vec3::new(x1, y1, 0.0),
+            Vec3::new(x0, y1, 0.0),
+        ]
+    };
     for i in 0..cells {
         for j in 0..cells {
             let x0 = -h + i as f32 * cell;
             let y0 = -h + j as f32 * cell;
-            scene.add_polygon(
-                &[
-                    Vec3::new(x0, y0, 0.0),
-                    Vec3::new(x0 + cell, y0, 0.0),
-                    Vec3::new(x0 + cell, y0 + cell, 0.0),
-                    Vec3::new(x0, y0 + cell, 0.0),
-                ],
-                tag(PartKind::NearGround),
-                up,
-            );
+            scene.add_polygon(&quad(x0, y0, x0 + cell, y0 + cell), tag(PartKind::NearGround), up);
         }
     }
-    for quad in [
-        [(-far, -far), (far, -far), (far, -h), (-far, -h)],
-        [(-far, h), (far, h), (far, far), (-far, far)],
-        [(-far, -h), (-h, -h), (-h, h), (-far, h)],
-        [(h, -h), (far, -h), (far, h), (h, h)],
+    // Around it, 10 m cells out to 250 m (huge triangles lose depth precision in the
+    // rasteriser, which shows as stripes in the shadow test), then four quads to the horizon.
+    const RING_CELL_M: f32 = 10.0;
+    const RING_CELLS: i32 = 25;
+    let mut lines: Vec<f32> = (0..=RING_CELLS).rev().map(|k| -h - k as f32 * RING_CELL_M).collect();
+    lines.extend((0..=RING_CELLS).map(|k| h + k as f32 * RING_CELL_M));
+    for i in 0..lines.len() - 1 {
+        for j in 0..lines.len() - 1 {
+            let (x0, x1, y0, y1) = (lines[i], lines[i + 1], lines[j], lines[j + 1]);
+            if x0 >= -h && x1 <= h && y0 >= -h && y1 <= h {
+                continue;
+            }
+            scene.add_polygon(&quad(x0, y0, x1, y1), tag(PartKind::FarGround), up);
+        }
+    }
+    let r = h + RING_CELLS as f32 * RING_CELL_M;
+    for corners in [
+        quad(-far, -far, far, -r),
+        quad(-far, r, far, far),
+        quad(-far, -r, -r, r),
+        quad(r, -r, far, r),
     ] {
-        let corners: Vec<Vec3> = quad.iter().map(|&(x, y)| Vec3::new(x, y, 0.0)).collect();
         scene.add_polygon(&corners, tag(PartKind::FarGround), up);
     }
 }

@@ -537,5 +537,13 @@ mod tests {
             );
         }
         println!("model: {} faces, deviation {:.3} m", summary.model_faces, summary.model_mean_deviation_m);
+        // A 3 × 3 contact sheet of the first photos, as PNG, for looking at them.
+        let (w, h) = (config.width_px, config.height_px);
+        let mut sheet = image::RgbImage::new(w * 3, h * 3);
+        for (k, info) in summary.images.iter().take(9).enumerate() {
+            let photo = image::open(Path::new(&out).join("images").join(&info.name)).unwrap().to_rgb8();
+            image::imageops::replace(&mut sheet, &photo, i64::from(w * (k as u32 % 3)), i64::from(h * (k as u32 / 3)));
+        }
+        sheet.save(Path::new(&out).join("contact_sheet.png")).unwrap();
     }
 }

@@ -360,7 +360,7 @@ fn opening(seed: u64, panel: &Panel, p: Vec3, footprint_m: f32) -> SurfaceSample
                 let db = (b - (b / pane_h).round() * pane_h).abs();
                 da.min(db)
             };
-            let frame = line_coverage(FRAME_M - edge_distance, FRAME_M, footprint_m)
+            let frame = line_coverage(edge_distance, FRAME_M, footprint_m)
                 .max(line_coverage(mullion_distance, MULLION_HALF_M, footprint_m));
             // Behind the glass: dark interior, sometimes a light curtain in the upper part.
             let curtain_seed = hash_u64(seed ^ u64::from(panel.style) << 8);
@@ -445,13 +445,13 @@ pub fn ground_albedo(seed: u64, layout: &GroundLayout, p: Vec3, footprint_m: f32
     let blades = value_noise(seed ^ 128, Vec3::new(p.x / 0.02, p.y / 0.02, 0.0)) - 0.5;
     let blade_visibility = pattern_visibility(0.02, footprint_m);
     let tufts = fbm(seed ^ 129, p, 0.25, 3, footprint_m);
-    let green = srgb(85, 115, 50);
-    let dry = srgb(140, 130, 80);
+    let green = srgb(90, 110, 58);
+    let dry = srgb(150, 142, 100);
     let dirt = srgb(110, 90, 65);
     let dryness = (0.5 + 1.6 * patches).clamp(0.0, 1.0);
     let dirt_amount = ((large - 0.2) * 3.0).clamp(0.0, 0.7);
     green.lerp(dry, dryness * 0.6).lerp(dirt, dirt_amount)
-        * (1.0 + 0.5 * tufts + 0.5 * blade_visibility * blades)
+        * (1.0 + 0.7 * large + 0.6 * tufts + 0.6 * blade_visibility * blades)
 }
 
 #[cfg(test)]
