@@ -227,6 +227,8 @@ fn read_lines(path: &Path) -> Result<Vec<(usize, String)>, ColmapError> {
         path: path.to_path_buf(),
         source,
     })?;
+    // A byte-order mark (some Windows editors add one) is no part of the first field.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     Ok(text
         .lines()
         .enumerate()
@@ -788,6 +790,13 @@ mod tests {
         );
         let images = read_images_txt(&path).unwrap();
         assert_eq!(images[0].name, "flight 2/img 001.jpg");
+        // Windows line endings and a byte-order mark are accepted too.
+        let windows = write(
+            dir.path(),
+            CAMERAS_FILE,
+            "\u{feff}# Camera list with one line of data per camera:\r\n1 SIMPLE_PINHOLE 10 8 5 5 4\r\n",
+        );
+        assert_eq!(read_cameras_txt(&windows).unwrap()[&1].height_px, 8);
         assert_eq!(
             images[1].cam_from_world.translation,
             Vector3::new(1.0, 2.0, 3.0)

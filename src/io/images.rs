@@ -326,6 +326,16 @@ pub fn check_image_matches_camera(
     }
 }
 
+/// [`check_image_matches_camera`] for an image file, whose size is read from its header.
+pub fn check_image_file_matches_camera(
+    image_path: &Path,
+    camera_id: u32,
+    camera: &Camera,
+) -> Result<(), ImageIoError> {
+    let (width_px, height_px) = read_image_size(image_path)?;
+    check_image_matches_camera(image_path, width_px, height_px, camera_id, camera)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -481,6 +491,19 @@ mod tests {
             assert!(message.contains(part), "no '{part}' in: {message}");
         }
         assert!(check_image_matches_camera(path, 558, 995, 1, &camera).is_err());
+
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("small.png");
+        save_gray_png(&file, &GrayImage::new(4, 3)).unwrap();
+        let small = Camera::pinhole(4, 3, PinholeIntrinsics::centered(5.0, 4, 3));
+        assert!(check_image_file_matches_camera(&file, 2, &small).is_ok());
+        let message = check_image_file_matches_camera(&file, 2, &camera)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("small.png") && message.contains("4x3"),
+            "{message}"
+        );
     }
 
     #[test]
