@@ -203,16 +203,6 @@ impl Mesh {
             _ => None,
         };
     }
-
-    /// Consumes the mesh into its parts `(origin, local positions, faces, normals)`.
-    pub fn into_parts(self) -> (Vector3<f64>, Vec<Vec3>, Vec<[u32; 3]>, Option<Vec<Vec3>>) {
-        (
-            self.origin_m,
-            self.positions_local_m,
-            self.faces,
-            self.vertex_normals,
-        )
-    }
 }
 
 fn bounds_center(points: impl Iterator<Item = Vector3<f64>>) -> Vector3<f64> {

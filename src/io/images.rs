@@ -1,1 +1,540 @@
-//! (being written)
+//! Image files in and out of the pipeline: photos are loaded as grayscale floats (what shading
+//! gradients and SIFT work on), renderings and diagnostics are saved as PNG, and a photo's size is
+//! checked against its camera before anything uses the two together.
+//!
+//! PNG and JPEG are supported (the `image` crate's decoders; the format is recognised from the
+//! file's content, not its extension). Grayscale is Rec. 601 luma, `0.299 R + 0.587 G + 0.114 B`,
+//! in `0..=1`; alpha is ignored; 16-bit images keep their precision. Every error names the file.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+
+use image::{DynamicImage, ImageFormat, ImageReader};
+
+use crate::core::camera::Camera;
+
+/// Errors of loading, saving and checking images; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageIoError {
+    #[error("cannot open image {}: {source}", path.display())]
+    Open {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(
+        "cannot decode image {} (corrupt, truncated, or not a PNG/JPEG file): {source}",
+        path.display()
+    )]
+    Decode {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
+    },
+    #[error("cannot write image {}: {source}", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
+    },
+    #[error(
+        "cannot write image {}: a {width_px}x{height_px} image needs {expected_pixels} pixels, the buffer has {found_pixels}",
+        path.display()
+    )]
+    BufferSize {
+        path: PathBuf,
+        width_px: usize,
+        height_px: usize,
+        expected_pixels: usize,
+        found_pixels: usize,
+    },
+    #[error(
+        "image {} is {width_px}x{height_px} px but camera {camera_id} in cameras.txt is {camera_width_px}x{camera_height_px} px; resize the image to {camera_width_px}x{camera_height_px} px or fix camera {camera_id} in cameras.txt (its WIDTH, HEIGHT and intrinsics together)",
+        path.display()
+    )]
+    CameraSizeMismatch {
+        path: PathBuf,
+        width_px: usize,
+        height_px: usize,
+        camera_id: u32,
+        camera_width_px: u32,
+        camera_height_px: u32,
+    },
+}
+
+/// A grayscale image: row-major (`pixels[row * width_px + col]`), top row first, values `0..=1`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GrayImage {
+    pub width_px: usize,
+    pub height_px: usize,
+    pub pixels: Vec<f32>,
+}
+
+impl GrayImage {
+    /// A black image.
+    pub fn new(width_px: usize, height_px: usize) -> Self {
+        Self {
+            width_px,
+            height_px,
+            pixels: vec![0.0; width_px * height_px],
+        }
+    }
+
+    /// The value at `(col, row)`; `None` outside the image.
+    pub fn get(&self, col: usize, row: usize) -> Option<f32> {
+        (col < self.width_px && row < self.height_px)
+            .then(|| self.pixels[row * self.width_px + col])
+    }
+}
+
+/// Rec. 601 luma of linear-in-file RGB values in `0..=1`.
+fn rec601_luma(rgb: [f32; 3]) -> f32 {
+    0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]
+}
+
+fn decode(path: &Path) -> Result<DynamicImage, ImageIoError> {
+    let file = File::open(path).map_err(|source| ImageIoError::Open {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let decode_error = |source| ImageIoError::Decode {
+        path: path.to_path_buf(),
+        source,
+    };
+    let reader = ImageReader::new(BufReader::new(file))
+        .with_guessed_format()
+        .map_err(|source| decode_error(image::ImageError::IoError(source)))?;
+    let is_jpeg = reader.format() == Some(ImageFormat::Jpeg);
+    let image = reader.decode().map_err(decode_error)?;
+    // The JPEG decoder fills a file that ends early with grey instead of failing: check the end.
+    if is_jpeg {
+        let bytes = std::fs::read(path).map_err(|source| ImageIoError::Open {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        if !jpeg_is_complete(&bytes) {
+            return Err(decode_error(image::ImageError::Decoding(
+                image::error::DecodingError::new(
+                    ImageFormat::Jpeg.into(),
+                    "the file ends before the JPEG end-of-image marker (truncated)",
+                ),
+            )));
+        }
+    }
+    Ok(image)
+}
+
+/// Whether a JPEG byte stream reaches its end-of-image marker (`FF D9`) by walking its marker
+/// segments and entropy-coded scans (so an embedded thumbnail's marker does not count; data
+/// appended after the marker is allowed).
+fn jpeg_is_complete(bytes: &[u8]) -> bool {
+    const MARKER: u8 = 0xFF;
+    const END_OF_IMAGE: u8 = 0xD9;
+    const START_OF_SCAN: u8 = 0xDA;
+    let is_standalone = |marker: u8| (0xD0..=0xD8).contains(&marker) || marker == 0x01;
+    let mut index = 0;
+    loop {
+        if index + 1 >= bytes.len() || bytes[index] != MARKER {
+            return false;
+        }
+        // Skip fill bytes before the marker code.
+        while index + 1 < bytes.len() && bytes[index + 1] == MARKER {
+            index += 1;
+        }
+        let Some(&marker) = bytes.get(index + 1) else {
+            return false;
+        };
+        if marker == END_OF_IMAGE {
+            return true;
+        }
+        if is_standalone(marker) {
+            index += 2;
+            continue;
+        }
+        let Some(length) = bytes
+            .get(index + 2..index + 4)
+            .map(|len| usize::from(u16::from_be_bytes([len[0], len[1]])))
+        else {
+            return false;
+        };
+        index += 2 + length;
+        if index > bytes.len() {
+            return false;
+        }
+        if marker == START_OF_SCAN {
+            // Entropy-coded data: 0xFF is followed by 0x00 (stuffing) or a restart marker.
+            loop {
+                if index + 1 >= bytes.len() {
+                    return false;
+                }
+                let next = bytes[index + 1];
+                if bytes[index] == MARKER && next != 0x00 && !(0xD0..=0xD7).contains(&next) {
+                    break;
+                }
+                index += 1;
+            }
+        }
+    }
+}
+
+/// The size of an image file in pixels `(width, height)`, read from its header only.
+pub fn read_image_size(path: &Path) -> Result<(usize, usize), ImageIoError> {
+    let file = File::open(path).map_err(|source| ImageIoError::Open {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let decode_error = |source| ImageIoError::Decode {
+        path: path.to_path_buf(),
+        source,
+    };
+    let (width_px, height_px) = ImageReader::new(BufReader::new(file))
+        .with_guessed_format()
+        .map_err(|source| decode_error(image::ImageError::IoError(source)))?
+        .into_dimensions()
+        .map_err(decode_error)?;
+    Ok((width_px as usize, height_px as usize))
+}
+
+/// Loads an image as Rec. 601 luma in `0..=1` (grayscale files are taken as they are).
+pub fn load_gray(path: &Path) -> Result<GrayImage, ImageIoError> {
+    let image = decode(path)?;
+    let (width_px, height_px) = (image.width() as usize, image.height() as usize);
+    let pixels = if image.color().has_color() {
+        image
+            .to_rgb32f()
+            .pixels()
+            .map(|pixel| rec601_luma(pixel.0))
+            .collect()
+    } else {
+        image.to_luma32f().into_raw()
+    };
+    Ok(GrayImage {
+        width_px,
+        height_px,
+        pixels,
+    })
+}
+
+/// Loads an image as 8-bit RGB: `(width_px, height_px, pixels)`, row-major, top row first.
+pub fn load_rgb(path: &Path) -> Result<(usize, usize, Vec<[u8; 3]>), ImageIoError> {
+    let image = decode(path)?.to_rgb8();
+    let (width_px, height_px) = (image.width() as usize, image.height() as usize);
+    let pixels = image.pixels().map(|pixel| pixel.0).collect();
+    Ok((width_px, height_px, pixels))
+}
+
+/// Checks the buffer length and that the size fits a PNG; returns the size as `u32`s.
+fn checked_size(
+    path: &Path,
+    width_px: usize,
+    height_px: usize,
+    found_pixels: usize,
+) -> Result<(u32, u32), ImageIoError> {
+    let size_error = || ImageIoError::BufferSize {
+        path: path.to_path_buf(),
+        width_px,
+        height_px,
+        expected_pixels: width_px.saturating_mul(height_px),
+        found_pixels,
+    };
+    if width_px == 0 || height_px == 0 || width_px.checked_mul(height_px) != Some(found_pixels) {
+        return Err(size_error());
+    }
+    match (u32::try_from(width_px), u32::try_from(height_px)) {
+        (Ok(width), Ok(height)) => Ok((width, height)),
+        _ => Err(size_error()),
+    }
+}
+
+fn save_png<P: image::Pixel + image::PixelWithColorType>(
+    path: &Path,
+    buffer: image::ImageBuffer<P, Vec<P::Subpixel>>,
+) -> Result<(), ImageIoError>
+where
+    [P::Subpixel]: image::EncodableLayout,
+{
+    buffer
+        .save_with_format(path, ImageFormat::Png)
+        .map_err(|source| ImageIoError::Write {
+            path: path.to_path_buf(),
+            source,
+        })
+}
+
+/// Saves a grayscale image as an 8-bit PNG; values are clamped to `0..=1` (NaN becomes 0).
+pub fn save_gray_png(path: &Path, image: &GrayImage) -> Result<(), ImageIoError> {
+    let (width, height) = checked_size(path, image.width_px, image.height_px, image.pixels.len())?;
+    let bytes: Vec<u8> = image
+        .pixels
+        .iter()
+        .map(|value| (value.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
+    let buffer = image::GrayImage::from_raw(width, height, bytes).ok_or_else(|| {
+        ImageIoError::BufferSize {
+            path: path.to_path_buf(),
+            width_px: image.width_px,
+            height_px: image.height_px,
+            expected_pixels: image.width_px * image.height_px,
+            found_pixels: image.pixels.len(),
+        }
+    })?;
+    save_png(path, buffer)
+}
+
+/// Saves 8-bit RGB pixels (row-major, top row first) as a PNG.
+pub fn save_rgb_png(
+    path: &Path,
+    width_px: usize,
+    height_px: usize,
+    rgb: &[[u8; 3]],
+) -> Result<(), ImageIoError> {
+    let (width, height) = checked_size(path, width_px, height_px, rgb.len())?;
+    let bytes: Vec<u8> = rgb.iter().flatten().copied().collect();
+    let buffer = image::RgbImage::from_raw(width, height, bytes).ok_or_else(|| {
+        ImageIoError::BufferSize {
+            path: path.to_path_buf(),
+            width_px,
+            height_px,
+            expected_pixels: width_px * height_px,
+            found_pixels: rgb.len(),
+        }
+    })?;
+    save_png(path, buffer)
+}
+
+/// Checks that an image of `width_px` × `height_px` (the size of the file at `image_path`) is the
+/// size its camera `camera_id` says; the error says which file, both sizes and what to do.
+pub fn check_image_matches_camera(
+    image_path: &Path,
+    width_px: usize,
+    height_px: usize,
+    camera_id: u32,
+    camera: &Camera,
+) -> Result<(), ImageIoError> {
+    if width_px == camera.width_px as usize && height_px == camera.height_px as usize {
+        Ok(())
+    } else {
+        Err(ImageIoError::CameraSizeMismatch {
+            path: image_path.to_path_buf(),
+            width_px,
+            height_px,
+            camera_id,
+            camera_width_px: camera.width_px,
+            camera_height_px: camera.height_px,
+        })
+    }
+}
+
+/// [`check_image_matches_camera`] for an image file, whose size is read from its header.
+pub fn check_image_file_matches_camera(
+    image_path: &Path,
+    camera_id: u32,
+    camera: &Camera,
+) -> Result<(), ImageIoError> {
+    let (width_px, height_px) = read_image_size(image_path)?;
+    check_image_matches_camera(image_path, width_px, height_px, camera_id, camera)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::camera::PinholeIntrinsics;
+
+    #[test]
+    fn gray_png_round_trips_to_8_bit_precision_and_clamps() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("gray.png");
+        let image = GrayImage {
+            width_px: 3,
+            height_px: 2,
+            pixels: vec![0.0, 0.25, 1.0, -0.5, 1.7, 100.0 / 255.0],
+        };
+        save_gray_png(&path, &image).unwrap();
+        let loaded = load_gray(&path).unwrap();
+        assert_eq!((loaded.width_px, loaded.height_px), (3, 2));
+        let expected = [0.0, 64.0 / 255.0, 1.0, 0.0, 1.0, 100.0 / 255.0];
+        for (got, want) in loaded.pixels.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+        }
+        assert_eq!(loaded.get(2, 1), Some(loaded.pixels[5]));
+        assert_eq!(loaded.get(3, 0), None);
+        assert_eq!(read_image_size(&path).unwrap(), (3, 2));
+    }
+
+    #[test]
+    fn rgb_round_trips_and_gray_is_rec601_luma() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rgb.png");
+        let rgb = [[255, 0, 0], [0, 255, 0], [0, 0, 255], [10, 200, 30]];
+        save_rgb_png(&path, 2, 2, &rgb).unwrap();
+        assert_eq!(load_rgb(&path).unwrap(), (2, 2, rgb.to_vec()));
+
+        let gray = load_gray(&path).unwrap();
+        let expected = [
+            0.299,
+            0.587,
+            0.114,
+            (0.299 * 10.0 + 0.587 * 200.0 + 0.114 * 30.0) / 255.0,
+        ];
+        for (got, want) in gray.pixels.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+        }
+    }
+
+    #[test]
+    fn jpeg_loads_by_content_whatever_the_extension() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("photo.png");
+        let buffer = image::RgbImage::from_fn(16, 8, |x, _| image::Rgb([(x * 16) as u8, 128, 64]));
+        buffer.save_with_format(&path, ImageFormat::Jpeg).unwrap();
+        let gray = load_gray(&path).unwrap();
+        assert_eq!((gray.width_px, gray.height_px), (16, 8));
+        // Brightness rises left to right.
+        assert!(gray.get(15, 4).unwrap() > gray.get(0, 4).unwrap() + 0.2);
+    }
+
+    #[test]
+    fn missing_truncated_and_foreign_files_are_errors_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("missing.png");
+        let error = load_gray(&missing).unwrap_err();
+        assert!(matches!(error, ImageIoError::Open { .. }));
+        assert!(error.to_string().contains("missing.png"), "{error}");
+
+        let good = dir.path().join("good.png");
+        let noise: Vec<[u8; 3]> = (0..64 * 64)
+            .map(|i: u32| {
+                [
+                    (i * 7 % 251) as u8,
+                    (i * 13 % 253) as u8,
+                    (i * 31 % 255) as u8,
+                ]
+            })
+            .collect();
+        save_rgb_png(&good, 64, 64, &noise).unwrap();
+        let bytes = std::fs::read(&good).unwrap();
+        let truncated = dir.path().join("truncated.png");
+        std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
+        for result in [
+            load_gray(&truncated).map(|_| ()),
+            load_rgb(&truncated).map(|_| ()),
+        ] {
+            let error = result.unwrap_err();
+            assert!(matches!(error, ImageIoError::Decode { .. }), "{error}");
+            assert!(error.to_string().contains("truncated.png"), "{error}");
+        }
+
+        let jpeg = dir.path().join("good.jpg");
+        image::RgbImage::from_fn(64, 64, |x, y| image::Rgb([(x * 4) as u8, (y * 4) as u8, 7]))
+            .save_with_format(&jpeg, ImageFormat::Jpeg)
+            .unwrap();
+        let bytes = std::fs::read(&jpeg).unwrap();
+        assert!(jpeg_is_complete(&bytes));
+        let half_jpeg = dir.path().join("half.jpg");
+        std::fs::write(&half_jpeg, &bytes[..bytes.len() / 2]).unwrap();
+        let error = load_gray(&half_jpeg).unwrap_err();
+        assert!(matches!(error, ImageIoError::Decode { .. }), "{error}");
+        assert!(error.to_string().contains("half.jpg"), "{error}");
+        assert!(!jpeg_is_complete(&bytes[..bytes.len() - 1]));
+        let mut appended = bytes.clone();
+        appended.extend_from_slice(b"trailing data after the image");
+        assert!(jpeg_is_complete(&appended));
+
+        let text = dir.path().join("notes.png");
+        std::fs::write(&text, "not an image").unwrap();
+        let error = load_rgb(&text).unwrap_err();
+        assert!(error.to_string().contains("notes.png"), "{error}");
+        let error = read_image_size(&text).unwrap_err();
+        assert!(error.to_string().contains("notes.png"), "{error}");
+    }
+
+    #[test]
+    fn saving_checks_the_buffer_and_names_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("short.png");
+        let error = save_rgb_png(&path, 2, 2, &[[0, 0, 0]; 3]).unwrap_err();
+        assert!(matches!(
+            error,
+            ImageIoError::BufferSize {
+                expected_pixels: 4,
+                found_pixels: 3,
+                ..
+            }
+        ));
+        assert!(error.to_string().contains("short.png"), "{error}");
+        let error = save_gray_png(&path, &GrayImage::new(0, 5)).unwrap_err();
+        assert!(matches!(error, ImageIoError::BufferSize { .. }));
+        assert!(!path.exists());
+
+        let unwritable = dir.path().join("no_such_dir").join("out.png");
+        let error = save_gray_png(&unwritable, &GrayImage::new(2, 2)).unwrap_err();
+        assert!(matches!(error, ImageIoError::Write { .. }));
+        assert!(error.to_string().contains("out.png"), "{error}");
+    }
+
+    #[test]
+    fn image_size_is_checked_against_its_camera() {
+        let camera = Camera::pinhole(995, 558, PinholeIntrinsics::centered(585.0, 995, 558));
+        let path = Path::new("images/DJI_0025.JPG");
+        assert!(check_image_matches_camera(path, 995, 558, 1, &camera).is_ok());
+        let error = check_image_matches_camera(path, 1000, 562, 1, &camera).unwrap_err();
+        let message = error.to_string();
+        for part in [
+            "DJI_0025.JPG",
+            "1000x562",
+            "camera 1",
+            "995x558",
+            "resize",
+            "cameras.txt",
+        ] {
+            assert!(message.contains(part), "no '{part}' in: {message}");
+        }
+        assert!(check_image_matches_camera(path, 558, 995, 1, &camera).is_err());
+
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("small.png");
+        save_gray_png(&file, &GrayImage::new(4, 3)).unwrap();
+        let small = Camera::pinhole(4, 3, PinholeIntrinsics::centered(5.0, 4, 3));
+        assert!(check_image_file_matches_camera(&file, 2, &small).is_ok());
+        let message = check_image_file_matches_camera(&file, 2, &camera)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("small.png") && message.contains("4x3"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn real_photo_loads_and_a_truncated_copy_is_rejected() {
+        let path = Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../shared/data/brighton_beach/images_undistorted/DJI_0025.JPG"
+        ));
+        if !path.is_file() {
+            println!("skipped: {} is absent", path.display());
+            return;
+        }
+        let gray = load_gray(path).unwrap();
+        assert_eq!((gray.width_px, gray.height_px), (995, 558));
+        assert_eq!(read_image_size(path).unwrap(), (995, 558));
+        let mean = gray.pixels.iter().sum::<f32>() / gray.pixels.len() as f32;
+        assert!(mean > 0.05 && mean < 0.95, "mean {mean}");
+        // No false alarms on any of the real photos (EXIF thumbnails, XMP, etc.).
+        for folder in ["images_undistorted", "images_distorted"] {
+            let folder = path.parent().unwrap().parent().unwrap().join(folder);
+            for entry in std::fs::read_dir(&folder).unwrap() {
+                let photo = entry.unwrap().path();
+                let bytes = std::fs::read(&photo).unwrap();
+                assert!(jpeg_is_complete(&bytes), "{}", photo.display());
+            }
+        }
+        let bytes = std::fs::read(path).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let truncated = dir.path().join("DJI_0025_cut.JPG");
+        std::fs::write(&truncated, &bytes[..bytes.len() * 2 / 3]).unwrap();
+        let error = load_rgb(&truncated).unwrap_err();
+        assert!(error.to_string().contains("DJI_0025_cut.JPG"), "{error}");
+    }
+}

@@ -1,0 +1,60 @@
+//! Subcommands of the `asgreg` binary. Each file parses its own arguments and calls the library;
+//! errors are `anyhow` here (and only here) so they can carry the file and what to do.
+
+mod demo;
+mod inputs;
+mod overlay;
+mod render;
+mod synth;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "asgreg",
+    version,
+    about = "Register aerial photographs to an untextured 3D mesh (Average Shading Gradients + SIFT flow)"
+)]
+pub struct Cli {
+    /// More log output (-v: debug, -vv: trace). RUST_LOG overrides.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    pub verbose: u8,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// The main job on an embedded default: make a synthetic scene and show its renderings.
+    Demo(demo::DemoArgs),
+    /// Write an honest synthetic test scene (photos, degraded model, depth, ground truth, initial poses).
+    Synth(synth::SynthArgs),
+    /// Render the mesh under an image's pose: ASG gradient image, normals or depth, as PNG.
+    Render(render::RenderArgs),
+    /// Draw the mesh over a photo under its pose (normal colours and edges), as PNG.
+    Overlay(overlay::OverlayArgs),
+}
+
+pub fn init_logging(verbose: u8) {
+    let default_level = match verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+}
+
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Demo(args) => demo::run(&args),
+        Command::Synth(args) => synth::run(&args),
+        Command::Render(args) => render::run(&args),
+        Command::Overlay(args) => overlay::run(&args),
+    }
+}

@@ -1,0 +1,147 @@
+//! `asgreg render`: the mesh under one image's pose as an ASG gradient image (what registration
+//! matches against), a normal map or a depth map.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use asgreg::core::camera::Camera;
+use asgreg::core::mesh::Mesh;
+use asgreg::core::raster::{NormalSource, Rasterizer, RenderBuffers, RenderOptions};
+use asgreg::core::rigid::Rigid3;
+use asgreg::core::shading::{asg_from_normals, AsgOptions};
+use asgreg::io::images::{save_gray_png, save_rgb_png, GrayImage};
+use asgreg::viz::normalize_for_display;
+
+use super::inputs::load_posed_inputs;
+
+#[derive(clap::Args, Debug)]
+pub struct RenderArgs {
+    /// The mesh (PLY or OBJ).
+    #[arg(long)]
+    pub mesh: PathBuf,
+    /// COLMAP cameras.txt.
+    #[arg(long)]
+    pub cameras: PathBuf,
+    /// COLMAP images.txt with the pose to render from.
+    #[arg(long)]
+    pub poses: PathBuf,
+    /// The image whose pose and camera to use (its NAME in images.txt).
+    #[arg(long)]
+    pub image: String,
+    /// What to write.
+    #[arg(long, value_enum, default_value_t = RenderWhat::Asg)]
+    pub what: RenderWhat,
+    /// Normals to shade with.
+    #[arg(long, value_enum, default_value_t = NormalsArg::Vertex)]
+    pub normals: NormalsArg,
+    /// Output PNG.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RenderWhat {
+    /// Average Shading Gradient image (paper eq. 4), scaled for display.
+    Asg,
+    /// Camera-frame normals as colours.
+    Normals,
+    /// Depth along the optical axis, near = bright.
+    Depth,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NormalsArg {
+    Face,
+    Vertex,
+}
+
+/// Renders `mesh` as `camera` sees it from `cam_from_world` (pinhole part of the camera).
+pub fn render_view(
+    mesh: &Mesh,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    normal_source: NormalSource,
+) -> RenderBuffers {
+    let mut buffers = RenderBuffers::new(camera.width_px as usize, camera.height_px as usize);
+    let options = RenderOptions {
+        normal_source,
+        ..RenderOptions::default()
+    };
+    Rasterizer::new().render(mesh, &camera.intrinsics, cam_from_world, &options, &mut buffers);
+    buffers
+}
+
+/// The ASG image of a rendering, scaled to 0..1 for display.
+pub fn asg_display_image(render: &RenderBuffers) -> GrayImage {
+    let (width_px, height_px) = (render.width_px(), render.height_px());
+    let mut asg = vec![0.0f32; width_px * height_px];
+    asg_from_normals(&render.normal_cam, width_px, height_px, &AsgOptions::default(), &mut asg);
+    GrayImage {
+        width_px,
+        height_px,
+        pixels: normalize_for_display(&asg),
+    }
+}
+
+pub fn write_render(render: &RenderBuffers, what: RenderWhat, out: &Path) -> anyhow::Result<()> {
+    let (width_px, height_px) = (render.width_px(), render.height_px());
+    match what {
+        RenderWhat::Asg => save_gray_png(out, &asg_display_image(render))?,
+        RenderWhat::Normals => {
+            let rgb: Vec<[u8; 3]> = render
+                .normal_cam
+                .iter()
+                .map(|n| {
+                    if *n == glam::Vec3::ZERO {
+                        [0, 0, 0]
+                    } else {
+                        [n.x, -n.y, -n.z].map(|c| ((c * 0.5 + 0.5) * 255.0).round() as u8)
+                    }
+                })
+                .collect();
+            save_rgb_png(out, width_px, height_px, &rgb)?;
+        }
+        RenderWhat::Depth => {
+            let inverse: Vec<f32> = render
+                .depth_m
+                .iter()
+                .map(|d| if *d > 0.0 { 1.0 / d } else { 0.0 })
+                .collect();
+            let image = GrayImage {
+                width_px,
+                height_px,
+                pixels: normalize_for_display(&inverse),
+            };
+            save_gray_png(out, &image)?;
+        }
+    }
+    Ok(())
+}
+
+pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
+    let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
+    let (image, camera) = inputs.find_image(&args.image, &args.poses, &args.cameras)?;
+    let normal_source = match args.normals {
+        NormalsArg::Face => NormalSource::Face,
+        NormalsArg::Vertex => NormalSource::Vertex,
+    };
+    let started = std::time::Instant::now();
+    let render = render_view(&inputs.mesh, camera, &image.cam_from_world, normal_source);
+    let render_ms = started.elapsed().as_secs_f64() * 1e3;
+    write_render(&render, args.what, &args.out)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let coverage = render.valid_count() as f64 / (render.width_px() * render.height_px()) as f64;
+    println!(
+        "rendered {} ({}x{} px, {:.1} ms, model covers {:.0} % of the image) -> {}",
+        image.name,
+        render.width_px(),
+        render.height_px(),
+        render_ms,
+        coverage * 100.0,
+        args.out.display()
+    );
+    if render.valid_count() == 0 {
+        tracing::warn!("the model is not visible from this pose: check the pose file's convention (cam_from_world)");
+    }
+    Ok(())
+}

@@ -1,0 +1,179 @@
+//! Pictures a person can look at: the model drawn over a photo under a pose (the paper's
+//! qualitative figure) and gradient images scaled for display. This is how users and reviewers see
+//! whether a pose is right, so it is plain and exact: a pixel of the overlay is a pixel of the photo.
+
+use glam::Vec3;
+
+use crate::core::raster::{RenderBuffers, NO_FACE};
+
+/// How the model is drawn over the photo.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+pub enum OverlayStyle {
+    /// Normal colours blended over the photo, with the model's edges on top.
+    #[default]
+    NormalsAndEdges,
+    /// Only the model's silhouette and crease edges, the photo untouched elsewhere.
+    Edges,
+}
+
+/// Colour of the model's edges in overlays.
+const EDGE_RGB: [u8; 3] = [255, 40, 40];
+
+/// Normals that differ by more than this angle (about 35°) make a crease edge.
+const CREASE_COS: f32 = 0.82;
+
+/// Pixels where the rendered model has an edge: a silhouette (surface next to background or a depth
+/// jump of more than 5 %) or a crease (the normal turns by more than about 35°).
+pub fn model_edges(render: &RenderBuffers) -> Vec<bool> {
+    let width = render.width_px();
+    let height = render.height_px();
+    let mut edges = vec![false; width * height];
+    for row in 0..height {
+        for col in 0..width {
+            let index = row * width + col;
+            let here_valid = render.face_index[index] != NO_FACE;
+            let neighbours = [
+                (col + 1 < width).then(|| index + 1),
+                (row + 1 < height).then(|| index + width),
+            ];
+            for other in neighbours.into_iter().flatten() {
+                let other_valid = render.face_index[other] != NO_FACE;
+                let edge = match (here_valid, other_valid) {
+                    (false, false) => false,
+                    (true, false) | (false, true) => true,
+                    (true, true) => {
+                        let (d0, d1) = (render.depth_m[index], render.depth_m[other]);
+                        let jump = (d0 - d1).abs() > 0.05 * d0.min(d1);
+                        let crease = render.normal_cam[index].dot(render.normal_cam[other]) < CREASE_COS;
+                        jump || crease
+                    }
+                };
+                if edge {
+                    edges[index] = true;
+                    edges[other] = true;
+                }
+            }
+        }
+    }
+    edges
+}
+
+/// Colour of a camera-frame normal: x → red, -y (up) → green, -z (towards the camera) → blue.
+fn normal_rgb(normal: Vec3) -> [f32; 3] {
+    [
+        (normal.x * 0.5 + 0.5) * 255.0,
+        (-normal.y * 0.5 + 0.5) * 255.0,
+        (-normal.z * 0.5 + 0.5) * 255.0,
+    ]
+}
+
+/// Draws the rendered model over `photo_rgb` (same size as the rendering). `alpha` is the opacity
+/// of the normal colours (0..1).
+pub fn overlay_model(
+    photo_rgb: &[[u8; 3]],
+    render: &RenderBuffers,
+    style: OverlayStyle,
+    alpha: f32,
+) -> Vec<[u8; 3]> {
+    let alpha = alpha.clamp(0.0, 1.0);
+    let edges = model_edges(render);
+    photo_rgb
+        .iter()
+        .enumerate()
+        .map(|(index, photo)| {
+            if edges[index] {
+                return EDGE_RGB;
+            }
+            if style == OverlayStyle::Edges || render.face_index[index] == NO_FACE {
+                return *photo;
+            }
+            let model = normal_rgb(render.normal_cam[index]);
+            std::array::from_fn(|c| {
+                (f32::from(photo[c]) * (1.0 - alpha) + model[c] * alpha).round() as u8
+            })
+        })
+        .collect()
+}
+
+/// Scales a non-negative image (a gradient image, a depth map) to 0..1 for display: values are
+/// divided by their 99th percentile (so a few strong edges do not make everything black) and clamped.
+pub fn normalize_for_display(values: &[f32]) -> Vec<f32> {
+    let mut finite: Vec<f32> = values
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .collect();
+    if finite.is_empty() {
+        return vec![0.0; values.len()];
+    }
+    let rank = ((finite.len() - 1) as f64 * 0.99) as usize;
+    let (_, high, _) = finite.select_nth_unstable_by(rank, f32::total_cmp);
+    let scale = if *high > 0.0 { 1.0 / *high } else { 1.0 };
+    values
+        .iter()
+        .map(|v| if v.is_finite() { (v * scale).clamp(0.0, 1.0) } else { 0.0 })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::camera::PinholeIntrinsics;
+    use crate::core::mesh::Mesh;
+    use crate::core::raster::{Rasterizer, RenderOptions};
+    use crate::core::rigid::Rigid3;
+    use nalgebra::Vector3;
+
+    fn square_render() -> RenderBuffers {
+        let positions = [
+            Vector3::new(-1.0, -1.0, 5.0),
+            Vector3::new(1.0, -1.0, 5.0),
+            Vector3::new(1.0, 1.0, 5.0),
+            Vector3::new(-1.0, 1.0, 5.0),
+        ];
+        let mesh = Mesh::from_world(&positions, vec![[0, 2, 1], [0, 3, 2]], None).unwrap();
+        let mut out = RenderBuffers::new(100, 80);
+        Rasterizer::new().render(
+            &mesh,
+            &PinholeIntrinsics::centered(100.0, 100, 80),
+            &Rigid3::identity(),
+            &RenderOptions::default(),
+            &mut out,
+        );
+        out
+    }
+
+    #[test]
+    fn edges_trace_the_silhouette_only() {
+        let render = square_render();
+        let edges = model_edges(&render);
+        // The square covers columns 30..=69, rows 20..=59: its border and the background pixel
+        // next to it are edges, its inside (one flat plane split into two triangles) is not.
+        assert!(edges[40 * 100 + 30] && edges[40 * 100 + 29] && edges[20 * 100 + 50]);
+        assert!(!edges[40 * 100 + 50] && !edges[40 * 100 + 10]);
+        assert!(!edges[45 * 100 + 45], "the diagonal between the two triangles is no edge");
+    }
+
+    #[test]
+    fn overlay_blends_inside_and_keeps_the_photo_outside() {
+        let render = square_render();
+        let photo = vec![[10u8, 20, 30]; 100 * 80];
+        let out = overlay_model(&photo, &render, OverlayStyle::NormalsAndEdges, 0.5);
+        assert_eq!(out[5 * 100 + 5], [10, 20, 30]);
+        assert_eq!(out[40 * 100 + 30], EDGE_RGB);
+        // Normal (0, 0, -1): colour (127.5, 127.5, 255) blended half with the photo.
+        assert_eq!(out[40 * 100 + 50], [69, 74, 143]);
+        let edges_only = overlay_model(&photo, &render, OverlayStyle::Edges, 0.5);
+        assert_eq!(edges_only[40 * 100 + 50], [10, 20, 30]);
+    }
+
+    #[test]
+    fn display_scaling_ignores_a_few_outliers() {
+        let mut values = vec![1.0f32; 1000];
+        values[0] = 1000.0;
+        let scaled = normalize_for_display(&values);
+        assert_eq!(scaled[1], 1.0);
+        assert_eq!(scaled[0], 1.0);
+        assert_eq!(normalize_for_display(&[0.0, f32::NAN]), vec![0.0, 0.0]);
+    }
+}

@@ -1,0 +1,83 @@
+//! Helpers shared by the integration tests: running the binary and writing small input files.
+
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+pub fn asgreg(args: &[&str]) -> Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_asgreg"))
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("the asgreg binary runs")
+}
+
+pub fn stderr(output: &Output) -> String {
+    String::from_utf8_lossy(&output.stderr).into_owned()
+}
+
+pub fn stdout(output: &Output) -> String {
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+/// Asserts a failed run whose error message contains every one of `needles`.
+pub fn assert_fails_naming(output: &Output, needles: &[&str]) {
+    let message = stderr(output);
+    assert!(!output.status.success(), "expected failure, got success; stderr: {message}");
+    for needle in needles {
+        assert!(message.contains(needle), "stderr does not name '{needle}':\n{message}");
+    }
+}
+
+/// A 4 m × 4 m square 10 m in front of the identity camera, as an ASCII PLY.
+pub const SQUARE_PLY: &str = "ply
+format ascii 1.0
+element vertex 4
+property float x
+property float y
+property float z
+element face 2
+property list uchar int vertex_indices
+end_header
+-2 -2 10
+2 -2 10
+2 2 10
+-2 2 10
+3 0 2 1
+3 0 3 2
+";
+
+pub const CAMERAS_TXT: &str = "# Camera list with one line of data per camera:
+#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]
+# Number of cameras: 1
+1 PINHOLE 64 48 60 60 32 24
+";
+
+pub const IMAGES_TXT: &str = "# Image list with two lines of data per image:
+#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME
+#   POINTS2D[] as (X, Y, POINT3D_ID)
+# Number of images: 1, mean observations per image: 0
+1 1 0 0 0 0 0 0 1 photo.png
+
+";
+
+/// Writes a complete small input set (mesh, cameras, poses, a 64×48 photo) into `dir`.
+pub fn write_inputs(dir: &Path) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
+    let mesh = dir.join("square.ply");
+    let cameras = dir.join("cameras.txt");
+    let poses = dir.join("images.txt");
+    let photo = dir.join("photo.png");
+    std::fs::write(&mesh, SQUARE_PLY).unwrap();
+    std::fs::write(&cameras, CAMERAS_TXT).unwrap();
+    std::fs::write(&poses, IMAGES_TXT).unwrap();
+    write_png(&photo, 64, 48);
+    (mesh, cameras, poses, photo)
+}
+
+pub fn write_png(path: &Path, width: u32, height: u32) {
+    let image = image::RgbImage::from_fn(width, height, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, 90]));
+    image.save(path).unwrap();
+}
+
+pub fn path_str(path: &Path) -> &str {
+    path.to_str().unwrap()
+}
