@@ -75,7 +75,9 @@ pub fn degrade(scene: &Scene, params: &DegradeParams, rng: &mut ChaCha8Rng) -> D
     let faces: Vec<[u32; 3]> = faces
         .into_iter()
         .filter(|f| {
-            let c = (positions[f[0] as usize] + positions[f[1] as usize] + positions[f[2] as usize]) / 3.0;
+            let c =
+                (positions[f[0] as usize] + positions[f[1] as usize] + positions[f[2] as usize])
+                    / 3.0;
             let distance = scene.distance_to_buildings_m(Vec2::new(c.x, c.y));
             let wobble = 1.0 + 0.6 * fbm(noise_seed ^ 1, Vec3::new(c.x, c.y, 0.0), 6.0, 3, 0.0);
             distance <= params.ground_margin_m * wobble
@@ -103,10 +105,15 @@ pub fn degrade(scene: &Scene, params: &DegradeParams, rng: &mut ChaCha8Rng) -> D
             break;
         }
         let seed_face = faces[rng.random_range(0..faces.len())];
-        let centre = (positions[seed_face[0] as usize] + positions[seed_face[1] as usize] + positions[seed_face[2] as usize]) / 3.0;
+        let centre = (positions[seed_face[0] as usize]
+            + positions[seed_face[1] as usize]
+            + positions[seed_face[2] as usize])
+            / 3.0;
         let radius = rng.random_range(params.hole_radius_m * 0.5..=params.hole_radius_m.max(1e-3));
         faces.retain(|f| {
-            let c = (positions[f[0] as usize] + positions[f[1] as usize] + positions[f[2] as usize]) / 3.0;
+            let c =
+                (positions[f[0] as usize] + positions[f[1] as usize] + positions[f[2] as usize])
+                    / 3.0;
             (c - centre).length() > radius
         });
         holes_cut += 1;
@@ -175,32 +182,35 @@ fn occupancy(scene: &Scene, params: &DegradeParams) -> Grid {
     let origin = grid.origin_m;
     let solids = &scene.building_solids;
     let solid_bounds: Vec<(Vec3, Vec3)> = solids.iter().map(|s| s.bounds_m()).collect();
-    grid.values.par_chunks_mut(plane).enumerate().for_each(|(k, layer)| {
-        let z = origin.z + (k as f32 + 0.5) * voxel;
-        for j in 0..size[1] {
-            let y = origin.y + (j as f32 + 0.5) * voxel;
-            for i in 0..size[0] {
-                let x = origin.x + (i as f32 + 0.5) * voxel;
-                let centre = Vec3::new(x, y, z);
-                let candidates: Vec<usize> = solid_bounds
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, (a, b))| {
-                        centre.cmpge(*a - voxel).all() && centre.cmple(*b + voxel).all()
-                    })
-                    .map(|(index, _)| index)
-                    .collect();
-                let mut inside = 0;
-                for offset in &offsets {
-                    let p = centre + *offset;
-                    if p.z < 0.0 || candidates.iter().any(|&s| solids[s].contains(p)) {
-                        inside += 1;
+    grid.values
+        .par_chunks_mut(plane)
+        .enumerate()
+        .for_each(|(k, layer)| {
+            let z = origin.z + (k as f32 + 0.5) * voxel;
+            for j in 0..size[1] {
+                let y = origin.y + (j as f32 + 0.5) * voxel;
+                for i in 0..size[0] {
+                    let x = origin.x + (i as f32 + 0.5) * voxel;
+                    let centre = Vec3::new(x, y, z);
+                    let candidates: Vec<usize> = solid_bounds
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, (a, b))| {
+                            centre.cmpge(*a - voxel).all() && centre.cmple(*b + voxel).all()
+                        })
+                        .map(|(index, _)| index)
+                        .collect();
+                    let mut inside = 0;
+                    for offset in &offsets {
+                        let p = centre + *offset;
+                        if p.z < 0.0 || candidates.iter().any(|&s| solids[s].contains(p)) {
+                            inside += 1;
+                        }
                     }
+                    layer[j * size[0] + i] = inside as f32 / 8.0;
                 }
-                layer[j * size[0] + i] = inside as f32 / 8.0;
             }
-        }
-    });
+        });
     grid
 }
 
@@ -228,7 +238,9 @@ fn blur(mut grid: Grid, sigma_m: f32) -> Grid {
         // Lines along `axis`: start index of each line.
         let starts: Vec<usize> = match axis {
             0 => (0..ny * nz).map(|l| l * nx).collect(),
-            1 => (0..nz).flat_map(|k| (0..nx).map(move |i| k * nx * ny + i)).collect(),
+            1 => (0..nz)
+                .flat_map(|k| (0..nx).map(move |i| k * nx * ny + i))
+                .collect(),
             _ => (0..nx * ny).collect(),
         };
         let results: Vec<Vec<f32>> = starts
@@ -407,7 +419,8 @@ fn taubin(positions: &mut [Vec3], neighbours: &[Vec<u32>], iterations: u32) {
                     *out = positions[v];
                     return;
                 }
-                let mean = around.iter().map(|&u| positions[u as usize]).sum::<Vec3>() / around.len() as f32;
+                let mean = around.iter().map(|&u| positions[u as usize]).sum::<Vec3>()
+                    / around.len() as f32;
                 *out = positions[v] + (mean - positions[v]) * factor;
             });
             positions.copy_from_slice(&next);
@@ -496,7 +509,8 @@ mod tests {
         for k in 0..30 {
             for j in 0..30 {
                 for i in 0..30 {
-                    let inside = (8..22).contains(&i) && (8..22).contains(&j) && (8..22).contains(&k);
+                    let inside =
+                        (8..22).contains(&i) && (8..22).contains(&j) && (8..22).contains(&k);
                     let index = grid.index(i, j, k);
                     grid.values[index] = if inside { 1.0 } else { 0.0 };
                 }
@@ -519,7 +533,10 @@ mod tests {
             .iter()
             .filter(|f| {
                 let [a, b, c] = f.map(|v| positions[v as usize]);
-                (b - a).cross(c - a).dot((a + b + c) / 3.0 - Vec3::splat(1.5)) > 0.0
+                (b - a)
+                    .cross(c - a)
+                    .dot((a + b + c) / 3.0 - Vec3::splat(1.5))
+                    > 0.0
             })
             .count();
         assert_eq!(outward, faces.len());
@@ -537,7 +554,11 @@ mod tests {
         // building and ground faces densely and compare.
         let mut true_points = Vec::new();
         for (f, tag) in scene.faces.iter().zip(&scene.tags) {
-            if !matches!(tag.part, super::super::geometry::PartKind::Building | super::super::geometry::PartKind::NearGround) {
+            if !matches!(
+                tag.part,
+                super::super::geometry::PartKind::Building
+                    | super::super::geometry::PartKind::NearGround
+            ) {
                 continue;
             }
             let [a, b, c] = f.map(|v| scene.positions_m[v as usize]);

@@ -62,13 +62,21 @@ impl Frame {
 
     pub fn direction_to_world(&self, local: Vec3) -> Vec3 {
         let (s, c) = self.yaw_rad.sin_cos();
-        Vec3::new(c * local.x - s * local.y, s * local.x + c * local.y, local.z)
+        Vec3::new(
+            c * local.x - s * local.y,
+            s * local.x + c * local.y,
+            local.z,
+        )
     }
 
     pub fn to_local(&self, world: Vec3) -> Vec3 {
         let (s, c) = self.yaw_rad.sin_cos();
         let d = Vec2::new(world.x, world.y) - self.centre_m;
-        Vec3::new(c * d.x + s * d.y, -s * d.x + c * d.y, world.z - self.base_z_m)
+        Vec3::new(
+            c * d.x + s * d.y,
+            -s * d.x + c * d.y,
+            world.z - self.base_z_m,
+        )
     }
 }
 
@@ -146,7 +154,8 @@ impl Solid {
                 [(-1.0f32, -1.0f32), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
                     .iter()
                     .flat_map(|&(sx, sy)| {
-                        [0.0, top].map(|z| frame.to_world(Vec3::new(sx * half_x_m, sy * half_y_m, z)))
+                        [0.0, top]
+                            .map(|z| frame.to_world(Vec3::new(sx * half_x_m, sy * half_y_m, z)))
                     })
                     .collect()
             }
@@ -352,7 +361,11 @@ impl Scene {
             part: PartKind::Clutter,
         };
         let direction = axis.normalize_or_zero();
-        let helper = if direction.z.abs() < 0.9 { Vec3::Z } else { Vec3::X };
+        let helper = if direction.z.abs() < 0.9 {
+            Vec3::Z
+        } else {
+            Vec3::X
+        };
         let e1 = direction.cross(helper).normalize_or_zero();
         let e2 = direction.cross(e1);
         let ring = |t: f32| -> Vec<Vec3> {
@@ -399,7 +412,8 @@ impl Scene {
         let (unit_positions, faces) = unit_sphere(subdivisions);
         let base = self.positions_m.len() as u32;
         for d in &unit_positions {
-            let bump = fbm(noise_seed, *d * 2.5, 1.0, 3, 0.0) + 0.6 * fbm(noise_seed ^ 9, *d * 7.0, 1.0, 2, 0.0);
+            let bump = fbm(noise_seed, *d * 2.5, 1.0, 3, 0.0)
+                + 0.6 * fbm(noise_seed ^ 9, *d * 7.0, 1.0, 2, 0.0);
             let scale = (1.0 + roughness * 2.0 * bump).max(0.3);
             self.positions_m.push(centre + *d * radii_m * scale);
         }
@@ -428,7 +442,8 @@ impl Scene {
     ) {
         let n_local = Vec3::new(outward_local.x, outward_local.y, 0.0);
         let u_local = Vec3::new(-outward_local.y, outward_local.x, 0.0);
-        let origin_local = n_local * (wall_offset_m + 0.03) + u_local * (along_centre_m - width_m * 0.5)
+        let origin_local = n_local * (wall_offset_m + 0.03)
+            + u_local * (along_centre_m - width_m * 0.5)
             + Vec3::Z * bottom_m;
         let origin = wall_frame.to_world(origin_local);
         let u_axis = wall_frame.direction_to_world(u_local);
@@ -612,7 +627,9 @@ fn add_gable_building(scene: &mut Scene, building: &GableBuilding) {
             polygon.reverse();
         }
         // Counter-clockwise in (y, z): make sure of it.
-        let area: f32 = (0..4).map(|i| polygon[i].perp_dot(polygon[(i + 1) % 4])).sum();
+        let area: f32 = (0..4)
+            .map(|i| polygon[i].perp_dot(polygon[(i + 1) % 4]))
+            .sum();
         if area < 0.0 {
             polygon.reverse();
         }
@@ -820,7 +837,17 @@ pub fn build_house(rng: &mut ChaCha8Rng) -> Scene {
         height_m: wall_height + rise,
     });
     let style = rng.random_range(0..3u32);
-    add_facade_windows(&mut scene, rng, frame, half_x, half_y, 2, wall_height * 0.5, true, style);
+    add_facade_windows(
+        &mut scene,
+        rng,
+        frame,
+        half_x,
+        half_y,
+        2,
+        wall_height * 0.5,
+        true,
+        style,
+    );
     // Attic windows in the gables.
     for outward in [Vec2::new(1.0, 0.0), Vec2::new(-1.0, 0.0)] {
         scene.add_opening(
@@ -831,7 +858,10 @@ pub fn build_house(rng: &mut ChaCha8Rng) -> Scene {
             wall_height + 0.4,
             0.9,
             1.0,
-            PanelKind::Window { columns: 1, rows: 1 },
+            PanelKind::Window {
+                columns: 1,
+                rows: 1,
+            },
             style,
         );
     }
@@ -903,7 +933,10 @@ pub fn build_house(rng: &mut ChaCha8Rng) -> Scene {
         1.0,
         0.9,
         0.9,
-        PanelKind::Window { columns: 1, rows: 1 },
+        PanelKind::Window {
+            columns: 1,
+            rows: 1,
+        },
         style,
     );
 
@@ -928,7 +961,11 @@ pub fn build_house(rng: &mut ChaCha8Rng) -> Scene {
     );
     let roof_z_at_chimney = ridge_z - (chimney_y - 0.3) / half_y * rise;
     {
-        let a = frame.to_world(Vec3::new(chimney_x - 0.3, chimney_y - 0.3, roof_z_at_chimney));
+        let a = frame.to_world(Vec3::new(
+            chimney_x - 0.3,
+            chimney_y - 0.3,
+            roof_z_at_chimney,
+        ));
         let b = frame.to_world(Vec3::new(chimney_x + 0.3, chimney_y + 0.3, chimney_top));
         scene.chimney_bounds_m = Some((a.min(b).with_z(roof_z_at_chimney + 0.35), a.max(b)));
     }
@@ -963,7 +1000,9 @@ pub fn build_house(rng: &mut ChaCha8Rng) -> Scene {
             Vec2::new(side * (dormer_half + 0.2), dormer_top + 0.05),
             Vec2::new(0.0, dormer_top + 0.75),
         ];
-        let area: f32 = (0..4).map(|i| polygon[i].perp_dot(polygon[(i + 1) % 4])).sum();
+        let area: f32 = (0..4)
+            .map(|i| polygon[i].perp_dot(polygon[(i + 1) % 4]))
+            .sum();
         if area < 0.0 {
             polygon.reverse();
         }
@@ -985,7 +1024,10 @@ pub fn build_house(rng: &mut ChaCha8Rng) -> Scene {
         dormer_floor + 0.3,
         0.9,
         0.9,
-        PanelKind::Window { columns: 1, rows: 2 },
+        PanelKind::Window {
+            columns: 1,
+            rows: 2,
+        },
         style,
     );
 
@@ -1025,7 +1067,7 @@ pub fn build_house(rng: &mut ChaCha8Rng) -> Scene {
         let x = side * (porch_half_w - 0.1);
         scene.add_box(
             frame,
-            Vec3::new(x.min(x - side * 0.04) , -half_y - porch_depth + 0.05, 0.9),
+            Vec3::new(x.min(x - side * 0.04), -half_y - porch_depth + 0.05, 0.9),
             Vec3::new(x.max(x - side * 0.04), -half_y - 0.05, 0.96),
             Material::Soffit,
             Material::Soffit,
@@ -1132,12 +1174,32 @@ pub fn build_block(rng: &mut ChaCha8Rng) -> Scene {
                         object_id,
                     );
                     for (min, max) in [
-                        (Vec3::new(-half_x, -half_y, wall_height), Vec3::new(half_x, -half_y + 0.25, wall_height + 0.6)),
-                        (Vec3::new(-half_x, half_y - 0.25, wall_height), Vec3::new(half_x, half_y, wall_height + 0.6)),
-                        (Vec3::new(-half_x, -half_y + 0.25, wall_height), Vec3::new(-half_x + 0.25, half_y - 0.25, wall_height + 0.6)),
-                        (Vec3::new(half_x - 0.25, -half_y + 0.25, wall_height), Vec3::new(half_x, half_y - 0.25, wall_height + 0.6)),
+                        (
+                            Vec3::new(-half_x, -half_y, wall_height),
+                            Vec3::new(half_x, -half_y + 0.25, wall_height + 0.6),
+                        ),
+                        (
+                            Vec3::new(-half_x, half_y - 0.25, wall_height),
+                            Vec3::new(half_x, half_y, wall_height + 0.6),
+                        ),
+                        (
+                            Vec3::new(-half_x, -half_y + 0.25, wall_height),
+                            Vec3::new(-half_x + 0.25, half_y - 0.25, wall_height + 0.6),
+                        ),
+                        (
+                            Vec3::new(half_x - 0.25, -half_y + 0.25, wall_height),
+                            Vec3::new(half_x, half_y - 0.25, wall_height + 0.6),
+                        ),
                     ] {
-                        scene.add_box(frame, min, max, wall_material, Material::Concrete, PartKind::Detail, object_id);
+                        scene.add_box(
+                            frame,
+                            min,
+                            max,
+                            wall_material,
+                            Material::Concrete,
+                            PartKind::Detail,
+                            object_id,
+                        );
                     }
                     // A roof structure (lift housing / AC unit): a detail.
                     scene.add_box(
@@ -1193,18 +1255,52 @@ pub fn build_block(rng: &mut ChaCha8Rng) -> Scene {
                 height_m,
             });
             let style = rng.random_range(0..3u32);
-            add_facade_windows(&mut scene, rng, frame, half_x, half_y, storeys, storey_height, true, style);
-            scene.add_opening(frame, Vec2::new(0.0, -1.0), half_y, 0.0, 0.0, 1.4, 2.3, PanelKind::Door, style);
+            add_facade_windows(
+                &mut scene,
+                rng,
+                frame,
+                half_x,
+                half_y,
+                storeys,
+                storey_height,
+                true,
+                style,
+            );
+            scene.add_opening(
+                frame,
+                Vec2::new(0.0, -1.0),
+                half_y,
+                0.0,
+                0.0,
+                1.4,
+                2.3,
+                PanelKind::Door,
+                style,
+            );
         }
     }
     // Streets between the blocks, pavements along them.
     for k in [-1.5f32, -0.5, 0.5, 1.5] {
         let c = k * SPACING_M;
-        scene.ground.asphalt.push((Vec2::new(-300.0, c), Vec2::new(300.0, c), 3.5));
-        scene.ground.asphalt.push((Vec2::new(c, -300.0), Vec2::new(c, 300.0), 3.5));
+        scene
+            .ground
+            .asphalt
+            .push((Vec2::new(-300.0, c), Vec2::new(300.0, c), 3.5));
+        scene
+            .ground
+            .asphalt
+            .push((Vec2::new(c, -300.0), Vec2::new(c, 300.0), 3.5));
         for side in [-1.0f32, 1.0] {
-            scene.ground.concrete.push((Vec2::new(-300.0, c + side * 4.5), Vec2::new(300.0, c + side * 4.5), 1.0));
-            scene.ground.concrete.push((Vec2::new(c + side * 4.5, -300.0), Vec2::new(c + side * 4.5, 300.0), 1.0));
+            scene.ground.concrete.push((
+                Vec2::new(-300.0, c + side * 4.5),
+                Vec2::new(300.0, c + side * 4.5),
+                1.0,
+            ));
+            scene.ground.concrete.push((
+                Vec2::new(c + side * 4.5, -300.0),
+                Vec2::new(c + side * 4.5, 300.0),
+                1.0,
+            ));
         }
     }
     add_ground(&mut scene);
@@ -1238,14 +1334,21 @@ fn add_ground(scene: &mut Scene) {
         for j in 0..cells {
             let x0 = -h + i as f32 * cell;
             let y0 = -h + j as f32 * cell;
-            scene.add_polygon(&quad(x0, y0, x0 + cell, y0 + cell), tag(PartKind::NearGround), up);
+            scene.add_polygon(
+                &quad(x0, y0, x0 + cell, y0 + cell),
+                tag(PartKind::NearGround),
+                up,
+            );
         }
     }
     // Around it, 10 m cells out to 250 m (huge triangles lose depth precision in the
     // rasteriser, which shows as stripes in the shadow test), then four quads to the horizon.
     const RING_CELL_M: f32 = 10.0;
     const RING_CELLS: i32 = 25;
-    let mut lines: Vec<f32> = (0..=RING_CELLS).rev().map(|k| -h - k as f32 * RING_CELL_M).collect();
+    let mut lines: Vec<f32> = (0..=RING_CELLS)
+        .rev()
+        .map(|k| -h - k as f32 * RING_CELL_M)
+        .collect();
     lines.extend((0..=RING_CELLS).map(|k| h + k as f32 * RING_CELL_M));
     for i in 0..lines.len() - 1 {
         for j in 0..lines.len() - 1 {
@@ -1269,7 +1372,12 @@ fn add_ground(scene: &mut Scene) {
 
 /// Adds the clutter: trees near and far, cars on paved ground, a fence, people and bushes.
 /// Nothing is put within `keep_clear_m` of a camera position.
-pub fn add_clutter(scene: &mut Scene, rng: &mut ChaCha8Rng, camera_positions_m: &[Vec3], keep_clear_m: f32) {
+pub fn add_clutter(
+    scene: &mut Scene,
+    rng: &mut ChaCha8Rng,
+    camera_positions_m: &[Vec3],
+    keep_clear_m: f32,
+) {
     let noise_seed: u64 = rng.random();
     let clear_of_cameras = |p: Vec2, radius: f32| {
         camera_positions_m
@@ -1368,7 +1476,10 @@ pub fn add_clutter(scene: &mut Scene, rng: &mut ChaCha8Rng, camera_positions_m: 
         let along = (b - a).normalize_or_zero();
         let across = along.perp();
         let p = a + (b - a) * t + across * rng.random_range(-0.4..0.4f32) * half_width;
-        if p.length() > extent + 30.0 || !clear_of_cameras(p, 2.5) || scene.distance_to_buildings_m(p) < 2.5 {
+        if p.length() > extent + 30.0
+            || !clear_of_cameras(p, 2.5)
+            || scene.distance_to_buildings_m(p) < 2.5
+        {
             continue;
         }
         add_car(scene, rng, p, along.y.atan2(along.x));
@@ -1386,7 +1497,9 @@ pub fn add_clutter(scene: &mut Scene, rng: &mut ChaCha8Rng, camera_positions_m: 
     let mut x = -fence_half_length;
     while x <= fence_half_length {
         let world = fence_frame.to_world(Vec3::new(x, fence_y, 0.0));
-        if clear_of_cameras(Vec2::new(world.x, world.y), 0.5) && !on_pavement(scene, Vec2::new(world.x, world.y), 0.3) {
+        if clear_of_cameras(Vec2::new(world.x, world.y), 0.5)
+            && !on_pavement(scene, Vec2::new(world.x, world.y), 0.3)
+        {
             scene.add_box(
                 fence_frame,
                 Vec3::new(x - 0.05, fence_y - 0.05, 0.0),
@@ -1422,12 +1535,23 @@ pub fn add_clutter(scene: &mut Scene, rng: &mut ChaCha8Rng, camera_positions_m: 
     }
 }
 
-fn add_tree(scene: &mut Scene, rng: &mut ChaCha8Rng, p: Vec2, crown_radius_m: f32, noise_seed: u64, subdivisions: u32) {
+fn add_tree(
+    scene: &mut Scene,
+    rng: &mut ChaCha8Rng,
+    p: Vec2,
+    crown_radius_m: f32,
+    noise_seed: u64,
+    subdivisions: u32,
+) {
     let object_id = scene.new_object();
     let trunk_height = rng.random_range(1.5..3.0f32) + crown_radius_m * 0.5;
     scene.add_cylinder(
         Vec3::new(p.x, p.y, 0.0),
-        Vec3::new(rng.random_range(-0.2..0.2), rng.random_range(-0.2..0.2), trunk_height + crown_radius_m * 0.5),
+        Vec3::new(
+            rng.random_range(-0.2..0.2),
+            rng.random_range(-0.2..0.2),
+            trunk_height + crown_radius_m * 0.5,
+        ),
         0.12 + 0.04 * crown_radius_m,
         7,
         Material::Bark,
@@ -1438,7 +1562,11 @@ fn add_tree(scene: &mut Scene, rng: &mut ChaCha8Rng, p: Vec2, crown_radius_m: f3
     let centre = Vec3::new(p.x, p.y, trunk_height + crown_radius_m * 0.8);
     scene.add_blob(
         centre,
-        Vec3::new(crown_radius_m, crown_radius_m * rng.random_range(0.8..1.1), crown_radius_m * rng.random_range(0.9..1.3)),
+        Vec3::new(
+            crown_radius_m,
+            crown_radius_m * rng.random_range(0.8..1.1),
+            crown_radius_m * rng.random_range(0.9..1.3),
+        ),
         0.35,
         subdivisions,
         Material::Foliage { palette },
@@ -1447,8 +1575,12 @@ fn add_tree(scene: &mut Scene, rng: &mut ChaCha8Rng, p: Vec2, crown_radius_m: f3
     );
     // Lobes make the outline irregular.
     for lobe in 0..rng.random_range(2..5) {
-        let direction = Vec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-0.3..0.8))
-            .normalize_or_zero();
+        let direction = Vec3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-0.3..0.8),
+        )
+        .normalize_or_zero();
         let r = crown_radius_m * rng.random_range(0.45..0.7);
         scene.add_blob(
             centre + direction * crown_radius_m * 0.75,
@@ -1498,7 +1630,9 @@ fn add_car(scene: &mut Scene, rng: &mut ChaCha8Rng, p: Vec2, yaw_rad: f32) {
         Vec2::new(-rear + 0.3, 1.45),
     ];
     let mut polygon = polygon.to_vec();
-    let area: f32 = (0..4).map(|i| polygon[i].perp_dot(polygon[(i + 1) % 4])).sum();
+    let area: f32 = (0..4)
+        .map(|i| polygon[i].perp_dot(polygon[(i + 1) % 4]))
+        .sum();
     if area < 0.0 {
         polygon.reverse();
     }
@@ -1515,11 +1649,31 @@ fn add_car(scene: &mut Scene, rng: &mut ChaCha8Rng, p: Vec2, yaw_rad: f32) {
             }
         })
         .collect();
-    scene.add_prism(cabin_frame, &polygon, half_width * 0.92, &materials, Material::CarGlass, PartKind::Clutter, object_id);
+    scene.add_prism(
+        cabin_frame,
+        &polygon,
+        half_width * 0.92,
+        &materials,
+        Material::CarGlass,
+        PartKind::Clutter,
+        object_id,
+    );
     for (wx, wy) in [(1.0f32, 1.0f32), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
-        let centre = frame.to_world(Vec3::new(wx * (half_length - 0.7), wy * (half_width - 0.05), 0.33));
+        let centre = frame.to_world(Vec3::new(
+            wx * (half_length - 0.7),
+            wy * (half_width - 0.05),
+            0.33,
+        ));
         let axis = frame.direction_to_world(Vec3::new(0.0, wy * 0.22, 0.0));
-        scene.add_cylinder(centre - axis * 0.5, axis, 0.33, 10, Material::Tyre, true, object_id);
+        scene.add_cylinder(
+            centre - axis * 0.5,
+            axis,
+            0.33,
+            10,
+            Material::Tyre,
+            true,
+            object_id,
+        );
     }
 }
 
@@ -1537,7 +1691,15 @@ fn add_person(scene: &mut Scene, rng: &mut ChaCha8Rng, p: Vec2) {
     let torso = Material::Clothing {
         palette: rng.random_range(0..5),
     };
-    scene.add_box(frame, Vec3::new(-0.12, -0.18, 0.0), Vec3::new(0.12, 0.18, height * 0.47), legs, legs, PartKind::Clutter, object_id);
+    scene.add_box(
+        frame,
+        Vec3::new(-0.12, -0.18, 0.0),
+        Vec3::new(0.12, 0.18, height * 0.47),
+        legs,
+        legs,
+        PartKind::Clutter,
+        object_id,
+    );
     scene.add_box(
         frame,
         Vec3::new(-0.14, -0.23, height * 0.47),
@@ -1548,7 +1710,15 @@ fn add_person(scene: &mut Scene, rng: &mut ChaCha8Rng, p: Vec2) {
         object_id,
     );
     let head = frame.to_world(Vec3::new(0.0, 0.0, height * 0.93));
-    scene.add_blob(head, Vec3::new(0.1, 0.1, 0.12), 0.05, 2, Material::Skin, u64::from(object_id), object_id);
+    scene.add_blob(
+        head,
+        Vec3::new(0.1, 0.1, 0.12),
+        0.05,
+        2,
+        Material::Skin,
+        u64::from(object_id),
+        object_id,
+    );
 }
 
 #[cfg(test)]
@@ -1566,8 +1736,14 @@ mod tests {
         assert!(count(PartKind::NearGround) > 0 && count(PartKind::FarGround) > 0);
         assert!(scene.building_solids.len() >= 6);
         // The middle of the house is inside, a point far above it is not.
-        assert!(scene.building_solids.iter().any(|s| s.contains(Vec3::new(0.0, 0.0, 2.0))));
-        assert!(!scene.building_solids.iter().any(|s| s.contains(Vec3::new(0.0, 0.0, 30.0))));
+        assert!(scene
+            .building_solids
+            .iter()
+            .any(|s| s.contains(Vec3::new(0.0, 0.0, 2.0))));
+        assert!(!scene
+            .building_solids
+            .iter()
+            .any(|s| s.contains(Vec3::new(0.0, 0.0, 30.0))));
         let (min, max) = scene.chimney_bounds_m.unwrap();
         let top = (min + max) * 0.5;
         assert!(scene.detail_solids.iter().any(|s| s.contains(top)));

@@ -13,9 +13,9 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
+use super::interim::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::camera::Camera;
 use crate::core::mesh::Mesh;
-use super::interim::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
 
 /// One image's noise direction, before scaling.
@@ -26,7 +26,11 @@ pub struct UnitNoise {
 }
 
 /// Draws the unit noise of `count` images.
-pub fn draw_unit_noise(count: usize, metres_per_radian: f64, rng: &mut ChaCha8Rng) -> Vec<UnitNoise> {
+pub fn draw_unit_noise(
+    count: usize,
+    metres_per_radian: f64,
+    rng: &mut ChaCha8Rng,
+) -> Vec<UnitNoise> {
     let mut normal = || -> f64 { StandardNormal.sample(rng) };
     (0..count)
         .map(|_| {
@@ -42,7 +46,8 @@ pub fn draw_unit_noise(count: usize, metres_per_radian: f64, rng: &mut ChaCha8Rn
 
 /// The ground-truth pose disturbed by `scale` times the unit noise.
 pub fn perturb(ground_truth: &Rigid3, noise: &UnitNoise, scale: f64) -> Rigid3 {
-    let rotation = UnitQuaternion::from_scaled_axis(noise.rotation_rad * scale) * ground_truth.rotation;
+    let rotation =
+        UnitQuaternion::from_scaled_axis(noise.rotation_rad * scale) * ground_truth.rotation;
     let centre = ground_truth.camera_center() + noise.centre_offset_m * scale;
     Rigid3::new(rotation, -(rotation * centre))
 }
@@ -83,7 +88,9 @@ fn evaluate(
     let mut poses = Vec::with_capacity(ground_truth.len());
     for (gt, n) in ground_truth.iter().zip(noise) {
         let pose = perturb(gt, n, scale);
-        if let Some(delta) = mutual_reprojection_error_px(model, camera, &pose, camera, gt, workspace) {
+        if let Some(delta) =
+            mutual_reprojection_error_px(model, camera, &pose, camera, gt, workspace)
+        {
             sum += delta;
             count += 1;
             min = min.min(delta);
@@ -91,7 +98,11 @@ fn evaluate(
         }
         poses.push(pose);
     }
-    let mean = if count > 0 { sum / count as f64 } else { f64::NAN };
+    let mean = if count > 0 {
+        sum / count as f64
+    } else {
+        f64::NAN
+    };
     (mean, min, max, ground_truth.len() - count, poses)
 }
 
@@ -114,7 +125,8 @@ pub fn calibrate_level(
     let mut high: Option<(f64, f64)> = None;
     let mut previous: Option<(f64, f64)> = None;
     for evaluation in 1..=40u32 {
-        let (mean, min, max, unmeasurable, poses) = evaluate(model, camera, ground_truth, noise, scale, workspace);
+        let (mean, min, max, unmeasurable, poses) =
+            evaluate(model, camera, ground_truth, noise, scale, workspace);
         let relative_error = if mean.is_finite() {
             (mean - target_px).abs() / target_px
         } else {
@@ -131,7 +143,9 @@ pub fn calibrate_level(
             unmeasurable_images: unmeasurable,
             poses,
         };
-        let better = best.as_ref().is_none_or(|b| relative_error < b.relative_error);
+        let better = best
+            .as_ref()
+            .is_none_or(|b| relative_error < b.relative_error);
         if better {
             best = Some(candidate);
         } else if let Some(b) = best.as_mut() {
@@ -154,7 +168,11 @@ pub fn calibrate_level(
         let mut next = match previous {
             Some((s0, m0)) if (m0 - mean).abs() > 1e-9 && (s0 - scale).abs() > 1e-12 => {
                 let slope = (mean.ln() - m0.ln()) / (scale.ln() - s0.ln());
-                let slope = if slope.is_finite() && slope > 0.1 { slope } else { 1.0 };
+                let slope = if slope.is_finite() && slope > 0.1 {
+                    slope
+                } else {
+                    1.0
+                };
                 (scale.ln() + (target_px.ln() - mean.ln()) / slope).exp()
             }
             _ => scale * target_px / mean,
@@ -189,7 +207,12 @@ mod tests {
     fn perturbation_scales_linearly_and_zero_is_identity() {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let noise = draw_unit_noise(3, 10.0, &mut rng);
-        let gt = Rigid3::look_at(&Vector3::new(10.0, 0.0, 5.0), &Vector3::zeros(), &Vector3::z()).unwrap();
+        let gt = Rigid3::look_at(
+            &Vector3::new(10.0, 0.0, 5.0),
+            &Vector3::zeros(),
+            &Vector3::z(),
+        )
+        .unwrap();
         let same = perturb(&gt, &noise[0], 0.0);
         assert!((same.translation - gt.translation).norm() < 1e-12);
         let a = perturb(&gt, &noise[0], 0.01);

@@ -1,10 +1,5 @@
-//! Stand-ins for library pieces being written in parallel (δ of eq. 5, PLY / COLMAP / PFM writers,
-//! image gradients and ASG). They keep `synth` compiling and testable until those land on main;
+//! Stand-ins for library pieces being written in parallel (δ of eq. 5, image gradients and ASG). They keep `synth` compiling and testable until those land on main;
 //! then this file goes away and the callers use `crate::core` / `crate::io`.
-
-use std::collections::BTreeMap;
-use std::io::Write;
-use std::path::Path;
 
 use glam::Vec3;
 use nalgebra::Vector2;
@@ -37,9 +32,13 @@ fn one_way(
 ) -> Option<f64> {
     let (w, h) = (camera_a.width_px as usize, camera_a.height_px as usize);
     workspace.buffers.resize(w, h);
-    workspace
-        .rasterizer
-        .render(mesh, &camera_a.intrinsics, pose_a, &RenderOptions::default(), &mut workspace.buffers);
+    workspace.rasterizer.render(
+        mesh,
+        &camera_a.intrinsics,
+        pose_a,
+        &RenderOptions::default(),
+        &mut workspace.buffers,
+    );
     let world_from_a = pose_a.inverse();
     let mut sum = 0.0;
     let mut count = 0usize;
@@ -79,95 +78,6 @@ pub fn mutual_reprojection_error_px(
         (Some(a), None) | (None, Some(a)) => Some(a),
         _ => None,
     }
-}
-
-fn create(path: &Path) -> std::io::Result<std::io::BufWriter<std::fs::File>> {
-    Ok(std::io::BufWriter::new(std::fs::File::create(path)?))
-}
-
-/// Binary little-endian PLY with positions (float) and triangles.
-pub fn write_ply(path: &Path, mesh: &Mesh) -> std::io::Result<()> {
-    let mut out = create(path)?;
-    write!(
-        out,
-        "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
-        mesh.vertex_count(),
-        mesh.face_count()
-    )?;
-    for v in 0..mesh.vertex_count() {
-        let p = mesh.world_position(v);
-        for c in [p.x, p.y, p.z] {
-            out.write_all(&(c as f32).to_le_bytes())?;
-        }
-    }
-    for f in mesh.faces() {
-        out.write_all(&[3u8])?;
-        for &v in f {
-            out.write_all(&(v as i32).to_le_bytes())?;
-        }
-    }
-    out.flush()
-}
-
-pub fn write_cameras_txt(path: &Path, cameras: &BTreeMap<u32, Camera>) -> std::io::Result<()> {
-    let mut out = create(path)?;
-    writeln!(out, "# Camera list with one line of data per camera:")?;
-    writeln!(out, "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]")?;
-    for (id, camera) in cameras {
-        let params: Vec<String> = camera.colmap_params().iter().map(|p| format!("{p}")).collect();
-        writeln!(
-            out,
-            "{id} {} {} {} {}",
-            camera.model.colmap_name(),
-            camera.width_px,
-            camera.height_px,
-            params.join(" ")
-        )?;
-    }
-    out.flush()
-}
-
-/// One image entry of `images.txt`.
-pub struct ImagePose {
-    pub image_id: u32,
-    pub camera_id: u32,
-    pub name: String,
-    pub cam_from_world: Rigid3,
-}
-
-pub fn write_images_txt(path: &Path, images: &[ImagePose]) -> std::io::Result<()> {
-    let mut out = create(path)?;
-    writeln!(out, "# Image list with two lines of data per image:")?;
-    writeln!(out, "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME")?;
-    writeln!(out, "#   POINTS2D[] as (X, Y, POINT3D_ID)")?;
-    for image in images {
-        let q = image.cam_from_world.colmap_qvec();
-        let t = image.cam_from_world.translation;
-        writeln!(
-            out,
-            "{} {} {} {} {} {} {} {} {} {}\n",
-            image.image_id, q[0], q[1], q[2], q[3], t.x, t.y, t.z, image.camera_id, image.name
-        )?;
-    }
-    out.flush()
-}
-
-pub fn write_empty_points3d_txt(path: &Path) -> std::io::Result<()> {
-    let mut out = create(path)?;
-    writeln!(out, "# 3D point list with one line of data per point:")?;
-    out.flush()
-}
-
-/// Float32 PFM, little-endian, rows bottom to top.
-pub fn write_pfm(path: &Path, width_px: usize, height_px: usize, depth_m: &[f32]) -> std::io::Result<()> {
-    let mut out = create(path)?;
-    write!(out, "Pf\n{width_px} {height_px}\n-1.0\n")?;
-    for row in (0..height_px).rev() {
-        for v in &depth_m[row * width_px..(row + 1) * width_px] {
-            out.write_all(&v.to_le_bytes())?;
-        }
-    }
-    out.flush()
 }
 
 /// Central-difference gradient magnitude.

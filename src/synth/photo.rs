@@ -77,12 +77,17 @@ struct ShadowMap {
 impl ShadowMap {
     /// Fraction of the sun visible at a world point (3×3 percentage-closer filtering).
     fn sun_visibility(&self, p: Vec3, normal_dot_sun: f32) -> f32 {
-        let q = self.cam_from_world.transform_point(&Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)));
+        let q = self.cam_from_world.transform_point(&Vector3::new(
+            f64::from(p.x),
+            f64::from(p.y),
+            f64::from(p.z),
+        ));
         let Some(pixel) = self.intrinsics.project(&q) else {
             return 1.0;
         };
         let depth = q.z as f32;
-        let tan = (1.0 - normal_dot_sun * normal_dot_sun).max(0.0).sqrt() / normal_dot_sun.max(0.05);
+        let tan =
+            (1.0 - normal_dot_sun * normal_dot_sun).max(0.0).sqrt() / normal_dot_sun.max(0.05);
         let bias = 0.03 + self.texel_m * (1.0 + 1.5 * tan.min(10.0));
         let (col, row) = (pixel.x as f32 - 0.5, pixel.y as f32 - 0.5);
         let mut lit = 0.0;
@@ -122,12 +127,21 @@ const SKY_AMBIENT: Vec3 = Vec3::new(0.42, 0.5, 0.66);
 
 impl<'a> PhotoRenderer<'a> {
     /// Prepares the full scene mesh (true geometry and clutter) and the sun's shadow map.
-    pub fn new(scene: &'a Scene, params: PhotoParams) -> Result<Self, crate::core::mesh::MeshError> {
+    pub fn new(
+        scene: &'a Scene,
+        params: PhotoParams,
+    ) -> Result<Self, crate::core::mesh::MeshError> {
         let mesh = scene.to_mesh(|_| true)?;
-        let face_normals: Vec<Vec3> = (0..mesh.face_count()).map(|f| mesh.face_normal(f)).collect();
+        let face_normals: Vec<Vec3> = (0..mesh.face_count())
+            .map(|f| mesh.face_normal(f))
+            .collect();
         let elevation = params.sun_elevation_deg.to_radians();
         let azimuth = params.sun_azimuth_deg.to_radians();
-        let sun_direction = Vec3::new(elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin());
+        let sun_direction = Vec3::new(
+            elevation.cos() * azimuth.cos(),
+            elevation.cos() * azimuth.sin(),
+            elevation.sin(),
+        );
         // Shadow map: a narrow pinhole camera 2 km away along the sun direction, covering the
         // buildings and the clutter near them.
         let extent = scene
@@ -143,7 +157,11 @@ impl<'a> PhotoRenderer<'a> {
             f64::from(sun_direction.y),
             f64::from(sun_direction.z),
         ) * distance;
-        let up = if sun_direction.z.abs() > 0.99 { Vector3::x() } else { Vector3::z() };
+        let up = if sun_direction.z.abs() > 0.99 {
+            Vector3::x()
+        } else {
+            Vector3::z()
+        };
         let mut rasterizer = Rasterizer::new();
         let cam_from_world = Rigid3::look_at(&eye, &Vector3::zeros(), &up).unwrap_or_default();
         let focal = size_px as f64 * 0.5 * distance / f64::from(extent);
@@ -197,7 +215,13 @@ impl<'a> PhotoRenderer<'a> {
         cam_from_world: &Rigid3,
     ) -> &RenderBuffers {
         self.depth_buffers.resize(width_px, height_px);
-        self.rasterizer.render(&self.mesh, intrinsics, cam_from_world, &RenderOptions::default(), &mut self.depth_buffers);
+        self.rasterizer.render(
+            &self.mesh,
+            intrinsics,
+            cam_from_world,
+            &RenderOptions::default(),
+            &mut self.depth_buffers,
+        );
         &self.depth_buffers
     }
 
@@ -214,7 +238,13 @@ impl<'a> PhotoRenderer<'a> {
         let (sw, sh) = (width_px * ss, height_px * ss);
         let ss_intrinsics = intrinsics.scaled(ss as f64);
         self.buffers.resize(sw, sh);
-        self.rasterizer.render(&self.mesh, &ss_intrinsics, cam_from_world, &RenderOptions::default(), &mut self.buffers);
+        self.rasterizer.render(
+            &self.mesh,
+            &ss_intrinsics,
+            cam_from_world,
+            &RenderOptions::default(),
+            &mut self.buffers,
+        );
 
         let world_from_cam = cam_from_world.inverse();
         let eye = world_from_cam.translation;
@@ -232,113 +262,144 @@ impl<'a> PhotoRenderer<'a> {
         let face_normals = &self.face_normals;
         let buffers = &self.buffers;
         let mut radiance = vec![Vec3::ZERO; sw * sh];
-        radiance.par_chunks_mut(sw).enumerate().for_each(|(row, line)| {
-            for (col, out) in line.iter_mut().enumerate() {
-                let index = row * sw + col;
-                let normalized = ss_intrinsics.pixel_to_normalized(nalgebra::Vector2::new(col as f64 + 0.5, row as f64 + 0.5));
-                let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
-                let ray = to_world_dir(ray_cam).normalize();
-                let face = buffers.face_index[index];
-                if face == NO_FACE {
-                    *out = sky(seed, ray, sun);
-                    continue;
-                }
-                let depth = buffers.depth_m[index];
-                let p = eye + to_world_dir(ray_cam * f64::from(depth));
-                let tag = scene.tags[face as usize];
-                let mut normal = face_normals[face as usize];
-                if normal.dot(ray) > 0.0 {
-                    normal = -normal;
-                }
-                let panel = (tag.panel != NO_PANEL).then(|| &scene.panels[tag.panel as usize]);
-                let footprint_m = depth * footprint_per_m / normal.dot(-ray).max(0.2);
-                let surface = texture::evaluate(tag.material, panel, &scene.ground, p, normal, footprint_m, seed, tag.object_id);
-                // Leaves and grass scatter light in all directions: perturb their normals.
-                let shading_normal = match tag.material {
-                    Material::Foliage { .. } => {
-                        let jitter = Vec3::new(
-                            value_noise(seed ^ 201, p / 0.15) - 0.5,
-                            value_noise(seed ^ 202, p / 0.15) - 0.5,
-                            value_noise(seed ^ 203, p / 0.15) - 0.5,
-                        );
-                        (normal + jitter * 1.6).normalize_or(normal)
+        radiance
+            .par_chunks_mut(sw)
+            .enumerate()
+            .for_each(|(row, line)| {
+                for (col, out) in line.iter_mut().enumerate() {
+                    let index = row * sw + col;
+                    let normalized = ss_intrinsics.pixel_to_normalized(nalgebra::Vector2::new(
+                        col as f64 + 0.5,
+                        row as f64 + 0.5,
+                    ));
+                    let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
+                    let ray = to_world_dir(ray_cam).normalize();
+                    let face = buffers.face_index[index];
+                    if face == NO_FACE {
+                        *out = sky(seed, ray, sun);
+                        continue;
                     }
-                    _ => normal,
-                };
-                let n_dot_sun = shading_normal.dot(sun);
-                let geometric_dot_sun = normal.dot(sun);
-                let visibility = if n_dot_sun > 0.0 && geometric_dot_sun > -0.2 {
-                    shadow.sun_visibility(p, geometric_dot_sun.max(0.01))
-                } else {
-                    0.0
-                };
-                // Ambient occlusion stand-in: ground and walls darken near their junction.
-                let occlusion = if matches!(tag.part, PartKind::NearGround | PartKind::FarGround) {
-                    let d = scene.distance_to_buildings_m(Vec2::new(p.x, p.y));
-                    0.55 + 0.45 * (d / 1.2).clamp(0.0, 1.0)
-                } else if matches!(tag.part, PartKind::Building) {
-                    0.7 + 0.3 * (p.z / 0.8).clamp(0.0, 1.0)
-                } else {
-                    1.0
-                };
-                let sky_light = SKY_AMBIENT * (0.55 + 0.45 * shading_normal.z) * occlusion;
-                let ground_bounce = Vec3::new(0.12, 0.12, 0.1) * (0.5 - 0.5 * shading_normal.z);
-                let diffuse = surface.albedo * (SUN_RADIANCE * n_dot_sun.max(0.0) * visibility + sky_light + ground_bounce);
-                let mut colour = diffuse;
-                if surface.mirror > 0.0 {
-                    let cos_view = normal.dot(-ray).clamp(0.0, 1.0);
-                    let fresnel = surface.mirror + (1.0 - surface.mirror) * (1.0 - cos_view).powi(5);
-                    let reflected = ray - normal * 2.0 * ray.dot(normal);
-                    let environment = if reflected.z > 0.0 {
-                        sky(seed, reflected, sun) * 0.8
-                    } else {
-                        Vec3::new(0.12, 0.13, 0.1)
+                    let depth = buffers.depth_m[index];
+                    let p = eye + to_world_dir(ray_cam * f64::from(depth));
+                    let tag = scene.tags[face as usize];
+                    let mut normal = face_normals[face as usize];
+                    if normal.dot(ray) > 0.0 {
+                        normal = -normal;
+                    }
+                    let panel = (tag.panel != NO_PANEL).then(|| &scene.panels[tag.panel as usize]);
+                    let footprint_m = depth * footprint_per_m / normal.dot(-ray).max(0.2);
+                    let surface = texture::evaluate(
+                        tag.material,
+                        panel,
+                        &scene.ground,
+                        p,
+                        normal,
+                        footprint_m,
+                        seed,
+                        tag.object_id,
+                    );
+                    // Leaves and grass scatter light in all directions: perturb their normals.
+                    let shading_normal = match tag.material {
+                        Material::Foliage { .. } => {
+                            let jitter = Vec3::new(
+                                value_noise(seed ^ 201, p / 0.15) - 0.5,
+                                value_noise(seed ^ 202, p / 0.15) - 0.5,
+                                value_noise(seed ^ 203, p / 0.15) - 0.5,
+                            );
+                            (normal + jitter * 1.6).normalize_or(normal)
+                        }
+                        _ => normal,
                     };
-                    let glint = reflected.dot(sun).max(0.0).powi(300) * visibility * 20.0;
-                    colour = diffuse * (1.0 - fresnel) + (environment + SUN_RADIANCE * glint) * fresnel;
+                    let n_dot_sun = shading_normal.dot(sun);
+                    let geometric_dot_sun = normal.dot(sun);
+                    let visibility = if n_dot_sun > 0.0 && geometric_dot_sun > -0.2 {
+                        shadow.sun_visibility(p, geometric_dot_sun.max(0.01))
+                    } else {
+                        0.0
+                    };
+                    // Ambient occlusion stand-in: ground and walls darken near their junction.
+                    let occlusion =
+                        if matches!(tag.part, PartKind::NearGround | PartKind::FarGround) {
+                            let d = scene.distance_to_buildings_m(Vec2::new(p.x, p.y));
+                            0.55 + 0.45 * (d / 1.2).clamp(0.0, 1.0)
+                        } else if matches!(tag.part, PartKind::Building) {
+                            0.7 + 0.3 * (p.z / 0.8).clamp(0.0, 1.0)
+                        } else {
+                            1.0
+                        };
+                    let sky_light = SKY_AMBIENT * (0.55 + 0.45 * shading_normal.z) * occlusion;
+                    let ground_bounce = Vec3::new(0.12, 0.12, 0.1) * (0.5 - 0.5 * shading_normal.z);
+                    let diffuse = surface.albedo
+                        * (SUN_RADIANCE * n_dot_sun.max(0.0) * visibility
+                            + sky_light
+                            + ground_bounce);
+                    let mut colour = diffuse;
+                    if surface.mirror > 0.0 {
+                        let cos_view = normal.dot(-ray).clamp(0.0, 1.0);
+                        let fresnel =
+                            surface.mirror + (1.0 - surface.mirror) * (1.0 - cos_view).powi(5);
+                        let reflected = ray - normal * 2.0 * ray.dot(normal);
+                        let environment = if reflected.z > 0.0 {
+                            sky(seed, reflected, sun) * 0.8
+                        } else {
+                            Vec3::new(0.12, 0.13, 0.1)
+                        };
+                        let glint = reflected.dot(sun).max(0.0).powi(300) * visibility * 20.0;
+                        colour = diffuse * (1.0 - fresnel)
+                            + (environment + SUN_RADIANCE * glint) * fresnel;
+                    }
+                    // Aerial perspective.
+                    let haze = 1.0 - (-depth / 1800.0).exp();
+                    *out = colour.lerp(horizon_colour(), haze);
                 }
-                // Aerial perspective.
-                let haze = 1.0 - (-depth / 1800.0).exp();
-                *out = colour.lerp(horizon_colour(), haze);
-            }
-        });
+            });
 
         // Downsample, expose, vignette, tone-map.
-        let exposure_noise = (texture::hash_unit(image_seed, 1, 2, 3) - 0.5) * 3.46 * self.params.exposure_jitter;
+        let exposure_noise =
+            (texture::hash_unit(image_seed, 1, 2, 3) - 0.5) * 3.46 * self.params.exposure_jitter;
         let exposure = 1.25 * (1.0 + exposure_noise);
         let (cx, cy) = (width_px as f32 * 0.5, height_px as f32 * 0.5);
         let corner = (cx * cx + cy * cy).sqrt();
         let mut image = vec![Vec3::ZERO; width_px * height_px];
         let vignetting = self.params.vignetting;
-        image.par_chunks_mut(width_px).enumerate().for_each(|(row, line)| {
-            for (col, out) in line.iter_mut().enumerate() {
-                let mut sum = Vec3::ZERO;
-                for dy in 0..ss {
-                    let start = (row * ss + dy) * sw + col * ss;
-                    sum += radiance[start..start + ss].iter().copied().sum::<Vec3>();
+        image
+            .par_chunks_mut(width_px)
+            .enumerate()
+            .for_each(|(row, line)| {
+                for (col, out) in line.iter_mut().enumerate() {
+                    let mut sum = Vec3::ZERO;
+                    for dy in 0..ss {
+                        let start = (row * ss + dy) * sw + col * ss;
+                        sum += radiance[start..start + ss].iter().copied().sum::<Vec3>();
+                    }
+                    let linear = sum / (ss * ss) as f32;
+                    let r = ((col as f32 + 0.5 - cx).powi(2) + (row as f32 + 0.5 - cy).powi(2))
+                        .sqrt()
+                        / corner;
+                    let v = 1.0 - vignetting * r * r;
+                    *out = tone_map(linear * exposure * v) * 255.0;
                 }
-                let linear = sum / (ss * ss) as f32;
-                let r = ((col as f32 + 0.5 - cx).powi(2) + (row as f32 + 0.5 - cy).powi(2)).sqrt() / corner;
-                let v = 1.0 - vignetting * r * r;
-                *out = tone_map(linear * exposure * v) * 255.0;
-            }
-        });
+            });
 
         let blurred = gaussian_blur_rgb(&image, width_px, height_px, self.params.blur_sigma_px);
         let noise_sigma = self.params.noise_sigma_dn;
         let mut rgb = vec![0u8; width_px * height_px * 3];
-        rgb.par_chunks_mut(width_px * 3).enumerate().for_each(|(row, line)| {
-            for col in 0..width_px {
-                let value = blurred[row * width_px + col];
-                for channel in 0..3 {
-                    let v = value[channel];
-                    let sigma = noise_sigma * (0.35 + 0.65 * (v.max(0.0) / 128.0).sqrt());
-                    let key = hash_u64(image_seed ^ ((row * width_px + col) as u64 * 3 + channel as u64));
-                    let noisy = v + sigma * gaussian_from_hash(key);
-                    line[col * 3 + channel] = noisy.round().clamp(0.0, 255.0) as u8;
+        rgb.par_chunks_mut(width_px * 3)
+            .enumerate()
+            .for_each(|(row, line)| {
+                for col in 0..width_px {
+                    let value = blurred[row * width_px + col];
+                    for channel in 0..3 {
+                        let v = value[channel];
+                        let sigma = noise_sigma * (0.35 + 0.65 * (v.max(0.0) / 128.0).sqrt());
+                        let key = hash_u64(
+                            image_seed ^ ((row * width_px + col) as u64 * 3 + channel as u64),
+                        );
+                        let noisy = v + sigma * gaussian_from_hash(key);
+                        line[col * 3 + channel] = noisy.round().clamp(0.0, 255.0) as u8;
+                    }
                 }
-            }
-        });
+            });
         Photo {
             width_px,
             height_px,
@@ -367,15 +428,23 @@ impl<'a> PhotoRenderer<'a> {
             .map(|index| {
                 let (row, col) = (index / w, index % w);
                 let d = depth[index];
-                if d <= 0.0 || d > params.max_depth_m || local_std[index] < params.untextured_std_dn {
+                if d <= 0.0 || d > params.max_depth_m || local_std[index] < params.untextured_std_dn
+                {
                     return 0.0;
                 }
                 let p = Vec3::new(col as f32 / 14.0, row as f32 / 14.0, 0.0);
-                let blob = 0.65 * value_noise(image_seed ^ 301, p) + 0.35 * value_noise(image_seed ^ 302, p * 2.7);
+                let blob = 0.65 * value_noise(image_seed ^ 301, p)
+                    + 0.35 * value_noise(image_seed ^ 302, p * 2.7);
                 if blob > blob_threshold {
                     return 0.0;
                 }
-                let correlated = fbm(image_seed ^ 303, Vec3::new(col as f32, row as f32, 0.0), 20.0, 3, 0.0);
+                let correlated = fbm(
+                    image_seed ^ 303,
+                    Vec3::new(col as f32, row as f32, 0.0),
+                    20.0,
+                    3,
+                    0.0,
+                );
                 let white = gaussian_from_hash(hash_u64(image_seed ^ 0xD1 ^ index as u64));
                 d * (1.0 + params.relative_noise * (0.6 * white + 1.6 * correlated))
             })
@@ -414,7 +483,9 @@ fn inverse_normal_upper_tail(p: f32) -> f32 {
 fn erfc_approx(x: f32) -> f32 {
     // Abramowitz–Stegun 7.1.26.
     let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
-    let y = t * (0.254_829_6 + t * (-0.284_496_7 + t * (1.421_413_7 + t * (-1.453_152 + t * 1.061_405_4))));
+    let y = t
+        * (0.254_829_6
+            + t * (-0.284_496_7 + t * (1.421_413_7 + t * (-1.453_152 + t * 1.061_405_4))));
     let erfc = y * (-x * x).exp();
     if x >= 0.0 {
         erfc
@@ -468,22 +539,27 @@ fn gaussian_blur_rgb(image: &[Vec3], w: usize, h: usize, sigma_px: f32) -> Vec<V
         return image.to_vec();
     }
     let radius = (3.0 * sigma_px).ceil() as i64;
-    let kernel: Vec<f32> = (-radius..=radius).map(|d| (-(d * d) as f32 / (2.0 * sigma_px * sigma_px)).exp()).collect();
+    let kernel: Vec<f32> = (-radius..=radius)
+        .map(|d| (-(d * d) as f32 / (2.0 * sigma_px * sigma_px)).exp())
+        .collect();
     let total: f32 = kernel.iter().sum();
     let kernel: Vec<f32> = kernel.iter().map(|k| k / total).collect();
     let mut horizontal = vec![Vec3::ZERO; w * h];
-    horizontal.par_chunks_mut(w).enumerate().for_each(|(row, line)| {
-        for (col, out) in line.iter_mut().enumerate() {
-            *out = kernel
-                .iter()
-                .enumerate()
-                .map(|(q, k)| {
-                    let c = (col as i64 + q as i64 - radius).clamp(0, w as i64 - 1) as usize;
-                    image[row * w + c] * *k
-                })
-                .sum();
-        }
-    });
+    horizontal
+        .par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(row, line)| {
+            for (col, out) in line.iter_mut().enumerate() {
+                *out = kernel
+                    .iter()
+                    .enumerate()
+                    .map(|(q, k)| {
+                        let c = (col as i64 + q as i64 - radius).clamp(0, w as i64 - 1) as usize;
+                        image[row * w + c] * *k
+                    })
+                    .sum();
+            }
+        });
     let mut out = vec![Vec3::ZERO; w * h];
     out.par_chunks_mut(w).enumerate().for_each(|(row, line)| {
         for (col, value) in line.iter_mut().enumerate() {
@@ -549,6 +625,9 @@ mod tests {
         let values: Vec<f32> = (0..n).map(|i| gaussian_from_hash(hash_u64(i))).collect();
         let mean = values.iter().sum::<f32>() / n as f32;
         let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f32>() / n as f32;
-        assert!(mean.abs() < 0.05 && (var - 1.0).abs() < 0.05, "{mean} {var}");
+        assert!(
+            mean.abs() < 0.05 && (var - 1.0).abs() < 0.05,
+            "{mean} {var}"
+        );
     }
 }

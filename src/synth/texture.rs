@@ -68,11 +68,17 @@ pub fn fbm(seed: u64, p: Vec3, base_scale_m: f32, octaves: u32, footprint_m: f32
 /// What a surface is made of. Variants that need a colour choice carry a small palette index.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Material {
-    Brick { palette: u8 },
-    Plaster { palette: u8 },
+    Brick {
+        palette: u8,
+    },
+    Plaster {
+        palette: u8,
+    },
     /// Wood under the roof overhang and on gable boards.
     Soffit,
-    RoofTile { palette: u8 },
+    RoofTile {
+        palette: u8,
+    },
     /// Gravel-covered flat roof.
     FlatRoof,
     Concrete,
@@ -81,12 +87,18 @@ pub enum Material {
     /// The ground: its look comes from the [`GroundLayout`] at the point.
     Ground,
     Bark,
-    Foliage { palette: u8 },
-    CarPaint { palette: u8 },
+    Foliage {
+        palette: u8,
+    },
+    CarPaint {
+        palette: u8,
+    },
     CarGlass,
     Tyre,
     FenceWood,
-    Clothing { palette: u8 },
+    Clothing {
+        palette: u8,
+    },
     Skin,
 }
 
@@ -103,7 +115,10 @@ pub struct SurfaceSample {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PanelKind {
     /// A window split into `columns` × `rows` panes by mullions.
-    Window { columns: u8, rows: u8 },
+    Window {
+        columns: u8,
+        rows: u8,
+    },
     Door,
     GarageDoor,
 }
@@ -185,9 +200,14 @@ pub fn evaluate(
     object_id: u32,
 ) -> SurfaceSample {
     let object_seed = hash_u64(seed ^ (u64::from(object_id) << 20));
-    let diffuse = |albedo: Vec3| SurfaceSample { albedo, mirror: 0.0 };
+    let diffuse = |albedo: Vec3| SurfaceSample {
+        albedo,
+        mirror: 0.0,
+    };
     match material {
-        Material::Brick { palette } => diffuse(brick(seed, object_seed, palette, p, normal, footprint_m)),
+        Material::Brick { palette } => {
+            diffuse(brick(seed, object_seed, palette, p, normal, footprint_m))
+        }
         Material::Plaster { palette } => diffuse(plaster(seed, palette, p, normal, footprint_m)),
         Material::Soffit => {
             let grain = fbm(seed ^ 11, p * Vec3::new(1.0, 1.0, 8.0), 0.4, 4, footprint_m);
@@ -259,7 +279,14 @@ pub fn evaluate(
     }
 }
 
-fn brick(seed: u64, object_seed: u64, palette: u8, p: Vec3, normal: Vec3, footprint_m: f32) -> Vec3 {
+fn brick(
+    seed: u64,
+    object_seed: u64,
+    palette: u8,
+    p: Vec3,
+    normal: Vec3,
+    footprint_m: f32,
+) -> Vec3 {
     const COURSE_M: f32 = 0.075;
     const BRICK_M: f32 = 0.225;
     const MORTAR_HALF_M: f32 = 0.006;
@@ -267,7 +294,11 @@ fn brick(seed: u64, object_seed: u64, palette: u8, p: Vec3, normal: Vec3, footpr
     let s = p.dot(along);
     let t = p.z;
     let course = (t / COURSE_M).floor();
-    let shifted = s + if (course as i64) % 2 == 0 { 0.0 } else { BRICK_M * 0.5 };
+    let shifted = s + if (course as i64) % 2 == 0 {
+        0.0
+    } else {
+        BRICK_M * 0.5
+    };
     let brick_index = (shifted / BRICK_M).floor();
     let (base, mortar) = match palette % 3 {
         0 => (srgb(150, 70, 50), srgb(190, 185, 175)),
@@ -281,8 +312,11 @@ fn brick(seed: u64, object_seed: u64, palette: u8, p: Vec3, normal: Vec3, footpr
         base * (1.0 + 0.45 * variation + 0.3 * grain) + Vec3::new(0.02, 0.0, -0.01) * tone;
     let dt = (t - course * COURSE_M).min((course + 1.0) * COURSE_M - t);
     let ds = (shifted - brick_index * BRICK_M).min((brick_index + 1.0) * BRICK_M - shifted);
-    let mortar_cover = line_coverage(dt, MORTAR_HALF_M, footprint_m)
-        .max(line_coverage(ds, MORTAR_HALF_M, footprint_m));
+    let mortar_cover = line_coverage(dt, MORTAR_HALF_M, footprint_m).max(line_coverage(
+        ds,
+        MORTAR_HALF_M,
+        footprint_m,
+    ));
     let detailed = brick_colour.lerp(mortar, mortar_cover);
     let mean = base.lerp(mortar, 0.2);
     let weathering = fbm(seed ^ 72, p, 2.0, 3, footprint_m);
@@ -316,7 +350,11 @@ fn roof_tile(seed: u64, palette: u8, p: Vec3, normal: Vec3, footprint_m: f32) ->
     let s = p.dot(along);
     let t = p.dot(down_slope);
     let row = (t / ROW_M).floor();
-    let shifted = s + if (row as i64) % 2 == 0 { 0.0 } else { TILE_M * 0.5 };
+    let shifted = s + if (row as i64) % 2 == 0 {
+        0.0
+    } else {
+        TILE_M * 0.5
+    };
     let tile = (shifted / TILE_M).floor();
     let base = match palette % 3 {
         0 => srgb(140, 60, 45),
@@ -360,8 +398,11 @@ fn opening(seed: u64, panel: &Panel, p: Vec3, footprint_m: f32) -> SurfaceSample
                 let db = (b - (b / pane_h).round() * pane_h).abs();
                 da.min(db)
             };
-            let frame = line_coverage(edge_distance, FRAME_M, footprint_m)
-                .max(line_coverage(mullion_distance, MULLION_HALF_M, footprint_m));
+            let frame = line_coverage(edge_distance, FRAME_M, footprint_m).max(line_coverage(
+                mullion_distance,
+                MULLION_HALF_M,
+                footprint_m,
+            ));
             // Behind the glass: dark interior, sometimes a light curtain in the upper part.
             let curtain_seed = hash_u64(seed ^ u64::from(panel.style) << 8);
             let has_curtain = hash_unit(curtain_seed, column as i64, row as i64, 1) < 0.4;
@@ -383,7 +424,13 @@ fn opening(seed: u64, panel: &Panel, p: Vec3, footprint_m: f32) -> SurfaceSample
         PanelKind::Door => {
             let inset = (a - panel.width_m * 0.5).abs() < panel.width_m * 0.3
                 && (b > 0.3 && b < panel.height_m - 0.3);
-            let grain = fbm(seed ^ 101, p * Vec3::new(1.0, 1.0, 6.0), 0.3, 4, footprint_m);
+            let grain = fbm(
+                seed ^ 101,
+                p * Vec3::new(1.0, 1.0, 6.0),
+                0.3,
+                4,
+                footprint_m,
+            );
             let wood = srgb(100, 60, 35) * (1.0 + 0.5 * grain);
             let handle = (a - panel.width_m * 0.85).abs() < 0.03 && (b - 1.0).abs() < 0.08;
             let colour = if handle {
@@ -401,10 +448,13 @@ fn opening(seed: u64, panel: &Panel, p: Vec3, footprint_m: f32) -> SurfaceSample
         PanelKind::GarageDoor => {
             const SLAT_M: f32 = 0.5;
             let slat = b - (b / SLAT_M).floor() * SLAT_M;
-            let groove = line_coverage(slat, 0.02, footprint_m) * pattern_visibility(SLAT_M, footprint_m);
+            let groove =
+                line_coverage(slat, 0.02, footprint_m) * pattern_visibility(SLAT_M, footprint_m);
             let dirt = fbm(seed ^ 111, p, 1.0, 3, footprint_m);
             SurfaceSample {
-                albedo: frame_colour.lerp(srgb(200, 200, 195), 0.5) * (1.0 - 0.6 * groove) * (1.0 + 0.2 * dirt),
+                albedo: frame_colour.lerp(srgb(200, 200, 195), 0.5)
+                    * (1.0 - 0.6 * groove)
+                    * (1.0 + 0.2 * dirt),
                 mirror: 0.0,
             }
         }
@@ -432,8 +482,14 @@ pub fn ground_albedo(seed: u64, layout: &GroundLayout, p: Vec3, footprint_m: f32
         const SLAB_M: f32 = 0.6;
         let ds = (p.x - (p.x / SLAB_M).round() * SLAB_M).abs();
         let dt = (p.y - (p.y / SLAB_M).round() * SLAB_M).abs();
-        let joint = line_coverage(ds.min(dt), 0.01, footprint_m) * pattern_visibility(SLAB_M, footprint_m);
-        let slab = hash_unit(seed ^ 125, (p.x / SLAB_M).floor() as i64, (p.y / SLAB_M).floor() as i64, 0) - 0.5;
+        let joint =
+            line_coverage(ds.min(dt), 0.01, footprint_m) * pattern_visibility(SLAB_M, footprint_m);
+        let slab = hash_unit(
+            seed ^ 125,
+            (p.x / SLAB_M).floor() as i64,
+            (p.y / SLAB_M).floor() as i64,
+            0,
+        ) - 0.5;
         return srgb(170, 168, 160) * (1.0 + 0.3 * large + 0.15 * slab) * (1.0 - 0.5 * joint);
     }
     if within(&layout.gravel) {
@@ -476,8 +532,17 @@ mod tests {
         let ground = GroundLayout::default();
         let normal = Vec3::Y;
         let sample = |z: f32, footprint_m: f32| {
-            evaluate(Material::Brick { palette: 0 }, None, &ground, Vec3::new(0.1, 0.0, z), normal, footprint_m, 1, 0)
-                .albedo
+            evaluate(
+                Material::Brick { palette: 0 },
+                None,
+                &ground,
+                Vec3::new(0.1, 0.0, z),
+                normal,
+                footprint_m,
+                1,
+                0,
+            )
+            .albedo
         };
         // On a course boundary (z = 0.075) versus the middle of a brick.
         let on_mortar = sample(0.075, 0.001);

@@ -38,7 +38,12 @@ fn to_vector(p: Vec3) -> Vector3<f64> {
 }
 
 /// A candidate viewpoint for image `index`; draw again for a different jitter.
-pub fn draw_viewpoint(scene: &Scene, kind: SceneKind, index: usize, rng: &mut ChaCha8Rng) -> Option<Viewpoint> {
+pub fn draw_viewpoint(
+    scene: &Scene,
+    kind: SceneKind,
+    index: usize,
+    rng: &mut ChaCha8Rng,
+) -> Option<Viewpoint> {
     let (eye, target, label) = match kind {
         SceneKind::House => {
             let main = scene.footprints.first()?;
@@ -53,21 +58,30 @@ pub fn draw_viewpoint(scene: &Scene, kind: SceneKind, index: usize, rng: &mut Ch
             let azimuth = main.frame.yaw_rad + side_angle + rng.random_range(-0.45..0.45f32);
             let distance = rng.random_range(12.0..25.0f32) + main.half_x_m.max(main.half_y_m) * 0.5;
             let centre = main.frame.to_world(Vec3::new(0.0, 0.0, 0.0));
-            let eye = centre + Vec3::new(azimuth.cos() * distance, azimuth.sin() * distance, height);
+            let eye =
+                centre + Vec3::new(azimuth.cos() * distance, azimuth.sin() * distance, height);
             let target = centre
                 + Vec3::new(
                     rng.random_range(-1.5..1.5),
                     rng.random_range(-1.5..1.5),
                     rng.random_range(2.5..5.0),
                 );
-            (eye, target, format!("{side_name}, {:.0} m", HOUSE_HEIGHTS_M[(index / 3) % 3]))
+            (
+                eye,
+                target,
+                format!("{side_name}, {:.0} m", HOUSE_HEIGHTS_M[(index / 3) % 3]),
+            )
         }
         SceneKind::Block => {
             let azimuth = rng.random_range(0.0..std::f32::consts::TAU);
             let distance = rng.random_range(40.0..70.0f32);
             let height = rng.random_range(30.0..60.0f32);
             let eye = Vec3::new(azimuth.cos() * distance, azimuth.sin() * distance, height);
-            let target = Vec3::new(rng.random_range(-15.0..15.0), rng.random_range(-15.0..15.0), rng.random_range(0.0..8.0));
+            let target = Vec3::new(
+                rng.random_range(-15.0..15.0),
+                rng.random_range(-15.0..15.0),
+                rng.random_range(0.0..8.0),
+            );
             (eye, target, format!("oblique, {height:.0} m"))
         }
     };
@@ -75,7 +89,8 @@ pub fn draw_viewpoint(scene: &Scene, kind: SceneKind, index: usize, rng: &mut Ch
         return None;
     }
     let look = Rigid3::look_at(&to_vector(eye), &to_vector(target), &Vector3::z())?;
-    let roll = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), rng.random_range(-0.05..0.05f64));
+    let roll =
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), rng.random_range(-0.05..0.05f64));
     let cam_from_world = Rigid3::new(roll * look.rotation, roll * look.translation);
     Some(Viewpoint {
         name: format!("view_{index:03}.jpg"),
@@ -99,7 +114,9 @@ mod tests {
             let view = draw_viewpoint(&scene, SceneKind::House, index, &mut rng).unwrap();
             let expected = HOUSE_HEIGHTS_M[(index / 3) % 3];
             assert!((view.eye_m.z - expected).abs() < 0.5, "{}", view.eye_m.z);
-            let centre_cam = view.cam_from_world.transform_point(&Vector3::new(0.0, 0.0, 3.0));
+            let centre_cam = view
+                .cam_from_world
+                .transform_point(&Vector3::new(0.0, 0.0, 3.0));
             assert!(centre_cam.z > 10.0);
             assert!((centre_cam.x / centre_cam.z).abs() < 0.3);
             assert!((view.cam_from_world.camera_center() - to_vector(view.eye_m)).norm() < 1e-4);
