@@ -1640,9 +1640,9 @@ fn add_car(scene: &mut Scene, rng: &mut ChaCha8Rng, p: Vec2, yaw_rad: f32) {
         .map(|i| {
             let a = polygon[i];
             let b = polygon[(i + 1) % 4];
-            if (a.y - 1.45).abs() < 1e-3 && (b.y - 1.45).abs() < 1e-3 {
-                paint
-            } else if (a.y - 0.95).abs() < 1e-3 && (b.y - 0.95).abs() < 1e-3 {
+            // Roof and floor of the cabin are painted, the slanted and side faces are glass.
+            let horizontal = (a.y - b.y).abs() < 1e-3;
+            if horizontal {
                 paint
             } else {
                 Material::CarGlass

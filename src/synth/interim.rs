@@ -1,6 +1,7 @@
 //! Stand-ins for library pieces being written in parallel (δ of eq. 5, image gradients and ASG). They keep `synth` compiling and testable until those land on main;
 //! then this file goes away and the callers use `crate::core` / `crate::io`.
 
+#[cfg(test)]
 use glam::Vec3;
 use nalgebra::Vector2;
 
@@ -81,6 +82,7 @@ pub fn mutual_reprojection_error_px(
 }
 
 /// Central-difference gradient magnitude.
+#[cfg(test)]
 pub fn gradient_magnitude(pixels: &[f32], w: usize, h: usize, out: &mut [f32]) {
     for row in 0..h {
         for col in 0..w {
@@ -93,6 +95,7 @@ pub fn gradient_magnitude(pixels: &[f32], w: usize, h: usize, out: &mut [f32]) {
 }
 
 /// ASG of paper eq. 4 on a normal map (zero normals = background).
+#[cfg(test)]
 pub fn asg_from_normals(normals: &[Vec3], w: usize, h: usize, out: &mut [f32]) {
     let scale = (std::f32::consts::PI / 3.0).sqrt();
     for row in 0..h {

@@ -189,6 +189,7 @@ fn along_surface(normal: Vec3) -> Vec3 {
 ///
 /// `normal` is the face normal (world), `footprint_m` the size of one rendered sample on the
 /// surface, `seed` the scene seed, `object_id` varies colours between objects of one material.
+#[allow(clippy::too_many_arguments)]
 pub fn evaluate(
     material: Material,
     panel: Option<&Panel>,
