@@ -129,7 +129,7 @@ impl Default for SynthConfig {
             model_voxel_m: 0.25,
             model_smoothing_sigma_m: 0.15,
             model_taubin_iterations: 4,
-            model_vertex_noise_m: 0.015,
+            model_vertex_noise_m: 0.01,
             model_warp_m: 0.04,
             model_hole_count: 6,
             model_hole_radius_m: 0.9,
@@ -774,11 +774,16 @@ mod tests {
         ab / (aa * bb).sqrt().max(1e-12)
     }
 
-    fn asg_of(mesh: &Mesh, camera: &Camera, pose: &Rigid3) -> Vec<f32> {
+    fn asg_of(
+        mesh: &Mesh,
+        camera: &Camera,
+        pose: &Rigid3,
+        normal_source: NormalSource,
+    ) -> Vec<f32> {
         let (w, h) = (camera.width_px as usize, camera.height_px as usize);
         let mut buffers = RenderBuffers::new(w, h);
         let options = RenderOptions {
-            normal_source: NormalSource::Face,
+            normal_source,
             ..RenderOptions::default()
         };
         Rasterizer::new().render(mesh, &camera.intrinsics, pose, &options, &mut buffers);
@@ -846,7 +851,7 @@ mod tests {
             })
             .unwrap();
         true_model.clear_vertex_normals();
-        let asg_gt = asg_of(&true_model, &camera, &gt);
+        let asg_gt = asg_of(&true_model, &camera, &gt, NormalSource::Face);
         let at_gt = correlation(&photo_gradient, &asg_gt);
 
         // A pose a few pixels off: the camera turned by 4 px about its y axis.
@@ -855,7 +860,10 @@ mod tests {
             4.0 / camera.intrinsics.fx_px,
         );
         let shifted = Rigid3::new(turn * gt.rotation, turn * gt.translation);
-        let at_shift = correlation(&photo_gradient, &asg_of(&true_model, &camera, &shifted));
+        let at_shift = correlation(
+            &photo_gradient,
+            &asg_of(&true_model, &camera, &shifted, NormalSource::Face),
+        );
 
         // The initial pose of the 104 px level.
         let noise = initial::draw_unit_noise(1, config.initial_metres_per_radian, &mut stream(5));
@@ -871,7 +879,7 @@ mod tests {
         );
         let at_initial = correlation(
             &photo_gradient,
-            &asg_of(&true_model, &camera, &level.poses[0]),
+            &asg_of(&true_model, &camera, &level.poses[0], NormalSource::Face),
         );
         println!(
             "photo gradient vs true-model ASG: correlation {at_gt:.3} at the GT pose, {at_shift:.3} 4 px off, {at_initial:.3} at the 104 px initial pose (δ {:.1} px)",
@@ -899,8 +907,13 @@ mod tests {
             .ok()
             .and_then(|v| v.parse().ok())
             .unwrap_or(48);
+        let scene = match std::env::var("ASGREG_SYNTH_SCENE").as_deref() {
+            Ok("Block") => SceneKind::Block,
+            _ => SceneKind::House,
+        };
         let config = SynthConfig {
             image_count: images,
+            scene,
             ..SynthConfig::default()
         };
         let summary = generate_scene(&config, Path::new(&out)).unwrap();
@@ -918,22 +931,76 @@ mod tests {
             "model: {} faces, deviation {:.3} m",
             summary.model_faces, summary.model_mean_deviation_m
         );
-        // A 3 × 3 contact sheet of the first photos, as PNG, for looking at them.
+        // A 3 × 3 contact sheet of the first photos (or of `$ASGREG_SYNTH_SHEET`, e.g. "0,4,8"),
+        // as PNG, for looking at them.
         let (w, h) = (config.width_px, config.height_px);
-        let mut sheet = image::RgbImage::new(w * 3, h * 3);
-        for (k, info) in summary.images.iter().take(9).enumerate() {
+        let chosen: Vec<usize> = std::env::var("ASGREG_SYNTH_SHEET")
+            .map(|list| {
+                list.split(',')
+                    .filter_map(|k| k.trim().parse().ok())
+                    .collect()
+            })
+            .unwrap_or_else(|_| (0..9).collect());
+        let columns = chosen.len().clamp(1, 3) as u32;
+        let rows = chosen.len().div_ceil(3).max(1) as u32;
+        let mut sheet = image::RgbImage::new(w * columns, h * rows);
+        for (k, &index) in chosen.iter().enumerate() {
+            let Some(info) = summary.images.get(index) else {
+                continue;
+            };
             let photo = image::open(Path::new(&out).join("images").join(&info.name))
                 .unwrap()
                 .to_rgb8();
+            let k = k as u32;
             image::imageops::replace(
                 &mut sheet,
                 &photo,
-                i64::from(w * (k as u32 % 3)),
-                i64::from(h * (k as u32 / 3)),
+                i64::from(w * (k % columns)),
+                i64::from(h * (k / columns)),
             );
         }
         sheet
             .save(Path::new(&out).join("contact_sheet.png"))
+            .unwrap();
+        // The first chosen image's depth map and the degraded model's ASG under its true pose.
+        let first = &summary.images[chosen
+            .first()
+            .copied()
+            .unwrap_or(0)
+            .min(summary.images.len() - 1)];
+        let depth = crate::io::pfm::read_pfm(
+            &Path::new(&out)
+                .join("depth")
+                .join(Path::new(&first.name).with_extension("pfm")),
+        )
+        .unwrap();
+        let max_depth = depth
+            .depth_m
+            .iter()
+            .copied()
+            .fold(0.0f32, f32::max)
+            .max(1e-3);
+        let depth_png = image::GrayImage::from_fn(w, h, |c, r| {
+            let d = depth.depth_m[(r * w + c) as usize];
+            image::Luma([if d > 0.0 {
+                (255.0 * (1.0 - d / max_depth)).clamp(1.0, 255.0) as u8
+            } else {
+                0
+            }])
+        });
+        depth_png
+            .save(Path::new(&out).join("depth_first.png"))
+            .unwrap();
+        let model = crate::io::ply::read_ply(&Path::new(&out).join("model.ply")).unwrap();
+        let gt = crate::io::colmap::read_model(&Path::new(&out).join("gt")).unwrap();
+        let pose = gt.image_by_name(&first.name).unwrap().cam_from_world;
+        let asg = asg_of(&model, &config.camera(), &pose, NormalSource::Vertex);
+        let max_asg = asg.iter().copied().fold(0.0f32, f32::max).max(1e-6);
+        let asg_png = image::GrayImage::from_fn(w, h, |c, r| {
+            image::Luma([(255.0 * (asg[(r * w + c) as usize] / max_asg * 3.0).min(1.0)) as u8])
+        });
+        asg_png
+            .save(Path::new(&out).join("model_asg_first.png"))
             .unwrap();
     }
 }
