@@ -1,1 +1,939 @@
-//! Honest synthetic scenes (being written).
+//! Honest synthetic test scenes (DESIGN §4): a true scene (buildings, ground, clutter) rendered
+//! into photo-like JPEGs with materials, sun and sky light, cast shadows and camera effects; MVS-like
+//! depth maps; a Poisson-like degraded model for registration; ground-truth and noisy initial poses
+//! calibrated to the paper's initial-error levels. The photos and the model differ the way real
+//! photos and a reconstructed mesh do, so registration on them is not made easy.
+//!
+//! Entry point: [`generate_scene`] with a [`SynthConfig`]; it writes
+//! `model.ply`, `model_true.ply`, `images/*.jpg`, `depth/*.pfm`, `gt/{cameras,images,points3D}.txt`,
+//! `initial/<level>/{cameras,images,points3D}.txt` and `scene.json`.
+
+pub mod degrade;
+pub mod geometry;
+pub mod initial;
+mod interim;
+pub mod photo;
+pub mod texture;
+pub mod viewpoints;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::Vec3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::core::camera::{Camera, PinholeIntrinsics};
+use crate::core::mesh::{Mesh, MeshError};
+use crate::core::rigid::Rigid3;
+use crate::io::colmap::{self, ImagePose};
+use geometry::{PartKind, Scene};
+use initial::LevelCalibration;
+use photo::{DepthParams, PhotoParams, PhotoRenderer};
+pub use viewpoints::SceneKind;
+
+/// Everything that shapes a synthetic scene. Same config (and seed) → byte-identical files
+/// (except the timings in `scene.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SynthConfig {
+    /// Seed of every random choice (geometry, clutter, viewpoints, noise, initial poses).
+    pub seed: u64,
+    /// Width of the written images, pixels.
+    pub width_px: u32,
+    /// Height of the written images, pixels.
+    pub height_px: u32,
+    /// Number of photos.
+    pub image_count: usize,
+    pub scene: SceneKind,
+    /// Target mean δ(P_in, P_gt) of each initial-pose level, pixels at the written size.
+    pub initial_levels_px: Vec<f64>,
+    /// Accepted relative deviation of the achieved mean δ from the level (the generator aims for
+    /// it and reports what it reached).
+    pub initial_tolerance: f64,
+    /// Camera-centre noise per radian of rotation noise, metres per radian (1° ↔ 0.17 m at 10).
+    pub initial_metres_per_radian: f64,
+    /// Horizontal field of view of the PINHOLE camera, degrees.
+    pub horizontal_fov_deg: f64,
+    /// Sun elevation above the horizon, degrees.
+    pub sun_elevation_deg: f32,
+    /// Sun azimuth, degrees counter-clockwise from world +x.
+    pub sun_azimuth_deg: f32,
+    /// Rendered samples per pixel along each axis (antialiasing by box downsampling).
+    pub supersampling: u32,
+    /// Gaussian lens blur of the photos, pixels.
+    pub blur_sigma_px: f32,
+    /// Sensor noise at mid-grey, 8-bit digital numbers (signal-dependent).
+    pub noise_sigma_dn: f32,
+    /// Relative darkening in the image corners.
+    pub vignetting: f32,
+    /// Per-photo exposure variation (standard deviation, relative).
+    pub exposure_jitter: f32,
+    /// JPEG quality, 1–100.
+    pub jpeg_quality: u8,
+    /// Multiplicative depth noise (standard deviation, relative).
+    pub depth_relative_noise: f32,
+    /// Fraction of each depth map removed as random blobs.
+    pub depth_hole_fraction: f32,
+    /// Depths beyond this are dropped (background), metres.
+    pub depth_max_m: f32,
+    /// Depth is dropped where the photo's 5×5 luma standard deviation is below this, 8-bit DN.
+    pub depth_untextured_std_dn: f32,
+    /// Whether to add clutter (trees, cars, fences, people, bushes) to the photos.
+    pub clutter: bool,
+    /// Voxel size of the model's remeshing (≈ triangle size), metres.
+    pub model_voxel_m: f32,
+    /// Edge-rounding blur of the model, metres.
+    pub model_smoothing_sigma_m: f32,
+    /// Taubin smoothing iterations on the model.
+    pub model_taubin_iterations: u32,
+    /// Per-vertex noise of the model, metres (standard deviation).
+    pub model_vertex_noise_m: f32,
+    /// Low-frequency warp of the model along its normals, metres (amplitude).
+    pub model_warp_m: f32,
+    /// Holes cut into the model.
+    pub model_hole_count: u32,
+    /// Largest hole radius, metres.
+    pub model_hole_radius_m: f32,
+    /// Ground kept in the model around the buildings, metres.
+    pub model_ground_margin_m: f32,
+}
+
+impl Default for SynthConfig {
+    fn default() -> Self {
+        Self {
+            seed: 1,
+            width_px: 505,
+            height_px: 275,
+            image_count: 48,
+            scene: SceneKind::House,
+            initial_levels_px: vec![30.0, 57.0, 80.0, 104.0],
+            initial_tolerance: 0.01,
+            initial_metres_per_radian: 10.0,
+            horizontal_fov_deg: 70.0,
+            sun_elevation_deg: 40.0,
+            sun_azimuth_deg: 215.0,
+            supersampling: 2,
+            blur_sigma_px: 0.65,
+            noise_sigma_dn: 2.5,
+            vignetting: 0.25,
+            exposure_jitter: 0.06,
+            jpeg_quality: 85,
+            depth_relative_noise: 0.007,
+            depth_hole_fraction: 0.08,
+            depth_max_m: 150.0,
+            depth_untextured_std_dn: 1.2,
+            clutter: true,
+            model_voxel_m: 0.25,
+            model_smoothing_sigma_m: 0.15,
+            model_taubin_iterations: 4,
+            model_vertex_noise_m: 0.015,
+            model_warp_m: 0.04,
+            model_hole_count: 6,
+            model_hole_radius_m: 0.9,
+            model_ground_margin_m: 6.0,
+        }
+    }
+}
+
+impl SynthConfig {
+    /// Checks ranges once, before anything is generated.
+    pub fn validate(&self) -> Result<(), SynthError> {
+        let invalid = |message: String| Err(SynthError::InvalidConfig(message));
+        if self.width_px < 16 || self.height_px < 16 {
+            return invalid(format!(
+                "image size {}×{} px is below 16×16",
+                self.width_px, self.height_px
+            ));
+        }
+        if self.image_count == 0 {
+            return invalid("image_count must be at least 1".into());
+        }
+        if self
+            .initial_levels_px
+            .iter()
+            .any(|l| !(l.is_finite() && *l > 0.0))
+        {
+            return invalid(format!(
+                "initial_levels_px must be positive: {:?}",
+                self.initial_levels_px
+            ));
+        }
+        if !(self.horizontal_fov_deg > 5.0 && self.horizontal_fov_deg < 150.0) {
+            return invalid(format!(
+                "horizontal_fov_deg {} is outside (5, 150)",
+                self.horizontal_fov_deg
+            ));
+        }
+        if !(1..=100).contains(&self.jpeg_quality) {
+            return invalid(format!(
+                "jpeg_quality {} is outside 1..=100",
+                self.jpeg_quality
+            ));
+        }
+        if !(1..=4).contains(&self.supersampling) {
+            return invalid(format!(
+                "supersampling {} is outside 1..=4",
+                self.supersampling
+            ));
+        }
+        if !(0.0..5.0).contains(&self.sun_elevation_deg)
+            && !(5.0..=90.0).contains(&self.sun_elevation_deg)
+        {
+            return invalid(format!(
+                "sun_elevation_deg {} is outside 0..=90",
+                self.sun_elevation_deg
+            ));
+        }
+        if !(self.model_voxel_m >= 0.05 && self.model_voxel_m <= 2.0) {
+            return invalid(format!(
+                "model_voxel_m {} is outside [0.05, 2]",
+                self.model_voxel_m
+            ));
+        }
+        if !(0.0..0.9).contains(&self.depth_hole_fraction) {
+            return invalid(format!(
+                "depth_hole_fraction {} is outside [0, 0.9)",
+                self.depth_hole_fraction
+            ));
+        }
+        if !(self.initial_tolerance > 0.0 && self.initial_tolerance < 0.5) {
+            return invalid(format!(
+                "initial_tolerance {} is outside (0, 0.5)",
+                self.initial_tolerance
+            ));
+        }
+        Ok(())
+    }
+
+    fn camera(&self) -> Camera {
+        let focal =
+            f64::from(self.width_px) * 0.5 / (self.horizontal_fov_deg.to_radians() * 0.5).tan();
+        Camera::pinhole(
+            self.width_px,
+            self.height_px,
+            PinholeIntrinsics::centered(focal, self.width_px, self.height_px),
+        )
+    }
+}
+
+/// Errors of scene generation.
+#[derive(Debug, thiserror::Error)]
+pub enum SynthError {
+    #[error("invalid synth config: {0}")]
+    InvalidConfig(String),
+    #[error("cannot write {path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot encode {path}: {message}")]
+    Encode { path: PathBuf, message: String },
+    #[error("the generated mesh is invalid: {0}")]
+    Mesh(#[from] MeshError),
+    #[error(transparent)]
+    MeshFile(#[from] crate::io::mesh_file::MeshIoError),
+    #[error(transparent)]
+    Colmap(#[from] crate::io::colmap::ColmapError),
+    #[error(transparent)]
+    Pfm(#[from] crate::io::pfm::PfmError),
+}
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> SynthError + '_ {
+    move |source| SynthError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// One written photo.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ImageSummary {
+    pub name: String,
+    /// Side and height class ("front, 8 m").
+    pub label: String,
+    pub camera_centre_m: [f64; 3],
+    /// Fraction of the pixels showing the buildings (true geometry, after clutter occlusion).
+    pub building_fraction: f64,
+    /// Fraction of the pixels showing clutter.
+    pub clutter_fraction: f64,
+    /// Fraction of the pixels with a depth value.
+    pub depth_valid_fraction: f64,
+}
+
+/// Seconds spent per stage.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct Timings {
+    pub scene_s: f64,
+    pub model_s: f64,
+    pub shadow_map_s: f64,
+    pub photos_s: f64,
+    pub initial_s: f64,
+    pub total_s: f64,
+}
+
+/// What was generated: the content of `scene.json`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SceneSummary {
+    pub config: SynthConfig,
+    pub camera_fx_px: f64,
+    pub camera_fy_px: f64,
+    pub camera_cx_px: f64,
+    pub camera_cy_px: f64,
+    pub true_faces: usize,
+    pub true_building_faces: usize,
+    pub true_detail_faces: usize,
+    pub clutter_faces: usize,
+    pub model_vertices: usize,
+    pub model_faces: usize,
+    pub model_holes: u32,
+    pub model_faces_removed_by_holes: usize,
+    /// Mean distance from model vertices to the true building and ground surfaces, metres.
+    pub model_mean_deviation_m: f64,
+    pub images: Vec<ImageSummary>,
+    pub initial_levels: Vec<LevelCalibration>,
+    pub timings: Timings,
+}
+
+/// Generates a complete synthetic data set in `out_dir` (created if needed).
+pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSummary, SynthError> {
+    config.validate()?;
+    let started = Instant::now();
+    for dir in [
+        out_dir.to_path_buf(),
+        out_dir.join("images"),
+        out_dir.join("depth"),
+        out_dir.join("gt"),
+    ] {
+        std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
+    }
+    let stream_rng = |stream: u64| {
+        let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+        rng.set_stream(stream);
+        rng
+    };
+    let camera = config.camera();
+    let (width, height) = (config.width_px as usize, config.height_px as usize);
+
+    // 1. The true scene without clutter, then the viewpoints, then clutter clear of the cameras.
+    let mut scene_rng = stream_rng(1);
+    let mut scene = match config.scene {
+        SceneKind::House => geometry::build_house(&mut scene_rng),
+        SceneKind::Block => geometry::build_block(&mut scene_rng),
+    };
+    let mut view_rng = stream_rng(2);
+    let mut views = Vec::with_capacity(config.image_count);
+    for index in 0..config.image_count {
+        let mut attempt = 0;
+        let view = loop {
+            attempt += 1;
+            if let Some(view) =
+                viewpoints::draw_viewpoint(&scene, config.scene, index, &mut view_rng)
+            {
+                break Some(view);
+            }
+            if attempt > 50 {
+                break None;
+            }
+        };
+        let view = view.ok_or_else(|| {
+            SynthError::InvalidConfig(format!("no valid viewpoint found for image {index}"))
+        })?;
+        views.push(view);
+    }
+    if config.clutter {
+        let eyes: Vec<Vec3> = views.iter().map(|v| v.eye_m).collect();
+        geometry::add_clutter(&mut scene, &mut stream_rng(3), &eyes, 3.0);
+    }
+    let scene_s = started.elapsed().as_secs_f64();
+
+    // 2. The degraded model and the true reference model.
+    let model_started = Instant::now();
+    let degraded = degrade::degrade(
+        &scene,
+        &degrade::DegradeParams {
+            voxel_m: config.model_voxel_m,
+            smoothing_sigma_m: config.model_smoothing_sigma_m,
+            taubin_iterations: config.model_taubin_iterations,
+            vertex_noise_m: config.model_vertex_noise_m,
+            warp_m: config.model_warp_m,
+            hole_count: config.model_hole_count,
+            hole_radius_m: config.model_hole_radius_m,
+            ground_margin_m: config.model_ground_margin_m,
+        },
+        &mut stream_rng(4),
+    );
+    let model_positions: Vec<nalgebra::Vector3<f64>> = degraded
+        .positions_m
+        .iter()
+        .map(|p| nalgebra::Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)))
+        .collect();
+    let mut model = Mesh::from_world(&model_positions, degraded.faces.clone(), None)?;
+    model.compute_vertex_normals();
+    let true_model = scene.to_mesh(|t| {
+        matches!(
+            t.part,
+            PartKind::Building | PartKind::Detail | PartKind::NearGround
+        )
+    })?;
+    let model_mean_deviation_m = f64::from(degrade::mean_nearest_distance_m(
+        &degraded.positions_m,
+        &sample_surface(&scene, 0.1),
+        1.0,
+    ));
+    write_mesh(&out_dir.join("model.ply"), &model)?;
+    write_mesh(&out_dir.join("model_true.ply"), &true_model)?;
+    let model_s = model_started.elapsed().as_secs_f64();
+
+    // 3. Photos and depth maps.
+    let shadow_started = Instant::now();
+    let photo_params = PhotoParams {
+        sun_elevation_deg: config.sun_elevation_deg,
+        sun_azimuth_deg: config.sun_azimuth_deg,
+        supersampling: config.supersampling,
+        blur_sigma_px: config.blur_sigma_px,
+        noise_sigma_dn: config.noise_sigma_dn,
+        vignetting: config.vignetting,
+        exposure_jitter: config.exposure_jitter,
+        seed: config.seed,
+    };
+    let mut renderer = PhotoRenderer::new(&scene, photo_params)?;
+    let shadow_map_s = shadow_started.elapsed().as_secs_f64();
+    let photos_started = Instant::now();
+    let depth_params = DepthParams {
+        relative_noise: config.depth_relative_noise,
+        hole_fraction: config.depth_hole_fraction,
+        max_depth_m: config.depth_max_m,
+        untextured_std_dn: config.depth_untextured_std_dn,
+    };
+    let mut images = Vec::with_capacity(views.len());
+    for (index, view) in views.iter().enumerate() {
+        let image_seed =
+            texture::hash_u64(config.seed ^ (index as u64 + 1).wrapping_mul(0x9E37_79B9));
+        let (building_fraction, clutter_fraction) = {
+            let buffers =
+                renderer.render_visibility(&camera.intrinsics, width, height, &view.cam_from_world);
+            let faces = buffers.face_index.clone();
+            let mut building = 0usize;
+            let mut clutter = 0usize;
+            for face in faces {
+                match renderer.tag(face).map(|t| t.part) {
+                    Some(PartKind::Building | PartKind::Detail) => building += 1,
+                    Some(PartKind::Clutter) => clutter += 1,
+                    _ => {}
+                }
+            }
+            let n = (width * height) as f64;
+            (building as f64 / n, clutter as f64 / n)
+        };
+        let photo = renderer.render_photo(
+            &camera.intrinsics,
+            width,
+            height,
+            &view.cam_from_world,
+            image_seed,
+        );
+        let depth = renderer.depth_map(
+            &camera.intrinsics,
+            &photo,
+            &view.cam_from_world,
+            &depth_params,
+            image_seed,
+        );
+        let image_path = out_dir.join("images").join(&view.name);
+        write_jpeg(&image_path, &photo, config.jpeg_quality)?;
+        let depth_path = out_dir
+            .join("depth")
+            .join(Path::new(&view.name).with_extension("pfm"));
+        let depth_valid_fraction =
+            depth.iter().filter(|d| **d > 0.0).count() as f64 / (width * height) as f64;
+        crate::io::pfm::write_pfm(
+            &depth_path,
+            &crate::io::pfm::DepthImage {
+                width_px: width,
+                height_px: height,
+                depth_m: depth,
+            },
+        )?;
+        let centre = view.cam_from_world.camera_center();
+        images.push(ImageSummary {
+            name: view.name.clone(),
+            label: view.label.clone(),
+            camera_centre_m: [centre.x, centre.y, centre.z],
+            building_fraction,
+            clutter_fraction,
+            depth_valid_fraction,
+        });
+    }
+    let photos_s = photos_started.elapsed().as_secs_f64();
+
+    // 4. Ground truth and initial poses.
+    let initial_started = Instant::now();
+    let ground_truth: Vec<Rigid3> = views.iter().map(|v| v.cam_from_world).collect();
+    let names: Vec<String> = views.iter().map(|v| v.name.clone()).collect();
+    write_colmap(&out_dir.join("gt"), &camera, &names, &ground_truth)?;
+    let noise = initial::draw_unit_noise(
+        views.len(),
+        config.initial_metres_per_radian,
+        &mut stream_rng(5),
+    );
+    let mut workspace = interim::ReprojectionWorkspace::new();
+    let mut initial_levels = Vec::with_capacity(config.initial_levels_px.len());
+    for &level in &config.initial_levels_px {
+        let calibration = initial::calibrate_level(
+            &model,
+            &camera,
+            &ground_truth,
+            &noise,
+            level,
+            config.initial_tolerance,
+            &mut workspace,
+        );
+        let dir = out_dir.join("initial").join(level_dir_name(level));
+        std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
+        write_colmap(&dir, &camera, &names, &calibration.poses)?;
+        initial_levels.push(calibration);
+    }
+    let initial_s = initial_started.elapsed().as_secs_f64();
+
+    let count = |kind: PartKind| scene.tags.iter().filter(|t| t.part == kind).count();
+    let summary = SceneSummary {
+        config: config.clone(),
+        camera_fx_px: camera.intrinsics.fx_px,
+        camera_fy_px: camera.intrinsics.fy_px,
+        camera_cx_px: camera.intrinsics.cx_px,
+        camera_cy_px: camera.intrinsics.cy_px,
+        true_faces: scene.faces.len(),
+        true_building_faces: count(PartKind::Building),
+        true_detail_faces: count(PartKind::Detail),
+        clutter_faces: count(PartKind::Clutter),
+        model_vertices: model.vertex_count(),
+        model_faces: model.face_count(),
+        model_holes: degraded.holes_cut,
+        model_faces_removed_by_holes: degraded.faces_removed_by_holes,
+        model_mean_deviation_m,
+        images,
+        initial_levels,
+        timings: Timings {
+            scene_s,
+            model_s,
+            shadow_map_s,
+            photos_s,
+            initial_s,
+            total_s: started.elapsed().as_secs_f64(),
+        },
+    };
+    let json_path = out_dir.join("scene.json");
+    let json = serde_json::to_string_pretty(&summary).map_err(|e| SynthError::Encode {
+        path: json_path.clone(),
+        message: e.to_string(),
+    })?;
+    std::fs::write(&json_path, json).map_err(io_error(&json_path))?;
+    Ok(summary)
+}
+
+/// The folder name of an initial level: the level in whole pixels ("30"), or with decimals.
+pub fn level_dir_name(level_px: f64) -> String {
+    if (level_px - level_px.round()).abs() < 1e-9 {
+        format!("{}", level_px.round() as i64)
+    } else {
+        format!("{level_px}")
+    }
+}
+
+/// Points densely sampled on the true building and near-ground faces.
+fn sample_surface(scene: &Scene, spacing_m: f32) -> Vec<Vec3> {
+    let mut points = Vec::new();
+    for (f, tag) in scene.faces.iter().zip(&scene.tags) {
+        if !matches!(tag.part, PartKind::Building | PartKind::NearGround) {
+            continue;
+        }
+        let [a, b, c] = f.map(|v| scene.positions_m[v as usize]);
+        let n = (((b - a).length().max((c - a).length())) / spacing_m)
+            .ceil()
+            .max(1.0) as usize;
+        for s in 0..=n {
+            for t in 0..=(n - s) {
+                let (u, v) = (s as f32 / n as f32, t as f32 / n as f32);
+                points.push(a + (b - a) * u + (c - a) * v);
+            }
+        }
+    }
+    points
+}
+
+fn write_mesh(path: &Path, mesh: &Mesh) -> Result<(), SynthError> {
+    Ok(crate::io::ply::write_ply(
+        path,
+        mesh,
+        crate::io::ply::PlyEncoding::BinaryLittleEndian,
+    )?)
+}
+
+fn write_colmap(
+    dir: &Path,
+    camera: &Camera,
+    names: &[String],
+    poses: &[Rigid3],
+) -> Result<(), SynthError> {
+    let cameras: BTreeMap<u32, Camera> = [(1, *camera)].into_iter().collect();
+    colmap::write_cameras_txt(&dir.join(colmap::CAMERAS_FILE), &cameras)?;
+    let images: Vec<ImagePose> = names
+        .iter()
+        .zip(poses)
+        .enumerate()
+        .map(|(index, (name, pose))| ImagePose {
+            image_id: index as u32 + 1,
+            camera_id: 1,
+            name: name.clone(),
+            cam_from_world: *pose,
+        })
+        .collect();
+    colmap::write_images_txt(&dir.join(colmap::IMAGES_FILE), &images)?;
+    colmap::write_empty_points3d_txt(&dir.join(colmap::POINTS3D_FILE))?;
+    Ok(())
+}
+
+fn write_jpeg(path: &Path, photo: &photo::Photo, quality: u8) -> Result<(), SynthError> {
+    let file = std::fs::File::create(path).map_err(io_error(path))?;
+    let mut writer = std::io::BufWriter::new(file);
+    let mut encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut writer, quality);
+    encoder
+        .encode(
+            &photo.rgb,
+            photo.width_px as u32,
+            photo.height_px as u32,
+            image::ExtendedColorType::Rgb8,
+        )
+        .map_err(|e| SynthError::Encode {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::raster::{NormalSource, Rasterizer, RenderBuffers, RenderOptions};
+    use rand::SeedableRng;
+
+    fn tiny_config(seed: u64) -> SynthConfig {
+        SynthConfig {
+            seed,
+            width_px: 160,
+            height_px: 88,
+            image_count: 3,
+            initial_levels_px: vec![8.0, 20.0],
+            supersampling: 1,
+            model_voxel_m: 0.35,
+            ..SynthConfig::default()
+        }
+    }
+
+    fn files_under(dir: &Path) -> Vec<PathBuf> {
+        let mut files = Vec::new();
+        let mut stack = vec![dir.to_path_buf()];
+        while let Some(d) = stack.pop() {
+            for entry in std::fs::read_dir(&d).unwrap() {
+                let path = entry.unwrap().path();
+                if path.is_dir() {
+                    stack.push(path);
+                } else {
+                    files.push(path.strip_prefix(dir).unwrap().to_path_buf());
+                }
+            }
+        }
+        files.sort();
+        files
+    }
+
+    #[test]
+    fn a_tiny_run_writes_the_complete_layout_and_hits_the_levels() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = tiny_config(5);
+        let summary = generate_scene(&config, dir.path()).unwrap();
+        let files = files_under(dir.path());
+        let mut expected: Vec<PathBuf> = [
+            "model.ply",
+            "model_true.ply",
+            "scene.json",
+            "gt/cameras.txt",
+            "gt/images.txt",
+            "gt/points3D.txt",
+            "initial/8/cameras.txt",
+            "initial/8/images.txt",
+            "initial/8/points3D.txt",
+            "initial/20/cameras.txt",
+            "initial/20/images.txt",
+            "initial/20/points3D.txt",
+        ]
+        .iter()
+        .map(PathBuf::from)
+        .collect();
+        for k in 0..3 {
+            expected.push(PathBuf::from(format!("images/view_{k:03}.jpg")));
+            expected.push(PathBuf::from(format!("depth/view_{k:03}.pfm")));
+        }
+        expected.sort();
+        assert_eq!(files, expected);
+        // The files read back with the library's own readers.
+        let gt = crate::io::colmap::read_model(&dir.path().join("gt")).unwrap();
+        assert_eq!(gt.images.len(), 3);
+        assert_eq!(gt.cameras[&1].width_px, 160);
+        let model = crate::io::ply::read_ply(&dir.path().join("model.ply")).unwrap();
+        assert_eq!(model.face_count(), summary.model_faces);
+        let depth = crate::io::pfm::read_pfm(&dir.path().join("depth/view_000.pfm")).unwrap();
+        assert_eq!((depth.width_px, depth.height_px), (160, 88));
+        let valid = depth.valid_count() as f64 / (160.0 * 88.0);
+        assert!(valid > 0.2 && valid < 0.95, "depth valid fraction {valid}");
+        let photo = image::open(dir.path().join("images/view_000.jpg")).unwrap();
+        assert_eq!((photo.width(), photo.height()), (160, 88));
+        // Initial levels: the mean δ is within 5 % of each level.
+        for level in &summary.initial_levels {
+            println!(
+                "level {} px: mean {:.2} px ({} evaluations)",
+                level.target_px, level.mean_px, level.evaluations
+            );
+            assert!(level.relative_error < 0.05, "{level:?}");
+            assert_eq!(level.unmeasurable_images, 0);
+        }
+        let initial = crate::io::colmap::read_model(&dir.path().join("initial/20")).unwrap();
+        for (a, b) in initial.images.iter().zip(&gt.images) {
+            assert_eq!(a.name, b.name);
+            assert!((a.cam_from_world.translation - b.cam_from_world.translation).norm() > 1e-6);
+        }
+    }
+
+    #[test]
+    fn the_same_seed_gives_identical_files_and_another_seed_does_not() {
+        let config = tiny_config(9);
+        let runs: Vec<tempfile::TempDir> = (0..2).map(|_| tempfile::tempdir().unwrap()).collect();
+        let summaries: Vec<SceneSummary> = runs
+            .iter()
+            .map(|d| generate_scene(&config, d.path()).unwrap())
+            .collect();
+        let files = files_under(runs[0].path());
+        assert_eq!(files, files_under(runs[1].path()));
+        for file in &files {
+            let a = std::fs::read(runs[0].path().join(file)).unwrap();
+            let b = std::fs::read(runs[1].path().join(file)).unwrap();
+            if file == Path::new("scene.json") {
+                // Identical apart from the timings.
+                let strip = |bytes: &[u8]| {
+                    let mut value: serde_json::Value = serde_json::from_slice(bytes).unwrap();
+                    value["timings"] = serde_json::Value::Null;
+                    value
+                };
+                assert_eq!(strip(&a), strip(&b));
+            } else {
+                assert!(a == b, "{} differs between runs", file.display());
+            }
+        }
+        assert_eq!(summaries[0].model_faces, summaries[1].model_faces);
+        let other = tempfile::tempdir().unwrap();
+        generate_scene(&tiny_config(10), other.path()).unwrap();
+        let a = std::fs::read(runs[0].path().join("images/view_000.jpg")).unwrap();
+        let b = std::fs::read(other.path().join("images/view_000.jpg")).unwrap();
+        assert_ne!(a, b);
+    }
+
+    #[test]
+    fn invalid_configs_are_rejected_and_unknown_fields_too() {
+        let bad = SynthConfig {
+            jpeg_quality: 0,
+            ..SynthConfig::default()
+        };
+        assert!(matches!(bad.validate(), Err(SynthError::InvalidConfig(_))));
+        let bad = SynthConfig {
+            image_count: 0,
+            ..SynthConfig::default()
+        };
+        assert!(bad.validate().is_err());
+        assert!(serde_json::from_str::<SynthConfig>(r#"{"seed": 3, "sun_elevation": 4}"#).is_err());
+        let parsed: SynthConfig = serde_json::from_str(r#"{"seed": 3, "scene": "Block"}"#).unwrap();
+        assert_eq!(parsed.seed, 3);
+        assert_eq!(parsed.scene, SceneKind::Block);
+        assert_eq!(parsed.width_px, 505);
+    }
+
+    /// Pearson correlation of two images.
+    fn correlation(a: &[f32], b: &[f32]) -> f64 {
+        let n = a.len() as f64;
+        let mean_a = a.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
+        let mean_b = b.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
+        let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+        for (&x, &y) in a.iter().zip(b) {
+            let (x, y) = (f64::from(x) - mean_a, f64::from(y) - mean_b);
+            ab += x * y;
+            aa += x * x;
+            bb += y * y;
+        }
+        ab / (aa * bb).sqrt().max(1e-12)
+    }
+
+    fn asg_of(mesh: &Mesh, camera: &Camera, pose: &Rigid3) -> Vec<f32> {
+        let (w, h) = (camera.width_px as usize, camera.height_px as usize);
+        let mut buffers = RenderBuffers::new(w, h);
+        let options = RenderOptions {
+            normal_source: NormalSource::Face,
+            ..RenderOptions::default()
+        };
+        Rasterizer::new().render(mesh, &camera.intrinsics, pose, &options, &mut buffers);
+        let mut asg = vec![0.0; w * h];
+        interim::asg_from_normals(&buffers.normal_cam, w, h, &mut asg);
+        asg
+    }
+
+    /// DESIGN §4: the photo's gradients must differ substantially from the model's ASG (textures,
+    /// shadows, clutter, noise), yet line up with it under the ground-truth pose.
+    #[test]
+    fn photo_gradients_differ_from_the_asg_but_line_up_under_the_true_pose() {
+        let config = SynthConfig::default();
+        let camera = config.camera();
+        let (w, h) = (camera.width_px as usize, camera.height_px as usize);
+        let stream = |k: u64| {
+            let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+            rng.set_stream(k);
+            rng
+        };
+        let mut scene = geometry::build_house(&mut stream(1));
+        let mut view_rng = stream(2);
+        // Image 3: the front at 8 m.
+        let views: Vec<viewpoints::Viewpoint> = (0..6)
+            .map(|k| {
+                viewpoints::draw_viewpoint(&scene, SceneKind::House, k, &mut view_rng).unwrap()
+            })
+            .collect();
+        let eyes: Vec<Vec3> = views.iter().map(|v| v.eye_m).collect();
+        geometry::add_clutter(&mut scene, &mut stream(3), &eyes, 3.0);
+        let gt = views[3].cam_from_world;
+        let params = PhotoParams {
+            sun_elevation_deg: config.sun_elevation_deg,
+            sun_azimuth_deg: config.sun_azimuth_deg,
+            supersampling: config.supersampling,
+            blur_sigma_px: config.blur_sigma_px,
+            noise_sigma_dn: config.noise_sigma_dn,
+            vignetting: config.vignetting,
+            exposure_jitter: config.exposure_jitter,
+            seed: config.seed,
+        };
+        let mut renderer = PhotoRenderer::new(&scene, params).unwrap();
+        let photo = renderer.render_photo(&camera.intrinsics, w, h, &gt, 77);
+        // Through JPEG, like the written files.
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, config.jpeg_quality)
+            .encode(
+                &photo.rgb,
+                w as u32,
+                h as u32,
+                image::ExtendedColorType::Rgb8,
+            )
+            .unwrap();
+        let decoded = image::load_from_memory(&jpeg).unwrap().to_luma32f();
+        let luma: Vec<f32> = decoded.as_raw().iter().map(|v| v * 255.0).collect();
+        let mut photo_gradient = vec![0.0; w * h];
+        interim::gradient_magnitude(&luma, w, h, &mut photo_gradient);
+
+        let mut true_model = scene
+            .to_mesh(|t| {
+                matches!(
+                    t.part,
+                    PartKind::Building | PartKind::Detail | PartKind::NearGround
+                )
+            })
+            .unwrap();
+        true_model.clear_vertex_normals();
+        let asg_gt = asg_of(&true_model, &camera, &gt);
+        let at_gt = correlation(&photo_gradient, &asg_gt);
+
+        // A pose a few pixels off: the camera turned by 4 px about its y axis.
+        let turn = nalgebra::UnitQuaternion::from_axis_angle(
+            &nalgebra::Vector3::y_axis(),
+            4.0 / camera.intrinsics.fx_px,
+        );
+        let shifted = Rigid3::new(turn * gt.rotation, turn * gt.translation);
+        let at_shift = correlation(&photo_gradient, &asg_of(&true_model, &camera, &shifted));
+
+        // The initial pose of the 104 px level.
+        let noise = initial::draw_unit_noise(1, config.initial_metres_per_radian, &mut stream(5));
+        let mut workspace = interim::ReprojectionWorkspace::new();
+        let level = initial::calibrate_level(
+            &true_model,
+            &camera,
+            &[gt],
+            &noise,
+            104.0,
+            0.02,
+            &mut workspace,
+        );
+        let at_initial = correlation(
+            &photo_gradient,
+            &asg_of(&true_model, &camera, &level.poses[0]),
+        );
+        println!(
+            "photo gradient vs true-model ASG: correlation {at_gt:.3} at the GT pose, {at_shift:.3} 4 px off, {at_initial:.3} at the 104 px initial pose (δ {:.1} px)",
+            level.mean_px
+        );
+        assert!(
+            at_gt < 0.6,
+            "the photo is too close to the model's ASG: {at_gt}"
+        );
+        assert!(at_gt > at_shift + 0.05, "{at_gt} vs {at_shift}");
+        assert!(
+            at_gt > 2.0 * at_initial.max(0.01),
+            "{at_gt} vs {at_initial}"
+        );
+    }
+
+    /// Generates a full default scene into `$ASGREG_SYNTH_OUT` (for inspection and timing):
+    /// `ASGREG_SYNTH_OUT=/tmp/scene cargo test --lib synth::tests::default_scene -- --ignored --nocapture`
+    #[test]
+    #[ignore]
+    fn default_scene() {
+        let out = std::env::var("ASGREG_SYNTH_OUT")
+            .unwrap_or_else(|_| "/tmp/asgreg_synth_default".into());
+        let images: usize = std::env::var("ASGREG_SYNTH_IMAGES")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(48);
+        let config = SynthConfig {
+            image_count: images,
+            ..SynthConfig::default()
+        };
+        let summary = generate_scene(&config, Path::new(&out)).unwrap();
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&summary.timings).unwrap()
+        );
+        for level in &summary.initial_levels {
+            println!(
+                "level {:>5.1}: mean {:.2} px (min {:.1}, max {:.1}), scale {:.5}, {} evaluations, {} unmeasurable",
+                level.target_px, level.mean_px, level.min_px, level.max_px, level.scale, level.evaluations, level.unmeasurable_images
+            );
+        }
+        println!(
+            "model: {} faces, deviation {:.3} m",
+            summary.model_faces, summary.model_mean_deviation_m
+        );
+        // A 3 × 3 contact sheet of the first photos, as PNG, for looking at them.
+        let (w, h) = (config.width_px, config.height_px);
+        let mut sheet = image::RgbImage::new(w * 3, h * 3);
+        for (k, info) in summary.images.iter().take(9).enumerate() {
+            let photo = image::open(Path::new(&out).join("images").join(&info.name))
+                .unwrap()
+                .to_rgb8();
+            image::imageops::replace(
+                &mut sheet,
+                &photo,
+                i64::from(w * (k as u32 % 3)),
+                i64::from(h * (k as u32 / 3)),
+            );
+        }
+        sheet
+            .save(Path::new(&out).join("contact_sheet.png"))
+            .unwrap();
+    }
+}
