@@ -555,4 +555,270 @@ mod tests {
         let depth = out.depth_m[99 * 100 + 50];
         assert!((depth - 2.0 * 50.0 / 49.5).abs() < 1e-3, "{depth}");
     }
+
+    /// An axis-aligned cube of side `2 * half_m` centred at `centre` (world), outward
+    /// counter-clockwise faces, vertex normals pointing away from the centre (corner directions).
+    fn cube(centre: Vector3<f64>, half_m: f64) -> Mesh {
+        let corners: Vec<Vector3<f64>> = (0..8)
+            .map(|i| {
+                let sign = |bit: usize| if i & bit != 0 { 1.0 } else { -1.0 };
+                centre + Vector3::new(sign(1), sign(2), sign(4)) * half_m
+            })
+            .collect();
+        let normals: Vec<Vec3> = corners
+            .iter()
+            .map(|c| {
+                let d = (c - centre).normalize();
+                Vec3::new(d.x as f32, d.y as f32, d.z as f32)
+            })
+            .collect();
+        // Quads as (a, b, c, d) counter-clockwise seen from outside.
+        let quads = [
+            [0, 2, 3, 1], // z-: normal (0, 0, -1)
+            [4, 5, 7, 6], // z+
+            [0, 1, 5, 4], // y-
+            [2, 6, 7, 3], // y+
+            [0, 4, 6, 2], // x-
+            [1, 3, 7, 5], // x+
+        ];
+        let faces = quads
+            .iter()
+            .flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
+            .collect();
+        Mesh::from_world(&corners, faces, Some(normals)).unwrap()
+    }
+
+    fn render_identity(mesh: &Mesh, options: &RenderOptions) -> RenderBuffers {
+        let intrinsics = PinholeIntrinsics::centered(100.0, 100, 100);
+        let mut out = RenderBuffers::new(100, 100);
+        Rasterizer::new().render(mesh, &intrinsics, &Rigid3::identity(), options, &mut out);
+        out
+    }
+
+    #[test]
+    fn cube_faces_are_wound_outward() {
+        let mesh = cube(Vector3::zeros(), 1.0);
+        for face_index in 0..mesh.face_count() {
+            let [a, b, c] = mesh.faces()[face_index].map(|v| mesh.positions_local_m()[v as usize]);
+            let centroid = (a + b + c) / 3.0;
+            assert!(
+                mesh.face_normal(face_index).dot(centroid) > 0.0,
+                "face {face_index}"
+            );
+        }
+    }
+
+    #[test]
+    fn unit_cube_depth_and_normals_at_chosen_pixels() {
+        // Unit cube centred at (1.5, 0, 5) (camera = world frame, f = 100 px, 100 × 100 px).
+        // Its front face z = 4.5 spans x in [1, 2] → columns 50 + [22.2, 44.4]; its left face
+        // x = 1 (seen from the camera on its left) spans columns 50 + [100/5.5, 100/4.5] =
+        // [68.18, 72.22].
+        let mesh = cube(Vector3::new(1.5, 0.0, 5.0), 0.5);
+        let face = render_identity(
+            &mesh,
+            &RenderOptions {
+                normal_source: NormalSource::Face,
+                ..RenderOptions::default()
+            },
+        );
+        let vertex = render_identity(&mesh, &RenderOptions::default());
+        let at = |col: usize, row: usize| row * 100 + col;
+        let close = |a: Vec3, b: Vec3| (a - b).length() < 1e-5;
+
+        // Front face, pixel (80, 42): ray (0.305, -0.075), depth 4.5.
+        let p = at(80, 42);
+        assert!((face.depth_m[p] - 4.5).abs() < 1e-5, "{}", face.depth_m[p]);
+        assert!(close(face.normal_cam[p], Vec3::new(0.0, 0.0, -1.0)));
+        // Vertex normals interpolate linearly over the face: n ∝ (2 (X − 1.5), 2 Y, −1) with
+        // X = 0.305 · 4.5, Y = −0.075 · 4.5 (both triangles of the face fit the same linear map).
+        let (x, y) = (0.305 * 4.5 - 1.5, -0.075 * 4.5);
+        let expected = Vec3::new(2.0 * x, 2.0 * y, -1.0).normalize();
+        assert!(
+            close(vertex.normal_cam[p], expected),
+            "{} vs {expected}",
+            vertex.normal_cam[p]
+        );
+        assert_eq!(vertex.depth_m[p], face.depth_m[p]);
+
+        // Left face, pixel (70, 50): ray (0.205, 0.005) meets x = 1 at z = 1 / 0.205.
+        let p = at(70, 50);
+        let z = 1.0 / 0.205;
+        assert!(
+            (face.depth_m[p] - z).abs() < 1e-4,
+            "{} vs {z}",
+            face.depth_m[p]
+        );
+        assert!(close(face.normal_cam[p], Vec3::new(-1.0, 0.0, 0.0)));
+        // On x = 1: n ∝ (−1, 2 Y, 2 (Z − 5)).
+        let expected = Vec3::new(-1.0, 2.0 * 0.005 * z, 2.0 * (z - 5.0)).normalize();
+        assert!(
+            close(vertex.normal_cam[p], expected),
+            "{} vs {expected}",
+            vertex.normal_cam[p]
+        );
+        // The face index tells the two apart: x− is quad 4 (faces 8, 9), z− quad 0 (faces 0, 1).
+        assert!(matches!(face.face_index[p], 8 | 9));
+        assert!(matches!(face.face_index[at(80, 42)], 0 | 1));
+    }
+
+    #[test]
+    fn silhouette_edges_land_on_the_expected_pixels() {
+        // Cube centred on the axis at z = 5: its front face z = 4.5 spans ±0.5 / 4.5 · 100 =
+        // ±11.11 px around the centre 50 → [38.89, 61.11]. Pixel centres inside: 39.5 … 60.5,
+        // so columns and rows 39..=60 (22 of each) are covered, 38 and 61 are not.
+        let mesh = cube(Vector3::new(0.0, 0.0, 5.0), 0.5);
+        let out = render_identity(&mesh, &RenderOptions::default());
+        for i in 0..100 {
+            let inside = (39..=60).contains(&i);
+            assert_eq!(out.is_valid(i, 50), inside, "column {i}");
+            assert_eq!(out.is_valid(50, i), inside, "row {i}");
+        }
+        assert_eq!(out.valid_count(), 22 * 22);
+        // Shifted right by 0.7 px (0.0315 m at 4.5 m): the edges move to 39.59 and 61.81, past
+        // the centres 39.5 and 61.5, so the first and last covered columns become 40 and 61.
+        let mesh = cube(Vector3::new(0.7 * 4.5 / 100.0, 0.0, 5.0), 0.5);
+        let out = render_identity(&mesh, &RenderOptions::default());
+        assert!(!out.is_valid(39, 50) && out.is_valid(40, 50));
+        assert!(out.is_valid(61, 50) && !out.is_valid(62, 50));
+    }
+
+    /// A hilly ground with a cube on it, and an oblique camera, both shifted by `offset`.
+    fn oblique_scene(offset: Vector3<f64>) -> (Mesh, Rigid3) {
+        let mut positions = Vec::new();
+        let cells = 20;
+        for j in 0..=cells {
+            for i in 0..=cells {
+                let (x, y) = (i as f64 * 5.0 - 50.0, j as f64 * 5.0 - 50.0);
+                let z = 2.0 * (x * 0.07).sin() * (y * 0.05).cos();
+                positions.push(Vector3::new(x, y, z) + offset);
+            }
+        }
+        let mut faces = Vec::new();
+        let row = cells + 1;
+        for j in 0..cells {
+            for i in 0..cells {
+                let v = (j * row + i) as u32;
+                let r = row as u32;
+                faces.push([v, v + 1, v + r + 1]);
+                faces.push([v, v + r + 1, v + r]);
+            }
+        }
+        let mut mesh = Mesh::from_world(&positions, faces, None).unwrap();
+        mesh.append(&cube(Vector3::new(5.0, -3.0, 6.0) + offset, 6.0));
+        mesh.compute_vertex_normals();
+        let eye = Vector3::new(30.0, -35.0, 40.0) + offset;
+        let pose = Rigid3::look_at(&eye, &offset, &Vector3::z()).unwrap();
+        (mesh, pose)
+    }
+
+    #[test]
+    fn a_georeferenced_scene_renders_like_the_same_scene_at_the_origin() {
+        let intrinsics = PinholeIntrinsics::centered(150.0, 160, 120);
+        let render = |offset: Vector3<f64>| {
+            let (mesh, pose) = oblique_scene(offset);
+            let mut out = RenderBuffers::new(160, 120);
+            Rasterizer::new().render(
+                &mesh,
+                &intrinsics,
+                &pose,
+                &RenderOptions::default(),
+                &mut out,
+            );
+            out
+        };
+        let local = render(Vector3::zeros());
+        let utm = render(Vector3::new(512_345.0, 5_401_234.0, 250.0));
+        assert!(
+            local.valid_count() > 160 * 120 * 3 / 4,
+            "{}",
+            local.valid_count()
+        );
+        let mut worst_m = 0.0f32;
+        for (a, b) in local.depth_m.iter().zip(&utm.depth_m) {
+            assert_eq!(*a == 0.0, *b == 0.0);
+            worst_m = worst_m.max((a - b).abs());
+        }
+        assert!(worst_m < 1e-3, "worst depth difference {worst_m} m");
+        let differing_faces = local
+            .face_index
+            .iter()
+            .zip(&utm.face_index)
+            .filter(|(a, b)| a != b)
+            .count();
+        assert!(
+            differing_faces < 20,
+            "{differing_faces} pixels see another face"
+        );
+    }
+
+    #[test]
+    fn re_rendering_into_the_same_buffers_allocates_nothing() {
+        let (mesh, pose) = oblique_scene(Vector3::zeros());
+        let intrinsics = PinholeIntrinsics::centered(150.0, 160, 120);
+        let mut rasterizer = Rasterizer::new();
+        let mut out = RenderBuffers::new(160, 120);
+        let options = RenderOptions::default();
+        rasterizer.render(&mesh, &intrinsics, &pose, &options, &mut out);
+        let fingerprint = |r: &Rasterizer, out: &RenderBuffers| {
+            let mut prints = vec![
+                (out.depth_m.as_ptr() as usize, out.depth_m.capacity()),
+                (out.normal_cam.as_ptr() as usize, out.normal_cam.capacity()),
+                (out.face_index.as_ptr() as usize, out.face_index.capacity()),
+                (r.vertices_cam.as_ptr() as usize, r.vertices_cam.capacity()),
+                (r.normals_cam.as_ptr() as usize, r.normals_cam.capacity()),
+                (r.bins.as_ptr() as usize, r.bins.capacity()),
+            ];
+            for chunk in &r.bins {
+                prints.push((chunk.as_ptr() as usize, chunk.capacity()));
+                for band in chunk {
+                    prints.push((band.as_ptr() as usize, band.capacity()));
+                }
+            }
+            prints
+        };
+        let before = fingerprint(&rasterizer, &out);
+        let first_depth = out.depth_m.clone();
+        rasterizer.render(&mesh, &intrinsics, &pose, &options, &mut out);
+        assert_eq!(fingerprint(&rasterizer, &out), before);
+        assert_eq!(out.depth_m, first_depth);
+    }
+
+    #[test]
+    fn back_face_culling_drops_faces_turned_away() {
+        // The square of the first test with its winding reversed: it faces away.
+        let positions = [
+            Vector3::new(-1.0, -1.0, 5.0),
+            Vector3::new(1.0, -1.0, 5.0),
+            Vector3::new(1.0, 1.0, 5.0),
+            Vector3::new(-1.0, 1.0, 5.0),
+        ];
+        let away = Mesh::from_world(&positions, vec![[0, 1, 2], [0, 2, 3]], None).unwrap();
+        let culled = RenderOptions {
+            cull_back_faces: true,
+            ..RenderOptions::default()
+        };
+        let shown = render_identity(&away, &RenderOptions::default());
+        assert_eq!(shown.valid_count(), 40 * 40);
+        // Without culling the normal is the face's, pointing away from the camera.
+        assert!((shown.normal_cam[50 * 100 + 50] - Vec3::new(0.0, 0.0, 1.0)).length() < 1e-5);
+        assert_eq!(render_identity(&away, &culled).valid_count(), 0);
+        assert_eq!(
+            render_identity(&square_facing_camera(), &culled).valid_count(),
+            40 * 40
+        );
+        // A closed cube looks the same either way (its front faces win the depth test) ...
+        let mesh = cube(Vector3::new(0.3, -0.2, 5.0), 0.5);
+        let plain = render_identity(&mesh, &RenderOptions::default());
+        let with_culling = render_identity(&mesh, &culled);
+        assert_eq!(plain.depth_m, with_culling.depth_m);
+        assert_eq!(plain.face_index, with_culling.face_index);
+        // ... but seen from inside, culling removes every face.
+        let inside = cube(Vector3::new(0.0, 0.0, 0.0), 3.0);
+        assert_eq!(
+            render_identity(&inside, &RenderOptions::default()).valid_count(),
+            100 * 100
+        );
+        assert_eq!(render_identity(&inside, &culled).valid_count(), 0);
+    }
 }

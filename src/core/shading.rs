@@ -1,1 +1,613 @@
-//! (being written)
+//! Gradient images that SIFT flow compares: Average Shading Gradients (ASG, paper eq. 4) of a
+//! rendered normal map, and the two query representations of a photo (DESIGN §2 step 3):
+//! (a) plain image gradients of the photo, (b) ASG of normals derived from the photo's depth map.
+//!
+//! ASG averages the gradient magnitude of Lambertian shading `max(0, -n·l)` over all light
+//! directions `l`; its closed-form upper bound (eq. 4) is
+//! `sqrt(pi/3) * sqrt(sum_{i=x,y,z} (hx*n_i)^2 + (hy*n_i)^2)`, the Frobenius norm of the normal
+//! map's filtered Jacobian. The constant is the paper's; it treats `∫_S` as an unnormalised
+//! integral inside the square root only, so the closed form is a (loose) upper bound of the
+//! *mean* over directions too — the tests measure by how much. The scale does not matter to SIFT
+//! (descriptors are normalised); the shape of the response does.
+//!
+//! All functions write into caller-provided buffers and run over rows with rayon: one rendering
+//! per coarse pose goes through here.
+
+use glam::Vec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::camera::PinholeIntrinsics;
+
+/// `sqrt(pi / 3)`, the constant of the closed form (paper eq. 4).
+pub const ASG_SCALE: f32 = 1.023_326_7;
+
+/// The discrete derivative filters `hx`, `hy`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum DerivativeFilter {
+    /// `[-1, 0, 1] / 2` along the axis, nothing across it: the sharpest response, but every
+    /// per-pixel wiggle of interpolated normals (noisy meshes, MVS depth) shows up.
+    CentralDifference,
+    /// Sobel, normalised by 1/8 so that a unit ramp gives 1 (same gain as the central
+    /// difference): the central difference smoothed by `[1, 2, 1] / 4` across the axis.
+    /// Default: the model is a noisy Poisson mesh and query mode (b) differentiates MVS depth,
+    /// so the cross smoothing damps noise that is not structure, and the same filter is used on
+    /// the photo in query mode (a) so that both sides see edges alike.
+    #[default]
+    Sobel,
+}
+
+impl DerivativeFilter {
+    /// Weights across the derivative axis: `hx = ½ Σ_k w_k (I[row+k-1][col+1] − I[row+k-1][col−1])`
+    /// and `hy` likewise with rows and columns swapped. Written as differences, a constant image
+    /// gives exactly 0.
+    pub fn cross_weights(self) -> [f32; 3] {
+        match self {
+            DerivativeFilter::CentralDifference => [0.0, 1.0, 0.0],
+            DerivativeFilter::Sobel => [0.25, 0.5, 0.25],
+        }
+    }
+}
+
+/// `(hx * v, hy * v)` at the centre of a 3×3 neighbourhood `[row][col]`.
+fn filter_3x3<T>(neighbourhood: &[[T; 3]; 3], cross_weights: &[f32; 3]) -> (T, T)
+where
+    T: Copy
+        + std::ops::Sub<Output = T>
+        + std::ops::Mul<f32, Output = T>
+        + std::ops::Add<Output = T>,
+{
+    let n = neighbourhood;
+    let mut derivative_x = (n[0][2] - n[0][0]) * (0.5 * cross_weights[0]);
+    let mut derivative_y = (n[2][0] - n[0][0]) * (0.5 * cross_weights[0]);
+    for k in 1..3 {
+        derivative_x = derivative_x + (n[k][2] - n[k][0]) * (0.5 * cross_weights[k]);
+        derivative_y = derivative_y + (n[2][k] - n[0][k]) * (0.5 * cross_weights[k]);
+    }
+    (derivative_x, derivative_y)
+}
+
+/// How pixels without a surface (zero normal: background, holes) enter the derivative filters.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum SilhouetteMode {
+    /// Only gradients between pixels with a surface: a background neighbour inside the filter
+    /// stencil takes the centre pixel's normal (a one-sided derivative at the border), and
+    /// background pixels get 0. Default: in an aerial scene the model usually fills the frame,
+    /// so the places where a rendering meets background are the model's outer boundary and the
+    /// holes of a Poisson/MVS surface — edges the photo does not have (the terrain goes on).
+    /// Real occlusion edges (a roof in front of the ground) are between two surfaces and keep
+    /// their gradients in this mode. The same holds for holes of the MVS depth in query mode (b).
+    #[default]
+    ValidOnly,
+    /// Background is a surface facing the camera (normal `(0, 0, -1)` in the camera frame):
+    /// every silhouette is a strong edge, two pixels wide (one on each side). Right for an
+    /// isolated object against sky or an unmodelled background that contrasts with it.
+    BackgroundFacesCamera,
+}
+
+/// Options of the ASG rendering (and of the photo's gradient image in query mode (a)).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AsgOptions {
+    /// The derivative filters `hx`, `hy` of eq. 4 (unit-gain kernels: results are in change of
+    /// the normal's components per pixel).
+    pub derivative_filter: DerivativeFilter,
+    /// How silhouettes (a surface pixel next to background) are treated.
+    pub silhouette_mode: SilhouetteMode,
+}
+
+/// The normal a background pixel stands for in [`SilhouetteMode::BackgroundFacesCamera`].
+const BACKGROUND_NORMAL_CAM: Vec3 = Vec3::new(0.0, 0.0, -1.0);
+
+/// Closed-form ASG (paper eq. 4) of a row-major normal map; a zero normal means "no surface".
+/// Image borders replicate the edge pixels. `normals` and `out` hold `width_px * height_px`
+/// entries; a mismatch writes nothing beyond the shorter of them (debug builds assert).
+pub fn asg_from_normals(
+    normals: &[Vec3],
+    width_px: usize,
+    height_px: usize,
+    options: &AsgOptions,
+    out: &mut [f32],
+) {
+    let pixel_count = width_px * height_px;
+    debug_assert_eq!(normals.len(), pixel_count);
+    debug_assert_eq!(out.len(), pixel_count);
+    if width_px == 0 || normals.len() < pixel_count || out.len() < pixel_count {
+        return;
+    }
+    let cross_weights = options.derivative_filter.cross_weights();
+    let silhouette_mode = options.silhouette_mode;
+    out[..pixel_count]
+        .par_chunks_mut(width_px)
+        .enumerate()
+        .for_each(|(row, out_row)| {
+            let rows = neighbour_rows(row, height_px);
+            for (col, out_pixel) in out_row.iter_mut().enumerate() {
+                let centre = normals[row * width_px + col];
+                let centre_valid = centre != Vec3::ZERO;
+                if !centre_valid && silhouette_mode == SilhouetteMode::ValidOnly {
+                    *out_pixel = 0.0;
+                    continue;
+                }
+                let centre_value = if centre_valid {
+                    centre
+                } else {
+                    BACKGROUND_NORMAL_CAM
+                };
+                let cols = neighbour_cols(col, width_px);
+                let mut neighbourhood = [[centre_value; 3]; 3];
+                for (kernel_row, &sample_row) in rows.iter().enumerate() {
+                    for (kernel_col, &sample_col) in cols.iter().enumerate() {
+                        let sample = normals[sample_row * width_px + sample_col];
+                        neighbourhood[kernel_row][kernel_col] = if sample != Vec3::ZERO {
+                            sample
+                        } else {
+                            match silhouette_mode {
+                                SilhouetteMode::ValidOnly => centre_value,
+                                SilhouetteMode::BackgroundFacesCamera => BACKGROUND_NORMAL_CAM,
+                            }
+                        };
+                    }
+                }
+                let (derivative_x, derivative_y) = filter_3x3(&neighbourhood, &cross_weights);
+                *out_pixel = ASG_SCALE
+                    * (derivative_x.length_squared() + derivative_y.length_squared()).sqrt();
+            }
+        });
+}
+
+/// Gradient magnitude `sqrt((hx*I)^2 + (hy*I)^2)` of a row-major grey image with the default
+/// derivative filter of [`AsgOptions`] (query mode (a)). Borders replicate the edge pixels.
+pub fn gradient_magnitude(pixels: &[f32], width_px: usize, height_px: usize, out: &mut [f32]) {
+    gradient_magnitude_with_filter(
+        pixels,
+        width_px,
+        height_px,
+        AsgOptions::default().derivative_filter,
+        out,
+    );
+}
+
+/// [`gradient_magnitude`] with an explicit filter (use the one of the ASG renderings).
+pub fn gradient_magnitude_with_filter(
+    pixels: &[f32],
+    width_px: usize,
+    height_px: usize,
+    filter: DerivativeFilter,
+    out: &mut [f32],
+) {
+    let pixel_count = width_px * height_px;
+    debug_assert_eq!(pixels.len(), pixel_count);
+    debug_assert_eq!(out.len(), pixel_count);
+    if width_px == 0 || pixels.len() < pixel_count || out.len() < pixel_count {
+        return;
+    }
+    let cross_weights = filter.cross_weights();
+    out[..pixel_count]
+        .par_chunks_mut(width_px)
+        .enumerate()
+        .for_each(|(row, out_row)| {
+            let rows = neighbour_rows(row, height_px);
+            for (col, out_pixel) in out_row.iter_mut().enumerate() {
+                let cols = neighbour_cols(col, width_px);
+                let mut neighbourhood = [[0.0f32; 3]; 3];
+                for (kernel_row, &sample_row) in rows.iter().enumerate() {
+                    for (kernel_col, &sample_col) in cols.iter().enumerate() {
+                        neighbourhood[kernel_row][kernel_col] =
+                            pixels[sample_row * width_px + sample_col];
+                    }
+                }
+                let (derivative_x, derivative_y) = filter_3x3(&neighbourhood, &cross_weights);
+                *out_pixel = derivative_x.hypot(derivative_y);
+            }
+        });
+}
+
+/// Unit surface normals (camera frame, facing the camera) from a depth map: pixel centres are
+/// back-projected with the depth (metres along the optical axis; holes are 0 or non-finite),
+/// tangents are central differences of the 3D points, one-sided where a neighbour is a hole;
+/// the normal is their cross product oriented toward the camera. Zero where it cannot be
+/// computed (a hole, or no neighbour along one axis). Query mode (b) is
+/// `asg_from_normals(normals_from_depth(..))`.
+pub fn normals_from_depth(
+    depth_m: &[f32],
+    width_px: usize,
+    height_px: usize,
+    intrinsics: &PinholeIntrinsics,
+    out: &mut [Vec3],
+) {
+    let pixel_count = width_px * height_px;
+    debug_assert_eq!(depth_m.len(), pixel_count);
+    debug_assert_eq!(out.len(), pixel_count);
+    if width_px == 0 || depth_m.len() < pixel_count || out.len() < pixel_count {
+        return;
+    }
+    let back_project = |col: usize, row: usize| -> Option<Vec3> {
+        let depth = depth_m[row * width_px + col];
+        if !(depth.is_finite() && depth > 0.0) {
+            return None;
+        }
+        let normalized = intrinsics
+            .pixel_to_normalized(nalgebra::Vector2::new(col as f64 + 0.5, row as f64 + 0.5));
+        Some(Vec3::new(
+            normalized.x as f32 * depth,
+            normalized.y as f32 * depth,
+            depth,
+        ))
+    };
+    // Central difference when both neighbours exist, else one-sided, else none.
+    let tangent = |centre: Vec3, before: Option<Vec3>, after: Option<Vec3>| match (before, after) {
+        (Some(before), Some(after)) => Some(after - before),
+        (None, Some(after)) => Some(after - centre),
+        (Some(before), None) => Some(centre - before),
+        (None, None) => None,
+    };
+    out[..pixel_count]
+        .par_chunks_mut(width_px)
+        .enumerate()
+        .for_each(|(row, out_row)| {
+            for (col, out_normal) in out_row.iter_mut().enumerate() {
+                *out_normal = Vec3::ZERO;
+                let Some(centre) = back_project(col, row) else {
+                    continue;
+                };
+                let left = col.checked_sub(1).and_then(|c| back_project(c, row));
+                let right = (col + 1 < width_px)
+                    .then(|| back_project(col + 1, row))
+                    .flatten();
+                let up = row.checked_sub(1).and_then(|r| back_project(col, r));
+                let down = (row + 1 < height_px)
+                    .then(|| back_project(col, row + 1))
+                    .flatten();
+                let (Some(tangent_x), Some(tangent_y)) =
+                    (tangent(centre, left, right), tangent(centre, up, down))
+                else {
+                    continue;
+                };
+                let normal = tangent_x.cross(tangent_y).normalize_or_zero();
+                // Toward the camera: the normal and the ray to the point point in opposite ways.
+                *out_normal = if normal.dot(centre) > 0.0 {
+                    -normal
+                } else {
+                    normal
+                };
+            }
+        });
+}
+
+/// Rows `[row - 1, row, row + 1]`, clamped to the image.
+fn neighbour_rows(row: usize, height_px: usize) -> [usize; 3] {
+    [row.saturating_sub(1), row, (row + 1).min(height_px - 1)]
+}
+
+/// Columns `[col - 1, col, col + 1]`, clamped to the image.
+fn neighbour_cols(col: usize, width_px: usize) -> [usize; 3] {
+    [col.saturating_sub(1), col, (col + 1).min(width_px - 1)]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::mesh::Mesh;
+    use crate::core::raster::{Rasterizer, RenderBuffers, RenderOptions};
+    use crate::core::rigid::Rigid3;
+    use nalgebra::Vector3;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    const FILTERS: [DerivativeFilter; 2] =
+        [DerivativeFilter::CentralDifference, DerivativeFilter::Sobel];
+    const MODES: [SilhouetteMode; 2] = [
+        SilhouetteMode::ValidOnly,
+        SilhouetteMode::BackgroundFacesCamera,
+    ];
+
+    #[test]
+    fn the_scale_is_sqrt_pi_over_3() {
+        assert!((f64::from(ASG_SCALE) - (std::f64::consts::PI / 3.0).sqrt()).abs() < 1e-7);
+    }
+
+    #[test]
+    fn a_constant_normal_map_has_no_gradient() {
+        let (width, height) = (13, 9);
+        let normal = Vec3::new(0.3, -0.4, -0.8).normalize();
+        let normals = vec![normal; width * height];
+        let mut out = vec![f32::NAN; width * height];
+        for derivative_filter in FILTERS {
+            for silhouette_mode in MODES {
+                let options = AsgOptions {
+                    derivative_filter,
+                    silhouette_mode,
+                };
+                asg_from_normals(&normals, width, height, &options, &mut out);
+                assert!(out.iter().all(|&v| v == 0.0), "{options:?}: {out:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_crease_between_two_planes_gives_the_hand_computed_magnitude() {
+        // Columns < 6 see a plane with normal n1, columns >= 6 one with n2 (a roof ridge).
+        let (width, height) = (12, 7);
+        let n1 = Vec3::new(-0.6, 0.0, -0.8);
+        let n2 = Vec3::new(0.6, 0.0, -0.8);
+        let normals: Vec<Vec3> = (0..width * height)
+            .map(|i| if i % width < 6 { n1 } else { n2 })
+            .collect();
+        // Both filters: hx = (n2 - n1) / 2 at columns 5 and 6 (the only ones whose stencil
+        // straddles the crease), hy = 0 (constant along columns, borders replicated).
+        // |n2 - n1| = 1.2 → ASG = sqrt(pi/3) * 0.6.
+        let expected = (std::f32::consts::PI / 3.0).sqrt() * 0.6;
+        let mut out = vec![f32::NAN; width * height];
+        for derivative_filter in FILTERS {
+            let options = AsgOptions {
+                derivative_filter,
+                ..AsgOptions::default()
+            };
+            asg_from_normals(&normals, width, height, &options, &mut out);
+            for row in 0..height {
+                for col in 0..width {
+                    let value = out[row * width + col];
+                    let want = if col == 5 || col == 6 { expected } else { 0.0 };
+                    assert!(
+                        (value - want).abs() < 1e-6,
+                        "{derivative_filter:?} ({col}, {row}): {value} vs {want}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn silhouette_modes_differ_only_at_the_boundary_of_the_surface() {
+        // A 4×4 patch of tilted surface in the middle of 10×10 background.
+        let (width, height) = (10, 10);
+        let tilted = Vec3::new(0.0, 0.6, -0.8);
+        let inside = |col: usize, row: usize| (3..7).contains(&col) && (3..7).contains(&row);
+        let normals: Vec<Vec3> = (0..width * height)
+            .map(|i| {
+                if inside(i % width, i / width) {
+                    tilted
+                } else {
+                    Vec3::ZERO
+                }
+            })
+            .collect();
+        let mut valid_only = vec![f32::NAN; width * height];
+        let mut facing = vec![f32::NAN; width * height];
+        let options = |silhouette_mode| AsgOptions {
+            derivative_filter: DerivativeFilter::CentralDifference,
+            silhouette_mode,
+        };
+        asg_from_normals(
+            &normals,
+            width,
+            height,
+            &options(SilhouetteMode::ValidOnly),
+            &mut valid_only,
+        );
+        asg_from_normals(
+            &normals,
+            width,
+            height,
+            &options(SilhouetteMode::BackgroundFacesCamera),
+            &mut facing,
+        );
+        // ValidOnly: a constant surface has no gradient anywhere, background is 0.
+        assert!(valid_only.iter().all(|&v| v == 0.0), "{valid_only:?}");
+        // BackgroundFacesCamera: the left border pixel (3, 4) sees background (0,0,-1) on its
+        // left: hx = (tilted - bg) / 2, |tilted - bg| = sqrt(0.36 + 0.04) → ASG = s * sqrt(0.4)/2.
+        let s = (std::f32::consts::PI / 3.0).sqrt();
+        let edge = s * 0.4f32.sqrt() / 2.0;
+        assert!((facing[4 * width + 3] - edge).abs() < 1e-6);
+        // ... and so does the background pixel just outside, (2, 4).
+        assert!((facing[4 * width + 2] - edge).abs() < 1e-6);
+        // Interior pixels and far background: 0.
+        assert_eq!(facing[4 * width + 4], 0.0);
+        assert_eq!(facing[0], 0.0);
+    }
+
+    /// A smooth random unit normal field facing the camera.
+    fn smooth_random_normals(width: usize, height: usize, seed: u64) -> Vec<Vec3> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let waves: Vec<(f32, f32, f32, f32)> = (0..6)
+            .map(|_| {
+                (
+                    rng.random_range(0.1..0.5),
+                    rng.random_range(0.1..0.5),
+                    rng.random_range(0.0..std::f32::consts::TAU),
+                    rng.random_range(0.2..0.6),
+                )
+            })
+            .collect();
+        (0..width * height)
+            .map(|i| {
+                let (x, y) = ((i % width) as f32, (i / width) as f32);
+                let mut n = Vec3::new(0.0, 0.0, -1.0);
+                for (k, &(fx, fy, phase, amplitude)) in waves.iter().enumerate() {
+                    let v = amplitude * (fx * x + fy * y + phase).sin();
+                    if k % 2 == 0 {
+                        n.x += v;
+                    } else {
+                        n.y += v;
+                    }
+                }
+                n.normalize()
+            })
+            .collect()
+    }
+
+    /// `count` directions spread evenly over the unit sphere (Fibonacci lattice).
+    fn fibonacci_sphere(count: usize) -> Vec<Vec3> {
+        let golden_angle = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+        (0..count)
+            .map(|i| {
+                let z = 1.0 - 2.0 * (i as f32 + 0.5) / count as f32;
+                let radius = (1.0 - z * z).sqrt();
+                let azimuth = golden_angle * i as f32;
+                Vec3::new(radius * azimuth.cos(), radius * azimuth.sin(), z)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_closed_form_bounds_the_brute_force_average_over_light_directions() {
+        let (width, height) = (16, 16);
+        let normals = smooth_random_normals(width, height, 7);
+        let directions = fibonacci_sphere(4096);
+        for derivative_filter in FILTERS {
+            let options = AsgOptions {
+                derivative_filter,
+                ..AsgOptions::default()
+            };
+            let mut closed_form = vec![0.0; width * height];
+            asg_from_normals(&normals, width, height, &options, &mut closed_form);
+
+            let mut average = vec![0.0f64; width * height];
+            let mut shading = vec![0.0f32; width * height];
+            let mut gradient = vec![0.0f32; width * height];
+            for light in &directions {
+                for (s, n) in shading.iter_mut().zip(&normals) {
+                    *s = (-n.dot(*light)).max(0.0);
+                }
+                gradient_magnitude_with_filter(
+                    &shading,
+                    width,
+                    height,
+                    derivative_filter,
+                    &mut gradient,
+                );
+                for (a, g) in average.iter_mut().zip(&gradient) {
+                    *a += f64::from(*g);
+                }
+            }
+            let mut ratio_sum = 0.0;
+            let mut ratio_count = 0;
+            for (pixel, (&avg_sum, &closed)) in average.iter().zip(&closed_form).enumerate() {
+                let mean = avg_sum / directions.len() as f64;
+                assert!(
+                    mean <= f64::from(closed) + 1e-6,
+                    "{derivative_filter:?} pixel {pixel}: brute-force mean {mean} > closed form {closed}"
+                );
+                if closed > 1e-4 {
+                    ratio_sum += mean / f64::from(closed);
+                    ratio_count += 1;
+                }
+            }
+            assert!(ratio_count > width * height / 2);
+            let mean_ratio = ratio_sum / ratio_count as f64;
+            println!(
+                "{derivative_filter:?}: mean over {ratio_count} pixels of brute-force average / closed form = {mean_ratio:.4}"
+            );
+            // Away from the terminator the mean is half the mean of |J^T l| over the sphere:
+            // |a|/4 for a rank-1 Jacobian (ratio 1/(4 sqrt(pi/3)) = 0.244) up to (pi/8)|J|_F for an
+            // isotropic one (ratio 0.271). Far outside means the closed form computes something else.
+            assert!((0.22..0.3).contains(&mean_ratio), "{mean_ratio}");
+        }
+    }
+
+    #[test]
+    fn gradient_magnitude_of_a_step_edge() {
+        // Intensity 0 left of column 5, 10 from column 5 on.
+        let (width, height) = (10, 6);
+        let pixels: Vec<f32> = (0..width * height)
+            .map(|i| if i % width < 5 { 0.0 } else { 10.0 })
+            .collect();
+        let mut out = vec![f32::NAN; width * height];
+        for filter in FILTERS {
+            gradient_magnitude_with_filter(&pixels, width, height, filter, &mut out);
+            for row in 0..height {
+                for col in 0..width {
+                    let want = if col == 4 || col == 5 { 5.0 } else { 0.0 };
+                    assert!(
+                        (out[row * width + col] - want).abs() < 1e-6,
+                        "{filter:?} ({col}, {row})"
+                    );
+                }
+            }
+        }
+        // The default entry point uses the default filter.
+        let mut default_out = vec![f32::NAN; width * height];
+        gradient_magnitude(&pixels, width, height, &mut default_out);
+        gradient_magnitude_with_filter(
+            &pixels,
+            width,
+            height,
+            AsgOptions::default().derivative_filter,
+            &mut out,
+        );
+        assert_eq!(default_out, out);
+    }
+
+    #[test]
+    fn normals_from_the_depth_of_a_rendered_tilted_plane_are_the_planes_normal() {
+        // A large plane through (0, 0, 10) tilted about the y and x axes.
+        let plane_normal = Vector3::new(0.3, -0.2, -1.0).normalize();
+        let u = plane_normal.cross(&Vector3::new(0.0, 1.0, 0.0)).normalize();
+        let v = plane_normal.cross(&u);
+        let centre = Vector3::new(0.0, 0.0, 10.0);
+        let corners = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+            .map(|(a, b)| centre + u * (a * 20.0) + v * (b * 20.0));
+        let mesh = Mesh::from_world(&corners, vec![[0, 1, 2], [0, 2, 3]], None).unwrap();
+        let (width, height) = (64, 48);
+        let intrinsics = PinholeIntrinsics::centered(60.0, width as u32, height as u32);
+        let mut buffers = RenderBuffers::new(width, height);
+        Rasterizer::new().render(
+            &mesh,
+            &intrinsics,
+            &Rigid3::identity(),
+            &RenderOptions::default(),
+            &mut buffers,
+        );
+        assert_eq!(buffers.valid_count(), width * height);
+        // Punch a hole so the one-sided fallback is exercised.
+        let mut depth = buffers.depth_m.clone();
+        depth[20 * width + 30] = 0.0;
+        depth[21 * width + 30] = f32::NAN;
+        let mut normals = vec![Vec3::splat(f32::NAN); width * height];
+        normals_from_depth(&depth, width, height, &intrinsics, &mut normals);
+        // The normal facing the camera (the camera looks along +z, so n_z < 0).
+        let expected = Vec3::new(
+            plane_normal.x as f32,
+            plane_normal.y as f32,
+            plane_normal.z as f32,
+        );
+        for (pixel, normal) in normals.iter().enumerate() {
+            if pixel == 20 * width + 30 || pixel == 21 * width + 30 {
+                assert_eq!(*normal, Vec3::ZERO);
+            } else {
+                assert!(
+                    (*normal - expected).length() < 2e-3,
+                    "pixel {pixel}: {normal} vs {expected}"
+                );
+            }
+        }
+        // A plane has no ASG (away from the hole, whose border sees only valid pixels).
+        let mut asg = vec![f32::NAN; width * height];
+        asg_from_normals(&normals, width, height, &AsgOptions::default(), &mut asg);
+        assert!(
+            asg.iter().all(|&a| a < 5e-3),
+            "max {:?}",
+            asg.iter().cloned().fold(0.0, f32::max)
+        );
+    }
+
+    #[test]
+    fn normals_from_depth_are_zero_where_a_whole_axis_is_missing() {
+        // A single valid column: no horizontal neighbour anywhere → all zero.
+        let (width, height) = (5, 5);
+        let depth: Vec<f32> = (0..width * height)
+            .map(|i| if i % width == 2 { 3.0 } else { 0.0 })
+            .collect();
+        let mut normals = vec![Vec3::ONE; width * height];
+        let intrinsics = PinholeIntrinsics::centered(10.0, 5, 5);
+        normals_from_depth(&depth, width, height, &intrinsics, &mut normals);
+        assert!(normals.iter().all(|n| *n == Vec3::ZERO));
+        // A fronto-parallel plane: normal (0, 0, -1) everywhere, borders included.
+        let depth = vec![3.0; width * height];
+        normals_from_depth(&depth, width, height, &intrinsics, &mut normals);
+        for n in &normals {
+            assert!((*n - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-6, "{n}");
+        }
+    }
+}
