@@ -13,9 +13,9 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use super::interim::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::camera::Camera;
 use crate::core::mesh::Mesh;
+use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
 
 /// One image's noise direction, before scaling.

@@ -11,7 +11,6 @@
 pub mod degrade;
 pub mod geometry;
 pub mod initial;
-mod interim;
 pub mod photo;
 pub mod texture;
 pub mod viewpoints;
@@ -480,7 +479,7 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         config.initial_metres_per_radian,
         &mut stream_rng(5),
     );
-    let mut workspace = interim::ReprojectionWorkspace::new();
+    let mut workspace = crate::core::reprojection::ReprojectionWorkspace::new();
     let mut initial_levels = Vec::with_capacity(config.initial_levels_px.len());
     for &level in &config.initial_levels_px {
         let calibration = initial::calibrate_level(
@@ -788,7 +787,13 @@ mod tests {
         };
         Rasterizer::new().render(mesh, &camera.intrinsics, pose, &options, &mut buffers);
         let mut asg = vec![0.0; w * h];
-        interim::asg_from_normals(&buffers.normal_cam, w, h, &mut asg);
+        crate::core::shading::asg_from_normals(
+            &buffers.normal_cam,
+            w,
+            h,
+            &crate::core::shading::AsgOptions::default(),
+            &mut asg,
+        );
         asg
     }
 
@@ -840,7 +845,7 @@ mod tests {
         let decoded = image::load_from_memory(&jpeg).unwrap().to_luma32f();
         let luma: Vec<f32> = decoded.as_raw().iter().map(|v| v * 255.0).collect();
         let mut photo_gradient = vec![0.0; w * h];
-        interim::gradient_magnitude(&luma, w, h, &mut photo_gradient);
+        crate::core::shading::gradient_magnitude(&luma, w, h, &mut photo_gradient);
 
         let mut true_model = scene
             .to_mesh(|t| {
@@ -867,7 +872,7 @@ mod tests {
 
         // The initial pose of the 104 px level.
         let noise = initial::draw_unit_noise(1, config.initial_metres_per_radian, &mut stream(5));
-        let mut workspace = interim::ReprojectionWorkspace::new();
+        let mut workspace = crate::core::reprojection::ReprojectionWorkspace::new();
         let level = initial::calibrate_level(
             &true_model,
             &camera,
