@@ -1,6 +1,6 @@
 //! The degraded model handed to registration, made the way a Poisson reconstruction of MVS points
-//! would look: the building solids (without small parts) and the ground are sampled into an
-//! occupancy grid, blurred (rounded edges and corners, thin parts thinned or lost), turned back
+//! would look: the signed distance of the building solids (without small parts) and the ground
+//! is sampled into a grid, blurred (rounded edges and corners, thin parts thinned or lost), turned back
 //! into a mesh of voxel-sized triangles by surface nets, Taubin-smoothed, warped by low-frequency
 //! noise and jittered per vertex; the ground is trimmed to an irregular patch around the
 //! buildings and a few patches of faces are cut out as holes.
@@ -12,14 +12,14 @@ use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;
 
 use super::geometry::Scene;
-use super::texture::fbm;
+use super::texture::{fbm, hash_unit};
 
 /// How strongly the model is degraded.
 #[derive(Clone, Copy, Debug)]
 pub struct DegradeParams {
-    /// Edge length of the occupancy voxels (≈ triangle size), metres.
+    /// Edge length of the distance-field voxels (≈ triangle size), metres.
     pub voxel_m: f32,
-    /// Gaussian blur of the occupancy (edge rounding radius), metres.
+    /// Gaussian blur of the distance field (edge rounding radius), metres.
     pub smoothing_sigma_m: f32,
     /// Taubin smoothing iterations on the extracted mesh.
     pub taubin_iterations: u32,
@@ -60,14 +60,40 @@ impl Grid {
     fn centre(&self, i: usize, j: usize, k: usize) -> Vec3 {
         self.origin_m + (Vec3::new(i as f32, j as f32, k as f32) + 0.5) * self.voxel_m
     }
+
+    /// Trilinear interpolation between voxel centres (clamped at the border).
+    fn sample(&self, p: Vec3) -> f32 {
+        let q = (p - self.origin_m) / self.voxel_m - 0.5;
+        let max = Vec3::new(
+            self.size[0] as f32 - 1.001,
+            self.size[1] as f32 - 1.001,
+            self.size[2] as f32 - 1.001,
+        );
+        let q = q.clamp(Vec3::ZERO, max);
+        let base = q.floor();
+        let f = q - base;
+        let (i, j, k) = (base.x as usize, base.y as usize, base.z as usize);
+        let v = |di: usize, dj: usize, dk: usize| self.values[self.index(i + di, j + dj, k + dk)];
+        let x00 = v(0, 0, 0) + (v(1, 0, 0) - v(0, 0, 0)) * f.x;
+        let x10 = v(0, 1, 0) + (v(1, 1, 0) - v(0, 1, 0)) * f.x;
+        let x01 = v(0, 0, 1) + (v(1, 0, 1) - v(0, 0, 1)) * f.x;
+        let x11 = v(0, 1, 1) + (v(1, 1, 1) - v(0, 1, 1)) * f.x;
+        let y0 = x00 + (x10 - x00) * f.y;
+        let y1 = x01 + (x11 - x01) * f.y;
+        y0 + (y1 - y0) * f.z
+    }
 }
 
 /// Builds the degraded model of `scene`.
 pub fn degrade(scene: &Scene, params: &DegradeParams, rng: &mut ChaCha8Rng) -> DegradedModel {
     let noise_seed: u64 = rng.random();
-    let grid = occupancy(scene, params);
+    let grid = inside_field(scene, params);
     let grid = blur(grid, params.smoothing_sigma_m);
-    let (mut positions, faces) = surface_nets(&grid, 0.5);
+    let (mut positions, faces) = surface_nets(&grid, 0.0);
+    // Surface-nets vertices terrace on planes that are not aligned with the grid (the ASG
+    // shows the terraces as stripes, which a Poisson surface does not have): move each vertex
+    // onto the smooth iso-surface of the trilinear field.
+    project_to_iso_surface(&grid, &mut positions, 0.0);
     let neighbours = vertex_neighbours(positions.len(), &faces);
     taubin(&mut positions, &neighbours, params.taubin_iterations);
 
@@ -88,7 +114,7 @@ pub fn degrade(scene: &Scene, params: &DegradeParams, rng: &mut ChaCha8Rng) -> D
     let normals = vertex_normals(&positions, &faces);
     let normal = Normal::new(0.0f32, params.vertex_noise_m.max(0.0)).ok();
     for (p, n) in positions.iter_mut().zip(&normals) {
-        let warp = params.warp_m * 2.0 * fbm(noise_seed ^ 2, *p, 2.5, 3, 0.0);
+        let warp = params.warp_m * 2.0 * smooth_noise(noise_seed ^ 2, *p, 3.0);
         let jitter = match &normal {
             Some(normal) => Vec3::new(normal.sample(rng), normal.sample(rng), normal.sample(rng)),
             None => Vec3::ZERO,
@@ -143,10 +169,12 @@ pub fn degrade(scene: &Scene, params: &DegradeParams, rng: &mut ChaCha8Rng) -> D
     }
 }
 
-/// Occupancy of the building solids and the ground half-space, 2×2×2 supersampled per voxel.
-fn occupancy(scene: &Scene, params: &DegradeParams) -> Grid {
+/// "Insideness" of the building solids and the ground half-space: the negated signed distance
+/// of their union, truncated to `±truncation` (positive inside).
+fn inside_field(scene: &Scene, params: &DegradeParams) -> Grid {
     let voxel = params.voxel_m.max(0.05);
-    let margin = params.ground_margin_m * 1.7 + 3.0 * params.smoothing_sigma_m + 2.0 * voxel;
+    let truncation = 3.0 * params.smoothing_sigma_m + 3.0 * voxel;
+    let margin = params.ground_margin_m * 1.7 + truncation + 2.0 * voxel;
     let mut min = Vec3::splat(f32::INFINITY);
     let mut max = Vec3::splat(f32::NEG_INFINITY);
     for solid in &scene.building_solids {
@@ -158,8 +186,8 @@ fn occupancy(scene: &Scene, params: &DegradeParams) -> Grid {
         min = Vec3::new(-1.0, -1.0, 0.0);
         max = Vec3::new(1.0, 1.0, 1.0);
     }
-    let min = Vec3::new(min.x - margin, min.y - margin, -1.0);
-    let max = Vec3::new(max.x + margin, max.y + margin, max.z + 1.0);
+    let min = Vec3::new(min.x - margin, min.y - margin, -truncation - 2.0 * voxel);
+    let max = Vec3::new(max.x + margin, max.y + margin, max.z + truncation + voxel);
     let size = [
         ((max.x - min.x) / voxel).ceil() as usize + 1,
         ((max.y - min.y) / voxel).ceil() as usize + 1,
@@ -171,43 +199,37 @@ fn occupancy(scene: &Scene, params: &DegradeParams) -> Grid {
         size,
         values: vec![0.0; size[0] * size[1] * size[2]],
     };
-    let offsets: [Vec3; 8] = std::array::from_fn(|s| {
-        Vec3::new(
-            if s & 1 == 0 { -0.25 } else { 0.25 },
-            if s & 2 == 0 { -0.25 } else { 0.25 },
-            if s & 4 == 0 { -0.25 } else { 0.25 },
-        ) * voxel
-    });
     let plane = size[0] * size[1];
     let origin = grid.origin_m;
     let solids = &scene.building_solids;
-    let solid_bounds: Vec<(Vec3, Vec3)> = solids.iter().map(|s| s.bounds_m()).collect();
+    let solid_bounds: Vec<(Vec3, Vec3)> = solids
+        .iter()
+        .map(|s| {
+            let (a, b) = s.bounds_m();
+            (a - truncation, b + truncation)
+        })
+        .collect();
     grid.values
         .par_chunks_mut(plane)
         .enumerate()
         .for_each(|(k, layer)| {
             let z = origin.z + (k as f32 + 0.5) * voxel;
+            let near: Vec<usize> = (0..solids.len())
+                .filter(|&s| z >= solid_bounds[s].0.z && z <= solid_bounds[s].1.z)
+                .collect();
             for j in 0..size[1] {
                 let y = origin.y + (j as f32 + 0.5) * voxel;
                 for i in 0..size[0] {
                     let x = origin.x + (i as f32 + 0.5) * voxel;
-                    let centre = Vec3::new(x, y, z);
-                    let candidates: Vec<usize> = solid_bounds
-                        .iter()
-                        .enumerate()
-                        .filter(|(_, (a, b))| {
-                            centre.cmpge(*a - voxel).all() && centre.cmple(*b + voxel).all()
-                        })
-                        .map(|(index, _)| index)
-                        .collect();
-                    let mut inside = 0;
-                    for offset in &offsets {
-                        let p = centre + *offset;
-                        if p.z < 0.0 || candidates.iter().any(|&s| solids[s].contains(p)) {
-                            inside += 1;
+                    let p = Vec3::new(x, y, z);
+                    let mut distance = p.z;
+                    for &s in &near {
+                        let (a, b) = solid_bounds[s];
+                        if p.x >= a.x && p.x <= b.x && p.y >= a.y && p.y <= b.y {
+                            distance = distance.min(solids[s].signed_distance_m(p));
                         }
                     }
-                    layer[j * size[0] + i] = inside as f32 / 8.0;
+                    layer[j * size[0] + i] = (-distance).clamp(-truncation, truncation);
                 }
             }
         });
@@ -387,6 +409,48 @@ fn surface_nets(grid: &Grid, iso: f32) -> (Vec<Vec3>, Vec<[u32; 3]>) {
         }
     }
     (positions, faces)
+}
+
+/// Two octaves of value noise with a quintic fade (C2: its second derivatives, which the ASG of a
+/// displaced surface shows, have no creases along the lattice), centred on 0 (about ±0.5).
+fn smooth_noise(seed: u64, p: Vec3, scale_m: f32) -> f32 {
+    let octave = |seed: u64, q: Vec3| {
+        let base = q.floor();
+        let f = q - base;
+        let fade = |t: f32| t * t * t * (t * (t * 6.0 - 15.0) + 10.0);
+        let (u, v, w) = (fade(f.x), fade(f.y), fade(f.z));
+        let (x, y, z) = (base.x as i64, base.y as i64, base.z as i64);
+        let c = |dx: i64, dy: i64, dz: i64| hash_unit(seed, x + dx, y + dy, z + dz);
+        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+        let x00 = lerp(c(0, 0, 0), c(1, 0, 0), u);
+        let x10 = lerp(c(0, 1, 0), c(1, 1, 0), u);
+        let x01 = lerp(c(0, 0, 1), c(1, 0, 1), u);
+        let x11 = lerp(c(0, 1, 1), c(1, 1, 1), u);
+        lerp(lerp(x00, x10, v), lerp(x01, x11, v), w) - 0.5
+    };
+    (octave(seed, p / scale_m) * 2.0 + octave(seed ^ 7, p * 2.0 / scale_m)) / 3.0 * 1.5
+}
+
+/// Newton steps along the field gradient onto the iso-surface of the trilinear interpolation.
+fn project_to_iso_surface(grid: &Grid, positions: &mut [Vec3], iso: f32) {
+    let h = grid.voxel_m;
+    positions.par_iter_mut().for_each(|p| {
+        for _ in 0..4 {
+            let value = grid.sample(*p);
+            let gradient = Vec3::new(
+                grid.sample(*p + Vec3::X * h * 0.5) - grid.sample(*p - Vec3::X * h * 0.5),
+                grid.sample(*p + Vec3::Y * h * 0.5) - grid.sample(*p - Vec3::Y * h * 0.5),
+                grid.sample(*p + Vec3::Z * h * 0.5) - grid.sample(*p - Vec3::Z * h * 0.5),
+            ) / h;
+            let length_squared = gradient.length_squared();
+            if length_squared < 1e-6 {
+                return;
+            }
+            let step = gradient * ((iso - value) / length_squared);
+            // Never move more than half a voxel per step.
+            *p += step.clamp_length_max(h * 0.5);
+        }
+    });
 }
 
 fn vertex_neighbours(vertex_count: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {

@@ -131,6 +131,44 @@ impl Solid {
         }
     }
 
+    /// Signed distance bound (negative inside): the largest signed distance to the solid's
+    /// bounding planes. Exact on faces and along face normals, an underestimate near outer
+    /// corners; its zero level is exactly the solid's surface, and it is linear on each side of
+    /// a face, so an iso-surface of it has no voxel terraces.
+    pub fn signed_distance_m(&self, p: Vec3) -> f32 {
+        match self {
+            Solid::Prism {
+                frame,
+                polygon_yz,
+                half_length_m,
+            } => {
+                let local = frame.to_local(p);
+                let q = Vec2::new(local.y, local.z);
+                let mut distance = local.x.abs() - half_length_m;
+                let n = polygon_yz.len();
+                for i in 0..n {
+                    let a = polygon_yz[i];
+                    let edge = polygon_yz[(i + 1) % n] - a;
+                    let outward = Vec2::new(edge.y, -edge.x).normalize_or_zero();
+                    distance = distance.max(outward.dot(q - a));
+                }
+                distance
+            }
+            Solid::HipRoof {
+                frame,
+                half_x_m,
+                half_y_m,
+                rise_per_m,
+            } => {
+                let local = frame.to_local(p);
+                let norm = (1.0 + rise_per_m * rise_per_m).sqrt();
+                let slope_x = (local.z + rise_per_m * (local.x.abs() - half_x_m)) / norm;
+                let slope_y = (local.z + rise_per_m * (local.y.abs() - half_y_m)) / norm;
+                (-local.z).max(slope_x).max(slope_y)
+            }
+        }
+    }
+
     /// World-axis bounding box `(min, max)`.
     pub fn bounds_m(&self) -> (Vec3, Vec3) {
         let corners: Vec<Vec3> = match self {

@@ -856,49 +856,132 @@ mod tests {
             })
             .unwrap();
         true_model.clear_vertex_normals();
-        let asg_gt = asg_of(&true_model, &camera, &gt, NormalSource::Face);
-        let at_gt = correlation(&photo_gradient, &asg_gt);
+        // The degraded model the registration gets, with its vertex normals.
+        let degraded = degrade::degrade(
+            &scene,
+            &degrade::DegradeParams {
+                voxel_m: config.model_voxel_m,
+                smoothing_sigma_m: config.model_smoothing_sigma_m,
+                taubin_iterations: config.model_taubin_iterations,
+                vertex_noise_m: config.model_vertex_noise_m,
+                warp_m: config.model_warp_m,
+                hole_count: config.model_hole_count,
+                hole_radius_m: config.model_hole_radius_m,
+                ground_margin_m: config.model_ground_margin_m,
+            },
+            &mut stream(4),
+        );
+        let positions: Vec<nalgebra::Vector3<f64>> = degraded
+            .positions_m
+            .iter()
+            .map(|p| nalgebra::Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)))
+            .collect();
+        let mut model = Mesh::from_world(&positions, degraded.faces, None).unwrap();
+        model.compute_vertex_normals();
 
-        // A pose a few pixels off: the camera turned by 4 px about its y axis.
+        // Poses: ground truth, turned by 8 px about the camera's y axis, and the 104 px level's
+        // initial pose.
         let turn = nalgebra::UnitQuaternion::from_axis_angle(
             &nalgebra::Vector3::y_axis(),
-            4.0 / camera.intrinsics.fx_px,
+            8.0 / camera.intrinsics.fx_px,
         );
         let shifted = Rigid3::new(turn * gt.rotation, turn * gt.translation);
-        let at_shift = correlation(
-            &photo_gradient,
-            &asg_of(&true_model, &camera, &shifted, NormalSource::Face),
-        );
-
-        // The initial pose of the 104 px level.
         let noise = initial::draw_unit_noise(1, config.initial_metres_per_radian, &mut stream(5));
         let mut workspace = crate::core::reprojection::ReprojectionWorkspace::new();
-        let level = initial::calibrate_level(
-            &true_model,
-            &camera,
-            &[gt],
-            &noise,
-            104.0,
-            0.02,
-            &mut workspace,
-        );
-        let at_initial = correlation(
-            &photo_gradient,
-            &asg_of(&true_model, &camera, &level.poses[0], NormalSource::Face),
-        );
+        let level =
+            initial::calibrate_level(&model, &camera, &[gt], &noise, 104.0, 0.02, &mut workspace);
+        let initial_pose = level.poses[0];
+
+        // Raw correlation of thin edges punishes any sub-edge offset; the blurred one (σ 1.5 px)
+        // asks whether the structures line up.
+        let photo_blurred = blur(&photo_gradient, w, h, 1.5);
+        let scores = |mesh: &Mesh, source: NormalSource, pose: &Rigid3| {
+            let asg = asg_of(mesh, &camera, pose, source);
+            (
+                correlation(&photo_gradient, &asg),
+                correlation(&photo_blurred, &blur(&asg, w, h, 1.5)),
+            )
+        };
+        let true_gt = scores(&true_model, NormalSource::Face, &gt);
+        let true_shift = scores(&true_model, NormalSource::Face, &shifted);
+        let true_initial = scores(&true_model, NormalSource::Face, &initial_pose);
+        let model_gt = scores(&model, NormalSource::Vertex, &gt);
+        let model_shift = scores(&model, NormalSource::Vertex, &shifted);
+        let model_initial = scores(&model, NormalSource::Vertex, &initial_pose);
         println!(
-            "photo gradient vs true-model ASG: correlation {at_gt:.3} at the GT pose, {at_shift:.3} 4 px off, {at_initial:.3} at the 104 px initial pose (δ {:.1} px)",
+            "correlation of the photo's gradients with the ASG (raw / blurred σ 1.5 px), initial pose δ {:.1} px:",
             level.mean_px
         );
+        for (name, gt, shift, initial) in [
+            (
+                "true model, face normals",
+                true_gt,
+                true_shift,
+                true_initial,
+            ),
+            (
+                "degraded model, vertex normals",
+                model_gt,
+                model_shift,
+                model_initial,
+            ),
+        ] {
+            println!(
+                "  {name}: GT {:.3} / {:.3}, 8 px off {:.3} / {:.3}, 104 px initial {:.3} / {:.3}",
+                gt.0, gt.1, shift.0, shift.1, initial.0, initial.1
+            );
+        }
+        // Substantially different images…
+        assert!(true_gt.0 < 0.6 && true_gt.1 < 0.7, "{true_gt:?}");
+        assert!(model_gt.0 < 0.6 && model_gt.1 < 0.7, "{model_gt:?}");
+        // …that line up under the true pose.
         assert!(
-            at_gt < 0.6,
-            "the photo is too close to the model's ASG: {at_gt}"
+            true_gt.1 > true_shift.1 + 0.05,
+            "{true_gt:?} vs {true_shift:?}"
         );
-        assert!(at_gt > at_shift + 0.05, "{at_gt} vs {at_shift}");
         assert!(
-            at_gt > 2.0 * at_initial.max(0.01),
-            "{at_gt} vs {at_initial}"
+            true_gt.1 > 2.0 * true_initial.1.max(0.01),
+            "{true_gt:?} vs {true_initial:?}"
         );
+        assert!(
+            model_gt.1 > model_shift.1,
+            "{model_gt:?} vs {model_shift:?}"
+        );
+        assert!(
+            model_gt.1 > model_initial.1,
+            "{model_gt:?} vs {model_initial:?}"
+        );
+    }
+
+    /// Separable Gaussian blur of a grey image (borders clamp).
+    fn blur(values: &[f32], w: usize, h: usize, sigma_px: f32) -> Vec<f32> {
+        let radius = (3.0 * sigma_px).ceil() as i64;
+        let kernel: Vec<f32> = (-radius..=radius)
+            .map(|d| (-(d * d) as f32 / (2.0 * sigma_px * sigma_px)).exp())
+            .collect();
+        let total: f32 = kernel.iter().sum();
+        let pass = |input: &[f32], horizontal: bool| -> Vec<f32> {
+            (0..w * h)
+                .map(|index| {
+                    let (row, col) = ((index / w) as i64, (index % w) as i64);
+                    kernel
+                        .iter()
+                        .enumerate()
+                        .map(|(q, k)| {
+                            let d = q as i64 - radius;
+                            let (r, c) = if horizontal {
+                                (row, (col + d).clamp(0, w as i64 - 1))
+                            } else {
+                                ((row + d).clamp(0, h as i64 - 1), col)
+                            };
+                            input[(r as usize) * w + c as usize] * k
+                        })
+                        .sum::<f32>()
+                        / total
+                })
+                .collect()
+        };
+        pass(&pass(values, true), false)
     }
 
     /// Generates a full default scene into `$ASGREG_SYNTH_OUT` (for inspection and timing):
