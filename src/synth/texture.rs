@@ -340,7 +340,9 @@ fn plaster(seed: u64, palette: u8, p: Vec3, normal: Vec3, footprint_m: f32) -> V
     let streaks = (fbm(seed ^ 83, streak_coord, 0.6, 3, footprint_m) - 0.1).max(0.0);
     let bottom_dirt = (1.0 - (p.z / 0.6)).clamp(0.0, 1.0);
     let darkening = 1.0 - 0.7 * streaks - 0.3 * bottom_dirt;
-    base * (1.0 + 0.3 * coarse + 0.25 * fine) * darkening
+    // Patches of repair and weathering at the metre scale.
+    let patches = fbm(seed ^ 84, p, 0.7, 3, footprint_m);
+    base * (1.0 + 0.45 * coarse + 0.3 * fine + 0.2 * patches) * darkening
 }
 
 fn roof_tile(seed: u64, palette: u8, p: Vec3, normal: Vec3, footprint_m: f32) -> Vec3 {
