@@ -3,9 +3,10 @@
 //! at the paper's 505×275 and at 1920×1080. One rendering per coarse pose per frame goes through
 //! this path, so its speed bounds frames per second.
 //!
-//! `cargo bench --bench render` runs criterion and then prints ms per frame and triangles per
-//! second for each size (the summary uses its own timing loop, so it is printed also with
-//! `-- --quick` style arguments).
+//! `cargo bench --bench render` runs criterion and then prints a summary per size from its own
+//! timing loop: median and minimum wall ms per frame, CPU ms per frame (all threads, from
+//! `/proc/self/stat`: the figure least disturbed by other load on a shared machine) and
+//! triangles per second. `cargo bench --bench render -- no_such_bench` prints only the summary.
 
 use std::time::Instant;
 
@@ -139,16 +140,56 @@ impl Frame {
     }
 }
 
-/// Mean milliseconds of `f` over enough repetitions to fill about `budget_s`.
-fn mean_ms(budget_s: f64, mut f: impl FnMut()) -> f64 {
+/// CPU seconds used by this process so far (all threads, user + system), from `/proc/self/stat`
+/// (clock ticks of 10 ms, the Linux default); `None` where that file does not exist.
+fn process_cpu_s() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let after_name = &stat[stat.rfind(')')? + 2..];
+    let fields: Vec<&str> = after_name.split_whitespace().collect();
+    // Fields 14 and 15 of stat(5) are utime and stime; `after_name` starts at field 3.
+    let ticks: f64 = fields.get(11)?.parse::<f64>().ok()? + fields.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
+/// Timing of one call: median and minimum wall milliseconds, and CPU milliseconds (all threads).
+struct Timing {
+    median_ms: f64,
+    min_ms: f64,
+    cpu_ms: Option<f64>,
+}
+
+/// Times calls of `f` filling about `budget_s` (at least 5). On a shared machine the minimum wall
+/// time and the CPU time are the least disturbed figures.
+fn timing(budget_s: f64, mut f: impl FnMut()) -> Timing {
     f();
+    let cpu_start = process_cpu_s();
     let start = Instant::now();
-    let mut count = 0u32;
-    while count < 3 || start.elapsed().as_secs_f64() < budget_s {
+    let mut samples = Vec::new();
+    while samples.len() < 5 || start.elapsed().as_secs_f64() < budget_s {
+        let call = Instant::now();
         f();
-        count += 1;
+        samples.push(call.elapsed().as_secs_f64() * 1e3);
     }
-    start.elapsed().as_secs_f64() * 1e3 / f64::from(count)
+    let cpu_ms = match (cpu_start, process_cpu_s()) {
+        (Some(before), Some(after)) => Some((after - before) * 1e3 / samples.len() as f64),
+        _ => None,
+    };
+    samples.sort_by(f64::total_cmp);
+    Timing {
+        median_ms: samples[samples.len() / 2],
+        min_ms: samples[0],
+        cpu_ms,
+    }
+}
+
+impl std::fmt::Display for Timing {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:.1} ms (min {:.1}", self.median_ms, self.min_ms)?;
+        if let Some(cpu_ms) = self.cpu_ms {
+            write!(f, ", CPU {cpu_ms:.1}")?;
+        }
+        write!(f, ")")
+    }
 }
 
 fn main() {
@@ -185,13 +226,14 @@ fn main() {
         let mut frame = Frame::new(width, height);
         frame.render(&mesh, &pose);
         let coverage = frame.buffers.valid_count() as f64 / (width * height) as f64;
-        let render_ms = mean_ms(3.0, || frame.render(&mesh, &pose));
-        let asg_ms = mean_ms(2.0, || frame.asg());
-        let total_ms = render_ms + asg_ms;
+        let render = timing(3.0, || frame.render(&mesh, &pose));
+        let asg = timing(2.0, || frame.asg());
         println!(
-            "{width}x{height}: rasterise {render_ms:.1} ms, ASG {asg_ms:.2} ms, total {total_ms:.1} ms/frame, \
-             {:.1} M triangles/s (rasterise), coverage {:.0} %",
-            mesh.face_count() as f64 / (render_ms * 1e-3) / 1e6,
+            "{width}x{height}: rasterise {render}, ASG {asg}, total {:.1} ms/frame (median), \
+             {:.1} M triangles/s (median; {:.1} at the minimum), coverage {:.0} %",
+            render.median_ms + asg.median_ms,
+            mesh.face_count() as f64 / (render.median_ms * 1e-3) / 1e6,
+            mesh.face_count() as f64 / (render.min_ms * 1e-3) / 1e6,
             coverage * 100.0
         );
     }

@@ -1,5 +1,18 @@
-//! The `asgreg` command line: parses arguments and wires them to the library.
+//! The `asgreg` command line: parses arguments, sets up logging and hands each subcommand to its
+//! module in `cli/`. Nothing else happens here.
 
-fn main() -> anyhow::Result<()> {
-    Ok(())
+mod cli;
+
+use clap::Parser;
+
+fn main() -> std::process::ExitCode {
+    let args = cli::Cli::parse();
+    cli::init_logging(args.verbose);
+    match cli::run(args) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("error: {error:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
 }

@@ -44,7 +44,8 @@ pub fn model_edges(render: &RenderBuffers) -> Vec<bool> {
                     (true, true) => {
                         let (d0, d1) = (render.depth_m[index], render.depth_m[other]);
                         let jump = (d0 - d1).abs() > 0.05 * d0.min(d1);
-                        let crease = render.normal_cam[index].dot(render.normal_cam[other]) < CREASE_COS;
+                        let crease =
+                            render.normal_cam[index].dot(render.normal_cam[other]) < CREASE_COS;
                         jump || crease
                     }
                 };
@@ -111,7 +112,13 @@ pub fn normalize_for_display(values: &[f32]) -> Vec<f32> {
     let scale = if *high > 0.0 { 1.0 / *high } else { 1.0 };
     values
         .iter()
-        .map(|v| if v.is_finite() { (v * scale).clamp(0.0, 1.0) } else { 0.0 })
+        .map(|v| {
+            if v.is_finite() {
+                (v * scale).clamp(0.0, 1.0)
+            } else {
+                0.0
+            }
+        })
         .collect()
 }
 
@@ -151,7 +158,10 @@ mod tests {
         // next to it are edges, its inside (one flat plane split into two triangles) is not.
         assert!(edges[40 * 100 + 30] && edges[40 * 100 + 29] && edges[20 * 100 + 50]);
         assert!(!edges[40 * 100 + 50] && !edges[40 * 100 + 10]);
-        assert!(!edges[45 * 100 + 45], "the diagonal between the two triangles is no edge");
+        assert!(
+            !edges[45 * 100 + 45],
+            "the diagonal between the two triangles is no edge"
+        );
     }
 
     #[test]

@@ -58,14 +58,24 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
 
     println!("2/3 gradient images of {first}: the model's ASG and the photo's gradient magnitude");
     let started = std::time::Instant::now();
-    let render = render_view(&inputs.mesh, camera, &image.cam_from_world, NormalSource::Vertex);
+    let render = render_view(
+        &inputs.mesh,
+        camera,
+        &image.cam_from_world,
+        NormalSource::Vertex,
+    );
     let render_ms = started.elapsed().as_secs_f64() * 1e3;
     let asg_path = args.out.join(format!("{stem}_asg.png"));
     save_gray_png(&asg_path, &asg_display_image(&render))?;
     let photo_path = scene_dir.join("images").join(&first);
     let photo = load_gray(&photo_path)?;
     let mut gradient = vec![0.0f32; photo.pixels.len()];
-    gradient_magnitude(&photo.pixels, photo.width_px, photo.height_px, &mut gradient);
+    gradient_magnitude(
+        &photo.pixels,
+        photo.width_px,
+        photo.height_px,
+        &mut gradient,
+    );
     let gradient_path = args.out.join(format!("{stem}_photo_gradient.png"));
     save_gray_png(
         &gradient_path,
@@ -75,10 +85,15 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             pixels: normalize_for_display(&gradient),
         },
     )?;
-    println!("    rendered the model in {render_ms:.1} ms -> {}", asg_path.display());
+    println!(
+        "    rendered the model in {render_ms:.1} ms -> {}",
+        asg_path.display()
+    );
     println!("    photo gradient -> {}", gradient_path.display());
 
-    println!("3/3 the model over the photo under the ground-truth pose and the 104 px initial pose");
+    println!(
+        "3/3 the model over the photo under the ground-truth pose and the 104 px initial pose"
+    );
     let (width_px, height_px, rgb) = load_rgb(&photo_path)?;
     let initial_poses_path = scene_dir.join("initial/104/images.txt");
     let initial = read_images_txt(&initial_poses_path)?;
@@ -86,7 +101,10 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         .iter()
         .find(|i| i.name == first)
         .with_context(|| format!("{first} is missing from {}", initial_poses_path.display()))?;
-    for (label, pose) in [("gt", &image.cam_from_world), ("initial104", &initial_pose.cam_from_world)] {
+    for (label, pose) in [
+        ("gt", &image.cam_from_world),
+        ("initial104", &initial_pose.cam_from_world),
+    ] {
         let render = render_view(&inputs.mesh, camera, pose, NormalSource::Vertex);
         let picture = overlay_model(&rgb, &render, OverlayStyle::NormalsAndEdges, 0.45);
         let path = args.out.join(format!("{stem}_overlay_{label}.png"));

@@ -65,7 +65,12 @@ impl PosedInputs {
                 })
             });
         let Some(image) = image else {
-            let known: Vec<&str> = self.images.iter().take(5).map(|i| i.name.as_str()).collect();
+            let known: Vec<&str> = self
+                .images
+                .iter()
+                .take(5)
+                .map(|i| i.name.as_str())
+                .collect();
             bail!(
                 "image '{name}' is not listed in {} ({} images, e.g. {}); pass a name from its NAME column",
                 poses_path.display(),

@@ -44,11 +44,20 @@ pub enum StyleArg {
 
 pub fn run(args: &OverlayArgs) -> anyhow::Result<()> {
     let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
-    let name = args.image.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = args
+        .image
+        .file_name()
+        .map(|f| f.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let (image, camera) = inputs.find_image(&name, &args.poses, &args.cameras)?;
     let (width_px, height_px, photo) = load_rgb(&args.image)?;
     check_image_matches_camera(&args.image, width_px, height_px, image.camera_id, camera)?;
-    let render = render_view(&inputs.mesh, camera, &image.cam_from_world, NormalSource::Vertex);
+    let render = render_view(
+        &inputs.mesh,
+        camera,
+        &image.cam_from_world,
+        NormalSource::Vertex,
+    );
     let style = match args.style {
         StyleArg::Normals => OverlayStyle::NormalsAndEdges,
         StyleArg::Edges => OverlayStyle::Edges,

@@ -67,7 +67,13 @@ pub fn render_view(
         normal_source,
         ..RenderOptions::default()
     };
-    Rasterizer::new().render(mesh, &camera.intrinsics, cam_from_world, &options, &mut buffers);
+    Rasterizer::new().render(
+        mesh,
+        &camera.intrinsics,
+        cam_from_world,
+        &options,
+        &mut buffers,
+    );
     buffers
 }
 
@@ -75,7 +81,13 @@ pub fn render_view(
 pub fn asg_display_image(render: &RenderBuffers) -> GrayImage {
     let (width_px, height_px) = (render.width_px(), render.height_px());
     let mut asg = vec![0.0f32; width_px * height_px];
-    asg_from_normals(&render.normal_cam, width_px, height_px, &AsgOptions::default(), &mut asg);
+    asg_from_normals(
+        &render.normal_cam,
+        width_px,
+        height_px,
+        &AsgOptions::default(),
+        &mut asg,
+    );
     GrayImage {
         width_px,
         height_px,

@@ -54,8 +54,28 @@ impl SynthArgs {
 
 /// Prints what a generated scene holds and where.
 pub fn print_summary(summary: &SceneSummary, out: &std::path::Path, seconds: f64) {
-    println!("wrote {} in {seconds:.1} s", out.display());
-    println!("{summary}");
+    println!(
+        "wrote {} in {seconds:.1} s: {} photos at {}x{} px (f = {:.1} px), model {} faces ({} holes, mean deviation {:.3} m from the truth)",
+        out.display(),
+        summary.images.len(),
+        summary.config.width_px,
+        summary.config.height_px,
+        summary.camera_fx_px,
+        summary.model_faces,
+        summary.model_holes,
+        summary.model_mean_deviation_m
+    );
+    println!("    initial poses, mean δ to ground truth (target → achieved, range):");
+    for level in &summary.initial_levels {
+        println!(
+            "    {:>6.1} px → {:>6.1} px ({:+.1} %), {:.1}..{:.1} px",
+            level.target_px,
+            level.mean_px,
+            (level.mean_px / level.target_px - 1.0) * 100.0,
+            level.min_px,
+            level.max_px
+        );
+    }
 }
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {

@@ -8,9 +8,16 @@
 //! - triangles are clipped against the near plane (a ground plane passes under a low camera) and
 //!   binned into horizontal bands of rows; bands are rasterised in parallel (rayon), each band
 //!   walking its triangles in face order, so the result is deterministic;
+//! - every vertex is transformed and projected once; binning drops faces whose bounding box holds
+//!   no pixel centre, and tests the one centre of boxes that hold exactly one (most triangles of
+//!   a dense mesh seen from afar are sub-pixel);
 //! - a pixel `(col, row)` is covered when its centre `(col + 0.5, row + 0.5)` lies inside the
-//!   projected triangle (see `camera.rs` for the convention); depth and normals are interpolated
-//!   perspective-correctly; the nearest surface wins (ties: the lower face index);
+//!   projected triangle (see `camera.rs` for the convention); the depth pass steps affine edge
+//!   functions and `1/z` along each row (perspective-correct depth) and writes only depth and face
+//!   index; the nearest surface wins (ties: the face drawn first, i.e. the lower face index);
+//! - normals are filled afterwards, once per visible pixel, from its winning face: the face
+//!   normal, or the vertex normals interpolated with the perspective-correct barycentrics of the
+//!   pixel ray's hit on the face (so overdrawn pixels cost no shading);
 //! - [`Rasterizer`] keeps its scratch buffers and [`RenderBuffers`] is written in place: rendering
 //!   the same mesh again allocates nothing.
 //!
@@ -27,6 +34,10 @@ use super::rigid::Rigid3;
 
 /// `face_index` value of pixels that show no surface.
 pub const NO_FACE: u32 = u32::MAX;
+
+/// Triangles whose bounding box spans fewer columns than this are not worth solving each row's
+/// covered span for.
+const NARROW_SPAN_PX: usize = 8;
 
 /// Rows per band of the parallel rasteriser.
 const BAND_ROWS: usize = 16;
@@ -112,17 +123,19 @@ impl RenderBuffers {
     }
 }
 
-/// A camera-space vertex with its normal, as clipping produces them.
-#[derive(Clone, Copy, Debug)]
-struct ClipVertex {
-    position_cam: Vec3,
-    normal_cam: Vec3,
+/// A vertex projected to the image: pixel position and `1 / z` (z in metres), f32.
+#[derive(Clone, Copy, Debug, Default)]
+struct ScreenVertex {
+    position_px: Vec2,
+    inv_depth: f32,
 }
 
 /// Scratch state reused between renderings.
 #[derive(Default)]
 pub struct Rasterizer {
     vertices_cam: Vec<Vec3>,
+    /// Projection of each vertex; meaningful only for vertices in front of the near plane.
+    vertices_screen: Vec<ScreenVertex>,
     normals_cam: Vec<Vec3>,
     /// `bins[chunk][band]`: faces of a chunk of the face list that touch a band.
     bins: Vec<Vec<Vec<u32>>>,
@@ -145,6 +158,20 @@ impl Projector {
         let x = p.x * inv_z;
         let y = p.y * inv_z;
         Vec2::new(self.fx * x + self.skew * y + self.cx, self.fy * y + self.cy)
+    }
+
+    fn screen_vertex(&self, p: Vec3) -> ScreenVertex {
+        ScreenVertex {
+            position_px: self.project(p),
+            inv_depth: 1.0 / p.z,
+        }
+    }
+
+    /// The camera ray through an image position, scaled so that `z = 1`.
+    fn ray(&self, position_px: Vec2) -> Vec3 {
+        let y = (position_px.y - self.cy) / self.fy;
+        let x = (position_px.x - self.cx - self.skew * y) / self.fx;
+        Vec3::new(x, y, 1.0)
     }
 }
 
@@ -191,12 +218,29 @@ impl Rasterizer {
             translation_local.y as f32,
             translation_local.z as f32,
         );
+        let projector = Projector {
+            fx: intrinsics.fx_px as f32,
+            fy: intrinsics.fy_px as f32,
+            cx: intrinsics.cx_px as f32,
+            cy: intrinsics.cy_px as f32,
+            skew: intrinsics.skew_px as f32,
+            near_m: options.near_m,
+        };
 
+        // Transform and project every vertex once.
         self.vertices_cam.resize(mesh.vertex_count(), Vec3::ZERO);
+        self.vertices_screen
+            .resize(mesh.vertex_count(), ScreenVertex::default());
         self.vertices_cam
             .par_iter_mut()
+            .zip(self.vertices_screen.par_iter_mut())
             .zip(mesh.positions_local_m().par_iter())
-            .for_each(|(out, p)| *out = rotation_f32 * *p + translation_f32);
+            .for_each(|((cam, screen), p)| {
+                *cam = rotation_f32 * *p + translation_f32;
+                if cam.z >= projector.near_m {
+                    *screen = projector.screen_vertex(*cam);
+                }
+            });
 
         let use_vertex_normals =
             options.normal_source == NormalSource::Vertex && mesh.vertex_normals().is_some();
@@ -208,21 +252,14 @@ impl Rasterizer {
                 .for_each(|(out, n)| *out = rotation_f32 * *n);
         }
 
-        let projector = Projector {
-            fx: intrinsics.fx_px as f32,
-            fy: intrinsics.fy_px as f32,
-            cx: intrinsics.cx_px as f32,
-            cy: intrinsics.cy_px as f32,
-            skew: intrinsics.skew_px as f32,
-            near_m: options.near_m,
-        };
-
-        // Bin faces into bands of rows, per chunk of faces, in parallel.
+        // Bin faces into bands of rows, per chunk of faces, in parallel. Faces that cover no
+        // pixel centre (most sub-pixel triangles of a dense mesh) are dropped here.
         let band_count = height.div_ceil(BAND_ROWS);
         let chunk_count = (rayon::current_num_threads() * 4).max(1);
         self.bins.resize_with(chunk_count, Vec::new);
         let faces = mesh.faces();
         let vertices_cam = &self.vertices_cam;
+        let vertices_screen = &self.vertices_screen;
         let chunk_len = faces.len().div_ceil(chunk_count).max(1);
         self.bins
             .par_iter_mut()
@@ -237,8 +274,9 @@ impl Rasterizer {
                 let end = (start + chunk_len).min(faces.len());
                 for (offset, face) in faces[start..end].iter().enumerate() {
                     let corners = face.map(|v| vertices_cam[v as usize]);
+                    let screen = face.map(|v| vertices_screen[v as usize]);
                     if let Some((first_row, last_row)) =
-                        face_row_range(&corners, &projector, options, width, height)
+                        face_row_range(&corners, &screen, &projector, options, width, height)
                     {
                         let face_index = (start + offset) as u32;
                         for band in chunk_bins
@@ -252,7 +290,8 @@ impl Rasterizer {
                 }
             });
 
-        // Rasterise bands in parallel.
+        // Rasterise bands in parallel: depth and face index first, then the normals of the
+        // surviving pixels only (no shading work for overdrawn pixels).
         let bins = &self.bins;
         let normals_cam = &self.normals_cam;
         out.depth_m
@@ -266,7 +305,6 @@ impl Rasterizer {
                     rows: depth.len() / width,
                     width,
                     depth,
-                    normal,
                     face_index: face_out,
                 };
                 for chunk in bins {
@@ -275,23 +313,28 @@ impl Rasterizer {
                     };
                     for &face_index in band_faces {
                         let face = faces[face_index as usize];
-                        let corners = face.map(|v| ClipVertex {
-                            position_cam: vertices_cam[v as usize],
-                            normal_cam: if use_vertex_normals {
-                                normals_cam[v as usize]
-                            } else {
-                                Vec3::ZERO
-                            },
-                        });
-                        draw_face(
-                            &corners,
-                            face_index,
-                            &projector,
-                            use_vertex_normals,
-                            &mut band_target,
-                        );
+                        let corners = face.map(|v| vertices_cam[v as usize]);
+                        if corners.iter().all(|c| c.z >= projector.near_m) {
+                            let screen = face.map(|v| vertices_screen[v as usize]);
+                            draw_triangle(&screen, face_index, &mut band_target);
+                        } else {
+                            draw_clipped_face(&corners, face_index, &projector, &mut band_target);
+                        }
                     }
                 }
+                let normal_source = if use_vertex_normals {
+                    Some(normals_cam.as_slice())
+                } else {
+                    None
+                };
+                shade_band(
+                    &band_target,
+                    normal,
+                    faces,
+                    vertices_cam,
+                    normal_source,
+                    &projector,
+                );
             });
     }
 }
@@ -302,13 +345,14 @@ struct BandTarget<'a> {
     rows: usize,
     width: usize,
     depth: &'a mut [f32],
-    normal: &'a mut [Vec3],
     face_index: &'a mut [u32],
 }
 
-/// Rows `[first, last]` a face may cover, or `None` when it cannot be seen.
+/// Rows `[first, last]` a face may cover, or `None` when it cannot be seen or covers no pixel
+/// centre. `screen` holds the corners' projections (valid for corners in front of the near plane).
 fn face_row_range(
     corners: &[Vec3; 3],
+    screen: &[ScreenVertex; 3],
     projector: &Projector,
     options: &RenderOptions,
     width: usize,
@@ -324,16 +368,19 @@ fn face_row_range(
     }
     let mut min = Vec2::splat(f32::INFINITY);
     let mut max = Vec2::splat(f32::NEG_INFINITY);
-    let mut extend = |p: Vec3| {
-        let s = projector.project(p);
-        min = min.min(s);
-        max = max.max(s);
-    };
     if in_front == 3 {
-        corners.iter().for_each(|p| extend(*p));
+        for s in screen {
+            min = min.min(s.position_px);
+            max = max.max(s.position_px);
+        }
     } else {
         // Project the near-clipped polygon: its corners are the in-front vertices and the
         // crossings of the near plane.
+        let mut extend = |p: Vec3| {
+            let s = projector.project(p);
+            min = min.min(s);
+            max = max.max(s);
+        };
         for i in 0..3 {
             let a = corners[i];
             let b = corners[(i + 1) % 3];
@@ -349,13 +396,67 @@ fn face_row_range(
     if !min.is_finite() || !max.is_finite() {
         return None;
     }
-    // Pixel centres at +0.5: covered rows are ceil(min - 0.5) ..= floor(max - 0.5).
+    // Pixel centres at +0.5: covered columns/rows are ceil(min - 0.5) ..= floor(max - 0.5).
     if max.x < 0.5 || max.y < 0.5 || min.x > width as f32 - 0.5 || min.y > height as f32 - 0.5 {
         return None;
     }
-    let first_row = (min.y - 0.5).ceil().max(0.0) as usize;
-    let last_row = ((max.y - 0.5).floor() as usize).min(height - 1);
-    (first_row <= last_row).then_some((first_row, last_row))
+    let first_col = ceil_px((min.x - 0.5).max(-1.0));
+    let last_col = floor_px((max.x - 0.5).min(width as f32));
+    if first_col.max(0.0) > last_col.min(width as f32 - 1.0) {
+        return None;
+    }
+    let first_row = ceil_px((min.y - 0.5).max(-1.0)).max(0.0) as usize;
+    let last_row = (floor_px((max.y - 0.5).min(height as f32)) as usize).min(height - 1);
+    if first_row > last_row {
+        return None;
+    }
+    // A box around a single pixel centre (most sub-pixel triangles): test that centre now, with
+    // the same arithmetic `draw_triangle` uses, instead of binning a triangle that misses it.
+    if in_front == 3 && first_row == last_row && first_col == last_col {
+        let centre = Vec2::new(first_col + 0.5, first_row as f32 + 0.5);
+        if !triangle_covers(screen, centre) {
+            return None;
+        }
+    }
+    Some((first_row, last_row))
+}
+
+/// Signed edge function: positive when `p` is left of `a → b` in image coordinates (y down).
+#[inline(always)]
+fn edge_function(a: Vec2, b: Vec2, p: Vec2) -> f32 {
+    (b.x - a.x) * (p.y - a.y) - (b.y - a.y) * (p.x - a.x)
+}
+
+/// Whether a projected triangle covers `point` (edges included), exactly as [`draw_triangle`]
+/// decides it at the first pixel of a row.
+fn triangle_covers(screen: &[ScreenVertex; 3], point: Vec2) -> bool {
+    let [p0, p1, p2] = screen.map(|s| s.position_px);
+    let signed_area = edge_function(p0, p1, p2);
+    if !signed_area.is_finite() || signed_area.abs() < 1e-12 {
+        return false;
+    }
+    let orientation = signed_area.signum();
+    [(p1, p2), (p2, p0), (p0, p1)]
+        .iter()
+        .all(|&(a, b)| edge_function(a, b, point) * orientation >= 0.0)
+}
+
+/// `floor` for values whose integer part fits an `i32` (image coordinates), as `f32`. Inlined:
+/// the default x86-64 target has no rounding instruction, and `f32::floor` is a libm call.
+#[inline(always)]
+fn floor_px(x: f32) -> f32 {
+    let truncated = x as i32 as f32;
+    if truncated > x {
+        truncated - 1.0
+    } else {
+        truncated
+    }
+}
+
+/// `ceil` counterpart of [`floor_px`].
+#[inline(always)]
+fn ceil_px(x: f32) -> f32 {
+    -floor_px(-x)
 }
 
 fn is_back_facing(corners: &[Vec3; 3]) -> bool {
@@ -363,130 +464,181 @@ fn is_back_facing(corners: &[Vec3; 3]) -> bool {
     normal.dot(corners[0]) >= 0.0
 }
 
-/// Clips a face against the near plane (up to 4 corners) and draws the resulting triangles.
-fn draw_face(
-    corners: &[ClipVertex; 3],
+/// Clips a face that crosses the near plane (up to 4 corners) and draws the resulting triangles.
+fn draw_clipped_face(
+    corners: &[Vec3; 3],
     face_index: u32,
     projector: &Projector,
-    use_vertex_normals: bool,
     target: &mut BandTarget,
 ) {
-    let a = corners[0].position_cam;
-    let face_normal = (corners[1].position_cam - a)
-        .cross(corners[2].position_cam - a)
-        .normalize_or_zero();
     let near = projector.near_m;
-    if corners.iter().all(|c| c.position_cam.z >= near) {
-        draw_triangle(
-            corners,
-            face_normal,
-            face_index,
-            projector,
-            use_vertex_normals,
-            target,
-        );
-        return;
-    }
-    let mut polygon = [corners[0]; 4];
+    let mut polygon = [Vec3::ZERO; 4];
     let mut count = 0;
     for i in 0..3 {
         let current = corners[i];
         let next = corners[(i + 1) % 3];
-        let current_in = current.position_cam.z >= near;
-        let next_in = next.position_cam.z >= near;
+        let current_in = current.z >= near;
+        let next_in = next.z >= near;
         if current_in {
             polygon[count] = current;
             count += 1;
         }
         if current_in != next_in {
-            let t =
-                (near - current.position_cam.z) / (next.position_cam.z - current.position_cam.z);
-            polygon[count] = ClipVertex {
-                position_cam: current.position_cam.lerp(next.position_cam, t),
-                normal_cam: current.normal_cam.lerp(next.normal_cam, t),
-            };
+            let t = (near - current.z) / (next.z - current.z);
+            polygon[count] = current.lerp(next, t);
             count += 1;
         }
     }
+    let screen = polygon.map(|p| projector.screen_vertex(p));
     for i in 1..count.saturating_sub(1) {
-        draw_triangle(
-            &[polygon[0], polygon[i], polygon[i + 1]],
-            face_normal,
-            face_index,
-            projector,
-            use_vertex_normals,
-            target,
-        );
+        draw_triangle(&[screen[0], screen[i], screen[i + 1]], face_index, target);
     }
 }
 
-/// Draws one triangle that lies entirely in front of the near plane.
-fn draw_triangle(
-    corners: &[ClipVertex; 3],
-    face_normal: Vec3,
-    face_index: u32,
-    projector: &Projector,
-    use_vertex_normals: bool,
-    target: &mut BandTarget,
-) {
-    let screen = corners.map(|c| projector.project(c.position_cam));
-    let inv_z = corners.map(|c| 1.0 / c.position_cam.z);
-    let edge = |a: Vec2, b: Vec2, p: Vec2| (b.x - a.x) * (p.y - a.y) - (b.y - a.y) * (p.x - a.x);
-    let signed_area = edge(screen[0], screen[1], screen[2]);
+/// Depth-tests one projected triangle (entirely in front of the near plane) into the band:
+/// writes depth and face index where it is nearest. Edge functions and `1/z` are affine in the
+/// image, so each row is evaluated once at its start and stepped along the row; the covered span
+/// of a row is solved from the three edge functions, so no time goes to pixels outside it.
+fn draw_triangle(screen: &[ScreenVertex; 3], face_index: u32, target: &mut BandTarget) {
+    let [p0, p1, p2] = screen.map(|s| s.position_px);
+    let edge = edge_function;
+    let signed_area = edge(p0, p1, p2);
     if !signed_area.is_finite() || signed_area.abs() < 1e-12 {
         return;
     }
     let orientation = signed_area.signum();
     let inv_area = 1.0 / signed_area.abs();
 
-    let min = screen[0].min(screen[1]).min(screen[2]);
-    let max = screen[0].max(screen[1]).max(screen[2]);
+    let min = p0.min(p1).min(p2);
+    let max = p0.max(p1).max(p2);
     let band_first = target.first_row as f32;
     let band_last = (target.first_row + target.rows) as f32 - 1.0;
-    let row_start = (min.y - 0.5).ceil().max(band_first);
-    let row_end = (max.y - 0.5).floor().min(band_last);
-    let col_start = (min.x - 0.5).ceil().max(0.0);
-    let col_end = (max.x - 0.5).floor().min(target.width as f32 - 1.0);
-    if row_start > row_end || col_start > col_end {
+    // Clamp before rounding so that the fast rounding never sees huge values.
+    let row_start = ceil_px((min.y - 0.5).max(band_first - 1.0)).max(band_first);
+    let row_end = floor_px((max.y - 0.5).min(band_last + 1.0)).min(band_last);
+    let col_start = ceil_px((min.x - 0.5).max(-1.0)).max(0.0);
+    let col_end = floor_px((max.x - 0.5).min(target.width as f32)).min(target.width as f32 - 1.0);
+    if !(row_start <= row_end && col_start <= col_end) {
         return;
     }
     let (row_start, row_end) = (row_start as usize, row_end as usize);
     let (col_start, col_end) = (col_start as usize, col_end as usize);
 
+    // Edge i is opposite corner i; its value grows by `step_x[i]` per column.
+    let edges = [(p1, p2), (p2, p0), (p0, p1)];
+    let step_x = edges.map(|(a, b)| -(b.y - a.y) * orientation);
+    let inv_depth = screen.map(|s| s.inv_depth * inv_area);
+    let inv_depth_step_x =
+        step_x[0] * inv_depth[0] + step_x[1] * inv_depth[1] + step_x[2] * inv_depth[2];
+    let span_first = col_start as f32;
+    let span_last = col_end as f32;
+
     for row in row_start..=row_end {
-        let y = row as f32 + 0.5;
+        let start = Vec2::new(col_start as f32 + 0.5, row as f32 + 0.5);
+        let w_start = edges.map(|(a, b)| edge(a, b, start) * orientation);
+        // Columns where every edge function is >= 0, widened by one column against rounding
+        // (the per-pixel test below is exact with respect to the stepped values).
+        // Narrow boxes (most triangles of a dense mesh) just test every pixel.
+        let mut first = span_first;
+        let mut last = span_last;
+        if col_end - col_start >= NARROW_SPAN_PX {
+            let width = span_last - span_first;
+            for i in 0..3 {
+                if step_x[i] > 0.0 {
+                    let bound = (-w_start[i] / step_x[i]).clamp(-1.0, width + 1.0);
+                    first = first.max(span_first + ceil_px(bound) - 1.0);
+                } else if step_x[i] < 0.0 {
+                    let bound = (w_start[i] / -step_x[i]).clamp(-1.0, width + 1.0);
+                    last = last.min(span_first + floor_px(bound) + 1.0);
+                } else if w_start[i] < 0.0 {
+                    first = f32::INFINITY;
+                }
+            }
+            if first > last {
+                continue;
+            }
+        }
+        let (first, last) = (first as usize, last as usize);
         let line = (row - target.first_row) * target.width;
-        for col in col_start..=col_end {
-            let p = Vec2::new(col as f32 + 0.5, y);
-            let w0 = edge(screen[1], screen[2], p) * orientation;
-            let w1 = edge(screen[2], screen[0], p) * orientation;
-            let w2 = edge(screen[0], screen[1], p) * orientation;
+        let inv_depth_start =
+            w_start[0] * inv_depth[0] + w_start[1] * inv_depth[1] + w_start[2] * inv_depth[2];
+        for col in first..=last {
+            let offset = (col - col_start) as f32;
+            let w0 = w_start[0] + step_x[0] * offset;
+            let w1 = w_start[1] + step_x[1] * offset;
+            let w2 = w_start[2] + step_x[2] * offset;
             if w0 < 0.0 || w1 < 0.0 || w2 < 0.0 {
                 continue;
             }
-            let b0 = w0 * inv_area * inv_z[0];
-            let b1 = w1 * inv_area * inv_z[1];
-            let b2 = w2 * inv_area * inv_z[2];
-            let sum_inv_z = b0 + b1 + b2;
-            if sum_inv_z <= 0.0 {
+            let sum_inv_depth = inv_depth_start + inv_depth_step_x * offset;
+            if sum_inv_depth <= 0.0 {
                 continue;
             }
-            let depth = 1.0 / sum_inv_z;
+            let depth = 1.0 / sum_inv_depth;
             let index = line + col;
-            let current = target.face_index[index];
-            if current != NO_FACE && depth >= target.depth[index] {
+            if target.face_index[index] != NO_FACE && depth >= target.depth[index] {
                 continue;
             }
             target.depth[index] = depth;
             target.face_index[index] = face_index;
-            target.normal[index] = if use_vertex_normals {
-                ((corners[0].normal_cam * b0
-                    + corners[1].normal_cam * b1
-                    + corners[2].normal_cam * b2)
-                    * depth)
-                    .normalize_or(face_normal)
-            } else {
-                face_normal
+        }
+    }
+}
+
+/// Fills the normals of a rasterised band from the winning face of each pixel: the face normal,
+/// or the vertex normals interpolated with the perspective-correct barycentrics of the point the
+/// pixel ray hits on the face (exact for clipped faces too, since it works in 3D).
+fn shade_band(
+    target: &BandTarget,
+    normal_out: &mut [Vec3],
+    faces: &[[u32; 3]],
+    vertices_cam: &[Vec3],
+    vertex_normals_cam: Option<&[Vec3]>,
+    projector: &Projector,
+) {
+    for local_row in 0..target.rows {
+        let y = (target.first_row + local_row) as f32 + 0.5;
+        let line = local_row * target.width;
+        for col in 0..target.width {
+            let index = line + col;
+            let face_index = target.face_index[index];
+            if face_index == NO_FACE {
+                continue;
+            }
+            let face = faces[face_index as usize];
+            let [a, b, c] = face.map(|v| vertices_cam[v as usize]);
+            let edge_ab = b - a;
+            let edge_ac = c - a;
+            let face_normal = || edge_ab.cross(edge_ac).normalize_or_zero();
+            normal_out[index] = match vertex_normals_cam {
+                None => face_normal(),
+                Some(normals) => {
+                    // Möller–Trumbore from the camera centre along the pixel ray.
+                    let ray = projector.ray(Vec2::new(col as f32 + 0.5, y));
+                    let p = ray.cross(edge_ac);
+                    let determinant = edge_ab.dot(p);
+                    let degenerate = determinant * determinant
+                        <= f32::EPSILON
+                            * f32::EPSILON
+                            * edge_ab.length_squared()
+                            * edge_ac.length_squared()
+                            * ray.length_squared();
+                    if degenerate {
+                        face_normal()
+                    } else {
+                        let to_origin = -a;
+                        let u = to_origin.dot(p) / determinant;
+                        let v = ray.dot(to_origin.cross(edge_ab)) / determinant;
+                        let [na, nb, nc] = face.map(|i| normals[i as usize]);
+                        let interpolated = na * (1.0 - u - v) + nb * u + nc * v;
+                        let normal = interpolated.normalize_or_zero();
+                        if normal == Vec3::ZERO {
+                            face_normal()
+                        } else {
+                            normal
+                        }
+                    }
+                }
             };
         }
     }
@@ -767,6 +919,10 @@ mod tests {
                 (out.face_index.as_ptr() as usize, out.face_index.capacity()),
                 (r.vertices_cam.as_ptr() as usize, r.vertices_cam.capacity()),
                 (r.normals_cam.as_ptr() as usize, r.normals_cam.capacity()),
+                (
+                    r.vertices_screen.as_ptr() as usize,
+                    r.vertices_screen.capacity(),
+                ),
                 (r.bins.as_ptr() as usize, r.bins.capacity()),
             ];
             for chunk in &r.bins {

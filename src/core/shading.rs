@@ -303,6 +303,21 @@ mod tests {
     ];
 
     #[test]
+    fn options_round_trip_and_reject_unknown_fields() {
+        let options = AsgOptions {
+            derivative_filter: DerivativeFilter::CentralDifference,
+            silhouette_mode: SilhouetteMode::BackgroundFacesCamera,
+        };
+        let json = serde_json::to_string(&options).unwrap();
+        assert_eq!(serde_json::from_str::<AsgOptions>(&json).unwrap(), options);
+        let defaults: AsgOptions =
+            serde_json::from_str(r#"{"derivative_filter":"Sobel","silhouette_mode":"ValidOnly"}"#)
+                .unwrap();
+        assert_eq!(defaults, AsgOptions::default());
+        assert!(serde_json::from_str::<AsgOptions>(r#"{"filter":"Sobel"}"#).is_err());
+    }
+
+    #[test]
     fn the_scale_is_sqrt_pi_over_3() {
         assert!((f64::from(ASG_SCALE) - (std::f64::consts::PI / 3.0).sqrt()).abs() < 1e-7);
     }

@@ -12,8 +12,17 @@ fn overlay_with(
 ) -> std::process::Output {
     let out = dir.join("out.png");
     asgreg(&[
-        "overlay", "--mesh", path_str(mesh), "--image", path_str(photo), "--cameras", path_str(cameras),
-        "--poses", path_str(poses), "--out", path_str(&out),
+        "overlay",
+        "--mesh",
+        path_str(mesh),
+        "--image",
+        path_str(photo),
+        "--cameras",
+        path_str(cameras),
+        "--poses",
+        path_str(poses),
+        "--out",
+        path_str(&out),
     ])
 }
 
@@ -44,7 +53,10 @@ fn malformed_and_unsupported_meshes_are_named() {
     let (_, cameras, poses, photo) = write_inputs(dir.path());
     let garbage = dir.path().join("garbage.ply");
     std::fs::write(&garbage, "this is not a mesh\n").unwrap();
-    assert_fails_naming(&overlay_with(dir.path(), &garbage, &cameras, &poses, &photo), &["garbage.ply"]);
+    assert_fails_naming(
+        &overlay_with(dir.path(), &garbage, &cameras, &poses, &photo),
+        &["garbage.ply"],
+    );
 
     let unsupported = dir.path().join("list_x.ply");
     std::fs::write(
@@ -52,7 +64,10 @@ fn malformed_and_unsupported_meshes_are_named() {
         SQUARE_PLY.replace("property float x", "property list uchar float x"),
     )
     .unwrap();
-    assert_fails_naming(&overlay_with(dir.path(), &unsupported, &cameras, &poses, &photo), &["list_x.ply", "x"]);
+    assert_fails_naming(
+        &overlay_with(dir.path(), &unsupported, &cameras, &poses, &photo),
+        &["list_x.ply", "x"],
+    );
 
     let no_faces = dir.path().join("points.ply");
     std::fs::write(
@@ -60,11 +75,17 @@ fn malformed_and_unsupported_meshes_are_named() {
         "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n",
     )
     .unwrap();
-    assert_fails_naming(&overlay_with(dir.path(), &no_faces, &cameras, &poses, &photo), &["points.ply", "no faces"]);
+    assert_fails_naming(
+        &overlay_with(dir.path(), &no_faces, &cameras, &poses, &photo),
+        &["points.ply", "no faces"],
+    );
 
     let odd = dir.path().join("mesh.stl");
     std::fs::write(&odd, "solid x\n").unwrap();
-    assert_fails_naming(&overlay_with(dir.path(), &odd, &cameras, &poses, &photo), &["mesh.stl"]);
+    assert_fails_naming(
+        &overlay_with(dir.path(), &odd, &cameras, &poses, &photo),
+        &["mesh.stl"],
+    );
 }
 
 #[test]
@@ -73,16 +94,37 @@ fn colmap_bad_lines_are_named_with_line_numbers() {
     let (mesh, cameras, poses, photo) = write_inputs(dir.path());
 
     let bad_cameras = dir.path().join("bad_cameras.txt");
-    std::fs::write(&bad_cameras, CAMERAS_TXT.replace("60 60 32 24", "60 sixty 32 24")).unwrap();
-    assert_fails_naming(&overlay_with(dir.path(), &mesh, &bad_cameras, &poses, &photo), &["bad_cameras.txt", "4"]);
+    std::fs::write(
+        &bad_cameras,
+        CAMERAS_TXT.replace("60 60 32 24", "60 sixty 32 24"),
+    )
+    .unwrap();
+    assert_fails_naming(
+        &overlay_with(dir.path(), &mesh, &bad_cameras, &poses, &photo),
+        &["bad_cameras.txt", "4"],
+    );
 
     let bad_poses = dir.path().join("bad_images.txt");
-    std::fs::write(&bad_poses, IMAGES_TXT.replace("1 1 0 0 0 0 0 0 1", "1 1 0 0 0 nan 0 0 1")).unwrap();
-    assert_fails_naming(&overlay_with(dir.path(), &mesh, &cameras, &bad_poses, &photo), &["bad_images.txt", "5", "TX"]);
+    std::fs::write(
+        &bad_poses,
+        IMAGES_TXT.replace("1 1 0 0 0 0 0 0 1", "1 1 0 0 0 nan 0 0 1"),
+    )
+    .unwrap();
+    assert_fails_naming(
+        &overlay_with(dir.path(), &mesh, &cameras, &bad_poses, &photo),
+        &["bad_images.txt", "5", "TX"],
+    );
 
     let short_line = dir.path().join("short_images.txt");
-    std::fs::write(&short_line, IMAGES_TXT.replace("1 1 0 0 0 0 0 0 1 photo.png", "1 1 0 0 0")).unwrap();
-    assert_fails_naming(&overlay_with(dir.path(), &mesh, &cameras, &short_line, &photo), &["short_images.txt", "5"]);
+    std::fs::write(
+        &short_line,
+        IMAGES_TXT.replace("1 1 0 0 0 0 0 0 1 photo.png", "1 1 0 0 0"),
+    )
+    .unwrap();
+    assert_fails_naming(
+        &overlay_with(dir.path(), &mesh, &cameras, &short_line, &photo),
+        &["short_images.txt", "5"],
+    );
 }
 
 #[test]

@@ -1,1 +1,6 @@
-//! Integration tests: one binary, one module per area.
+//! Integration tests: one binary (ripgrep's layout), one module per area. They run the `asgreg`
+//! binary the way a user would and check what it prints and how it exits.
+
+mod bad_input;
+mod cli_pictures;
+mod util;

@@ -22,9 +22,15 @@ pub fn stdout(output: &Output) -> String {
 /// Asserts a failed run whose error message contains every one of `needles`.
 pub fn assert_fails_naming(output: &Output, needles: &[&str]) {
     let message = stderr(output);
-    assert!(!output.status.success(), "expected failure, got success; stderr: {message}");
+    assert!(
+        !output.status.success(),
+        "expected failure, got success; stderr: {message}"
+    );
     for needle in needles {
-        assert!(message.contains(needle), "stderr does not name '{needle}':\n{message}");
+        assert!(
+            message.contains(needle),
+            "stderr does not name '{needle}':\n{message}"
+        );
     }
 }
 
@@ -74,7 +80,9 @@ pub fn write_inputs(dir: &Path) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
 }
 
 pub fn write_png(path: &Path, width: u32, height: u32) {
-    let image = image::RgbImage::from_fn(width, height, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, 90]));
+    let image = image::RgbImage::from_fn(width, height, |x, y| {
+        image::Rgb([(x * 4) as u8, (y * 5) as u8, 90])
+    });
     image.save(path).unwrap();
 }
 
