@@ -1458,7 +1458,7 @@ pub fn add_clutter(
         {
             continue;
         }
-        add_tree(scene, rng, p, crown_radius, noise_seed ^ placed as u64, 3);
+        add_tree(scene, rng, p, crown_radius, noise_seed ^ placed as u64, 4);
         placed += 1;
     }
     // A ring of trees far away: the horizon of a real photo is not empty.
@@ -1612,7 +1612,7 @@ fn add_tree(
         object_id,
     );
     // Lobes make the outline irregular.
-    for lobe in 0..rng.random_range(2..5) {
+    for lobe in 0..rng.random_range(3..7) {
         let direction = Vec3::new(
             rng.random_range(-1.0..1.0),
             rng.random_range(-1.0..1.0),

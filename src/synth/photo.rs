@@ -620,6 +620,35 @@ mod tests {
     }
 
     #[test]
+    fn the_house_casts_a_shadow_away_from_the_sun() {
+        use rand::SeedableRng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let scene = crate::synth::geometry::build_house(&mut rng);
+        let params = PhotoParams {
+            sun_elevation_deg: 35.0,
+            sun_azimuth_deg: 200.0,
+            supersampling: 1,
+            blur_sigma_px: 0.0,
+            noise_sigma_dn: 0.0,
+            vignetting: 0.0,
+            exposure_jitter: 0.0,
+            seed: 1,
+        };
+        let renderer = PhotoRenderer::new(&scene, params).unwrap();
+        let sun = renderer.sun_direction;
+        let away = -Vec3::new(sun.x, sun.y, 0.0).normalize();
+        let footprint = scene.footprints[0];
+        // Ground just behind the house (seen from the sun) is in shadow; ground on the sun's side
+        // and far behind it is lit.
+        let behind = away * (footprint.half_x_m.min(footprint.half_y_m) + 2.0);
+        let in_front = -away * (footprint.half_x_m.max(footprint.half_y_m) + 4.0);
+        let far_behind = away * 40.0;
+        assert_eq!(renderer.shadow.sun_visibility(behind, sun.z), 0.0);
+        assert_eq!(renderer.shadow.sun_visibility(in_front, sun.z), 1.0);
+        assert_eq!(renderer.shadow.sun_visibility(far_behind, sun.z), 1.0);
+    }
+
+    #[test]
     fn gaussian_from_hash_has_unit_variance() {
         let n = 20000;
         let values: Vec<f32> = (0..n).map(|i| gaussian_from_hash(hash_u64(i))).collect();
