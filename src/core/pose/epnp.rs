@@ -23,7 +23,7 @@
 //!   approximation applies: it is exact on exact data but noise-sensitive, which is why RANSAC
 //!   samples 5 points by default.
 
-use nalgebra::{DMatrix, DVector, Matrix3, SymmetricEigen, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Matrix4, SymmetricEigen, Vector2, Vector3, Vector4};
 
 use super::planarity::point_cloud_shape;
 use super::{check_solver_input, CameraPose, PoseError};
@@ -268,25 +268,39 @@ fn initial_betas(
     betas.iter().all(|b| b.is_finite()).then_some(betas)
 }
 
-/// Gauss–Newton on `Σ_p (Σₖₗ βₖβₗ dots[p][k][l] − d_p²)²`.
+/// Gauss–Newton on `Σ_p (Σₖₗ βₖβₗ dots[p][k][l] − d_p²)²`, by its normal equations (at most 4×4;
+/// unused dimensions are padded with the identity).
 fn refine_betas(betas: &mut [f64], dots: &[[[f64; 4]; 4]], squared_distances: &[f64]) {
     let count = betas.len();
     for _ in 0..BETA_GAUSS_NEWTON_ITERATIONS {
-        let mut jacobian = DMatrix::<f64>::zeros(squared_distances.len(), count);
-        let mut residuals = DVector::<f64>::zeros(squared_distances.len());
-        for (p, (table, distance2)) in dots.iter().zip(squared_distances).enumerate() {
+        let mut normal_matrix = Matrix4::<f64>::identity();
+        for k in 0..count {
+            normal_matrix[(k, k)] = 0.0;
+        }
+        let mut gradient = Vector4::<f64>::zeros();
+        let mut cost = 0.0;
+        for (table, distance2) in dots.iter().zip(squared_distances) {
             let mut value = 0.0;
+            let mut row = [0.0; 4];
             for k in 0..count {
-                let mut derivative = 0.0;
                 for l in 0..count {
                     value += betas[k] * betas[l] * table[k][l];
-                    derivative += 2.0 * table[k][l] * betas[l];
+                    row[k] += 2.0 * table[k][l] * betas[l];
                 }
-                jacobian[(p, k)] = derivative;
             }
-            residuals[p] = value - distance2;
+            let residual = value - distance2;
+            cost += residual * residual;
+            for k in 0..count {
+                gradient[k] += row[k] * residual;
+                for l in 0..count {
+                    normal_matrix[(k, l)] += row[k] * row[l];
+                }
+            }
         }
-        let Ok(step) = jacobian.svd(true, true).solve(&(-residuals), 1e-12) else {
+        if cost == 0.0 {
+            return;
+        }
+        let Some(step) = normal_matrix.lu().solve(&(-gradient)) else {
             return;
         };
         if !step.iter().all(|v| v.is_finite()) {

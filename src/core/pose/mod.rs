@@ -23,8 +23,8 @@ pub mod refine;
 
 //TMP pub use estimate::{estimate_pose, IntrinsicsPrior, PoseEstimate, PoseEstimationConfig, SolverKind};
 pub use planarity::{point_cloud_shape, PointCloudShape};
-//TMP pub use ransac::{RansacConfig, RansacOutput};
-//TMP pub use refine::{RefineConfig, RefinedParameters, RefinementSummary};
+pub use ransac::{ransac_camera, DltEstimator, EpnpEstimator, RansacConfig, RansacOutput};
+pub use refine::{refine_camera, RefineConfig, RefineStop, RefinedParameters, RefinementSummary};
 
 use nalgebra::{Matrix3x4, Vector2, Vector3, Vector4};
 
