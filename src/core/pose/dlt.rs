@@ -21,7 +21,7 @@
 
 use nalgebra::{DMatrix, Matrix3, Matrix3x4, Matrix4, Vector2, Vector3};
 
-use super::{check_solver_input, PoseError};
+use super::{check_solver_input, exceeds, PoseError};
 use crate::core::camera::PinholeIntrinsics;
 use crate::core::rigid::Rigid3;
 
@@ -40,16 +40,14 @@ pub fn solve_projection_matrix(
     world_points: &[Vector3<f64>],
 ) -> Result<Matrix3x4<f64>, PoseError> {
     check_solver_input("DLT", DLT_MIN_POINTS, image_points_px, world_points)?;
-    let (image_from_px, image_points) = normalize_image_points(image_points_px).ok_or(
-        PoseError::Degenerate {
+    let (image_from_px, image_points) =
+        normalize_image_points(image_points_px).ok_or(PoseError::Degenerate {
             why: "all image points coincide",
-        },
-    )?;
-    let (normalized_from_world, normalized_world) = normalize_world_points(world_points).ok_or(
-        PoseError::Degenerate {
+        })?;
+    let (normalized_from_world, normalized_world) =
+        normalize_world_points(world_points).ok_or(PoseError::Degenerate {
             why: "all world points coincide",
-        },
-    )?;
+        })?;
 
     let count = image_points.len();
     let mut system = DMatrix::<f64>::zeros(2 * count, 12);
@@ -72,7 +70,11 @@ pub fn solve_projection_matrix(
         why: "the SVD of the DLT system returned no right singular vectors",
     })?;
     let singular_values = &svd.singular_values; // sorted, largest first
-    if singular_values.len() < 12 || !(singular_values[10] > DLT_NULL_SPACE_RATIO * singular_values[0])
+    if singular_values.len() < 12
+        || !exceeds(
+            singular_values[10],
+            DLT_NULL_SPACE_RATIO * singular_values[0],
+        )
     {
         return Err(PoseError::Degenerate {
             why: "the DLT has no unique solution (coplanar, collinear or repeated points)",
@@ -80,12 +82,9 @@ pub fn solve_projection_matrix(
     }
     let solution = v_t.row(11);
     let normalized_projection = Matrix3x4::from_fn(|r, c| solution[4 * r + c]);
-    let projection = image_from_px
-        .try_inverse()
-        .ok_or(PoseError::Degenerate {
-            why: "image normalisation is not invertible",
-        })?
-        * normalized_projection
+    let projection = image_from_px.try_inverse().ok_or(PoseError::Degenerate {
+        why: "image normalisation is not invertible",
+    })? * normalized_projection
         * normalized_from_world;
     let norm = projection.norm();
     if !(norm.is_finite() && norm > 0.0) {
@@ -109,7 +108,7 @@ pub fn decompose_projection_matrix(
     let left = projection.fixed_view::<3, 3>(0, 0).into_owned();
     let determinant = left.determinant();
     let scale = left.norm();
-    if !(determinant.abs() > 1e-12 * scale * scale * scale) {
+    if !exceeds(determinant.abs(), 1e-12 * scale * scale * scale) {
         return Err(PoseError::Degenerate {
             why: "the left 3x3 block of P is singular (camera centre at infinity)",
         });
@@ -129,7 +128,7 @@ pub fn decompose_projection_matrix(
     ));
     let upper = upper * signs;
     let rotation = signs * rotation;
-    if (0..3).any(|i| !(upper[(i, i)] > 0.0)) {
+    if (0..3).any(|i| !exceeds(upper[(i, i)], 0.0)) {
         return Err(PoseError::Degenerate {
             why: "K has a zero on its diagonal",
         });
@@ -175,7 +174,7 @@ fn normalize_image_points(points_px: &[Vector2<f64>]) -> Option<(Matrix3<f64>, V
     let count = points_px.len() as f64;
     let centroid = points_px.iter().sum::<Vector2<f64>>() / count;
     let mean_distance = points_px.iter().map(|p| (p - centroid).norm()).sum::<f64>() / count;
-    if !(mean_distance > 1e-12 * (1.0 + centroid.norm())) {
+    if !exceeds(mean_distance, 1e-12 * (1.0 + centroid.norm())) {
         return None;
     }
     let scale = std::f64::consts::SQRT_2 / mean_distance;
@@ -199,7 +198,7 @@ fn normalize_world_points(points: &[Vector3<f64>]) -> Option<(Matrix4<f64>, Vec<
     let count = points.len() as f64;
     let centroid = points.iter().sum::<Vector3<f64>>() / count;
     let mean_distance = points.iter().map(|p| (p - centroid).norm()).sum::<f64>() / count;
-    if !(mean_distance > 1e-12 * (1.0 + centroid.norm())) {
+    if !exceeds(mean_distance, 1e-12 * (1.0 + centroid.norm())) {
         return None;
     }
     let scale = 3f64.sqrt() / mean_distance;

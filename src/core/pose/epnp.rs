@@ -26,7 +26,7 @@
 use nalgebra::{DMatrix, DVector, Matrix3, Matrix4, SymmetricEigen, Vector2, Vector3, Vector4};
 
 use super::planarity::point_cloud_shape;
-use super::{check_solver_input, CameraPose, PoseError};
+use super::{check_solver_input, exceeds, CameraPose, PoseError};
 use crate::core::camera::PinholeIntrinsics;
 use crate::core::rigid::Rigid3;
 
@@ -69,7 +69,7 @@ pub fn solve_with_variant(
     check_solver_input("EPnP", EPNP_MIN_POINTS, image_points_px, world_points)?;
     intrinsics.validate()?;
     let shape = point_cloud_shape(world_points)?;
-    if !(shape.collinearity_ratio > 1e-6) {
+    if !exceeds(shape.collinearity_ratio, 1e-6) {
         return Err(PoseError::Degenerate {
             why: "the world points are collinear",
         });
@@ -194,7 +194,8 @@ pub fn solve_with_variant(
     }
     let mut best: Option<(f64, Rigid3)> = None;
     for betas in &candidates {
-        let Some(pose) = pose_from_betas(&betas[..max_betas], &kernel, &alphas, world_points) else {
+        let Some(pose) = pose_from_betas(&betas[..max_betas], &kernel, &alphas, world_points)
+        else {
             continue;
         };
         let camera = CameraPose {
@@ -204,7 +205,10 @@ pub fn solve_with_variant(
         let Some(error) = super::reprojection_rms_px(&camera, image_points_px, world_points) else {
             continue;
         };
-        if best.as_ref().is_none_or(|(best_error, _)| error < *best_error) {
+        if best
+            .as_ref()
+            .is_none_or(|(best_error, _)| error < *best_error)
+        {
             best = Some((error, pose));
         }
     }
@@ -226,7 +230,10 @@ fn initial_betas(
         let (numerator, denominator) = dots.iter().zip(squared_distances).fold(
             (0.0, 0.0),
             |(num, den), (table, distance2)| {
-                (num + table[0][0].sqrt() * distance2.sqrt(), den + table[0][0])
+                (
+                    num + table[0][0].sqrt() * distance2.sqrt(),
+                    den + table[0][0],
+                )
             },
         );
         betas[0] = numerator / denominator;
@@ -250,20 +257,17 @@ fn initial_betas(
         }
     });
     let rhs = DVector::from_column_slice(squared_distances);
-    let solution = system
-        .svd(true, true)
-        .solve(&rhs, 1e-12)
-        .ok()?;
+    let solution = system.svd(true, true).solve(&rhs, 1e-12).ok()?;
     let b11 = solution[0];
     let beta1 = b11.abs().sqrt();
-    if !(beta1 > 0.0) {
+    if !exceeds(beta1, 0.0) {
         return None;
     }
     let sign = if b11 < 0.0 { -1.0 } else { 1.0 };
     betas[0] = beta1;
-    for l in 1..beta_count {
+    for (l, beta) in betas.iter_mut().enumerate().take(beta_count).skip(1) {
         let column = products.iter().position(|&product| product == (0, l))?;
-        betas[l] = sign * solution[column] / beta1;
+        *beta = sign * solution[column] / beta1;
     }
     betas.iter().all(|b| b.is_finite()).then_some(betas)
 }
@@ -365,7 +369,7 @@ pub fn rigid_from_point_pairs(
     }
     let svd = cross_covariance.try_svd(true, true, f64::EPSILON, 1000)?;
     let (u, v_t) = (svd.u?, svd.v_t?);
-    if !(svd.singular_values[1] > 1e-12 * svd.singular_values[0]) {
+    if !exceeds(svd.singular_values[1], 1e-12 * svd.singular_values[0]) {
         return None;
     }
     let mut correction = Matrix3::identity();
@@ -381,7 +385,9 @@ pub fn rigid_from_point_pairs(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::pose::test_scenes::{corrupt, random_scene, rotation_error_deg, test_intrinsics};
+    use crate::core::pose::test_scenes::{
+        corrupt, random_scene, rotation_error_deg, test_intrinsics,
+    };
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 
@@ -422,9 +428,11 @@ mod tests {
         for seed in 0..trials {
             let mut rng = ChaCha8Rng::seed_from_u64(1000 + seed);
             let scene = random_scene(&mut rng, test_intrinsics(), 4, 20.0);
-            if let Ok(pose) =
-                solve(&scene.camera.intrinsics, &scene.image_points_px, &scene.world_points)
-            {
+            if let Ok(pose) = solve(
+                &scene.camera.intrinsics,
+                &scene.image_points_px,
+                &scene.world_points,
+            ) {
                 let truth = &scene.camera.cam_from_world;
                 if rotation_error_deg(&pose, truth) < 1e-4
                     && (pose.translation - truth.translation).norm() < 1e-4
@@ -451,8 +459,14 @@ mod tests {
                 .unwrap_or_else(|e| panic!("seed {seed}, {count} points: {e}"));
                 assert_eq!(variant, EpnpVariant::Planar);
                 let truth = &scene.camera.cam_from_world;
-                assert!(rotation_error_deg(&pose, truth) < 1e-6, "seed {seed}, {count}");
-                assert!((pose.translation - truth.translation).norm() < 1e-6, "seed {seed}, {count}");
+                assert!(
+                    rotation_error_deg(&pose, truth) < 1e-6,
+                    "seed {seed}, {count}"
+                );
+                assert!(
+                    (pose.translation - truth.translation).norm() < 1e-6,
+                    "seed {seed}, {count}"
+                );
             }
         }
     }
@@ -463,8 +477,12 @@ mod tests {
         for relief_m in [0.0, 0.05, 20.0] {
             let mut scene = random_scene(&mut rng, test_intrinsics(), 200, relief_m);
             corrupt(&mut scene, &mut rng, 0.5, 0);
-            let pose = solve(&scene.camera.intrinsics, &scene.image_points_px, &scene.world_points)
-                .unwrap();
+            let pose = solve(
+                &scene.camera.intrinsics,
+                &scene.image_points_px,
+                &scene.world_points,
+            )
+            .unwrap();
             let truth = &scene.camera.cam_from_world;
             assert!(rotation_error_deg(&pose, truth) < 0.2, "relief {relief_m}");
             assert!(
@@ -480,14 +498,23 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let scene = random_scene(&mut rng, test_intrinsics(), 10, 10.0);
         let intrinsics = scene.camera.intrinsics;
-        let line: Vec<Vector3<f64>> = (0..6).map(|i| Vector3::new(2.0, 1.0, 0.3) * i as f64).collect();
-        let line_px: Vec<Vector2<f64>> = line.iter().map(|p| scene.camera.project(p).unwrap()).collect();
+        let line: Vec<Vector3<f64>> = (0..6)
+            .map(|i| Vector3::new(2.0, 1.0, 0.3) * i as f64)
+            .collect();
+        let line_px: Vec<Vector2<f64>> = line
+            .iter()
+            .map(|p| scene.camera.project(p).unwrap())
+            .collect();
         assert!(matches!(
             solve(&intrinsics, &line_px, &line),
             Err(PoseError::Degenerate { .. })
         ));
         assert!(matches!(
-            solve(&intrinsics, &scene.image_points_px[..3], &scene.world_points[..3]),
+            solve(
+                &intrinsics,
+                &scene.image_points_px[..3],
+                &scene.world_points[..3]
+            ),
             Err(PoseError::TooFewPoints { .. })
         ));
         let mut nan_image = scene.image_points_px.clone();
@@ -517,7 +544,10 @@ mod tests {
         let points: Vec<Vector3<f64>> = (0..5)
             .map(|i| Vector3::new(i as f64, (i * i) as f64 * 0.3, 1.0 - i as f64 * 0.7))
             .collect();
-        let moved: Vec<Vector3<f64>> = points.iter().map(|p| transform.transform_point(p)).collect();
+        let moved: Vec<Vector3<f64>> = points
+            .iter()
+            .map(|p| transform.transform_point(p))
+            .collect();
         let recovered = rigid_from_point_pairs(&points, &moved).unwrap();
         assert!(rotation_error_deg(&recovered, &transform) < 1e-9);
         assert!((recovered.translation - transform.translation).norm() < 1e-9);

@@ -21,7 +21,9 @@ pub mod planarity;
 pub mod ransac;
 pub mod refine;
 
-//TMP pub use estimate::{estimate_pose, IntrinsicsPrior, PoseEstimate, PoseEstimationConfig, SolverKind};
+pub use estimate::{
+    estimate_pose, IntrinsicsPrior, PoseEstimate, PoseEstimationConfig, RansacSummary, SolverKind,
+};
 pub use planarity::{point_cloud_shape, PointCloudShape};
 pub use ransac::{ransac_camera, DltEstimator, EpnpEstimator, RansacConfig, RansacOutput};
 pub use refine::{refine_camera, RefineConfig, RefineStop, RefinedParameters, RefinementSummary};
@@ -53,7 +55,10 @@ pub enum PoseError {
         "the 3D points are near-planar (planarity ratio {planarity_ratio:.3e} < {min_ratio:.3e}): \
          a DLT cannot recover the intrinsics; pass fallback intrinsics to solve with them fixed"
     )]
-    NearPlanar { planarity_ratio: f64, min_ratio: f64 },
+    NearPlanar {
+        planarity_ratio: f64,
+        min_ratio: f64,
+    },
     #[error("invalid configuration: {field} {why}")]
     InvalidConfig {
         field: &'static str,
@@ -104,6 +109,13 @@ impl<'a> Correspondences<'a> {
     }
 }
 
+/// `value > bound`, false when either is NaN: solvers write `!exceeds(..)` to reject NaN with the
+/// failing case.
+#[inline]
+pub(crate) fn exceeds(value: f64, bound: f64) -> bool {
+    value > bound
+}
+
 /// Lengths equal and every coordinate finite (what every solver checks first).
 pub(crate) fn check_correspondences(
     image_points_px: &[Vector2<f64>],
@@ -115,8 +127,13 @@ pub(crate) fn check_correspondences(
             world_points: world_points.len(),
         });
     }
-    for (index, (image_point, world_point)) in image_points_px.iter().zip(world_points).enumerate() {
-        if !image_point.iter().chain(world_point.iter()).all(|v| v.is_finite()) {
+    for (index, (image_point, world_point)) in image_points_px.iter().zip(world_points).enumerate()
+    {
+        if !image_point
+            .iter()
+            .chain(world_point.iter())
+            .all(|v| v.is_finite())
+        {
             return Err(PoseError::NonFinite { index });
         }
     }
@@ -242,7 +259,11 @@ pub(crate) mod test_scenes {
             rng.random_range(-20.0..20.0),
             rng.random_range(50.0..70.0),
         );
-        let target = Vector3::new(rng.random_range(-3.0..3.0), rng.random_range(-3.0..3.0), 0.0);
+        let target = Vector3::new(
+            rng.random_range(-3.0..3.0),
+            rng.random_range(-3.0..3.0),
+            0.0,
+        );
         let look = Rigid3::look_at(&eye, &target, &(rotation * Vector3::y()))
             .unwrap_or_else(|| Rigid3::look_at(&eye, &target, &Vector3::x()).unwrap());
         let camera = CameraPose {

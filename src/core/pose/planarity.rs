@@ -8,7 +8,7 @@
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
-use super::PoseError;
+use super::{exceeds, PoseError};
 use crate::core::rigid::Rigid3;
 
 /// The spread of a point cloud along its principal axes.
@@ -52,16 +52,15 @@ pub fn point_cloud_shape(world_points: &[Vector3<f64>]) -> Result<PointCloudShap
         covariance_m2 += centred * centred.transpose();
     }
     covariance_m2 /= count;
-    let eigen = SymmetricEigen::try_new(covariance_m2, f64::EPSILON, 100).ok_or(
-        PoseError::Degenerate {
+    let eigen =
+        SymmetricEigen::try_new(covariance_m2, f64::EPSILON, 100).ok_or(PoseError::Degenerate {
             why: "the covariance of the 3D points did not diagonalise",
-        },
-    )?;
+        })?;
     let mut order = [0usize, 1, 2];
     order.sort_by(|&a, &b| eigen.eigenvalues[b].total_cmp(&eigen.eigenvalues[a]));
     let principal_std_m = order.map(|i| eigen.eigenvalues[i].max(0.0).sqrt());
     let principal_axes = order.map(|i| eigen.eigenvectors.column(i).into_owned());
-    if !(principal_std_m[0] > 0.0) {
+    if !exceeds(principal_std_m[0], 0.0) {
         return Err(PoseError::Degenerate {
             why: "all 3D points coincide",
         });
@@ -111,9 +110,14 @@ mod tests {
         let planar = point_cloud_shape(&grid).unwrap();
         assert!(planar.planarity_ratio < 1e-12);
         assert!(planar.collinearity_ratio > 0.9);
-        assert!(planar.principal_axes[2].z.abs() > 1.0 - 1e-12, "normal is z");
+        assert!(
+            planar.principal_axes[2].z.abs() > 1.0 - 1e-12,
+            "normal is z"
+        );
 
-        let line: Vec<Vector3<f64>> = (0..10).map(|i| Vector3::new(1.0, 2.0, 3.0) * i as f64).collect();
+        let line: Vec<Vector3<f64>> = (0..10)
+            .map(|i| Vector3::new(1.0, 2.0, 3.0) * i as f64)
+            .collect();
         assert!(point_cloud_shape(&line).unwrap().collinearity_ratio < 1e-7);
 
         let cube: Vec<Vector3<f64>> = (0..27)
@@ -124,7 +128,11 @@ mod tests {
 
         assert!(point_cloud_shape(&[Vector3::zeros(); 4]).is_err());
         assert_eq!(
-            point_cloud_shape(&[Vector3::zeros(), Vector3::x(), Vector3::new(f64::NAN, 0.0, 0.0)]),
+            point_cloud_shape(&[
+                Vector3::zeros(),
+                Vector3::x(),
+                Vector3::new(f64::NAN, 0.0, 0.0)
+            ]),
             Err(PoseError::NonFinite { index: 2 })
         );
     }
@@ -134,11 +142,19 @@ mod tests {
         let grid: Vec<Vector3<f64>> = (0..25)
             .map(|i| Vector3::new((i % 5) as f64, (i / 5) as f64, 0.0))
             .collect();
-        let nadir = Rigid3::look_at(&Vector3::new(2.0, 2.0, 50.0), &Vector3::new(2.0, 2.0, 0.0), &Vector3::y())
-            .unwrap();
+        let nadir = Rigid3::look_at(
+            &Vector3::new(2.0, 2.0, 50.0),
+            &Vector3::new(2.0, 2.0, 0.0),
+            &Vector3::y(),
+        )
+        .unwrap();
         assert!(depth_relief_ratio(&nadir, &grid).unwrap() < 1e-12);
-        let oblique = Rigid3::look_at(&Vector3::new(40.0, 2.0, 30.0), &Vector3::new(2.0, 2.0, 0.0), &Vector3::z())
-            .unwrap();
+        let oblique = Rigid3::look_at(
+            &Vector3::new(40.0, 2.0, 30.0),
+            &Vector3::new(2.0, 2.0, 0.0),
+            &Vector3::z(),
+        )
+        .unwrap();
         assert!(depth_relief_ratio(&oblique, &grid).unwrap() > 0.3);
     }
 }

@@ -283,7 +283,8 @@ where
                 if new_best.1.inlier_count <= sample_size {
                     break;
                 }
-                let inlier_indices: Vec<usize> = (0..data.len()).filter(|&i| best_mask[i]).collect();
+                let inlier_indices: Vec<usize> =
+                    (0..data.len()).filter(|&i| best_mask[i]).collect();
                 gather(data, &inlier_indices, &mut sample_image, &mut sample_world);
                 let Ok(refit) = estimator.fit(&sample_image, &sample_world) else {
                     break;
@@ -334,7 +335,14 @@ where
     let consensus = ReprojectionConsensus {
         threshold_px: config.threshold_px,
     };
-    run_ransac(estimator, &mut UniformSampler, &consensus, data, config, rng)
+    run_ransac(
+        estimator,
+        &mut UniformSampler,
+        &consensus,
+        data,
+        config,
+        rng,
+    )
 }
 
 fn gather(
@@ -433,7 +441,9 @@ impl Estimator for EpnpEstimator {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::pose::test_scenes::{corrupt, random_scene, rotation_error_deg, test_intrinsics, Scene};
+    use crate::core::pose::test_scenes::{
+        corrupt, random_scene, rotation_error_deg, test_intrinsics, Scene,
+    };
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
     use std::time::Instant;
@@ -449,18 +459,38 @@ mod tests {
     fn check_recovery(scene: &Scene, output: &RansacOutput<CameraPose>, label: &str) {
         let truth = &scene.camera.cam_from_world;
         let rotation_error = rotation_error_deg(&output.model.cam_from_world, truth);
-        let centre_error_m = (output.model.cam_from_world.camera_center() - truth.camera_center()).norm();
+        let centre_error_m =
+            (output.model.cam_from_world.camera_center() - truth.camera_center()).norm();
         let scene_size_m = 40.0;
-        assert!(rotation_error < 0.5, "{label}: rotation error {rotation_error} deg");
-        assert!(centre_error_m < 0.01 * scene_size_m, "{label}: centre error {centre_error_m} m");
+        assert!(
+            rotation_error < 0.5,
+            "{label}: rotation error {rotation_error} deg"
+        );
+        assert!(
+            centre_error_m < 0.01 * scene_size_m,
+            "{label}: centre error {centre_error_m} m"
+        );
         // The true inliers are the second half; a few outliers may land within the threshold.
         let half = scene.world_points.len() / 2;
         let true_inliers_found = output.inlier_mask[half..].iter().filter(|&&m| m).count();
         let outliers_accepted = output.inlier_mask[..half].iter().filter(|&&m| m).count();
-        assert!(true_inliers_found as f64 >= 0.98 * half as f64, "{label}: {true_inliers_found}/{half}");
-        assert!(outliers_accepted as f64 <= 0.02 * half as f64, "{label}: {outliers_accepted} outliers");
-        assert_eq!(output.inlier_count, output.inlier_mask.iter().filter(|&&m| m).count());
-        assert!(output.inlier_rms_px < 1.0, "{label}: {}", output.inlier_rms_px);
+        assert!(
+            true_inliers_found as f64 >= 0.98 * half as f64,
+            "{label}: {true_inliers_found}/{half}"
+        );
+        assert!(
+            outliers_accepted as f64 <= 0.02 * half as f64,
+            "{label}: {outliers_accepted} outliers"
+        );
+        assert_eq!(
+            output.inlier_count,
+            output.inlier_mask.iter().filter(|&&m| m).count()
+        );
+        assert!(
+            output.inlier_rms_px < 1.0,
+            "{label}: {}",
+            output.inlier_rms_px
+        );
     }
 
     #[test]
@@ -469,10 +499,14 @@ mod tests {
             let scene = contaminated_scene(50 + seed, 400);
             let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
             let mut rng = ChaCha8Rng::seed_from_u64(seed);
-            let output = ransac_camera(&DltEstimator, &data, &RansacConfig::default(), &mut rng).unwrap();
+            let output =
+                ransac_camera(&DltEstimator, &data, &RansacConfig::default(), &mut rng).unwrap();
             check_recovery(&scene, &output, &format!("DLT seed {seed}"));
             let focal_error = (output.model.intrinsics.fx_px - scene.camera.intrinsics.fx_px).abs();
-            assert!(focal_error < 0.05 * scene.camera.intrinsics.fx_px, "focal off by {focal_error}");
+            assert!(
+                focal_error < 0.05 * scene.camera.intrinsics.fx_px,
+                "focal off by {focal_error}"
+            );
         }
     }
 
@@ -481,10 +515,12 @@ mod tests {
         for sample_size in 4..=6 {
             for seed in 0..3 {
                 let scene = contaminated_scene(60 + seed, 400);
-                let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
+                let data =
+                    Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
                 let estimator = EpnpEstimator::new(scene.camera.intrinsics, sample_size).unwrap();
                 let mut rng = ChaCha8Rng::seed_from_u64(seed);
-                let output = ransac_camera(&estimator, &data, &RansacConfig::default(), &mut rng).unwrap();
+                let output =
+                    ransac_camera(&estimator, &data, &RansacConfig::default(), &mut rng).unwrap();
                 check_recovery(&scene, &output, &format!("EPnP-{sample_size} seed {seed}"));
             }
         }
@@ -495,7 +531,13 @@ mod tests {
         let scene = contaminated_scene(70, 300);
         let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
         let run = |seed: u64, config: &RansacConfig| {
-            ransac_camera(&DltEstimator, &data, config, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap()
+            ransac_camera(
+                &DltEstimator,
+                &data,
+                config,
+                &mut ChaCha8Rng::seed_from_u64(seed),
+            )
+            .unwrap()
         };
         let config = RansacConfig::default();
         assert_eq!(run(1, &config), run(1, &config));
@@ -504,11 +546,24 @@ mod tests {
         assert_eq!(full.iterations, 500);
         assert!(!full.reached_stop_ratio);
         // At 40 % the first clean sample (plus LO) reaches it and the loop stops early.
-        let early = run(1, &RansacConfig { stop_inlier_ratio: 0.4, ..config });
+        let early = run(
+            1,
+            &RansacConfig {
+                stop_inlier_ratio: 0.4,
+                ..config
+            },
+        );
         assert!(early.reached_stop_ratio);
         assert!(early.iterations < 500);
         assert!(early.inlier_count >= 120);
-        let at_least = run(1, &RansacConfig { stop_inlier_ratio: 0.4, min_iterations: 300, ..config });
+        let at_least = run(
+            1,
+            &RansacConfig {
+                stop_inlier_ratio: 0.4,
+                min_iterations: 300,
+                ..config
+            },
+        );
         assert!(at_least.iterations == 300 && at_least.reached_stop_ratio);
     }
 
@@ -517,11 +572,29 @@ mod tests {
         let scene = contaminated_scene(80, 400);
         let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
         let estimator = EpnpEstimator::new(scene.camera.intrinsics, 5).unwrap();
-        let plain = RansacConfig { local_optimization_rounds: 0, max_iterations: 200, stop_inlier_ratio: 1.0, ..RansacConfig::default() };
-        let with_lo = RansacConfig { local_optimization_rounds: 2, ..plain };
-        let plain_output = ransac_camera(&estimator, &data, &plain, &mut ChaCha8Rng::seed_from_u64(3)).unwrap();
-        let lo_output = ransac_camera(&estimator, &data, &with_lo, &mut ChaCha8Rng::seed_from_u64(3)).unwrap();
-        println!("inliers: plain {} / LO {}", plain_output.inlier_count, lo_output.inlier_count);
+        let plain = RansacConfig {
+            local_optimization_rounds: 0,
+            max_iterations: 200,
+            stop_inlier_ratio: 1.0,
+            ..RansacConfig::default()
+        };
+        let with_lo = RansacConfig {
+            local_optimization_rounds: 2,
+            ..plain
+        };
+        let plain_output =
+            ransac_camera(&estimator, &data, &plain, &mut ChaCha8Rng::seed_from_u64(3)).unwrap();
+        let lo_output = ransac_camera(
+            &estimator,
+            &data,
+            &with_lo,
+            &mut ChaCha8Rng::seed_from_u64(3),
+        )
+        .unwrap();
+        println!(
+            "inliers: plain {} / LO {}",
+            plain_output.inlier_count, lo_output.inlier_count
+        );
         assert!(lo_output.inlier_count >= plain_output.inlier_count);
     }
 
@@ -531,18 +604,37 @@ mod tests {
         let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         for config in [
-            RansacConfig { threshold_px: 0.0, ..RansacConfig::default() },
-            RansacConfig { threshold_px: f64::NAN, ..RansacConfig::default() },
-            RansacConfig { max_iterations: 0, ..RansacConfig::default() },
-            RansacConfig { stop_inlier_ratio: 1.5, ..RansacConfig::default() },
-            RansacConfig { min_iterations: 501, ..RansacConfig::default() },
+            RansacConfig {
+                threshold_px: 0.0,
+                ..RansacConfig::default()
+            },
+            RansacConfig {
+                threshold_px: f64::NAN,
+                ..RansacConfig::default()
+            },
+            RansacConfig {
+                max_iterations: 0,
+                ..RansacConfig::default()
+            },
+            RansacConfig {
+                stop_inlier_ratio: 1.5,
+                ..RansacConfig::default()
+            },
+            RansacConfig {
+                min_iterations: 501,
+                ..RansacConfig::default()
+            },
         ] {
-            assert!(matches!(
-                ransac_camera(&DltEstimator, &data, &config, &mut rng),
-                Err(PoseError::InvalidConfig { .. })
-            ), "{config:?}");
+            assert!(
+                matches!(
+                    ransac_camera(&DltEstimator, &data, &config, &mut rng),
+                    Err(PoseError::InvalidConfig { .. })
+                ),
+                "{config:?}"
+            );
         }
-        let few = Correspondences::new(&scene.image_points_px[..5], &scene.world_points[..5]).unwrap();
+        let few =
+            Correspondences::new(&scene.image_points_px[..5], &scene.world_points[..5]).unwrap();
         assert!(matches!(
             ransac_camera(&DltEstimator, &few, &RansacConfig::default(), &mut rng),
             Err(PoseError::TooFewPoints { needed: 6, .. })
@@ -551,24 +643,50 @@ mod tests {
         assert!(EpnpEstimator::new(test_intrinsics(), 7).is_err());
         assert!(serde_json::from_str::<RansacConfig>(r#"{"threshold": 2}"#).is_err());
         let parsed: RansacConfig = serde_json::from_str(r#"{"threshold_px": 2.5}"#).unwrap();
-        assert_eq!(parsed, RansacConfig { threshold_px: 2.5, ..RansacConfig::default() });
+        assert_eq!(
+            parsed,
+            RansacConfig {
+                threshold_px: 2.5,
+                ..RansacConfig::default()
+            }
+        );
     }
 
     #[test]
     fn all_degenerate_samples_give_no_model() {
         // Every world point on one line: no sample can be solved.
-        let camera = random_scene(&mut ChaCha8Rng::seed_from_u64(4), test_intrinsics(), 6, 10.0).camera;
-        let world_points: Vec<Vector3<f64>> = (0..30).map(|i| Vector3::new(0.5, -0.3, 0.1) * i as f64).collect();
-        let image_points_px: Vec<Vector2<f64>> = world_points.iter().map(|p| camera.project(p).unwrap()).collect();
+        let camera = random_scene(
+            &mut ChaCha8Rng::seed_from_u64(4),
+            test_intrinsics(),
+            6,
+            10.0,
+        )
+        .camera;
+        let world_points: Vec<Vector3<f64>> = (0..30)
+            .map(|i| Vector3::new(0.5, -0.3, 0.1) * i as f64)
+            .collect();
+        let image_points_px: Vec<Vector2<f64>> = world_points
+            .iter()
+            .map(|p| camera.project(p).unwrap())
+            .collect();
         let data = Correspondences::new(&image_points_px, &world_points).unwrap();
-        let config = RansacConfig { max_iterations: 50, ..RansacConfig::default() };
+        let config = RansacConfig {
+            max_iterations: 50,
+            ..RansacConfig::default()
+        };
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         assert_eq!(
             ransac_camera(&DltEstimator, &data, &config, &mut rng),
-            Err(PoseError::NoModel { iterations: 50, degenerate_samples: 50 })
+            Err(PoseError::NoModel {
+                iterations: 50,
+                degenerate_samples: 50
+            })
         );
         let estimator = EpnpEstimator::new(camera.intrinsics, 5).unwrap();
-        assert!(matches!(ransac_camera(&estimator, &data, &config, &mut rng), Err(PoseError::NoModel { .. })));
+        assert!(matches!(
+            ransac_camera(&estimator, &data, &config, &mut rng),
+            Err(PoseError::NoModel { .. })
+        ));
     }
 
     #[test]
@@ -591,13 +709,26 @@ mod tests {
         let scene = contaminated_scene(99, 2000);
         let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
         // Out of reach at 50 % outliers, so every run draws all 500 samples.
-        let config = RansacConfig { stop_inlier_ratio: 1.0, ..RansacConfig::default() };
+        let config = RansacConfig {
+            stop_inlier_ratio: 1.0,
+            ..RansacConfig::default()
+        };
         let epnp5 = EpnpEstimator::new(scene.camera.intrinsics, 5).unwrap();
         let epnp6 = EpnpEstimator::new(scene.camera.intrinsics, 6).unwrap();
-        let runs: [(&str, &dyn Fn(&mut ChaCha8Rng) -> RansacOutput<CameraPose>); 3] = [
-            ("DLT-6", &|rng| ransac_camera(&DltEstimator, &data, &config, rng).unwrap()),
-            ("EPnP-5", &|rng| ransac_camera(&epnp5, &data, &config, rng).unwrap()),
-            ("EPnP-6", &|rng| ransac_camera(&epnp6, &data, &config, rng).unwrap()),
+        type TimedRun<'a> = (
+            &'a str,
+            &'a dyn Fn(&mut ChaCha8Rng) -> RansacOutput<CameraPose>,
+        );
+        let runs: [TimedRun; 3] = [
+            ("DLT-6", &|rng| {
+                ransac_camera(&DltEstimator, &data, &config, rng).unwrap()
+            }),
+            ("EPnP-5", &|rng| {
+                ransac_camera(&epnp5, &data, &config, rng).unwrap()
+            }),
+            ("EPnP-6", &|rng| {
+                ransac_camera(&epnp6, &data, &config, rng).unwrap()
+            }),
         ];
         for (label, run) in runs {
             let start = Instant::now();

@@ -351,12 +351,20 @@ fn apply_step(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::pose::test_scenes::{corrupt, random_scene, rotation_error_deg, test_intrinsics};
+    use crate::core::pose::test_scenes::{
+        corrupt, random_scene, rotation_error_deg, test_intrinsics,
+    };
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 
-    fn perturbed(camera: &CameraPose, angle_rad: f64, shift_m: f64, focal_factor: f64) -> CameraPose {
-        let rotation = UnitQuaternion::from_scaled_axis(Vector3::new(angle_rad, -angle_rad, 0.5 * angle_rad));
+    fn perturbed(
+        camera: &CameraPose,
+        angle_rad: f64,
+        shift_m: f64,
+        focal_factor: f64,
+    ) -> CameraPose {
+        let rotation =
+            UnitQuaternion::from_scaled_axis(Vector3::new(angle_rad, -angle_rad, 0.5 * angle_rad));
         CameraPose {
             intrinsics: crate::core::camera::PinholeIntrinsics {
                 fx_px: camera.intrinsics.fx_px * focal_factor,
@@ -389,7 +397,10 @@ mod tests {
         assert!(summary.initial_rms_px > 10.0, "{summary:?}");
         assert!(summary.final_rms_px < 1e-6, "{summary:?}");
         assert!(rotation_error_deg(&refined.cam_from_world, &scene.camera.cam_from_world) < 1e-7);
-        assert!((refined.cam_from_world.translation - scene.camera.cam_from_world.translation).norm() < 1e-6);
+        assert!(
+            (refined.cam_from_world.translation - scene.camera.cam_from_world.translation).norm()
+                < 1e-6
+        );
     }
 
     #[test]
@@ -414,9 +425,20 @@ mod tests {
             assert!(summary.initial_rms_px > 20.0, "{summary:?}");
             assert!(summary.final_rms_px < 1.05 * floor_px, "{summary:?}");
             assert!(summary.final_rms_px > 0.85 * floor_px, "{summary:?}");
-            let truth_rms = crate::core::pose::reprojection_rms_px(&truth, &scene.image_points_px, &scene.world_points).unwrap();
-            assert!(summary.final_rms_px <= truth_rms, "the optimum is at least as good as the truth");
-            assert!((refined.intrinsics.fx_px - truth.intrinsics.fx_px).abs() < 0.02 * truth.intrinsics.fx_px);
+            let truth_rms = crate::core::pose::reprojection_rms_px(
+                &truth,
+                &scene.image_points_px,
+                &scene.world_points,
+            )
+            .unwrap();
+            assert!(
+                summary.final_rms_px <= truth_rms,
+                "the optimum is at least as good as the truth"
+            );
+            assert!(
+                (refined.intrinsics.fx_px - truth.intrinsics.fx_px).abs()
+                    < 0.02 * truth.intrinsics.fx_px
+            );
             assert!(rotation_error_deg(&refined.cam_from_world, &truth.cam_from_world) < 0.5);
         }
     }
@@ -431,7 +453,10 @@ mod tests {
             &scene.image_points_px,
             &scene.world_points,
             RefinedParameters::IntrinsicsAndPose,
-            &RefineConfig { max_iterations: 5, ..RefineConfig::default() },
+            &RefineConfig {
+                max_iterations: 5,
+                ..RefineConfig::default()
+            },
         )
         .unwrap();
         assert!(summary.final_rms_px <= summary.initial_rms_px);
@@ -446,28 +471,65 @@ mod tests {
             cam_from_world: half_turn.compose(&scene.camera.cam_from_world),
             ..scene.camera
         };
-        assert!(refine_camera(&behind, &scene.image_points_px, &scene.world_points, RefinedParameters::Pose, &RefineConfig::default()).is_err());
+        assert!(refine_camera(
+            &behind,
+            &scene.image_points_px,
+            &scene.world_points,
+            RefinedParameters::Pose,
+            &RefineConfig::default()
+        )
+        .is_err());
         let mut nan_points = scene.world_points.clone();
         nan_points[3].x = f64::NAN;
         assert_eq!(
-            refine_camera(&scene.camera, &scene.image_points_px, &nan_points, RefinedParameters::Pose, &RefineConfig::default()).unwrap_err(),
+            refine_camera(
+                &scene.camera,
+                &scene.image_points_px,
+                &nan_points,
+                RefinedParameters::Pose,
+                &RefineConfig::default()
+            )
+            .unwrap_err(),
             PoseError::NonFinite { index: 3 }
         );
         assert!(matches!(
-            refine_camera(&scene.camera, &scene.image_points_px[..4], &scene.world_points[..4], RefinedParameters::IntrinsicsAndPose, &RefineConfig::default()),
+            refine_camera(
+                &scene.camera,
+                &scene.image_points_px[..4],
+                &scene.world_points[..4],
+                RefinedParameters::IntrinsicsAndPose,
+                &RefineConfig::default()
+            ),
             Err(PoseError::TooFewPoints { needed: 5, .. })
         ));
-        let bad_config = RefineConfig { initial_damping: -1.0, ..RefineConfig::default() };
+        let bad_config = RefineConfig {
+            initial_damping: -1.0,
+            ..RefineConfig::default()
+        };
         assert!(matches!(
-            refine_camera(&scene.camera, &scene.image_points_px, &scene.world_points, RefinedParameters::Pose, &bad_config),
+            refine_camera(
+                &scene.camera,
+                &scene.image_points_px,
+                &scene.world_points,
+                RefinedParameters::Pose,
+                &bad_config
+            ),
             Err(PoseError::InvalidConfig { .. })
         ));
     }
 
     #[test]
     fn unknown_config_fields_are_rejected() {
-        assert!(serde_json::from_str::<RefineConfig>(r#"{"max_iterations": 3, "lambda": 1}"#).is_err());
+        assert!(
+            serde_json::from_str::<RefineConfig>(r#"{"max_iterations": 3, "lambda": 1}"#).is_err()
+        );
         let parsed: RefineConfig = serde_json::from_str(r#"{"max_iterations": 3}"#).unwrap();
-        assert_eq!(parsed, RefineConfig { max_iterations: 3, ..RefineConfig::default() });
+        assert_eq!(
+            parsed,
+            RefineConfig {
+                max_iterations: 3,
+                ..RefineConfig::default()
+            }
+        );
     }
 }
