@@ -10,7 +10,7 @@
 //!   [`PoseEstimationConfig::dlt_min_planarity_ratio`], intrinsics are not observable from one
 //!   view and the DLT's `K` is noise. Then, if the caller gave `planar_fallback` intrinsics (for
 //!   example the initial guess or the camera's nominal values), the pose is solved with them fixed
-//!   by EPnP ([`SolverKind::EpnpPlanarFallback`]); otherwise the step refuses with
+//!   by EPnP or P3P ([`IntrinsicsSource::PlanarFallback`]); otherwise the step refuses with
 //!   [`PoseError::NearPlanar`], naming the ratio, instead of returning a made-up camera.
 //!
 //! The shape is always reported, so the verification can say "near-planar view" when it fails.
@@ -20,7 +20,8 @@ use serde::{Deserialize, Serialize};
 
 use super::planarity::{point_cloud_shape, PointCloudShape};
 use super::ransac::{
-    ransac_camera, Consensus, DltEstimator, EpnpEstimator, RansacConfig, ReprojectionConsensus,
+    ransac_camera, Consensus, DltEstimator, EpnpEstimator, P3pEstimator, RansacConfig,
+    ReprojectionConsensus,
 };
 use super::refine::{refine_camera, RefineConfig, RefinedParameters, RefinementSummary};
 use super::{CameraPose, Correspondences, PoseError};
@@ -44,6 +45,8 @@ pub enum IntrinsicsPrior {
 pub struct PoseEstimationConfig {
     pub ransac: RansacConfig,
     pub refinement: RefineConfig,
+    /// Solver for fixed intrinsics (known, or the planar fallback).
+    pub fixed_intrinsics_solver: FixedIntrinsicsSolver,
     /// Correspondences per EPnP sample, 4–6 (see [`super::ransac`] for why 5).
     pub epnp_sample_size: usize,
     /// Smallest planarity ratio (dimensionless, see [`PointCloudShape::planarity_ratio`]) at which
@@ -60,6 +63,7 @@ impl Default for PoseEstimationConfig {
         Self {
             ransac: RansacConfig::default(),
             refinement: RefineConfig::default(),
+            fixed_intrinsics_solver: FixedIntrinsicsSolver::default(),
             epnp_sample_size: EpnpEstimator::DEFAULT_SAMPLE_SIZE,
             dlt_min_planarity_ratio: 0.02,
         }
@@ -86,15 +90,36 @@ impl PoseEstimationConfig {
     }
 }
 
-/// Which solver produced the camera.
+/// Which solver produced the camera (inside RANSAC).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum SolverKind {
-    /// Normalised DLT, intrinsics estimated.
+    /// Normalised DLT on 6 points (intrinsics estimated).
     Dlt,
-    /// EPnP with the known intrinsics.
+    /// EPnP on `epnp_sample_size` points (intrinsics fixed).
     Epnp,
-    /// EPnP with the fallback intrinsics, because the points were too planar for a DLT.
-    EpnpPlanarFallback,
+    /// P3P on 3 + 1 points (intrinsics fixed).
+    P3p,
+}
+
+/// The solver used when the intrinsics are fixed (known, or the planar fallback).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum FixedIntrinsicsSolver {
+    /// EPnP (the paper's choice for known intrinsics).
+    #[default]
+    Epnp,
+    /// Grunert's P3P with a fourth point to choose: smaller samples, same accuracy after LO and LM.
+    P3p,
+}
+
+/// Where the intrinsics of the result come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum IntrinsicsSource {
+    /// Estimated with the pose (DLT, then refinement).
+    Estimated,
+    /// Given as known.
+    Known,
+    /// The caller's fallback, because the points were too planar for a DLT.
+    PlanarFallback,
 }
 
 /// How the RANSAC stage went (before refinement).
@@ -113,6 +138,7 @@ pub struct PoseEstimate {
     /// Intrinsics (estimated, known or fallback) and `cam_from_world`.
     pub camera: CameraPose,
     pub solver: SolverKind,
+    pub intrinsics_source: IntrinsicsSource,
     /// Inliers of the final camera at the RANSAC threshold, one entry per correspondence.
     pub inlier_mask: Vec<bool>,
     /// The consensus size the plausibility check ranks poses by.
@@ -135,29 +161,38 @@ pub fn estimate_pose<R: Rng + ?Sized>(
 ) -> Result<PoseEstimate, PoseError> {
     config.validate()?;
     let point_cloud_shape = point_cloud_shape(data.world_points())?;
-    let (ransac_output, solver, refined_parameters) = match prior {
+    let fixed_intrinsics_ransac =
+        |intrinsics: &PinholeIntrinsics, rng: &mut R| match config.fixed_intrinsics_solver {
+            FixedIntrinsicsSolver::Epnp => {
+                let estimator = EpnpEstimator::new(*intrinsics, config.epnp_sample_size)?;
+                Ok::<_, PoseError>((
+                    ransac_camera(&estimator, data, &config.ransac, rng)?,
+                    SolverKind::Epnp,
+                ))
+            }
+            FixedIntrinsicsSolver::P3p => {
+                let estimator = P3pEstimator::new(*intrinsics)?;
+                Ok((
+                    ransac_camera(&estimator, data, &config.ransac, rng)?,
+                    SolverKind::P3p,
+                ))
+            }
+        };
+    let (ransac_output, solver, intrinsics_source) = match prior {
         IntrinsicsPrior::Known(intrinsics) => {
-            let estimator = EpnpEstimator::new(*intrinsics, config.epnp_sample_size)?;
-            (
-                ransac_camera(&estimator, data, &config.ransac, rng)?,
-                SolverKind::Epnp,
-                RefinedParameters::Pose,
-            )
+            let (output, solver) = fixed_intrinsics_ransac(intrinsics, rng)?;
+            (output, solver, IntrinsicsSource::Known)
         }
         IntrinsicsPrior::Unknown { planar_fallback } => {
             if point_cloud_shape.planarity_ratio >= config.dlt_min_planarity_ratio {
                 (
                     ransac_camera(&DltEstimator, data, &config.ransac, rng)?,
                     SolverKind::Dlt,
-                    RefinedParameters::IntrinsicsAndPose,
+                    IntrinsicsSource::Estimated,
                 )
             } else if let Some(intrinsics) = planar_fallback {
-                let estimator = EpnpEstimator::new(*intrinsics, config.epnp_sample_size)?;
-                (
-                    ransac_camera(&estimator, data, &config.ransac, rng)?,
-                    SolverKind::EpnpPlanarFallback,
-                    RefinedParameters::Pose,
-                )
+                let (output, solver) = fixed_intrinsics_ransac(intrinsics, rng)?;
+                (output, solver, IntrinsicsSource::PlanarFallback)
             } else {
                 return Err(PoseError::NearPlanar {
                     planarity_ratio: point_cloud_shape.planarity_ratio,
@@ -165,6 +200,10 @@ pub fn estimate_pose<R: Rng + ?Sized>(
                 });
             }
         }
+    };
+    let refined_parameters = match intrinsics_source {
+        IntrinsicsSource::Estimated => RefinedParameters::IntrinsicsAndPose,
+        IntrinsicsSource::Known | IntrinsicsSource::PlanarFallback => RefinedParameters::Pose,
     };
     let ransac = RansacSummary {
         iterations: ransac_output.iterations,
@@ -211,6 +250,7 @@ pub fn estimate_pose<R: Rng + ?Sized>(
     Ok(PoseEstimate {
         camera,
         solver,
+        intrinsics_source,
         inlier_mask,
         inlier_count: score.inlier_count,
         inlier_rms_px: score.inlier_rms_px(),
@@ -280,32 +320,37 @@ mod tests {
     }
 
     #[test]
-    fn known_intrinsics_recover_the_pose() {
+    fn known_intrinsics_recover_the_pose_with_either_solver() {
         let scene = scene(210, 15.0);
         let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
         let prior = IntrinsicsPrior::Known(scene.camera.intrinsics);
-        let estimate = estimate_pose(
-            &data,
-            &prior,
-            &PoseEstimationConfig::default(),
-            &mut ChaCha8Rng::seed_from_u64(1),
-        )
-        .unwrap();
-        assert_eq!(estimate.solver, SolverKind::Epnp);
-        assert_eq!(estimate.camera.intrinsics, scene.camera.intrinsics);
-        assert!(
-            rotation_error_deg(
-                &estimate.camera.cam_from_world,
-                &scene.camera.cam_from_world
-            ) < 0.1
-        );
-        assert!(
-            (estimate.camera.cam_from_world.camera_center()
-                - scene.camera.cam_from_world.camera_center())
-            .norm()
-                < 0.1
-        );
-        assert!(estimate.inlier_rms_px < 0.75);
+        for (choice, solver) in [
+            (FixedIntrinsicsSolver::Epnp, SolverKind::Epnp),
+            (FixedIntrinsicsSolver::P3p, SolverKind::P3p),
+        ] {
+            let config = PoseEstimationConfig {
+                fixed_intrinsics_solver: choice,
+                ..PoseEstimationConfig::default()
+            };
+            let estimate =
+                estimate_pose(&data, &prior, &config, &mut ChaCha8Rng::seed_from_u64(1)).unwrap();
+            assert_eq!(estimate.solver, solver);
+            assert_eq!(estimate.intrinsics_source, IntrinsicsSource::Known);
+            assert_eq!(estimate.camera.intrinsics, scene.camera.intrinsics);
+            assert!(
+                rotation_error_deg(
+                    &estimate.camera.cam_from_world,
+                    &scene.camera.cam_from_world
+                ) < 0.1
+            );
+            assert!(
+                (estimate.camera.cam_from_world.camera_center()
+                    - scene.camera.cam_from_world.camera_center())
+                .norm()
+                    < 0.1
+            );
+            assert!(estimate.inlier_rms_px < 0.75);
+        }
     }
 
     #[test]
@@ -349,7 +394,8 @@ mod tests {
             &mut ChaCha8Rng::seed_from_u64(1),
         )
         .unwrap();
-        assert_eq!(estimate.solver, SolverKind::EpnpPlanarFallback);
+        assert_eq!(estimate.solver, SolverKind::Epnp);
+        assert_eq!(estimate.intrinsics_source, IntrinsicsSource::PlanarFallback);
         assert_eq!(estimate.camera.intrinsics, fallback);
         assert!(
             rotation_error_deg(

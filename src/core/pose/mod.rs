@@ -4,6 +4,7 @@
 //! - [`dlt`]: normalised DLT on ≥ 6 points, decomposed into `K` and `cam_from_world` (unknown
 //!   intrinsics, the paper's solver);
 //! - [`epnp`]: EPnP on ≥ 4 points (known intrinsics), with its planar three-control-point variant;
+//! - [`p3p`]: Grunert's P3P (known intrinsics), the minimal alternative inside RANSAC;
 //! - [`refine`]: Levenberg–Marquardt on the reprojection error of the inliers;
 //! - [`ransac`]: the generic RANSAC loop (estimator / sampler / consensus, seeded RNG passed in) with
 //!   the paper's stopping rule, and the DLT and EPnP estimators;
@@ -17,15 +18,19 @@
 pub mod dlt;
 pub mod epnp;
 pub mod estimate;
+pub mod p3p;
 pub mod planarity;
 pub mod ransac;
 pub mod refine;
 
 pub use estimate::{
-    estimate_pose, IntrinsicsPrior, PoseEstimate, PoseEstimationConfig, RansacSummary, SolverKind,
+    estimate_pose, FixedIntrinsicsSolver, IntrinsicsPrior, IntrinsicsSource, PoseEstimate,
+    PoseEstimationConfig, RansacSummary, SolverKind,
 };
 pub use planarity::{point_cloud_shape, PointCloudShape};
-pub use ransac::{ransac_camera, DltEstimator, EpnpEstimator, RansacConfig, RansacOutput};
+pub use ransac::{
+    ransac_camera, DltEstimator, EpnpEstimator, P3pEstimator, RansacConfig, RansacOutput,
+};
 pub use refine::{refine_camera, RefineConfig, RefineStop, RefinedParameters, RefinementSummary};
 
 use nalgebra::{Matrix3x4, Vector2, Vector3, Vector4};
