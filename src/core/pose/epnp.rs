@@ -36,7 +36,10 @@ pub const EPNP_MIN_POINTS: usize = 4;
 /// Planarity ratio (see [`super::PointCloudShape::planarity_ratio`]) below which the three-control-
 /// point (planar) variant is used. Control points are scaled by the points' spread, so the
 /// four-point variant stays well conditioned down to very thin clouds; it breaks only when the
-/// third spread vanishes.
+/// third spread is numerically zero (exactly planar points, ratio ~1e-8). Measured at 0.5 px noise
+/// (200 scenes per row, ratios 1e-8 to 5e-3): both variants give the same rotation error within
+/// about 10 % — the planar one slightly better on 5–6-point samples, the general one on 200
+/// points — so the switch sits well above numerical zero and well below real relief.
 pub const EPNP_PLANAR_RATIO: f64 = 1e-4;
 
 /// Gauss–Newton iterations on the betas (the authors' code uses 5; it converges in 2–3).
@@ -79,6 +82,18 @@ pub fn solve_with_variant(
     } else {
         EpnpVariant::General
     };
+    solve_variant(intrinsics, image_points_px, world_points, &shape, variant)
+        .map(|pose| (pose, variant))
+}
+
+/// The EPnP core for a chosen variant (inputs already checked).
+fn solve_variant(
+    intrinsics: &PinholeIntrinsics,
+    image_points_px: &[Vector2<f64>],
+    world_points: &[Vector3<f64>],
+    shape: &super::PointCloudShape,
+    variant: EpnpVariant,
+) -> Result<Rigid3, PoseError> {
     let control_count = match variant {
         EpnpVariant::Planar => 3,
         EpnpVariant::General => 4,
@@ -212,10 +227,9 @@ pub fn solve_with_variant(
             best = Some((error, pose));
         }
     }
-    best.map(|(_, pose)| (pose, variant))
-        .ok_or(PoseError::Degenerate {
-            why: "no EPnP candidate put the points in front of the camera",
-        })
+    best.map(|(_, pose)| pose).ok_or(PoseError::Degenerate {
+        why: "no EPnP candidate put the points in front of the camera",
+    })
 }
 
 /// The βs for `beta_count` kernel vectors from the linearised distance constraints.
@@ -313,7 +327,7 @@ fn refine_betas(betas: &mut [f64], dots: &[[[f64; 4]; 4]], squared_distances: &[
         for (beta, delta) in betas.iter_mut().zip(step.iter()) {
             *beta += delta;
         }
-        if step.norm() < 1e-14 * (1.0 + betas.iter().map(|b| b * b).sum::<f64>().sqrt()) {
+        if step.norm() < 1e-10 * (1.0 + betas.iter().map(|b| b * b).sum::<f64>().sqrt()) {
             return;
         }
     }

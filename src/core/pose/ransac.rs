@@ -269,6 +269,11 @@ where
     while iterations < config.max_iterations {
         iterations += 1;
         sampler.sample(data.len(), sample_size, rng, &mut indices);
+        if indices.len() != sample_size || indices.iter().any(|&i| i >= data.len()) {
+            // A sampler breaking its contract wastes the iteration instead of panicking.
+            degenerate_samples += 1;
+            continue;
+        }
         gather(data, &indices, &mut sample_image, &mut sample_world);
         let Ok(model) = estimator.fit(&sample_image, &sample_world) else {
             degenerate_samples += 1;
@@ -744,6 +749,44 @@ mod tests {
             ransac_camera(&estimator, &data, &config, &mut rng),
             Err(PoseError::NoModel { .. })
         ));
+    }
+
+    #[test]
+    fn a_sampler_returning_bad_indices_costs_iterations_not_a_panic() {
+        struct OutOfRange;
+        impl Sampler for OutOfRange {
+            fn sample<R: Rng + ?Sized>(
+                &mut self,
+                population: usize,
+                sample_size: usize,
+                _: &mut R,
+                indices: &mut Vec<usize>,
+            ) {
+                indices.clear();
+                indices.extend((0..sample_size).map(|i| population + i));
+            }
+        }
+        let scene = contaminated_scene(95, 50);
+        let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
+        let config = RansacConfig {
+            max_iterations: 10,
+            ..RansacConfig::default()
+        };
+        let consensus = ReprojectionConsensus { threshold_px: 4.0 };
+        assert_eq!(
+            run_ransac(
+                &DltEstimator,
+                &mut OutOfRange,
+                &consensus,
+                &data,
+                &config,
+                &mut ChaCha8Rng::seed_from_u64(0)
+            ),
+            Err(PoseError::NoModel {
+                iterations: 10,
+                degenerate_samples: 10
+            })
+        );
     }
 
     #[test]
