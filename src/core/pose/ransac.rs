@@ -13,9 +13,9 @@
 //! (confidence-based) stop: the paper did not use one, and a fixed rule keeps runs comparable.
 //!
 //! Estimators: [`DltEstimator`] (unknown intrinsics, 6 points, the paper's), [`EpnpEstimator`]
-//! (known intrinsics, 4–6 points, default 5: four is minimal but EPnP's `N = 4` case is the least
-//! stable one — on exact data it lands in a wrong basin about 15 % of the time — while five costs
-//! little in iterations: at 50 % outliers a clean sample has probability 1/32 rather than 1/16,
+//! (known intrinsics, 4–6 points, default 5: four is minimal but EPnP's `N = 4` case is its least
+//! stable one — [`super::epnp`] adds P3P candidates to make it exact on exact data — while five
+//! costs little in iterations: at 50 % outliers a clean sample has probability 1/32 rather than 1/16,
 //! still 1 − 10⁻⁷ over 500 iterations; six makes it 1/64) and [`P3pEstimator`] (known intrinsics,
 //! P3P on 3 points + 1 to choose among its solutions: the smallest sample).
 
