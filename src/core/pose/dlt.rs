@@ -140,7 +140,7 @@ pub fn decompose_projection_matrix(
         })?;
     let intrinsics = PinholeIntrinsics::from_k_matrix(&upper);
     intrinsics.validate()?;
-    let cam_from_world = Rigid3::from_rotation_matrix(&rotation, translation);
+    let cam_from_world = super::rigid_from_orthonormal(&rotation, translation);
     if !cam_from_world.is_finite() {
         return Err(PoseError::Degenerate {
             why: "the decomposed pose is not finite",

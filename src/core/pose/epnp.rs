@@ -401,7 +401,7 @@ pub fn rigid_from_point_pairs(
     }
     let rotation = u * correction * v_t;
     let translation = centroid_b - rotation * centroid_a;
-    let pose = Rigid3::from_rotation_matrix(&rotation, translation);
+    let pose = super::rigid_from_orthonormal(&rotation, translation);
     pose.is_finite().then_some(pose)
 }
 

@@ -33,7 +33,7 @@ pub use ransac::{
 };
 pub use refine::{refine_camera, RefineConfig, RefineStop, RefinedParameters, RefinementSummary};
 
-use nalgebra::{Matrix3x4, Vector2, Vector3, Vector4};
+use nalgebra::{Matrix3, Matrix3x4, Rotation3, UnitQuaternion, Vector2, Vector3, Vector4};
 
 use crate::core::camera::{CameraError, PinholeIntrinsics, MIN_DEPTH_M};
 use crate::core::rigid::Rigid3;
@@ -189,6 +189,15 @@ impl CameraPose {
     pub fn is_finite(&self) -> bool {
         self.cam_from_world.is_finite() && self.intrinsics.validate().is_ok()
     }
+}
+
+/// A pose from a rotation matrix that is orthonormal to rounding (from an SVD or QR), without the
+/// iterative re-orthonormalisation of `Rotation3::from_matrix` (a sixth of EPnP's time).
+pub(crate) fn rigid_from_orthonormal(rotation: &Matrix3<f64>, translation: Vector3<f64>) -> Rigid3 {
+    Rigid3::new(
+        UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(*rotation)),
+        translation,
+    )
 }
 
 /// Projects with a precomputed `P = K [R | t]`; `None` when the point is not in front of the camera.
