@@ -2,16 +2,18 @@
 //! shape, pick the solver, run RANSAC, refine on the inliers, re-score.
 //!
 //! Solver choice and the planar policy:
-//! - **known intrinsics** → EPnP inside RANSAC (its planar variant when the sample is planar), then
-//!   Levenberg–Marquardt on the pose (6 DoF);
+//! - **known intrinsics** → EPnP (or P3P, [`FixedIntrinsicsSolver`]) inside RANSAC — EPnP switches
+//!   to its planar variant for planar samples — then Levenberg–Marquardt on the pose (6 DoF);
 //! - **unknown intrinsics** → the paper's normalised DLT on 6 points, then Levenberg–Marquardt on
-//!   `fx, fy, cx, cy` and the pose (skew kept). A DLT needs relief: when the planarity ratio of all
-//!   3D points (smallest over largest principal standard deviation, [`PointCloudShape`]) is below
+//!   `fx, fy, cx, cy` and the pose, from skew 0 (`zero_skew`, the default) or the DLT's skew.
+//!   A DLT needs relief: when the planarity ratio of all 3D points (smallest over largest
+//!   principal standard deviation, [`PointCloudShape`]) is below
 //!   [`PoseEstimationConfig::dlt_min_planarity_ratio`], intrinsics are not observable from one
 //!   view and the DLT's `K` is noise. Then, if the caller gave `planar_fallback` intrinsics (for
 //!   example the initial guess or the camera's nominal values), the pose is solved with them fixed
-//!   by EPnP or P3P ([`IntrinsicsSource::PlanarFallback`]); otherwise the step refuses with
-//!   [`PoseError::NearPlanar`], naming the ratio, instead of returning a made-up camera.
+//!   ([`IntrinsicsSource::PlanarFallback`], the fixed-intrinsics solver above); otherwise the step
+//!   refuses with [`PoseError::NearPlanar`], naming the ratio, instead of returning a made-up
+//!   camera.
 //!
 //! The shape is always reported, so the verification can say "near-planar view" when it fails.
 
@@ -56,6 +58,10 @@ pub struct PoseEstimationConfig {
     /// the DLT + LM focal length error grows about as 0.08 % / ratio — 0.2 % at 0.5, 1.6 % at 0.05,
     /// 3–4.5 % at 0.025, 7–9 % at 0.013, 17–19 % at 0.005, 50–90 % at 0.0013.
     pub dlt_min_planarity_ratio: f64,
+    /// With estimated intrinsics, refine from skew 0 and keep it there, so the result is a physical
+    /// camera (COLMAP PINHOLE cannot store skew); false keeps the DLT's (noisy) skew. Only applies
+    /// when refinement runs.
+    pub zero_skew: bool,
 }
 
 impl Default for PoseEstimationConfig {
@@ -66,6 +72,7 @@ impl Default for PoseEstimationConfig {
             fixed_intrinsics_solver: FixedIntrinsicsSolver::default(),
             epnp_sample_size: EpnpEstimator::DEFAULT_SAMPLE_SIZE,
             dlt_min_planarity_ratio: 0.02,
+            zero_skew: true,
         }
     }
 }
@@ -133,7 +140,7 @@ pub struct RansacSummary {
 }
 
 /// The camera found for one set of correspondences, and how.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseEstimate {
     /// Intrinsics (estimated, known or fallback) and `cam_from_world`.
     pub camera: CameraPose,
@@ -228,8 +235,12 @@ pub fn estimate_pose<R: Rng + ?Sized>(
             .filter(|(_, &inlier)| inlier)
             .map(|((image_point, world_point), _)| (*image_point, *world_point))
             .unzip();
+        let mut start = camera;
+        if config.zero_skew && intrinsics_source == IntrinsicsSource::Estimated {
+            start.intrinsics.skew_px = 0.0;
+        }
         if let Ok((refined, summary)) = refine_camera(
-            &camera,
+            &start,
             &inlier_image,
             &inlier_world,
             refined_parameters,
@@ -292,6 +303,8 @@ mod tests {
             )
             .unwrap();
             assert_eq!(estimate.solver, SolverKind::Dlt);
+            assert_eq!(estimate.intrinsics_source, IntrinsicsSource::Estimated);
+            assert_eq!(estimate.camera.intrinsics.skew_px, 0.0);
             let refinement = estimate.refinement.unwrap();
             assert!(refinement.final_rms_px <= refinement.initial_rms_px);
             // 0.5 px per axis: the RMS distance of a 2D Gaussian is 0.71 px.
@@ -317,6 +330,24 @@ mod tests {
             );
             assert!(estimate.point_cloud_shape.planarity_ratio > 0.1);
         }
+    }
+
+    #[test]
+    fn zero_skew_can_be_turned_off() {
+        let scene = scene(205, 15.0);
+        let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
+        let prior = IntrinsicsPrior::Unknown {
+            planar_fallback: None,
+        };
+        let config = PoseEstimationConfig {
+            zero_skew: false,
+            ..PoseEstimationConfig::default()
+        };
+        let estimate =
+            estimate_pose(&data, &prior, &config, &mut ChaCha8Rng::seed_from_u64(0)).unwrap();
+        // The DLT's skew is noise, never exactly zero, and refinement keeps it.
+        assert_ne!(estimate.camera.intrinsics.skew_px, 0.0);
+        assert!(estimate.camera.intrinsics.skew_px.abs() < 10.0);
     }
 
     #[test]
