@@ -27,7 +27,7 @@ pub use estimate::{
     estimate_pose, FixedIntrinsicsSolver, IntrinsicsPrior, IntrinsicsSource, PoseEstimate,
     PoseEstimationConfig, RansacSummary, SolverKind,
 };
-pub use planarity::{point_cloud_shape, PointCloudShape};
+pub use planarity::{depth_relief_ratio, point_cloud_shape, PointCloudShape};
 pub use ransac::{
     ransac_camera, DltEstimator, EpnpEstimator, P3pEstimator, RansacConfig, RansacOutput,
 };
