@@ -280,7 +280,13 @@ fn initial_betas(
         }
     });
     let rhs = DVector::from_column_slice(squared_distances);
-    let solution = system.svd(true, true).solve(&rhs, 1e-12).ok()?;
+    if !system.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let solution = system
+        .try_svd(true, true, f64::EPSILON, 1000)?
+        .solve(&rhs, 1e-12)
+        .ok()?;
     let b11 = solution[0];
     let beta1 = b11.abs().sqrt();
     if !exceeds(beta1, 0.0) {

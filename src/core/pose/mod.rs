@@ -322,3 +322,119 @@ pub(crate) mod test_scenes {
         a.rotation_angle_to_rad(b).to_degrees()
     }
 }
+
+#[cfg(test)]
+mod robustness_tests {
+    //! Hostile input: every solver returns (an error or a model), none panics.
+
+    use super::test_scenes::{random_scene, test_intrinsics};
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn hostile_value<R: Rng>(rng: &mut R) -> f64 {
+        const SPECIAL: [f64; 8] = [
+            0.0,
+            -0.0,
+            1e300,
+            -1e300,
+            1e-300,
+            f64::MIN_POSITIVE,
+            1.0,
+            1e8,
+        ];
+        if rng.random_bool(0.3) {
+            SPECIAL[rng.random_range(0..SPECIAL.len())]
+        } else {
+            rng.random_range(-100.0..100.0)
+        }
+    }
+
+    #[test]
+    fn no_solver_panics_on_extreme_or_repeated_values() {
+        let mut rng = ChaCha8Rng::seed_from_u64(77);
+        let intrinsics = test_intrinsics();
+        let ransac_config = RansacConfig {
+            max_iterations: 20,
+            ..RansacConfig::default()
+        };
+        for trial in 0..3000 {
+            let count = rng.random_range(0..16);
+            let mut image_points_px: Vec<Vector2<f64>> = (0..count)
+                .map(|_| Vector2::new(hostile_value(&mut rng), hostile_value(&mut rng)))
+                .collect();
+            let world_points: Vec<Vector3<f64>> = (0..count)
+                .map(|_| {
+                    Vector3::new(
+                        hostile_value(&mut rng),
+                        hostile_value(&mut rng),
+                        hostile_value(&mut rng),
+                    )
+                })
+                .collect();
+            if trial % 3 == 0 && count > 1 {
+                let first = image_points_px[0];
+                image_points_px.iter_mut().for_each(|p| *p = first);
+            }
+            let _ = dlt::solve(&image_points_px, &world_points);
+            let _ = epnp::solve(&intrinsics, &image_points_px, &world_points);
+            let _ = p3p::solve(&intrinsics, &image_points_px, &world_points);
+            let _ = planarity::point_cloud_shape(&world_points);
+            if let Ok(data) = Correspondences::new(&image_points_px, &world_points) {
+                for prior in [
+                    IntrinsicsPrior::Known(intrinsics),
+                    IntrinsicsPrior::Unknown {
+                        planar_fallback: Some(intrinsics),
+                    },
+                ] {
+                    let config = PoseEstimationConfig {
+                        ransac: ransac_config,
+                        ..PoseEstimationConfig::default()
+                    };
+                    let _ = estimate_pose(&data, &prior, &config, &mut rng);
+                }
+            }
+            let camera = CameraPose {
+                intrinsics,
+                cam_from_world: Rigid3::identity(),
+            };
+            for parameters in [
+                RefinedParameters::Pose,
+                RefinedParameters::IntrinsicsAndPose,
+            ] {
+                let _ = refine_camera(
+                    &camera,
+                    &image_points_px,
+                    &world_points,
+                    parameters,
+                    &RefineConfig::default(),
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn solvers_work_far_from_the_origin() {
+        // World coordinates near a UTM origin (should have been shifted, but must still work).
+        let mut rng = ChaCha8Rng::seed_from_u64(78);
+        let scene = random_scene(&mut rng, test_intrinsics(), 50, 15.0);
+        let offset = Vector3::new(5e5, 5e6, 300.0);
+        let world_points: Vec<Vector3<f64>> =
+            scene.world_points.iter().map(|p| p + offset).collect();
+        let truth = scene
+            .camera
+            .cam_from_world
+            .compose(&Rigid3::new(nalgebra::UnitQuaternion::identity(), -offset));
+        let (_, pose) = dlt::solve(&scene.image_points_px, &world_points).unwrap();
+        assert!(pose.rotation_angle_to_rad(&truth).to_degrees() < 1e-4);
+        assert!((pose.camera_center() - truth.camera_center()).norm() < 1e-3);
+        let pose = epnp::solve(
+            &scene.camera.intrinsics,
+            &scene.image_points_px,
+            &world_points,
+        )
+        .unwrap();
+        assert!(pose.rotation_angle_to_rad(&truth).to_degrees() < 1e-4);
+        assert!((pose.camera_center() - truth.camera_center()).norm() < 1e-3);
+    }
+}

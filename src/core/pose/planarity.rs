@@ -52,6 +52,11 @@ pub fn point_cloud_shape(world_points: &[Vector3<f64>]) -> Result<PointCloudShap
         covariance_m2 += centred * centred.transpose();
     }
     covariance_m2 /= count;
+    if !covariance_m2.iter().all(|v| v.is_finite()) {
+        return Err(PoseError::Degenerate {
+            why: "the spread of the 3D points overflows",
+        });
+    }
     let eigen =
         SymmetricEigen::try_new(covariance_m2, f64::EPSILON, 100).ok_or(PoseError::Degenerate {
             why: "the covariance of the 3D points did not diagonalise",
