@@ -2,10 +2,10 @@
 //! intrinsics and pose: the paper's solver for unknown intrinsics (DESIGN.md §2 step 6).
 //!
 //! Reference: R. Hartley, A. Zisserman, *Multiple View Geometry in Computer Vision*, 2nd ed., 2003:
-//! Algorithm 7.1 (normalised DLT for `P`: 2D points to centroid 0 and mean distance √2, 3D points to
-//! centroid 0 and mean distance √3, `P` = the right singular vector of the smallest singular value
-//! of the stacked `2n × 12` system, then de-normalised), and §6.2.4 (decomposition `P = K [R | t]`
-//! by RQ decomposition of the left 3×3 block).
+//! Algorithm 7.1 (normalised DLT for `P`: 2D points to centroid 0 and mean distance √2, 3D points
+//! to centroid 0 and mean distance √3, `P` = the right singular vector of the smallest singular
+//! value of the stacked `2n × 12` system, then de-normalised), and §6.2.4 (decomposition
+//! `P = K [R | t]` by RQ decomposition of the left 3×3 block).
 //!
 //! Preconditions:
 //! - at least [`DLT_MIN_POINTS`] = 6 correspondences (11 DoF, two equations each), all finite;
@@ -15,9 +15,9 @@
 //!   callers check [`super::planarity::point_cloud_shape`] first (see [`super::estimate`]);
 //! - image points are undistorted pixels; the camera centre is not at infinity (`det M ≠ 0`).
 //!
-//! The returned `K` is upper triangular with positive focal lengths and a free skew; `R` is a proper
-//! rotation (the sign of `P`, which the DLT leaves open, is fixed so that `det M > 0`, which puts
-//! the observed points in front of the camera when the fit is right).
+//! The returned `K` is upper triangular with positive focal lengths and a free skew; `R` is a
+//! proper rotation (the sign of `P`, which the DLT leaves open, is fixed so that `det M > 0`, which
+//! puts the observed points in front of the camera when the fit is right).
 
 use nalgebra::{DMatrix, Matrix3, Matrix3x4, Matrix4, Vector2, Vector3};
 

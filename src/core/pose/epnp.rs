@@ -18,7 +18,8 @@
 //! - the world points must not be collinear (or coincide): [`PoseError::Degenerate`];
 //! - **planar scenes**: when the points' planarity ratio (smallest over largest principal standard
 //!   deviation) is below [`EPNP_PLANAR_RATIO`], the paper's planar variant is used: three control
-//!   points spanning the plane, `M` is `2n × 9`, `N = 1..3`. Otherwise four control points, `N = 1..4`;
+//!   points spanning the plane, `M` is `2n × 9`, `N = 1..3`. Otherwise four control points,
+//!   `N = 1..4`;
 //! - with exactly 4 non-planar points the kernel is 4-dimensional and the `N = 4` approximation
 //!   starts Gauss–Newton in a wrong basin on about 15 % of exact samples; for 4 points the P3P
 //!   solutions of the first three ([`super::p3p`]) are added as candidates, so the 4-point case
@@ -125,7 +126,8 @@ fn solve_variant(
         .map(|p| intrinsics.pixel_to_normalized(*p))
         .collect();
 
-    // MᵀM, accumulated row by row: each point gives [αⱼ, 0, -αⱼ x] and [0, αⱼ, -αⱼ y] per control j.
+    // MᵀM, accumulated row by row: per control point j, each point gives the rows
+    // [αⱼ, 0, -αⱼ x] and [0, αⱼ, -αⱼ y].
     let dimension = 3 * control_count;
     let mut normal_matrix = DMatrix::<f64>::zeros(dimension, dimension);
     let mut row_u = [0.0; 12];

@@ -1,13 +1,13 @@
-//! Pose solving (DESIGN.md §2 step 6): from 2D–3D correspondences (a photo pixel and the model point
-//! a rendering put there) to a camera, robustly.
+//! Pose solving (DESIGN.md §2 step 6): from 2D–3D correspondences (a photo pixel and the model
+//! point a rendering put there) to a camera, robustly.
 //!
 //! - [`dlt`]: normalised DLT on ≥ 6 points, decomposed into `K` and `cam_from_world` (unknown
 //!   intrinsics, the paper's solver);
 //! - [`epnp`]: EPnP on ≥ 4 points (known intrinsics), with its planar three-control-point variant;
 //! - [`p3p`]: Grunert's P3P (known intrinsics), the minimal alternative inside RANSAC;
 //! - [`refine`]: Levenberg–Marquardt on the reprojection error of the inliers;
-//! - [`ransac`]: the generic RANSAC loop (estimator / sampler / consensus, seeded RNG passed in) with
-//!   the paper's stopping rule, and the DLT and EPnP estimators;
+//! - [`ransac`]: the generic RANSAC loop (estimator / sampler / consensus, seeded RNG passed in)
+//!   with the paper's stopping rule, and the DLT, EPnP and P3P estimators;
 //! - [`planarity`]: how close the 3D points are to a plane (the paper's main failure case);
 //! - [`estimate`]: the whole step for one coarse pose — RANSAC, refinement, planar policy.
 //!
@@ -200,7 +200,8 @@ pub(crate) fn rigid_from_orthonormal(rotation: &Matrix3<f64>, translation: Vecto
     )
 }
 
-/// Projects with a precomputed `P = K [R | t]`; `None` when the point is not in front of the camera.
+/// Projects with a precomputed `P = K [R | t]`; `None` when the point is not in front of the
+/// camera.
 #[inline]
 pub(crate) fn project_with_matrix(
     projection: &Matrix3x4<f64>,

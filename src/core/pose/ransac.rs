@@ -3,10 +3,10 @@
 //! correct ones agree on.
 //!
 //! References: M. Fischler, R. Bolles, "Random Sample Consensus", CACM 24(6), 1981; local
-//! optimisation after O. Chum, J. Matas, J. Kittler, "Locally Optimized RANSAC", DAGM 2003 (here the
-//! simple variant: re-fit a new best model on its inliers, twice). Structure after kornia-rs: an
-//! [`Estimator`] (the solver), a [`Sampler`] (distinct indices drawn with the RNG passed in, so a
-//! seed reproduces a run exactly) and a [`Consensus`] (inliers by reprojection error in pixels).
+//! optimisation after O. Chum, J. Matas, J. Kittler, "Locally Optimized RANSAC", DAGM 2003 (here
+//! the simple variant: re-fit a new best model on its inliers, twice). Structure after kornia-rs:
+//! an [`Estimator`] (the solver), a [`Sampler`] (distinct indices drawn with the RNG passed in, so
+//! a seed reproduces a run exactly) and a [`Consensus`] (inliers by reprojection error in pixels).
 //!
 //! The stopping rule is the paper's (§3, "Pose Estimation"): stop as soon as the best consensus
 //! holds 65 % of all correspondences, otherwise after 500 iterations. No adaptive
@@ -15,9 +15,9 @@
 //! Estimators: [`DltEstimator`] (unknown intrinsics, 6 points, the paper's), [`EpnpEstimator`]
 //! (known intrinsics, 4–6 points, default 5: four is minimal but EPnP's `N = 4` case is its least
 //! stable one — [`super::epnp`] adds P3P candidates to make it exact on exact data — while five
-//! costs little in iterations: at 50 % outliers a clean sample has probability 1/32 rather than 1/16,
-//! still 1 − 10⁻⁷ over 500 iterations; six makes it 1/64) and [`P3pEstimator`] (known intrinsics,
-//! P3P on 3 points + 1 to choose among its solutions: the smallest sample).
+//! costs little in iterations: at 50 % outliers a clean sample has probability 1/32 rather than
+//! 1/16, still 1 − 10⁻⁷ over 500 iterations; six makes it 1/64) and [`P3pEstimator`] (known
+//! intrinsics, P3P on 3 points + 1 to choose among its solutions: the smallest sample).
 
 use nalgebra::{Matrix3x4, Vector2, Vector3};
 use rand::Rng;
@@ -31,7 +31,8 @@ use crate::core::camera::PinholeIntrinsics;
 #[serde(default, deny_unknown_fields)]
 pub struct RansacConfig {
     /// A correspondence supports a model when its reprojection error is at most this, in pixels.
-    /// The paper does not state its value; 4 px allows for SIFT flow's integer flow and a noisy mesh.
+    /// The paper does not state its value; 4 px allows for SIFT flow's integer flow and a noisy
+    /// mesh.
     pub threshold_px: f64,
     /// Iterations (samples drawn) at most. Paper: 500.
     pub max_iterations: usize,

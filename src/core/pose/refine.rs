@@ -3,16 +3,16 @@
 //! only used once the reprojection error over all inliers is minimised.
 //!
 //! Method: K. Levenberg (1944), D. Marquardt (1963), with Marquardt's diagonal scaling
-//! (`(JᵀJ + λ diag JᵀJ) δ = −Jᵀr`), as in Hartley & Zisserman 2003, Appendix A6.2. The residuals are
-//! the pixel differences between projected world points and image points; the Jacobian is
+//! (`(JᵀJ + λ diag JᵀJ) δ = −Jᵀr`), as in Hartley & Zisserman 2003, Appendix A6.2. The residuals
+//! are the pixel differences between projected world points and image points; the Jacobian is
 //! analytic. The rotation is updated by an axis-angle increment about the camera centre
 //! (`R ← exp([ω]×) R`, `t ← exp([ω]×) t + δt`), so the parameterisation has no singularity.
 //!
 //! Preconditions: every given point is in front of the start camera (inliers are), at least 3
-//! points for the pose alone and 5 with the intrinsics, finite input. Steps that raise the cost, put
-//! a point behind the camera or make a focal length non-positive are rejected (the damping grows),
-//! so a bad start never gets worse. Skew is kept at its starting value (0 for a physical camera,
-//! the DLT's value otherwise); distortion is not modelled.
+//! points for the pose alone and 5 with the intrinsics, finite input. Steps that raise the cost,
+//! put a point behind the camera or make a focal length non-positive are rejected (the damping
+//! grows), so a bad start never gets worse. Skew is kept at its starting value (0 for a physical
+//! camera, the DLT's value otherwise); distortion is not modelled.
 
 use nalgebra::{DMatrix, DVector, Rotation3, UnitQuaternion, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
