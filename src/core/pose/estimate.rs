@@ -55,8 +55,8 @@ pub struct PoseEstimationConfig {
     /// the DLT is used for unknown intrinsics. 0.02: a flat town 100 m across with 5–10 m of relief
     /// is about 0.03–0.05 and passes; a façade seen head-on, or a patch of ground, does not.
     /// Measured (test `dlt_accuracy_against_planarity`, 300 inliers at 0.5 px, camera 60 m away):
-    /// the DLT + LM focal length error grows about as 0.08 % / ratio — 0.2 % at 0.5, 1.6 % at 0.05,
-    /// 3–4.5 % at 0.025, 7–9 % at 0.013, 17–19 % at 0.005, 50–90 % at 0.0013.
+    /// the DLT + LM focal length error (median–worst of 5) grows about as 0.08 % / ratio: 0.2 % at
+    /// 0.5, 1.5–2 % at 0.05, 3–3.6 % at 0.025, 6–6.6 % at 0.013, 14–16 % at 0.005, 40–85 % at 0.0013.
     pub dlt_min_planarity_ratio: f64,
     /// With estimated intrinsics, refine from skew 0 and keep it there, so the result is a physical
     /// camera (COLMAP PINHOLE cannot store skew); false keeps the DLT's (noisy) skew. Only applies
