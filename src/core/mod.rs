@@ -4,6 +4,7 @@
 
 pub mod camera;
 pub mod mesh;
+pub mod pose;
 pub mod raster;
 pub mod reprojection;
 pub mod rigid;
