@@ -9,3 +9,4 @@ pub mod raster;
 pub mod reprojection;
 pub mod rigid;
 pub mod shading;
+pub mod verify;
