@@ -197,7 +197,7 @@ pub fn verify_hypotheses(
     let accepted = component.len() >= config.min_component_size;
     Verdict {
         accepted,
-        rejection: (!accepted).then(|| RejectionReason::NoAgreement {
+        rejection: (!accepted).then_some(RejectionReason::NoAgreement {
             largest_component: component.len(),
             required: config.min_component_size,
         }),
@@ -230,9 +230,9 @@ fn largest_component(
         component_of[start] = start;
         while let Some(node) = stack.pop() {
             members.push(node);
-            for other in 0..n {
-                if component_of[other] == usize::MAX && compatible(node, other) {
-                    component_of[other] = start;
+            for (other, label) in component_of.iter_mut().enumerate() {
+                if *label == usize::MAX && compatible(node, other) {
+                    *label = start;
                     stack.push(other);
                 }
             }
