@@ -3,8 +3,10 @@
 //! randomness is passed in; hot paths write into caller-provided buffers.
 
 pub mod camera;
+pub mod dense_sift;
 pub mod mesh;
 pub mod raster;
 pub mod reprojection;
 pub mod rigid;
 pub mod shading;
+pub mod sift_flow;
