@@ -71,9 +71,13 @@ impl Default for DenseSiftConfig {
 impl DenseSiftConfig {
     /// Checks every field once; call before the hot path.
     pub fn validate(&self) -> Result<(), FlowError> {
-        let bad = |field: &'static str, reason: String| Err(FlowError::InvalidConfig { field, reason });
+        let bad =
+            |field: &'static str, reason: String| Err(FlowError::InvalidConfig { field, reason });
         if !(1..=32).contains(&self.cell_size_px) {
-            return bad("cell_size_px", format!("{} is not in 1..=32", self.cell_size_px));
+            return bad(
+                "cell_size_px",
+                format!("{} is not in 1..=32", self.cell_size_px),
+            );
         }
         if !(1..=64).contains(&self.orientation_sharpness) {
             return bad(
@@ -82,9 +86,13 @@ impl DenseSiftConfig {
             );
         }
         if !(self.normalisation_floor.is_finite() && self.normalisation_floor > 0.0) {
-            return bad("normalisation_floor", format!("{} is not > 0", self.normalisation_floor));
+            return bad(
+                "normalisation_floor",
+                format!("{} is not > 0", self.normalisation_floor),
+            );
         }
-        if !(self.presmoothing_sigma_px.is_finite() && (0.0..=10.0).contains(&self.presmoothing_sigma_px))
+        if !(self.presmoothing_sigma_px.is_finite()
+            && (0.0..=10.0).contains(&self.presmoothing_sigma_px))
         {
             return bad(
                 "presmoothing_sigma_px",
@@ -117,14 +125,26 @@ impl DenseSiftImage {
     /// Writes `textured[p] = support_gradient[p] >= min_support_gradient` into the caller's buffer.
     pub fn textured_mask(&self, min_support_gradient: f32, textured: &mut Vec<bool>) {
         textured.clear();
-        textured.extend(self.support_gradient.iter().map(|&gradient| gradient >= min_support_gradient));
+        textured.extend(
+            self.support_gradient
+                .iter()
+                .map(|&gradient| gradient >= min_support_gradient),
+        );
     }
 
     pub(crate) fn resize(&mut self, width_px: usize, height_px: usize, with_support: bool) {
         self.width_px = width_px;
         self.height_px = height_px;
-        self.descriptors.resize(width_px * height_px * DESCRIPTOR_LEN, 0);
-        self.support_gradient.resize(if with_support { width_px * height_px } else { 0 }, 0.0);
+        self.descriptors
+            .resize(width_px * height_px * DESCRIPTOR_LEN, 0);
+        self.support_gradient.resize(
+            if with_support {
+                width_px * height_px
+            } else {
+                0
+            },
+            0.0,
+        );
     }
 }
 
@@ -151,7 +171,11 @@ pub fn compute_dense_sift(
 ) -> Result<(), FlowError> {
     config.validate()?;
     if width_px == 0 || height_px == 0 || image.len() != width_px * height_px {
-        return Err(FlowError::ImageSize { width_px, height_px, values: image.len() });
+        return Err(FlowError::ImageSize {
+            width_px,
+            height_px,
+            values: image.len(),
+        });
     }
     let pixel_count = width_px * height_px;
     let ws = workspace;
@@ -179,7 +203,14 @@ pub fn compute_dense_sift(
     // 1. Derivatives.
     ws.gradient_x.resize(pixel_count, 0.0);
     ws.gradient_y.resize(pixel_count, 0.0);
-    compute_gradients(source, width_px, height_px, config.gradient_filter, &mut ws.gradient_x, &mut ws.gradient_y);
+    compute_gradients(
+        source,
+        width_px,
+        height_px,
+        config.gradient_filter,
+        &mut ws.gradient_x,
+        &mut ws.gradient_y,
+    );
 
     // 2. Orientation bands (8 energies + magnitude per pixel).
     ws.bands.resize(pixel_count * BAND_CHANNELS, 0.0);
@@ -190,11 +221,23 @@ pub fn compute_dense_sift(
     let sharpness = config.orientation_sharpness;
     ws.bands
         .par_chunks_mut(width_px * BAND_CHANNELS)
-        .zip(ws.gradient_x.par_chunks(width_px).zip(ws.gradient_y.par_chunks(width_px)))
+        .zip(
+            ws.gradient_x
+                .par_chunks(width_px)
+                .zip(ws.gradient_y.par_chunks(width_px)),
+        )
         .for_each(|(band_row, (gx_row, gy_row))| {
-            for ((bands, &gx), &gy) in band_row.chunks_exact_mut(BAND_CHANNELS).zip(gx_row).zip(gy_row) {
+            for ((bands, &gx), &gy) in band_row
+                .chunks_exact_mut(BAND_CHANNELS)
+                .zip(gx_row)
+                .zip(gy_row)
+            {
                 let magnitude = (gx * gx + gy * gy).sqrt();
-                let inverse = if magnitude > 0.0 { 1.0 / magnitude } else { 0.0 };
+                let inverse = if magnitude > 0.0 {
+                    1.0 / magnitude
+                } else {
+                    0.0
+                };
                 for (band, &(cos_k, sin_k)) in bands.iter_mut().zip(&bin_directions) {
                     let cosine = ((gx * cos_k + gy * sin_k) * inverse).max(0.0);
                     *band = cosine.powi(sharpness) * magnitude;
@@ -211,7 +254,8 @@ pub fn compute_dense_sift(
         *tap = 1.0;
     }
     let pooling_weight_sum: f32 = pooling_taps.iter().sum();
-    ws.bands_pooled_rows.resize(pixel_count * BAND_CHANNELS, 0.0);
+    ws.bands_pooled_rows
+        .resize(pixel_count * BAND_CHANNELS, 0.0);
     ws.bands_pooled.resize(pixel_count * BAND_CHANNELS, 0.0);
     separable_filter_clamped(
         &ws.bands,
@@ -235,11 +279,11 @@ pub fn compute_dense_sift(
         .enumerate()
         .for_each(|(y, (descriptor_row, support_row))| {
             let mut cells = [0.0f32; DESCRIPTOR_LEN];
-            let sample_rows: [usize; 4] =
-                CELL_OFFSETS.map(|offset| clamp_index(y as isize + offset * cell as isize, height_px));
+            let sample_rows: [usize; 4] = CELL_OFFSETS
+                .map(|offset| clamp_index(y as isize + offset * cell as isize, height_px));
             for x in 0..width_px {
-                let sample_columns: [usize; 4] =
-                    CELL_OFFSETS.map(|offset| clamp_index(x as isize + offset * cell as isize, width_px));
+                let sample_columns: [usize; 4] = CELL_OFFSETS
+                    .map(|offset| clamp_index(x as isize + offset * cell as isize, width_px));
                 let mut support = 0.0f32;
                 for (cell_row, &sample_y) in sample_rows.iter().enumerate() {
                     for (cell_column, &sample_x) in sample_columns.iter().enumerate() {
@@ -319,16 +363,19 @@ pub(crate) fn separable_filter_clamped(
             }
         });
     let rows: &[f32] = rows_scratch;
-    output.par_chunks_mut(row_len).enumerate().for_each(|(y, out_row)| {
-        out_row.fill(0.0);
-        for &(offset, weight) in &nonzero_taps {
-            let source_y = clamp_index(y as isize + offset, height_px);
-            let source = &rows[source_y * row_len..(source_y + 1) * row_len];
-            for (value, &input_value) in out_row.iter_mut().zip(source) {
-                *value += input_value * weight;
+    output
+        .par_chunks_mut(row_len)
+        .enumerate()
+        .for_each(|(y, out_row)| {
+            out_row.fill(0.0);
+            for &(offset, weight) in &nonzero_taps {
+                let source_y = clamp_index(y as isize + offset, height_px);
+                let source = &rows[source_y * row_len..(source_y + 1) * row_len];
+                for (value, &input_value) in out_row.iter_mut().zip(source) {
+                    *value += input_value * weight;
+                }
             }
-        }
-    });
+        });
 }
 
 fn compute_gradients(
@@ -339,7 +386,8 @@ fn compute_gradients(
     gradient_x: &mut [f32],
     gradient_y: &mut [f32],
 ) {
-    let at = |x: isize, y: isize| image[clamp_index(y, height_px) * width_px + clamp_index(x, width_px)];
+    let at =
+        |x: isize, y: isize| image[clamp_index(y, height_px) * width_px + clamp_index(x, width_px)];
     gradient_x
         .par_chunks_mut(width_px)
         .zip(gradient_y.par_chunks_mut(width_px))
@@ -350,8 +398,10 @@ fn compute_gradients(
                 let xi = x as isize;
                 let (gx, gy) = match filter {
                     GradientFilter::CentralFivePoint => (
-                        (at(xi - 2, y) - 8.0 * at(xi - 1, y) + 8.0 * at(xi + 1, y) - at(xi + 2, y)) / 12.0,
-                        (at(xi, y - 2) - 8.0 * at(xi, y - 1) + 8.0 * at(xi, y + 1) - at(xi, y + 2)) / 12.0,
+                        (at(xi - 2, y) - 8.0 * at(xi - 1, y) + 8.0 * at(xi + 1, y) - at(xi + 2, y))
+                            / 12.0,
+                        (at(xi, y - 2) - 8.0 * at(xi, y - 1) + 8.0 * at(xi, y + 1) - at(xi, y + 2))
+                            / 12.0,
                     ),
                     GradientFilter::Sobel => {
                         let gx = (at(xi + 1, y - 1) + 2.0 * at(xi + 1, y) + at(xi + 1, y + 1))
@@ -382,9 +432,19 @@ mod tests {
         let (width, height) = (40, 30);
         let image = ramp_image(width, height, 0.01, 0.0);
         let mut sift = DenseSiftImage::default();
-        let config = DenseSiftConfig { presmoothing_sigma_px: 0.0, ..Default::default() };
-        compute_dense_sift(&image, width, height, &config, &mut DenseSiftWorkspace::default(), &mut sift)
-            .unwrap();
+        let config = DenseSiftConfig {
+            presmoothing_sigma_px: 0.0,
+            ..Default::default()
+        };
+        compute_dense_sift(
+            &image,
+            width,
+            height,
+            &config,
+            &mut DenseSiftWorkspace::default(),
+            &mut sift,
+        )
+        .unwrap();
         let centre = 15 * width + 20;
         let descriptor = sift.descriptor(centre);
         for (index, &value) in descriptor.iter().enumerate() {
@@ -397,7 +457,11 @@ mod tests {
             }
         }
         // Mean gradient over the support is the slope (the 5-point filter is exact on ramps).
-        assert!((sift.support_gradient[centre] - 0.01).abs() < 1e-4, "{}", sift.support_gradient[centre]);
+        assert!(
+            (sift.support_gradient[centre] - 0.01).abs() < 1e-4,
+            "{}",
+            sift.support_gradient[centre]
+        );
     }
 
     #[test]
@@ -425,17 +489,30 @@ mod tests {
         let (width, height) = (30, 30);
         let image = ramp_image(width, height, 0.0, -0.02);
         for filter in [GradientFilter::CentralFivePoint, GradientFilter::Sobel] {
-            let config =
-                DenseSiftConfig { gradient_filter: filter, presmoothing_sigma_px: 0.0, ..Default::default() };
+            let config = DenseSiftConfig {
+                gradient_filter: filter,
+                presmoothing_sigma_px: 0.0,
+                ..Default::default()
+            };
             let mut sift = DenseSiftImage::default();
-            compute_dense_sift(&image, width, height, &config, &mut DenseSiftWorkspace::default(), &mut sift)
-                .unwrap();
+            compute_dense_sift(
+                &image,
+                width,
+                height,
+                &config,
+                &mut DenseSiftWorkspace::default(),
+                &mut sift,
+            )
+            .unwrap();
             let descriptor = sift.descriptor(15 * width + 15);
             // Gradient points to -y: angle 3π/2, bin 6; the opposite half-plane (bins 1..=3) is empty.
             for cell in descriptor.chunks_exact(ORIENTATION_BINS) {
                 let strongest = (0..ORIENTATION_BINS).max_by_key(|&bin| cell[bin]).unwrap();
                 assert_eq!(strongest, 6, "{filter:?}: {cell:?}");
-                assert!(cell[1..=3].iter().all(|&value| value == 0), "{filter:?}: {cell:?}");
+                assert!(
+                    cell[1..=3].iter().all(|&value| value == 0),
+                    "{filter:?}: {cell:?}"
+                );
             }
         }
     }
@@ -444,12 +521,27 @@ mod tests {
     fn bad_inputs_are_rejected() {
         let mut sift = DenseSiftImage::default();
         let mut workspace = DenseSiftWorkspace::default();
-        let error =
-            compute_dense_sift(&[0.0; 5], 2, 2, &DenseSiftConfig::default(), &mut workspace, &mut sift);
+        let error = compute_dense_sift(
+            &[0.0; 5],
+            2,
+            2,
+            &DenseSiftConfig::default(),
+            &mut workspace,
+            &mut sift,
+        );
         assert!(matches!(error, Err(FlowError::ImageSize { .. })));
-        let config = DenseSiftConfig { cell_size_px: 0, ..Default::default() };
+        let config = DenseSiftConfig {
+            cell_size_px: 0,
+            ..Default::default()
+        };
         let error = compute_dense_sift(&[0.0; 4], 2, 2, &config, &mut workspace, &mut sift);
-        assert!(matches!(error, Err(FlowError::InvalidConfig { field: "cell_size_px", .. })));
+        assert!(matches!(
+            error,
+            Err(FlowError::InvalidConfig {
+                field: "cell_size_px",
+                ..
+            })
+        ));
         let parsed: Result<DenseSiftConfig, _> = serde_json::from_str(r#"{"cell_size": 3}"#);
         assert!(parsed.is_err());
     }

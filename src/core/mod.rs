@@ -4,6 +4,7 @@
 
 pub mod camera;
 pub mod dense_sift;
+pub mod flow_consistency;
 pub mod mesh;
 pub mod raster;
 pub mod reprojection;

@@ -37,9 +37,17 @@ pub enum FlowError {
     #[error("invalid configuration: {field}: {reason}")]
     InvalidConfig { field: &'static str, reason: String },
     #[error("image of {width_px} x {height_px} px given {values} values")]
-    ImageSize { width_px: usize, height_px: usize, values: usize },
+    ImageSize {
+        width_px: usize,
+        height_px: usize,
+        values: usize,
+    },
     #[error("{what}: expected {expected} entries, found {found}")]
-    SizeMismatch { what: &'static str, expected: usize, found: usize },
+    SizeMismatch {
+        what: &'static str,
+        expected: usize,
+        found: usize,
+    },
 }
 
 /// A dense flow field, row major: `source(x, y) ≈ target(x + u, y + v)`.
@@ -153,15 +161,24 @@ impl Default for SiftFlowConfig {
 impl SiftFlowConfig {
     /// Checks every field once; call before the hot path.
     pub fn validate(&self) -> Result<(), FlowError> {
-        let bad = |field: &'static str, reason: String| Err(FlowError::InvalidConfig { field, reason });
+        let bad =
+            |field: &'static str, reason: String| Err(FlowError::InvalidConfig { field, reason });
         if !(1..=8).contains(&self.pyramid_levels) {
-            return bad("pyramid_levels", format!("{} is not in 1..=8", self.pyramid_levels));
+            return bad(
+                "pyramid_levels",
+                format!("{} is not in 1..=8", self.pyramid_levels),
+            );
         }
-        let largest_radius = self.top_search_radius_px.max(self.search_radius_px + self.pyramid_levels);
+        let largest_radius = self
+            .top_search_radius_px
+            .max(self.search_radius_px + self.pyramid_levels);
         if self.top_search_radius_px == 0 || 2 * largest_radius + 1 > MAX_LABELS {
             return bad(
                 "top_search_radius_px",
-                format!("search windows must have 1..={} px half-width", (MAX_LABELS - 1) / 2 - 8),
+                format!(
+                    "search windows must have 1..={} px half-width",
+                    (MAX_LABELS - 1) / 2 - 8
+                ),
             );
         }
         for (field, value) in [
@@ -174,7 +191,10 @@ impl SiftFlowConfig {
             }
         }
         if !(self.pyramid_sigma_px.is_finite() && self.pyramid_sigma_px > 0.0) {
-            return bad("pyramid_sigma_px", format!("{} is not > 0", self.pyramid_sigma_px));
+            return bad(
+                "pyramid_sigma_px",
+                format!("{} is not > 0", self.pyramid_sigma_px),
+            );
         }
         Ok(())
     }
@@ -237,13 +257,18 @@ pub fn compute_sift_flow(
     config.validate()?;
     check_sift_image(source, "source descriptors")?;
     check_sift_image(target, "target descriptors")?;
-    for (mask, image, what) in
-        [(source_participates, source, "source mask"), (target_valid, target, "target mask")]
-    {
+    for (mask, image, what) in [
+        (source_participates, source, "source mask"),
+        (target_valid, target, "target mask"),
+    ] {
         if let Some(mask) = mask {
             let expected = image.width_px * image.height_px;
             if mask.len() != expected {
-                return Err(FlowError::SizeMismatch { what, expected, found: mask.len() });
+                return Err(FlowError::SizeMismatch {
+                    what,
+                    expected,
+                    found: mask.len(),
+                });
             }
         }
     }
@@ -254,8 +279,10 @@ pub fn compute_sift_flow(
 
     // Pyramids of descriptors and masks.
     let pyramid_started = Instant::now();
-    ws.source_pyramid.resize_with(top_level, DenseSiftImage::default);
-    ws.target_pyramid.resize_with(top_level, DenseSiftImage::default);
+    ws.source_pyramid
+        .resize_with(top_level, DenseSiftImage::default);
+    ws.target_pyramid
+        .resize_with(top_level, DenseSiftImage::default);
     ws.source_masks.resize_with(level_count, Vec::new);
     ws.target_masks.resize_with(level_count, Vec::new);
     let pyramid_taps = downsampling_taps(config.pyramid_sigma_px);
@@ -331,16 +358,32 @@ pub fn compute_sift_flow(
             offsets: [&ws.offsets[0], &ws.offsets[1]],
             data_cost: &ws.data_cost,
         };
-        let iterations = if level == top_level { config.top_iterations } else { config.iterations };
-        run_belief_propagation(&problem, iterations, &mut ws.spatial_messages, &mut ws.dual_messages);
-        compute_beliefs(&problem, &ws.spatial_messages, &ws.dual_messages, &mut ws.beliefs);
+        let iterations = if level == top_level {
+            config.top_iterations
+        } else {
+            config.iterations
+        };
+        run_belief_propagation(
+            &problem,
+            iterations,
+            &mut ws.spatial_messages,
+            &mut ws.dual_messages,
+        );
+        compute_beliefs(
+            &problem,
+            &ws.spatial_messages,
+            &ws.dual_messages,
+            &mut ws.beliefs,
+        );
         for plane in 0..2 {
             ws.flow[plane].resize(pixel_count, 0);
             ws.labels[plane].resize(pixel_count, 0);
             let beliefs = &ws.beliefs[plane];
             let offsets = &ws.offsets[plane];
-            for (pixel, (flow_value, label_out)) in
-                ws.flow[plane].iter_mut().zip(ws.labels[plane].iter_mut()).enumerate()
+            for (pixel, (flow_value, label_out)) in ws.flow[plane]
+                .iter_mut()
+                .zip(ws.labels[plane].iter_mut())
+                .enumerate()
             {
                 let belief = &beliefs[pixel * labels..(pixel + 1) * labels];
                 let label = argmin(belief);
@@ -374,7 +417,10 @@ pub fn compute_sift_flow(
             SubpixelRefinement::DataCostParabola if participates => {
                 let along_u = |label: usize| costs[label_v * labels + label];
                 let along_v = |label: usize| costs[label * labels + label_u];
-                (parabola_vertex(along_u, label_u, labels), parabola_vertex(along_v, label_v, labels))
+                (
+                    parabola_vertex(along_u, label_u, labels),
+                    parabola_vertex(along_v, label_v, labels),
+                )
             }
             SubpixelRefinement::DataCostParabola => (0.0, 0.0),
             SubpixelRefinement::BeliefParabola => {
@@ -401,7 +447,11 @@ fn level_mask(masks: &[Vec<bool>], level: usize) -> Option<&[bool]> {
 fn check_sift_image(image: &DenseSiftImage, what: &'static str) -> Result<(), FlowError> {
     let expected = image.width_px * image.height_px * DESCRIPTOR_LEN;
     if image.width_px == 0 || image.height_px == 0 || image.descriptors.len() != expected {
-        return Err(FlowError::SizeMismatch { what, expected, found: image.descriptors.len() });
+        return Err(FlowError::SizeMismatch {
+            what,
+            expected,
+            found: image.descriptors.len(),
+        });
     }
     Ok(())
 }
@@ -488,7 +538,8 @@ fn downsample_descriptors(
             let mut accumulated = [0.0f32; DESCRIPTOR_LEN];
             for (tap_index, &weight) in taps.iter().enumerate() {
                 let source_x = (2 * out_x + tap_index).saturating_sub(2).min(width - 1);
-                let source = &row_buffer[source_x * DESCRIPTOR_LEN..(source_x + 1) * DESCRIPTOR_LEN];
+                let source =
+                    &row_buffer[source_x * DESCRIPTOR_LEN..(source_x + 1) * DESCRIPTOR_LEN];
                 for (accumulator, &value) in accumulated.iter_mut().zip(source) {
                     *accumulator += weight * value;
                 }
@@ -671,7 +722,10 @@ fn fill_data_row(
     let labels = 2 * context.radius + 1;
     let window = labels * labels;
     let width = context.source.width_px;
-    let (target_width, target_height) = (context.target.width_px as i32, context.target.height_px as i32);
+    let (target_width, target_height) = (
+        context.target.width_px as i32,
+        context.target.height_px as i32,
+    );
     for x in 0..width {
         let pixel = y * width + x;
         let costs = &mut row[x * window..(x + 1) * window];
@@ -726,16 +780,26 @@ fn compute_data_cost(
 ) {
     let labels = 2 * radius + 1;
     let row_len = source.width_px * labels * labels;
-    let context = DataRowContext { source, source_mask, target, target_mask, offsets, radius };
+    let context = DataRowContext {
+        source,
+        source_mask,
+        target,
+        target_mask,
+        offsets,
+        radius,
+    };
     let kernel = resolve_kernel(kernel);
-    data_cost.par_chunks_mut(row_len).enumerate().for_each(|(y, row)| match kernel {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: `resolve_kernel` returns Avx2 only when the CPU has AVX2.
-        L1Kernel::Avx2 => unsafe { fill_data_row_avx2(&context, y, row) },
-        #[cfg(target_arch = "x86_64")]
-        L1Kernel::Sse2 => fill_data_row(&context, y, row, l1_distance_sse2),
-        _ => fill_data_row(&context, y, row, l1_distance_portable),
-    });
+    data_cost
+        .par_chunks_mut(row_len)
+        .enumerate()
+        .for_each(|(y, row)| match kernel {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: `resolve_kernel` returns Avx2 only when the CPU has AVX2.
+            L1Kernel::Avx2 => unsafe { fill_data_row_avx2(&context, y, row) },
+            #[cfg(target_arch = "x86_64")]
+            L1Kernel::Sse2 => fill_data_row(&context, y, row, l1_distance_sse2),
+            _ => fill_data_row(&context, y, row, l1_distance_portable),
+        });
 
     // The reference's default score: the median of all inside costs.
     let mut histogram = [0u32; COST_HISTOGRAM_BINS];
@@ -815,7 +879,15 @@ fn run_belief_propagation(
                 (&*second, first)
             }
         };
-        sweep(problem, plane, forward, update_dual, &mut spatial_messages[plane], dual_this, dual_other);
+        sweep(
+            problem,
+            plane,
+            forward,
+            update_dual,
+            &mut spatial_messages[plane],
+            dual_this,
+            dual_other,
+        );
     }
 }
 
@@ -836,7 +908,11 @@ fn sweep(
     let mut base = [0.0f32; MAX_LABELS];
     let mut outgoing = [0.0f32; MAX_LABELS];
     for step in 0..pixel_count {
-        let pixel = if forward { step } else { pixel_count - 1 - step };
+        let pixel = if forward {
+            step
+        } else {
+            pixel_count - 1 - step
+        };
         let x = pixel % width;
         let y = pixel / width;
         let offset = offsets[pixel];
@@ -921,8 +997,10 @@ fn initialise_dual_messages_from_data(problem: &LevelProblem, dual_messages: &mu
     let radius = problem.radius as i32;
     let gamma = problem.flow_magnitude_weight;
     let [to_u, to_v] = dual_messages;
-    to_u.par_chunks_mut(labels).zip(to_v.par_chunks_mut(labels)).enumerate().for_each(
-        |(pixel, (message_u, message_v))| {
+    to_u.par_chunks_mut(labels)
+        .zip(to_v.par_chunks_mut(labels))
+        .enumerate()
+        .for_each(|(pixel, (message_u, message_v))| {
             let costs = &problem.data_cost[pixel * labels * labels..(pixel + 1) * labels * labels];
             let offset_u = problem.offsets[0][pixel];
             let offset_v = problem.offsets[1][pixel];
@@ -931,7 +1009,8 @@ fn initialise_dual_messages_from_data(problem: &LevelProblem, dual_messages: &mu
             for label_v in 0..labels {
                 let range_v = gamma * (offset_v + label_v as i32 - radius).unsigned_abs() as f32;
                 for label_u in 0..labels {
-                    let range_u = gamma * (offset_u + label_u as i32 - radius).unsigned_abs() as f32;
+                    let range_u =
+                        gamma * (offset_u + label_u as i32 - radius).unsigned_abs() as f32;
                     let cost = costs[label_v * labels + label_u];
                     message_u[label_u] = message_u[label_u].min(cost + range_v);
                     message_v[label_v] = message_v[label_v].min(cost + range_u);
@@ -941,15 +1020,20 @@ fn initialise_dual_messages_from_data(problem: &LevelProblem, dual_messages: &mu
                 let minimum = message.iter().copied().fold(f32::INFINITY, f32::min);
                 message.iter_mut().for_each(|value| *value -= minimum);
             }
-        },
-    );
+        });
 }
 
 /// Turns `h` (the sender's costs over its labels) into the message over the receiver's labels for
 /// the truncated-L1 pairwise cost `min(α|Δ|, d)`, by a distance transform. `shift` is the receiver's
 /// offset minus the sender's. The message is normalised to minimum 0.
 #[inline]
-fn truncated_l1_message(h: &mut [f32], shift: i32, alpha: f32, truncation: f32, message: &mut [f32]) {
+fn truncated_l1_message(
+    h: &mut [f32],
+    shift: i32,
+    alpha: f32,
+    truncation: f32,
+    message: &mut [f32],
+) {
     let labels = h.len();
     let mut minimum = h[0];
     for label in 1..labels {
@@ -974,7 +1058,9 @@ fn truncated_l1_message(h: &mut [f32], shift: i32, alpha: f32, truncation: f32, 
         *value = transformed.min(ceiling);
         message_minimum = message_minimum.min(*value);
     }
-    message.iter_mut().for_each(|value| *value -= message_minimum);
+    message
+        .iter_mut()
+        .for_each(|value| *value -= message_minimum);
 }
 
 /// Belief of each layer: range term + inter-layer message + the four spatial messages.
@@ -992,18 +1078,21 @@ fn compute_beliefs(
         let spatial = &spatial_messages[plane];
         let dual = &dual_messages[plane];
         let offsets = problem.offsets[plane];
-        beliefs[plane].par_chunks_mut(labels).enumerate().for_each(|(pixel, belief)| {
-            let messages_in = &spatial[pixel * 4 * labels..(pixel + 1) * 4 * labels];
-            for (label, value) in belief.iter_mut().enumerate() {
-                let flow = offsets[pixel] + label as i32 - radius;
-                *value = gamma * flow.unsigned_abs() as f32
-                    + dual[pixel * labels + label]
-                    + messages_in[label]
-                    + messages_in[labels + label]
-                    + messages_in[2 * labels + label]
-                    + messages_in[3 * labels + label];
-            }
-        });
+        beliefs[plane]
+            .par_chunks_mut(labels)
+            .enumerate()
+            .for_each(|(pixel, belief)| {
+                let messages_in = &spatial[pixel * 4 * labels..(pixel + 1) * 4 * labels];
+                for (label, value) in belief.iter_mut().enumerate() {
+                    let flow = offsets[pixel] + label as i32 - radius;
+                    *value = gamma * flow.unsigned_abs() as f32
+                        + dual[pixel * labels + label]
+                        + messages_in[label]
+                        + messages_in[labels + label]
+                        + messages_in[2 * labels + label]
+                        + messages_in[3 * labels + label];
+                }
+            });
     }
 }
 
@@ -1014,10 +1103,25 @@ mod tests {
     #[test]
     fn l1_kernels_agree() {
         let a: Vec<u8> = (0..128).map(|index| (index * 37 % 256) as u8).collect();
-        let b: Vec<u8> = (0..128).map(|index| (255 - index * 11 % 256) as u8).collect();
-        let expected: u32 = a.iter().zip(&b).map(|(&x, &y)| (x as i32 - y as i32).unsigned_abs()).sum();
-        for kernel in [L1Kernel::Auto, L1Kernel::Portable, L1Kernel::Sse2, L1Kernel::Avx2] {
-            assert_eq!(descriptor_l1_distance(&a, &b, kernel), expected, "{kernel:?}");
+        let b: Vec<u8> = (0..128)
+            .map(|index| (255 - index * 11 % 256) as u8)
+            .collect();
+        let expected: u32 = a
+            .iter()
+            .zip(&b)
+            .map(|(&x, &y)| (x as i32 - y as i32).unsigned_abs())
+            .sum();
+        for kernel in [
+            L1Kernel::Auto,
+            L1Kernel::Portable,
+            L1Kernel::Sse2,
+            L1Kernel::Avx2,
+        ] {
+            assert_eq!(
+                descriptor_l1_distance(&a, &b, kernel),
+                expected,
+                "{kernel:?}"
+            );
         }
     }
 
@@ -1043,7 +1147,10 @@ mod tests {
             }
             let minimum = brute.iter().copied().fold(f32::INFINITY, f32::min);
             for (got, want) in message.iter().zip(&brute) {
-                assert!((got - (want - minimum)).abs() < 1e-5, "shift {shift}: {message:?} vs {brute:?}");
+                assert!(
+                    (got - (want - minimum)).abs() < 1e-5,
+                    "shift {shift}: {message:?} vs {brute:?}"
+                );
             }
         }
     }
@@ -1063,9 +1170,15 @@ mod tests {
         let parsed: SiftFlowConfig = serde_json::from_str(r#"{"iterations": 5}"#).unwrap();
         assert_eq!(parsed.iterations, 5);
         assert_eq!(parsed.top_search_radius_px, 10);
-        let bad = SiftFlowConfig { top_search_radius_px: 40, ..Default::default() };
+        let bad = SiftFlowConfig {
+            top_search_radius_px: 40,
+            ..Default::default()
+        };
         assert!(bad.validate().is_err());
-        let bad = SiftFlowConfig { smoothness_weight: f32::NAN, ..Default::default() };
+        let bad = SiftFlowConfig {
+            smoothness_weight: f32::NAN,
+            ..Default::default()
+        };
         assert!(bad.validate().is_err());
     }
 }
@@ -1087,14 +1200,23 @@ pub(crate) mod test_support {
     fn load_grey(path: &std::path::Path) -> (usize, usize, Vec<f32>) {
         let image = image::open(path).unwrap().to_luma8();
         let (width, height) = image.dimensions();
-        (width as usize, height as usize, image.pixels().map(|pixel| pixel.0[0] as f32 / 255.0).collect())
+        (
+            width as usize,
+            height as usize,
+            image
+                .pixels()
+                .map(|pixel| pixel.0[0] as f32 / 255.0)
+                .collect(),
+        )
     }
 
     /// Loads `NAME_im1.png`, `NAME_im2.png`, `NAME_gt.flo` from the shared flow pairs, or `None`
     /// (with a printed note) when they are absent.
     pub(crate) fn load_shared_pair(name: &str) -> Option<SharedPair> {
-        let directory =
-            std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/flow-pairs"));
+        let directory = std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../shared/data/flow-pairs"
+        ));
         let first_path = directory.join(format!("{name}_im1.png"));
         if !first_path.exists() {
             eprintln!("skipped: {} not found", first_path.display());
@@ -1103,7 +1225,13 @@ pub(crate) mod test_support {
         let (width, height, first) = load_grey(&first_path);
         let (_, _, second) = load_grey(&directory.join(format!("{name}_im2.png")));
         let truth = crate::io::flo::read_flo(&directory.join(format!("{name}_gt.flo"))).unwrap();
-        Some(SharedPair { width, height, first, second, truth })
+        Some(SharedPair {
+            width,
+            height,
+            first,
+            second,
+            truth,
+        })
     }
 
     /// End-point error and fraction of pixels under 1 px, over pixels at least `border` px inside.
@@ -1122,10 +1250,22 @@ pub(crate) mod test_support {
         (sum / count as f64, under_one as f64 / count as f64)
     }
 
-    pub(crate) fn sift_of(image: &[f32], width: usize, height: usize, config: &DenseSiftConfig) -> DenseSiftImage {
+    pub(crate) fn sift_of(
+        image: &[f32],
+        width: usize,
+        height: usize,
+        config: &DenseSiftConfig,
+    ) -> DenseSiftImage {
         let mut sift = DenseSiftImage::default();
-        compute_dense_sift(image, width, height, config, &mut DenseSiftWorkspace::default(), &mut sift).unwrap();
+        compute_dense_sift(
+            image,
+            width,
+            height,
+            config,
+            &mut DenseSiftWorkspace::default(),
+            &mut sift,
+        )
+        .unwrap();
         sift
     }
 }
-

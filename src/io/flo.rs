@@ -29,26 +29,45 @@ pub enum FloError {
     #[error("{path}: not a .flo file (magic {found} instead of 202021.25)")]
     BadMagic { path: PathBuf, found: f32 },
     #[error("{path}: bad .flo size {width} x {height}")]
-    BadSize { path: PathBuf, width: i64, height: i64 },
+    BadSize {
+        path: PathBuf,
+        width: i64,
+        height: i64,
+    },
     #[error("{path}: flow field has {u_len} u and {v_len} v values for {width} x {height} pixels")]
-    InconsistentField { path: PathBuf, width: usize, height: usize, u_len: usize, v_len: usize },
+    InconsistentField {
+        path: PathBuf,
+        width: usize,
+        height: usize,
+        u_len: usize,
+        v_len: usize,
+    },
 }
 
 /// Reads a Middlebury `.flo` file.
 pub fn read_flo(path: &Path) -> Result<FlowField, FloError> {
-    let io_error = |source| FloError::Io { path: path.to_path_buf(), source };
+    let io_error = |source| FloError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
     let file = File::open(path).map_err(io_error)?;
     let mut reader = BufReader::new(file);
     let mut header = [0u8; 12];
     reader.read_exact(&mut header).map_err(io_error)?;
     let magic = f32::from_le_bytes([header[0], header[1], header[2], header[3]]);
     if magic != FLO_MAGIC {
-        return Err(FloError::BadMagic { path: path.to_path_buf(), found: magic });
+        return Err(FloError::BadMagic {
+            path: path.to_path_buf(),
+            found: magic,
+        });
     }
     let width = i32::from_le_bytes([header[4], header[5], header[6], header[7]]);
     let height = i32::from_le_bytes([header[8], header[9], header[10], header[11]]);
-    let bad_size =
-        || FloError::BadSize { path: path.to_path_buf(), width: width.into(), height: height.into() };
+    let bad_size = || FloError::BadSize {
+        path: path.to_path_buf(),
+        width: width.into(),
+        height: height.into(),
+    };
     let (Ok(width_px), Ok(height_px)) = (usize::try_from(width), usize::try_from(height)) else {
         return Err(bad_size());
     };
@@ -78,15 +97,20 @@ pub fn write_flo(path: &Path, field: &FlowField) -> Result<(), FloError> {
             v_len: field.v_px.len(),
         });
     }
-    let (Ok(width), Ok(height)) = (i32::try_from(field.width_px), i32::try_from(field.height_px))
-    else {
+    let (Ok(width), Ok(height)) = (
+        i32::try_from(field.width_px),
+        i32::try_from(field.height_px),
+    ) else {
         return Err(FloError::BadSize {
             path: path.to_path_buf(),
             width: field.width_px as i64,
             height: field.height_px as i64,
         });
     };
-    let io_error = |source| FloError::Io { path: path.to_path_buf(), source };
+    let io_error = |source| FloError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
     let file = File::create(path).map_err(io_error)?;
     let mut writer = BufWriter::new(file);
     let mut bytes = Vec::with_capacity(12 + pixel_count * 8);
@@ -143,7 +167,10 @@ mod tests {
         negative.extend_from_slice(&(-4i32).to_le_bytes());
         negative.extend_from_slice(&4i32.to_le_bytes());
         std::fs::write(&path, &negative).unwrap();
-        assert!(matches!(read_flo(&path).unwrap_err(), FloError::BadSize { .. }));
+        assert!(matches!(
+            read_flo(&path).unwrap_err(),
+            FloError::BadSize { .. }
+        ));
     }
 
     #[test]
