@@ -137,6 +137,9 @@ pub struct SiftFlowConfig {
     pub subpixel: SubpixelRefinement,
     /// Implementation of the descriptor L1 distance (results are identical).
     pub l1_kernel: L1Kernel,
+    /// Use the message-passing code specialised for the default window sizes; `false` runs the
+    /// generic code (identical results; exists to measure the difference).
+    pub specialised_kernels: bool,
 }
 
 impl Default for SiftFlowConfig {
@@ -154,6 +157,7 @@ impl Default for SiftFlowConfig {
             pyramid_sigma_px: 0.67,
             subpixel: SubpixelRefinement::DataCostParabola,
             l1_kernel: L1Kernel::Auto,
+            specialised_kernels: true,
         }
     }
 }
@@ -366,6 +370,7 @@ pub fn compute_sift_flow(
         run_belief_propagation(
             &problem,
             iterations,
+            config.specialised_kernels,
             &mut ws.spatial_messages,
             &mut ws.dual_messages,
         );
@@ -856,6 +861,7 @@ const FROM_BELOW: usize = 3;
 fn run_belief_propagation(
     problem: &LevelProblem,
     iterations: usize,
+    specialised: bool,
     spatial_messages: &mut [Vec<f32>; 2],
     dual_messages: &mut [Vec<f32>; 2],
 ) {
@@ -879,28 +885,36 @@ fn run_belief_propagation(
                 (&*second, first)
             }
         };
-        sweep(
-            problem,
-            plane,
-            forward,
-            update_dual,
-            &mut spatial_messages[plane],
-            dual_this,
-            dual_other,
-        );
+        let spatial = &mut spatial_messages[plane];
+        let arguments = (problem, plane, forward, update_dual);
+        // Specialised copies for the label counts of the default schedule (5, 7, 9 at the lower
+        // levels, 21 at the top): constant loop bounds let the compiler unroll and vectorise.
+        match (specialised, problem.labels) {
+            (true, 5) => sweep::<5>(arguments, spatial, dual_this, dual_other),
+            (true, 7) => sweep::<7>(arguments, spatial, dual_this, dual_other),
+            (true, 9) => sweep::<9>(arguments, spatial, dual_this, dual_other),
+            (true, 11) => sweep::<11>(arguments, spatial, dual_this, dual_other),
+            (true, 21) => sweep::<21>(arguments, spatial, dual_this, dual_other),
+            _ => sweep::<0>(arguments, spatial, dual_this, dual_other),
+        }
     }
 }
 
-fn sweep(
-    problem: &LevelProblem,
-    plane: usize,
-    forward: bool,
-    update_dual: bool,
+/// One sweep over layer `plane`. `CONST_LABELS` is the label count when known at compile time, 0
+/// for the generic version.
+#[inline(never)]
+fn sweep<const CONST_LABELS: usize>(
+    (problem, plane, forward, update_dual): (&LevelProblem, usize, bool, bool),
     spatial: &mut [f32],
     dual_this: &[f32],
     dual_other: &mut [f32],
 ) {
-    let (width, height, labels) = (problem.width, problem.height, problem.labels);
+    let labels = if CONST_LABELS == 0 {
+        problem.labels
+    } else {
+        CONST_LABELS
+    };
+    let (width, height) = (problem.width, problem.height);
     let pixel_count = width * height;
     let offsets = problem.offsets[plane];
     let radius = problem.radius as i32;
@@ -1026,7 +1040,7 @@ fn initialise_dual_messages_from_data(problem: &LevelProblem, dual_messages: &mu
 /// Turns `h` (the sender's costs over its labels) into the message over the receiver's labels for
 /// the truncated-L1 pairwise cost `min(α|Δ|, d)`, by a distance transform. `shift` is the receiver's
 /// offset minus the sender's. The message is normalised to minimum 0.
-#[inline]
+#[inline(always)]
 fn truncated_l1_message(
     h: &mut [f32],
     shift: i32,
