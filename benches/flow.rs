@@ -115,6 +115,28 @@ fn score(field: &FlowField, truth: &FlowField) -> (f64, f64) {
     (sum / count as f64, under as f64 / count as f64)
 }
 
+/// CPU time of this process (user + system), from `/proc/self/stat`; `None` elsewhere. On a shared
+/// machine it is steadier than wall time for single-threaded runs.
+fn process_cpu_time() -> Option<Duration> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let after_name = stat.rsplit_once(')')?.1;
+    let fields: Vec<&str> = after_name.split_whitespace().collect();
+    let user: u64 = fields.get(11)?.parse().ok()?;
+    let system: u64 = fields.get(12)?.parse().ok()?;
+    Some(Duration::from_millis((user + system) * 10))
+}
+
+fn cpu_time<T>(mut run: impl FnMut() -> T) -> (Duration, T) {
+    let before = process_cpu_time().unwrap_or_default();
+    let value = run();
+    (
+        process_cpu_time()
+            .unwrap_or_default()
+            .saturating_sub(before),
+        value,
+    )
+}
+
 fn time<T>(mut run: impl FnMut() -> T) -> (Duration, T) {
     let started = Instant::now();
     let value = run();
@@ -309,6 +331,49 @@ fn main() {
         .into_iter()
         .filter_map(load_pair)
         .collect();
+    if std::env::var_os("FLOW_BENCH_ITERATIONS").is_some() {
+        for pair in &pairs {
+            let first = sift(&pair.first, pair.width, pair.height);
+            let second = sift(&pair.second, pair.width, pair.height);
+            let mut workspace = SiftFlowWorkspace::default();
+            pool(1).install(|| {
+                for (iterations, top_iterations, multigrid, multigrid_iterations) in [(30, 60, false, 20), (30, 60, true, 20), (8, 30, false, 20), (8, 30, true, 20), (8, 30, true, 8), (4, 20, true, 8), (4, 20, true, 4)] {
+                    let config = SiftFlowConfig { iterations, top_iterations, multigrid, multigrid_iterations, ..Default::default() };
+                    let (cpu, field) = cpu_time(|| flow(&first, &second, &config, &mut workspace));
+                    let (epe, under_one) = score(&field, &pair.truth);
+                    println!("{} iterations {iterations}/{top_iterations} multigrid {multigrid} {multigrid_iterations}: CPU {:.0} ms, EPE {epe:.3}, < 1 px {under_one:.3}", pair.name, cpu.as_secs_f64() * 1000.0);
+                }
+            });
+        }
+        return;
+    }
+    if std::env::var_os("FLOW_BENCH_PROFILE").is_some() {
+        // One pair, three flows on one thread: a target for `perf record`.
+        if let Some(pair) = pairs.first() {
+            let first = sift(&pair.first, pair.width, pair.height);
+            let second = sift(&pair.second, pair.width, pair.height);
+            let mut workspace = SiftFlowWorkspace::default();
+            pool(1).install(|| {
+                for _ in 0..3 {
+                    let mut field = FlowField::default();
+                    let mut cost = Vec::new();
+                    let timings = compute_sift_flow(
+                        &first,
+                        None,
+                        &second,
+                        None,
+                        &SiftFlowConfig::default(),
+                        &mut workspace,
+                        &mut field,
+                        &mut cost,
+                    )
+                    .expect("SIFT flow");
+                    println!("{timings:?}");
+                }
+            });
+        }
+        return;
+    }
     if std::env::var_os("FLOW_BENCH_QUICK").is_some() {
         quick_report(&pairs);
         return;

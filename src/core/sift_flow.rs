@@ -137,6 +137,12 @@ pub struct SiftFlowConfig {
     pub subpixel: SubpixelRefinement,
     /// Implementation of the descriptor L1 distance (results are identical).
     pub l1_kernel: L1Kernel,
+    /// Multigrid belief propagation as the reference (`nHierarchy`): before each pyramid level's
+    /// iterations, solve the same problem on 2×2, 4×4, … blocks (depth 2 at the top, `levels − 1 −
+    /// level` below) and start from their messages.
+    pub multigrid: bool,
+    /// Iterations on each multigrid block level. Reference: 20.
+    pub multigrid_iterations: usize,
     /// Use the message-passing code specialised for the default window sizes; `false` runs the
     /// generic code (identical results; exists to measure the difference).
     pub specialised_kernels: bool,
@@ -158,6 +164,8 @@ impl Default for SiftFlowConfig {
             subpixel: SubpixelRefinement::DataCostParabola,
             l1_kernel: L1Kernel::Auto,
             specialised_kernels: true,
+            multigrid: true,
+            multigrid_iterations: 20,
         }
     }
 }
@@ -240,6 +248,19 @@ pub struct SiftFlowWorkspace {
     spatial_messages: [Vec<f32>; 2],
     dual_messages: [Vec<f32>; 2],
     beliefs: [Vec<f32>; 2],
+    /// Coarser grids of the multigrid belief propagation (reference `nHierarchy`).
+    multigrid: Vec<MultigridGrid>,
+}
+
+/// One coarser grid of multigrid belief propagation: pixels are 2×2 blocks of the finer grid.
+#[derive(Debug, Default)]
+struct MultigridGrid {
+    width: usize,
+    height: usize,
+    offsets: [Vec<i32>; 2],
+    data_cost: Vec<f32>,
+    spatial_messages: [Vec<f32>; 2],
+    dual_messages: [Vec<f32>; 2],
 }
 
 /// Computes the SIFT flow from `source` to `target` into `flow` (source size) and the matching cost
@@ -367,10 +388,24 @@ pub fn compute_sift_flow(
         } else {
             config.iterations
         };
-        run_belief_propagation(
+        // The reference's multigrid depth: 2 at the top, `levels - 1 - level` elsewhere.
+        let multigrid_depth = if !config.multigrid {
+            0
+        } else if level == top_level {
+            2
+        } else {
+            top_level - level
+        };
+        if ws.multigrid.len() < multigrid_depth {
+            ws.multigrid
+                .resize_with(multigrid_depth, MultigridGrid::default);
+        }
+        solve_with_multigrid(
             &problem,
             iterations,
+            config.multigrid_iterations,
             config.specialised_kernels,
+            &mut ws.multigrid[..multigrid_depth],
             &mut ws.spatial_messages,
             &mut ws.dual_messages,
         );
@@ -858,21 +893,120 @@ const FROM_RIGHT: usize = 1;
 const FROM_ABOVE: usize = 2;
 const FROM_BELOW: usize = 3;
 
-fn run_belief_propagation(
+/// Multigrid belief propagation as the reference's `MessagePassing(nIterations, nHierarchy)`: with
+/// `grids` non-empty, first solve the problem on 2×2 blocks (data costs summed per label, offsets
+/// averaged, γ halved) for `coarse_iterations`, recursively, and start this grid's messages from
+/// the coarse ones; otherwise start from zero spatial messages and data-marginal dual messages.
+#[allow(clippy::too_many_arguments)]
+fn solve_with_multigrid(
     problem: &LevelProblem,
     iterations: usize,
+    coarse_iterations: usize,
     specialised: bool,
+    grids: &mut [MultigridGrid],
     spatial_messages: &mut [Vec<f32>; 2],
     dual_messages: &mut [Vec<f32>; 2],
 ) {
-    let pixel_count = problem.width * problem.height;
+    let (width, height, labels) = (problem.width, problem.height, problem.labels);
+    let pixel_count = width * height;
     for plane in 0..2 {
         spatial_messages[plane].clear();
-        spatial_messages[plane].resize(pixel_count * 4 * problem.labels, 0.0);
+        spatial_messages[plane].resize(pixel_count * 4 * labels, 0.0);
         dual_messages[plane].clear();
-        dual_messages[plane].resize(pixel_count * problem.labels, 0.0);
+        dual_messages[plane].resize(pixel_count * labels, 0.0);
     }
-    initialise_dual_messages_from_data(problem, dual_messages);
+    match grids.split_first_mut() {
+        Some((coarse, coarser_grids)) if width > 1 && height > 1 => {
+            coarse.width = width.div_ceil(2);
+            coarse.height = height.div_ceil(2);
+            let coarse_pixels = coarse.width * coarse.height;
+            let window = labels * labels;
+            for plane in 0..2 {
+                let offsets = &mut coarse.offsets[plane];
+                offsets.clear();
+                offsets.resize(coarse_pixels, 0);
+                for coarse_y in 0..coarse.height {
+                    for coarse_x in 0..coarse.width {
+                        let (mut sum, mut count) = (0i32, 0i32);
+                        for y in 2 * coarse_y..(2 * coarse_y + 2).min(height) {
+                            for x in 2 * coarse_x..(2 * coarse_x + 2).min(width) {
+                                sum += problem.offsets[plane][y * width + x];
+                                count += 1;
+                            }
+                        }
+                        offsets[coarse_y * coarse.width + coarse_x] = sum / count;
+                    }
+                }
+            }
+            coarse.data_cost.clear();
+            coarse.data_cost.resize(coarse_pixels * window, 0.0);
+            let coarse_width = coarse.width;
+            coarse
+                .data_cost
+                .par_chunks_mut(coarse_width * window)
+                .enumerate()
+                .for_each(|(coarse_y, row)| {
+                    for y in 2 * coarse_y..(2 * coarse_y + 2).min(height) {
+                        for x in 0..width {
+                            let fine = &problem.data_cost
+                                [(y * width + x) * window..(y * width + x + 1) * window];
+                            let coarse_costs = &mut row[(x / 2) * window..(x / 2 + 1) * window];
+                            for (sum, &cost) in coarse_costs.iter_mut().zip(fine) {
+                                *sum += cost;
+                            }
+                        }
+                    }
+                });
+            let coarse_problem = LevelProblem {
+                width: coarse.width,
+                height: coarse.height,
+                radius: problem.radius,
+                labels,
+                flow_magnitude_weight: problem.flow_magnitude_weight / 2.0,
+                smoothness_weight: problem.smoothness_weight,
+                smoothness_truncation: problem.smoothness_truncation,
+                offsets: [&coarse.offsets[0], &coarse.offsets[1]],
+                data_cost: &coarse.data_cost,
+            };
+            solve_with_multigrid(
+                &coarse_problem,
+                coarse_iterations,
+                coarse_iterations,
+                specialised,
+                coarser_grids,
+                &mut coarse.spatial_messages,
+                &mut coarse.dual_messages,
+            );
+            // Every fine pixel starts from its block's messages.
+            for plane in 0..2 {
+                let coarse_spatial = &coarse.spatial_messages[plane];
+                let coarse_dual = &coarse.dual_messages[plane];
+                spatial_messages[plane]
+                    .par_chunks_mut(width * 4 * labels)
+                    .enumerate()
+                    .for_each(|(y, row)| {
+                        for x in 0..width {
+                            let block = (y / 2) * coarse_width + x / 2;
+                            row[x * 4 * labels..(x + 1) * 4 * labels].copy_from_slice(
+                                &coarse_spatial[block * 4 * labels..(block + 1) * 4 * labels],
+                            );
+                        }
+                    });
+                dual_messages[plane]
+                    .par_chunks_mut(width * labels)
+                    .enumerate()
+                    .for_each(|(y, row)| {
+                        for x in 0..width {
+                            let block = (y / 2) * coarse_width + x / 2;
+                            row[x * labels..(x + 1) * labels].copy_from_slice(
+                                &coarse_dual[block * labels..(block + 1) * labels],
+                            );
+                        }
+                    });
+            }
+        }
+        _ => initialise_dual_messages_from_data(problem, dual_messages),
+    }
     for iteration in 0..iterations {
         let plane = iteration % 2;
         let forward = iteration % 4 < 2;
@@ -888,14 +1022,169 @@ fn run_belief_propagation(
         let spatial = &mut spatial_messages[plane];
         let arguments = (problem, plane, forward, update_dual);
         // Specialised copies for the label counts of the default schedule (5, 7, 9 at the lower
-        // levels, 21 at the top): constant loop bounds let the compiler unroll and vectorise.
+        // levels, 21 at the top): fixed-size arrays, no bounds checks in the loops, constant loop
+        // bounds the compiler unrolls and vectorises.
         match (specialised, problem.labels) {
-            (true, 5) => sweep::<5>(arguments, spatial, dual_this, dual_other),
-            (true, 7) => sweep::<7>(arguments, spatial, dual_this, dual_other),
-            (true, 9) => sweep::<9>(arguments, spatial, dual_this, dual_other),
-            (true, 11) => sweep::<11>(arguments, spatial, dual_this, dual_other),
-            (true, 21) => sweep::<21>(arguments, spatial, dual_this, dual_other),
+            (true, 3) => sweep_fixed::<3>(arguments, spatial, dual_this, dual_other),
+            (true, 5) => sweep_fixed::<5>(arguments, spatial, dual_this, dual_other),
+            (true, 7) => sweep_fixed::<7>(arguments, spatial, dual_this, dual_other),
+            (true, 9) => sweep_fixed::<9>(arguments, spatial, dual_this, dual_other),
+            (true, 11) => sweep_fixed::<11>(arguments, spatial, dual_this, dual_other),
+            (true, 21) => sweep_fixed::<21>(arguments, spatial, dual_this, dual_other),
             _ => sweep::<0>(arguments, spatial, dual_this, dual_other),
+        }
+    }
+}
+
+/// `min` without NaN handling (one `minss`); the messages never hold NaN.
+#[inline(always)]
+fn fast_min(a: f32, b: f32) -> f32 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
+#[inline(always)]
+fn load_labels<const L: usize>(buffer: &[f32], start: usize) -> [f32; L] {
+    let mut values = [0.0f32; L];
+    values.copy_from_slice(&buffer[start..start + L]);
+    values
+}
+
+/// [`truncated_l1_message`] on fixed-size arrays, with a fast path for equal offsets.
+#[inline(always)]
+fn truncated_l1_message_fixed<const L: usize>(
+    mut h: [f32; L],
+    shift: i32,
+    alpha: f32,
+    truncation: f32,
+) -> [f32; L] {
+    let mut minimum = h[0];
+    for label in 1..L {
+        minimum = fast_min(minimum, h[label]);
+        h[label] = fast_min(h[label], h[label - 1] + alpha);
+    }
+    for label in (0..L - 1).rev() {
+        h[label] = fast_min(h[label], h[label + 1] + alpha);
+    }
+    let ceiling = minimum + truncation;
+    let mut message = [0.0f32; L];
+    if shift == 0 {
+        // The distance transform keeps the minimum, so after the ceiling it is still `minimum`.
+        for label in 0..L {
+            message[label] = fast_min(h[label], ceiling) - minimum;
+        }
+        return message;
+    }
+    let last = L as i32 - 1;
+    for (label, value) in message.iter_mut().enumerate() {
+        let source_label = label as i32 + shift;
+        let transformed = if source_label < 0 {
+            h[0] + alpha * (-source_label) as f32
+        } else if source_label > last {
+            h[L - 1] + alpha * (source_label - last) as f32
+        } else {
+            h[source_label as usize]
+        };
+        *value = fast_min(transformed, ceiling);
+    }
+    let message_minimum = message.iter().copied().fold(f32::INFINITY, fast_min);
+    for value in &mut message {
+        *value -= message_minimum;
+    }
+    message
+}
+
+/// [`sweep`] for a label count fixed at compile time.
+#[inline(never)]
+fn sweep_fixed<const L: usize>(
+    (problem, plane, forward, update_dual): (&LevelProblem, usize, bool, bool),
+    spatial: &mut [f32],
+    dual_this: &[f32],
+    dual_other: &mut [f32],
+) {
+    let (width, height) = (problem.width, problem.height);
+    let pixel_count = width * height;
+    let offsets = problem.offsets[plane];
+    let radius = problem.radius as i32;
+    let gamma = problem.flow_magnitude_weight;
+    let (alpha, truncation) = (problem.smoothness_weight, problem.smoothness_truncation);
+    let slot = |pixel: usize, from: usize| (pixel * 4 + from) * L;
+    for step in 0..pixel_count {
+        let pixel = if forward {
+            step
+        } else {
+            pixel_count - 1 - step
+        };
+        let (x, y) = (pixel % width, pixel / width);
+        let offset = offsets[pixel];
+        let from_left = load_labels::<L>(spatial, slot(pixel, FROM_LEFT));
+        let from_right = load_labels::<L>(spatial, slot(pixel, FROM_RIGHT));
+        let from_above = load_labels::<L>(spatial, slot(pixel, FROM_ABOVE));
+        let from_below = load_labels::<L>(spatial, slot(pixel, FROM_BELOW));
+        let dual_in = load_labels::<L>(dual_this, pixel * L);
+        let mut base = [0.0f32; L];
+        for label in 0..L {
+            let flow = offset + label as i32 - radius;
+            base[label] = gamma * flow.unsigned_abs() as f32
+                + dual_in[label]
+                + from_left[label]
+                + from_right[label]
+                + from_above[label]
+                + from_below[label];
+        }
+        let mut send = |neighbour: usize, excluded: &[f32; L], slot_at_neighbour: usize| {
+            let mut h = [0.0f32; L];
+            for label in 0..L {
+                h[label] = base[label] - excluded[label];
+            }
+            let message =
+                truncated_l1_message_fixed::<L>(h, offsets[neighbour] - offset, alpha, truncation);
+            spatial[slot(neighbour, slot_at_neighbour)..slot(neighbour, slot_at_neighbour) + L]
+                .copy_from_slice(&message);
+        };
+        if forward {
+            if x + 1 < width {
+                send(pixel + 1, &from_right, FROM_LEFT);
+            }
+            if y + 1 < height {
+                send(pixel + width, &from_below, FROM_ABOVE);
+            }
+        } else {
+            if x > 0 {
+                send(pixel - 1, &from_left, FROM_RIGHT);
+            }
+            if y > 0 {
+                send(pixel - width, &from_above, FROM_BELOW);
+            }
+        }
+        if update_dual {
+            let mut outgoing = [0.0f32; L];
+            for label in 0..L {
+                outgoing[label] = base[label] - dual_in[label];
+            }
+            let costs = &problem.data_cost[pixel * L * L..(pixel + 1) * L * L];
+            let mut message = [f32::INFINITY; L];
+            if plane == 0 {
+                for (value, row) in message.iter_mut().zip(costs.chunks_exact(L)) {
+                    for label_u in 0..L {
+                        *value = fast_min(*value, row[label_u] + outgoing[label_u]);
+                    }
+                }
+            } else {
+                for (row, &from_v) in costs.chunks_exact(L).zip(&outgoing) {
+                    for label_u in 0..L {
+                        message[label_u] = fast_min(message[label_u], row[label_u] + from_v);
+                    }
+                }
+            }
+            let minimum = message.iter().copied().fold(f32::INFINITY, fast_min);
+            let out = &mut dual_other[pixel * L..(pixel + 1) * L];
+            for (value, computed) in out.iter_mut().zip(&message) {
+                *value = computed - minimum;
+            }
         }
     }
 }
