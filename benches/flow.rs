@@ -337,7 +337,7 @@ fn main() {
             let second = sift(&pair.second, pair.width, pair.height);
             let mut workspace = SiftFlowWorkspace::default();
             pool(1).install(|| {
-                for (iterations, top_iterations, multigrid, multigrid_iterations) in [(30, 60, false, 20), (30, 60, true, 20), (8, 30, false, 20), (8, 30, true, 20), (8, 30, true, 8), (4, 20, true, 8), (4, 20, true, 4)] {
+                for (iterations, top_iterations, multigrid, multigrid_iterations) in [(30, 60, false, 20), (30, 60, true, 20), (8, 30, false, 20), (8, 30, true, 20), (8, 30, true, 8), (4, 20, true, 8), (4, 20, true, 4), (2, 10, true, 4), (2, 10, true, 2), (1, 6, true, 2)] {
                     let config = SiftFlowConfig { iterations, top_iterations, multigrid, multigrid_iterations, ..Default::default() };
                     let (cpu, field) = cpu_time(|| flow(&first, &second, &config, &mut workspace));
                     let (epe, under_one) = score(&field, &pair.truth);

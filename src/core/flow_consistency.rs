@@ -27,7 +27,8 @@ use crate::core::dense_sift::{
     compute_dense_sift, DenseSiftConfig, DenseSiftImage, DenseSiftWorkspace,
 };
 use crate::core::sift_flow::{
-    compute_sift_flow, FlowError, FlowField, SiftFlowConfig, SiftFlowWorkspace,
+    compute_sift_flow_on_pyramids, FlowError, FlowField, SiftFlowConfig, SiftFlowWorkspace,
+    SiftPyramid,
 };
 
 /// A grey image borrowed from the caller: row major, `width_px · height_px` values in `0..=1`.
@@ -100,6 +101,8 @@ pub struct PixelCorrespondence {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CorrespondenceTimings {
     pub dense_sift: Duration,
+    /// Descriptor pyramid of the rendering (and of the query in [`match_query_to_rendering`]).
+    pub pyramid: Duration,
     pub forward_flow: Duration,
     pub backward_flow: Duration,
     pub consistency: Duration,
@@ -124,6 +127,8 @@ pub struct DenseCorrespondenceWorkspace {
     flow_workspace: SiftFlowWorkspace,
     query_sift: DenseSiftImage,
     rendering_sift: DenseSiftImage,
+    query_pyramid: SiftPyramid,
+    rendering_pyramid: SiftPyramid,
     query_textured: Vec<bool>,
     rendering_participates: Vec<bool>,
     forward_cost: Vec<f32>,
@@ -159,10 +164,15 @@ pub fn match_query_to_rendering(
         &mut ws.rendering_sift,
     )?;
     let dense_sift = started.elapsed();
+    let pyramid_started = Instant::now();
+    ws.query_pyramid.build(&ws.query_sift, &config.sift_flow)?;
+    let query_pyramid_time = pyramid_started.elapsed();
     let query_sift = std::mem::take(&mut ws.query_sift);
     let rendering_sift = std::mem::take(&mut ws.rendering_sift);
+    let query_pyramid = std::mem::take(&mut ws.query_pyramid);
     let result = match_sift_images(
         &query_sift,
+        &query_pyramid,
         &rendering_sift,
         rendering_valid,
         config,
@@ -171,16 +181,20 @@ pub fn match_query_to_rendering(
     );
     ws.query_sift = query_sift;
     ws.rendering_sift = rendering_sift;
+    ws.query_pyramid = query_pyramid;
     result?;
     out.timings.dense_sift = dense_sift;
+    out.timings.pyramid += query_pyramid_time;
     out.timings.total = started.elapsed();
     Ok(())
 }
 
-/// As [`match_query_to_rendering`] from dense SIFT images computed by the caller (so that one
-/// query's descriptors serve all its renderings). `timings.dense_sift` is left at zero.
+/// As [`match_query_to_rendering`] from the query's dense SIFT image and pyramid computed by the
+/// caller (so that they serve all its renderings) and the rendering's dense SIFT image.
+/// `timings.dense_sift` is left at zero.
 pub fn match_sift_images(
     query_sift: &DenseSiftImage,
+    query_pyramid: &SiftPyramid,
     rendering_sift: &DenseSiftImage,
     rendering_valid: Option<&[bool]>,
     config: &DenseCorrespondenceConfig,
@@ -221,12 +235,14 @@ pub fn match_sift_images(
         }
     }
 
+    let pyramid_started = Instant::now();
+    ws.rendering_pyramid
+        .build(rendering_sift, &config.sift_flow)?;
+    let pyramid = pyramid_started.elapsed();
     let forward_started = Instant::now();
-    compute_sift_flow(
-        query_sift,
-        Some(&ws.query_textured),
-        rendering_sift,
-        rendering_valid,
+    compute_sift_flow_on_pyramids(
+        (query_sift, query_pyramid, Some(&ws.query_textured)),
+        (rendering_sift, &ws.rendering_pyramid, rendering_valid),
         &config.sift_flow,
         &mut ws.flow_workspace,
         &mut out.forward,
@@ -234,11 +250,13 @@ pub fn match_sift_images(
     )?;
     let forward_flow = forward_started.elapsed();
     let backward_started = Instant::now();
-    compute_sift_flow(
-        rendering_sift,
-        Some(&ws.rendering_participates),
-        query_sift,
-        None,
+    compute_sift_flow_on_pyramids(
+        (
+            rendering_sift,
+            &ws.rendering_pyramid,
+            Some(&ws.rendering_participates),
+        ),
+        (query_sift, query_pyramid, None),
         &config.sift_flow,
         &mut ws.flow_workspace,
         &mut out.backward,
@@ -258,6 +276,7 @@ pub fn match_sift_images(
     );
     out.timings = CorrespondenceTimings {
         dense_sift: Duration::ZERO,
+        pyramid,
         forward_flow,
         backward_flow,
         consistency: consistency_started.elapsed(),
@@ -283,6 +302,8 @@ pub fn match_query_to_renderings(
         &mut DenseSiftWorkspace::default(),
         &mut query_sift,
     )?;
+    let mut query_pyramid = SiftPyramid::default();
+    query_pyramid.build(&query_sift, &config.sift_flow)?;
     renderings
         .par_iter()
         .map_init(
@@ -302,6 +323,7 @@ pub fn match_query_to_renderings(
                 let mut out = DenseCorrespondence::default();
                 let result = match_sift_images(
                     &query_sift,
+                    &query_pyramid,
                     &rendering_sift,
                     *valid,
                     config,
@@ -660,6 +682,41 @@ mod tests {
         // Reference (Ce Liu's C++): EPE 0.440 px.
         assert!(epe <= 0.44, "EPE {epe}");
         assert!(under_one >= 0.93, "< 1 px {under_one}");
+    }
+
+    #[test]
+    fn frame_matching_equals_pair_matching() {
+        let (width, height) = (80, 60);
+        let image = textured_image(width + 8, height);
+        let crop = |start: usize| -> Vec<f32> {
+            (0..width * height)
+                .map(|pixel| image[(pixel / width) * (width + 8) + pixel % width + start])
+                .collect()
+        };
+        let query = crop(4);
+        let renderings: Vec<Vec<f32>> = (0..3).map(|shift| crop(2 * shift)).collect();
+        let config = DenseCorrespondenceConfig {
+            sift_flow: SiftFlowConfig::fast(),
+            ..Default::default()
+        };
+        let grey = |pixels: &[f32]| GreyImage {
+            width_px: width,
+            height_px: height,
+            pixels,
+        };
+        let inputs: Vec<(GreyImage, Option<&[bool]>)> = renderings
+            .iter()
+            .map(|rendering| (grey(rendering), None))
+            .collect();
+        let frame = match_query_to_renderings(grey(&query), &inputs, &config).unwrap();
+        assert_eq!(frame.len(), 3);
+        for (rendering, from_frame) in renderings.iter().zip(&frame) {
+            let single = run_pair(&query, rendering, width, height, None, &config);
+            assert_eq!(single.forward, from_frame.forward);
+            assert_eq!(single.backward, from_frame.backward);
+            assert_eq!(single.correspondences, from_frame.correspondences);
+            assert!(!single.correspondences.is_empty());
+        }
     }
 
     #[test]
