@@ -700,17 +700,18 @@ mod tests {
             ..Default::default()
         };
         fn grey(pixels: &[f32], width_px: usize, height_px: usize) -> GreyImage<'_> {
-            GreyImage { width_px, height_px, pixels }
+            GreyImage {
+                width_px,
+                height_px,
+                pixels,
+            }
         }
-            width_px: width,
-            height_px: height,
-            pixels,
-        };
         let inputs: Vec<(GreyImage, Option<&[bool]>)> = renderings
             .iter()
             .map(|rendering| (grey(rendering, width, height), None))
             .collect();
-        let frame = match_query_to_renderings(grey(&query, width, height), &inputs, &config).unwrap();
+        let frame =
+            match_query_to_renderings(grey(&query, width, height), &inputs, &config).unwrap();
         assert_eq!(frame.len(), 3);
         for (rendering, from_frame) in renderings.iter().zip(&frame) {
             let single = run_pair(&query, rendering, width, height, None, &config);
