@@ -124,7 +124,9 @@ pub struct DenseCorrespondence {
 #[derive(Debug, Default)]
 pub struct DenseCorrespondenceWorkspace {
     sift_workspace: DenseSiftWorkspace,
+    rendering_sift_workspace: DenseSiftWorkspace,
     flow_workspace: SiftFlowWorkspace,
+    backward_flow_workspace: SiftFlowWorkspace,
     query_sift: DenseSiftImage,
     rendering_sift: DenseSiftImage,
     query_pyramid: SiftPyramid,
@@ -147,22 +149,30 @@ pub fn match_query_to_rendering(
     let started = Instant::now();
     config.validate()?;
     let ws = workspace;
-    compute_dense_sift(
-        query.pixels,
-        query.width_px,
-        query.height_px,
-        &config.dense_sift,
-        &mut ws.sift_workspace,
-        &mut ws.query_sift,
-    )?;
-    compute_dense_sift(
-        rendering.pixels,
-        rendering.width_px,
-        rendering.height_px,
-        &config.dense_sift,
-        &mut ws.sift_workspace,
-        &mut ws.rendering_sift,
-    )?;
+    let (query_result, rendering_result) = rayon::join(
+        || {
+            compute_dense_sift(
+                query.pixels,
+                query.width_px,
+                query.height_px,
+                &config.dense_sift,
+                &mut ws.sift_workspace,
+                &mut ws.query_sift,
+            )
+        },
+        || {
+            compute_dense_sift(
+                rendering.pixels,
+                rendering.width_px,
+                rendering.height_px,
+                &config.dense_sift,
+                &mut ws.rendering_sift_workspace,
+                &mut ws.rendering_sift,
+            )
+        },
+    );
+    query_result?;
+    rendering_result?;
     let dense_sift = started.elapsed();
     let pyramid_started = Instant::now();
     ws.query_pyramid.build(&ws.query_sift, &config.sift_flow)?;
@@ -239,30 +249,46 @@ pub fn match_sift_images(
     ws.rendering_pyramid
         .build(rendering_sift, &config.sift_flow)?;
     let pyramid = pyramid_started.elapsed();
-    let forward_started = Instant::now();
-    compute_sift_flow_on_pyramids(
-        (query_sift, query_pyramid, Some(&ws.query_textured)),
-        (rendering_sift, &ws.rendering_pyramid, rendering_valid),
-        &config.sift_flow,
-        &mut ws.flow_workspace,
-        &mut out.forward,
-        &mut ws.forward_cost,
-    )?;
-    let forward_flow = forward_started.elapsed();
-    let backward_started = Instant::now();
-    compute_sift_flow_on_pyramids(
-        (
-            rendering_sift,
-            &ws.rendering_pyramid,
-            Some(&ws.rendering_participates),
-        ),
-        (query_sift, query_pyramid, None),
-        &config.sift_flow,
-        &mut ws.flow_workspace,
-        &mut out.backward,
-        &mut ws.backward_cost,
-    )?;
-    let backward_flow = backward_started.elapsed();
+    // The two directions are independent: run them side by side (rayon decides whether that
+    // uses a second thread).
+    let rendering_pyramid = &ws.rendering_pyramid;
+    let (query_textured, rendering_participates) = (&ws.query_textured, &ws.rendering_participates);
+    let (forward_workspace, backward_workspace) =
+        (&mut ws.flow_workspace, &mut ws.backward_flow_workspace);
+    let (forward_cost, backward_cost) = (&mut ws.forward_cost, &mut ws.backward_cost);
+    let (forward_out, backward_out) = (&mut out.forward, &mut out.backward);
+    let (forward_result, backward_result) = rayon::join(
+        || {
+            let started = Instant::now();
+            compute_sift_flow_on_pyramids(
+                (query_sift, query_pyramid, Some(query_textured)),
+                (rendering_sift, rendering_pyramid, rendering_valid),
+                &config.sift_flow,
+                forward_workspace,
+                forward_out,
+                forward_cost,
+            )
+            .map(|_| started.elapsed())
+        },
+        || {
+            let started = Instant::now();
+            compute_sift_flow_on_pyramids(
+                (
+                    rendering_sift,
+                    rendering_pyramid,
+                    Some(rendering_participates),
+                ),
+                (query_sift, query_pyramid, None),
+                &config.sift_flow,
+                backward_workspace,
+                backward_out,
+                backward_cost,
+            )
+            .map(|_| started.elapsed())
+        },
+    );
+    let forward_flow = forward_result?;
+    let backward_flow = backward_result?;
 
     let consistency_started = Instant::now();
     collect_consistent_pairs(
