@@ -1,10 +1,15 @@
-//! The algorithm core: camera geometry, meshes, rendering and (later) correspondence, pose solving
-//! and verification. Pure: no transport, no async runtime, no message types, no global state;
+//! The algorithm core: camera geometry, meshes, rendering, dense correspondence, pose solving and
+//! verification. Pure: no transport, no async runtime, no message types, no global state;
 //! randomness is passed in; hot paths write into caller-provided buffers.
 
 pub mod camera;
+pub mod dense_sift;
+pub mod flow_consistency;
 pub mod mesh;
+pub mod pose;
 pub mod raster;
 pub mod reprojection;
 pub mod rigid;
 pub mod shading;
+pub mod sift_flow;
+pub mod verify;

@@ -1,0 +1,475 @@
+//! Benchmarks of dense correspondence (dense SIFT and SIFT flow, Liu, Yuen, Torralba, TPAMI 2011)
+//! on the shared real pairs (`../shared/data/flow-pairs`, skipped with a note when absent):
+//! per pair at 505×275 and 1010×550 on one and two threads, a frame's worth of flows (30 pairs),
+//! and side-by-side comparisons of each optimisation against the straightforward code.
+//!
+//! `FLOW_BENCH_QUICK=1 cargo bench --bench flow` prints one-shot timings, end-point errors and the
+//! side-by-side figures without criterion's repetitions (a few minutes on 2 cores).
+
+use std::hint::black_box;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use asgreg::core::dense_sift::{
+    compute_dense_sift, DenseSiftConfig, DenseSiftImage, DenseSiftWorkspace,
+};
+use asgreg::core::flow_consistency::{
+    match_query_to_renderings, DenseCorrespondenceConfig, GreyImage,
+};
+use asgreg::core::sift_flow::{
+    compute_sift_flow, compute_sift_flow_on_pyramids, descriptor_l1_distance, FlowField, L1Kernel,
+    SiftFlowConfig, SiftFlowWorkspace, SiftPyramid,
+};
+use criterion::{BenchmarkId, Criterion};
+use rayon::prelude::*;
+
+struct Pair {
+    name: &'static str,
+    width: usize,
+    height: usize,
+    first: Vec<f32>,
+    second: Vec<f32>,
+    truth: FlowField,
+}
+
+fn load_grey(path: &Path) -> Option<(usize, usize, Vec<f32>)> {
+    let image = image::open(path).ok()?.to_luma8();
+    let (width, height) = image.dimensions();
+    Some((
+        width as usize,
+        height as usize,
+        image
+            .pixels()
+            .map(|pixel| pixel.0[0] as f32 / 255.0)
+            .collect(),
+    ))
+}
+
+fn load_pair(name: &'static str) -> Option<Pair> {
+    let directory = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/data/flow-pairs"
+    ));
+    let Some((width, height, first)) = load_grey(&directory.join(format!("{name}_im1.png"))) else {
+        eprintln!("skipped {name}: not found in {}", directory.display());
+        return None;
+    };
+    let (_, _, second) = load_grey(&directory.join(format!("{name}_im2.png")))?;
+    let truth = asgreg::io::flo::read_flo(&directory.join(format!("{name}_gt.flo"))).ok()?;
+    Some(Pair {
+        name,
+        width,
+        height,
+        first,
+        second,
+        truth,
+    })
+}
+
+fn sift(image: &[f32], width: usize, height: usize) -> DenseSiftImage {
+    let mut out = DenseSiftImage::default();
+    compute_dense_sift(
+        image,
+        width,
+        height,
+        &DenseSiftConfig::default(),
+        &mut DenseSiftWorkspace::default(),
+        &mut out,
+    )
+    .expect("dense SIFT");
+    out
+}
+
+fn flow(
+    first: &DenseSiftImage,
+    second: &DenseSiftImage,
+    config: &SiftFlowConfig,
+    workspace: &mut SiftFlowWorkspace,
+) -> FlowField {
+    let mut field = FlowField::default();
+    let mut cost = Vec::new();
+    compute_sift_flow(
+        first, None, second, None, config, workspace, &mut field, &mut cost,
+    )
+    .expect("SIFT flow");
+    field
+}
+
+fn pool(threads: usize) -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("thread pool")
+}
+
+/// EPE and fraction under 1 px over pixels at least 20 px from the border.
+fn score(field: &FlowField, truth: &FlowField) -> (f64, f64) {
+    let (mut sum, mut under, mut count) = (0.0, 0usize, 0usize);
+    for y in 20..field.height_px - 20 {
+        for x in 20..field.width_px - 20 {
+            let pixel = y * field.width_px + x;
+            let error = ((field.u_px[pixel] - truth.u_px[pixel]) as f64)
+                .hypot((field.v_px[pixel] - truth.v_px[pixel]) as f64);
+            sum += error;
+            under += (error < 1.0) as usize;
+            count += 1;
+        }
+    }
+    (sum / count as f64, under as f64 / count as f64)
+}
+
+/// CPU time of this process (user + system), from `/proc/self/stat`; `None` elsewhere. On a shared
+/// machine it is steadier than wall time for single-threaded runs.
+fn process_cpu_time() -> Option<Duration> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let after_name = stat.rsplit_once(')')?.1;
+    let fields: Vec<&str> = after_name.split_whitespace().collect();
+    let user: u64 = fields.get(11)?.parse().ok()?;
+    let system: u64 = fields.get(12)?.parse().ok()?;
+    Some(Duration::from_millis((user + system) * 10))
+}
+
+fn cpu_time<T>(mut run: impl FnMut() -> T) -> (Duration, T) {
+    let before = process_cpu_time().unwrap_or_default();
+    let value = run();
+    (
+        process_cpu_time()
+            .unwrap_or_default()
+            .saturating_sub(before),
+        value,
+    )
+}
+
+fn time<T>(mut run: impl FnMut() -> T) -> (Duration, T) {
+    let started = Instant::now();
+    let value = run();
+    (started.elapsed(), value)
+}
+
+fn quick_report(pairs: &[Pair]) {
+    let presets = [
+        ("default", SiftFlowConfig::default()),
+        ("fast", SiftFlowConfig::fast()),
+    ];
+    for pair in pairs {
+        for threads in [1, 2] {
+            pool(threads).install(|| {
+                let mut workspace = DenseSiftWorkspace::default();
+                let mut out = DenseSiftImage::default();
+                let run = |workspace: &mut DenseSiftWorkspace, out: &mut DenseSiftImage| {
+                    compute_dense_sift(
+                        &pair.first,
+                        pair.width,
+                        pair.height,
+                        &DenseSiftConfig::default(),
+                        workspace,
+                        out,
+                    )
+                    .expect("dense SIFT")
+                };
+                run(&mut workspace, &mut out);
+                let (cpu, (wall, ())) = cpu_time(|| time(|| run(&mut workspace, &mut out)));
+                println!(
+                    "{} dense SIFT, {threads} thread(s): {:.1} ms wall, {:.0} ms CPU",
+                    pair.name,
+                    wall.as_secs_f64() * 1000.0,
+                    cpu.as_secs_f64() * 1000.0
+                );
+            });
+        }
+        let first = sift(&pair.first, pair.width, pair.height);
+        let second = sift(&pair.second, pair.width, pair.height);
+        for (preset, config) in &presets {
+            for threads in [1, 2] {
+                pool(threads).install(|| {
+                    let mut workspace = SiftFlowWorkspace::default();
+                    let _warm = flow(&first, &second, config, &mut workspace);
+                    let (cpu, (wall, field)) = cpu_time(|| time(|| flow(&first, &second, config, &mut workspace)));
+                    let (epe, under_one) = score(&field, &pair.truth);
+                    println!(
+                        "{} SIFT flow {preset}, {threads} thread(s): {:.1} ms wall, {:.0} ms CPU, EPE {epe:.3} px, < 1 px {under_one:.3}",
+                        pair.name,
+                        wall.as_secs_f64() * 1000.0,
+                        cpu.as_secs_f64() * 1000.0
+                    );
+                });
+            }
+        }
+        // Side by side, one thread, same run: each speed optimisation against the straightforward
+        // code (CPU time; results are identical within each group).
+        pool(1).install(|| {
+            let mut workspace = SiftFlowWorkspace::default();
+            for (label, config) in [
+                (
+                    "straightforward: generic BP sweep, portable L1",
+                    SiftFlowConfig {
+                        specialised_kernels: false,
+                        l1_kernel: L1Kernel::Portable,
+                        ..Default::default()
+                    },
+                ),
+                (
+                    "fixed-size BP sweep, portable L1",
+                    SiftFlowConfig {
+                        l1_kernel: L1Kernel::Portable,
+                        ..Default::default()
+                    },
+                ),
+                (
+                    "fixed-size BP sweep, SSE2 L1",
+                    SiftFlowConfig {
+                        l1_kernel: L1Kernel::Sse2,
+                        ..Default::default()
+                    },
+                ),
+                (
+                    "fixed-size BP sweep, AVX2 L1 (default)",
+                    SiftFlowConfig::default(),
+                ),
+                (
+                    "without multigrid (30/60 iterations)",
+                    SiftFlowConfig {
+                        multigrid: false,
+                        ..Default::default()
+                    },
+                ),
+                (
+                    "fast preset (multigrid, 4/20/4 iterations)",
+                    SiftFlowConfig::fast(),
+                ),
+            ] {
+                let (cpu, field) = cpu_time(|| flow(&first, &second, &config, &mut workspace));
+                let (epe, under_one) = score(&field, &pair.truth);
+                println!(
+                    "{} side by side, {label}: {:.0} ms CPU, EPE {epe:.3}, < 1 px {under_one:.3}",
+                    pair.name,
+                    cpu.as_secs_f64() * 1000.0
+                );
+            }
+        });
+        let descriptors = first.descriptors.len() / 128;
+        for kernel in [L1Kernel::Portable, L1Kernel::Sse2, L1Kernel::Avx2] {
+            let (elapsed, total) = time(|| {
+                let mut total = 0u64;
+                for pixel in 0..descriptors - 1 {
+                    total += descriptor_l1_distance(
+                        first.descriptor(pixel),
+                        second.descriptor(pixel + 1),
+                        kernel,
+                    ) as u64;
+                }
+                total
+            });
+            black_box(total);
+            println!(
+                "{} L1 distance {kernel:?}: {:.2} ns per descriptor pair (with per-call dispatch)",
+                pair.name,
+                elapsed.as_secs_f64() * 1e9 / descriptors as f64
+            );
+        }
+    }
+    if let Some(pair) = pairs.first() {
+        fn grey<'a>(pair: &Pair, pixels: &'a [f32]) -> GreyImage<'a> {
+            GreyImage {
+                width_px: pair.width,
+                height_px: pair.height,
+                pixels,
+            }
+        }
+        let renderings: Vec<(GreyImage, Option<&[bool]>)> =
+            (0..30).map(|_| (grey(pair, &pair.second), None)).collect();
+        for (preset, sift_flow) in &presets {
+            let config = DenseCorrespondenceConfig {
+                sift_flow: sift_flow.clone(),
+                ..Default::default()
+            };
+            let first = sift(&pair.first, pair.width, pair.height);
+            let second = sift(&pair.second, pair.width, pair.height);
+            let mut first_pyramid = SiftPyramid::default();
+            let mut second_pyramid = SiftPyramid::default();
+            first_pyramid.build(&first, sift_flow).expect("pyramid");
+            second_pyramid.build(&second, sift_flow).expect("pyramid");
+            for threads in [1, 2] {
+                let (cpu, (wall, count)) = cpu_time(|| {
+                    time(|| {
+                        pool(threads).install(|| {
+                            (0..30)
+                                .into_par_iter()
+                                .map_init(SiftFlowWorkspace::default, |workspace, _| {
+                                    let mut field = FlowField::default();
+                                    let mut cost = Vec::new();
+                                    compute_sift_flow_on_pyramids(
+                                        (&first, &first_pyramid, None),
+                                        (&second, &second_pyramid, None),
+                                        sift_flow,
+                                        workspace,
+                                        &mut field,
+                                        &mut cost,
+                                    )
+                                    .expect("SIFT flow")
+                                })
+                                .count()
+                        })
+                    })
+                });
+                println!(
+                    "{} frame, {preset}: {count} SIFT flows (pyramids given), {threads} thread(s): {:.0} ms wall, {:.0} ms CPU",
+                    pair.name,
+                    wall.as_secs_f64() * 1000.0,
+                    cpu.as_secs_f64() * 1000.0
+                );
+            }
+            let (cpu, (wall, results)) = cpu_time(|| {
+                time(|| {
+                    pool(2).install(|| {
+                        match_query_to_renderings(grey(pair, &pair.first), &renderings, &config)
+                            .expect("frame")
+                    })
+                })
+            });
+            println!(
+                "{} frame, {preset}: 30 pairs both ways + dense SIFT + consistency, 2 threads: {:.0} ms wall, {:.0} ms CPU, {} correspondences per pair",
+                pair.name,
+                wall.as_secs_f64() * 1000.0,
+                cpu.as_secs_f64() * 1000.0,
+                results.first().map_or(0, |result| result.correspondences.len())
+            );
+        }
+    }
+}
+
+fn criterion_benches(criterion: &mut Criterion, pairs: &[Pair]) {
+    let mut group = criterion.benchmark_group("dense_sift");
+    group
+        .sample_size(10)
+        .measurement_time(Duration::from_secs(5));
+    for pair in pairs {
+        for threads in [1, 2] {
+            let thread_pool = pool(threads);
+            let mut workspace = DenseSiftWorkspace::default();
+            let mut out = DenseSiftImage::default();
+            group.bench_function(
+                BenchmarkId::new(pair.name, format!("{threads}t")),
+                |bench| {
+                    bench.iter(|| {
+                        thread_pool.install(|| {
+                            compute_dense_sift(
+                                &pair.first,
+                                pair.width,
+                                pair.height,
+                                &DenseSiftConfig::default(),
+                                &mut workspace,
+                                &mut out,
+                            )
+                        })
+                    })
+                },
+            );
+        }
+    }
+    group.finish();
+
+    let mut group = criterion.benchmark_group("sift_flow");
+    group
+        .sample_size(10)
+        .measurement_time(Duration::from_secs(10));
+    for pair in pairs {
+        let first = sift(&pair.first, pair.width, pair.height);
+        let second = sift(&pair.second, pair.width, pair.height);
+        for threads in [1, 2] {
+            let thread_pool = pool(threads);
+            let mut workspace = SiftFlowWorkspace::default();
+            group.bench_function(
+                BenchmarkId::new(pair.name, format!("{threads}t")),
+                |bench| {
+                    bench.iter(|| {
+                        thread_pool.install(|| {
+                            flow(&first, &second, &SiftFlowConfig::default(), &mut workspace)
+                        })
+                    })
+                },
+            );
+        }
+    }
+    group.finish();
+
+    if let Some(pair) = pairs.first() {
+        let first = sift(&pair.first, pair.width, pair.height);
+        let second = sift(&pair.second, pair.width, pair.height);
+        let mut group = criterion.benchmark_group("frame");
+        group
+            .sample_size(10)
+            .measurement_time(Duration::from_secs(30));
+        let thread_pool = pool(2);
+        group.bench_function(BenchmarkId::new("30_pairs", pair.name), |bench| {
+            bench.iter(|| {
+                thread_pool.install(|| {
+                    (0..30)
+                        .into_par_iter()
+                        .map_init(SiftFlowWorkspace::default, |workspace, _| {
+                            flow(&first, &second, &SiftFlowConfig::default(), workspace)
+                        })
+                        .count()
+                })
+            })
+        });
+        group.finish();
+    }
+}
+
+fn main() {
+    let pairs: Vec<Pair> = ["dji0024_505x275", "dji0024_1010x550"]
+        .into_iter()
+        .filter_map(load_pair)
+        .collect();
+    if std::env::var_os("FLOW_BENCH_ITERATIONS").is_some() {
+        for pair in &pairs {
+            let first = sift(&pair.first, pair.width, pair.height);
+            let second = sift(&pair.second, pair.width, pair.height);
+            let mut workspace = SiftFlowWorkspace::default();
+            pool(1).install(|| {
+                for (iterations, top_iterations, multigrid, multigrid_iterations) in [(30, 60, false, 20), (30, 60, true, 20), (8, 30, false, 20), (8, 30, true, 20), (8, 30, true, 8), (4, 20, true, 8), (4, 20, true, 4), (2, 10, true, 4), (2, 10, true, 2), (1, 6, true, 2)] {
+                    let config = SiftFlowConfig { iterations, top_iterations, multigrid, multigrid_iterations, ..Default::default() };
+                    let (cpu, field) = cpu_time(|| flow(&first, &second, &config, &mut workspace));
+                    let (epe, under_one) = score(&field, &pair.truth);
+                    println!("{} iterations {iterations}/{top_iterations} multigrid {multigrid} {multigrid_iterations}: CPU {:.0} ms, EPE {epe:.3}, < 1 px {under_one:.3}", pair.name, cpu.as_secs_f64() * 1000.0);
+                }
+            });
+        }
+        return;
+    }
+    if std::env::var_os("FLOW_BENCH_PROFILE").is_some() {
+        // One pair, three flows on one thread: a target for `perf record`.
+        if let Some(pair) = pairs.first() {
+            let first = sift(&pair.first, pair.width, pair.height);
+            let second = sift(&pair.second, pair.width, pair.height);
+            let mut workspace = SiftFlowWorkspace::default();
+            pool(1).install(|| {
+                for _ in 0..3 {
+                    let mut field = FlowField::default();
+                    let mut cost = Vec::new();
+                    let timings = compute_sift_flow(
+                        &first,
+                        None,
+                        &second,
+                        None,
+                        &SiftFlowConfig::default(),
+                        &mut workspace,
+                        &mut field,
+                        &mut cost,
+                    )
+                    .expect("SIFT flow");
+                    println!("{timings:?}");
+                }
+            });
+        }
+        return;
+    }
+    if std::env::var_os("FLOW_BENCH_QUICK").is_some() {
+        quick_report(&pairs);
+        return;
+    }
+    let mut criterion = Criterion::default().configure_from_args();
+    criterion_benches(&mut criterion, &pairs);
+    criterion.final_summary();
+}

@@ -1,0 +1,366 @@
+//! The plausibility check (Schmitz et al., §3.4 "Plausibility Check"): decides whether a frame was
+//! registered and which refined pose to output.
+//!
+//! Every coarse pose yields a refined pose hypothesis. Correct hypotheses agree with each other,
+//! wrong ones scatter. Two hypotheses are *compatible* when their mutual reprojection error δ
+//! (eq. 5, [`crate::core::reprojection`]) is below a fraction (paper: 5 %) of the image's longest
+//! side. The largest connected component of the compatibility graph (paper: depth-first search)
+//! decides: the frame is accepted when it holds more than 3 hypotheses (configurable), and the
+//! output is the hypothesis with the largest RANSAC consensus in it.
+//!
+//! Preconditions: hypotheses of one frame, all with cameras of the same image size. Cost: one
+//! rendering per hypothesis (visible points) and `n(n-1)/2` δ evaluations on those point sets.
+
+use serde::{Deserialize, Serialize};
+
+use super::camera::Camera;
+use super::mesh::Mesh;
+use super::reprojection::{delta_between, visible_points, ReprojectionWorkspace, VisiblePoints};
+use super::rigid::Rigid3;
+
+/// Settings of the plausibility check.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VerifyConfig {
+    /// Two hypotheses are compatible when δ between them is below this fraction of the image's
+    /// longest side (dimensionless; paper: 0.05, i.e. 25 px at 505×275).
+    pub compatible_fraction_of_long_side: f64,
+    /// The largest component must hold at least this many hypotheses (paper: "more than three").
+    pub min_component_size: usize,
+}
+
+impl Default for VerifyConfig {
+    fn default() -> Self {
+        Self {
+            compatible_fraction_of_long_side: 0.05,
+            min_component_size: 4,
+        }
+    }
+}
+
+/// Errors of the verification settings.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum VerifyError {
+    #[error("verify.{field}: {why}")]
+    InvalidConfig { field: &'static str, why: String },
+}
+
+impl VerifyConfig {
+    pub fn validate(&self) -> Result<(), VerifyError> {
+        if !(self.compatible_fraction_of_long_side > 0.0
+            && self.compatible_fraction_of_long_side.is_finite())
+        {
+            return Err(VerifyError::InvalidConfig {
+                field: "compatible_fraction_of_long_side",
+                why: format!(
+                    "{} is not a positive number",
+                    self.compatible_fraction_of_long_side
+                ),
+            });
+        }
+        if self.min_component_size == 0 {
+            return Err(VerifyError::InvalidConfig {
+                field: "min_component_size",
+                why: "must be at least 1".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// One refined pose, as the pose step produced it for one coarse pose.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseHypothesis {
+    /// The camera with the estimated (or known) intrinsics.
+    pub camera: Camera,
+    pub cam_from_world: Rigid3,
+    /// RANSAC consensus: the number of inlier correspondences.
+    pub consensus: usize,
+    /// RMS reprojection error of the inliers after refinement, px.
+    pub inlier_rms_px: f64,
+    /// Correspondences the pose was estimated from.
+    pub correspondence_count: usize,
+}
+
+/// Why a frame was not accepted.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum RejectionReason {
+    /// No coarse pose produced a refined pose.
+    NoHypotheses,
+    /// The hypotheses do not agree: the largest compatible group is too small.
+    NoAgreement {
+        largest_component: usize,
+        required: usize,
+    },
+}
+
+impl std::fmt::Display for RejectionReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RejectionReason::NoHypotheses => {
+                write!(f, "no coarse pose gave a refined pose (too few consistent correspondences)")
+            }
+            RejectionReason::NoAgreement {
+                largest_component,
+                required,
+            } => write!(
+                f,
+                "the refined poses disagree: the largest group of mutually compatible poses has {largest_component}, {required} needed"
+            ),
+        }
+    }
+}
+
+/// The decision and its evidence.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Verdict {
+    pub accepted: bool,
+    pub rejection: Option<RejectionReason>,
+    /// Index (into the hypotheses) of the output pose: the largest consensus in the largest
+    /// component; present also for rejected frames that had hypotheses (as evidence).
+    pub chosen: Option<usize>,
+    /// Indices of the hypotheses in the largest component.
+    pub component: Vec<usize>,
+    pub hypothesis_count: usize,
+    /// Compatibility threshold used, px.
+    pub threshold_px: f64,
+    /// Mean δ from the chosen pose to the other members of its component, px (0 when alone).
+    pub mean_delta_to_chosen_px: f64,
+    /// 0..1, for users to threshold: the fraction of hypotheses in the component times how tightly
+    /// they agree (`1 - mean_delta_to_chosen / threshold`). Rejected frames keep their value.
+    pub confidence: f64,
+}
+
+/// Runs the plausibility check over a frame's hypotheses.
+pub fn verify_hypotheses(
+    mesh: &Mesh,
+    hypotheses: &[PoseHypothesis],
+    config: &VerifyConfig,
+    workspace: &mut ReprojectionWorkspace,
+) -> Verdict {
+    let Some(first) = hypotheses.first() else {
+        return Verdict {
+            accepted: false,
+            rejection: Some(RejectionReason::NoHypotheses),
+            chosen: None,
+            component: Vec::new(),
+            hypothesis_count: 0,
+            threshold_px: 0.0,
+            mean_delta_to_chosen_px: 0.0,
+            confidence: 0.0,
+        };
+    };
+    let threshold_px =
+        config.compatible_fraction_of_long_side * f64::from(first.camera.longest_side_px());
+    let visible: Vec<VisiblePoints> = hypotheses
+        .iter()
+        .map(|h| visible_points(mesh, &h.camera, &h.cam_from_world, workspace))
+        .collect();
+    let n = hypotheses.len();
+    let mut delta_px = vec![f64::INFINITY; n * n];
+    for i in 0..n {
+        delta_px[i * n + i] = 0.0;
+        for j in i + 1..n {
+            let delta = delta_between(&visible[i], &visible[j]).unwrap_or(f64::INFINITY);
+            delta_px[i * n + j] = delta;
+            delta_px[j * n + i] = delta;
+        }
+    }
+    let component = largest_component(n, |i, j| delta_px[i * n + j] < threshold_px, hypotheses);
+    let chosen = component
+        .iter()
+        .copied()
+        .max_by(|&a, &b| {
+            hypotheses[a]
+                .consensus
+                .cmp(&hypotheses[b].consensus)
+                .then(
+                    hypotheses[b]
+                        .inlier_rms_px
+                        .total_cmp(&hypotheses[a].inlier_rms_px),
+                )
+                .then(b.cmp(&a))
+        })
+        .unwrap_or(0);
+    let others: Vec<f64> = component
+        .iter()
+        .filter(|&&i| i != chosen)
+        .map(|&i| delta_px[chosen * n + i])
+        .collect();
+    let mean_delta_to_chosen_px = if others.is_empty() {
+        0.0
+    } else {
+        others.iter().sum::<f64>() / others.len() as f64
+    };
+    let agreement = (1.0 - mean_delta_to_chosen_px / threshold_px).clamp(0.0, 1.0);
+    let confidence = component.len() as f64 / n as f64 * agreement;
+    let accepted = component.len() >= config.min_component_size;
+    Verdict {
+        accepted,
+        rejection: (!accepted).then_some(RejectionReason::NoAgreement {
+            largest_component: component.len(),
+            required: config.min_component_size,
+        }),
+        chosen: Some(chosen),
+        component,
+        hypothesis_count: n,
+        threshold_px,
+        mean_delta_to_chosen_px,
+        confidence,
+    }
+}
+
+/// The largest connected component of the graph on `0..n` with edges where `compatible(i, j)`,
+/// found by depth-first search; ties go to the component with the larger total consensus, then
+/// to the one with the lowest index.
+fn largest_component(
+    n: usize,
+    compatible: impl Fn(usize, usize) -> bool,
+    hypotheses: &[PoseHypothesis],
+) -> Vec<usize> {
+    let mut component_of = vec![usize::MAX; n];
+    let mut best: Vec<usize> = Vec::new();
+    let mut best_consensus = 0usize;
+    for start in 0..n {
+        if component_of[start] != usize::MAX {
+            continue;
+        }
+        let mut members = Vec::new();
+        let mut stack = vec![start];
+        component_of[start] = start;
+        while let Some(node) = stack.pop() {
+            members.push(node);
+            for (other, label) in component_of.iter_mut().enumerate() {
+                if *label == usize::MAX && compatible(node, other) {
+                    *label = start;
+                    stack.push(other);
+                }
+            }
+        }
+        members.sort_unstable();
+        let consensus: usize = members.iter().map(|&i| hypotheses[i].consensus).sum();
+        if members.len() > best.len() || (members.len() == best.len() && consensus > best_consensus)
+        {
+            best_consensus = consensus;
+            best = members;
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::camera::PinholeIntrinsics;
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    /// A 20 m × 20 m square 30 m in front of the origin camera.
+    fn wall() -> Mesh {
+        let positions = [
+            Vector3::new(-10.0, -10.0, 30.0),
+            Vector3::new(10.0, -10.0, 30.0),
+            Vector3::new(10.0, 10.0, 30.0),
+            Vector3::new(-10.0, 10.0, 30.0),
+        ];
+        Mesh::from_world(&positions, vec![[0, 2, 1], [0, 3, 2]], None).unwrap()
+    }
+
+    fn hypothesis(offset_x_m: f64, consensus: usize) -> PoseHypothesis {
+        PoseHypothesis {
+            camera: Camera::pinhole(200, 100, PinholeIntrinsics::centered(150.0, 200, 100)),
+            cam_from_world: Rigid3::new(
+                UnitQuaternion::identity(),
+                Vector3::new(offset_x_m, 0.0, 0.0),
+            ),
+            consensus,
+            inlier_rms_px: 1.0,
+            correspondence_count: 1000,
+        }
+    }
+
+    #[test]
+    fn agreeing_poses_are_accepted_and_the_largest_consensus_wins() {
+        // At 30 m with f = 150 px a 0.1 m shift is 0.5 px; the threshold is 10 px (2 m).
+        let mut hypotheses: Vec<_> = (0..5)
+            .map(|i| hypothesis(0.1 * i as f64, 100 + i))
+            .collect();
+        hypotheses[2].consensus = 500;
+        hypotheses.push(hypothesis(8.0, 900)); // far off: 40 px, incompatible
+        hypotheses.push(hypothesis(-8.0, 800));
+        let verdict = verify_hypotheses(
+            &wall(),
+            &hypotheses,
+            &VerifyConfig::default(),
+            &mut ReprojectionWorkspace::new(),
+        );
+        assert!(verdict.accepted, "{verdict:?}");
+        assert_eq!(verdict.component, vec![0, 1, 2, 3, 4]);
+        assert_eq!(
+            verdict.chosen,
+            Some(2),
+            "largest consensus inside the component"
+        );
+        assert!((verdict.threshold_px - 10.0).abs() < 1e-12);
+        // Mean δ from hypothesis 2 to 0, 1, 3, 4: (1.0 + 0.5 + 0.5 + 1.0) / 4 px.
+        assert!(
+            (verdict.mean_delta_to_chosen_px - 0.75).abs() < 1e-6,
+            "{}",
+            verdict.mean_delta_to_chosen_px
+        );
+        let expected_confidence = 5.0 / 7.0 * (1.0 - 0.75 / 10.0);
+        assert!((verdict.confidence - expected_confidence).abs() < 1e-6);
+    }
+
+    #[test]
+    fn scattered_poses_are_rejected_with_the_evidence() {
+        // Each 3 m apart: 15 px, above the 10 px threshold.
+        let hypotheses: Vec<_> = (0..6).map(|i| hypothesis(3.0 * i as f64, 100)).collect();
+        let verdict = verify_hypotheses(
+            &wall(),
+            &hypotheses,
+            &VerifyConfig::default(),
+            &mut ReprojectionWorkspace::new(),
+        );
+        assert!(!verdict.accepted);
+        assert_eq!(
+            verdict.rejection,
+            Some(RejectionReason::NoAgreement {
+                largest_component: 1,
+                required: 4
+            })
+        );
+        assert_eq!(verdict.component.len(), 1);
+    }
+
+    #[test]
+    fn a_chain_of_compatible_poses_is_one_component() {
+        // 1.5 m steps (7.5 px): neighbours compatible, ends not; connectivity joins them all.
+        let hypotheses: Vec<_> = (0..4).map(|i| hypothesis(1.5 * i as f64, 10)).collect();
+        let verdict = verify_hypotheses(
+            &wall(),
+            &hypotheses,
+            &VerifyConfig::default(),
+            &mut ReprojectionWorkspace::new(),
+        );
+        assert!(verdict.accepted);
+        assert_eq!(verdict.component, vec![0, 1, 2, 3]);
+    }
+
+    #[test]
+    fn no_hypotheses_is_a_reasoned_failure() {
+        let verdict = verify_hypotheses(
+            &wall(),
+            &[],
+            &VerifyConfig::default(),
+            &mut ReprojectionWorkspace::new(),
+        );
+        assert!(!verdict.accepted);
+        assert_eq!(verdict.rejection, Some(RejectionReason::NoHypotheses));
+        assert!(VerifyConfig {
+            min_component_size: 0,
+            ..VerifyConfig::default()
+        }
+        .validate()
+        .is_err());
+    }
+}
