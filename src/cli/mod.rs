@@ -2,8 +2,10 @@
 //! errors are `anyhow` here (and only here) so they can carry the file and what to do.
 
 mod demo;
+mod eval;
 mod inputs;
 mod overlay;
+mod register;
 mod render;
 mod synth;
 
@@ -27,6 +29,10 @@ pub struct Cli {
 pub enum Command {
     /// The main job on an embedded default: make a synthetic scene and show its renderings.
     Demo(demo::DemoArgs),
+    /// Refine initial poses of a folder of photos against a mesh (the main batch job).
+    Register(register::RegisterArgs),
+    /// Evaluate registration on a scene folder the paper's way (tables, JSON, plot).
+    Eval(eval::EvalArgs),
     /// Write an honest synthetic test scene (photos, degraded model, depth, ground truth, initial poses).
     Synth(synth::SynthArgs),
     /// Render the mesh under an image's pose: ASG gradient image, normals or depth, as PNG.
@@ -53,6 +59,8 @@ pub fn init_logging(verbose: u8) {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Demo(args) => demo::run(&args),
+        Command::Register(args) => register::run(&args),
+        Command::Eval(args) => eval::run(&args),
         Command::Synth(args) => synth::run(&args),
         Command::Render(args) => render::run(&args),
         Command::Overlay(args) => overlay::run(&args),

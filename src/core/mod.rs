@@ -8,6 +8,7 @@ pub mod flow_consistency;
 pub mod mesh;
 pub mod pose;
 pub mod raster;
+pub mod register;
 pub mod reprojection;
 pub mod rigid;
 pub mod shading;

@@ -207,7 +207,7 @@ pub fn visible_points_into(
 /// The point where the camera ray `ray_cam` (z = 1) meets the plane of face `face_index`, in
 /// the camera frame; `None` when the ray is (nearly) parallel to the plane or the intersection
 /// strays from the rendered depth by more than 1 % (a degenerate face).
-fn ray_plane_point_cam(
+pub(crate) fn ray_plane_point_cam(
     mesh: &Mesh,
     face_index: usize,
     cam_from_world: &Rigid3,

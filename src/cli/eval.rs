@@ -1,0 +1,358 @@
+//! `asgreg eval`: the evaluation protocol of DESIGN §3 on a scene folder (as `asgreg synth` writes
+//! it): registration from every initial level with known and unknown intrinsics, δ to ground truth,
+//! acceptance and false accepts; tables laid out like the paper's, JSON, and an SVG plot.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use asgreg::batch::{depth_path_for, register_batch_frame, BatchFrame};
+use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
+use asgreg::eval::{cell_stats, format_accuracy, CellStats, EvalFrame};
+use asgreg::io::colmap::{read_cameras_txt, read_images_txt};
+use asgreg::io::mesh_file::read_mesh;
+
+use super::register::{progress_bar, registration_config, IntrinsicsArg};
+
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    /// Scene folder: model.ply, images/, gt/, initial/<level>/images.txt, optionally depth/.
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// Output folder for results.md, results.json and results.svg.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Initial-error levels to run (folders under initial/), px.
+    #[arg(long, value_delimiter = ',', default_values_t = [30, 57, 80, 104])]
+    pub levels: Vec<u32>,
+    /// Intrinsics modes to run.
+    #[arg(long, value_delimiter = ',', value_enum, default_values_t = [IntrinsicsArg::Known, IntrinsicsArg::Unknown])]
+    pub intrinsics: Vec<IntrinsicsArg>,
+    /// Query gradient image: the photo's gradient, or the ASG of its depth map (needs depth/).
+    #[arg(long, value_enum, default_value_t = QueryArg::Depth)]
+    pub query: QueryArg,
+    /// Use only the first N images of each level.
+    #[arg(long)]
+    pub limit: Option<usize>,
+    /// Seed of the registration's random draws.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Coarse poses per frame.
+    #[arg(long, default_value_t = 15)]
+    pub coarse_poses: usize,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum QueryArg {
+    Gradient,
+    Depth,
+}
+
+fn method_name(intrinsics: IntrinsicsArg) -> &'static str {
+    match intrinsics {
+        IntrinsicsArg::Known => "known K",
+        IntrinsicsArg::Unknown => "unknown K",
+    }
+}
+
+pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    let mesh = read_mesh(&args.scene.join("model.ply"))?;
+    let gt_cameras = read_cameras_txt(&args.scene.join("gt/cameras.txt"))?;
+    let gt_images = read_images_txt(&args.scene.join("gt/images.txt"))?;
+    let depth_dir = args.scene.join("depth");
+    let with_depth = args.query == QueryArg::Depth;
+    if with_depth && !depth_dir.is_dir() {
+        bail!(
+            "--query depth needs the photos' depth maps in {}; pass --query gradient to use the photos' gradients",
+            depth_dir.display()
+        );
+    }
+    let longest_side_px = gt_cameras
+        .values()
+        .map(|c| c.longest_side_px())
+        .max()
+        .context("gt/cameras.txt defines no camera")?;
+    let false_accept_px = 0.05 * f64::from(longest_side_px);
+
+    let mut jobs = Vec::new();
+    for &level in &args.levels {
+        let poses_path = args.scene.join(format!("initial/{level}/images.txt"));
+        let initial = read_images_txt(&poses_path)?;
+        for &intrinsics in &args.intrinsics {
+            for image in initial.iter().take(args.limit.unwrap_or(usize::MAX)) {
+                jobs.push((level, intrinsics, image.clone()));
+            }
+        }
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+
+    let bar = progress_bar(jobs.len(), "evaluating");
+    let mut workspace = ReprojectionWorkspace::new();
+    let mut results: BTreeMap<(u32, &'static str), Vec<EvalFrame>> = BTreeMap::new();
+    for (level, intrinsics, initial) in jobs {
+        let gt = gt_images
+            .iter()
+            .find(|g| g.name == initial.name)
+            .with_context(|| format!("{} has no ground truth in gt/images.txt", initial.name))?;
+        let camera = *gt_cameras.get(&gt.camera_id).with_context(|| {
+            format!(
+                "gt/images.txt: {} uses camera {}, not in gt/cameras.txt",
+                gt.name, gt.camera_id
+            )
+        })?;
+        let frame = BatchFrame {
+            image_id: initial.image_id,
+            camera_id: gt.camera_id,
+            name: initial.name.clone(),
+            image_path: args.scene.join("images").join(&initial.name),
+            depth_path: with_depth.then(|| depth_path_for(&depth_dir, &initial.name)),
+            camera,
+            initial_cam_from_world: initial.cam_from_world,
+        };
+        let config = registration_config(intrinsics, with_depth, args.coarse_poses);
+        let report = register_batch_frame(&mesh, &frame, &config, args.seed);
+        let initial_delta_px = mutual_reprojection_error_px(
+            &mesh,
+            &camera,
+            &initial.cam_from_world,
+            &camera,
+            &gt.cam_from_world,
+            &mut workspace,
+        )
+        .unwrap_or(f64::NAN);
+        let final_delta_px = match (report.camera, report.cam_from_world) {
+            (Some(out_camera), Some(out_pose)) => mutual_reprojection_error_px(
+                &mesh,
+                &out_camera,
+                &out_pose,
+                &camera,
+                &gt.cam_from_world,
+                &mut workspace,
+            ),
+            _ => None,
+        };
+        let line = format!(
+            "level {level:>3} {:<9} {}: initial δ {initial_delta_px:6.1} px → {}",
+            method_name(intrinsics),
+            report.name,
+            match (report.accepted, final_delta_px) {
+                (true, Some(d)) => format!(
+                    "accepted, δ {d:.2} px (confidence {:.2})",
+                    report.confidence
+                ),
+                _ => format!("rejected: {}", report.reason.as_deref().unwrap_or("-")),
+            }
+        );
+        if bar.is_hidden() {
+            println!("{line}");
+        } else {
+            bar.println(line);
+        }
+        bar.inc(1);
+        results
+            .entry((level, method_name(intrinsics)))
+            .or_default()
+            .push(EvalFrame {
+                name: report.name.clone(),
+                initial_delta_px,
+                accepted: report.accepted,
+                final_delta_px,
+                confidence: report.confidence,
+                reason: report.reason.clone(),
+                total_ms: report.timings.total_ms,
+            });
+    }
+    bar.finish_and_clear();
+
+    let stats: BTreeMap<(u32, &str), CellStats> = results
+        .iter()
+        .map(|(key, frames)| (*key, cell_stats(frames, false_accept_px)))
+        .collect();
+    let methods: Vec<&str> = args.intrinsics.iter().map(|i| method_name(*i)).collect();
+    let table = results_markdown(args, &stats, &methods, false_accept_px);
+    std::fs::write(args.out.join("results.md"), &table)
+        .with_context(|| format!("writing {}", args.out.join("results.md").display()))?;
+    let json = serde_json::json!({
+        "scene": args.scene,
+        "query": format!("{:?}", args.query),
+        "false_accept_threshold_px": false_accept_px,
+        "cells": stats.iter().map(|((level, method), s)| serde_json::json!({
+            "level_px": level, "method": method, "stats": s,
+            "frames": results.get(&(*level, *method)),
+        })).collect::<Vec<_>>(),
+    });
+    std::fs::write(
+        args.out.join("results.json"),
+        serde_json::to_string_pretty(&json)?,
+    )
+    .with_context(|| format!("writing {}", args.out.join("results.json").display()))?;
+    write_plot(&args.out.join("results.svg"), &stats, &methods)?;
+    println!("{table}");
+    println!(
+        "wrote {}, {} and {}",
+        args.out.join("results.md").display(),
+        args.out.join("results.json").display(),
+        args.out.join("results.svg").display()
+    );
+    Ok(())
+}
+
+fn results_markdown(
+    args: &EvalArgs,
+    stats: &BTreeMap<(u32, &str), CellStats>,
+    methods: &[&str],
+    false_accept_px: f64,
+) -> String {
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "# asgreg eval: {}\n\nQuery: {:?}. δ = mutual reprojection error (paper eq. 5) to ground truth, px. \
+False accept: accepted with δ > {false_accept_px:.2} px (5 % of the long side).\n",
+        args.scene.display(),
+        args.query
+    );
+    let _ = writeln!(out, "## Accuracy of accepted frames (paper Table 1)\n");
+    let _ = write!(out, "| initial δ (px) |");
+    for method in methods {
+        let _ = write!(out, " {method}: δ mean ± std (range) |");
+    }
+    let _ = writeln!(out);
+    let _ = writeln!(out, "|---|{}", "---|".repeat(methods.len()));
+    for &level in &args.levels {
+        let initial = methods
+            .iter()
+            .filter_map(|m| stats.get(&(level, *m)))
+            .map(|s| s.mean_initial_px)
+            .next()
+            .unwrap_or(f64::NAN);
+        let _ = write!(out, "| {level} (measured {initial:.1}) |");
+        for method in methods {
+            let cell = stats
+                .get(&(level, *method))
+                .map(format_accuracy)
+                .unwrap_or_default();
+            let _ = write!(out, " {cell} |");
+        }
+        let _ = writeln!(out);
+    }
+    let _ = writeln!(out, "\n## Acceptance and false accepts\n");
+    let _ = write!(out, "| initial δ (px) |");
+    for method in methods {
+        let _ = write!(
+            out,
+            " {method}: accepted | {method}: false accepts | {method}: s/frame |"
+        );
+    }
+    let _ = writeln!(out);
+    let _ = writeln!(out, "|---|{}", "---|---|---|".repeat(methods.len()));
+    for &level in &args.levels {
+        let _ = write!(out, "| {level} |");
+        for method in methods {
+            match stats.get(&(level, *method)) {
+                Some(s) => {
+                    let _ = write!(
+                        out,
+                        " {}/{} ({:.0} %) | {} | {:.1} |",
+                        s.accepted,
+                        s.frames,
+                        s.accepted_percent,
+                        s.false_accepts,
+                        s.mean_ms_per_frame / 1e3
+                    );
+                }
+                None => {
+                    let _ = write!(out, " – | – | – |");
+                }
+            }
+        }
+        let _ = writeln!(out);
+    }
+    out
+}
+
+/// Two small line charts side by side: mean δ of accepted frames and acceptance, per level.
+fn write_plot(
+    path: &Path,
+    stats: &BTreeMap<(u32, &str), CellStats>,
+    methods: &[&str],
+) -> anyhow::Result<()> {
+    const COLOURS: [&str; 4] = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"];
+    let levels: Vec<u32> = {
+        let mut l: Vec<u32> = stats.keys().map(|(level, _)| *level).collect();
+        l.dedup();
+        l
+    };
+    let max_level = f64::from(levels.iter().copied().max().unwrap_or(1).max(1));
+    let max_delta = stats
+        .values()
+        .filter_map(|s| s.mean_px)
+        .fold(1.0f64, f64::max)
+        * 1.2;
+    let mut svg = String::from(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"760\" height=\"320\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"760\" height=\"320\" fill=\"white\"/>\n",
+    );
+    let panels = [
+        ("mean δ of accepted frames (px)", max_delta, 0usize),
+        ("accepted (%)", 100.0, 1),
+    ];
+    for (panel_index, (title, y_max, kind)) in panels.iter().enumerate() {
+        let x0 = 60.0 + 370.0 * panel_index as f64;
+        let (width, height, y0) = (280.0, 220.0, 40.0);
+        let _ = writeln!(
+            svg,
+            "<text x=\"{:.0}\" y=\"24\">{title}</text><rect x=\"{x0}\" y=\"{y0}\" width=\"{width}\" height=\"{height}\" fill=\"none\" stroke=\"#888\"/>",
+            x0
+        );
+        let _ = writeln!(
+            svg,
+            "<text x=\"{:.0}\" y=\"{:.0}\">initial δ (px)</text><text x=\"{:.0}\" y=\"{:.0}\">{y_max:.1}</text><text x=\"{:.0}\" y=\"{:.0}\">0</text>",
+            x0 + 100.0,
+            y0 + height + 34.0,
+            x0 - 45.0,
+            y0 + 4.0,
+            x0 - 20.0,
+            y0 + height
+        );
+        for level in &levels {
+            let x = x0 + width * f64::from(*level) / max_level;
+            let _ = writeln!(
+                svg,
+                "<text x=\"{:.0}\" y=\"{:.0}\" text-anchor=\"middle\">{level}</text>",
+                x,
+                y0 + height + 16.0
+            );
+        }
+        for (method_index, method) in methods.iter().enumerate() {
+            let colour = COLOURS[method_index % COLOURS.len()];
+            let points: Vec<String> = levels
+                .iter()
+                .filter_map(|level| {
+                    let s = stats.get(&(*level, *method))?;
+                    let value = if *kind == 0 {
+                        s.mean_px?
+                    } else {
+                        s.accepted_percent
+                    };
+                    let x = x0 + width * f64::from(*level) / max_level;
+                    let y = y0 + height * (1.0 - value / y_max);
+                    Some(format!("{x:.1},{y:.1}"))
+                })
+                .collect();
+            let _ = writeln!(
+                svg,
+                "<polyline points=\"{}\" fill=\"none\" stroke=\"{colour}\" stroke-width=\"2\"/>",
+                points.join(" ")
+            );
+            let _ = writeln!(
+                svg,
+                "<text x=\"{:.0}\" y=\"{:.0}\" fill=\"{colour}\">{method}</text>",
+                x0 + 8.0,
+                y0 + 16.0 + 14.0 * method_index as f64
+            );
+        }
+    }
+    svg.push_str("</svg>\n");
+    std::fs::write(path, svg).with_context(|| format!("writing {}", path.display()))
+}

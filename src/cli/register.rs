@@ -1,0 +1,245 @@
+//! `asgreg register`: refines the initial poses of a folder of photos against a mesh and writes
+//! the accepted poses (COLMAP text), a per-frame report and before/after overlays.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use asgreg::batch::{depth_path_for, register_batch_frame, BatchFrame, FrameReport};
+use asgreg::core::register::{IntrinsicsMode, QueryMode, RegistrationConfig};
+use asgreg::io::colmap::{
+    write_cameras_txt, write_empty_points3d_txt, write_images_txt, ImagePose,
+};
+use asgreg::io::images::{load_rgb, save_rgb_png};
+use asgreg::viz::{overlay_model, OverlayStyle};
+
+use super::inputs::load_posed_inputs;
+use super::render::render_view;
+
+#[derive(clap::Args, Debug)]
+pub struct RegisterArgs {
+    /// The untextured mesh (PLY or OBJ).
+    #[arg(long)]
+    pub mesh: PathBuf,
+    /// Folder with the photos named in the poses file.
+    #[arg(long)]
+    pub images: PathBuf,
+    /// COLMAP cameras.txt (known intrinsics, or the nominal ones when unknown).
+    #[arg(long)]
+    pub cameras: PathBuf,
+    /// COLMAP images.txt with the initial poses.
+    #[arg(long)]
+    pub poses: PathBuf,
+    /// Known intrinsics (EPnP) or unknown (DLT, estimated per image).
+    #[arg(long, value_enum, default_value_t = IntrinsicsArg::Known)]
+    pub intrinsics: IntrinsicsArg,
+    /// Folder of the photos' depth maps (`<image stem>.pfm`): the query becomes the ASG of the
+    /// depth's normals (the paper's mode) instead of the photo's gradient.
+    #[arg(long)]
+    pub depth: Option<PathBuf>,
+    /// Output folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Seed of the random draws (coarse poses, RANSAC): the same seed gives the same poses.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Coarse poses per frame.
+    #[arg(long, default_value_t = 15)]
+    pub coarse_poses: usize,
+    /// Register only the first N frames of the poses file.
+    #[arg(long)]
+    pub limit: Option<usize>,
+    /// Skip the overlay pictures.
+    #[arg(long)]
+    pub no_overlays: bool,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum IntrinsicsArg {
+    Known,
+    Unknown,
+}
+
+/// The registration settings the command line selects.
+pub fn registration_config(
+    intrinsics: IntrinsicsArg,
+    with_depth: bool,
+    coarse_poses: usize,
+) -> RegistrationConfig {
+    RegistrationConfig {
+        intrinsics: match intrinsics {
+            IntrinsicsArg::Known => IntrinsicsMode::Known,
+            IntrinsicsArg::Unknown => IntrinsicsMode::Unknown,
+        },
+        query_mode: if with_depth {
+            QueryMode::DepthAsg
+        } else {
+            QueryMode::ImageGradient
+        },
+        coarse_pose_count: coarse_poses,
+        ..RegistrationConfig::default()
+    }
+}
+
+/// A progress bar on stderr for `count` frames.
+pub fn progress_bar(count: usize, what: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(count as u64);
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{msg} [{bar:30}] {pos}/{len} frames, {elapsed} elapsed, ETA {eta}",
+    ) {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    bar.set_message(what.to_string());
+    bar
+}
+
+pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
+    let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
+    let config = registration_config(args.intrinsics, args.depth.is_some(), args.coarse_poses);
+    config.validate()?;
+    let mut frames = Vec::new();
+    for image in inputs.images.iter().take(args.limit.unwrap_or(usize::MAX)) {
+        let camera = inputs.cameras.get(&image.camera_id).with_context(|| {
+            format!(
+                "image '{}' in {} uses camera {}, which {} does not define",
+                image.name,
+                args.poses.display(),
+                image.camera_id,
+                args.cameras.display()
+            )
+        })?;
+        frames.push(BatchFrame {
+            image_id: image.image_id,
+            camera_id: image.camera_id,
+            name: image.name.clone(),
+            image_path: args.images.join(&image.name),
+            depth_path: args
+                .depth
+                .as_ref()
+                .map(|dir| depth_path_for(dir, &image.name)),
+            camera: *camera,
+            initial_cam_from_world: image.cam_from_world,
+        });
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating the output folder {}", args.out.display()))?;
+
+    let bar = progress_bar(frames.len(), "registering");
+    let mut reports = Vec::with_capacity(frames.len());
+    for frame in &frames {
+        let report = register_batch_frame(&inputs.mesh, frame, &config, args.seed);
+        bar.println(format!(
+            "{}: {}",
+            report.name,
+            if report.accepted {
+                format!(
+                    "accepted (confidence {:.2}, {} of {} poses agree, consensus {}, {:.0} ms)",
+                    report.confidence,
+                    report.component_size,
+                    report.hypotheses,
+                    report.consensus,
+                    report.timings.total_ms
+                )
+            } else {
+                format!("FAILED: {}", report.reason.as_deref().unwrap_or("unknown"))
+            }
+        ));
+        bar.inc(1);
+        reports.push(report);
+    }
+    bar.finish_and_clear();
+
+    write_outputs(args, &inputs.mesh, &frames, &reports, &config)?;
+    let accepted = reports.iter().filter(|r| r.accepted).count();
+    println!(
+        "registered {accepted} of {} frames; poses in {}, report in {}",
+        reports.len(),
+        args.out.join("images.txt").display(),
+        args.out.join("report.json").display()
+    );
+    Ok(())
+}
+
+fn write_outputs(
+    args: &RegisterArgs,
+    mesh: &asgreg::core::mesh::Mesh,
+    frames: &[BatchFrame],
+    reports: &[FrameReport],
+    config: &RegistrationConfig,
+) -> anyhow::Result<()> {
+    let mut cameras = BTreeMap::new();
+    let mut poses = Vec::new();
+    for (frame, report) in frames.iter().zip(reports) {
+        let (Some(camera), Some(cam_from_world)) = (report.camera, report.cam_from_world) else {
+            continue;
+        };
+        // Unknown intrinsics: one camera per image (its id is the image id).
+        let camera_id = if config.intrinsics == IntrinsicsMode::Unknown {
+            let mut camera = camera;
+            camera.intrinsics.skew_px = 0.0;
+            cameras.insert(frame.image_id, camera);
+            frame.image_id
+        } else {
+            cameras.insert(frame.camera_id, frame.camera);
+            frame.camera_id
+        };
+        poses.push(ImagePose {
+            image_id: frame.image_id,
+            camera_id,
+            name: frame.name.clone(),
+            cam_from_world,
+        });
+    }
+    write_cameras_txt(&args.out.join("cameras.txt"), &cameras)?;
+    write_images_txt(&args.out.join("images.txt"), &poses)?;
+    write_empty_points3d_txt(&args.out.join("points3D.txt"))?;
+    let report_path = args.out.join("report.json");
+    let json = serde_json::json!({ "config": config, "frames": reports });
+    std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", report_path.display()))?;
+
+    if !args.no_overlays {
+        let overlay_dir = args.out.join("overlays");
+        std::fs::create_dir_all(&overlay_dir)
+            .with_context(|| format!("creating {}", overlay_dir.display()))?;
+        for (frame, report) in frames.iter().zip(reports) {
+            if let Err(error) = write_overlays(mesh, frame, report, &overlay_dir) {
+                tracing::warn!("{}: no overlay: {error:#}", frame.name);
+            }
+        }
+    }
+    Ok(())
+}
+
+fn write_overlays(
+    mesh: &asgreg::core::mesh::Mesh,
+    frame: &BatchFrame,
+    report: &FrameReport,
+    overlay_dir: &Path,
+) -> anyhow::Result<()> {
+    let (width_px, height_px, rgb) = load_rgb(&frame.image_path)?;
+    let stem = Path::new(&frame.name)
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| frame.name.clone());
+    let mut views = vec![("before", frame.camera, frame.initial_cam_from_world)];
+    if let (Some(camera), Some(pose)) = (report.camera, report.cam_from_world) {
+        views.push(("after", camera, pose));
+    }
+    for (label, camera, pose) in views {
+        let render = render_view(
+            mesh,
+            &camera,
+            &pose,
+            asgreg::core::raster::NormalSource::Vertex,
+        );
+        let picture = overlay_model(&rgb, &render, OverlayStyle::NormalsAndEdges, 0.4);
+        save_rgb_png(
+            &overlay_dir.join(format!("{stem}_{label}.png")),
+            width_px,
+            height_px,
+            &picture,
+        )?;
+    }
+    Ok(())
+}

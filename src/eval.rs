@@ -1,0 +1,114 @@
+//! The evaluation protocol of DESIGN §3, as numbers and tables: per initial-error level, the share
+//! of accepted frames, mean ± std and range of δ(P_out, P_gt) over accepted frames, and false
+//! accepts (accepted, but δ to ground truth above a fraction of the long side). Kept apart from
+//! the command line so the statistics are tested on their own.
+
+use serde::{Deserialize, Serialize};
+
+/// One frame of one evaluation run.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct EvalFrame {
+    pub name: String,
+    /// δ(P_in, P_gt), px.
+    pub initial_delta_px: f64,
+    pub accepted: bool,
+    /// δ(P_out, P_gt) of the output pose, px (also for rejected frames that had one; None when
+    /// there was no pose at all).
+    pub final_delta_px: Option<f64>,
+    pub confidence: f64,
+    pub reason: Option<String>,
+    pub total_ms: f64,
+}
+
+/// Statistics of one (level, method) cell.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CellStats {
+    pub frames: usize,
+    pub accepted: usize,
+    pub accepted_percent: f64,
+    /// Over accepted frames, px.
+    pub mean_px: Option<f64>,
+    pub std_px: Option<f64>,
+    pub min_px: Option<f64>,
+    pub max_px: Option<f64>,
+    /// Accepted frames whose δ to ground truth exceeds the false-accept threshold.
+    pub false_accepts: usize,
+    pub mean_initial_px: f64,
+    pub mean_ms_per_frame: f64,
+}
+
+/// Statistics of a set of frames; `false_accept_px` is the δ above which an accepted frame is a
+/// false accept.
+pub fn cell_stats(frames: &[EvalFrame], false_accept_px: f64) -> CellStats {
+    let accepted: Vec<f64> = frames
+        .iter()
+        .filter(|f| f.accepted)
+        .filter_map(|f| f.final_delta_px)
+        .collect();
+    let n = accepted.len();
+    let mean = (n > 0).then(|| accepted.iter().sum::<f64>() / n as f64);
+    let std =
+        mean.map(|m| (accepted.iter().map(|d| (d - m).powi(2)).sum::<f64>() / n as f64).sqrt());
+    let count = frames.len().max(1) as f64;
+    CellStats {
+        frames: frames.len(),
+        accepted: frames.iter().filter(|f| f.accepted).count(),
+        accepted_percent: 100.0 * frames.iter().filter(|f| f.accepted).count() as f64 / count,
+        mean_px: mean,
+        std_px: std,
+        min_px: accepted.iter().copied().reduce(f64::min),
+        max_px: accepted.iter().copied().reduce(f64::max),
+        false_accepts: accepted.iter().filter(|d| **d > false_accept_px).count(),
+        mean_initial_px: frames.iter().map(|f| f.initial_delta_px).sum::<f64>() / count,
+        mean_ms_per_frame: frames.iter().map(|f| f.total_ms).sum::<f64>() / count,
+    }
+}
+
+/// `mean ± std (min–max)` or `–` when nothing was accepted.
+pub fn format_accuracy(stats: &CellStats) -> String {
+    match (stats.mean_px, stats.std_px, stats.min_px, stats.max_px) {
+        (Some(mean), Some(std), Some(min), Some(max)) => {
+            format!("{mean:.2} ± {std:.2} ({min:.2}–{max:.2})")
+        }
+        _ => "–".to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(accepted: bool, final_delta_px: Option<f64>) -> EvalFrame {
+        EvalFrame {
+            name: "f".into(),
+            initial_delta_px: 30.0,
+            accepted,
+            final_delta_px,
+            confidence: 0.5,
+            reason: None,
+            total_ms: 100.0,
+        }
+    }
+
+    #[test]
+    fn statistics_cover_accepted_frames_only_and_count_false_accepts() {
+        let frames = [
+            frame(true, Some(1.0)),
+            frame(true, Some(3.0)),
+            frame(true, Some(40.0)),
+            frame(false, Some(2.0)),
+            frame(false, None),
+        ];
+        let stats = cell_stats(&frames, 25.25);
+        assert_eq!(stats.frames, 5);
+        assert_eq!(stats.accepted, 3);
+        assert!((stats.accepted_percent - 60.0).abs() < 1e-12);
+        let mean = 44.0 / 3.0;
+        assert!((stats.mean_px.unwrap() - mean).abs() < 1e-12);
+        let variance = ((1.0 - mean).powi(2) + (3.0 - mean).powi(2) + (40.0 - mean).powi(2)) / 3.0;
+        assert!((stats.std_px.unwrap() - variance.sqrt()).abs() < 1e-12);
+        assert_eq!((stats.min_px, stats.max_px), (Some(1.0), Some(40.0)));
+        assert_eq!(stats.false_accepts, 1);
+        assert_eq!(format_accuracy(&cell_stats(&frames[3..], 25.0)), "–");
+    }
+}
