@@ -3,6 +3,7 @@
 //! randomness is passed in; hot paths write into caller-provided buffers.
 
 pub mod camera;
+pub mod icp;
 pub mod mesh;
 pub mod raster;
 pub mod reprojection;
