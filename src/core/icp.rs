@@ -37,9 +37,11 @@
 //!     linearised for small angles (Low 2004) and solved as a 6×6 least-squares system; the
 //!     rotation is then applied exactly (axis-angle), so the estimate stays a rigid transform.
 //!
-//!   It stops when the update is below [`IcpConfig::translation_tolerance_m`] and
-//!   [`IcpConfig::rotation_tolerance_rad`] once the rejection distance has reached its final value
-//!   (converged), or after [`IcpConfig::max_iterations`].
+//!   It stops, converged, once the rejection distance has reached its final value and the new
+//!   estimate lies within [`IcpConfig::translation_tolerance_m`] (camera centre) and
+//!   [`IcpConfig::rotation_tolerance_rad`] of the previous one, or of one of the last few (the
+//!   trimmed correspondence set can flip between a few states forever, a limit cycle whose poses
+//!   differ by less than a millimetre); otherwise it stops after [`IcpConfig::max_iterations`].
 //!
 //! **Convention.** Photo points live in the camera frame, the model in the world frame, so ICP
 //! estimates `world_from_cam`; the pose returned is its inverse, `cam_from_world` (DESIGN §6).
@@ -50,6 +52,8 @@
 //! TPAMI 1991; D. Chetverikov et al., "The Trimmed Iterative Closest Point algorithm", ICPR 2002;
 //! K.-L. Low, "Linear least-squares optimization for point-to-plane ICP surface registration",
 //! TR04-004, UNC 2004; R. B. Rusu, S. Cousins, "3D is here: Point Cloud Library (PCL)", ICRA 2011.
+
+use std::collections::VecDeque;
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector2, Vector3, Vector6};
@@ -68,6 +72,10 @@ pub const ICP_SUCCESS_THRESHOLD_PX: f64 = 20.0;
 /// Fewest correspondences a rigid update is solved from (6 unknowns; a margin against
 /// near-degenerate sets).
 pub const MIN_CORRESPONDENCES: usize = 12;
+
+/// How many past estimates a new one is compared with to detect a cycle of the correspondence
+/// assignment (the estimate returning, within the tolerances, to where it was).
+const CYCLE_MEMORY: usize = 4;
 
 /// Errors of the ICP baseline.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -159,8 +167,8 @@ impl Default for IcpConfig {
             final_max_correspondence_distance_m: 0.75,
             correspondence_distance_shrink: 0.85,
             trim_fraction: 0.9,
-            translation_tolerance_m: 1e-5,
-            rotation_tolerance_rad: 1e-6,
+            translation_tolerance_m: 1e-4,
+            rotation_tolerance_rad: 1e-5,
         }
     }
 }
@@ -729,6 +737,8 @@ pub fn align_to_model(
     };
     let mut iterations = 0;
     let mut converged = false;
+    let mut recent_estimates: VecDeque<Rigid3> = VecDeque::with_capacity(CYCLE_MEMORY);
+    recent_estimates.push_back(local_from_cam);
     for iteration in 0..config.max_iterations {
         let max_distance_m = config.max_correspondence_distance_m(iteration);
         move_points(&local_from_cam, &mut points_local_m);
@@ -760,19 +770,24 @@ pub fn align_to_model(
             return Err(IcpError::NonFinitePose { which: "estimated" });
         }
         iterations = iteration + 1;
-        // Camera displacement by the update: the camera centre moves from C to Δ(C).
-        let camera_centre = local_from_cam.translation;
-        let previous_centre = update.inverse().transform_point(&camera_centre);
-        let moved_m = (camera_centre - previous_centre).norm();
-        let turned_rad = update.rotation.angle();
+        // `local_from_cam.translation` is the camera centre (local frame).
+        let within_tolerance = |earlier: &Rigid3| {
+            (local_from_cam.translation - earlier.translation).norm()
+                <= config.translation_tolerance_m
+                && local_from_cam.rotation.angle_to(&earlier.rotation)
+                    <= config.rotation_tolerance_rad
+        };
         let at_final_distance = max_distance_m <= config.final_max_correspondence_distance_m;
-        if at_final_distance
-            && moved_m <= config.translation_tolerance_m
-            && turned_rad <= config.rotation_tolerance_rad
-        {
+        // A step below the tolerances, or a return to a recent estimate (the correspondence
+        // assignment cycles; more iterations would only repeat the cycle).
+        if at_final_distance && recent_estimates.iter().any(within_tolerance) {
             converged = true;
             break;
         }
+        if recent_estimates.len() == CYCLE_MEMORY {
+            recent_estimates.pop_front();
+        }
+        recent_estimates.push_back(local_from_cam);
     }
     // Report on the final pose with the final rejection.
     let final_distance_m = config.max_correspondence_distance_m(iterations);
@@ -1349,18 +1364,33 @@ mod tests {
                     .join("depth")
                     .join(std::path::Path::new(&image_gt.name).with_extension("pfm"));
                 let depth = pfm::read_pfm(&depth_path).unwrap();
-                let mut rng = ChaCha8Rng::seed_from_u64(u64::from(image_gt.image_id));
+                // The steps of `register_depth_to_mesh`, timed one by one.
+                let initial_pose = &image_initial.cam_from_world;
                 let started = Instant::now();
-                let result = register_depth_to_mesh(
+                let points_cam =
+                    back_project_depth(camera, &depth, config.depth_grid_stride_px).unwrap();
+                let max_depth_m = points_cam.iter().map(|p| p.z).fold(0.0, f64::max);
+                let mut rng = ChaCha8Rng::seed_from_u64(u64::from(image_gt.image_id));
+                let model = sample_mesh_in_view(
                     &mesh,
                     camera,
-                    &depth,
-                    &image_initial.cam_from_world,
+                    initial_pose,
+                    max_depth_m,
                     &config,
                     &mut rng,
                 )
                 .unwrap();
-                let seconds = started.elapsed().as_secs_f64();
+                let prepared = Instant::now();
+                let result = align_to_model(&points_cam, &model, initial_pose, &config).unwrap();
+                let prepare_s = (prepared - started).as_secs_f64();
+                let align_s = prepared.elapsed().as_secs_f64();
+                let seconds = prepare_s + align_s;
+                // The one-call entry point does exactly the same.
+                let mut rng = ChaCha8Rng::seed_from_u64(u64::from(image_gt.image_id));
+                assert_eq!(
+                    register_depth_to_mesh(&mesh, camera, &depth, initial_pose, &config, &mut rng),
+                    Ok(result)
+                );
                 let before = delta_to_ground_truth_px(
                     &mesh,
                     camera,
@@ -1379,7 +1409,7 @@ mod tests {
                 .unwrap();
                 println!(
                     "{variant:?} {}: δ {before:.1} → {after:.1} px (success {}), {} iterations, converged {}, \
-                     rms {:.3} m, inliers {:.2}, {} photo / {} model points, {:.3} s",
+                     rms {:.3} m, inliers {:.2}, {} photo / {} model points, {:.3} s ({:.3} s points + samples, {:.3} s ICP)",
                     image_gt.name,
                     is_success(Some(after)),
                     result.iterations,
@@ -1388,7 +1418,9 @@ mod tests {
                     result.inlier_fraction,
                     result.photo_point_count,
                     result.model_point_count,
-                    seconds
+                    seconds,
+                    prepare_s,
+                    align_s
                 );
                 sum_before += before;
                 sum_after += after;
