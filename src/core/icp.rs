@@ -41,7 +41,16 @@
 //!   estimate lies within [`IcpConfig::translation_tolerance_m`] (camera centre) and
 //!   [`IcpConfig::rotation_tolerance_rad`] of the previous one, or of one of the last few (the
 //!   trimmed correspondence set can flip between a few states forever, a limit cycle whose poses
-//!   differ by less than a millimetre); otherwise it stops after [`IcpConfig::max_iterations`].
+//!   differ by well under a millimetre); otherwise it stops after [`IcpConfig::max_iterations`].
+//!
+//! **Measured** (test `icp_improves_initial_poses_on_a_synthetic_scene`: 4 synthetic photos at
+//! 505×275 with their MVS-like depth maps — 0.7 % depth noise, holes, clutter not in the model —
+//! against the degraded model, from the 30 px initial poses): point-to-plane brings the mean δ
+//! from 30.1 px to 1.0 px (every image below 20 px), point-to-point to 11.0 px (3 of 4 below
+//! 20 px). Point-to-point is the weaker one: on plane-dominated aerial geometry most pairs
+//! (ground, roofs) give no tangential pull against independently sampled model points, so it
+//! converges slowly and can stall where trimming drops the few informative wall pairs. PCL's
+//! default ICP is point-to-point, which fits the paper's ~10 px.
 //!
 //! **Convention.** Photo points live in the camera frame, the model in the world frame, so ICP
 //! estimates `world_from_cam`; the pose returned is its inverse, `cam_from_world` (DESIGN §6).
