@@ -3,6 +3,7 @@
 
 mod demo;
 mod eval;
+mod flow;
 mod inputs;
 mod overlay;
 mod register;
@@ -33,6 +34,8 @@ pub enum Command {
     Register(register::RegisterArgs),
     /// Evaluate registration on a scene folder the paper's way (tables, JSON, plot).
     Eval(eval::EvalArgs),
+    /// Dense SIFT flow between two images, written as Middlebury .flo.
+    Flow(flow::FlowArgs),
     /// Write an honest synthetic test scene (photos, degraded model, depth, ground truth, initial poses).
     Synth(synth::SynthArgs),
     /// Render the mesh under an image's pose: ASG gradient image, normals or depth, as PNG.
@@ -61,6 +64,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(args) => demo::run(&args),
         Command::Register(args) => register::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Flow(args) => flow::run(&args),
         Command::Synth(args) => synth::run(&args),
         Command::Render(args) => render::run(&args),
         Command::Overlay(args) => overlay::run(&args),

@@ -3,4 +3,5 @@
 
 mod bad_input;
 mod cli_pictures;
+mod flow_cli;
 mod util;
