@@ -13,7 +13,17 @@
 //!
 //! Coarse to fine: a descriptor pyramid (Gaussian 5 taps, σ 0.67, then 2× downsampling), search
 //! radius `top_search_radius_px` around zero at the top, and `search_radius_px + level` around the
-//! doubled, rounded flow of the level above elsewhere; γ doubles per coarser level.
+//! doubled, rounded flow of the level above elsewhere; γ doubles per coarser level. Within each
+//! level, multigrid BP as the reference's `nHierarchy`: the same problem on 2×2, 4×4, … blocks
+//! (costs summed per label, γ halved) is solved first and its messages start the finer grid.
+//!
+//! Departures from the reference, each measured on the shared 505×275 pair: the coarsest grid
+//! starts its inter-layer messages at the data term's marginals instead of zero (from zero, the
+//! range term alone spreads through the first sweep and can lock the flow at 0: EPE 7.7 px
+//! instead of 0.57 px without multigrid); the integer flow is refined below a pixel by a parabola
+//! through the matching costs (0.35 → 0.28 px with multigrid); beliefs are computed once at the end
+//! of a level, not after every iteration. `SiftFlowConfig::fast` cuts the iterations to a third of
+//! the time at the same error.
 //!
 //! Preconditions: dense SIFT images from [`crate::core::dense_sift`]; masks, when given, have one
 //! entry per pixel. Flow convention: `source(x, y) ≈ target(x + u, y + v)`, 0-based pixels.
@@ -143,6 +153,8 @@ pub struct SiftFlowConfig {
     pub multigrid: bool,
     /// Iterations on each multigrid block level. Reference: 20.
     pub multigrid_iterations: usize,
+    /// Cap on the multigrid depth (the reference's depth is at most `pyramid_levels − 1`).
+    pub max_multigrid_depth: usize,
     /// Use the message-passing code specialised for the default window sizes; `false` runs the
     /// generic code (identical results; exists to measure the difference).
     pub specialised_kernels: bool,
@@ -166,6 +178,7 @@ impl Default for SiftFlowConfig {
             specialised_kernels: true,
             multigrid: true,
             multigrid_iterations: 20,
+            max_multigrid_depth: 8,
         }
     }
 }
@@ -481,9 +494,9 @@ pub fn compute_sift_flow_on_pyramids(
         let multigrid_depth = if !config.multigrid {
             0
         } else if level == top_level {
-            2
+            2.min(config.max_multigrid_depth)
         } else {
-            top_level - level
+            (top_level - level).min(config.max_multigrid_depth)
         };
         if ws.multigrid.len() < multigrid_depth {
             ws.multigrid
