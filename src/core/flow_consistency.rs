@@ -299,7 +299,7 @@ pub fn match_sift_images(
         &ws.forward_cost,
         config.max_round_trip_error_px,
         &mut out.correspondences,
-    );
+    )?;
     out.timings = CorrespondenceTimings {
         dense_sift: Duration::ZERO,
         pyramid,
@@ -366,7 +366,9 @@ pub fn match_query_to_renderings(
         .collect()
 }
 
-/// Keeps the query pixels whose forward and backward flows agree (see the module comment).
+/// Keeps the query pixels whose forward and backward flows agree (see the module comment) and
+/// writes them into `correspondences`. `query_textured` and `forward_cost` have one entry per
+/// query pixel, `rendering_participates` one per rendering pixel.
 pub fn collect_consistent_pairs(
     forward: &FlowField,
     backward: &FlowField,
@@ -375,9 +377,32 @@ pub fn collect_consistent_pairs(
     forward_cost: &[f32],
     max_round_trip_error_px: f32,
     correspondences: &mut Vec<PixelCorrespondence>,
-) {
+) -> Result<(), FlowError> {
     correspondences.clear();
     let (width, height) = (forward.width_px, forward.height_px);
+    let query_pixels = width * height;
+    let rendering_pixels = backward.width_px * backward.height_px;
+    for (what, expected, found) in [
+        ("forward flow u", query_pixels, forward.u_px.len()),
+        ("forward flow v", query_pixels, forward.v_px.len()),
+        ("backward flow u", rendering_pixels, backward.u_px.len()),
+        ("backward flow v", rendering_pixels, backward.v_px.len()),
+        ("query texture mask", query_pixels, query_textured.len()),
+        (
+            "rendering mask",
+            rendering_pixels,
+            rendering_participates.len(),
+        ),
+        ("forward matching costs", query_pixels, forward_cost.len()),
+    ] {
+        if expected != found {
+            return Err(FlowError::SizeMismatch {
+                what,
+                expected,
+                found,
+            });
+        }
+    }
     let (rendering_width, rendering_height) = (backward.width_px as i64, backward.height_px as i64);
     for y in 0..height {
         for x in 0..width {
@@ -414,6 +439,7 @@ pub fn collect_consistent_pairs(
             }
         }
     }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -818,6 +844,48 @@ mod tests {
             assert_eq!(single.correspondences, from_frame.correspondences);
             assert!(!single.correspondences.is_empty());
         }
+    }
+
+    #[test]
+    fn round_trip_check_keeps_only_agreeing_in_view_pairs() {
+        let mut forward = FlowField::zeros(4, 1);
+        forward.u_px = vec![1.0, 1.0, 1.0, 1.0];
+        let mut backward = FlowField::zeros(4, 1);
+        // Query 0 → rendering 1 and back: agrees. Query 1 → rendering 2, whose backward flow
+        // points elsewhere (an occlusion): rejected. Query 2 → rendering 3: agrees but rendering 3
+        // takes no part. Query 3 → x = 4: out of view.
+        backward.u_px = vec![-1.0, -1.0, 2.0, -1.0];
+        let participates = [true, true, true, false];
+        let mut pairs = Vec::new();
+        collect_consistent_pairs(
+            &forward,
+            &backward,
+            &[true; 4],
+            &participates,
+            &[7.0; 4],
+            0.5,
+            &mut pairs,
+        )
+        .unwrap();
+        assert_eq!(pairs.len(), 1);
+        assert_eq!((pairs[0].query_x_px, pairs[0].rendering_x_px), (0.0, 1.0));
+        assert_eq!(pairs[0].matching_cost, 7.0);
+        let error = collect_consistent_pairs(
+            &forward,
+            &backward,
+            &[true; 3],
+            &participates,
+            &[7.0; 4],
+            0.5,
+            &mut pairs,
+        );
+        assert!(matches!(
+            error,
+            Err(FlowError::SizeMismatch {
+                what: "query texture mask",
+                ..
+            })
+        ));
     }
 
     #[test]
