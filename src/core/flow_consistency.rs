@@ -847,6 +847,43 @@ mod tests {
     }
 
     #[test]
+    fn reused_workspace_gives_the_same_results_as_a_fresh_one() {
+        let config = DenseCorrespondenceConfig::default();
+        let mut shared_workspace = DenseCorrespondenceWorkspace::default();
+        for (width, height, shift) in [(120, 90, 3usize), (64, 48, 1), (120, 90, 2)] {
+            let image = textured_image(width + 4, height);
+            let crop = |start: usize| -> Vec<f32> {
+                (0..width * height)
+                    .map(|pixel| image[(pixel / width) * (width + 4) + pixel % width + start])
+                    .collect()
+            };
+            let (query, rendering) = (crop(shift), crop(0));
+            let grey = |pixels| GreyImage {
+                width_px: width,
+                height_px: height,
+                pixels,
+            };
+            let mut reused = DenseCorrespondence::default();
+            match_query_to_rendering(
+                grey(&query),
+                grey(&rendering),
+                None,
+                &config,
+                &mut shared_workspace,
+                &mut reused,
+            )
+            .unwrap();
+            let fresh = run_pair(&query, &rendering, width, height, None, &config);
+            assert_eq!(reused.forward, fresh.forward, "{width}x{height}");
+            assert_eq!(reused.backward, fresh.backward, "{width}x{height}");
+            assert_eq!(
+                reused.correspondences, fresh.correspondences,
+                "{width}x{height}"
+            );
+        }
+    }
+
+    #[test]
     fn round_trip_check_keeps_only_agreeing_in_view_pairs() {
         let mut forward = FlowField::zeros(4, 1);
         forward.u_px = vec![1.0, 1.0, 1.0, 1.0];

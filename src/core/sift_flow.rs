@@ -1012,10 +1012,10 @@ fn solve_with_multigrid(
 ) {
     let (width, height, labels) = (problem.width, problem.height, problem.labels);
     let pixel_count = width * height;
+    // Sized here; every entry is then written below (copied from the coarse grid, or zeroed and
+    // initialised from the data), so no separate clearing pass.
     for plane in 0..2 {
-        spatial_messages[plane].clear();
         spatial_messages[plane].resize(pixel_count * 4 * labels, 0.0);
-        dual_messages[plane].clear();
         dual_messages[plane].resize(pixel_count * labels, 0.0);
     }
     match grids.split_first_mut() {
@@ -1108,7 +1108,12 @@ fn solve_with_multigrid(
                     });
             }
         }
-        _ => initialise_dual_messages_from_data(problem, dual_messages),
+        _ => {
+            spatial_messages
+                .iter_mut()
+                .for_each(|messages| messages.fill(0.0));
+            initialise_dual_messages_from_data(problem, dual_messages);
+        }
     }
     for iteration in 0..iterations {
         let plane = iteration % 2;
