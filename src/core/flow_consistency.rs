@@ -884,6 +884,53 @@ mod tests {
     }
 
     #[test]
+    fn banded_belief_propagation_is_reproducible_and_as_accurate() {
+        let Some(pair) = load_shared_pair("dji0024_505x275") else {
+            return;
+        };
+        let sift_config = DenseSiftConfig::default();
+        let first = sift_of(&pair.first, pair.width, pair.height, &sift_config);
+        let second = sift_of(&pair.second, pair.width, pair.height, &sift_config);
+        let run = |threads: usize, bands: usize| {
+            let config = SiftFlowConfig {
+                bp_bands: bands,
+                ..SiftFlowConfig::fast()
+            };
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let mut field = FlowField::default();
+                let mut cost = Vec::new();
+                crate::core::sift_flow::compute_sift_flow(
+                    &first,
+                    None,
+                    &second,
+                    None,
+                    &config,
+                    &mut SiftFlowWorkspace::default(),
+                    &mut field,
+                    &mut cost,
+                )
+                .unwrap();
+                field
+            })
+        };
+        let banded_one_thread = run(1, 2);
+        let banded_two_threads = run(2, 2);
+        assert_eq!(banded_one_thread, banded_two_threads);
+        let (epe_banded, under_one_banded) = score_flow(&banded_two_threads, &pair.truth, 20);
+        let (epe_sequential, _) = score_flow(&run(2, 1), &pair.truth, 20);
+        println!("bands 2: EPE {epe_banded:.3}, < 1 px {under_one_banded:.3}; bands 1: EPE {epe_sequential:.3}");
+        assert!(
+            epe_banded <= epe_sequential + 0.02,
+            "{epe_banded} vs {epe_sequential}"
+        );
+        assert!(under_one_banded >= 0.99, "{under_one_banded}");
+    }
+
+    #[test]
     fn round_trip_check_keeps_only_agreeing_in_view_pairs() {
         let mut forward = FlowField::zeros(4, 1);
         forward.u_px = vec![1.0, 1.0, 1.0, 1.0];
