@@ -430,19 +430,30 @@ fn criterion_benches(criterion: &mut Criterion, pairs: &[Pair]) {
     for pair in pairs {
         let first = sift(&pair.first, pair.width, pair.height);
         let second = sift(&pair.second, pair.width, pair.height);
-        for threads in [1, 2] {
-            let thread_pool = pool(threads);
-            let mut workspace = SiftFlowWorkspace::default();
-            group.bench_function(
-                BenchmarkId::new(pair.name, format!("{threads}t")),
-                |bench| {
-                    bench.iter(|| {
-                        thread_pool.install(|| {
-                            flow(&first, &second, &SiftFlowConfig::default(), &mut workspace)
-                        })
-                    })
+        let variants = [
+            ("default", SiftFlowConfig::default()),
+            (
+                "default_2bands",
+                SiftFlowConfig {
+                    bp_bands: 2,
+                    ..Default::default()
                 },
-            );
+            ),
+            ("fast_2bands", SiftFlowConfig::fast()),
+        ];
+        for (variant, config) in &variants {
+            for threads in [1, 2] {
+                let thread_pool = pool(threads);
+                let mut workspace = SiftFlowWorkspace::default();
+                group.bench_function(
+                    BenchmarkId::new(pair.name, format!("{variant}/{threads}t")),
+                    |bench| {
+                        bench.iter(|| {
+                            thread_pool.install(|| flow(&first, &second, config, &mut workspace))
+                        })
+                    },
+                );
+            }
         }
     }
     group.finish();
