@@ -150,7 +150,21 @@ fn time<T>(mut run: impl FnMut() -> T) -> (Duration, T) {
 fn quick_report(pairs: &[Pair]) {
     let presets = [
         ("default", SiftFlowConfig::default()),
-        ("fast", SiftFlowConfig::fast()),
+        (
+            "default 2 bands",
+            SiftFlowConfig {
+                bp_bands: 2,
+                ..Default::default()
+            },
+        ),
+        ("fast (2 bands)", SiftFlowConfig::fast()),
+        (
+            "fast 1 band",
+            SiftFlowConfig {
+                bp_bands: 1,
+                ..SiftFlowConfig::fast()
+            },
+        ),
     ];
     for pair in pairs {
         for threads in [1, 2] {
