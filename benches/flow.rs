@@ -14,11 +14,12 @@ use asgreg::core::dense_sift::{
     compute_dense_sift, DenseSiftConfig, DenseSiftImage, DenseSiftWorkspace,
 };
 use asgreg::core::flow_consistency::{
-    match_query_to_renderings, DenseCorrespondenceConfig, GreyImage,
+    match_query_to_renderings, match_sift_images, DenseCorrespondence, DenseCorrespondenceConfig,
+    DenseCorrespondenceWorkspace, GreyImage,
 };
 use asgreg::core::sift_flow::{
     compute_sift_flow, compute_sift_flow_on_pyramids, descriptor_l1_distance, FlowField, L1Kernel,
-    SiftFlowConfig, SiftFlowWorkspace, SiftPyramid,
+    SiftFlowConfig, SiftFlowWorkspace, SiftPyramid, SubpixelRefinement,
 };
 use criterion::{BenchmarkId, Criterion};
 use rayon::prelude::*;
@@ -149,7 +150,21 @@ fn time<T>(mut run: impl FnMut() -> T) -> (Duration, T) {
 fn quick_report(pairs: &[Pair]) {
     let presets = [
         ("default", SiftFlowConfig::default()),
-        ("fast", SiftFlowConfig::fast()),
+        (
+            "default 2 bands",
+            SiftFlowConfig {
+                bp_bands: 2,
+                ..Default::default()
+            },
+        ),
+        ("fast (2 bands)", SiftFlowConfig::fast()),
+        (
+            "fast 1 band",
+            SiftFlowConfig {
+                bp_bands: 1,
+                ..SiftFlowConfig::fast()
+            },
+        ),
     ];
     for pair in pairs {
         for threads in [1, 2] {
@@ -237,6 +252,20 @@ fn quick_report(pairs: &[Pair]) {
                     "fast preset (multigrid, 4/20/4 iterations)",
                     SiftFlowConfig::fast(),
                 ),
+                (
+                    "integer flow (no sub-pixel refinement)",
+                    SiftFlowConfig {
+                        subpixel: SubpixelRefinement::None,
+                        ..Default::default()
+                    },
+                ),
+                (
+                    "belief-parabola sub-pixel refinement",
+                    SiftFlowConfig {
+                        subpixel: SubpixelRefinement::BeliefParabola,
+                        ..Default::default()
+                    },
+                ),
             ] {
                 let (cpu, field) = cpu_time(|| flow(&first, &second, &config, &mut workspace));
                 let (epe, under_one) = score(&field, &pair.truth);
@@ -247,6 +276,42 @@ fn quick_report(pairs: &[Pair]) {
                 );
             }
         });
+        // A pair both ways: two independent flows (four pyramids, one after the other) against the
+        // pair API (two pyramids, both directions side by side), fast preset.
+        for threads in [1, 2] {
+            let config = DenseCorrespondenceConfig {
+                sift_flow: SiftFlowConfig::fast(),
+                ..Default::default()
+            };
+            pool(threads).install(|| {
+                let mut workspace = SiftFlowWorkspace::default();
+                let (separate_cpu, (separate_wall, _)) = cpu_time(|| {
+                    time(|| {
+                        let forward = flow(&first, &second, &config.sift_flow, &mut workspace);
+                        let backward = flow(&second, &first, &config.sift_flow, &mut workspace);
+                        (forward, backward)
+                    })
+                });
+                let mut pair_workspace = DenseCorrespondenceWorkspace::default();
+                let mut out = DenseCorrespondence::default();
+                let mut first_pyramid = SiftPyramid::default();
+                first_pyramid.build(&first, &config.sift_flow).expect("pyramid");
+                let (api_cpu, (api_wall, ())) = cpu_time(|| {
+                    time(|| {
+                        match_sift_images(&first, &first_pyramid, &second, None, &config, &mut pair_workspace, &mut out)
+                            .expect("pair")
+                    })
+                });
+                println!(
+                    "{} pair both ways, {threads} thread(s): separate flows {:.0} ms wall / {:.0} ms CPU; pair API {:.0} ms wall / {:.0} ms CPU",
+                    pair.name,
+                    separate_wall.as_secs_f64() * 1000.0,
+                    separate_cpu.as_secs_f64() * 1000.0,
+                    api_wall.as_secs_f64() * 1000.0,
+                    api_cpu.as_secs_f64() * 1000.0
+                );
+            });
+        }
         let descriptors = first.descriptors.len() / 128;
         for kernel in [L1Kernel::Portable, L1Kernel::Sse2, L1Kernel::Avx2] {
             let (elapsed, total) = time(|| {
@@ -278,7 +343,10 @@ fn quick_report(pairs: &[Pair]) {
         }
         let renderings: Vec<(GreyImage, Option<&[bool]>)> =
             (0..30).map(|_| (grey(pair, &pair.second), None)).collect();
-        for (preset, sift_flow) in &presets {
+        for (preset, sift_flow) in presets
+            .iter()
+            .filter(|(preset, _)| preset.starts_with("fast"))
+        {
             let config = DenseCorrespondenceConfig {
                 sift_flow: sift_flow.clone(),
                 ..Default::default()
@@ -376,19 +444,30 @@ fn criterion_benches(criterion: &mut Criterion, pairs: &[Pair]) {
     for pair in pairs {
         let first = sift(&pair.first, pair.width, pair.height);
         let second = sift(&pair.second, pair.width, pair.height);
-        for threads in [1, 2] {
-            let thread_pool = pool(threads);
-            let mut workspace = SiftFlowWorkspace::default();
-            group.bench_function(
-                BenchmarkId::new(pair.name, format!("{threads}t")),
-                |bench| {
-                    bench.iter(|| {
-                        thread_pool.install(|| {
-                            flow(&first, &second, &SiftFlowConfig::default(), &mut workspace)
-                        })
-                    })
+        let variants = [
+            ("default", SiftFlowConfig::default()),
+            (
+                "default_2bands",
+                SiftFlowConfig {
+                    bp_bands: 2,
+                    ..Default::default()
                 },
-            );
+            ),
+            ("fast_2bands", SiftFlowConfig::fast()),
+        ];
+        for (variant, config) in &variants {
+            for threads in [1, 2] {
+                let thread_pool = pool(threads);
+                let mut workspace = SiftFlowWorkspace::default();
+                group.bench_function(
+                    BenchmarkId::new(pair.name, format!("{variant}/{threads}t")),
+                    |bench| {
+                        bench.iter(|| {
+                            thread_pool.install(|| flow(&first, &second, config, &mut workspace))
+                        })
+                    },
+                );
+            }
         }
     }
     group.finish();
@@ -401,18 +480,21 @@ fn criterion_benches(criterion: &mut Criterion, pairs: &[Pair]) {
             .sample_size(10)
             .measurement_time(Duration::from_secs(30));
         let thread_pool = pool(2);
-        group.bench_function(BenchmarkId::new("30_pairs", pair.name), |bench| {
-            bench.iter(|| {
-                thread_pool.install(|| {
-                    (0..30)
-                        .into_par_iter()
-                        .map_init(SiftFlowWorkspace::default, |workspace, _| {
-                            flow(&first, &second, &SiftFlowConfig::default(), workspace)
-                        })
-                        .count()
+        group.bench_function(
+            BenchmarkId::new("30_pairs_fast_preset", pair.name),
+            |bench| {
+                bench.iter(|| {
+                    thread_pool.install(|| {
+                        (0..30)
+                            .into_par_iter()
+                            .map_init(SiftFlowWorkspace::default, |workspace, _| {
+                                flow(&first, &second, &SiftFlowConfig::fast(), workspace)
+                            })
+                            .count()
+                    })
                 })
-            })
-        });
+            },
+        );
         group.finish();
     }
 }
@@ -428,11 +510,11 @@ fn main() {
             let second = sift(&pair.second, pair.width, pair.height);
             let mut workspace = SiftFlowWorkspace::default();
             pool(1).install(|| {
-                for (iterations, top_iterations, multigrid, multigrid_iterations) in [(30, 60, false, 20), (30, 60, true, 20), (8, 30, false, 20), (8, 30, true, 20), (8, 30, true, 8), (4, 20, true, 8), (4, 20, true, 4), (2, 10, true, 4), (2, 10, true, 2), (1, 6, true, 2)] {
-                    let config = SiftFlowConfig { iterations, top_iterations, multigrid, multigrid_iterations, ..Default::default() };
+                for (iterations, top_iterations, max_multigrid_depth, multigrid_iterations) in [(4, 20, 8, 4), (4, 10, 8, 4), (4, 20, 2, 4), (4, 20, 1, 4), (4, 12, 2, 4), (8, 20, 1, 4), (8, 12, 0, 4)] {
+                    let config = SiftFlowConfig { iterations, top_iterations, max_multigrid_depth, multigrid_iterations, ..Default::default() };
                     let (cpu, field) = cpu_time(|| flow(&first, &second, &config, &mut workspace));
                     let (epe, under_one) = score(&field, &pair.truth);
-                    println!("{} iterations {iterations}/{top_iterations} multigrid {multigrid} {multigrid_iterations}: CPU {:.0} ms, EPE {epe:.3}, < 1 px {under_one:.3}", pair.name, cpu.as_secs_f64() * 1000.0);
+                    println!("{} iterations {iterations}/{top_iterations} depth {max_multigrid_depth} multigrid iterations {multigrid_iterations}: CPU {:.0} ms, EPE {epe:.3}, < 1 px {under_one:.3}", pair.name, cpu.as_secs_f64() * 1000.0);
                 }
             });
         }
