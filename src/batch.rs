@@ -41,6 +41,8 @@ pub struct FrameReport {
     pub consensus: usize,
     /// Size of the largest group of compatible refined poses.
     pub component_size: usize,
+    /// Refined poses directly compatible with the chosen one, itself included.
+    pub direct_support: usize,
     /// Refined poses obtained from the coarse poses.
     pub hypotheses: usize,
     /// Mean δ from the chosen pose to the rest of its group, px.
@@ -62,6 +64,7 @@ impl FrameReport {
             confidence: 0.0,
             consensus: 0,
             component_size: 0,
+            direct_support: 0,
             hypotheses: 0,
             mean_delta_to_chosen_px: 0.0,
             inlier_rms_px: None,
@@ -137,6 +140,7 @@ pub fn register_batch_frame(
                 confidence: result.verdict.confidence,
                 consensus: chosen.map_or(0, |h| h.consensus),
                 component_size: result.verdict.component.len(),
+                direct_support: result.verdict.direct_support,
                 hypotheses: result.verdict.hypothesis_count,
                 mean_delta_to_chosen_px: result.verdict.mean_delta_to_chosen_px,
                 inlier_rms_px: chosen.map(|h| h.inlier_rms_px),
