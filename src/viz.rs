@@ -5,6 +5,7 @@
 use glam::Vec3;
 
 use crate::core::raster::{RenderBuffers, NO_FACE};
+use crate::core::shading::scale_to_percentile;
 
 /// How the model is drawn over the photo.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -99,27 +100,12 @@ pub fn overlay_model(
 /// Scales a non-negative image (a gradient image, a depth map) to 0..1 for display: values are
 /// divided by their 99th percentile (so a few strong edges do not make everything black) and clamped.
 pub fn normalize_for_display(values: &[f32]) -> Vec<f32> {
-    let mut finite: Vec<f32> = values
-        .iter()
-        .copied()
-        .filter(|v| v.is_finite() && *v > 0.0)
-        .collect();
-    if finite.is_empty() {
-        return vec![0.0; values.len()];
+    let mut scaled = values.to_vec();
+    scale_to_percentile(&mut scaled, 0.99);
+    if !scaled.iter().any(|v| *v > 0.0) {
+        scaled.fill(0.0);
     }
-    let rank = ((finite.len() - 1) as f64 * 0.99) as usize;
-    let (_, high, _) = finite.select_nth_unstable_by(rank, f32::total_cmp);
-    let scale = if *high > 0.0 { 1.0 / *high } else { 1.0 };
-    values
-        .iter()
-        .map(|v| {
-            if v.is_finite() {
-                (v * scale).clamp(0.0, 1.0)
-            } else {
-                0.0
-            }
-        })
-        .collect()
+    scaled
 }
 
 #[cfg(test)]

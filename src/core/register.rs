@@ -27,8 +27,14 @@ use super::raster::{Rasterizer, RenderBuffers, RenderOptions, NO_FACE};
 use super::reprojection::{ray_plane_point_cam, ReprojectionWorkspace};
 use super::rigid::Rigid3;
 use super::shading::{
-    asg_from_normals, gradient_magnitude_with_filter, normals_from_depth, AsgOptions,
+    asg_from_normals, gradient_magnitude_with_filter, normals_from_depth, scale_to_percentile,
+    AsgOptions,
 };
+
+/// Photo gradients and ASG images are both scaled so that this percentile of their positive
+/// values is 1 (values above are clamped): they then live on the same 0..1 scale, which the
+/// texture threshold of the flow assumes.
+const GRADIENT_SCALE_PERCENTILE: f64 = 0.99;
 use super::verify::{verify_hypotheses, PoseHypothesis, Verdict, VerifyConfig};
 
 /// Which gradient image stands for the photo (DESIGN §2 step 3).
@@ -281,29 +287,6 @@ fn elapsed_ms(started: Instant) -> f64 {
     started.elapsed().as_secs_f64() * 1e3
 }
 
-/// Scales a non-negative image so that its 99th percentile of positive values is 1 (values above
-/// are clamped): photo gradients and ASG images then live on the same 0..1 scale.
-fn normalize_gradient(values: &mut [f32]) {
-    let mut positive: Vec<f32> = values
-        .iter()
-        .copied()
-        .filter(|v| *v > 0.0 && v.is_finite())
-        .collect();
-    if positive.is_empty() {
-        return;
-    }
-    let rank = ((positive.len() - 1) as f64 * 0.99) as usize;
-    let (_, high, _) = positive.select_nth_unstable_by(rank, f32::total_cmp);
-    let scale = 1.0 / high.max(f32::MIN_POSITIVE);
-    for v in values.iter_mut() {
-        *v = if v.is_finite() {
-            (*v * scale).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
-    }
-}
-
 /// Stage "query": the photo's gradient image (either mode), scaled to 0..1.
 pub fn query_gradient(
     input: &FrameInput,
@@ -360,7 +343,7 @@ pub fn query_gradient(
             asg_from_normals(&normals, width_px, height_px, &config.asg, &mut pixels);
         }
     }
-    normalize_gradient(&mut pixels);
+    scale_to_percentile(&mut pixels, GRADIENT_SCALE_PERCENTILE);
     Ok(QueryGradient {
         width_px,
         height_px,
@@ -502,7 +485,7 @@ pub fn render_coarse_view(
         &config.asg,
         &mut out.asg,
     );
-    normalize_gradient(&mut out.asg);
+    scale_to_percentile(&mut out.asg, GRADIENT_SCALE_PERCENTILE);
     out.valid.clear();
     out.valid
         .extend(out.render.face_index.iter().map(|f| *f != NO_FACE));

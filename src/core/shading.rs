@@ -285,6 +285,30 @@ fn neighbour_cols(col: usize, width_px: usize) -> [usize; 3] {
     [col.saturating_sub(1), col, (col + 1).min(width_px - 1)]
 }
 
+/// Scales a non-negative image in place so that the `percentile` (0..1) of its positive finite
+/// values becomes 1; values above are clamped to 1, non-finite values become 0. A few very strong
+/// edges then do not flatten everything else. An image without positive values is left as it is.
+pub fn scale_to_percentile(values: &mut [f32], percentile: f64) {
+    let mut positive: Vec<f32> = values
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .collect();
+    if positive.is_empty() {
+        return;
+    }
+    let rank = ((positive.len() - 1) as f64 * percentile.clamp(0.0, 1.0)) as usize;
+    let (_, high, _) = positive.select_nth_unstable_by(rank, f32::total_cmp);
+    let scale = 1.0 / high.max(f32::MIN_POSITIVE);
+    for value in values.iter_mut() {
+        *value = if value.is_finite() {
+            (*value * scale).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -624,5 +648,20 @@ mod tests {
         for n in &normals {
             assert!((*n - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-6, "{n}");
         }
+    }
+
+    #[test]
+    fn percentile_scaling_clamps_outliers_and_clears_non_finite_values() {
+        let mut values: Vec<f32> = (1..=100).map(|v| v as f32).collect();
+        values.push(f32::NAN);
+        scale_to_percentile(&mut values, 0.5);
+        // The median of 1..=100 (rank 49 of 0..99) is 50.
+        assert!((values[49] - 1.0).abs() < 1e-6);
+        assert!((values[24] - 0.5).abs() < 1e-6);
+        assert_eq!(values[99], 1.0);
+        assert_eq!(values[100], 0.0);
+        let mut flat = vec![0.0f32; 4];
+        scale_to_percentile(&mut flat, 0.99);
+        assert_eq!(flat, vec![0.0; 4]);
     }
 }
