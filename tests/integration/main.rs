@@ -4,4 +4,5 @@
 mod bad_input;
 mod cli_pictures;
 mod flow_cli;
+mod register_cli;
 mod util;

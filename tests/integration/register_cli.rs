@@ -1,0 +1,96 @@
+//! `asgreg register` on a tiny synthetic scene: every input frame gets exactly one entry in
+//! report.json, a frame whose photo is missing fails with a reason naming the file, and the run
+//! still writes its COLMAP output.
+
+use crate::util::*;
+
+#[test]
+fn every_frame_gets_exactly_one_result_even_when_its_photo_is_missing() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let output = asgreg(&[
+        "synth",
+        "--out",
+        path_str(&scene),
+        "--width",
+        "160",
+        "--height",
+        "90",
+        "--images",
+        "3",
+        "--levels",
+        "30",
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let missing = scene.join("images/view_001.jpg");
+    std::fs::remove_file(&missing).unwrap();
+    let out = dir.path().join("out");
+    let output = asgreg(&[
+        "register",
+        "--mesh",
+        path_str(&scene.join("model.ply")),
+        "--images",
+        path_str(&scene.join("images")),
+        "--cameras",
+        path_str(&scene.join("gt/cameras.txt")),
+        "--poses",
+        path_str(&scene.join("initial/30/images.txt")),
+        "--depth",
+        path_str(&scene.join("depth")),
+        "--coarse-poses",
+        "5",
+        "--out",
+        path_str(&out),
+    ]);
+    assert!(
+        output.status.success(),
+        "a failed frame must not fail the run: {}",
+        stderr(&output)
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let frames = report["frames"].as_array().unwrap();
+    let names: Vec<&str> = frames.iter().map(|f| f["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["view_000.jpg", "view_001.jpg", "view_002.jpg"]);
+    let failed = &frames[1];
+    assert_eq!(failed["accepted"], false);
+    assert!(
+        failed["reason"].as_str().unwrap().contains("view_001.jpg"),
+        "{failed}"
+    );
+    for frame in frames {
+        let accepted = frame["accepted"].as_bool().unwrap();
+        assert_eq!(
+            accepted,
+            frame["reason"].is_null(),
+            "accepted frames have no reason: {frame}"
+        );
+        assert_eq!(accepted, !frame["cam_from_world"].is_null());
+    }
+    // The COLMAP output lists exactly the accepted frames.
+    let accepted = frames.iter().filter(|f| f["accepted"] == true).count();
+    let poses = asgreg::io::colmap::read_images_txt(&out.join("images.txt")).unwrap();
+    assert_eq!(poses.len(), accepted);
+    assert!(out.join("overlays/view_000_before.png").is_file());
+}
+
+#[test]
+fn register_with_a_missing_mesh_names_it_and_exits_non_zero() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, cameras, poses, _) = write_inputs(dir.path());
+    let out = dir.path().join("out");
+    let output = asgreg(&[
+        "register",
+        "--mesh",
+        path_str(&dir.path().join("nope.ply")),
+        "--images",
+        path_str(dir.path()),
+        "--cameras",
+        path_str(&cameras),
+        "--poses",
+        path_str(&poses),
+        "--out",
+        path_str(&out),
+    ]);
+    assert_fails_naming(&output, &["nope.ply"]);
+}
