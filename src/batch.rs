@@ -43,6 +43,9 @@ pub struct FrameReport {
     pub component_size: usize,
     /// Refined poses directly compatible with the chosen one, itself included.
     pub direct_support: usize,
+    /// Spread of the agreeing refined poses over the spread of their coarse poses (small:
+    /// converged; near 1: they stayed where they started).
+    pub convergence_ratio: Option<f64>,
     /// Refined poses obtained from the coarse poses.
     pub hypotheses: usize,
     /// Mean δ from the chosen pose to the rest of its group, px.
@@ -65,6 +68,7 @@ impl FrameReport {
             consensus: 0,
             component_size: 0,
             direct_support: 0,
+            convergence_ratio: None,
             hypotheses: 0,
             mean_delta_to_chosen_px: 0.0,
             inlier_rms_px: None,
@@ -141,6 +145,7 @@ pub fn register_batch_frame(
                 consensus: chosen.map_or(0, |h| h.consensus),
                 component_size: result.verdict.component.len(),
                 direct_support: result.verdict.direct_support,
+                convergence_ratio: result.verdict.convergence_ratio,
                 hypotheses: result.verdict.hypothesis_count,
                 mean_delta_to_chosen_px: result.verdict.mean_delta_to_chosen_px,
                 inlier_rms_px: chosen.map(|h| h.inlier_rms_px),

@@ -124,13 +124,13 @@ fn register_scene(
     out: &std::path::Path,
     seed: u64,
 ) -> anyhow::Result<()> {
-    use super::register::{registration_config, IntrinsicsArg};
+    use super::register::{registration_config, CoarseArgs, IntrinsicsArg};
     use asgreg::batch::{depth_path_for, register_batch_frame, BatchFrame};
     use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
     println!("4/4 registering every frame from its 30 px initial pose (known intrinsics, query = ASG of the photo's depth)");
     let initial = read_images_txt(&scene_dir.join("initial/30/images.txt"))?;
-    let config = registration_config(IntrinsicsArg::Known, true, 15);
+    let config = registration_config(IntrinsicsArg::Known, true, &CoarseArgs::default());
     let mut workspace = ReprojectionWorkspace::new();
     let (mut accepted, mut sum_before, mut sum_after) = (0usize, 0.0f64, 0.0f64);
     for start in &initial {

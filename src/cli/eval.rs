@@ -17,7 +17,7 @@ use asgreg::io::pfm::read_pfm;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::register::{progress_bar, registration_config, IntrinsicsArg};
+use super::register::{progress_bar, registration_config, CoarseArgs, IntrinsicsArg};
 
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
@@ -42,9 +42,8 @@ pub struct EvalArgs {
     /// Seed of the registration's random draws.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Coarse poses per frame.
-    #[arg(long, default_value_t = 15)]
-    pub coarse_poses: usize,
+    #[command(flatten)]
+    pub coarse: CoarseArgs,
     /// Skip the ICP baselines (point-to-plane and point-to-point on the photos' depth maps).
     #[arg(long)]
     pub no_icp: bool,
@@ -149,7 +148,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     camera,
                     initial_cam_from_world: initial.cam_from_world,
                 };
-                let config = registration_config(intrinsics, with_depth, args.coarse_poses);
+                let config = registration_config(intrinsics, with_depth, &args.coarse);
                 let report = register_batch_frame(&mesh, &frame, &config, args.seed);
                 let final_delta_px = match (report.camera, report.cam_from_world) {
                     (Some(out_camera), Some(out_pose)) => mutual_reprojection_error_px(

@@ -43,15 +43,38 @@ pub struct RegisterArgs {
     /// Seed of the random draws (coarse poses, RANSAC): the same seed gives the same poses.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Coarse poses per frame.
-    #[arg(long, default_value_t = 15)]
-    pub coarse_poses: usize,
+    #[command(flatten)]
+    pub coarse: CoarseArgs,
     /// Register only the first N frames of the poses file.
     #[arg(long)]
     pub limit: Option<usize>,
     /// Skip the overlay pictures.
     #[arg(long)]
     pub no_overlays: bool,
+}
+
+/// How the coarse poses are drawn around the initial pose.
+#[derive(clap::Args, Debug, Clone, Copy)]
+pub struct CoarseArgs {
+    /// Coarse poses per frame.
+    #[arg(long, default_value_t = 15)]
+    pub coarse_poses: usize,
+    /// Rotation noise of the coarse poses, degrees (σ per axis).
+    #[arg(long, default_value_t = 1.0)]
+    pub coarse_rotation_deg: f64,
+    /// Camera-centre noise of the coarse poses, as a fraction of the median scene depth (σ per axis).
+    #[arg(long, default_value_t = 0.02)]
+    pub coarse_translation_fraction: f64,
+}
+
+impl Default for CoarseArgs {
+    fn default() -> Self {
+        Self {
+            coarse_poses: 15,
+            coarse_rotation_deg: 1.0,
+            coarse_translation_fraction: 0.02,
+        }
+    }
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -64,7 +87,7 @@ pub enum IntrinsicsArg {
 pub fn registration_config(
     intrinsics: IntrinsicsArg,
     with_depth: bool,
-    coarse_poses: usize,
+    coarse: &CoarseArgs,
 ) -> RegistrationConfig {
     RegistrationConfig {
         intrinsics: match intrinsics {
@@ -76,7 +99,9 @@ pub fn registration_config(
         } else {
             QueryMode::ImageGradient
         },
-        coarse_pose_count: coarse_poses,
+        coarse_pose_count: coarse.coarse_poses,
+        coarse_rotation_sigma_deg: coarse.coarse_rotation_deg,
+        coarse_translation_sigma_fraction: coarse.coarse_translation_fraction,
         ..RegistrationConfig::default()
     }
 }
@@ -95,7 +120,7 @@ pub fn progress_bar(count: usize, what: &str) -> indicatif::ProgressBar {
 
 pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
     let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
-    let config = registration_config(args.intrinsics, args.depth.is_some(), args.coarse_poses);
+    let config = registration_config(args.intrinsics, args.depth.is_some(), &args.coarse);
     config.validate()?;
     let mut frames = Vec::new();
     for image in inputs.images.iter().take(args.limit.unwrap_or(usize::MAX)) {

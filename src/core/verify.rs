@@ -32,6 +32,13 @@ pub struct VerifyConfig {
     /// the paper's connected-component rule alone accepted chains whose chosen pose was 27–37 px
     /// from the truth while its neighbours agreed with each other.
     pub require_direct_support: bool,
+    /// The refined poses of the component must have converged: their mean pairwise δ may be at
+    /// most this fraction of the mean pairwise δ of the coarse poses they started from
+    /// (dimensionless; ≥ 1 disables). Our addition: when flow fails (a photo rotated 180° from its
+    /// prior, a flat scene) each refined pose stays near its own coarse pose, and since the coarse
+    /// spread is below the compatibility threshold they all "agree" — 2 of the 6 wrong-yaw
+    /// Brighton frames were accepted that way.
+    pub max_convergence_ratio: f64,
 }
 
 impl Default for VerifyConfig {
@@ -40,6 +47,7 @@ impl Default for VerifyConfig {
             compatible_fraction_of_long_side: 0.05,
             min_component_size: 4,
             require_direct_support: true,
+            max_convergence_ratio: 0.5,
         }
     }
 }
@@ -86,6 +94,9 @@ pub struct PoseHypothesis {
     pub inlier_rms_px: f64,
     /// Correspondences the pose was estimated from.
     pub correspondence_count: usize,
+    /// The coarse pose this hypothesis was refined from (rendered with `camera`'s size and the
+    /// nominal intrinsics of the frame).
+    pub coarse_cam_from_world: Rigid3,
 }
 
 /// Why a frame was not accepted.
@@ -102,6 +113,11 @@ pub enum RejectionReason {
     WeakSupport {
         direct_support: usize,
         required: usize,
+    },
+    /// The refined poses agree only because they stayed where their coarse poses started.
+    NotConverged {
+        convergence_ratio: f64,
+        max_ratio: f64,
     },
 }
 
@@ -125,6 +141,13 @@ impl std::fmt::Display for RejectionReason {
                 f,
                 "the refined poses form a chain: only {direct_support} agree with the chosen pose itself, {required} needed"
             ),
+            RejectionReason::NotConverged {
+                convergence_ratio,
+                max_ratio,
+            } => write!(
+                f,
+                "the refined poses did not converge: their spread is {convergence_ratio:.2} of the coarse poses' spread (at most {max_ratio:.2} allowed); the flow found no consistent displacement"
+            ),
         }
     }
 }
@@ -141,6 +164,9 @@ pub struct Verdict {
     pub component: Vec<usize>,
     /// Hypotheses directly compatible with the chosen one, itself included.
     pub direct_support: usize,
+    /// Mean pairwise δ of the component's refined poses over that of their coarse poses (None
+    /// when it could not be measured: fewer than two members or no coarse camera).
+    pub convergence_ratio: Option<f64>,
     pub hypothesis_count: usize,
     /// Compatibility threshold used, px.
     pub threshold_px: f64,
@@ -151,10 +177,12 @@ pub struct Verdict {
     pub confidence: f64,
 }
 
-/// Runs the plausibility check over a frame's hypotheses.
+/// Runs the plausibility check over a frame's hypotheses. `coarse_camera` is the camera the coarse
+/// poses were rendered with; without it the convergence test is skipped.
 pub fn verify_hypotheses(
     mesh: &Mesh,
     hypotheses: &[PoseHypothesis],
+    coarse_camera: Option<&Camera>,
     config: &VerifyConfig,
     workspace: &mut ReprojectionWorkspace,
 ) -> Verdict {
@@ -165,6 +193,7 @@ pub fn verify_hypotheses(
             chosen: None,
             component: Vec::new(),
             direct_support: 0,
+            convergence_ratio: None,
             hypothesis_count: 0,
             threshold_px: 0.0,
             mean_delta_to_chosen_px: 0.0,
@@ -218,6 +247,16 @@ pub fn verify_hypotheses(
     let direct_support = (0..n)
         .filter(|&i| delta_px[chosen * n + i] < threshold_px)
         .count();
+    let convergence_ratio = coarse_camera.and_then(|coarse_camera| {
+        convergence_ratio(
+            mesh,
+            hypotheses,
+            &component,
+            &delta_px,
+            coarse_camera,
+            workspace,
+        )
+    });
     let rejection = if component.len() < config.min_component_size {
         Some(RejectionReason::NoAgreement {
             largest_component: component.len(),
@@ -229,7 +268,12 @@ pub fn verify_hypotheses(
             required: config.min_component_size,
         })
     } else {
-        None
+        convergence_ratio
+            .filter(|ratio| *ratio > config.max_convergence_ratio)
+            .map(|ratio| RejectionReason::NotConverged {
+                convergence_ratio: ratio,
+                max_ratio: config.max_convergence_ratio,
+            })
     };
     Verdict {
         accepted: rejection.is_none(),
@@ -237,11 +281,49 @@ pub fn verify_hypotheses(
         chosen: Some(chosen),
         component,
         direct_support,
+        convergence_ratio,
         hypothesis_count: n,
         threshold_px,
         mean_delta_to_chosen_px,
         confidence,
     }
+}
+
+/// Mean pairwise δ of the component's refined poses over the mean pairwise δ of their coarse
+/// poses; `None` with fewer than two members or when the coarse poses coincide.
+fn convergence_ratio(
+    mesh: &Mesh,
+    hypotheses: &[PoseHypothesis],
+    component: &[usize],
+    delta_px: &[f64],
+    coarse_camera: &Camera,
+    workspace: &mut ReprojectionWorkspace,
+) -> Option<f64> {
+    if component.len() < 2 {
+        return None;
+    }
+    let n = hypotheses.len();
+    let coarse: Vec<VisiblePoints> = component
+        .iter()
+        .map(|&i| {
+            visible_points(
+                mesh,
+                coarse_camera,
+                &hypotheses[i].coarse_cam_from_world,
+                workspace,
+            )
+        })
+        .collect();
+    let (mut refined_sum, mut coarse_sum, mut pairs) = (0.0, 0.0, 0usize);
+    for a in 0..component.len() {
+        for b in a + 1..component.len() {
+            let coarse_delta = delta_between(&coarse[a], &coarse[b])?;
+            refined_sum += delta_px[component[a] * n + component[b]];
+            coarse_sum += coarse_delta;
+            pairs += 1;
+        }
+    }
+    (pairs > 0 && coarse_sum > 1e-9).then(|| refined_sum / coarse_sum)
 }
 
 /// The largest connected component of the graph on `0..n` with edges where `compatible(i, j)`,
@@ -309,7 +391,46 @@ mod tests {
             consensus,
             inlier_rms_px: 1.0,
             correspondence_count: 1000,
+            coarse_cam_from_world: Rigid3::new(
+                UnitQuaternion::identity(),
+                Vector3::new(offset_x_m, 0.0, 0.0),
+            ),
         }
+    }
+
+    #[test]
+    fn poses_that_stayed_at_their_coarse_poses_are_not_converged() {
+        let camera = hypothesis(0.0, 1).camera;
+        let config = VerifyConfig::default();
+        // Refined poses exactly where they started, 0.4 m (2 px) apart: they "agree" but did not move.
+        let stayed: Vec<_> = (0..5).map(|i| hypothesis(0.4 * i as f64, 100)).collect();
+        let verdict = verify_hypotheses(
+            &wall(),
+            &stayed,
+            Some(&camera),
+            &config,
+            &mut ReprojectionWorkspace::new(),
+        );
+        assert!(!verdict.accepted);
+        assert!((verdict.convergence_ratio.unwrap() - 1.0).abs() < 1e-9);
+        assert!(matches!(
+            verdict.rejection,
+            Some(RejectionReason::NotConverged { .. })
+        ));
+        // The same coarse poses refined to within 0.04 m (0.2 px) of each other: converged.
+        let mut converged = stayed.clone();
+        for (i, h) in converged.iter_mut().enumerate() {
+            h.cam_from_world.translation.x = 0.01 * i as f64;
+        }
+        let verdict = verify_hypotheses(
+            &wall(),
+            &converged,
+            Some(&camera),
+            &config,
+            &mut ReprojectionWorkspace::new(),
+        );
+        assert!(verdict.accepted, "{verdict:?}");
+        assert!((verdict.convergence_ratio.unwrap() - 0.025).abs() < 1e-6);
     }
 
     #[test]
@@ -324,6 +445,7 @@ mod tests {
         let verdict = verify_hypotheses(
             &wall(),
             &hypotheses,
+            None,
             &VerifyConfig::default(),
             &mut ReprojectionWorkspace::new(),
         );
@@ -352,6 +474,7 @@ mod tests {
         let verdict = verify_hypotheses(
             &wall(),
             &hypotheses,
+            None,
             &VerifyConfig::default(),
             &mut ReprojectionWorkspace::new(),
         );
@@ -378,6 +501,7 @@ mod tests {
         let verdict = verify_hypotheses(
             &wall(),
             &hypotheses,
+            None,
             &paper_rule,
             &mut ReprojectionWorkspace::new(),
         );
@@ -387,6 +511,7 @@ mod tests {
         let verdict = verify_hypotheses(
             &wall(),
             &hypotheses,
+            None,
             &VerifyConfig::default(),
             &mut ReprojectionWorkspace::new(),
         );
@@ -406,6 +531,7 @@ mod tests {
         let verdict = verify_hypotheses(
             &wall(),
             &[],
+            None,
             &VerifyConfig::default(),
             &mut ReprojectionWorkspace::new(),
         );
