@@ -298,6 +298,37 @@ pub struct SceneSummary {
     pub timings: Timings,
 }
 
+/// The degraded model of `scene` as `generate_scene` writes it (`model.ply`): the degradation's
+/// output and the mesh made from it, with vertex normals.
+fn degraded_model(
+    scene: &geometry::Scene,
+    config: &SynthConfig,
+    rng: &mut ChaCha8Rng,
+) -> Result<(degrade::DegradedModel, Mesh), SynthError> {
+    let degraded = degrade::degrade(
+        scene,
+        &degrade::DegradeParams {
+            voxel_m: config.model_voxel_m,
+            smoothing_sigma_m: config.model_smoothing_sigma_m,
+            taubin_iterations: config.model_taubin_iterations,
+            vertex_noise_m: config.model_vertex_noise_m,
+            warp_m: config.model_warp_m,
+            hole_count: config.model_hole_count,
+            hole_radius_m: config.model_hole_radius_m,
+            ground_margin_m: config.model_ground_margin_m,
+        },
+        rng,
+    );
+    let positions: Vec<nalgebra::Vector3<f64>> = degraded
+        .positions_m
+        .iter()
+        .map(|p| nalgebra::Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)))
+        .collect();
+    let mut model = Mesh::from_world(&positions, degraded.faces.clone(), None)?;
+    model.compute_vertex_normals();
+    Ok((degraded, model))
+}
+
 /// Generates a complete synthetic data set in `out_dir` (created if needed).
 pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSummary, SynthError> {
     config.validate()?;
@@ -352,27 +383,7 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
 
     // 2. The degraded model and the true reference model.
     let model_started = Instant::now();
-    let degraded = degrade::degrade(
-        &scene,
-        &degrade::DegradeParams {
-            voxel_m: config.model_voxel_m,
-            smoothing_sigma_m: config.model_smoothing_sigma_m,
-            taubin_iterations: config.model_taubin_iterations,
-            vertex_noise_m: config.model_vertex_noise_m,
-            warp_m: config.model_warp_m,
-            hole_count: config.model_hole_count,
-            hole_radius_m: config.model_hole_radius_m,
-            ground_margin_m: config.model_ground_margin_m,
-        },
-        &mut stream_rng(4),
-    );
-    let model_positions: Vec<nalgebra::Vector3<f64>> = degraded
-        .positions_m
-        .iter()
-        .map(|p| nalgebra::Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)))
-        .collect();
-    let mut model = Mesh::from_world(&model_positions, degraded.faces.clone(), None)?;
-    model.compute_vertex_normals();
+    let (degraded, model) = degraded_model(&scene, config, &mut stream_rng(4))?;
     let true_model = scene.to_mesh(|t| {
         matches!(
             t.part,
@@ -858,27 +869,7 @@ mod tests {
             .unwrap();
         true_model.clear_vertex_normals();
         // The degraded model the registration gets, with its vertex normals.
-        let degraded = degrade::degrade(
-            &scene,
-            &degrade::DegradeParams {
-                voxel_m: config.model_voxel_m,
-                smoothing_sigma_m: config.model_smoothing_sigma_m,
-                taubin_iterations: config.model_taubin_iterations,
-                vertex_noise_m: config.model_vertex_noise_m,
-                warp_m: config.model_warp_m,
-                hole_count: config.model_hole_count,
-                hole_radius_m: config.model_hole_radius_m,
-                ground_margin_m: config.model_ground_margin_m,
-            },
-            &mut stream(4),
-        );
-        let positions: Vec<nalgebra::Vector3<f64>> = degraded
-            .positions_m
-            .iter()
-            .map(|p| nalgebra::Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)))
-            .collect();
-        let mut model = Mesh::from_world(&positions, degraded.faces, None).unwrap();
-        model.compute_vertex_normals();
+        let (_, model) = degraded_model(&scene, &config, &mut stream(4)).unwrap();
 
         // Poses: ground truth, turned by 8 px about the camera's y axis, and the 104 px level's
         // initial pose.
