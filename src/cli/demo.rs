@@ -124,8 +124,8 @@ fn register_scene(
     out: &std::path::Path,
     seed: u64,
 ) -> anyhow::Result<()> {
+    use super::eval::register_scene_frame;
     use super::register::{registration_config, CoarseArgs, IntrinsicsArg};
-    use asgreg::batch::{depth_path_for, register_batch_frame, BatchFrame};
     use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
     println!("4/4 registering every frame from its 30 px initial pose (known intrinsics, query = ASG of the photo's depth)");
@@ -143,16 +143,17 @@ fn register_scene(
             .cameras
             .get(&gt.camera_id)
             .with_context(|| format!("camera {} of {} is missing", gt.camera_id, gt.name))?;
-        let frame = BatchFrame {
-            image_id: start.image_id,
-            camera_id: gt.camera_id,
-            name: start.name.clone(),
-            image_path: scene_dir.join("images").join(&start.name),
-            depth_path: Some(depth_path_for(&scene_dir.join("depth"), &start.name)),
+        let (report, after) = register_scene_frame(
+            &inputs.mesh,
+            scene_dir,
+            start,
+            gt,
             camera,
-            initial_cam_from_world: start.cam_from_world,
-        };
-        let report = register_batch_frame(&inputs.mesh, &frame, &config, seed);
+            true,
+            &config,
+            seed,
+            &mut workspace,
+        );
         let before = mutual_reprojection_error_px(
             &inputs.mesh,
             &camera,
@@ -162,17 +163,6 @@ fn register_scene(
             &mut workspace,
         )
         .unwrap_or(f64::NAN);
-        let after = match (report.camera, report.cam_from_world) {
-            (Some(c), Some(p)) => mutual_reprojection_error_px(
-                &inputs.mesh,
-                &c,
-                &p,
-                &camera,
-                &gt.cam_from_world,
-                &mut workspace,
-            ),
-            _ => None,
-        };
         match after {
             Some(after) => {
                 accepted += 1;

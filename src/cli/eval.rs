@@ -7,11 +7,14 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use asgreg::batch::{depth_path_for, register_batch_frame, BatchFrame};
+use asgreg::batch::{depth_path_for, register_batch_frame, BatchFrame, FrameReport};
+use asgreg::core::camera::Camera;
 use asgreg::core::icp::{register_depth_to_mesh, IcpConfig, IcpVariant, ICP_SUCCESS_THRESHOLD_PX};
+use asgreg::core::mesh::Mesh;
+use asgreg::core::register::RegistrationConfig;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::eval::{cell_stats, format_accuracy, CellStats, EvalFrame};
-use asgreg::io::colmap::{read_cameras_txt, read_images_txt};
+use asgreg::io::colmap::{read_cameras_txt, read_images_txt, ImagePose};
 use asgreg::io::mesh_file::read_mesh;
 use asgreg::io::pfm::read_pfm;
 use rand::SeedableRng;
@@ -139,28 +142,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         .unwrap_or(f64::NAN);
         let outcome = match method {
             Method::Asg(intrinsics) => {
-                let frame = BatchFrame {
-                    image_id: initial.image_id,
-                    camera_id: gt.camera_id,
-                    name: initial.name.clone(),
-                    image_path: args.scene.join("images").join(&initial.name),
-                    depth_path: with_depth.then(|| depth_path_for(&depth_dir, &initial.name)),
-                    camera,
-                    initial_cam_from_world: initial.cam_from_world,
-                };
                 let config = registration_config(intrinsics, with_depth, &args.coarse);
-                let report = register_batch_frame(&mesh, &frame, &config, args.seed);
-                let final_delta_px = match (report.camera, report.cam_from_world) {
-                    (Some(out_camera), Some(out_pose)) => mutual_reprojection_error_px(
-                        &mesh,
-                        &out_camera,
-                        &out_pose,
-                        &camera,
-                        &gt.cam_from_world,
-                        &mut workspace,
-                    ),
-                    _ => None,
-                };
+                let (report, final_delta_px) = register_scene_frame(
+                    &mesh,
+                    &args.scene,
+                    &initial,
+                    gt,
+                    camera,
+                    with_depth,
+                    &config,
+                    args.seed,
+                    &mut workspace,
+                );
                 FrameOutcome {
                     accepted: report.accepted,
                     final_delta_px,
@@ -288,6 +281,44 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         args.out.join("results.svg").display()
     );
     Ok(())
+}
+
+/// Registers the frame `initial` of a scene folder (photo in `images/`, depth in `depth/` when
+/// `with_depth`) and returns its report and δ of the output pose to `gt` (None when no pose).
+#[allow(clippy::too_many_arguments)]
+pub fn register_scene_frame(
+    mesh: &Mesh,
+    scene: &Path,
+    initial: &ImagePose,
+    gt: &ImagePose,
+    camera: Camera,
+    with_depth: bool,
+    config: &RegistrationConfig,
+    seed: u64,
+    workspace: &mut ReprojectionWorkspace,
+) -> (FrameReport, Option<f64>) {
+    let frame = BatchFrame {
+        image_id: initial.image_id,
+        camera_id: gt.camera_id,
+        name: initial.name.clone(),
+        image_path: scene.join("images").join(&initial.name),
+        depth_path: with_depth.then(|| depth_path_for(&scene.join("depth"), &initial.name)),
+        camera,
+        initial_cam_from_world: initial.cam_from_world,
+    };
+    let report = register_batch_frame(mesh, &frame, config, seed);
+    let final_delta_px = match (report.camera, report.cam_from_world) {
+        (Some(out_camera), Some(out_pose)) => mutual_reprojection_error_px(
+            mesh,
+            &out_camera,
+            &out_pose,
+            &camera,
+            &gt.cam_from_world,
+            workspace,
+        ),
+        _ => None,
+    };
+    (report, final_delta_px)
 }
 
 /// One frame's result under one method.
