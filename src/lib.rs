@@ -6,5 +6,7 @@ pub mod batch;
 pub mod core;
 pub mod eval;
 pub mod io;
+pub mod msg;
 pub mod synth;
+pub mod transport;
 pub mod viz;

@@ -257,7 +257,7 @@ pub struct Correspondences2d3d {
 }
 
 /// What became of one coarse pose.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CoarseOutcome {
     pub coarse_index: usize,
     pub consistent_matches: usize,

@@ -1,0 +1,36 @@
+//! The wire types of the bus and the one place that encodes and decodes them (DESIGN §5).
+//! `schemas/v1/` describes the same layout for subscribers in other languages.
+//!
+//! Layout of every message (all integers little-endian):
+//! ```text
+//! 0   magic "ASGR"            4 bytes
+//! 4   schema_version          u16   (SCHEMA_VERSION; a receiver rejects any other)
+//! 6   kind                    u16   (MessageKind)
+//! 8   frame_id                u64
+//! 16  sequence                u64   (per sender, for ordering and loss checks)
+//! 24  capture_time_ns         u64   (Unix ns when the frame was captured or ingested)
+//! 32  sent_time_ns            u64   (Unix ns when this message was sent)
+//! 40  meta_len                u32   (bytes of the bincode-2 body that follows)
+//! 44  array_count             u32
+//! 48  meta                    bincode 2 (standard config) of the kind's body struct
+//! ..  padding to 8
+//! ..  array_count × u64        byte length of each array
+//! ..  arrays, each starting on an 8-byte boundary (f32/u32/f64 little-endian)
+//! ```
+//! Bulk data (images, depth, correspondence arrays) sits in the aligned arrays, so a receiver
+//! reads it in place: [`decode`] borrows it from the received bytes (the iceoryx2 sample) when
+//! they are aligned and copies only when they are not.
+
+mod json;
+mod types;
+mod wire;
+
+#[cfg(test)]
+mod tests;
+
+pub use json::pose_result_json;
+pub use types::*;
+pub use wire::{decode, encode, DecodeError, EncodeError, Encoded, HEADER_BYTES, MAGIC};
+
+/// The schema version in every header; bump it (and add `schemas/v2/`) on any layout change.
+pub const SCHEMA_VERSION: u16 = 1;

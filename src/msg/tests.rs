@@ -1,0 +1,262 @@
+//! Round trips of every message kind, zero-copy reads, and rejection of bad bytes without a panic.
+
+use std::borrow::Cow;
+
+use nalgebra::{UnitQuaternion, Vector3};
+
+use super::*;
+use crate::core::camera::{Camera, PinholeIntrinsics};
+use crate::core::register::CoarseOutcome;
+use crate::core::rigid::Rigid3;
+
+fn info() -> FrameInfo {
+    FrameInfo {
+        name: "DJI_0001.JPG".to_string(),
+        camera_id: 2,
+        camera: Camera::pinhole(4, 3, PinholeIntrinsics::centered(5.0, 4, 3)),
+        intrinsics_known: true,
+        initial_cam_from_world: Rigid3::new(
+            UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
+            Vector3::new(1.0, 2.0, -3.5),
+        ),
+        seed: 77,
+    }
+}
+
+fn header() -> Header {
+    Header {
+        frame_id: 9,
+        sequence: 3,
+        capture_time_ns: 1_700_000_000_000_000_000,
+        sent_time_ns: 1_700_000_000_100_000_000,
+    }
+}
+
+fn every_kind() -> Vec<Body<'static>> {
+    let image: Vec<f32> = (0..12).map(|i| i as f32 / 12.0).collect();
+    let outcome = CoarseOutcome {
+        coarse_index: 4,
+        consistent_matches: 321,
+        hypothesis: None,
+        failure: Some("too few points".to_string()),
+    };
+    vec![
+        Body::Frame(Frame {
+            info: info(),
+            image: Cow::Owned(image.clone()),
+            depth_m: Cow::Owned(Vec::new()),
+        }),
+        Body::FlowJob(FlowJob {
+            meta: FlowJobMeta {
+                info: info(),
+                coarse_index: 4,
+                coarse_count: 15,
+                coarse_cam_from_world: Rigid3::identity(),
+                render_ms: 12.5,
+            },
+            query: Cow::Owned(image.clone()),
+            asg: Cow::Owned(image.iter().map(|v| 1.0 - v).collect()),
+            depth_m: Cow::Owned(vec![7.0; 12]),
+            face_index: Cow::Owned((0..12).collect()),
+        }),
+        Body::Correspondences(Correspondences {
+            meta: CorrespondencesMeta {
+                info: info(),
+                coarse_index: 4,
+                coarse_count: 15,
+                coarse_cam_from_world: Rigid3::identity(),
+                render_ms: 1.0,
+                flow_ms: 2.0,
+                flow_worker: 1,
+            },
+            image_points_px: Cow::Owned(vec![0.5, 1.5, 2.5, 3.5]),
+            world_points_m: Cow::Owned(vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
+            matching_costs: Cow::Owned(vec![0.25, 0.75]),
+        }),
+        Body::Hypothesis(Hypothesis {
+            info: info(),
+            coarse_count: 15,
+            outcome,
+            render_ms: 1.0,
+            flow_ms: 2.0,
+            pose_ms: 3.0,
+            flow_worker: 0,
+        }),
+        Body::FrameFailed(FrameFailed {
+            name: "a.png".to_string(),
+            stage: "ingest".to_string(),
+            reason: "truncated PNG".to_string(),
+        }),
+        Body::PoseResult(PoseResult {
+            frame_id: 9,
+            name: "a.png".to_string(),
+            accepted: true,
+            failure: None,
+            confidence: 0.8,
+            camera: Some(CameraNumbers::from(&info().camera)),
+            cam_from_world: Some(PoseNumbers::from(&info().initial_cam_from_world)),
+            evidence: Evidence::default(),
+            times: StageTimesMs::default(),
+            flow_workers: vec![0, 1, 0],
+        }),
+        Body::Credit(Credit {
+            worker_index: 3,
+            incarnation: 99,
+            completed: vec![JobKey {
+                frame_id: 1,
+                coarse_index: 2,
+            }],
+            free_slots: 1,
+        }),
+        Body::Metrics(StageMetrics {
+            stage: "flow".to_string(),
+            compute_samples_ms: vec![1.0, 2.0],
+            ..StageMetrics::default()
+        }),
+        Body::StreamEnd(StreamEnd { frame_count: 48 }),
+    ]
+}
+
+#[test]
+fn every_kind_round_trips() {
+    for body in every_kind() {
+        let message = Envelope {
+            header: header(),
+            body,
+        };
+        let bytes = encode(&message).unwrap().to_vec();
+        assert_eq!(bytes.len() % 8, 0);
+        assert_eq!(
+            decode(&bytes).unwrap(),
+            message,
+            "{:?}",
+            message.body.kind()
+        );
+    }
+}
+
+#[test]
+fn aligned_arrays_are_read_in_place() {
+    let message = Envelope {
+        header: header(),
+        body: every_kind().swap_remove(1),
+    };
+    let encoded = encode(&message).unwrap();
+    // An 8-byte aligned buffer, as iceoryx2 and Vec<u64> give.
+    let mut storage = vec![0u64; encoded.len() / 8];
+    let bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut storage);
+    encoded.write_to(bytes);
+    let decoded = decode(bytes).unwrap();
+    let Body::FlowJob(job) = decoded.body else {
+        panic!("wrong kind")
+    };
+    assert!(matches!(job.asg, Cow::Borrowed(_)));
+    assert!(matches!(job.face_index, Cow::Borrowed(_)));
+    let start = bytes.as_ptr() as usize;
+    let asg = job.asg.as_ptr() as usize;
+    assert!(
+        asg > start && asg < start + bytes.len(),
+        "the ASG must point into the message"
+    );
+}
+
+#[test]
+fn misaligned_bytes_are_copied_not_rejected() {
+    let message = Envelope {
+        header: header(),
+        body: every_kind().swap_remove(2),
+    };
+    let bytes = encode(&message).unwrap().to_vec();
+    let mut shifted = vec![0u8; bytes.len() + 1];
+    shifted[1..].copy_from_slice(&bytes);
+    assert_eq!(decode(&shifted[1..]).unwrap(), message);
+}
+
+#[test]
+fn wrong_schema_version_names_both_versions() {
+    let message = Envelope {
+        header: header(),
+        body: every_kind().swap_remove(0),
+    };
+    let mut bytes = encode(&message).unwrap().to_vec();
+    bytes[4..6].copy_from_slice(&2u16.to_le_bytes());
+    let error = decode(&bytes).unwrap_err();
+    assert_eq!(
+        error,
+        DecodeError::WrongVersion {
+            found: 2,
+            frame_id: 9
+        }
+    );
+    let text = error.to_string();
+    assert!(
+        text.contains("schema version 2") && text.contains("version 1"),
+        "{text}"
+    );
+}
+
+#[test]
+fn bad_bytes_are_errors_never_panics() {
+    assert!(matches!(
+        decode(b"hello"),
+        Err(DecodeError::TooShort { .. })
+    ));
+    assert!(matches!(
+        decode(&[0u8; 64]),
+        Err(DecodeError::BadMagic { .. })
+    ));
+    for body in every_kind() {
+        let message = Envelope {
+            header: header(),
+            body,
+        };
+        let bytes = encode(&message).unwrap().to_vec();
+        // Every truncation.
+        for len in 0..bytes.len() {
+            assert!(decode(&bytes[..len]).is_err() || len >= bytes.len() - 7);
+        }
+        // Every single-byte corruption of header and body: an error or a message, no panic.
+        for position in 0..bytes.len().min(160) {
+            let mut corrupt = bytes.clone();
+            corrupt[position] ^= 0xA5;
+            let _ = decode(&corrupt);
+        }
+    }
+}
+
+#[test]
+fn array_sizes_are_checked_against_the_camera() {
+    let message = Envelope {
+        header: header(),
+        body: Body::Frame(Frame {
+            info: info(),
+            image: Cow::Owned(vec![0.0; 11]),
+            depth_m: Cow::Owned(Vec::new()),
+        }),
+    };
+    let bytes = encode(&message).unwrap().to_vec();
+    let error = decode(&bytes).unwrap_err().to_string();
+    assert!(
+        error.contains("'image' has 11 values, expected 12"),
+        "{error}"
+    );
+}
+
+#[test]
+fn pose_result_json_carries_header_and_result() {
+    let Body::PoseResult(result) = every_kind().swap_remove(5) else {
+        panic!()
+    };
+    let json: serde_json::Value =
+        serde_json::from_str(&pose_result_json(&header(), &result)).unwrap();
+    assert_eq!(json["schema_version"], 1);
+    assert_eq!(json["frame_id"], 9);
+    assert_eq!(json["accepted"], true);
+    assert_eq!(
+        json["cam_from_world"]["qvec_wxyz"]
+            .as_array()
+            .unwrap()
+            .len(),
+        4
+    );
+}

@@ -1,0 +1,331 @@
+//! The message bodies: what each stage sends to the next (DESIGN §5 data flow
+//! frame → render → flow → pose → verify → pose result) plus control messages (credits,
+//! metrics, end of stream).
+
+use std::borrow::Cow;
+
+use serde::{Deserialize, Serialize};
+
+use crate::core::camera::Camera;
+use crate::core::register::CoarseOutcome;
+use crate::core::rigid::Rigid3;
+
+/// Bulk data of a message: borrowed from the received bytes when possible, owned otherwise.
+pub type Blob<'a, T> = Cow<'a, [T]>;
+
+/// The fixed header of every message.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub struct Header {
+    pub frame_id: u64,
+    pub sequence: u64,
+    /// Unix time (ns) the frame was captured or ingested; carried unchanged through the stages.
+    pub capture_time_ns: u64,
+    /// Unix time (ns) this message was sent (set by the sender).
+    pub sent_time_ns: u64,
+}
+
+/// Discriminant of a message body on the wire (header bytes 6..8).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u16)]
+pub enum MessageKind {
+    Frame = 1,
+    FlowJob = 2,
+    Correspondences = 3,
+    Hypothesis = 4,
+    FrameFailed = 5,
+    PoseResult = 6,
+    Credit = 7,
+    Metrics = 8,
+    StreamEnd = 9,
+}
+
+impl MessageKind {
+    pub fn from_wire(value: u16) -> Option<Self> {
+        Some(match value {
+            1 => Self::Frame,
+            2 => Self::FlowJob,
+            3 => Self::Correspondences,
+            4 => Self::Hypothesis,
+            5 => Self::FrameFailed,
+            6 => Self::PoseResult,
+            7 => Self::Credit,
+            8 => Self::Metrics,
+            9 => Self::StreamEnd,
+            _ => return None,
+        })
+    }
+}
+
+/// A message: header and body.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Envelope<'a> {
+    pub header: Header,
+    pub body: Body<'a>,
+}
+
+/// Every message body of schema v1.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Body<'a> {
+    Frame(Frame<'a>),
+    FlowJob(FlowJob<'a>),
+    Correspondences(Correspondences<'a>),
+    Hypothesis(Hypothesis),
+    FrameFailed(FrameFailed),
+    PoseResult(PoseResult),
+    Credit(Credit),
+    Metrics(StageMetrics),
+    StreamEnd(StreamEnd),
+}
+
+impl Body<'_> {
+    pub fn kind(&self) -> MessageKind {
+        match self {
+            Body::Frame(_) => MessageKind::Frame,
+            Body::FlowJob(_) => MessageKind::FlowJob,
+            Body::Correspondences(_) => MessageKind::Correspondences,
+            Body::Hypothesis(_) => MessageKind::Hypothesis,
+            Body::FrameFailed(_) => MessageKind::FrameFailed,
+            Body::PoseResult(_) => MessageKind::PoseResult,
+            Body::Credit(_) => MessageKind::Credit,
+            Body::Metrics(_) => MessageKind::Metrics,
+            Body::StreamEnd(_) => MessageKind::StreamEnd,
+        }
+    }
+}
+
+/// What every per-frame message carries about its frame (small; repeated in each job so that any
+/// worker can do any job without other state).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameInfo {
+    /// The image name (as in images.txt).
+    pub name: String,
+    pub camera_id: u32,
+    pub camera: Camera,
+    /// True: intrinsics known (EPnP); false: estimate them (DLT).
+    pub intrinsics_known: bool,
+    pub initial_cam_from_world: Rigid3,
+    /// Seed of the frame's random choices (coarse poses, RANSAC): same seed, same result.
+    pub seed: u64,
+}
+
+/// A photo to register (ingest → render).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Frame<'a> {
+    pub info: FrameInfo,
+    /// Grey photo, row-major, `camera.width_px × camera.height_px`, values 0..1.
+    pub image: Blob<'a, f32>,
+    /// The photo's depth map in metres (0 = hole), same size; empty when there is none.
+    pub depth_m: Blob<'a, f32>,
+}
+
+/// Identifies a unit of parallel work: one coarse pose of one frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct JobKey {
+    pub frame_id: u64,
+    pub coarse_index: u32,
+}
+
+/// The render output for one coarse pose (render → flow): the query gradient image and the ASG
+/// rendering, depth and face index of the coarse view.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FlowJob<'a> {
+    pub meta: FlowJobMeta,
+    /// The photo's gradient image (query), 0..1.
+    pub query: Blob<'a, f32>,
+    /// ASG rendering of the coarse pose, 0..1.
+    pub asg: Blob<'a, f32>,
+    /// Rendered depth along the optical axis, metres (0 where nothing was hit).
+    pub depth_m: Blob<'a, f32>,
+    /// Rendered face per pixel (u32::MAX where nothing was hit).
+    pub face_index: Blob<'a, u32>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FlowJobMeta {
+    pub info: FrameInfo,
+    pub coarse_index: u32,
+    pub coarse_count: u32,
+    pub coarse_cam_from_world: Rigid3,
+    /// Time the render stage spent on this frame, ms (all coarse views).
+    pub render_ms: f64,
+}
+
+/// 2D–3D correspondences of one coarse pose (flow → pose).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Correspondences<'a> {
+    pub meta: CorrespondencesMeta,
+    /// Query pixel positions (x, y) in COLMAP pixel coordinates, interleaved.
+    pub image_points_px: Blob<'a, f64>,
+    /// World points (x, y, z) in metres, interleaved.
+    pub world_points_m: Blob<'a, f64>,
+    /// SIFT matching cost of each correspondence.
+    pub matching_costs: Blob<'a, f32>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CorrespondencesMeta {
+    pub info: FrameInfo,
+    pub coarse_index: u32,
+    pub coarse_count: u32,
+    pub coarse_cam_from_world: Rigid3,
+    pub render_ms: f64,
+    pub flow_ms: f64,
+    /// Which flow worker made them (for the work-split report).
+    pub flow_worker: u32,
+}
+
+/// The refined pose of one coarse pose, or why there is none (pose → verify).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Hypothesis {
+    pub info: FrameInfo,
+    pub coarse_count: u32,
+    pub outcome: CoarseOutcome,
+    pub render_ms: f64,
+    pub flow_ms: f64,
+    pub pose_ms: f64,
+    pub flow_worker: u32,
+}
+
+/// A frame that cannot be registered at all (bad input, model not visible, dropped by
+/// backpressure): any stage sends this to verify, which turns it into the frame's one result.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameFailed {
+    pub name: String,
+    /// The stage that gave up ("ingest", "render", ...).
+    pub stage: String,
+    pub reason: String,
+}
+
+/// A camera in plain numbers (for JSON subscribers): pinhole intrinsics in pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraNumbers {
+    pub width_px: u32,
+    pub height_px: u32,
+    pub fx_px: f64,
+    pub fy_px: f64,
+    pub cx_px: f64,
+    pub cy_px: f64,
+    pub skew_px: f64,
+}
+
+impl From<&Camera> for CameraNumbers {
+    fn from(camera: &Camera) -> Self {
+        let k = &camera.intrinsics;
+        Self {
+            width_px: camera.width_px,
+            height_px: camera.height_px,
+            fx_px: k.fx_px,
+            fy_px: k.fy_px,
+            cx_px: k.cx_px,
+            cy_px: k.cy_px,
+            skew_px: k.skew_px,
+        }
+    }
+}
+
+/// A `cam_from_world` pose in plain numbers: COLMAP's quaternion (w, x, y, z) and translation.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseNumbers {
+    pub qvec_wxyz: [f64; 4],
+    pub tvec_m: [f64; 3],
+}
+
+impl From<&Rigid3> for PoseNumbers {
+    fn from(pose: &Rigid3) -> Self {
+        let q = pose.rotation.quaternion();
+        Self {
+            qvec_wxyz: [q.w, q.i, q.j, q.k],
+            tvec_m: [pose.translation.x, pose.translation.y, pose.translation.z],
+        }
+    }
+}
+
+/// Why the verdict is what it is: the numbers behind it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Evidence {
+    /// Refined poses obtained from the coarse poses.
+    pub hypotheses: u32,
+    /// Largest group of mutually compatible refined poses.
+    pub component_size: u32,
+    /// Refined poses directly compatible with the chosen one, itself included.
+    pub direct_support: u32,
+    /// RANSAC consensus (inliers) of the chosen pose.
+    pub consensus: u32,
+    pub inlier_rms_px: Option<f64>,
+    pub mean_delta_to_chosen_px: f64,
+    pub convergence_ratio: Option<f64>,
+}
+
+/// Time spent per stage on a frame, ms; `latency_ms` is capture → result.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StageTimesMs {
+    pub render_ms: f64,
+    /// Sum over the frame's coarse poses (they may run on several workers at once).
+    pub flow_ms: f64,
+    pub pose_ms: f64,
+    pub verify_ms: f64,
+    pub latency_ms: f64,
+}
+
+/// The one result of a frame (verify → subscribers); also published as JSON
+/// (`schemas/v1/pose_result.schema.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseResult {
+    pub frame_id: u64,
+    pub name: String,
+    pub accepted: bool,
+    /// Why not accepted: the stage and the reason.
+    pub failure: Option<String>,
+    /// 0..1, threshold it to trade recall for precision.
+    pub confidence: f64,
+    /// The refined camera (estimated intrinsics when they were unknown), when accepted.
+    pub camera: Option<CameraNumbers>,
+    pub cam_from_world: Option<PoseNumbers>,
+    pub evidence: Evidence,
+    pub times: StageTimesMs,
+    /// Flow worker of each coarse pose, by coarse index (how the work was split).
+    pub flow_workers: Vec<u32>,
+}
+
+/// A worker of a dispatched link says it is ready for more work and which jobs it finished.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Credit {
+    pub worker_index: u32,
+    /// Changes every time the worker process starts: a new value means the old one died and its
+    /// unfinished jobs must be redone.
+    pub incarnation: u64,
+    /// Jobs finished since the last credit.
+    pub completed: Vec<JobKey>,
+    /// Jobs the worker can take now.
+    pub free_slots: u32,
+}
+
+/// A stage's counters (sent now and then and at the end of the stream).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StageMetrics {
+    pub stage: String,
+    pub worker_index: u32,
+    pub messages_in: u64,
+    pub messages_out: u64,
+    pub dropped: u64,
+    pub rejected: u64,
+    /// Jobs redone because a worker died or went silent.
+    pub redispatched: u64,
+    pub max_queue_depth: u64,
+    pub bytes_out: u64,
+    /// Time spent encoding and sending, ms.
+    pub send_ms: f64,
+    /// Time spent decoding received messages, ms.
+    pub decode_ms: f64,
+    /// Time spent computing, ms.
+    pub compute_ms: f64,
+    /// Per-message compute times, ms (for percentiles).
+    pub compute_samples_ms: Vec<f64>,
+}
+
+/// The source has sent all its frames (ingest → verify → results).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StreamEnd {
+    /// Frames the source produced (ids 0..frame_count).
+    pub frame_count: u64,
+}

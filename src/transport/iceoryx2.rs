@@ -1,0 +1,1 @@
+//! Shared-memory transport between processes on one host (iceoryx2): to be written.

@@ -1,0 +1,1 @@
+//! Network transport between hosts (zenoh): to be written.
