@@ -128,7 +128,7 @@ pub fn register_batch_frame(
         }),
         camera: &frame.camera,
         initial_cam_from_world: frame.initial_cam_from_world,
-        seed: seed ^ u64::from(frame.image_id).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        seed: crate::stage::ingest::frame_seed(seed, frame.image_id),
     };
     match register_frame(mesh, &input, config) {
         Ok(result) => {

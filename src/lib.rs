@@ -7,6 +7,8 @@ pub mod core;
 pub mod eval;
 pub mod io;
 pub mod msg;
+pub mod runtime;
+pub mod stage;
 pub mod synth;
 pub mod transport;
 pub mod viz;

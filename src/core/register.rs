@@ -515,16 +515,42 @@ pub fn match_views(
         .map_err(|e| RegistrationError::Flow(e.to_string()))
 }
 
+/// What lifting needs of a coarse view: its pose and the rendered depth and face per pixel (borrowed
+/// from a [`CoarseView`] in one process, or from a received message in the pipeline).
+#[derive(Clone, Copy, Debug)]
+pub struct ViewGeometry<'a> {
+    pub coarse_index: usize,
+    pub cam_from_world: Rigid3,
+    pub width_px: usize,
+    pub height_px: usize,
+    pub depth_m: &'a [f32],
+    pub face_index: &'a [u32],
+}
+
+impl CoarseView {
+    /// The view's geometry for [`lift_correspondences`].
+    pub fn geometry(&self) -> ViewGeometry<'_> {
+        ViewGeometry {
+            coarse_index: self.coarse_index,
+            cam_from_world: self.cam_from_world,
+            width_px: self.render.width_px(),
+            height_px: self.render.height_px(),
+            depth_m: &self.render.depth_m,
+            face_index: &self.render.face_index,
+        }
+    }
+}
+
 /// Stage "lift": each consistent pixel pair becomes (query pixel, 3D model point): the rendering
 /// pixel's ray (through the sub-pixel flow target) meets the plane of the face rendered there.
 pub fn lift_correspondences(
     mesh: &Mesh,
     camera: &Camera,
-    view: &CoarseView,
+    view: ViewGeometry<'_>,
     dense: &DenseCorrespondence,
 ) -> Correspondences2d3d {
-    let width = view.render.width_px();
-    let height = view.render.height_px();
+    let width = view.width_px;
+    let height = view.height_px;
     let world_from_cam = view.cam_from_world.inverse();
     let mut out = Correspondences2d3d {
         coarse_index: view.coarse_index,
@@ -538,7 +564,7 @@ pub fn lift_correspondences(
             continue;
         }
         let pixel = row as usize * width + col as usize;
-        let face_index = view.render.face_index[pixel];
+        let face_index = view.face_index[pixel];
         if face_index == NO_FACE {
             continue;
         }
@@ -547,7 +573,7 @@ pub fn lift_correspondences(
             f64::from(pair.rendering_y_px) + 0.5,
         ));
         let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
-        let depth_m = f64::from(view.render.depth_m[pixel]);
+        let depth_m = f64::from(view.depth_m[pixel]);
         let point_cam = ray_plane_point_cam(
             mesh,
             face_index as usize,
@@ -706,7 +732,7 @@ pub fn register_query(
         .par_iter()
         .zip(dense.par_iter())
         .map(|(view, dense)| {
-            let lifted = lift_correspondences(mesh, camera, view, dense);
+            let lifted = lift_correspondences(mesh, camera, view.geometry(), dense);
             let consistent_matches = lifted.image_points_px.len();
             match solve_coarse_pose(&lifted, camera, config, seed) {
                 Ok((hypothesis, _)) => CoarseOutcome {

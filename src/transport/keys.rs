@@ -20,6 +20,11 @@ pub const VERIFY_IN: &str = "verify/in";
 /// Per-stage metrics snapshots.
 pub const METRICS: &str = "metrics";
 
+/// The dispatched link ingest → render (frames).
+pub const FRAMES_LINK: &str = "frames";
+/// The dispatched link render → flow workers ((frame, coarse pose) jobs).
+pub const FLOW_LINK: &str = "flow";
+
 /// Jobs of a dispatched link for one worker (`<link>/jobs/<worker>`).
 pub fn jobs(link: &str, worker_index: u32) -> String {
     format!("{link}/jobs/{worker_index}")

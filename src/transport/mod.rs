@@ -131,3 +131,43 @@ pub trait Transport: Send + Sync {
     fn publisher(&self, topic: &str) -> Result<Box<dyn Publisher>, TransportError>;
     fn subscriber(&self, topic: &str) -> Result<Box<dyn Subscriber>, TransportError>;
 }
+
+/// Which backend carries the pipeline's messages.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    /// Threads of one process.
+    #[default]
+    Crossbeam,
+    /// Processes on one host, shared memory.
+    Iceoryx2,
+    /// Processes on several hosts, TCP.
+    Zenoh,
+}
+
+impl Backend {
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Crossbeam => "crossbeam",
+            Backend::Iceoryx2 => "iceoryx2",
+            Backend::Zenoh => "zenoh",
+        }
+    }
+}
+
+/// Opens the configured backend. `zenoh` settings are used only by the zenoh backend.
+pub fn open(
+    backend: Backend,
+    config: &TransportConfig,
+    _zenoh: &zenoh::ZenohSettings,
+) -> Result<std::sync::Arc<dyn Transport>, TransportError> {
+    match backend {
+        Backend::Crossbeam => Ok(std::sync::Arc::new(crossbeam::CrossbeamTransport::new(
+            config.clone(),
+        ))),
+        other => Err(TransportError::Setup {
+            backend: other.name(),
+            detail: "not built yet".to_string(),
+        }),
+    }
+}

@@ -1,0 +1,227 @@
+//! The end of a pipeline as its operator sees it: a results subscriber that checks every frame
+//! gets exactly one PoseResult, and the summary (frames/s, latency percentiles, per-stage
+//! compute, transport bytes and time, drops, rejections, redone jobs, the work split).
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+
+use crate::msg::{Body, Header, PoseResult, StageMetrics};
+use crate::transport::{keys, Transport};
+
+use super::bus::{BusError, Inbox};
+
+/// Results as they arrived, checked for exactly-once delivery.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Collected {
+    pub results: Vec<PoseResult>,
+    /// Frames that received more than one result (must stay empty).
+    pub duplicates: Vec<u64>,
+    /// Frame count announced by the end of the stream.
+    pub frame_count: Option<u64>,
+    pub wall_s: f64,
+    /// Latest metrics of every stage worker, by (stage, worker).
+    pub metrics: BTreeMap<(String, u32), StageMetrics>,
+    pub rejected_messages: u64,
+}
+
+impl Collected {
+    /// Frame ids without a result (must be empty after a complete stream).
+    pub fn missing(&self) -> Vec<u64> {
+        let Some(count) = self.frame_count else {
+            return Vec::new();
+        };
+        let seen: std::collections::BTreeSet<u64> =
+            self.results.iter().map(|r| r.frame_id).collect();
+        (0..count).filter(|id| !seen.contains(id)).collect()
+    }
+
+    /// Results in frame order.
+    pub fn by_frame(&self) -> Vec<&PoseResult> {
+        let mut results: Vec<&PoseResult> = self.results.iter().collect();
+        results.sort_by_key(|r| r.frame_id);
+        results
+    }
+}
+
+/// A subscriber to the results and metrics of a pipeline, opened before the stages start.
+pub struct Collector {
+    results: Inbox,
+    metrics: Inbox,
+}
+
+impl Collector {
+    pub fn open(transport: &dyn Transport) -> Result<Self, BusError> {
+        Ok(Self {
+            results: Inbox::open(transport, keys::RESULTS, "collector")?,
+            metrics: Inbox::open(transport, keys::METRICS, "collector")?,
+        })
+    }
+
+    /// Receives until the end of the stream (or `deadline`), calling `on_result` for each.
+    /// `keep_going` is polled; returning false ends the wait early (e.g. all stages died).
+    pub fn collect(
+        &mut self,
+        deadline: Duration,
+        on_result: &mut dyn FnMut(&Header, &PoseResult),
+        keep_going: &mut dyn FnMut() -> bool,
+    ) -> Result<Collected, BusError> {
+        let started = Instant::now();
+        let mut collected = Collected::default();
+        let mut seen = std::collections::BTreeSet::new();
+        let mut scratch = StageMetrics::default();
+        while collected.frame_count.is_none() && started.elapsed() < deadline && keep_going() {
+            self.results.receive(
+                Duration::from_millis(50),
+                &mut scratch,
+                &mut |message, _| match message.body {
+                    Body::PoseResult(result) => {
+                        on_result(&message.header, &result);
+                        if !seen.insert(result.frame_id) {
+                            collected.duplicates.push(result.frame_id);
+                        }
+                        collected.results.push(result);
+                    }
+                    Body::StreamEnd(end) => collected.frame_count = Some(end.frame_count),
+                    _ => {}
+                },
+            )?;
+            self.drain_metrics(&mut collected)?;
+        }
+        collected.wall_s = started.elapsed().as_secs_f64();
+        collected.rejected_messages = scratch.rejected;
+        Ok(collected)
+    }
+
+    /// Takes the metrics that have arrived (stages send theirs once a second and when stopping).
+    pub fn drain_metrics(&mut self, collected: &mut Collected) -> Result<(), BusError> {
+        let mut scratch = StageMetrics::default();
+        while self
+            .metrics
+            .receive(Duration::ZERO, &mut scratch, &mut |message, _| {
+                if let Body::Metrics(metrics) = message.body {
+                    collected
+                        .metrics
+                        .insert((metrics.stage.clone(), metrics.worker_index), metrics);
+                }
+            })?
+        {}
+        Ok(())
+    }
+}
+
+/// Value at quantile `q` (0..1) of `values` (nearest rank); NaN when empty.
+pub fn percentile(values: &[f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
+    sorted[rank - 1]
+}
+
+/// The operator's summary of a run, as text.
+pub fn summary(collected: &Collected, backend: &str) -> String {
+    use std::fmt::Write;
+    let mut text = String::new();
+    let frames = collected.results.len();
+    let accepted = collected.results.iter().filter(|r| r.accepted).count();
+    let dropped = collected
+        .results
+        .iter()
+        .filter(|r| r.failure.as_deref().is_some_and(|f| f.contains("dropped")))
+        .count();
+    let latencies: Vec<f64> = collected
+        .results
+        .iter()
+        .filter(|r| r.times.latency_ms > 0.0)
+        .map(|r| r.times.latency_ms)
+        .collect();
+    let _ = writeln!(
+        text,
+        "{frames} results ({accepted} accepted, {} failed, {dropped} dropped) in {:.1} s over {backend}: {:.2} frames/s",
+        frames - accepted,
+        collected.wall_s,
+        frames as f64 / collected.wall_s.max(1e-9)
+    );
+    let _ = writeln!(
+        text,
+        "latency capture→result: p50 {:.0} ms, p90 {:.0} ms, p99 {:.0} ms, max {:.0} ms",
+        percentile(&latencies, 0.5),
+        percentile(&latencies, 0.9),
+        percentile(&latencies, 0.99),
+        percentile(&latencies, 1.0)
+    );
+    let missing = collected.missing();
+    let _ = writeln!(
+        text,
+        "exactly one result per frame: {} (missing {:?}, duplicated {:?})",
+        if missing.is_empty() && collected.duplicates.is_empty() {
+            "yes"
+        } else {
+            "NO"
+        },
+        missing,
+        collected.duplicates
+    );
+    let _ = writeln!(
+        text,
+        "{:<10} {:>6} {:>7} {:>7} {:>9} {:>9} {:>9} {:>10} {:>9} {:>8} {:>6} {:>6}",
+        "stage",
+        "worker",
+        "in",
+        "out",
+        "compute_s",
+        "p50_ms",
+        "p90_ms",
+        "sent_MB",
+        "send_ms",
+        "decode_ms",
+        "drops",
+        "redo"
+    );
+    let mut compute_total_ms = 0.0;
+    let mut transport_total_ms = 0.0;
+    for ((stage, worker), m) in &collected.metrics {
+        compute_total_ms += m.compute_ms;
+        transport_total_ms += m.send_ms + m.decode_ms;
+        let _ = writeln!(
+            text,
+            "{:<10} {:>6} {:>7} {:>7} {:>9.2} {:>9.1} {:>9.1} {:>10.1} {:>9.1} {:>8.1} {:>6} {:>6}",
+            stage,
+            worker,
+            m.messages_in,
+            m.messages_out,
+            m.compute_ms / 1e3,
+            percentile(&m.compute_samples_ms, 0.5),
+            percentile(&m.compute_samples_ms, 0.9),
+            m.bytes_out as f64 / 1e6,
+            m.send_ms,
+            m.decode_ms,
+            m.dropped,
+            m.redispatched
+        );
+    }
+    let _ = writeln!(
+        text,
+        "transport time (encode+send+decode) / compute time: {:.2} %",
+        100.0 * transport_total_ms / compute_total_ms.max(1e-9)
+    );
+    let mut split: BTreeMap<u32, usize> = BTreeMap::new();
+    for result in &collected.results {
+        for worker in &result.flow_workers {
+            *split.entry(*worker).or_default() += 1;
+        }
+    }
+    let _ = writeln!(text, "flow jobs per worker: {split:?}");
+    if collected.rejected_messages > 0 {
+        let _ = writeln!(
+            text,
+            "rejected messages at the collector: {}",
+            collected.rejected_messages
+        );
+    }
+    text
+}

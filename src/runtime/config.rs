@@ -1,0 +1,250 @@
+//! The pipeline's configuration file (TOML): which scene, which transport, how many workers of
+//! each stage, the backpressure policy, time limits and the registration settings. Unknown keys
+//! are refused; `validate` runs once and names the field at fault.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::core::register::RegistrationConfig;
+use crate::stage::ingest::SourceConfig;
+use crate::transport::zenoh::ZenohSettings;
+use crate::transport::{Backend, TransportConfig};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PipelineConfig {
+    /// Mesh file (PLY or OBJ) every stage that needs geometry loads.
+    pub mesh: PathBuf,
+    pub source: SourceConfig,
+    /// Which transport moves the messages: crossbeam (one process), iceoryx2 (processes on one
+    /// host) or zenoh (hosts).
+    pub backend: Backend,
+    pub transport: TransportConfig,
+    pub zenoh: ZenohSettings,
+    pub workers: Workers,
+    pub backpressure: Backpressure,
+    pub timeouts: Timeouts,
+    pub registration: RegistrationConfig,
+}
+
+impl Default for PipelineConfig {
+    fn default() -> Self {
+        Self {
+            mesh: PathBuf::new(),
+            source: SourceConfig::default(),
+            backend: Backend::Crossbeam,
+            transport: TransportConfig::default(),
+            zenoh: ZenohSettings::default(),
+            workers: Workers::default(),
+            backpressure: Backpressure::default(),
+            timeouts: Timeouts::default(),
+            registration: RegistrationConfig::default(),
+        }
+    }
+}
+
+/// Worker counts per stage (ingest and verify are always one).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Workers {
+    pub render: u32,
+    /// The expensive stage: the (frame, coarse pose) jobs are shared among these.
+    pub flow: u32,
+    /// Flow workers the launcher starts itself; the rest attach from other hosts (zenoh).
+    pub flow_local: Option<u32>,
+    pub pose: u32,
+    /// Jobs a worker holds at once (1: strict sharing; 2 hides transport latency).
+    pub slots: u32,
+}
+
+impl Default for Workers {
+    fn default() -> Self {
+        Self {
+            render: 1,
+            flow: 2,
+            flow_local: None,
+            pose: 1,
+            slots: 1,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BackpressurePolicy {
+    /// The source waits for the pipeline (no frame lost; a live camera falls behind).
+    #[default]
+    Block,
+    /// The oldest waiting frame is dropped; it still gets a result, failed with reason
+    /// "dropped", and the drop is counted.
+    DropOldest,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Backpressure {
+    pub policy: BackpressurePolicy,
+    /// Frames waiting between ingest and render before the policy applies.
+    pub frames_queued: usize,
+    /// Flow jobs waiting between render and the flow workers before render stops taking frames
+    /// (at least one frame's coarse poses).
+    pub flow_jobs_queued: usize,
+}
+
+impl Default for Backpressure {
+    fn default() -> Self {
+        Self {
+            policy: BackpressurePolicy::Block,
+            frames_queued: 2,
+            flow_jobs_queued: 30,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Timeouts {
+    /// A frame whose hypotheses are not all in after this long gets a failed result, s.
+    pub frame_timeout_s: f64,
+    /// A worker silent this long with jobs outstanding has them redone elsewhere, s (longer than
+    /// the slowest job).
+    pub worker_silence_s: f64,
+    /// How long a stage waits for the stage it sends to before giving up at start, s.
+    pub startup_s: f64,
+}
+
+impl Default for Timeouts {
+    fn default() -> Self {
+        Self {
+            frame_timeout_s: 300.0,
+            worker_silence_s: 60.0,
+            startup_s: 60.0,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{path}: cannot read: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: {detail}")]
+    Parse { path: PathBuf, detail: String },
+    #[error("{path}: field '{field}': {detail}")]
+    Invalid {
+        path: PathBuf,
+        field: &'static str,
+        detail: String,
+    },
+}
+
+impl PipelineConfig {
+    /// Reads and validates a TOML file; relative paths in it are relative to the file.
+    pub fn read(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let mut config: PipelineConfig =
+            toml::from_str(&text).map_err(|error| ConfigError::Parse {
+                path: path.to_path_buf(),
+                detail: error.to_string(),
+            })?;
+        let base = path.parent().unwrap_or(Path::new("."));
+        config.resolve_paths(base);
+        config.validate(path)?;
+        Ok(config)
+    }
+
+    fn resolve_paths(&mut self, base: &Path) {
+        let resolve = |p: &mut PathBuf| {
+            if !p.as_os_str().is_empty() && p.is_relative() {
+                *p = base.join(&*p);
+            }
+        };
+        resolve(&mut self.mesh);
+        resolve(&mut self.source.images);
+        resolve(&mut self.source.cameras);
+        resolve(&mut self.source.poses);
+        if let Some(depth) = &mut self.source.depth {
+            resolve(depth);
+        }
+    }
+
+    pub fn validate(&self, path: &Path) -> Result<(), ConfigError> {
+        let invalid = |field: &'static str, detail: String| ConfigError::Invalid {
+            path: path.to_path_buf(),
+            field,
+            detail,
+        };
+        if self.mesh.as_os_str().is_empty() {
+            return Err(invalid(
+                "mesh",
+                "set the mesh file (PLY or OBJ)".to_string(),
+            ));
+        }
+        if self.workers.render == 0 || self.workers.flow == 0 || self.workers.pose == 0 {
+            return Err(invalid(
+                "workers",
+                "render, flow and pose need at least one worker each".to_string(),
+            ));
+        }
+        if self.workers.pose != 1 {
+            return Err(invalid(
+                "workers.pose",
+                "one pose worker is supported (pose takes a few ms per coarse pose)".to_string(),
+            ));
+        }
+        if self
+            .workers
+            .flow_local
+            .is_some_and(|n| n > self.workers.flow)
+        {
+            return Err(invalid(
+                "workers.flow_local",
+                "cannot exceed workers.flow".to_string(),
+            ));
+        }
+        let coarse = self.registration.coarse_pose_count;
+        if self.backpressure.flow_jobs_queued < coarse {
+            return Err(invalid(
+                "backpressure.flow_jobs_queued",
+                format!("must hold at least one frame's coarse poses ({coarse})"),
+            ));
+        }
+        if self.backpressure.frames_queued == 0 {
+            return Err(invalid(
+                "backpressure.frames_queued",
+                "must be at least 1".to_string(),
+            ));
+        }
+        for (field, value) in [
+            ("timeouts.frame_timeout_s", self.timeouts.frame_timeout_s),
+            ("timeouts.worker_silence_s", self.timeouts.worker_silence_s),
+            ("timeouts.startup_s", self.timeouts.startup_s),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(invalid(
+                    field,
+                    format!("must be a positive number of seconds, got {value}"),
+                ));
+            }
+        }
+        if !(self.source.rate_hz.is_finite() && self.source.rate_hz >= 0.0) {
+            return Err(invalid(
+                "source.rate_hz",
+                format!(
+                    "must be ≥ 0 (0: as fast as possible), got {}",
+                    self.source.rate_hz
+                ),
+            ));
+        }
+        self.registration
+            .validate()
+            .map_err(|e| invalid("registration", e.to_string()))?;
+        Ok(())
+    }
+}

@@ -1,0 +1,317 @@
+//! Work sharing over a broadcast bus (DESIGN §5 "horizontal scaling"): the producer of a link
+//! (ingest for frames, render for flow jobs) owns a [`Dispatcher`]; each worker owns a
+//! [`WorkerPort`]. Workers announce themselves with credits (worker index, incarnation, jobs
+//! finished, slots); the dispatcher sends each job to exactly one worker with a free slot, on
+//! that worker's own topic. It keeps every job until the worker reports it finished, so:
+//! - a worker that restarts (new incarnation, e.g. after SIGKILL and the supervisor's restart)
+//!   gets its unfinished jobs redone — by whichever worker is free first;
+//! - a worker silent for longer than the silence limit with jobs outstanding has them redone
+//!   elsewhere (a remote host that vanished).
+//!
+//! Redone jobs can produce duplicates downstream; verify keeps the first per (frame, coarse pose).
+//! Backpressure: the dispatcher's queue is bounded; the producer asks [`Dispatcher::has_room`]
+//! and blocks or drops by its policy.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use crate::msg::{Body, Credit, JobKey, StageMetrics};
+use crate::transport::{keys, Transport};
+
+use super::bus::{BusError, Inbox, Outbox};
+
+/// How often an idle worker repeats its credit (a heartbeat; lost credits are harmless).
+pub const CREDIT_INTERVAL: Duration = Duration::from_millis(250);
+
+type Job = (JobKey, Arc<Vec<u8>>);
+
+struct WorkerState {
+    incarnation: u64,
+    slots: u32,
+    outstanding: Vec<Job>,
+    last_heard: Instant,
+    /// Silent past the limit: gets no new work until heard from again.
+    presumed_dead: bool,
+    jobs_done: u64,
+}
+
+pub struct Dispatcher<'t> {
+    transport: &'t dyn Transport,
+    link: String,
+    credits: Inbox,
+    outboxes: BTreeMap<u32, Outbox>,
+    workers: BTreeMap<u32, WorkerState>,
+    queue: VecDeque<Job>,
+    capacity: usize,
+    silence_limit: Duration,
+    /// Counters of the dispatcher itself (jobs sent, redone).
+    pub metrics: StageMetrics,
+}
+
+impl<'t> Dispatcher<'t> {
+    /// `capacity`: jobs waiting for a worker before `has_room` says no.
+    pub fn open(
+        transport: &'t dyn Transport,
+        link: &str,
+        capacity: usize,
+        silence_limit: Duration,
+    ) -> Result<Self, BusError> {
+        Ok(Self {
+            transport,
+            link: link.to_string(),
+            credits: Inbox::open(transport, &keys::credits(link), link)?,
+            outboxes: BTreeMap::new(),
+            workers: BTreeMap::new(),
+            queue: VecDeque::new(),
+            capacity: capacity.max(1),
+            silence_limit,
+            metrics: StageMetrics {
+                stage: format!("dispatch:{link}"),
+                ..StageMetrics::default()
+            },
+        })
+    }
+
+    pub fn has_room(&self) -> bool {
+        self.queue.len() < self.capacity
+    }
+
+    /// Jobs waiting for a worker.
+    pub fn queued(&self) -> usize {
+        self.queue.len()
+    }
+
+    /// Jobs sent and not yet reported finished.
+    pub fn outstanding(&self) -> usize {
+        self.workers.values().map(|w| w.outstanding.len()).sum()
+    }
+
+    /// Nothing queued and nothing outstanding.
+    pub fn is_idle(&self) -> bool {
+        self.queue.is_empty() && self.outstanding() == 0
+    }
+
+    /// Jobs finished per worker (the work split).
+    pub fn jobs_done(&self) -> BTreeMap<u32, u64> {
+        self.workers
+            .iter()
+            .map(|(index, worker)| (*index, worker.jobs_done))
+            .collect()
+    }
+
+    /// Queues an encoded job message.
+    pub fn push(&mut self, key: JobKey, message: Vec<u8>) {
+        self.queue.push_back((key, Arc::new(message)));
+        self.metrics.max_queue_depth = self.metrics.max_queue_depth.max(self.queue.len() as u64);
+    }
+
+    /// Removes the oldest job still waiting for a worker (drop-oldest backpressure).
+    pub fn drop_oldest(&mut self) -> Option<JobKey> {
+        let (key, _) = self.queue.pop_front()?;
+        self.metrics.dropped += 1;
+        Some(key)
+    }
+
+    /// Takes credits for up to `wait` (returns early once one arrived and the rest are drained),
+    /// redoes the jobs of restarted or silent workers, and sends queued jobs to free workers.
+    pub fn pump(&mut self, wait: Duration) -> Result<(), BusError> {
+        let mut credits = Vec::new();
+        let mut scratch = StageMetrics::default();
+        let mut timeout = wait;
+        while self
+            .credits
+            .receive(timeout, &mut scratch, &mut |message, _| {
+                if let Body::Credit(credit) = message.body {
+                    credits.push(credit);
+                }
+            })?
+        {
+            timeout = Duration::ZERO;
+        }
+        self.metrics.rejected += scratch.rejected;
+        let now = Instant::now();
+        for credit in credits {
+            self.on_credit(credit, now);
+        }
+        self.redo_silent(now);
+        self.assign()
+    }
+
+    fn requeue(&mut self, jobs: Vec<Job>) {
+        self.metrics.redispatched += jobs.len() as u64;
+        for job in jobs.into_iter().rev() {
+            self.queue.push_front(job);
+        }
+    }
+
+    fn on_credit(&mut self, credit: Credit, now: Instant) {
+        let worker = self
+            .workers
+            .entry(credit.worker_index)
+            .or_insert(WorkerState {
+                incarnation: credit.incarnation,
+                slots: credit.free_slots,
+                outstanding: Vec::new(),
+                last_heard: now,
+                presumed_dead: false,
+                jobs_done: 0,
+            });
+        if worker.incarnation != credit.incarnation {
+            let lost = std::mem::take(&mut worker.outstanding);
+            tracing::warn!(
+                "{}: worker {} restarted; redoing its {} unfinished job(s)",
+                self.link,
+                credit.worker_index,
+                lost.len()
+            );
+            worker.incarnation = credit.incarnation;
+            worker.last_heard = now;
+            worker.presumed_dead = false;
+            worker.slots = credit.free_slots;
+            self.requeue(lost);
+            return;
+        }
+        worker.last_heard = now;
+        worker.presumed_dead = false;
+        worker.slots = credit.free_slots;
+        for key in &credit.completed {
+            if let Some(position) = worker.outstanding.iter().position(|(k, _)| k == key) {
+                worker.outstanding.remove(position);
+                worker.jobs_done += 1;
+            }
+        }
+    }
+
+    fn redo_silent(&mut self, now: Instant) {
+        let mut lost = Vec::new();
+        for (index, worker) in &mut self.workers {
+            if !worker.presumed_dead && now.duration_since(worker.last_heard) > self.silence_limit {
+                worker.presumed_dead = true;
+                if !worker.outstanding.is_empty() {
+                    tracing::warn!(
+                        "{}: worker {index} silent for {:.0} s; redoing its {} job(s) elsewhere",
+                        self.link,
+                        now.duration_since(worker.last_heard).as_secs_f64(),
+                        worker.outstanding.len()
+                    );
+                    lost.append(&mut worker.outstanding);
+                }
+            }
+        }
+        if !lost.is_empty() {
+            self.requeue(lost);
+        }
+    }
+
+    fn assign(&mut self) -> Result<(), BusError> {
+        while !self.queue.is_empty() {
+            // The free worker with the fewest jobs outstanding (lowest index on ties).
+            let Some(index) = self
+                .workers
+                .iter()
+                .filter(|(_, w)| !w.presumed_dead && (w.outstanding.len() as u32) < w.slots)
+                .min_by_key(|(index, w)| (w.outstanding.len(), **index))
+                .map(|(index, _)| *index)
+            else {
+                return Ok(());
+            };
+            let Some(job) = self.queue.pop_front() else {
+                return Ok(());
+            };
+            if !self.outboxes.contains_key(&index) {
+                let mut outbox = Outbox::open(self.transport, &keys::jobs(&self.link, index))?;
+                outbox.wait_for_reader("worker", Duration::from_secs(10))?;
+                self.outboxes.insert(index, outbox);
+            }
+            if let Some(outbox) = self.outboxes.get_mut(&index) {
+                outbox.send_encoded(&job.1, &mut self.metrics)?;
+            }
+            if let Some(worker) = self.workers.get_mut(&index) {
+                worker.outstanding.push(job);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The worker side of a dispatched link.
+pub struct WorkerPort {
+    jobs: Inbox,
+    credits: Outbox,
+    worker_index: u32,
+    incarnation: u64,
+    slots: u32,
+    completed: Vec<JobKey>,
+    last_credit: Option<Instant>,
+}
+
+impl WorkerPort {
+    pub fn open(
+        transport: &dyn Transport,
+        link: &str,
+        worker_index: u32,
+        slots: u32,
+        stage: &str,
+    ) -> Result<Self, BusError> {
+        // A new value per start, so the dispatcher can tell a restart from a slow worker.
+        let incarnation = super::bus::unix_time_ns() ^ u64::from(std::process::id()) << 32;
+        Ok(Self {
+            jobs: Inbox::open(transport, &keys::jobs(link, worker_index), stage)?,
+            credits: Outbox::open(transport, &keys::credits(link))?,
+            worker_index,
+            incarnation,
+            slots: slots.max(1),
+            completed: Vec::new(),
+            last_credit: None,
+        })
+    }
+
+    fn send_credit(&mut self) -> Result<(), BusError> {
+        let credit = Credit {
+            worker_index: self.worker_index,
+            incarnation: self.incarnation,
+            completed: std::mem::take(&mut self.completed),
+            free_slots: self.slots,
+        };
+        let mut scratch = StageMetrics::default();
+        self.credits
+            .send(0, 0, Body::Credit(credit), &mut scratch)?;
+        self.last_credit = Some(Instant::now());
+        Ok(())
+    }
+
+    /// Tells the dispatcher this worker is alive while it is not taking jobs.
+    pub fn heartbeat(&mut self) -> Result<(), BusError> {
+        if self
+            .last_credit
+            .is_none_or(|at| at.elapsed() >= CREDIT_INTERVAL)
+        {
+            self.send_credit()?;
+        }
+        Ok(())
+    }
+
+    /// Reports a finished job at once (so the dispatcher can send the next).
+    pub fn finished(&mut self, key: JobKey) -> Result<(), BusError> {
+        self.completed.push(key);
+        self.send_credit()
+    }
+
+    /// Waits up to `timeout` for a job (sending heartbeat credits meanwhile).
+    pub fn receive(
+        &mut self,
+        timeout: Duration,
+        metrics: &mut StageMetrics,
+        handle: &mut dyn FnMut(crate::msg::Envelope<'_>, &mut StageMetrics),
+    ) -> Result<bool, BusError> {
+        if self
+            .last_credit
+            .is_none_or(|at| at.elapsed() >= CREDIT_INTERVAL)
+        {
+            self.send_credit()?;
+        }
+        self.jobs
+            .receive(timeout.min(CREDIT_INTERVAL), metrics, handle)
+    }
+}

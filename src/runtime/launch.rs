@@ -1,0 +1,1 @@
+//! Process supervisor: to come.

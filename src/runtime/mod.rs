@@ -1,0 +1,128 @@
+//! Wiring from a configuration (DESIGN §5): the stage loops (`nodes`), work sharing with redo
+//! (`dispatch`), the bus wrappers (`bus`), the results collector and summary (`collect`), the
+//! one-process runner (`run_in_process`) and the process supervisor (`launch`).
+
+pub mod bus;
+pub mod collect;
+pub mod config;
+pub mod dispatch;
+pub mod launch;
+pub mod nodes;
+
+#[cfg(test)]
+mod tests;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use crate::core::mesh::Mesh;
+use crate::msg::{Header, PoseResult};
+use crate::transport::Transport;
+
+use collect::{Collected, Collector};
+use config::PipelineConfig;
+use nodes::{NodeContext, NodeError};
+
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeError {
+    #[error(transparent)]
+    Node(#[from] NodeError),
+    #[error(transparent)]
+    Bus(#[from] bus::BusError),
+    #[error("stage {stage} worker {worker} failed: {detail}")]
+    Stage {
+        stage: &'static str,
+        worker: u32,
+        detail: String,
+    },
+    #[error("stage {stage} worker {worker} panicked")]
+    Panicked { stage: &'static str, worker: u32 },
+    #[error("{0}")]
+    Launch(String),
+}
+
+/// Runs the whole pipeline as threads of this process on `transport` (crossbeam for the
+/// embedded default; any backend works) until every frame has its result.
+pub fn run_in_process(
+    config: &PipelineConfig,
+    transport: &dyn Transport,
+    mesh: &Mesh,
+    deadline: Duration,
+    on_result: &mut dyn FnMut(&Header, &PoseResult),
+) -> Result<Collected, RuntimeError> {
+    let stop = AtomicBool::new(false);
+    let mut collector = Collector::open(transport)?;
+    let context = |worker_index| NodeContext {
+        transport,
+        config,
+        worker_index,
+        stop: &stop,
+    };
+    std::thread::scope(|scope| {
+        type Handle<'s> =
+            std::thread::ScopedJoinHandle<'s, Result<crate::msg::StageMetrics, NodeError>>;
+        let mut handles: Vec<(&'static str, u32, Handle)> = Vec::new();
+        // Downstream first, so every stage finds its reader.
+        handles.push((
+            "verify",
+            0,
+            scope.spawn(|| nodes::run_verify(&context(0), mesh)),
+        ));
+        handles.push(("pose", 0, scope.spawn(|| nodes::run_pose(&context(0)))));
+        for worker in 0..config.workers.flow {
+            let ctx = context(worker);
+            handles.push((
+                "flow",
+                worker,
+                scope.spawn(move || nodes::run_flow(&ctx, mesh)),
+            ));
+        }
+        for worker in 0..config.workers.render {
+            let ctx = context(worker);
+            handles.push((
+                "render",
+                worker,
+                scope.spawn(move || nodes::run_render(&ctx, mesh)),
+            ));
+        }
+        handles.push(("ingest", 0, scope.spawn(|| nodes::run_ingest(&context(0)))));
+
+        let outcome = collector.collect(deadline, on_result, &mut || {
+            // Stop waiting if a stage thread ended with an error.
+            !handles
+                .iter()
+                .any(|(name, _, h)| h.is_finished() && *name != "ingest")
+        });
+        stop.store(true, Ordering::Relaxed);
+        let mut first_error = None;
+        let mut finals = Vec::new();
+        for (name, worker, handle) in handles {
+            match handle.join() {
+                Ok(Ok(metrics)) => finals.push(metrics),
+                Ok(Err(error)) => {
+                    first_error.get_or_insert(RuntimeError::Stage {
+                        stage: name,
+                        worker,
+                        detail: error.to_string(),
+                    });
+                }
+                Err(_) => {
+                    first_error.get_or_insert(RuntimeError::Panicked {
+                        stage: name,
+                        worker,
+                    });
+                }
+            }
+        }
+        let mut collected = outcome?;
+        if let Some(error) = first_error {
+            return Err(error);
+        }
+        for metrics in finals {
+            collected
+                .metrics
+                .insert((metrics.stage.clone(), metrics.worker_index), metrics);
+        }
+        Ok(collected)
+    })
+}

@@ -1,0 +1,443 @@
+//! The loop of each stage: receive, call the stage adapter, send. The same functions run as
+//! threads (`asgreg run`) or as processes (`asgreg stage`, `asgreg launch`); `main` only wires.
+//! Every loop checks the stop flag, reports metrics once a second, and returns its metrics.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use crate::core::mesh::Mesh;
+use crate::msg::{pose_result_json, Body, FrameFailed, JobKey, StageMetrics, StreamEnd};
+use crate::stage::flow::FlowStage;
+use crate::stage::ingest::{FolderSource, SourceError};
+use crate::stage::pose::PoseStage;
+use crate::stage::render::RenderStage;
+use crate::stage::verify::VerifyStage;
+use crate::transport::{keys, Transport};
+
+use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
+use super::config::{BackpressurePolicy, PipelineConfig};
+use super::dispatch::{Dispatcher, WorkerPort};
+
+/// How long a loop waits for a message before checking the stop flag.
+const POLL: Duration = Duration::from_millis(20);
+/// Most compute samples a metrics message carries (the most recent ones).
+const MAX_SAMPLES: usize = 4096;
+
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    #[error(transparent)]
+    Bus(#[from] BusError),
+    #[error(transparent)]
+    Source(#[from] SourceError),
+}
+
+/// What every stage loop gets.
+pub struct NodeContext<'a> {
+    pub transport: &'a dyn Transport,
+    pub config: &'a PipelineConfig,
+    pub worker_index: u32,
+    pub stop: &'a AtomicBool,
+}
+
+impl NodeContext<'_> {
+    fn stopped(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+
+    fn startup(&self) -> Duration {
+        Duration::from_secs_f64(self.config.timeouts.startup_s)
+    }
+
+    fn metrics(&self, stage: &str) -> StageMetrics {
+        StageMetrics {
+            stage: stage.to_string(),
+            worker_index: self.worker_index,
+            ..StageMetrics::default()
+        }
+    }
+}
+
+/// Sends a stage's metrics on the metrics topic once a second.
+struct MetricsReporter {
+    outbox: Outbox,
+    last: Instant,
+}
+
+impl MetricsReporter {
+    fn open(transport: &dyn Transport) -> Result<Self, BusError> {
+        Ok(Self {
+            outbox: Outbox::open(transport, keys::METRICS)?,
+            last: Instant::now(),
+        })
+    }
+
+    fn tick(&mut self, metrics: &StageMetrics, force: bool) {
+        if !force && self.last.elapsed() < Duration::from_secs(1) {
+            return;
+        }
+        self.last = Instant::now();
+        let mut scratch = StageMetrics::default();
+        // Metrics are best effort: a failure to report never stops a stage.
+        if let Err(error) = self
+            .outbox
+            .send(0, 0, Body::Metrics(metrics.clone()), &mut scratch)
+        {
+            tracing::debug!("metrics not sent: {error}");
+        }
+    }
+}
+
+fn record_compute(metrics: &mut StageMetrics, started: Instant) {
+    let ms = started.elapsed().as_secs_f64() * 1e3;
+    metrics.compute_ms += ms;
+    if metrics.compute_samples_ms.len() >= MAX_SAMPLES {
+        metrics.compute_samples_ms.remove(0);
+    }
+    metrics.compute_samples_ms.push(ms);
+}
+
+fn unexpected(stage: &str, kind: crate::msg::MessageKind, frame_id: u64) {
+    tracing::error!("{stage}: ignored an unexpected {kind:?} message (frame {frame_id})");
+}
+
+/// Stage "ingest": reads the source, dispatches frames to render workers by the backpressure
+/// policy, sends failures and the end of the stream to verify, and waits until every frame was
+/// taken by a render worker (redoing the frames of a render worker that died).
+pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
+    let config = ctx.config;
+    let mut metrics = ctx.metrics("ingest");
+    let mut reporter = MetricsReporter::open(ctx.transport)?;
+    let mut source = FolderSource::open(&config.source)?;
+    let mut dispatcher = Dispatcher::open(
+        ctx.transport,
+        keys::FRAMES_LINK,
+        config.backpressure.frames_queued,
+        Duration::from_secs_f64(config.timeouts.worker_silence_s),
+    )?;
+    let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
+    verify.wait_for_reader("verify", ctx.startup())?;
+    let period =
+        (config.source.rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / config.source.rate_hz));
+    let mut next_emit = Instant::now();
+    let mut names: HashMap<u64, (String, u64)> = HashMap::new();
+    let frame_count = source.len() as u64;
+    while let Some((frame_id, frame)) = source.next_frame() {
+        if ctx.stopped() {
+            return Ok(metrics);
+        }
+        if let Some(period) = period {
+            while Instant::now() < next_emit {
+                dispatcher.pump((next_emit - Instant::now()).min(POLL))?;
+            }
+            next_emit += period;
+        }
+        let capture_time_ns = unix_time_ns();
+        let started = Instant::now();
+        match frame {
+            Err(failed) => {
+                tracing::warn!("frame {frame_id} '{}': {}", failed.name, failed.reason);
+                verify.send(
+                    frame_id,
+                    capture_time_ns,
+                    Body::FrameFailed(failed),
+                    &mut metrics,
+                )?;
+            }
+            Ok(frame) => {
+                names.insert(frame_id, (frame.info.name.clone(), capture_time_ns));
+                let bytes = encode_to_vec(frame_id, capture_time_ns, Body::Frame(frame))?;
+                record_compute(&mut metrics, started);
+                while !dispatcher.has_room() {
+                    match config.backpressure.policy {
+                        BackpressurePolicy::Block => dispatcher.pump(POLL)?,
+                        BackpressurePolicy::DropOldest => {
+                            if let Some(dropped) = dispatcher.drop_oldest() {
+                                metrics.dropped += 1;
+                                let (name, capture) =
+                                    names.get(&dropped.frame_id).cloned().unwrap_or_default();
+                                tracing::warn!("frame {} '{name}' dropped: the pipeline is full (backpressure policy drop-oldest)", dropped.frame_id);
+                                verify.send(
+                                    dropped.frame_id,
+                                    capture,
+                                    Body::FrameFailed(FrameFailed {
+                                        name,
+                                        stage: "ingest".to_string(),
+                                        reason: "dropped: the pipeline was full (backpressure policy drop-oldest)".to_string(),
+                                    }),
+                                    &mut metrics,
+                                )?;
+                            }
+                        }
+                    }
+                }
+                dispatcher.push(
+                    JobKey {
+                        frame_id,
+                        coarse_index: 0,
+                    },
+                    bytes,
+                );
+                metrics.messages_out += 1;
+                dispatcher.pump(Duration::ZERO)?;
+            }
+        }
+        metrics.max_queue_depth = metrics.max_queue_depth.max(dispatcher.queued() as u64);
+        reporter.tick(&metrics, false);
+    }
+    verify.send(
+        0,
+        0,
+        Body::StreamEnd(StreamEnd { frame_count }),
+        &mut metrics,
+    )?;
+    while !dispatcher.is_idle() && !ctx.stopped() {
+        dispatcher.pump(POLL)?;
+        reporter.tick(&metrics, false);
+    }
+    metrics.redispatched += dispatcher.metrics.redispatched;
+    metrics.bytes_out += dispatcher.metrics.bytes_out;
+    metrics.send_ms += dispatcher.metrics.send_ms;
+    reporter.tick(&metrics, true);
+    Ok(metrics)
+}
+
+/// Stage "render": takes a frame when the flow queue has room for its coarse poses, renders them
+/// and dispatches the flow jobs to the flow workers.
+pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
+    let config = ctx.config;
+    let mut metrics = ctx.metrics("render");
+    let mut reporter = MetricsReporter::open(ctx.transport)?;
+    let mut port = WorkerPort::open(
+        ctx.transport,
+        keys::FRAMES_LINK,
+        ctx.worker_index,
+        1,
+        "render",
+    )?;
+    let mut dispatcher = Dispatcher::open(
+        ctx.transport,
+        keys::FLOW_LINK,
+        config.backpressure.flow_jobs_queued,
+        Duration::from_secs_f64(config.timeouts.worker_silence_s),
+    )?;
+    let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
+    verify.wait_for_reader("verify", ctx.startup())?;
+    let mut stage = RenderStage::new(mesh, config.registration.clone());
+    let frame_room = config.registration.coarse_pose_count;
+    while !ctx.stopped() {
+        dispatcher.pump(Duration::ZERO)?;
+        if dispatcher.queued() + frame_room > config.backpressure.flow_jobs_queued {
+            port.heartbeat()?;
+            dispatcher.pump(POLL)?;
+            continue;
+        }
+        let mut finished: Option<Result<JobKey, BusError>> = None;
+        port.receive(POLL, &mut metrics, &mut |message, metrics| {
+            let frame_id = message.header.frame_id;
+            let capture = message.header.capture_time_ns;
+            let Body::Frame(frame) = message.body else {
+                unexpected("render", message.body.kind(), frame_id);
+                return;
+            };
+            let started = Instant::now();
+            let outcome = stage.process(&frame);
+            record_compute(metrics, started);
+            let sent = match outcome {
+                Ok(jobs) => jobs.into_iter().try_for_each(|job| {
+                    let key = JobKey {
+                        frame_id,
+                        coarse_index: job.meta.coarse_index,
+                    };
+                    let bytes = encode_to_vec(frame_id, capture, Body::FlowJob(job))?;
+                    dispatcher.push(key, bytes);
+                    Ok(())
+                }),
+                Err(failed) => {
+                    tracing::warn!("frame {frame_id} '{}': {}", failed.name, failed.reason);
+                    verify
+                        .send(frame_id, capture, Body::FrameFailed(failed), metrics)
+                        .map(|_| ())
+                }
+            };
+            finished = Some(sent.map(|()| JobKey {
+                frame_id,
+                coarse_index: 0,
+            }));
+        })?;
+        if let Some(finished) = finished {
+            port.finished(finished?)?;
+            dispatcher.pump(Duration::ZERO)?;
+        }
+        metrics.max_queue_depth = metrics.max_queue_depth.max(dispatcher.queued() as u64);
+        metrics.redispatched = dispatcher.metrics.redispatched;
+        reporter.tick(&metrics, false);
+    }
+    metrics.bytes_out += dispatcher.metrics.bytes_out;
+    metrics.send_ms += dispatcher.metrics.send_ms;
+    reporter.tick(&metrics, true);
+    Ok(metrics)
+}
+
+/// Stage "flow" (N workers): one (frame, coarse pose) job at a time, correspondences to pose.
+pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
+    let mut metrics = ctx.metrics("flow");
+    let mut reporter = MetricsReporter::open(ctx.transport)?;
+    let mut port = WorkerPort::open(
+        ctx.transport,
+        keys::FLOW_LINK,
+        ctx.worker_index,
+        ctx.config.workers.slots,
+        "flow",
+    )?;
+    let mut pose = Outbox::open(ctx.transport, keys::CORRESPONDENCES)?;
+    pose.wait_for_reader("pose", ctx.startup())?;
+    let mut stage = FlowStage::new(mesh, ctx.config.registration.clone(), ctx.worker_index);
+    while !ctx.stopped() {
+        let mut finished: Option<Result<JobKey, BusError>> = None;
+        port.receive(POLL, &mut metrics, &mut |message, metrics| {
+            let frame_id = message.header.frame_id;
+            let Body::FlowJob(job) = message.body else {
+                unexpected("flow", message.body.kind(), frame_id);
+                return;
+            };
+            let started = Instant::now();
+            // The job's images are read where they arrived (shared memory for iceoryx2).
+            let correspondences = stage.process(&job);
+            record_compute(metrics, started);
+            let key = JobKey {
+                frame_id,
+                coarse_index: job.meta.coarse_index,
+            };
+            finished = Some(
+                pose.send(
+                    frame_id,
+                    message.header.capture_time_ns,
+                    Body::Correspondences(correspondences),
+                    metrics,
+                )
+                .map(|_| key),
+            );
+        })?;
+        if let Some(finished) = finished {
+            port.finished(finished?)?;
+        }
+        reporter.tick(&metrics, false);
+    }
+    reporter.tick(&metrics, true);
+    Ok(metrics)
+}
+
+/// Stage "pose": correspondences of one coarse pose → refined pose hypothesis → verify.
+pub fn run_pose(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
+    let mut metrics = ctx.metrics("pose");
+    let mut reporter = MetricsReporter::open(ctx.transport)?;
+    let mut inbox = Inbox::open(ctx.transport, keys::CORRESPONDENCES, "pose")?;
+    let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
+    verify.wait_for_reader("verify", ctx.startup())?;
+    let mut stage = PoseStage::new(ctx.config.registration.clone());
+    while !ctx.stopped() {
+        let mut sent: Result<(), BusError> = Ok(());
+        inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
+            let frame_id = message.header.frame_id;
+            let Body::Correspondences(set) = message.body else {
+                unexpected("pose", message.body.kind(), frame_id);
+                return;
+            };
+            let started = Instant::now();
+            let hypothesis = stage.process(&set);
+            record_compute(metrics, started);
+            sent = verify
+                .send(
+                    frame_id,
+                    message.header.capture_time_ns,
+                    Body::Hypothesis(hypothesis),
+                    metrics,
+                )
+                .map(|_| ());
+        })?;
+        sent?;
+        reporter.tick(&metrics, false);
+    }
+    reporter.tick(&metrics, true);
+    Ok(metrics)
+}
+
+/// Stage "verify": gathers hypotheses and failures, emits one PoseResult per frame (bincode on
+/// `results`, JSON on `results/json`), and the end of the stream once every frame has its result.
+pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
+    let config = ctx.config;
+    let mut metrics = ctx.metrics("verify");
+    let mut reporter = MetricsReporter::open(ctx.transport)?;
+    let mut inbox = Inbox::open(ctx.transport, keys::VERIFY_IN, "verify")?;
+    let mut results = Outbox::open(ctx.transport, keys::RESULTS)?;
+    let mut results_json = Outbox::open(ctx.transport, keys::RESULTS_JSON)?;
+    let mut stage = VerifyStage::new(
+        mesh,
+        config.registration.clone(),
+        Duration::from_secs_f64(config.timeouts.frame_timeout_s),
+    );
+    let mut capture_times: HashMap<u64, u64> = HashMap::new();
+    let mut stream_ended = false;
+    while !ctx.stopped() {
+        let mut produced = Vec::new();
+        inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
+            let frame_id = message.header.frame_id;
+            let started = Instant::now();
+            match message.body {
+                Body::Hypothesis(hypothesis) => {
+                    capture_times
+                        .entry(frame_id)
+                        .or_insert(message.header.capture_time_ns);
+                    produced.extend(stage.on_hypothesis(frame_id, hypothesis));
+                }
+                Body::FrameFailed(failure) => {
+                    capture_times
+                        .entry(frame_id)
+                        .or_insert(message.header.capture_time_ns);
+                    produced.extend(stage.on_failure(frame_id, &failure));
+                }
+                Body::StreamEnd(end) => stage.on_stream_end(end.frame_count),
+                other => unexpected("verify", other.kind(), frame_id),
+            }
+            record_compute(metrics, started);
+        })?;
+        produced.extend(stage.expire(Instant::now()));
+        for mut result in produced {
+            let capture = capture_times.remove(&result.frame_id).unwrap_or(0);
+            if capture > 0 {
+                result.times.latency_ms = unix_time_ns().saturating_sub(capture) as f64 / 1e6;
+            }
+            let header = crate::msg::Header {
+                frame_id: result.frame_id,
+                sequence: 0,
+                capture_time_ns: capture,
+                sent_time_ns: unix_time_ns(),
+            };
+            let json = pose_result_json(&header, &result);
+            results.send(
+                result.frame_id,
+                capture,
+                Body::PoseResult(result),
+                &mut metrics,
+            )?;
+            results_json.send_raw(json.as_bytes())?;
+        }
+        if !stream_ended {
+            if let Some(frame_count) = stage.stream_complete() {
+                stream_ended = true;
+                tracing::info!("verify: all {frame_count} frames have their result");
+                results.send(
+                    0,
+                    0,
+                    Body::StreamEnd(StreamEnd { frame_count }),
+                    &mut metrics,
+                )?;
+            }
+        }
+        metrics.max_queue_depth = metrics.max_queue_depth.max(stage.pending_frames() as u64);
+        reporter.tick(&metrics, false);
+    }
+    reporter.tick(&metrics, true);
+    Ok(metrics)
+}

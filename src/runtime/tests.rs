@@ -1,0 +1,166 @@
+//! The pipeline against one-process registration: the same frames through the stage loops on a
+//! bus give the same poses as `batch::register_batch_frame`, every frame gets exactly one result,
+//! bad messages are rejected without killing a stage, and a dead worker's jobs are redone.
+
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use crate::batch::{register_batch_frame, BatchFrame};
+use crate::io::colmap::{read_cameras_txt, read_images_txt};
+use crate::io::mesh_file::read_mesh;
+use crate::msg::PoseNumbers;
+use crate::stage::ingest::SourceConfig;
+use crate::synth::{generate_scene, SynthConfig};
+use crate::transport::crossbeam::CrossbeamTransport;
+use crate::transport::keys;
+
+use super::config::PipelineConfig;
+use super::*;
+
+/// A tiny synthetic scene (4 frames, 160×88) and a pipeline configuration over it.
+pub(crate) fn tiny_scene(dir: &Path) -> PipelineConfig {
+    let synth = SynthConfig {
+        seed: 5,
+        width_px: 160,
+        height_px: 88,
+        image_count: 4,
+        initial_levels_px: vec![8.0],
+        supersampling: 1,
+        model_voxel_m: 0.35,
+        ..SynthConfig::default()
+    };
+    generate_scene(&synth, dir).unwrap();
+    let mut config = PipelineConfig {
+        mesh: dir.join("model.ply"),
+        source: SourceConfig::scene(dir, 8),
+        ..PipelineConfig::default()
+    };
+    config.registration.coarse_pose_count = 5;
+    config.backpressure.flow_jobs_queued = 10;
+    config.transport.pipeline = crate::transport::conformance::unique_pipeline("runtime");
+    config.timeouts.frame_timeout_s = 120.0;
+    config
+}
+
+#[test]
+fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = tiny_scene(dir.path());
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let transport = CrossbeamTransport::new(config.transport.clone());
+    let collected = run_in_process(
+        &config,
+        &transport,
+        &mesh,
+        Duration::from_secs(300),
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert_eq!(collected.frame_count, Some(4));
+    assert!(collected.duplicates.is_empty() && collected.missing().is_empty());
+    assert_eq!(collected.results.len(), 4);
+
+    let cameras = read_cameras_txt(&config.source.cameras).unwrap();
+    let images = read_images_txt(&config.source.poses).unwrap();
+    for (frame_id, image) in images.iter().enumerate() {
+        let frame = BatchFrame {
+            image_id: image.image_id,
+            camera_id: image.camera_id,
+            name: image.name.clone(),
+            image_path: config.source.images.join(&image.name),
+            depth_path: None,
+            camera: cameras[&image.camera_id],
+            initial_cam_from_world: image.cam_from_world,
+        };
+        let batch = register_batch_frame(&mesh, &frame, &config.registration, config.source.seed);
+        let result = collected
+            .results
+            .iter()
+            .find(|r| r.frame_id == frame_id as u64)
+            .unwrap();
+        assert_eq!(result.name, image.name);
+        assert_eq!(result.accepted, batch.accepted, "{}", image.name);
+        assert_eq!(result.confidence, batch.confidence, "{}", image.name);
+        assert_eq!(
+            result.evidence.hypotheses as usize, batch.hypotheses,
+            "{}",
+            image.name
+        );
+        assert_eq!(
+            result.cam_from_world,
+            batch.cam_from_world.as_ref().map(PoseNumbers::from)
+        );
+        assert_eq!(result.flow_workers.len(), 5);
+    }
+    // Both flow workers did some of the work.
+    let split: std::collections::BTreeSet<u32> = collected
+        .results
+        .iter()
+        .flat_map(|r| r.flow_workers.iter().copied())
+        .collect();
+    assert_eq!(split.len(), 2, "work split {split:?}");
+    let summary = collect::summary(&collected, "crossbeam");
+    assert!(
+        summary.contains("exactly one result per frame: yes"),
+        "{summary}"
+    );
+}
+
+#[test]
+fn bad_messages_are_rejected_and_the_pipeline_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    config.source.max_frames = 2;
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let transport = CrossbeamTransport::new(config.transport.clone());
+    // Injected into the verify stage's and a flow worker's inputs before the frames arrive.
+    let injected = AtomicBool::new(false);
+    let mut wrong_version = bus::encode_to_vec(
+        0,
+        0,
+        crate::msg::Body::StreamEnd(crate::msg::StreamEnd { frame_count: 0 }),
+    )
+    .unwrap();
+    wrong_version[4..6].copy_from_slice(&7u16.to_le_bytes());
+    let collected = std::thread::scope(|scope| {
+        scope.spawn(|| {
+            let mut verify = bus::Outbox::open(&transport, keys::VERIFY_IN).unwrap();
+            verify
+                .wait_for_reader("verify", Duration::from_secs(30))
+                .unwrap();
+            verify.send_raw(&wrong_version).unwrap();
+            verify.send_raw(b"definitely not a message").unwrap();
+            let mut flow = bus::Outbox::open(&transport, &keys::jobs(keys::FLOW_LINK, 0)).unwrap();
+            flow.wait_for_reader("flow", Duration::from_secs(30))
+                .unwrap();
+            let mut corrupt = wrong_version.clone();
+            corrupt[4..6].copy_from_slice(&1u16.to_le_bytes());
+            // A FlowJob header over a StreamEnd body: the arrays are missing.
+            corrupt[6..8].copy_from_slice(&2u16.to_le_bytes());
+            flow.send_raw(&corrupt).unwrap();
+            injected.store(true, Ordering::Relaxed);
+        });
+        run_in_process(
+            &config,
+            &transport,
+            &mesh,
+            Duration::from_secs(300),
+            &mut |_, _| {},
+        )
+        .unwrap()
+    });
+    assert!(injected.load(Ordering::Relaxed));
+    assert_eq!(collected.frame_count, Some(2));
+    assert_eq!(collected.results.len(), 2);
+    let rejected = |stage: &str| {
+        collected
+            .metrics
+            .iter()
+            .filter(|((s, _), _)| s == stage)
+            .map(|(_, m)| m.rejected)
+            .sum::<u64>()
+    };
+    assert_eq!(rejected("verify"), 2);
+    assert!(rejected("flow") >= 1);
+}

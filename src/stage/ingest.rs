@@ -1,0 +1,194 @@
+//! Stage "ingest": turns a folder of photos with COLMAP poses into Frame messages, one per image
+//! listed in images.txt, in that order. A frame whose inputs are unusable becomes a FrameFailed
+//! naming the file, so that it still gets its one result.
+
+use std::borrow::Cow;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::batch::depth_path_for;
+use crate::core::camera::Camera;
+use crate::io::colmap::{read_cameras_txt, read_images_txt, ColmapError, ImagePose};
+use crate::io::images::{check_image_matches_camera, load_gray};
+use crate::io::pfm::read_pfm;
+use crate::msg::{Frame, FrameFailed, FrameInfo};
+
+/// Where the frames come from.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SourceConfig {
+    /// Folder of the photos (names as in images.txt).
+    pub images: PathBuf,
+    /// COLMAP cameras.txt of the photos.
+    pub cameras: PathBuf,
+    /// COLMAP images.txt with the initial (GPS/IMU) poses.
+    pub poses: PathBuf,
+    /// Folder of depth maps (`<image stem>.pfm`); set to register with the depth-ASG query.
+    pub depth: Option<PathBuf>,
+    /// False: the intrinsics are estimated (DLT) instead of trusted (EPnP).
+    pub intrinsics_known: bool,
+    /// Frames per second to emit; 0 = as fast as the pipeline takes them.
+    pub rate_hz: f64,
+    /// Stop after this many frames (0 = all).
+    pub max_frames: usize,
+    /// Seed of every frame's random choices (combined with the image id).
+    pub seed: u64,
+}
+
+impl SourceConfig {
+    /// A scene folder as `asgreg synth` writes it, with the initial poses of `level_px`.
+    pub fn scene(scene: &Path, level_px: u32) -> Self {
+        Self {
+            images: scene.join("images"),
+            cameras: scene.join("gt").join("cameras.txt"),
+            poses: scene
+                .join("initial")
+                .join(level_px.to_string())
+                .join("images.txt"),
+            depth: None,
+            intrinsics_known: true,
+            rate_hz: 0.0,
+            max_frames: 0,
+            seed: 1,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    #[error(transparent)]
+    Colmap(#[from] ColmapError),
+    #[error("{poses}: image '{name}' uses camera {camera_id}, which {cameras} does not define")]
+    UnknownCamera {
+        poses: PathBuf,
+        cameras: PathBuf,
+        name: String,
+        camera_id: u32,
+    },
+    #[error("{poses}: lists no images; nothing to register")]
+    NoImages { poses: PathBuf },
+}
+
+/// A folder source: the list is read up front, each photo when its frame is emitted.
+pub struct FolderSource {
+    config: SourceConfig,
+    cameras: BTreeMap<u32, Camera>,
+    images: Vec<ImagePose>,
+    next: usize,
+}
+
+impl FolderSource {
+    pub fn open(config: &SourceConfig) -> Result<Self, SourceError> {
+        let cameras = read_cameras_txt(&config.cameras)?;
+        let mut images = read_images_txt(&config.poses)?;
+        if config.max_frames > 0 {
+            images.truncate(config.max_frames);
+        }
+        if images.is_empty() {
+            return Err(SourceError::NoImages {
+                poses: config.poses.clone(),
+            });
+        }
+        for image in &images {
+            if !cameras.contains_key(&image.camera_id) {
+                return Err(SourceError::UnknownCamera {
+                    poses: config.poses.clone(),
+                    cameras: config.cameras.clone(),
+                    name: image.name.clone(),
+                    camera_id: image.camera_id,
+                });
+            }
+        }
+        Ok(Self {
+            config: config.clone(),
+            cameras,
+            images,
+            next: 0,
+        })
+    }
+
+    /// Frames this source will emit.
+    pub fn len(&self) -> usize {
+        self.images.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.images.is_empty()
+    }
+
+    /// The next frame (its id is its position in images.txt), or its failure; `None` at the end.
+    pub fn next_frame(&mut self) -> Option<(u64, Result<Frame<'static>, FrameFailed>)> {
+        let image = self.images.get(self.next)?.clone();
+        let frame_id = self.next as u64;
+        self.next += 1;
+        Some((frame_id, self.load(&image)))
+    }
+
+    fn load(&self, image: &ImagePose) -> Result<Frame<'static>, FrameFailed> {
+        let failed = |reason: String| FrameFailed {
+            name: image.name.clone(),
+            stage: "ingest".to_string(),
+            reason,
+        };
+        // Checked in `open`.
+        let camera = *self
+            .cameras
+            .get(&image.camera_id)
+            .ok_or_else(|| failed(format!("camera {} is not defined", image.camera_id)))?;
+        if !image.cam_from_world.is_finite() {
+            return Err(failed(format!(
+                "{}: the initial pose of '{}' is not finite (NaN or infinity); fix its QW..TZ",
+                self.config.poses.display(),
+                image.name
+            )));
+        }
+        let path = self.config.images.join(&image.name);
+        let photo = load_gray(&path).map_err(|e| failed(e.to_string()))?;
+        check_image_matches_camera(
+            &path,
+            photo.width_px,
+            photo.height_px,
+            image.camera_id,
+            &camera,
+        )
+        .map_err(|e| failed(e.to_string()))?;
+        let depth_m = match &self.config.depth {
+            Some(dir) => {
+                let path = depth_path_for(dir, &image.name);
+                let depth = read_pfm(&path).map_err(|e| failed(e.to_string()))?;
+                if depth.width_px != photo.width_px || depth.height_px != photo.height_px {
+                    return Err(failed(format!(
+                        "{}: depth map is {}×{} px but the photo is {}×{} px",
+                        path.display(),
+                        depth.width_px,
+                        depth.height_px,
+                        photo.width_px,
+                        photo.height_px
+                    )));
+                }
+                depth.depth_m
+            }
+            None => Vec::new(),
+        };
+        Ok(Frame {
+            info: FrameInfo {
+                name: image.name.clone(),
+                camera_id: image.camera_id,
+                camera,
+                intrinsics_known: self.config.intrinsics_known,
+                initial_cam_from_world: image.cam_from_world,
+                seed: frame_seed(self.config.seed, image.image_id),
+            },
+            image: Cow::Owned(photo.pixels),
+            depth_m: Cow::Owned(depth_m),
+        })
+    }
+}
+
+/// The seed of a frame: the same derivation as batch registration, so `asgreg register` and the
+/// pipeline give the same result for the same seed.
+pub fn frame_seed(seed: u64, image_id: u32) -> u64 {
+    seed ^ u64::from(image_id).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+}

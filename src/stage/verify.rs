@@ -1,0 +1,217 @@
+//! Stage "verify": gathers a frame's hypotheses (from whichever pose/flow workers made them,
+//! duplicates from redone jobs ignored), runs the plausibility check and emits the frame's one
+//! PoseResult. A frame that a stage gave up on, or that never completes within the timeout,
+//! also gets exactly one (failed) result with the reason.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::time::{Duration, Instant};
+
+use crate::core::camera::Camera;
+use crate::core::mesh::Mesh;
+use crate::core::register::{verify_outcomes, CoarseOutcome, RegistrationConfig};
+use crate::msg::{
+    CameraNumbers, Evidence, FrameFailed, Hypothesis, PoseNumbers, PoseResult, StageTimesMs,
+};
+
+use super::elapsed_ms;
+
+struct PendingFrame {
+    name: String,
+    camera: Camera,
+    coarse_count: u32,
+    hypotheses: BTreeMap<u32, Hypothesis>,
+    first_seen: Instant,
+}
+
+pub struct VerifyStage<'m> {
+    mesh: &'m Mesh,
+    config: RegistrationConfig,
+    frame_timeout: Duration,
+    pending: BTreeMap<u64, PendingFrame>,
+    /// Every frame id below this has its result.
+    finished_below: u64,
+    /// Frame ids at or above `finished_below` that have their result.
+    finished_above: BTreeSet<u64>,
+    stream_frame_count: Option<u64>,
+    /// Messages for frames that already had their result (redone jobs), ignored.
+    pub late_messages: u64,
+}
+
+impl<'m> VerifyStage<'m> {
+    pub fn new(mesh: &'m Mesh, config: RegistrationConfig, frame_timeout: Duration) -> Self {
+        Self {
+            mesh,
+            config,
+            frame_timeout,
+            pending: BTreeMap::new(),
+            finished_below: 0,
+            finished_above: BTreeSet::new(),
+            stream_frame_count: None,
+            late_messages: 0,
+        }
+    }
+
+    fn is_finished(&self, frame_id: u64) -> bool {
+        frame_id < self.finished_below || self.finished_above.contains(&frame_id)
+    }
+
+    fn mark_finished(&mut self, frame_id: u64) {
+        self.pending.remove(&frame_id);
+        self.finished_above.insert(frame_id);
+        while self.finished_above.remove(&self.finished_below) {
+            self.finished_below += 1;
+        }
+    }
+
+    /// Frames still waiting for hypotheses.
+    pub fn pending_frames(&self) -> usize {
+        self.pending.len()
+    }
+
+    /// One coarse pose's hypothesis; returns the frame's result when it was the last one missing.
+    pub fn on_hypothesis(&mut self, frame_id: u64, hypothesis: Hypothesis) -> Option<PoseResult> {
+        if self.is_finished(frame_id) {
+            self.late_messages += 1;
+            return None;
+        }
+        let coarse_index = hypothesis.outcome.coarse_index as u32;
+        let pending = self
+            .pending
+            .entry(frame_id)
+            .or_insert_with(|| PendingFrame {
+                name: hypothesis.info.name.clone(),
+                camera: hypothesis.info.camera,
+                coarse_count: hypothesis.coarse_count,
+                hypotheses: BTreeMap::new(),
+                first_seen: Instant::now(),
+            });
+        if pending
+            .hypotheses
+            .insert(coarse_index, hypothesis)
+            .is_some()
+        {
+            self.late_messages += 1;
+        }
+        if pending.hypotheses.len() < pending.coarse_count as usize {
+            return None;
+        }
+        let pending = self.pending.remove(&frame_id)?;
+        let result = self.decide(frame_id, pending);
+        self.mark_finished(frame_id);
+        Some(result)
+    }
+
+    /// A stage gave up on the frame: its result is that failure (unless it already has one).
+    pub fn on_failure(&mut self, frame_id: u64, failure: &FrameFailed) -> Option<PoseResult> {
+        if self.is_finished(frame_id) {
+            self.late_messages += 1;
+            return None;
+        }
+        self.mark_finished(frame_id);
+        Some(failed_result(
+            frame_id,
+            &failure.name,
+            format!("{}: {}", failure.stage, failure.reason),
+        ))
+    }
+
+    /// The source produced `frame_count` frames (ids 0..frame_count).
+    pub fn on_stream_end(&mut self, frame_count: u64) {
+        self.stream_frame_count = Some(frame_count);
+    }
+
+    /// Results for frames that waited longer than the timeout (a job was lost for good).
+    pub fn expire(&mut self, now: Instant) -> Vec<PoseResult> {
+        let expired: Vec<u64> = self
+            .pending
+            .iter()
+            .filter(|(_, frame)| now.duration_since(frame.first_seen) > self.frame_timeout)
+            .map(|(frame_id, _)| *frame_id)
+            .collect();
+        let mut results = Vec::new();
+        for frame_id in expired {
+            if let Some(frame) = self.pending.remove(&frame_id) {
+                let missing: Vec<String> = (0..frame.coarse_count)
+                    .filter(|i| !frame.hypotheses.contains_key(i))
+                    .map(|i| i.to_string())
+                    .collect();
+                results.push(failed_result(
+                    frame_id,
+                    &frame.name,
+                    format!(
+                        "verify: timed out after {:.0} s waiting for coarse poses {} of {} (a stage lost them; see its log)",
+                        self.frame_timeout.as_secs_f64(),
+                        missing.join(", "),
+                        frame.coarse_count
+                    ),
+                ));
+                self.mark_finished(frame_id);
+            }
+        }
+        results
+    }
+
+    /// When the source has ended and every frame has its result: the frame count.
+    pub fn stream_complete(&self) -> Option<u64> {
+        self.stream_frame_count
+            .filter(|&count| self.finished_below >= count && self.pending.is_empty())
+    }
+
+    fn decide(&self, frame_id: u64, frame: PendingFrame) -> PoseResult {
+        let started = Instant::now();
+        let outcomes: Vec<CoarseOutcome> = frame
+            .hypotheses
+            .values()
+            .map(|h| h.outcome.clone())
+            .collect();
+        let (camera, pose, verdict) =
+            verify_outcomes(self.mesh, &frame.camera, &outcomes, &self.config);
+        let hypotheses: Vec<_> = outcomes.iter().filter_map(|o| o.hypothesis).collect();
+        let chosen = verdict.chosen.and_then(|i| hypotheses.get(i));
+        let mut times = StageTimesMs::default();
+        for hypothesis in frame.hypotheses.values() {
+            times.render_ms = hypothesis.render_ms;
+            times.flow_ms += hypothesis.flow_ms;
+            times.pose_ms += hypothesis.pose_ms;
+        }
+        times.verify_ms = elapsed_ms(started);
+        PoseResult {
+            frame_id,
+            name: frame.name,
+            accepted: verdict.accepted,
+            failure: verdict
+                .rejection
+                .as_ref()
+                .map(|reason| format!("verify: {reason}")),
+            confidence: verdict.confidence,
+            camera: camera.as_ref().map(CameraNumbers::from),
+            cam_from_world: pose.as_ref().map(PoseNumbers::from),
+            evidence: Evidence {
+                hypotheses: verdict.hypothesis_count as u32,
+                component_size: verdict.component.len() as u32,
+                direct_support: verdict.direct_support as u32,
+                consensus: chosen.map_or(0, |h| h.consensus as u32),
+                inlier_rms_px: chosen.map(|h| h.inlier_rms_px),
+                mean_delta_to_chosen_px: verdict.mean_delta_to_chosen_px,
+                convergence_ratio: verdict.convergence_ratio,
+            },
+            times,
+            flow_workers: frame.hypotheses.values().map(|h| h.flow_worker).collect(),
+        }
+    }
+}
+
+fn failed_result(frame_id: u64, name: &str, reason: String) -> PoseResult {
+    PoseResult {
+        frame_id,
+        name: name.to_string(),
+        accepted: false,
+        failure: Some(reason),
+        confidence: 0.0,
+        camera: None,
+        cam_from_world: None,
+        evidence: Evidence::default(),
+        times: StageTimesMs::default(),
+        flow_workers: Vec::new(),
+    }
+}
