@@ -6,6 +6,7 @@ mod eval;
 mod flow;
 mod inputs;
 mod overlay;
+mod pipeline;
 mod register;
 mod render;
 mod synth;
@@ -40,6 +41,17 @@ pub enum Command {
     Synth(synth::SynthArgs),
     /// Render the mesh under an image's pose: ASG gradient image, normals or depth, as PNG.
     Render(render::RenderArgs),
+    /// Run the streaming pipeline, all stages as threads of this process (no config: a
+    /// synthetic scene, the embedded default).
+    Run(pipeline::RunArgs),
+    /// Run one stage worker of the pipeline as its own process.
+    Stage(pipeline::StageArgs),
+    /// Start and supervise every stage as its own process (the ground-station deployment).
+    Launch(pipeline::LaunchArgs),
+    /// Print PoseResults as they arrive.
+    Subscribe(pipeline::SubscribeArgs),
+    /// Benchmarks that run whole processes (`bench pipeline`: frames/s per flow-worker count).
+    Bench(pipeline::BenchArgs),
     /// Draw the mesh over a photo under its pose (normal colours and edges), as PNG.
     Overlay(overlay::OverlayArgs),
 }
@@ -61,6 +73,11 @@ pub fn init_logging(verbose: u8) {
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Run(args) => pipeline::run(&args),
+        Command::Stage(args) => pipeline::stage(&args),
+        Command::Launch(args) => pipeline::launch_command(&args, cli.verbose),
+        Command::Subscribe(args) => pipeline::subscribe(&args),
+        Command::Bench(args) => pipeline::bench(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Register(args) => register::run(&args),
         Command::Eval(args) => eval::run(&args),

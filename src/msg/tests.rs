@@ -260,3 +260,44 @@ fn pose_result_json_carries_header_and_result() {
         4
     );
 }
+
+#[test]
+fn pose_result_json_has_exactly_the_schema_properties() {
+    let schema: serde_json::Value =
+        serde_json::from_str(include_str!("../../schemas/v1/pose_result.schema.json")).unwrap();
+    let keys = |value: &serde_json::Value| -> Vec<String> {
+        let mut keys: Vec<String> = value.as_object().unwrap().keys().cloned().collect();
+        keys.sort();
+        keys
+    };
+    let Body::PoseResult(result) = every_kind().swap_remove(5) else {
+        panic!()
+    };
+    let json: serde_json::Value =
+        serde_json::from_str(&pose_result_json(&header(), &result)).unwrap();
+    let properties = &schema["properties"];
+    assert_eq!(keys(&json), keys(properties));
+    let mut required: Vec<String> = schema["required"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap().to_string())
+        .collect();
+    required.sort();
+    assert_eq!(required, keys(properties));
+    for nested in ["evidence", "times"] {
+        assert_eq!(
+            keys(&json[nested]),
+            keys(&properties[nested]["properties"]),
+            "{nested}"
+        );
+    }
+    assert_eq!(
+        keys(&json["camera"]),
+        keys(&properties["camera"]["oneOf"][1]["properties"])
+    );
+    assert_eq!(
+        keys(&json["cam_from_world"]),
+        keys(&properties["cam_from_world"]["oneOf"][1]["properties"])
+    );
+}

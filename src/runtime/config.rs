@@ -25,6 +25,7 @@ pub struct PipelineConfig {
     pub workers: Workers,
     pub backpressure: Backpressure,
     pub timeouts: Timeouts,
+    pub launch: LaunchSettings,
     pub registration: RegistrationConfig,
 }
 
@@ -39,6 +40,7 @@ impl Default for PipelineConfig {
             workers: Workers::default(),
             backpressure: Backpressure::default(),
             timeouts: Timeouts::default(),
+            launch: LaunchSettings::default(),
             registration: RegistrationConfig::default(),
         }
     }
@@ -120,6 +122,29 @@ impl Default for Timeouts {
             frame_timeout_s: 300.0,
             worker_silence_s: 60.0,
             startup_s: 60.0,
+        }
+    }
+}
+
+/// What `asgreg launch` does beyond starting the stages.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LaunchSettings {
+    /// With the zenoh backend: endpoints the launcher's own zenoh router listens on (stages and
+    /// remote workers connect to it). Empty: no router (one runs elsewhere).
+    pub zenoh_router_listen: Vec<String>,
+    /// Restarts allowed per stage worker before the launcher gives up on the run.
+    pub max_restarts: u32,
+    /// Longest run, s; frames without a result by then are reported missing.
+    pub deadline_s: f64,
+}
+
+impl Default for LaunchSettings {
+    fn default() -> Self {
+        Self {
+            zenoh_router_listen: Vec::new(),
+            max_restarts: 5,
+            deadline_s: 3600.0,
         }
     }
 }

@@ -273,6 +273,7 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         metrics.redispatched = dispatcher.metrics.redispatched;
         reporter.tick(&metrics, false);
     }
+    metrics.messages_out += dispatcher.metrics.messages_out;
     metrics.bytes_out += dispatcher.metrics.bytes_out;
     metrics.send_ms += dispatcher.metrics.send_ms;
     reporter.tick(&metrics, true);

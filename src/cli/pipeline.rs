@@ -1,0 +1,440 @@
+//! The streaming pipeline's commands: `run` (all stages as threads of this process; with no
+//! config it makes a synthetic scene: the embedded default), `stage` (one stage worker as its own
+//! process), `launch` (the ground-station supervisor), `subscribe` (print PoseResults as they
+//! arrive) and `bench pipeline` (frames/s per flow-worker count). `main` only wires: the loops
+//! are in `asgreg::runtime`.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use asgreg::io::mesh_file::read_mesh;
+use asgreg::msg::{Header, PoseResult};
+use asgreg::runtime::collect::{summary, Collected};
+use asgreg::runtime::config::PipelineConfig;
+use asgreg::runtime::launch::{absolute, launch, StageCommand};
+use asgreg::runtime::nodes::{self, NodeContext};
+use asgreg::runtime::run_in_process;
+use asgreg::stage::ingest::SourceConfig;
+use asgreg::transport::{self, Backend};
+
+use super::synth::{SceneArg, SynthArgs};
+
+#[derive(clap::Args, Debug)]
+pub struct RunArgs {
+    /// Pipeline configuration (TOML, see deploy/). Without it: a synthetic scene is made in
+    /// OUT/scene and registered (the embedded default).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Where the embedded default writes its scene and every run its results.
+    #[arg(long, default_value = "asgreg-run")]
+    pub out: PathBuf,
+    /// Override the configuration's backend (crossbeam, iceoryx2, zenoh: all in this process).
+    #[arg(long)]
+    pub backend: Option<BackendArg>,
+    /// Override the number of flow workers.
+    #[arg(long)]
+    pub flow_workers: Option<u32>,
+    /// Frames of the embedded default scene.
+    #[arg(long, default_value_t = 8)]
+    pub frames: usize,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum BackendArg {
+    Crossbeam,
+    Iceoryx2,
+    Zenoh,
+}
+
+impl From<BackendArg> for Backend {
+    fn from(value: BackendArg) -> Self {
+        match value {
+            BackendArg::Crossbeam => Backend::Crossbeam,
+            BackendArg::Iceoryx2 => Backend::Iceoryx2,
+            BackendArg::Zenoh => Backend::Zenoh,
+        }
+    }
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StageName {
+    Ingest,
+    Render,
+    Flow,
+    Pose,
+    Verify,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct StageArgs {
+    /// Which stage this process runs.
+    pub stage: StageName,
+    /// Pipeline configuration (TOML).
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Worker index among the stage's workers (0-based).
+    #[arg(long, default_value_t = 0)]
+    pub worker: u32,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct LaunchArgs {
+    /// Deployment configuration, e.g. deploy/ground-station.toml.
+    pub config: PathBuf,
+    /// Where results.jsonl and summary.txt go.
+    #[arg(long, default_value = "asgreg-launch")]
+    pub out: PathBuf,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct SubscribeArgs {
+    /// Pipeline configuration (backend, pipeline name, zenoh endpoints).
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Exit after this many results (0: run until the end of the stream).
+    #[arg(long, default_value_t = 0)]
+    pub count: usize,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct BenchArgs {
+    /// What to benchmark (only `pipeline`: whole-pipeline runs).
+    pub what: BenchWhat,
+    /// Scene folder as `asgreg synth` writes it; default: make one in OUT/scene.
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    #[arg(long, default_value = "asgreg-bench")]
+    pub out: PathBuf,
+    /// Frames per run.
+    #[arg(long, default_value_t = 8)]
+    pub frames: usize,
+    /// Flow worker counts to compare.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4")]
+    pub flow_workers: Vec<u32>,
+    /// Backends to compare (all stages as threads of this process).
+    #[arg(long, value_delimiter = ',', default_value = "crossbeam")]
+    pub backends: Vec<BackendArg>,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum BenchWhat {
+    Pipeline,
+}
+
+/// The embedded default scene: a house, `frames` photos at 505×275, 30 px initial poses.
+fn default_scene(out: &Path, frames: usize) -> anyhow::Result<PathBuf> {
+    let scene = out.join("scene");
+    if scene.join("scene.json").is_file() && scene.join("initial/30/images.txt").is_file() {
+        let listed = asgreg::io::colmap::read_images_txt(&scene.join("initial/30/images.txt"))?;
+        if listed.len() == frames {
+            println!("using the synthetic scene in {}", scene.display());
+            return Ok(scene);
+        }
+    }
+    println!(
+        "making a synthetic scene in {} ({frames} photos of a house, 505x275)",
+        scene.display()
+    );
+    let args = SynthArgs {
+        out: scene.clone(),
+        seed: 1,
+        width: 505,
+        height: 275,
+        images: frames,
+        scene: SceneArg::House,
+        levels: vec![30.0],
+    };
+    asgreg::synth::generate_scene(&args.config(), &scene)?;
+    Ok(scene)
+}
+
+fn scene_config(scene: &Path) -> PipelineConfig {
+    PipelineConfig {
+        mesh: scene.join("model.ply"),
+        source: SourceConfig::scene(scene, 30),
+        ..PipelineConfig::default()
+    }
+}
+
+fn print_result(header: &Header, result: &PoseResult) {
+    let _ = header;
+    let pose = result
+        .cam_from_world
+        .map(|p| {
+            format!(
+                " q=[{:.5} {:.5} {:.5} {:.5}] t=[{:.3} {:.3} {:.3}]",
+                p.qvec_wxyz[0],
+                p.qvec_wxyz[1],
+                p.qvec_wxyz[2],
+                p.qvec_wxyz[3],
+                p.tvec_m[0],
+                p.tvec_m[1],
+                p.tvec_m[2]
+            )
+        })
+        .unwrap_or_default();
+    println!(
+        "frame {:>4} {:<20} {} confidence {:.2} latency {:>6.0} ms{}{}",
+        result.frame_id,
+        result.name,
+        if result.accepted {
+            "ACCEPTED"
+        } else {
+            "failed  "
+        },
+        result.confidence,
+        result.times.latency_ms,
+        pose,
+        result
+            .failure
+            .as_deref()
+            .map(|f| format!(" ({f})"))
+            .unwrap_or_default()
+    );
+}
+
+fn write_outputs(out: &Path, collected: &Collected, text: &str) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let path = out.join("results.jsonl");
+    let mut file = std::io::BufWriter::new(
+        std::fs::File::create(&path).with_context(|| format!("cannot write {}", path.display()))?,
+    );
+    for result in collected.by_frame() {
+        serde_json::to_writer(&mut file, result)?;
+        writeln!(file)?;
+    }
+    file.flush()?;
+    std::fs::write(out.join("summary.txt"), text)?;
+    println!(
+        "results: {}, summary: {}",
+        path.display(),
+        out.join("summary.txt").display()
+    );
+    Ok(())
+}
+
+fn check_complete(collected: &Collected) -> anyhow::Result<()> {
+    let missing = collected.missing();
+    if collected.frame_count.is_none() {
+        bail!(
+            "the stream did not end: {} results arrived before the deadline",
+            collected.results.len()
+        );
+    }
+    if !missing.is_empty() || !collected.duplicates.is_empty() {
+        bail!(
+            "frames without exactly one result: missing {missing:?}, duplicated {:?}",
+            collected.duplicates
+        );
+    }
+    Ok(())
+}
+
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    let mut config = match &args.config {
+        Some(path) => PipelineConfig::read(path)?,
+        None => scene_config(&default_scene(&args.out, args.frames)?),
+    };
+    if let Some(backend) = args.backend {
+        config.backend = backend.into();
+    }
+    if let Some(flow) = args.flow_workers {
+        config.workers.flow = flow;
+    }
+    config.validate(args.config.as_deref().unwrap_or(Path::new("(defaults)")))?;
+    let mesh = read_mesh(&config.mesh)?;
+    let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
+    println!(
+        "running ingest, {} render, {} flow, {} pose and verify as threads over {}",
+        config.workers.render,
+        config.workers.flow,
+        config.workers.pose,
+        config.backend.name()
+    );
+    let collected = run_in_process(
+        &config,
+        transport.as_ref(),
+        &mesh,
+        Duration::from_secs_f64(config.launch.deadline_s),
+        &mut print_result,
+    )?;
+    let text = summary(&collected, config.backend.name());
+    println!("{text}");
+    write_outputs(&args.out, &collected, &text)?;
+    check_complete(&collected)
+}
+
+pub fn stage(args: &StageArgs) -> anyhow::Result<()> {
+    let config = PipelineConfig::read(&args.config)?;
+    let _span = tracing::info_span!("stage", name = ?args.stage, worker = args.worker).entered();
+    let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
+    let stop = AtomicBool::new(false);
+    let context = NodeContext {
+        transport: transport.as_ref(),
+        config: &config,
+        worker_index: args.worker,
+        stop: &stop,
+    };
+    let needs_mesh = matches!(
+        args.stage,
+        StageName::Render | StageName::Flow | StageName::Verify
+    );
+    let mesh = if needs_mesh {
+        Some(read_mesh(&config.mesh)?)
+    } else {
+        None
+    };
+    let mesh = mesh.as_ref();
+    let metrics = match (args.stage, mesh) {
+        (StageName::Ingest, _) => nodes::run_ingest(&context)?,
+        (StageName::Render, Some(mesh)) => nodes::run_render(&context, mesh)?,
+        (StageName::Flow, Some(mesh)) => nodes::run_flow(&context, mesh)?,
+        (StageName::Pose, _) => nodes::run_pose(&context)?,
+        (StageName::Verify, Some(mesh)) => nodes::run_verify(&context, mesh)?,
+        (stage, None) => bail!("stage {stage:?} needs the mesh"),
+    };
+    tracing::info!(
+        "done: {} in, {} out",
+        metrics.messages_in,
+        metrics.messages_out
+    );
+    Ok(())
+}
+
+pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
+    let config = PipelineConfig::read(&args.config)?;
+    if config.backend == Backend::Crossbeam {
+        bail!(
+            "{}: backend 'crossbeam' is one process; launch needs backend = \"iceoryx2\" or \"zenoh\" (or use `asgreg run`)",
+            args.config.display()
+        );
+    }
+    if config.backend == Backend::Iceoryx2 {
+        let cleaned = transport::clean_stale_resources()?;
+        if cleaned > 0 {
+            println!("cleaned the shared-memory resources of {cleaned} dead process(es)");
+        }
+    }
+    let _router =
+        if config.backend == Backend::Zenoh && !config.launch.zenoh_router_listen.is_empty() {
+            Some(transport::open_zenoh_router(
+                &config.launch.zenoh_router_listen,
+            )?)
+        } else {
+            None
+        };
+    let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
+    let command = StageCommand {
+        program: std::env::current_exe().context("cannot find the asgreg executable")?,
+        config_path: absolute(&args.config),
+        global_args: (0..verbose).map(|_| "-v".to_string()).collect(),
+    };
+    let collected = launch(
+        &config,
+        transport.as_ref(),
+        &command,
+        &mut |stage, worker, pid| eprintln!("launch: {stage} worker {worker} pid {pid}"),
+        &mut print_result,
+    )?;
+    let text = summary(&collected, config.backend.name());
+    println!("{text}");
+    write_outputs(&args.out, &collected, &text)?;
+    check_complete(&collected)
+}
+
+pub fn subscribe(args: &SubscribeArgs) -> anyhow::Result<()> {
+    let config = PipelineConfig::read(&args.config)?;
+    let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
+    let mut collector = asgreg::runtime::collect::Collector::open(transport.as_ref())?;
+    let seen = std::cell::Cell::new(0usize);
+    let count = args.count;
+    let collected = collector.collect(
+        Duration::from_secs_f64(config.launch.deadline_s),
+        &mut |header, result| {
+            seen.set(seen.get() + 1);
+            print_result(header, result);
+        },
+        &mut || count == 0 || seen.get() < count,
+    )?;
+    println!("{} results", collected.results.len());
+    Ok(())
+}
+
+pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
+    let BenchWhat::Pipeline = args.what;
+    let scene = match &args.scene {
+        Some(scene) => scene.clone(),
+        None => default_scene(&args.out, args.frames)?,
+    };
+    let mut base = scene_config(&scene);
+    base.source.max_frames = args.frames;
+    let mesh = read_mesh(&base.mesh)?;
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    println!(
+        "whole-pipeline runs, {} frames at 505x275, {} coarse poses each, on {cores} cores",
+        args.frames, base.registration.coarse_pose_count
+    );
+    let mut rows = Vec::new();
+    for backend in &args.backends {
+        for &flow in &args.flow_workers {
+            let mut config = base.clone();
+            config.backend = (*backend).into();
+            config.workers.flow = flow;
+            config.transport.pipeline = format!("bench-{}-{flow}", std::process::id());
+            let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
+            let collected = run_in_process(
+                &config,
+                transport.as_ref(),
+                &mesh,
+                Duration::from_secs(3600),
+                &mut |_, _| {},
+            )?;
+            check_complete(&collected)?;
+            rows.push((config.backend.name(), flow, collected));
+        }
+    }
+    println!(
+        "{:<10} {:>5} {:>9} {:>8} {:>8} {:>8} {:>10} {:>10}  flow jobs per worker",
+        "backend", "flow", "frames/s", "speedup", "p50_ms", "p90_ms", "transport%", "accepted"
+    );
+    let baseline = rows
+        .first()
+        .map(|(_, _, c)| c.results.len() as f64 / c.wall_s)
+        .unwrap_or(1.0);
+    for (backend, flow, collected) in &rows {
+        let fps = collected.results.len() as f64 / collected.wall_s;
+        let latencies: Vec<f64> = collected
+            .results
+            .iter()
+            .map(|r| r.times.latency_ms)
+            .collect();
+        let compute: f64 = collected.metrics.values().map(|m| m.compute_ms).sum();
+        let transport_ms: f64 = collected
+            .metrics
+            .values()
+            .map(|m| m.send_ms + m.decode_ms)
+            .sum();
+        let mut split = std::collections::BTreeMap::<u32, usize>::new();
+        for result in &collected.results {
+            for worker in &result.flow_workers {
+                *split.entry(*worker).or_default() += 1;
+            }
+        }
+        println!(
+            "{:<10} {:>5} {:>9.3} {:>8.2} {:>8.0} {:>8.0} {:>10.2} {:>10}  {:?}",
+            backend,
+            flow,
+            fps,
+            fps / baseline,
+            asgreg::runtime::collect::percentile(&latencies, 0.5),
+            asgreg::runtime::collect::percentile(&latencies, 0.9),
+            100.0 * transport_ms / compute.max(1e-9),
+            collected.results.iter().filter(|r| r.accepted).count(),
+            split.values().collect::<Vec<_>>()
+        );
+    }
+    Ok(())
+}
