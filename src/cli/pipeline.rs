@@ -126,7 +126,11 @@ pub enum BenchWhat {
 
 /// The embedded default scene: a house, `frames` photos at 505×275, 30 px initial poses.
 fn default_scene(out: &Path, frames: usize) -> anyhow::Result<PathBuf> {
-    let scene = out.join("scene");
+    default_scene_at(&out.join("scene"), frames)
+}
+
+fn default_scene_at(scene: &Path, frames: usize) -> anyhow::Result<PathBuf> {
+    let scene = scene.to_path_buf();
     if scene.join("scene.json").is_file() && scene.join("initial/30/images.txt").is_file() {
         let listed = asgreg::io::colmap::read_images_txt(&scene.join("initial/30/images.txt"))?;
         if listed.len() == frames {
@@ -233,9 +237,23 @@ fn check_complete(collected: &Collected) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Makes the configuration's synthetic scene if it asks for one that is not there yet.
+fn ensure_synthetic_scene(config: &PipelineConfig, frames: usize) -> anyhow::Result<()> {
+    if let Some(scene) = &config.synthetic_scene {
+        if !scene.join("initial/30/images.txt").is_file() {
+            default_scene_at(scene, frames)?;
+        }
+    }
+    Ok(())
+}
+
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let mut config = match &args.config {
-        Some(path) => PipelineConfig::read(path)?,
+        Some(path) => {
+            let config = PipelineConfig::read(path)?;
+            ensure_synthetic_scene(&config, args.frames)?;
+            config
+        }
         None => scene_config(&default_scene(&args.out, args.frames)?),
     };
     if let Some(backend) = args.backend {
@@ -306,6 +324,7 @@ pub fn stage(args: &StageArgs) -> anyhow::Result<()> {
 
 pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
     let config = PipelineConfig::read(&args.config)?;
+    ensure_synthetic_scene(&config, 8)?;
     if config.backend == Backend::Crossbeam {
         bail!(
             "{}: backend 'crossbeam' is one process; launch needs backend = \"iceoryx2\" or \"zenoh\" (or use `asgreg run`)",

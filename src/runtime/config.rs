@@ -14,6 +14,10 @@ use crate::transport::{Backend, TransportConfig};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct PipelineConfig {
+    /// A synthetic scene folder (as `asgreg synth` writes it): `run` and `launch` make it when it
+    /// is missing and take the mesh and the 30 px initial poses from it. For demonstrations and
+    /// tests; a real deployment sets `mesh` and `[source]` instead.
+    pub synthetic_scene: Option<PathBuf>,
     /// Mesh file (PLY or OBJ) every stage that needs geometry loads.
     pub mesh: PathBuf,
     pub source: SourceConfig,
@@ -32,6 +36,7 @@ pub struct PipelineConfig {
 impl Default for PipelineConfig {
     fn default() -> Self {
         Self {
+            synthetic_scene: None,
             mesh: PathBuf::new(),
             source: SourceConfig::default(),
             backend: Backend::Crossbeam,
@@ -190,6 +195,21 @@ impl PipelineConfig {
                 *p = base.join(&*p);
             }
         };
+        if let Some(scene) = &mut self.synthetic_scene {
+            resolve(scene);
+        }
+        if let Some(scene) = &self.synthetic_scene {
+            if self.mesh.as_os_str().is_empty() {
+                self.mesh = scene.join("model.ply");
+            }
+            if self.source.poses.as_os_str().is_empty() {
+                let defaults = SourceConfig::scene(scene, 30);
+                self.source.images = defaults.images;
+                self.source.cameras = defaults.cameras;
+                self.source.poses = defaults.poses;
+                self.source.intrinsics_known = true;
+            }
+        }
         resolve(&mut self.mesh);
         resolve(&mut self.source.images);
         resolve(&mut self.source.cameras);

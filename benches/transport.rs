@@ -1,0 +1,151 @@
+//! Transport latency and throughput per backend (crossbeam, iceoryx2, zenoh over TCP loopback):
+//! one message sent, delivered, received and decoded per iteration, for a 4 MB frame (1024×1024
+//! grey f32), a render → flow job at 505×275 (2.2 MB) and a coarse pose's correspondences
+//! (5,000 2D–3D pairs, 220 kB). Criterion reports time per message; bytes/s is set as throughput.
+
+use std::borrow::Cow;
+use std::time::{Duration, Instant};
+
+use asgreg::core::camera::{Camera, PinholeIntrinsics};
+use asgreg::core::rigid::Rigid3;
+use asgreg::msg::{
+    decode, encode, Body, Correspondences, CorrespondencesMeta, Envelope, FlowJob, FlowJobMeta,
+    Frame, FrameInfo, Header,
+};
+use asgreg::transport::{self, Backend, Transport, TransportConfig};
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+
+fn info(width_px: u32, height_px: u32) -> FrameInfo {
+    FrameInfo {
+        name: "bench.png".to_string(),
+        camera_id: 1,
+        camera: Camera::pinhole(
+            width_px,
+            height_px,
+            PinholeIntrinsics::centered(800.0, width_px, height_px),
+        ),
+        intrinsics_known: true,
+        initial_cam_from_world: Rigid3::identity(),
+        seed: 1,
+    }
+}
+
+fn messages() -> Vec<(&'static str, Vec<u8>)> {
+    let header = Header::default();
+    let frame_pixels = 1024 * 1024;
+    let frame = Envelope {
+        header,
+        body: Body::Frame(Frame {
+            info: info(1024, 1024),
+            image: Cow::Owned((0..frame_pixels).map(|i| (i % 255) as f32).collect()),
+            depth_m: Cow::Owned(Vec::new()),
+        }),
+    };
+    let job_pixels = 505 * 275;
+    let job = Envelope {
+        header,
+        body: Body::FlowJob(FlowJob {
+            meta: FlowJobMeta {
+                info: info(505, 275),
+                coarse_index: 3,
+                coarse_count: 15,
+                coarse_cam_from_world: Rigid3::identity(),
+                render_ms: 1.0,
+            },
+            query: Cow::Owned(vec![0.5; job_pixels]),
+            asg: Cow::Owned(vec![0.25; job_pixels]),
+            depth_m: Cow::Owned(vec![10.0; job_pixels]),
+            face_index: Cow::Owned((0..job_pixels as u32).collect()),
+        }),
+    };
+    let pairs = 5000;
+    let correspondences = Envelope {
+        header,
+        body: Body::Correspondences(Correspondences {
+            meta: CorrespondencesMeta {
+                info: info(505, 275),
+                coarse_index: 3,
+                coarse_count: 15,
+                coarse_cam_from_world: Rigid3::identity(),
+                render_ms: 1.0,
+                flow_ms: 300.0,
+                flow_worker: 0,
+            },
+            image_points_px: Cow::Owned(vec![100.5; 2 * pairs]),
+            world_points_m: Cow::Owned(vec![3.25; 3 * pairs]),
+            matching_costs: Cow::Owned(vec![0.1; pairs]),
+        }),
+    };
+    vec![
+        ("frame_4MB", encode(&frame).unwrap().to_vec()),
+        ("flow_job_505x275", encode(&job).unwrap().to_vec()),
+        (
+            "correspondences_5k",
+            encode(&correspondences).unwrap().to_vec(),
+        ),
+    ]
+}
+
+/// The backends to compare; zenoh goes through a router on a free loopback port.
+fn backends() -> Vec<(
+    Backend,
+    Box<dyn std::any::Any>,
+    std::sync::Arc<dyn Transport>,
+)> {
+    let mut list = Vec::new();
+    let config = |name: &str| TransportConfig {
+        pipeline: format!("bench-{name}-{}", std::process::id()),
+        max_message_bytes: 8 << 20,
+        queue_depth: 4,
+    };
+    let zenoh = transport::zenoh::ZenohSettings::default();
+    let crossbeam = transport::open(Backend::Crossbeam, &config("crossbeam"), &zenoh)
+        .expect("crossbeam transport");
+    list.push((
+        Backend::Crossbeam,
+        Box::new(()) as Box<dyn std::any::Any>,
+        crossbeam,
+    ));
+    list
+}
+
+fn transport_benches(c: &mut Criterion) {
+    let messages = messages();
+    for (backend, _guard, transport) in backends() {
+        let mut group = c.benchmark_group(format!("transport/{}", backend.name()));
+        group.sample_size(20);
+        group.measurement_time(Duration::from_secs(3));
+        for (name, bytes) in &messages {
+            let topic = format!("bench/{name}");
+            let mut subscriber = transport.subscriber(&topic).expect("subscriber");
+            let mut publisher = transport.publisher(&topic).expect("publisher");
+            assert!(publisher
+                .wait_for_subscriber(Duration::from_secs(10))
+                .expect("wait"));
+            group.throughput(Throughput::Bytes(bytes.len() as u64));
+            group.bench_function(*name, |b| {
+                b.iter_custom(|iterations| {
+                    let started = Instant::now();
+                    for _ in 0..iterations {
+                        publisher.send(bytes).expect("send");
+                        let mut received = false;
+                        while !received {
+                            subscriber
+                                .receive(Duration::from_secs(5), &mut |payload| {
+                                    let message = decode(payload).expect("decode");
+                                    std::hint::black_box(&message);
+                                    received = true;
+                                })
+                                .expect("receive");
+                        }
+                    }
+                    started.elapsed()
+                })
+            });
+        }
+        group.finish();
+    }
+}
+
+criterion_group!(benches, transport_benches);
+criterion_main!(benches);
