@@ -87,11 +87,10 @@ fn messages() -> Vec<(&'static str, Vec<u8>)> {
 }
 
 /// The backends to compare; zenoh goes through a router on a free loopback port.
-fn backends() -> Vec<(
-    Backend,
-    Box<dyn std::any::Any>,
-    std::sync::Arc<dyn Transport>,
-)> {
+/// A backend, whatever keeps it alive (a zenoh router), and its transport.
+type BackendUnderTest = (Backend, Box<dyn std::any::Any>, std::sync::Arc<dyn Transport>);
+
+fn backends() -> Vec<BackendUnderTest> {
     let mut list = Vec::new();
     let config = |name: &str| TransportConfig {
         pipeline: format!("bench-{name}-{}", std::process::id()),
