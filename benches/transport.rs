@@ -88,7 +88,11 @@ fn messages() -> Vec<(&'static str, Vec<u8>)> {
 
 /// The backends to compare; zenoh goes through a router on a free loopback port.
 /// A backend, whatever keeps it alive (a zenoh router), and its transport.
-type BackendUnderTest = (Backend, Box<dyn std::any::Any>, std::sync::Arc<dyn Transport>);
+type BackendUnderTest = (
+    Backend,
+    Box<dyn std::any::Any>,
+    std::sync::Arc<dyn Transport>,
+);
 
 fn backends() -> Vec<BackendUnderTest> {
     let mut list = Vec::new();

@@ -48,6 +48,8 @@ pub enum Command {
     Stage(pipeline::StageArgs),
     /// Start and supervise every stage as its own process (the ground-station deployment).
     Launch(pipeline::LaunchArgs),
+    /// Run a zenoh router (the ground station's; `launch` starts one when configured).
+    ZenohRouter(pipeline::RouterArgs),
     /// Print PoseResults as they arrive.
     Subscribe(pipeline::SubscribeArgs),
     /// Benchmarks that run whole processes (`bench pipeline`: frames/s per flow-worker count).
@@ -77,6 +79,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Stage(args) => pipeline::stage(&args),
         Command::Launch(args) => pipeline::launch_command(&args, cli.verbose),
         Command::Subscribe(args) => pipeline::subscribe(&args),
+        Command::ZenohRouter(args) => pipeline::router(&args),
         Command::Bench(args) => pipeline::bench(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Register(args) => register::run(&args),

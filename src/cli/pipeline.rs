@@ -337,17 +337,18 @@ pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
             println!("cleaned the shared-memory resources of {cleaned} dead process(es)");
         }
     }
-    let _router =
+    // zenoh's router runs in a process of its own: next to slow subscribers in one process it
+    // can deadlock (see transport::zenoh).
+    let program = std::env::current_exe().context("cannot find the asgreg executable")?;
+    let mut router =
         if config.backend == Backend::Zenoh && !config.launch.zenoh_router_listen.is_empty() {
-            Some(transport::open_zenoh_router(
-                &config.launch.zenoh_router_listen,
-            )?)
+            Some(start_router(&program, &config.launch.zenoh_router_listen)?)
         } else {
             None
         };
     let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
     let command = StageCommand {
-        program: std::env::current_exe().context("cannot find the asgreg executable")?,
+        program,
         config_path: absolute(&args.config),
         global_args: (0..verbose).map(|_| "-v".to_string()).collect(),
     };
@@ -357,11 +358,68 @@ pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
         &command,
         &mut |stage, worker, pid| eprintln!("launch: {stage} worker {worker} pid {pid}"),
         &mut print_result,
-    )?;
+    );
+    drop(transport);
+    if let Some(router) = &mut router {
+        let _ = router.kill();
+        let _ = router.wait();
+    }
+    let collected = collected?;
     let text = summary(&collected, config.backend.name());
     println!("{text}");
     write_outputs(&args.out, &collected, &text)?;
     check_complete(&collected)
+}
+
+/// Starts `asgreg zenoh-router` and waits until its first endpoint accepts connections.
+fn start_router(program: &Path, listen: &[String]) -> anyhow::Result<std::process::Child> {
+    let mut command = std::process::Command::new(program);
+    command.arg("zenoh-router");
+    for endpoint in listen {
+        command.arg("--listen").arg(endpoint);
+    }
+    let mut child = command
+        .spawn()
+        .with_context(|| format!("cannot start the zenoh router ({})", program.display()))?;
+    eprintln!(
+        "launch: zenoh router pid {} on {}",
+        child.id(),
+        listen.join(", ")
+    );
+    let address = listen
+        .first()
+        .and_then(|endpoint| endpoint.strip_prefix("tcp/"))
+        .map(str::to_string);
+    let started = std::time::Instant::now();
+    if let Some(address) = address {
+        while std::net::TcpStream::connect(address.as_str()).is_err() {
+            if let Some(status) = child.try_wait()? {
+                bail!("the zenoh router exited ({status}) before listening on {address}");
+            }
+            if started.elapsed() > Duration::from_secs(20) {
+                let _ = child.kill();
+                bail!("the zenoh router did not listen on {address} within 20 s");
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+    Ok(child)
+}
+
+#[derive(clap::Args, Debug)]
+pub struct RouterArgs {
+    /// Endpoint to listen on, e.g. tcp/192.168.10.1:7447 (repeat for several).
+    #[arg(long, required = true)]
+    pub listen: Vec<String>,
+}
+
+/// `asgreg zenoh-router`: the ground station's zenoh router, until killed.
+pub fn router(args: &RouterArgs) -> anyhow::Result<()> {
+    let _router = transport::zenoh::open_router(&args.listen)?;
+    tracing::info!("zenoh router listening on {}", args.listen.join(", "));
+    loop {
+        std::thread::sleep(Duration::from_secs(3600));
+    }
 }
 
 pub fn subscribe(args: &SubscribeArgs) -> anyhow::Result<()> {

@@ -159,28 +159,20 @@ impl Backend {
 pub fn open(
     backend: Backend,
     config: &TransportConfig,
-    _zenoh: &zenoh::ZenohSettings,
+    zenoh_settings: &zenoh::ZenohSettings,
 ) -> Result<std::sync::Arc<dyn Transport>, TransportError> {
-    match backend {
-        Backend::Crossbeam => Ok(std::sync::Arc::new(crossbeam::CrossbeamTransport::new(
-            config.clone(),
-        ))),
-        other => Err(TransportError::Setup {
-            backend: other.name(),
-            detail: "not built yet".to_string(),
-        }),
-    }
+    Ok(match backend {
+        Backend::Crossbeam => {
+            std::sync::Arc::new(crossbeam::CrossbeamTransport::new(config.clone()))
+        }
+        Backend::Iceoryx2 => std::sync::Arc::new(iceoryx2::Iceoryx2Transport::new(config.clone())?),
+        Backend::Zenoh => {
+            std::sync::Arc::new(zenoh::ZenohTransport::new(config.clone(), zenoh_settings)?)
+        }
+    })
 }
 
 /// Removes shared-memory resources left by dead processes (iceoryx2); returns how many.
 pub fn clean_stale_resources() -> Result<usize, TransportError> {
-    Ok(0)
-}
-
-/// A zenoh router in this process, listening on `listen` (kept alive by the returned handle).
-pub fn open_zenoh_router(_listen: &[String]) -> Result<(), TransportError> {
-    Err(TransportError::Setup {
-        backend: "zenoh",
-        detail: "not built yet".to_string(),
-    })
+    iceoryx2::clean_stale_resources()
 }

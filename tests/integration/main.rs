@@ -4,5 +4,6 @@
 mod bad_input;
 mod cli_pictures;
 mod flow_cli;
+mod pipeline;
 mod register_cli;
 mod util;

@@ -1,0 +1,309 @@
+//! The streaming pipeline as processes: the same synthetic frames through `asgreg run` (one
+//! process, crossbeam), `asgreg launch` (one process per stage over iceoryx2) and with the flow
+//! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker mid-stream
+//! loses no frame; a stage process rejects a message with a wrong schema version and lives on.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use crate::util::*;
+
+/// A synthetic scene of `frames` photos at 160×88, made once per test.
+fn scene(dir: &Path, frames: usize) -> PathBuf {
+    let scene = dir.join("scene");
+    let output = asgreg(&[
+        "synth",
+        "--out",
+        path_str(&scene),
+        "--width",
+        "160",
+        "--height",
+        "88",
+        "--images",
+        &frames.to_string(),
+        "--levels",
+        "30",
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    scene
+}
+
+/// A pipeline name no other test or process uses (iceoryx2 services are machine-global).
+fn unique(name: &str) -> String {
+    format!("it-{name}-{}", std::process::id())
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn write_config(dir: &Path, file: &str, scene: &Path, backend: &str, body: &str) -> PathBuf {
+    let path = dir.join(file);
+    let text = format!(
+        "synthetic_scene = \"{}\"\nbackend = \"{backend}\"\n{body}\n\n[registration]\ncoarse_pose_count = 5\n",
+        scene.display()
+    );
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn common(pipeline: &str, flow: u32, extra_workers: &str) -> String {
+    format!(
+        "[transport]\npipeline = \"{pipeline}\"\n\n[workers]\nflow = {flow}\n{extra_workers}\n\n[backpressure]\nflow_jobs_queued = 10\n\n[timeouts]\nframe_timeout_s = 120.0\n\n[launch]\ndeadline_s = 300.0\n"
+    )
+}
+
+/// The results of a run, frame by frame, without the parts that legitimately differ between
+/// runs (times, which worker did what).
+fn results(out: &Path) -> Vec<serde_json::Value> {
+    let text = std::fs::read_to_string(out.join("results.jsonl")).unwrap();
+    text.lines()
+        .map(|line| {
+            let mut value: serde_json::Value = serde_json::from_str(line).unwrap();
+            let object = value.as_object_mut().unwrap();
+            object.remove("times");
+            object.remove("flow_workers");
+            value
+        })
+        .collect()
+}
+
+/// Runs a command to completion, with a time limit, returning (success, stdout, stderr).
+fn finish(mut child: Child, limit: Duration) -> (bool, String, String) {
+    let started = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            let output = child.wait_with_output().unwrap();
+            return (
+                status.success(),
+                String::from_utf8_lossy(&output.stdout).into_owned(),
+                String::from_utf8_lossy(&output.stderr).into_owned(),
+            );
+        }
+        if started.elapsed() > limit {
+            let _ = child.kill();
+            let output = child.wait_with_output().unwrap();
+            panic!(
+                "timed out after {limit:?}; stdout:\n{}\nstderr:\n{}",
+                String::from_utf8_lossy(&output.stdout),
+                String::from_utf8_lossy(&output.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn command(args: &[&str]) -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_asgreg"));
+    command
+        .args(args)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    command
+}
+
+#[test]
+fn run_launch_and_a_zenoh_flow_worker_give_identical_results() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path(), 4);
+
+    let one = write_config(
+        dir.path(),
+        "one.toml",
+        &scene,
+        "crossbeam",
+        &common(&unique("one"), 2, ""),
+    );
+    let out_one = dir.path().join("out-one");
+    let output = asgreg(&[
+        "run",
+        "--config",
+        path_str(&one),
+        "--out",
+        path_str(&out_one),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let reference = results(&out_one);
+    assert_eq!(reference.len(), 4);
+
+    let iox = write_config(
+        dir.path(),
+        "iox.toml",
+        &scene,
+        "iceoryx2",
+        &common(&unique("iox"), 2, ""),
+    );
+    let out_iox = dir.path().join("out-iox");
+    let child = command(&["launch", path_str(&iox), "--out", path_str(&out_iox)])
+        .spawn()
+        .unwrap();
+    let (ok, stdout, stderr) = finish(child, Duration::from_secs(240));
+    assert!(ok, "launch over iceoryx2 failed:\n{stdout}\n{stderr}");
+    assert!(
+        stdout.contains("exactly one result per frame: yes"),
+        "{stdout}"
+    );
+    assert_eq!(
+        results(&out_iox),
+        reference,
+        "iceoryx2 launch differs from the one-process run"
+    );
+
+    // Zenoh: the launcher runs the router and every stage but the flow worker, which attaches
+    // as its own process, the way a worker on another host would.
+    let port = free_port();
+    let zenoh_body = format!(
+        "{}\n[zenoh]\nmode = \"client\"\nconnect = [\"tcp/127.0.0.1:{port}\"]\n",
+        common(&unique("zen"), 1, "flow_local = 0")
+    )
+    .replace(
+        "[launch]\n",
+        &format!("[launch]\nzenoh_router_listen = [\"tcp/127.0.0.1:{port}\"]\n"),
+    );
+    let zen = write_config(dir.path(), "zen.toml", &scene, "zenoh", &zenoh_body);
+    let out_zen = dir.path().join("out-zen");
+    let launcher = command(&["launch", path_str(&zen), "--out", path_str(&out_zen)])
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    let mut worker = command(&["stage", "flow", "--config", path_str(&zen), "--worker", "0"])
+        .spawn()
+        .unwrap();
+    let (ok, stdout, stderr) = finish(launcher, Duration::from_secs(240));
+    let _ = worker.kill();
+    let worker_output = worker.wait_with_output().unwrap();
+    assert!(
+        ok,
+        "launch over zenoh failed:\n{stdout}\n{stderr}\nworker:\n{}",
+        String::from_utf8_lossy(&worker_output.stderr)
+    );
+    assert_eq!(
+        results(&out_zen),
+        reference,
+        "zenoh run differs from the one-process run"
+    );
+}
+
+#[test]
+fn sigkill_of_a_flow_worker_mid_stream_loses_no_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path(), 8);
+    let body = common(&unique("kill"), 2, "")
+        .replace("[transport]", "[source]\nrate_hz = 3.0\n\n[transport]");
+    let config = write_config(dir.path(), "kill.toml", &scene, "iceoryx2", &body);
+    let out = dir.path().join("out");
+    let mut launcher = command(&["launch", path_str(&config), "--out", path_str(&out)])
+        .spawn()
+        .unwrap();
+    // The launcher names each process it starts: "launch: flow worker 0 pid N".
+    let stderr = launcher.stderr.take().unwrap();
+    let (pids, pid_lines) = mpsc::channel();
+    let log = std::thread::spawn(move || {
+        let mut text = String::new();
+        for line in BufReader::new(stderr).lines() {
+            let line = line.unwrap();
+            if let Some(pid) = line.strip_prefix("launch: flow worker 0 pid ") {
+                let _ = pids.send(pid.trim().parse::<u32>().unwrap());
+            }
+            text.push_str(&line);
+            text.push('\n');
+        }
+        text
+    });
+    let first_pid = pid_lines.recv_timeout(Duration::from_secs(60)).unwrap();
+    // Mid-stream: the first frames are in flight (3 frames/s, 8 frames).
+    std::thread::sleep(Duration::from_millis(1500));
+    let killed = Command::new("kill")
+        .args(["-9", &first_pid.to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let (ok, stdout, _) = finish(launcher, Duration::from_secs(300));
+    let log = log.join().unwrap();
+    assert!(ok, "launch failed after the kill:\n{stdout}\n{log}");
+    let restarted = pid_lines.recv_timeout(Duration::from_secs(1)).unwrap();
+    assert_ne!(restarted, first_pid, "the killed worker was restarted");
+    assert!(log.contains("restarting"), "{log}");
+    assert!(
+        stdout.contains("exactly one result per frame: yes"),
+        "{stdout}"
+    );
+    let results = results(&out);
+    assert_eq!(results.len(), 8);
+    for result in &results {
+        let failure = result["failure"].as_str().unwrap_or("");
+        assert!(
+            !failure.contains("timed out") && !failure.contains("dropped"),
+            "a frame was lost: {result}"
+        );
+    }
+}
+
+#[test]
+fn a_stage_process_rejects_a_wrong_schema_version_and_keeps_running() {
+    use asgreg::msg::{Body, StreamEnd};
+    use asgreg::runtime::bus::{encode_to_vec, Outbox};
+    use asgreg::runtime::config::PipelineConfig;
+    use asgreg::transport::keys;
+
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path(), 1);
+    let config_path = write_config(
+        dir.path(),
+        "verify.toml",
+        &scene,
+        "iceoryx2",
+        &common(&unique("schema"), 1, ""),
+    );
+    let mut verify = command(&["stage", "verify", "--config", path_str(&config_path)])
+        .spawn()
+        .unwrap();
+    let config = PipelineConfig::read(&config_path).unwrap();
+    let transport =
+        asgreg::transport::open(config.backend, &config.transport, &config.zenoh).unwrap();
+    let mut outbox = Outbox::open(transport.as_ref(), keys::VERIFY_IN).unwrap();
+    outbox
+        .wait_for_reader("verify", Duration::from_secs(30))
+        .unwrap();
+    let mut bytes = encode_to_vec(3, 0, Body::StreamEnd(StreamEnd { frame_count: 1 })).unwrap();
+    bytes[4..6].copy_from_slice(&9u16.to_le_bytes());
+    outbox.send_raw(&bytes).unwrap();
+    outbox.send_raw(b"ASGR garbage").unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    assert!(
+        verify.try_wait().unwrap().is_none(),
+        "the verify stage died on a bad message"
+    );
+    let _ = verify.kill();
+    let output = verify.wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        log.contains("schema version 9") && log.contains("rejected"),
+        "no clear log line for the wrong schema version:\n{log}"
+    );
+    assert!(
+        log.contains("shorter than") || log.contains("not an asgreg message"),
+        "{log}"
+    );
+}
+
+#[test]
+fn shipped_deployment_configs_parse() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy");
+    for file in [
+        "ground-station.toml",
+        "two-host/station.toml",
+        "two-host/remote-flow.toml",
+    ] {
+        asgreg::runtime::config::PipelineConfig::read(&root.join(file))
+            .unwrap_or_else(|error| panic!("{file}: {error}"));
+    }
+}
