@@ -315,3 +315,117 @@ impl WorkerPort {
             .receive(timeout.min(CREDIT_INTERVAL), metrics, handle)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::msg::StreamEnd;
+    use crate::runtime::bus::encode_to_vec;
+    use crate::transport::conformance::config;
+    use crate::transport::crossbeam::CrossbeamTransport;
+
+    fn job(frame_id: u64) -> (JobKey, Vec<u8>) {
+        let key = JobKey {
+            frame_id,
+            coarse_index: 0,
+        };
+        let bytes =
+            encode_to_vec(frame_id, 0, Body::StreamEnd(StreamEnd { frame_count: 0 })).unwrap();
+        (key, bytes)
+    }
+
+    /// The frame id of the next job a worker receives (pumping the dispatcher meanwhile).
+    fn next_job(worker: &mut WorkerPort, dispatcher: &mut Dispatcher) -> u64 {
+        let mut metrics = StageMetrics::default();
+        for _ in 0..500 {
+            dispatcher.pump(Duration::from_millis(2)).unwrap();
+            let mut got = None;
+            worker
+                .receive(Duration::from_millis(2), &mut metrics, &mut |message, _| {
+                    got = Some(message.header.frame_id)
+                })
+                .unwrap();
+            if let Some(frame_id) = got {
+                return frame_id;
+            }
+        }
+        panic!("no job arrived");
+    }
+
+    #[test]
+    fn each_job_goes_to_one_worker_and_a_restarted_workers_jobs_are_redone() {
+        let transport = CrossbeamTransport::new(config("dispatch"));
+        let mut dispatcher =
+            Dispatcher::open(&transport, "link", 10, Duration::from_secs(60)).unwrap();
+        let mut first = WorkerPort::open(&transport, "link", 0, 1, "test").unwrap();
+        let mut second = WorkerPort::open(&transport, "link", 1, 1, "test").unwrap();
+        for frame_id in 0..3 {
+            let (key, bytes) = job(frame_id);
+            dispatcher.push(key, bytes);
+        }
+        // One slot each: the first two jobs go one to each worker, the third waits.
+        let a = next_job(&mut first, &mut dispatcher);
+        let b = next_job(&mut second, &mut dispatcher);
+        assert_ne!(a, b);
+        dispatcher.pump(Duration::from_millis(20)).unwrap();
+        assert_eq!(dispatcher.queued(), 1);
+        assert_eq!(dispatcher.outstanding(), 2);
+
+        // Worker 0 dies holding job `a`; its restart announces a new incarnation.
+        drop(first);
+        std::thread::sleep(Duration::from_millis(2));
+        let mut restarted = WorkerPort::open(&transport, "link", 0, 1, "test").unwrap();
+        let redone = next_job(&mut restarted, &mut dispatcher);
+        assert_eq!(redone, a, "the dead worker's job is redone first");
+        assert_eq!(dispatcher.metrics.redispatched, 1);
+
+        // Both finish; the waiting job goes to whichever is free; then all is done.
+        second
+            .finished(JobKey {
+                frame_id: b,
+                coarse_index: 0,
+            })
+            .unwrap();
+        let c = next_job(&mut second, &mut dispatcher);
+        assert_eq!(
+            [a, b, c]
+                .iter()
+                .collect::<std::collections::BTreeSet<_>>()
+                .len(),
+            3
+        );
+        for (worker, frame_id) in [(&mut restarted, a), (&mut second, c)] {
+            worker
+                .finished(JobKey {
+                    frame_id,
+                    coarse_index: 0,
+                })
+                .unwrap();
+        }
+        for _ in 0..100 {
+            dispatcher.pump(Duration::from_millis(5)).unwrap();
+            if dispatcher.is_idle() {
+                break;
+            }
+        }
+        assert!(dispatcher.is_idle());
+        assert_eq!(dispatcher.jobs_done().values().sum::<u64>(), 3);
+    }
+
+    #[test]
+    fn a_silent_workers_jobs_are_redone_elsewhere() {
+        let transport = CrossbeamTransport::new(config("silence"));
+        let mut dispatcher =
+            Dispatcher::open(&transport, "link", 10, Duration::from_millis(300)).unwrap();
+        let mut silent = WorkerPort::open(&transport, "link", 0, 1, "test").unwrap();
+        let (key, bytes) = job(7);
+        dispatcher.push(key, bytes);
+        assert_eq!(next_job(&mut silent, &mut dispatcher), 7);
+        // Worker 0 goes quiet (no credits); worker 1 appears and gets the job after the limit.
+        let mut other = WorkerPort::open(&transport, "link", 1, 1, "test").unwrap();
+        let started = Instant::now();
+        assert_eq!(next_job(&mut other, &mut dispatcher), 7);
+        assert!(started.elapsed() >= Duration::from_millis(250));
+        assert_eq!(dispatcher.metrics.redispatched, 1);
+    }
+}

@@ -195,49 +195,85 @@ fn run_launch_and_a_zenoh_flow_worker_give_identical_results() {
 #[test]
 fn sigkill_of_a_flow_worker_mid_stream_loses_no_frame() {
     let dir = tempfile::tempdir().unwrap();
-    let scene = scene(dir.path(), 8);
+    let scene = scene(dir.path(), 10);
     let body = common(&unique("kill"), 2, "")
-        .replace("[transport]", "[source]\nrate_hz = 3.0\n\n[transport]");
+        .replace("[transport]", "[source]\nrate_hz = 2.0\n\n[transport]");
     let config = write_config(dir.path(), "kill.toml", &scene, "iceoryx2", &body);
     let out = dir.path().join("out");
     let mut launcher = command(&["launch", path_str(&config), "--out", path_str(&out)])
         .spawn()
         .unwrap();
-    // The launcher names each process it starts: "launch: flow worker 0 pid N".
+    // The launcher names each process it starts ("launch: flow worker 0 pid N") on stderr and
+    // prints each result ("frame ...") on stdout.
+    let (events, event_lines) = mpsc::channel::<(bool, u32)>();
+    let pid_events = events.clone();
     let stderr = launcher.stderr.take().unwrap();
-    let (pids, pid_lines) = mpsc::channel();
     let log = std::thread::spawn(move || {
         let mut text = String::new();
         for line in BufReader::new(stderr).lines() {
             let line = line.unwrap();
             if let Some(pid) = line.strip_prefix("launch: flow worker 0 pid ") {
-                let _ = pids.send(pid.trim().parse::<u32>().unwrap());
+                let _ = pid_events.send((true, pid.trim().parse::<u32>().unwrap()));
             }
             text.push_str(&line);
             text.push('\n');
         }
         text
     });
-    let first_pid = pid_lines.recv_timeout(Duration::from_secs(60)).unwrap();
-    // Mid-stream: the first frames are in flight (3 frames/s, 8 frames).
-    std::thread::sleep(Duration::from_millis(1500));
+    let stdout = launcher.stdout.take().unwrap();
+    let printed = std::thread::spawn(move || {
+        let mut text = String::new();
+        for line in BufReader::new(stdout).lines() {
+            let line = line.unwrap();
+            if line.starts_with("frame ") {
+                let _ = events.send((false, 0));
+            }
+            text.push_str(&line);
+            text.push('\n');
+        }
+        text
+    });
+    // Kill flow worker 0 once the first result is out: 10 frames at 2 frames/s, so most of the
+    // stream is still to come.
+    let mut pids = Vec::new();
+    loop {
+        match event_lines.recv_timeout(Duration::from_secs(120)) {
+            Ok((true, pid)) => pids.push(pid),
+            Ok((false, _)) => break,
+            Err(_) => {
+                let _ = launcher.kill();
+                panic!("no result from the launcher:\n{}", log.join().unwrap());
+            }
+        }
+    }
     let killed = Command::new("kill")
-        .args(["-9", &first_pid.to_string()])
+        .args(["-9", &pids[0].to_string()])
         .status()
         .unwrap();
     assert!(killed.success());
-    let (ok, stdout, _) = finish(launcher, Duration::from_secs(300));
+    let status = launcher.wait().unwrap();
     let log = log.join().unwrap();
-    assert!(ok, "launch failed after the kill:\n{stdout}\n{log}");
-    let restarted = pid_lines.recv_timeout(Duration::from_secs(1)).unwrap();
-    assert_ne!(restarted, first_pid, "the killed worker was restarted");
+    let stdout = printed.join().unwrap();
+    assert!(
+        status.success(),
+        "launch failed after the kill:\n{stdout}\n{log}"
+    );
+    while let Ok((is_pid, pid)) = event_lines.try_recv() {
+        if is_pid {
+            pids.push(pid);
+        }
+    }
+    assert!(
+        pids.len() >= 2,
+        "the killed flow worker was not restarted:\n{log}"
+    );
     assert!(log.contains("restarting"), "{log}");
     assert!(
         stdout.contains("exactly one result per frame: yes"),
         "{stdout}"
     );
     let results = results(&out);
-    assert_eq!(results.len(), 8);
+    assert_eq!(results.len(), 10);
     for result in &results {
         let failure = result["failure"].as_str().unwrap_or("");
         assert!(
