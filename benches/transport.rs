@@ -109,19 +109,60 @@ fn backends() -> Vec<BackendUnderTest> {
         Box::new(()) as Box<dyn std::any::Any>,
         crossbeam,
     ));
+    let iceoryx2 = transport::open(Backend::Iceoryx2, &config("iceoryx2"), &zenoh)
+        .expect("iceoryx2 transport");
+    list.push((
+        Backend::Iceoryx2,
+        Box::new(()) as Box<dyn std::any::Any>,
+        iceoryx2,
+    ));
+    // zenoh over TCP loopback, peer to peer: the subscribers' session listens, the publishers'
+    // session connects (no router in between; `launch` deployments add one hop through it).
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|listener| listener.local_addr())
+        .expect("a free loopback port")
+        .port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let listening = transport::zenoh::ZenohSettings {
+        mode: transport::zenoh::ZenohMode::Peer,
+        listen: Some(vec![endpoint.clone()]),
+        connect: Some(Vec::new()),
+        ..transport::zenoh::ZenohSettings::default()
+    };
+    let connecting = transport::zenoh::ZenohSettings {
+        mode: transport::zenoh::ZenohMode::Peer,
+        listen: Some(Vec::new()),
+        connect: Some(vec![endpoint]),
+        ..transport::zenoh::ZenohSettings::default()
+    };
+    let zenoh_config = config("zenoh");
+    let subscribers = transport::open(Backend::Zenoh, &zenoh_config, &listening)
+        .expect("zenoh transport (listening)");
+    let publishers = transport::open(Backend::Zenoh, &zenoh_config, &connecting)
+        .expect("zenoh transport (connecting)");
+    list.push((
+        Backend::Zenoh,
+        Box::new(publishers) as Box<dyn std::any::Any>,
+        subscribers,
+    ));
     list
 }
 
 fn transport_benches(c: &mut Criterion) {
     let messages = messages();
-    for (backend, _guard, transport) in backends() {
+    for (backend, guard, transport) in backends() {
+        // zenoh: publishers on the connecting session (the guard), subscribers on the listening one.
+        let publishing: std::sync::Arc<dyn Transport> = guard
+            .downcast_ref::<std::sync::Arc<dyn Transport>>()
+            .cloned()
+            .unwrap_or_else(|| transport.clone());
         let mut group = c.benchmark_group(format!("transport/{}", backend.name()));
         group.sample_size(20);
         group.measurement_time(Duration::from_secs(3));
         for (name, bytes) in &messages {
             let topic = format!("bench/{name}");
             let mut subscriber = transport.subscriber(&topic).expect("subscriber");
-            let mut publisher = transport.publisher(&topic).expect("publisher");
+            let mut publisher = publishing.publisher(&topic).expect("publisher");
             assert!(publisher
                 .wait_for_subscriber(Duration::from_secs(10))
                 .expect("wait"));

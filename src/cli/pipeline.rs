@@ -325,10 +325,33 @@ pub fn stage(args: &StageArgs) -> anyhow::Result<()> {
 pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
     let config = PipelineConfig::read(&args.config)?;
     ensure_synthetic_scene(&config, 8)?;
+    let collected = launch_pipeline(
+        &config,
+        &args.config,
+        verbose,
+        &mut |stage, worker, pid| eprintln!("launch: {stage} worker {worker} pid {pid}"),
+        &mut print_result,
+    )?;
+    let text = summary(&collected, config.backend.name());
+    println!("{text}");
+    write_outputs(&args.out, &collected, &text)?;
+    check_complete(&collected)
+}
+
+/// Runs `config` (read from `config_path`, which the stage processes read too) as one process
+/// per stage worker: cleans stale iceoryx2 resources or starts the zenoh router, supervises the
+/// stages, and returns what the collector saw.
+fn launch_pipeline(
+    config: &PipelineConfig,
+    config_path: &Path,
+    verbose: u8,
+    on_started: &mut dyn FnMut(&str, u32, u32),
+    on_result: &mut dyn FnMut(&Header, &PoseResult),
+) -> anyhow::Result<Collected> {
     if config.backend == Backend::Crossbeam {
         bail!(
             "{}: backend 'crossbeam' is one process; launch needs backend = \"iceoryx2\" or \"zenoh\" (or use `asgreg run`)",
-            args.config.display()
+            config_path.display()
         );
     }
     if config.backend == Backend::Iceoryx2 {
@@ -349,26 +372,16 @@ pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
     let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
     let command = StageCommand {
         program,
-        config_path: absolute(&args.config),
+        config_path: absolute(config_path),
         global_args: (0..verbose).map(|_| "-v".to_string()).collect(),
     };
-    let collected = launch(
-        &config,
-        transport.as_ref(),
-        &command,
-        &mut |stage, worker, pid| eprintln!("launch: {stage} worker {worker} pid {pid}"),
-        &mut print_result,
-    );
+    let collected = launch(config, transport.as_ref(), &command, on_started, on_result);
     drop(transport);
     if let Some(router) = &mut router {
         let _ = router.kill();
         let _ = router.wait();
     }
-    let collected = collected?;
-    let text = summary(&collected, config.backend.name());
-    println!("{text}");
-    write_outputs(&args.out, &collected, &text)?;
-    check_complete(&collected)
+    Ok(collected?)
 }
 
 /// Starts `asgreg zenoh-router` and waits until its first endpoint accepts connections.
@@ -446,12 +459,14 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         Some(scene) => scene.clone(),
         None => default_scene(&args.out, args.frames)?,
     };
+    // Absolute: the stage processes read the configuration from another folder.
+    let scene = absolute(&scene);
     let mut base = scene_config(&scene);
     base.source.max_frames = args.frames;
     let mesh = read_mesh(&base.mesh)?;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     println!(
-        "whole-pipeline runs, {} frames at 505x275, {} coarse poses each, on {cores} cores",
+        "whole-pipeline runs (crossbeam: threads of one process; iceoryx2, zenoh: one process per stage worker), {} frames at 505x275, {} coarse poses each, on {cores} cores",
         args.frames, base.registration.coarse_pose_count
     );
     let mut rows = Vec::new();
@@ -461,14 +476,32 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             config.backend = (*backend).into();
             config.workers.flow = flow;
             config.transport.pipeline = format!("bench-{}-{flow}", std::process::id());
-            let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
-            let collected = run_in_process(
-                &config,
-                transport.as_ref(),
-                &mesh,
-                Duration::from_secs(3600),
-                &mut |_, _| {},
-            )?;
+            let collected = if config.backend == Backend::Crossbeam {
+                let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
+                run_in_process(
+                    &config,
+                    transport.as_ref(),
+                    &mesh,
+                    Duration::from_secs(3600),
+                    &mut |_, _| {},
+                )?
+            } else {
+                // One process per stage worker, as deployed.
+                if config.backend == Backend::Zenoh {
+                    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+                        .local_addr()?
+                        .port();
+                    let endpoint = format!("tcp/127.0.0.1:{port}");
+                    config.launch.zenoh_router_listen = vec![endpoint.clone()];
+                    config.zenoh.connect = Some(vec![endpoint]);
+                }
+                std::fs::create_dir_all(&args.out)?;
+                let path = args
+                    .out
+                    .join(format!("bench-{}-{flow}.toml", config.backend.name()));
+                std::fs::write(&path, toml::to_string(&config)?)?;
+                launch_pipeline(&config, &path, 0, &mut |_, _, _| {}, &mut |_, _| {})?
+            };
             check_complete(&collected)?;
             rows.push((config.backend.name(), flow, collected));
         }

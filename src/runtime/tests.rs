@@ -164,3 +164,46 @@ fn bad_messages_are_rejected_and_the_pipeline_goes_on() {
     assert_eq!(rejected("verify"), 2);
     assert!(rejected("flow") >= 1);
 }
+
+#[test]
+fn drop_oldest_backpressure_reports_every_dropped_frame_as_its_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    config.backpressure.policy = super::config::BackpressurePolicy::DropOldest;
+    config.backpressure.frames_queued = 1;
+    config.workers.flow = 1;
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let transport = CrossbeamTransport::new(config.transport.clone());
+    let collected = run_in_process(
+        &config,
+        &transport,
+        &mesh,
+        Duration::from_secs(300),
+        &mut |_, _| {},
+    )
+    .unwrap();
+    // The source reads frames far faster than one flow worker registers them: with one frame
+    // of queue, some are dropped — and each still has exactly one result saying so.
+    assert_eq!(collected.frame_count, Some(4));
+    assert!(collected.missing().is_empty() && collected.duplicates.is_empty());
+    let dropped: Vec<&str> = collected
+        .results
+        .iter()
+        .filter(|r| r.failure.as_deref().is_some_and(|f| f.contains("dropped")))
+        .map(|r| r.name.as_str())
+        .collect();
+    assert!(!dropped.is_empty(), "nothing was dropped");
+    assert!(dropped.len() < 4, "everything was dropped");
+    let counted: u64 = collected
+        .metrics
+        .iter()
+        .filter(|((stage, _), _)| stage == "ingest")
+        .map(|(_, m)| m.dropped)
+        .sum();
+    assert_eq!(counted as usize, dropped.len());
+    let summary = collect::summary(&collected, "crossbeam");
+    assert!(
+        summary.contains(&format!("{} dropped", dropped.len())),
+        "{summary}"
+    );
+}
