@@ -137,6 +137,9 @@ impl Iceoryx2Transport {
     /// pipeline name gives valid iceoryx2 service names. Uses iceoryx2's global configuration
     /// (its config file if there is one, else the defaults).
     pub fn new(config: TransportConfig) -> Result<Self, TransportError> {
+        // iceoryx2 warns on stderr that it found no config file (we use its defaults on purpose);
+        // keep its own log to errors unless IOX2_LOG_LEVEL says otherwise.
+        iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
         Self::with_iceoryx_config(config, Config::global_config().clone())
     }
 
