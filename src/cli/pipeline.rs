@@ -200,6 +200,15 @@ fn print_result(header: &Header, result: &PoseResult) {
     );
 }
 
+/// Prints the summary, writes results.jsonl and summary.txt, and fails unless every frame has
+/// exactly one result.
+fn report(out: &Path, collected: &Collected, backend: &str) -> anyhow::Result<()> {
+    let text = summary(collected, backend);
+    println!("{text}");
+    write_outputs(out, collected, &text)?;
+    check_complete(collected)
+}
+
 fn write_outputs(out: &Path, collected: &Collected, text: &str) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let path = out.join("results.jsonl");
@@ -279,10 +288,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         Duration::from_secs_f64(config.launch.deadline_s),
         &mut print_result,
     )?;
-    let text = summary(&collected, config.backend.name());
-    println!("{text}");
-    write_outputs(&args.out, &collected, &text)?;
-    check_complete(&collected)
+    report(&args.out, &collected, config.backend.name())
 }
 
 pub fn stage(args: &StageArgs) -> anyhow::Result<()> {
@@ -332,10 +338,7 @@ pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
         &mut |stage, worker, pid| eprintln!("launch: {stage} worker {worker} pid {pid}"),
         &mut print_result,
     )?;
-    let text = summary(&collected, config.backend.name());
-    println!("{text}");
-    write_outputs(&args.out, &collected, &text)?;
-    check_complete(&collected)
+    report(&args.out, &collected, config.backend.name())
 }
 
 /// Runs `config` (read from `config_path`, which the stage processes read too) as one process

@@ -100,14 +100,7 @@ impl Publisher for CrossbeamPublisher {
         len: usize,
         write: &mut dyn FnMut(&mut [u8]),
     ) -> Result<(), TransportError> {
-        if len > self.max_message_bytes {
-            return Err(TransportError::TooLarge {
-                backend: BACKEND,
-                topic: self.topic.clone(),
-                bytes: len,
-                limit: self.max_message_bytes,
-            });
-        }
+        super::check_message_size(BACKEND, &self.topic, len, self.max_message_bytes)?;
         let mut message = vec![0u8; len];
         write(&mut message);
         // The senders are cloned out of the lock: a blocking send must not hold the registry.

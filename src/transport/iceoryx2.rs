@@ -562,14 +562,7 @@ impl Publisher for Iceoryx2Publisher {
         len: usize,
         write: &mut dyn FnMut(&mut [u8]),
     ) -> Result<(), TransportError> {
-        if len > self.max_message_bytes {
-            return Err(TransportError::TooLarge {
-                backend: BACKEND,
-                topic: self.topic.clone(),
-                bytes: len,
-                limit: self.max_message_bytes,
-            });
-        }
+        super::check_message_size(BACKEND, &self.topic, len, self.max_message_bytes)?;
         // A subscriber that has not attached must not be sent a message its full queue would
         // drop: wait for it as for a full queue.
         self.wait_for_attachments(|queue| queue.saturating_sub(1), None)?;

@@ -65,6 +65,24 @@ pub enum TransportError {
     },
 }
 
+/// The size check every backend makes before it sends: `len` must not exceed `limit`.
+pub(crate) fn check_message_size(
+    backend: &'static str,
+    topic: &str,
+    len: usize,
+    limit: usize,
+) -> Result<(), TransportError> {
+    if len > limit {
+        return Err(TransportError::TooLarge {
+            backend,
+            topic: topic.to_string(),
+            bytes: len,
+            limit,
+        });
+    }
+    Ok(())
+}
+
 /// Settings shared by all backends.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]

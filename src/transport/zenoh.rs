@@ -416,14 +416,7 @@ impl Publisher for ZenohPublisher {
         len: usize,
         write: &mut dyn FnMut(&mut [u8]),
     ) -> Result<(), TransportError> {
-        if len > self.max_message_bytes {
-            return Err(TransportError::TooLarge {
-                backend: BACKEND,
-                topic: self.topic.clone(),
-                bytes: len,
-                limit: self.max_message_bytes,
-            });
-        }
+        super::check_message_size(BACKEND, &self.topic, len, self.max_message_bytes)?;
         let mut message = vec![0u8; len];
         write(&mut message);
         // The Vec becomes the payload without a copy.
