@@ -55,6 +55,7 @@ impl Default for PipelineConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Workers {
+    /// Render workers; one is supported (it owns the flow dispatcher).
     pub render: u32,
     /// The expensive stage: the (frame, coarse pose) jobs are shared among these.
     pub flow: u32,
@@ -235,6 +236,12 @@ impl PipelineConfig {
             return Err(invalid(
                 "workers",
                 "render, flow and pose need at least one worker each".to_string(),
+            ));
+        }
+        if self.workers.render != 1 {
+            return Err(invalid(
+                "workers.render",
+                "one render worker is supported: it owns the flow dispatcher (render is ~0.4 s of a frame's ~7 s of compute; flow is the stage to scale)".to_string(),
             ));
         }
         if self.workers.pose != 1 {
