@@ -82,6 +82,11 @@ impl<'t> Dispatcher<'t> {
         self.queue.len()
     }
 
+    /// Whether any job of `frame_id` still waits for a worker.
+    pub fn has_queued(&self, frame_id: u64) -> bool {
+        self.queue.iter().any(|(key, _)| key.frame_id == frame_id)
+    }
+
     /// Jobs sent and not yet reported finished.
     pub fn outstanding(&self) -> usize {
         self.workers.values().map(|w| w.outstanding.len()).sum()

@@ -203,16 +203,19 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
 }
 
 /// Stage "render": takes a frame when the flow queue has room for its coarse poses, renders them
-/// and dispatches the flow jobs to the flow workers.
+/// and dispatches the flow jobs to the flow workers. A frame is reported finished to ingest only
+/// once all its jobs have left render's queue, so if render dies before that, ingest hands the
+/// frame to the restarted render and nothing is lost.
 pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
     let config = ctx.config;
     let mut metrics = ctx.metrics("render");
     let mut reporter = MetricsReporter::open(ctx.transport)?;
+    // Two frames: one whose jobs are being handed out, one being rendered.
     let mut port = WorkerPort::open(
         ctx.transport,
         keys::FRAMES_LINK,
         ctx.worker_index,
-        1,
+        2,
         "render",
     )?;
     let mut dispatcher = Dispatcher::open(
@@ -225,14 +228,26 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     verify.wait_for_reader("verify", ctx.startup())?;
     let mut stage = RenderStage::new(mesh, config.registration.clone());
     let frame_room = config.registration.coarse_pose_count;
+    // Frames whose jobs are still (partly) in render's queue.
+    let mut handing_out: Vec<u64> = Vec::new();
     while !ctx.stopped() {
         dispatcher.pump(Duration::ZERO)?;
+        let (handed_out, waiting): (Vec<u64>, Vec<u64>) = handing_out
+            .iter()
+            .partition(|frame_id| !dispatcher.has_queued(**frame_id));
+        handing_out = waiting;
+        for frame_id in handed_out {
+            port.finished(JobKey {
+                frame_id,
+                coarse_index: 0,
+            })?;
+        }
         if dispatcher.queued() + frame_room > config.backpressure.flow_jobs_queued {
             port.heartbeat()?;
             dispatcher.pump(POLL)?;
             continue;
         }
-        let mut finished: Option<Result<JobKey, BusError>> = None;
+        let mut finished: Option<Result<(JobKey, bool), BusError>> = None;
         port.receive(POLL, &mut metrics, &mut |message, metrics| {
             let frame_id = message.header.frame_id;
             let capture = message.header.capture_time_ns;
@@ -243,31 +258,37 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             let started = Instant::now();
             let outcome = stage.process(&frame);
             record_compute(metrics, started);
-            let sent = match outcome {
-                Ok(jobs) => jobs.into_iter().try_for_each(|job| {
-                    let key = JobKey {
-                        frame_id,
-                        coarse_index: job.meta.coarse_index,
-                    };
-                    let bytes = encode_to_vec(frame_id, capture, Body::FlowJob(job))?;
-                    dispatcher.push(key, bytes);
-                    Ok(())
-                }),
+            let key = JobKey {
+                frame_id,
+                coarse_index: 0,
+            };
+            finished = Some(match outcome {
+                Ok(jobs) => jobs
+                    .into_iter()
+                    .try_for_each(|job| {
+                        let key = JobKey {
+                            frame_id,
+                            coarse_index: job.meta.coarse_index,
+                        };
+                        let bytes = encode_to_vec(frame_id, capture, Body::FlowJob(job))?;
+                        dispatcher.push(key, bytes);
+                        Ok(())
+                    })
+                    .map(|()| (key, false)),
                 Err(failed) => {
                     tracing::warn!("frame {frame_id} '{}': {}", failed.name, failed.reason);
                     verify
                         .send(frame_id, capture, Body::FrameFailed(failed), metrics)
-                        .map(|_| ())
+                        .map(|_| (key, true))
                 }
-            };
-            finished = Some(sent.map(|()| JobKey {
-                frame_id,
-                coarse_index: 0,
-            }));
+            });
         })?;
-        if let Some(finished) = finished {
-            port.finished(finished?)?;
-            dispatcher.pump(Duration::ZERO)?;
+        match finished {
+            // A failed frame is done; a rendered one once its jobs are handed out.
+            Some(Ok((key, true))) => port.finished(key)?,
+            Some(Ok((key, false))) => handing_out.push(key.frame_id),
+            Some(Err(error)) => return Err(error.into()),
+            None => {}
         }
         metrics.max_queue_depth = metrics.max_queue_depth.max(dispatcher.queued() as u64);
         metrics.redispatched = dispatcher.metrics.redispatched;

@@ -1,7 +1,7 @@
 //! The streaming pipeline as processes: the same synthetic frames through `asgreg run` (one
 //! process, crossbeam), `asgreg launch` (one process per stage over iceoryx2) and with the flow
-//! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker mid-stream
-//! loses no frame; a stage process rejects a message with a wrong schema version and lives on.
+//! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker and render
+//! mid-stream loses no frame; a stage process rejects a message with a wrong schema version and lives on.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -192,8 +192,15 @@ fn run_launch_and_a_zenoh_flow_worker_give_identical_results() {
     );
 }
 
+/// What the launcher printed that the kill test waits for.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Event {
+    Result,
+    Started { stage: &'static str, pid: u32 },
+}
+
 #[test]
-fn sigkill_of_a_flow_worker_mid_stream_loses_no_frame() {
+fn sigkill_of_a_flow_worker_and_of_render_mid_stream_loses_no_frame() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene(dir.path(), 10);
     let body = common(&unique("kill"), 2, "")
@@ -205,15 +212,18 @@ fn sigkill_of_a_flow_worker_mid_stream_loses_no_frame() {
         .unwrap();
     // The launcher names each process it starts ("launch: flow worker 0 pid N") on stderr and
     // prints each result ("frame ...") on stdout.
-    let (events, event_lines) = mpsc::channel::<(bool, u32)>();
+    let (events, received) = mpsc::channel::<Event>();
     let pid_events = events.clone();
     let stderr = launcher.stderr.take().unwrap();
     let log = std::thread::spawn(move || {
         let mut text = String::new();
         for line in BufReader::new(stderr).lines() {
             let line = line.unwrap();
-            if let Some(pid) = line.strip_prefix("launch: flow worker 0 pid ") {
-                let _ = pid_events.send((true, pid.trim().parse::<u32>().unwrap()));
+            for stage in ["flow", "render"] {
+                if let Some(pid) = line.strip_prefix(&format!("launch: {stage} worker 0 pid ")) {
+                    let pid = pid.trim().parse::<u32>().unwrap();
+                    let _ = pid_events.send(Event::Started { stage, pid });
+                }
             }
             text.push_str(&line);
             text.push('\n');
@@ -226,47 +236,56 @@ fn sigkill_of_a_flow_worker_mid_stream_loses_no_frame() {
         for line in BufReader::new(stdout).lines() {
             let line = line.unwrap();
             if line.starts_with("frame ") {
-                let _ = events.send((false, 0));
+                let _ = events.send(Event::Result);
             }
             text.push_str(&line);
             text.push('\n');
         }
         text
     });
-    // Kill flow worker 0 once the first result is out: 10 frames at 2 frames/s, so most of the
-    // stream is still to come.
-    let mut pids = Vec::new();
+    // Kill flow worker 0, then render, once the first result is out: 10 frames at 2 frames/s,
+    // so most of the stream is still to come.
+    let mut started = Vec::new();
     loop {
-        match event_lines.recv_timeout(Duration::from_secs(120)) {
-            Ok((true, pid)) => pids.push(pid),
-            Ok((false, _)) => break,
+        match received.recv_timeout(Duration::from_secs(120)) {
+            Ok(Event::Started { stage, pid }) => started.push((stage, pid)),
+            Ok(Event::Result) => break,
             Err(_) => {
                 let _ = launcher.kill();
                 panic!("no result from the launcher:\n{}", log.join().unwrap());
             }
         }
     }
-    let killed = Command::new("kill")
-        .args(["-9", &pids[0].to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
+    let kill = |stage: &str, started: &[(&str, u32)]| {
+        let pid = started.iter().find(|(s, _)| *s == stage).unwrap().1;
+        let killed = Command::new("kill")
+            .args(["-9", &pid.to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+    };
+    kill("flow", &started);
+    std::thread::sleep(Duration::from_millis(700));
+    kill("render", &started);
     let status = launcher.wait().unwrap();
     let log = log.join().unwrap();
     let stdout = printed.join().unwrap();
     assert!(
         status.success(),
-        "launch failed after the kill:\n{stdout}\n{log}"
+        "launch failed after the kills:\n{stdout}\n{log}"
     );
-    while let Ok((is_pid, pid)) = event_lines.try_recv() {
-        if is_pid {
-            pids.push(pid);
+    while let Ok(event) = received.try_recv() {
+        if let Event::Started { stage, pid } = event {
+            started.push((stage, pid));
         }
     }
-    assert!(
-        pids.len() >= 2,
-        "the killed flow worker was not restarted:\n{log}"
-    );
+    for stage in ["flow", "render"] {
+        let starts = started.iter().filter(|(s, _)| *s == stage).count();
+        assert!(
+            starts >= 2,
+            "the killed {stage} worker was not restarted:\n{log}"
+        );
+    }
     assert!(log.contains("restarting"), "{log}");
     assert!(
         stdout.contains("exactly one result per frame: yes"),
