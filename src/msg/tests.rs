@@ -113,7 +113,10 @@ fn every_kind() -> Vec<Body<'static>> {
             compute_samples_ms: vec![1.0, 2.0],
             ..StageMetrics::default()
         }),
-        Body::StreamEnd(StreamEnd { frame_count: 48 }),
+        Body::StreamEnd(StreamEnd {
+            frame_count: 48,
+            finished_frames: Vec::new(),
+        }),
     ]
 }
 

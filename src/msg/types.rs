@@ -305,6 +305,8 @@ pub struct Credit {
 pub struct StageMetrics {
     pub stage: String,
     pub worker_index: u32,
+    /// Changes every time the process starts (a restart is seen as a new value).
+    pub incarnation: u64,
     pub messages_in: u64,
     pub messages_out: u64,
     pub dropped: u64,
@@ -328,4 +330,6 @@ pub struct StageMetrics {
 pub struct StreamEnd {
     /// Frames the source produced (ids 0..frame_count).
     pub frame_count: u64,
+    /// Frames whose result the source has already seen (a restarted verify learns them here).
+    pub finished_frames: Vec<u64>,
 }

@@ -107,7 +107,12 @@ impl<'t> Dispatcher<'t> {
 
     /// Queues an encoded job message.
     pub fn push(&mut self, key: JobKey, message: Vec<u8>) {
-        self.queue.push_back((key, Arc::new(message)));
+        self.push_shared(key, Arc::new(message));
+    }
+
+    /// Queues an encoded job message the caller also keeps.
+    pub fn push_shared(&mut self, key: JobKey, message: Arc<Vec<u8>>) {
+        self.queue.push_back((key, message));
         self.metrics.max_queue_depth = self.metrics.max_queue_depth.max(self.queue.len() as u64);
     }
 
@@ -334,8 +339,15 @@ mod tests {
             frame_id,
             coarse_index: 0,
         };
-        let bytes =
-            encode_to_vec(frame_id, 0, Body::StreamEnd(StreamEnd { frame_count: 0 })).unwrap();
+        let bytes = encode_to_vec(
+            frame_id,
+            0,
+            Body::StreamEnd(StreamEnd {
+                frame_count: 0,
+                finished_frames: Vec::new(),
+            }),
+        )
+        .unwrap();
         (key, bytes)
     }
 

@@ -53,6 +53,7 @@ impl NodeContext<'_> {
         StageMetrics {
             stage: stage.to_string(),
             worker_index: self.worker_index,
+            incarnation: process_incarnation(),
             ..StageMetrics::default()
         }
     }
@@ -88,6 +89,125 @@ impl MetricsReporter {
     }
 }
 
+/// A value that differs between two starts of a process (so a restart is visible in metrics).
+fn process_incarnation() -> u64 {
+    static INCARNATION: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *INCARNATION.get_or_init(|| unix_time_ns() ^ (u64::from(std::process::id()) << 32))
+}
+
+/// What ingest keeps of a frame until its result is out.
+enum Kept {
+    Frame(std::sync::Arc<Vec<u8>>),
+    Failed(FrameFailed, u64),
+}
+
+/// Ingest's memory of every frame until its result is out, so that the frames a crashed pose or
+/// verify process took with it are redone (render and flow have the dispatcher's redo).
+struct Recovery {
+    results: Inbox,
+    metrics: Inbox,
+    kept: std::collections::BTreeMap<u64, Kept>,
+    finished: std::collections::BTreeSet<u64>,
+    incarnations: HashMap<(String, u32), u64>,
+}
+
+impl Recovery {
+    fn open(transport: &dyn Transport) -> Result<Self, BusError> {
+        Ok(Self {
+            results: Inbox::open(transport, keys::RESULTS, "ingest")?,
+            metrics: Inbox::open(transport, keys::METRICS, "ingest")?,
+            kept: std::collections::BTreeMap::new(),
+            finished: std::collections::BTreeSet::new(),
+            incarnations: HashMap::new(),
+        })
+    }
+
+    /// Takes the results and metrics that arrived; true when pose or verify restarted.
+    fn poll(&mut self) -> Result<bool, BusError> {
+        let mut scratch = StageMetrics::default();
+        let (kept, finished) = (&mut self.kept, &mut self.finished);
+        while self
+            .results
+            .receive(Duration::ZERO, &mut scratch, &mut |message, _| {
+                if let Body::PoseResult(result) = message.body {
+                    kept.remove(&result.frame_id);
+                    finished.insert(result.frame_id);
+                }
+            })?
+        {}
+        let mut restarted = false;
+        let incarnations = &mut self.incarnations;
+        while self
+            .metrics
+            .receive(Duration::ZERO, &mut scratch, &mut |message, _| {
+                if let Body::Metrics(metrics) = message.body {
+                    if metrics.stage == "pose" || metrics.stage == "verify" {
+                        let key = (metrics.stage.clone(), metrics.worker_index);
+                        if let Some(previous) = incarnations.insert(key, metrics.incarnation) {
+                            if previous != metrics.incarnation {
+                                tracing::warn!(
+                                    "ingest: the {} stage restarted; redoing the frames without a result",
+                                    metrics.stage
+                                );
+                                restarted = true;
+                            }
+                        }
+                    }
+                }
+            })?
+        {}
+        Ok(restarted)
+    }
+
+    fn finished_frames(&self) -> Vec<u64> {
+        self.finished.iter().copied().collect()
+    }
+
+    /// Sends every frame without a result again (verify ignores what it already has).
+    fn redo(
+        &mut self,
+        dispatcher: &mut Dispatcher,
+        verify: &mut Outbox,
+        stream_end: Option<u64>,
+        metrics: &mut StageMetrics,
+    ) -> Result<(), BusError> {
+        for (frame_id, kept) in &self.kept {
+            match kept {
+                Kept::Frame(bytes) => {
+                    metrics.redispatched += 1;
+                    dispatcher.push_shared(
+                        JobKey {
+                            frame_id: *frame_id,
+                            coarse_index: 0,
+                        },
+                        std::sync::Arc::clone(bytes),
+                    );
+                }
+                Kept::Failed(failed, capture) => {
+                    verify.send(
+                        *frame_id,
+                        *capture,
+                        Body::FrameFailed(failed.clone()),
+                        metrics,
+                    )?;
+                }
+            }
+        }
+        if let Some(frame_count) = stream_end {
+            verify.send(
+                0,
+                0,
+                Body::StreamEnd(StreamEnd {
+                    frame_count,
+                    finished_frames: self.finished_frames(),
+                }),
+                metrics,
+            )?;
+        }
+        Ok(())
+    }
+}
+
 fn record_compute(metrics: &mut StageMetrics, started: Instant) {
     let ms = started.elapsed().as_secs_f64() * 1e3;
     metrics.compute_ms += ms;
@@ -102,8 +222,9 @@ fn unexpected(stage: &str, kind: crate::msg::MessageKind, frame_id: u64) {
 }
 
 /// Stage "ingest": reads the source, dispatches frames to render workers by the backpressure
-/// policy, sends failures and the end of the stream to verify, and waits until every frame was
-/// taken by a render worker (redoing the frames of a render worker that died).
+/// policy, sends failures and the end of the stream to verify, and stays until every frame has
+/// its result: it redoes the frames of a render worker that died (dispatcher) and, when pose or
+/// verify restarts, every frame still without a result (`Recovery`).
 pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     let config = ctx.config;
     let mut metrics = ctx.metrics("ingest");
@@ -117,6 +238,7 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     )?;
     let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
     verify.wait_for_reader("verify", ctx.startup())?;
+    let mut recovery = Recovery::open(ctx.transport)?;
     let period =
         (config.source.rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / config.source.rate_hz));
     let mut next_emit = Instant::now();
@@ -126,9 +248,15 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         if ctx.stopped() {
             return Ok(metrics);
         }
+        if recovery.poll()? {
+            recovery.redo(&mut dispatcher, &mut verify, None, &mut metrics)?;
+        }
         if let Some(period) = period {
             while Instant::now() < next_emit {
                 dispatcher.pump((next_emit - Instant::now()).min(POLL))?;
+                if recovery.poll()? {
+                    recovery.redo(&mut dispatcher, &mut verify, None, &mut metrics)?;
+                }
             }
             next_emit += period;
         }
@@ -137,6 +265,9 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         match frame {
             Err(failed) => {
                 tracing::warn!("frame {frame_id} '{}': {}", failed.name, failed.reason);
+                recovery
+                    .kept
+                    .insert(frame_id, Kept::Failed(failed.clone(), capture_time_ns));
                 verify.send(
                     frame_id,
                     capture_time_ns,
@@ -146,16 +277,32 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
             }
             Ok(frame) => {
                 names.insert(frame_id, (frame.info.name.clone(), capture_time_ns));
-                let bytes = encode_to_vec(frame_id, capture_time_ns, Body::Frame(frame))?;
+                let bytes = std::sync::Arc::new(encode_to_vec(
+                    frame_id,
+                    capture_time_ns,
+                    Body::Frame(frame),
+                )?);
+                recovery
+                    .kept
+                    .insert(frame_id, Kept::Frame(std::sync::Arc::clone(&bytes)));
                 record_compute(&mut metrics, started);
                 while !dispatcher.has_room() {
                     match config.backpressure.policy {
-                        BackpressurePolicy::Block => dispatcher.pump(POLL)?,
+                        BackpressurePolicy::Block => {
+                            dispatcher.pump(POLL)?;
+                            if recovery.poll()? {
+                                recovery.redo(&mut dispatcher, &mut verify, None, &mut metrics)?;
+                            }
+                        }
                         BackpressurePolicy::DropOldest => {
+                            if recovery.poll()? {
+                                recovery.redo(&mut dispatcher, &mut verify, None, &mut metrics)?;
+                            }
                             if let Some(dropped) = dispatcher.drop_oldest() {
                                 metrics.dropped += 1;
                                 let (name, capture) =
                                     names.get(&dropped.frame_id).cloned().unwrap_or_default();
+                                recovery.kept.remove(&dropped.frame_id);
                                 tracing::warn!("frame {} '{name}' dropped: the pipeline is full (backpressure policy drop-oldest)", dropped.frame_id);
                                 verify.send(
                                     dropped.frame_id,
@@ -171,7 +318,7 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                         }
                     }
                 }
-                dispatcher.push(
+                dispatcher.push_shared(
                     JobKey {
                         frame_id,
                         coarse_index: 0,
@@ -185,14 +332,32 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         metrics.max_queue_depth = metrics.max_queue_depth.max(dispatcher.queued() as u64);
         reporter.tick(&metrics, false);
     }
+    recovery.poll()?;
     verify.send(
         0,
         0,
-        Body::StreamEnd(StreamEnd { frame_count }),
+        Body::StreamEnd(StreamEnd {
+            frame_count,
+            finished_frames: recovery.finished_frames(),
+        }),
         &mut metrics,
     )?;
-    while !dispatcher.is_idle() && !ctx.stopped() {
+    // Until every frame has its result: redo what a crashed stage took with it.
+    loop {
+        let complete = dispatcher.is_idle() && recovery.finished.len() as u64 >= frame_count;
+        if complete || ctx.stopped() {
+            break;
+        }
+
         dispatcher.pump(POLL)?;
+        if recovery.poll()? {
+            recovery.redo(
+                &mut dispatcher,
+                &mut verify,
+                Some(frame_count),
+                &mut metrics,
+            )?;
+        }
         reporter.tick(&metrics, false);
     }
     metrics.redispatched += dispatcher.metrics.redispatched;
@@ -419,7 +584,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                         .or_insert(message.header.capture_time_ns);
                     produced.extend(stage.on_failure(frame_id, &failure));
                 }
-                Body::StreamEnd(end) => stage.on_stream_end(end.frame_count),
+                Body::StreamEnd(end) => stage.on_stream_end(end.frame_count, &end.finished_frames),
                 other => unexpected("verify", other.kind(), frame_id),
             }
             record_compute(metrics, started);
@@ -452,7 +617,10 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 results.send(
                     0,
                     0,
-                    Body::StreamEnd(StreamEnd { frame_count }),
+                    Body::StreamEnd(StreamEnd {
+                        frame_count,
+                        finished_frames: Vec::new(),
+                    }),
                     &mut metrics,
                 )?;
             }

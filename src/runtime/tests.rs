@@ -119,7 +119,10 @@ fn bad_messages_are_rejected_and_the_pipeline_goes_on() {
     let mut wrong_version = bus::encode_to_vec(
         0,
         0,
-        crate::msg::Body::StreamEnd(crate::msg::StreamEnd { frame_count: 0 }),
+        crate::msg::Body::StreamEnd(crate::msg::StreamEnd {
+            frame_count: 0,
+            finished_frames: Vec::new(),
+        }),
     )
     .unwrap();
     wrong_version[4..6].copy_from_slice(&7u16.to_le_bytes());

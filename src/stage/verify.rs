@@ -115,9 +115,15 @@ impl<'m> VerifyStage<'m> {
         ))
     }
 
-    /// The source produced `frame_count` frames (ids 0..frame_count).
-    pub fn on_stream_end(&mut self, frame_count: u64) {
+    /// The source produced `frame_count` frames (ids 0..frame_count), of which `finished_frames`
+    /// already have their result (told again after this stage restarted).
+    pub fn on_stream_end(&mut self, frame_count: u64, finished_frames: &[u64]) {
         self.stream_frame_count = Some(frame_count);
+        for &frame_id in finished_frames {
+            if !self.is_finished(frame_id) {
+                self.mark_finished(frame_id);
+            }
+        }
     }
 
     /// Results for frames that waited longer than the timeout (a job was lost for good).

@@ -1,7 +1,7 @@
 //! The streaming pipeline as processes: the same synthetic frames through `asgreg run` (one
 //! process, crossbeam), `asgreg launch` (one process per stage over iceoryx2) and with the flow
-//! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker and render
-//! mid-stream loses no frame; a stage process rejects a message with a wrong schema version and lives on.
+//! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker, render and
+//! verify mid-stream loses no frame; a stage process rejects a message with a wrong schema version and lives on.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -200,7 +200,7 @@ enum Event {
 }
 
 #[test]
-fn sigkill_of_a_flow_worker_and_of_render_mid_stream_loses_no_frame() {
+fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene(dir.path(), 10);
     let body = common(&unique("kill"), 2, "")
@@ -219,7 +219,7 @@ fn sigkill_of_a_flow_worker_and_of_render_mid_stream_loses_no_frame() {
         let mut text = String::new();
         for line in BufReader::new(stderr).lines() {
             let line = line.unwrap();
-            for stage in ["flow", "render"] {
+            for stage in ["flow", "render", "verify"] {
                 if let Some(pid) = line.strip_prefix(&format!("launch: {stage} worker 0 pid ")) {
                     let pid = pid.trim().parse::<u32>().unwrap();
                     let _ = pid_events.send(Event::Started { stage, pid });
@@ -243,7 +243,7 @@ fn sigkill_of_a_flow_worker_and_of_render_mid_stream_loses_no_frame() {
         }
         text
     });
-    // Kill flow worker 0, then render, once the first result is out: 10 frames at 2 frames/s,
+    // Kill flow worker 0, then render, then verify, once the first result is out: 10 frames at 2 frames/s,
     // so most of the stream is still to come.
     let mut started = Vec::new();
     loop {
@@ -267,6 +267,8 @@ fn sigkill_of_a_flow_worker_and_of_render_mid_stream_loses_no_frame() {
     kill("flow", &started);
     std::thread::sleep(Duration::from_millis(700));
     kill("render", &started);
+    std::thread::sleep(Duration::from_millis(700));
+    kill("verify", &started);
     let status = launcher.wait().unwrap();
     let log = log.join().unwrap();
     let stdout = printed.join().unwrap();
@@ -279,7 +281,7 @@ fn sigkill_of_a_flow_worker_and_of_render_mid_stream_loses_no_frame() {
             started.push((stage, pid));
         }
     }
-    for stage in ["flow", "render"] {
+    for stage in ["flow", "render", "verify"] {
         let starts = started.iter().filter(|(s, _)| *s == stage).count();
         assert!(
             starts >= 2,
@@ -328,7 +330,15 @@ fn a_stage_process_rejects_a_wrong_schema_version_and_keeps_running() {
     outbox
         .wait_for_reader("verify", Duration::from_secs(30))
         .unwrap();
-    let mut bytes = encode_to_vec(3, 0, Body::StreamEnd(StreamEnd { frame_count: 1 })).unwrap();
+    let mut bytes = encode_to_vec(
+        3,
+        0,
+        Body::StreamEnd(StreamEnd {
+            frame_count: 1,
+            finished_frames: Vec::new(),
+        }),
+    )
+    .unwrap();
     bytes[4..6].copy_from_slice(&9u16.to_le_bytes());
     outbox.send_raw(&bytes).unwrap();
     outbox.send_raw(b"ASGR garbage").unwrap();
