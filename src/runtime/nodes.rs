@@ -348,7 +348,6 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         if complete || ctx.stopped() {
             break;
         }
-
         dispatcher.pump(POLL)?;
         if recovery.poll()? {
             recovery.redo(
