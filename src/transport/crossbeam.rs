@@ -116,9 +116,15 @@ impl Publisher for CrossbeamPublisher {
             .cloned()
             .unwrap_or_default();
         let mut dead: Vec<&Sender<Vec<u8>>> = Vec::new();
-        for sender in &senders {
-            if let Err(SendError(_)) = sender.send(message.clone()) {
-                dead.push(sender);
+        // Every subscriber but the last gets a copy; the last gets the message itself.
+        if let Some((last, others)) = senders.split_last() {
+            for sender in others {
+                if let Err(SendError(_)) = sender.send(message.clone()) {
+                    dead.push(sender);
+                }
+            }
+            if let Err(SendError(_)) = last.send(message) {
+                dead.push(last);
             }
         }
         if !dead.is_empty() {
