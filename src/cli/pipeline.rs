@@ -163,8 +163,7 @@ fn scene_config(scene: &Path) -> PipelineConfig {
     }
 }
 
-fn print_result(header: &Header, result: &PoseResult) {
-    let _ = header;
+fn print_result(_header: &Header, result: &PoseResult) {
     let pose = result
         .cam_from_world
         .map(|p| {
@@ -513,40 +512,20 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         "{:<10} {:>5} {:>9} {:>8} {:>8} {:>8} {:>10} {:>10}  flow jobs per worker",
         "backend", "flow", "frames/s", "speedup", "p50_ms", "p90_ms", "transport%", "accepted"
     );
-    let baseline = rows
-        .first()
-        .map(|(_, _, c)| c.results.len() as f64 / c.wall_s)
-        .unwrap_or(1.0);
+    let baseline = rows.first().map_or(1.0, |(_, _, c)| c.frames_per_s());
     for (backend, flow, collected) in &rows {
-        let fps = collected.results.len() as f64 / collected.wall_s;
-        let latencies: Vec<f64> = collected
-            .results
-            .iter()
-            .map(|r| r.times.latency_ms)
-            .collect();
-        let compute: f64 = collected.metrics.values().map(|m| m.compute_ms).sum();
-        let transport_ms: f64 = collected
-            .metrics
-            .values()
-            .map(|m| m.send_ms + m.decode_ms)
-            .sum();
-        let mut split = std::collections::BTreeMap::<u32, usize>::new();
-        for result in &collected.results {
-            for worker in &result.flow_workers {
-                *split.entry(*worker).or_default() += 1;
-            }
-        }
+        let latencies = collected.latencies_ms();
         println!(
             "{:<10} {:>5} {:>9.3} {:>8.2} {:>8.0} {:>8.0} {:>10.2} {:>10}  {:?}",
             backend,
             flow,
-            fps,
-            fps / baseline,
+            collected.frames_per_s(),
+            collected.frames_per_s() / baseline,
             asgreg::runtime::collect::percentile(&latencies, 0.5),
             asgreg::runtime::collect::percentile(&latencies, 0.9),
-            100.0 * transport_ms / compute.max(1e-9),
-            collected.results.iter().filter(|r| r.accepted).count(),
-            split.values().collect::<Vec<_>>()
+            collected.transport_share_percent(),
+            collected.accepted(),
+            collected.flow_split().values().collect::<Vec<_>>()
         );
     }
     Ok(())

@@ -37,6 +37,40 @@ impl Collected {
         (0..count).filter(|id| !seen.contains(id)).collect()
     }
 
+    /// Results per second of the run.
+    pub fn frames_per_s(&self) -> f64 {
+        self.results.len() as f64 / self.wall_s.max(1e-9)
+    }
+
+    /// Capture → result latency of every result that has one, ms.
+    pub fn latencies_ms(&self) -> Vec<f64> {
+        self.results
+            .iter()
+            .filter(|r| r.times.latency_ms > 0.0)
+            .map(|r| r.times.latency_ms)
+            .collect()
+    }
+
+    /// Encode, send and decode time of every stage over their compute time, percent.
+    pub fn transport_share_percent(&self) -> f64 {
+        let compute_ms: f64 = self.metrics.values().map(|m| m.compute_ms).sum();
+        let transport_ms: f64 = self.metrics.values().map(|m| m.send_ms + m.decode_ms).sum();
+        100.0 * transport_ms / compute_ms.max(1e-9)
+    }
+
+    /// Flow jobs done per flow worker (the work split).
+    pub fn flow_split(&self) -> BTreeMap<u32, usize> {
+        let mut split = BTreeMap::new();
+        for worker in self.results.iter().flat_map(|r| r.flow_workers.iter()) {
+            *split.entry(*worker).or_default() += 1;
+        }
+        split
+    }
+
+    pub fn accepted(&self) -> usize {
+        self.results.iter().filter(|r| r.accepted).count()
+    }
+
     /// Results in frame order.
     pub fn by_frame(&self) -> Vec<&PoseResult> {
         let mut results: Vec<&PoseResult> = self.results.iter().collect();
@@ -127,24 +161,19 @@ pub fn summary(collected: &Collected, backend: &str) -> String {
     use std::fmt::Write;
     let mut text = String::new();
     let frames = collected.results.len();
-    let accepted = collected.results.iter().filter(|r| r.accepted).count();
+    let accepted = collected.accepted();
     let dropped = collected
         .results
         .iter()
         .filter(|r| r.failure.as_deref().is_some_and(|f| f.contains("dropped")))
         .count();
-    let latencies: Vec<f64> = collected
-        .results
-        .iter()
-        .filter(|r| r.times.latency_ms > 0.0)
-        .map(|r| r.times.latency_ms)
-        .collect();
+    let latencies = collected.latencies_ms();
     let _ = writeln!(
         text,
         "{frames} results ({accepted} accepted, {} failed, {dropped} dropped) in {:.1} s over {backend}: {:.2} frames/s",
         frames - accepted,
         collected.wall_s,
-        frames as f64 / collected.wall_s.max(1e-9)
+        collected.frames_per_s()
     );
     let _ = writeln!(
         text,
@@ -182,11 +211,7 @@ pub fn summary(collected: &Collected, backend: &str) -> String {
         "drops",
         "redo"
     );
-    let mut compute_total_ms = 0.0;
-    let mut transport_total_ms = 0.0;
     for ((stage, worker), m) in &collected.metrics {
-        compute_total_ms += m.compute_ms;
-        transport_total_ms += m.send_ms + m.decode_ms;
         let _ = writeln!(
             text,
             "{:<10} {:>6} {:>7} {:>7} {:>9.2} {:>9.1} {:>9.1} {:>10.1} {:>9.1} {:>8.1} {:>6} {:>6}",
@@ -207,15 +232,9 @@ pub fn summary(collected: &Collected, backend: &str) -> String {
     let _ = writeln!(
         text,
         "transport time (encode+send+decode) / compute time: {:.2} %",
-        100.0 * transport_total_ms / compute_total_ms.max(1e-9)
+        collected.transport_share_percent()
     );
-    let mut split: BTreeMap<u32, usize> = BTreeMap::new();
-    for result in &collected.results {
-        for worker in &result.flow_workers {
-            *split.entry(*worker).or_default() += 1;
-        }
-    }
-    let _ = writeln!(text, "flow jobs per worker: {split:?}");
+    let _ = writeln!(text, "flow jobs per worker: {:?}", collected.flow_split());
     if collected.rejected_messages > 0 {
         let _ = writeln!(
             text,
