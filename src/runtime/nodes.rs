@@ -159,6 +159,20 @@ impl Recovery {
         Ok(restarted)
     }
 
+    /// Takes what arrived and, when pose or verify restarted, redoes the frames without a result.
+    fn service(
+        &mut self,
+        dispatcher: &mut Dispatcher,
+        verify: &mut Outbox,
+        stream_end: Option<u64>,
+        metrics: &mut StageMetrics,
+    ) -> Result<(), BusError> {
+        if self.poll()? {
+            self.redo(dispatcher, verify, stream_end, metrics)?;
+        }
+        Ok(())
+    }
+
     fn finished_frames(&self) -> Vec<u64> {
         self.finished.iter().copied().collect()
     }
@@ -209,7 +223,10 @@ impl Recovery {
 }
 
 fn record_compute(metrics: &mut StageMetrics, started: Instant) {
-    let ms = started.elapsed().as_secs_f64() * 1e3;
+    record_compute_ms(metrics, started.elapsed().as_secs_f64() * 1e3);
+}
+
+fn record_compute_ms(metrics: &mut StageMetrics, ms: f64) {
     metrics.compute_ms += ms;
     if metrics.compute_samples_ms.len() >= MAX_SAMPLES {
         metrics.compute_samples_ms.remove(0);
@@ -248,15 +265,11 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         if ctx.stopped() {
             return Ok(metrics);
         }
-        if recovery.poll()? {
-            recovery.redo(&mut dispatcher, &mut verify, None, &mut metrics)?;
-        }
+        recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
         if let Some(period) = period {
             while Instant::now() < next_emit {
                 dispatcher.pump((next_emit - Instant::now()).min(POLL))?;
-                if recovery.poll()? {
-                    recovery.redo(&mut dispatcher, &mut verify, None, &mut metrics)?;
-                }
+                recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
             }
             next_emit += period;
         }
@@ -290,14 +303,10 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                     match config.backpressure.policy {
                         BackpressurePolicy::Block => {
                             dispatcher.pump(POLL)?;
-                            if recovery.poll()? {
-                                recovery.redo(&mut dispatcher, &mut verify, None, &mut metrics)?;
-                            }
+                            recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
                         }
                         BackpressurePolicy::DropOldest => {
-                            if recovery.poll()? {
-                                recovery.redo(&mut dispatcher, &mut verify, None, &mut metrics)?;
-                            }
+                            recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
                             if let Some(dropped) = dispatcher.drop_oldest() {
                                 metrics.dropped += 1;
                                 let (name, capture) =
@@ -349,14 +358,12 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
             break;
         }
         dispatcher.pump(POLL)?;
-        if recovery.poll()? {
-            recovery.redo(
-                &mut dispatcher,
-                &mut verify,
-                Some(frame_count),
-                &mut metrics,
-            )?;
-        }
+        recovery.service(
+            &mut dispatcher,
+            &mut verify,
+            Some(frame_count),
+            &mut metrics,
+        )?;
         reporter.tick(&metrics, false);
     }
     metrics.redispatched += dispatcher.metrics.redispatched;
@@ -420,25 +427,34 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 return;
             };
             let started = Instant::now();
-            let outcome = stage.process(&frame);
-            record_compute(metrics, started);
+            // Each job is encoded as it is rendered (it borrows the stage's buffers); encoding
+            // counts as transport time, like every Outbox send.
+            let mut encoded: Result<(), BusError> = Ok(());
+            let mut encode_ms = 0.0;
+            let outcome = stage.process(&frame, &mut |job| {
+                let encode_started = Instant::now();
+                let key = JobKey {
+                    frame_id,
+                    coarse_index: job.meta.coarse_index,
+                };
+                match encode_to_vec(frame_id, capture, Body::FlowJob(job)) {
+                    Ok(bytes) => dispatcher.push(key, bytes),
+                    Err(error) => {
+                        if encoded.is_ok() {
+                            encoded = Err(error);
+                        }
+                    }
+                }
+                encode_ms += encode_started.elapsed().as_secs_f64() * 1e3;
+            });
+            record_compute_ms(metrics, started.elapsed().as_secs_f64() * 1e3 - encode_ms);
+            metrics.send_ms += encode_ms;
             let key = JobKey {
                 frame_id,
                 coarse_index: 0,
             };
             finished = Some(match outcome {
-                Ok(jobs) => jobs
-                    .into_iter()
-                    .try_for_each(|job| {
-                        let key = JobKey {
-                            frame_id,
-                            coarse_index: job.meta.coarse_index,
-                        };
-                        let bytes = encode_to_vec(frame_id, capture, Body::FlowJob(job))?;
-                        dispatcher.push(key, bytes);
-                        Ok(())
-                    })
-                    .map(|()| (key, false)),
+                Ok(_) => encoded.map(|()| (key, false)),
                 Err(failed) => {
                     tracing::warn!("frame {frame_id} '{}': {}", failed.name, failed.reason);
                     verify

@@ -32,8 +32,15 @@ impl<'m> RenderStage<'m> {
         }
     }
 
-    /// The frame's flow jobs, in coarse-pose order; or why the frame cannot be registered.
-    pub fn process(&mut self, frame: &Frame) -> Result<Vec<FlowJob<'static>>, FrameFailed> {
+    /// Renders the frame's coarse views and hands each flow job, in coarse-pose order, to
+    /// `emit`; the job borrows the stage's buffers (the caller encodes it straight away, so no
+    /// image is copied twice). Returns the number of jobs, or why the frame cannot be registered.
+    /// A job's `render_ms` is the frame's render time up to and including that view.
+    pub fn process(
+        &mut self,
+        frame: &Frame,
+        emit: &mut dyn FnMut(FlowJob<'_>),
+    ) -> Result<usize, FrameFailed> {
         let started = Instant::now();
         let info = &frame.info;
         let failed = |reason: String| FrameFailed {
@@ -41,6 +48,11 @@ impl<'m> RenderStage<'m> {
             stage: "render".to_string(),
             reason,
         };
+        if !info.initial_cam_from_world.is_finite() {
+            return Err(failed(
+                "the initial pose is not finite (NaN or infinity)".to_string(),
+            ));
+        }
         let config = frame_config(&self.config, info);
         let (width_px, height_px) = (
             info.camera.width_px as usize,
@@ -61,13 +73,7 @@ impl<'m> RenderStage<'m> {
             initial_cam_from_world: info.initial_cam_from_world,
             seed: info.seed,
         };
-        if !info.initial_cam_from_world.is_finite() {
-            return Err(failed(
-                "the initial pose is not finite (NaN or infinity)".to_string(),
-            ));
-        }
         let query = query_gradient(&input, &config).map_err(|e| failed(e.to_string()))?;
-        let query = Cow::<[f32]>::Owned(query.pixels);
         // The initial pose's view gives the scene depth that scales the other coarse poses.
         render_coarse_view(
             self.mesh,
@@ -87,7 +93,6 @@ impl<'m> RenderStage<'m> {
             &config,
             info.seed,
         );
-        let mut jobs = Vec::with_capacity(poses.len());
         for (coarse_index, pose) in poses.iter().enumerate() {
             if coarse_index > 0 {
                 render_coarse_view(
@@ -100,24 +105,20 @@ impl<'m> RenderStage<'m> {
                     &mut self.view,
                 );
             }
-            jobs.push(FlowJob {
+            emit(FlowJob {
                 meta: FlowJobMeta {
                     info: info.clone(),
                     coarse_index: coarse_index as u32,
                     coarse_count: poses.len() as u32,
                     coarse_cam_from_world: *pose,
-                    render_ms: 0.0,
+                    render_ms: elapsed_ms(started),
                 },
-                query: query.clone(),
-                asg: Cow::Owned(self.view.asg.clone()),
-                depth_m: Cow::Owned(self.view.render.depth_m.clone()),
-                face_index: Cow::Owned(self.view.render.face_index.clone()),
+                query: Cow::Borrowed(&query.pixels),
+                asg: Cow::Borrowed(&self.view.asg),
+                depth_m: Cow::Borrowed(&self.view.render.depth_m),
+                face_index: Cow::Borrowed(&self.view.render.face_index),
             });
         }
-        let render_ms = elapsed_ms(started);
-        for job in &mut jobs {
-            job.meta.render_ms = render_ms;
-        }
-        Ok(jobs)
+        Ok(poses.len())
     }
 }

@@ -176,7 +176,8 @@ impl<'m> VerifyStage<'m> {
         let chosen = verdict.chosen.and_then(|i| hypotheses.get(i));
         let mut times = StageTimesMs::default();
         for hypothesis in frame.hypotheses.values() {
-            times.render_ms = hypothesis.render_ms;
+            // Each job carries the render time up to its view: the frame's is the largest.
+            times.render_ms = times.render_ms.max(hypothesis.render_ms);
             times.flow_ms += hypothesis.flow_ms;
             times.pose_ms += hypothesis.pose_ms;
         }
