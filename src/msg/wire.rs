@@ -60,6 +60,7 @@ impl Encoded<'_> {
         align8(offset)
     }
 
+    /// Never: every message has at least its header.
     pub fn is_empty(&self) -> bool {
         false
     }
