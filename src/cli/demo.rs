@@ -37,10 +37,10 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         width: 505,
         height: 275,
         images: args.images,
-        scene: SceneArg::House,
+        scene: SceneArg::Block,
         levels: vec![30.0, 57.0, 80.0, 104.0],
     };
-    println!("1/4 making a synthetic scene: a house photographed from 2, 8 and 15 m, {} photos at 505x275", args.images);
+    println!("1/4 making a synthetic scene: a town block seen obliquely from 30–60 m, {} photos at 505x275", args.images);
     let started = std::time::Instant::now();
     let summary = asgreg::synth::generate_scene(&synth_args.config(), &scene_dir)?;
     print_summary(&summary, &scene_dir, started.elapsed().as_secs_f64());
