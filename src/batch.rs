@@ -54,7 +54,18 @@ pub struct FrameReport {
     /// The refined camera (estimated intrinsics when unknown) and pose, when accepted.
     pub camera: Option<Camera>,
     pub cam_from_world: Option<Rigid3>,
+    /// A rejected frame's would-be output (the verification's chosen hypothesis), kept as
+    /// evidence for diagnosing the verification; never a result. None for accepted frames and
+    /// for frames without hypotheses.
+    pub rejected_candidate: Option<RejectedCandidate>,
     pub timings: StageTimings,
+}
+
+/// The pose a rejected frame would have output.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+pub struct RejectedCandidate {
+    pub camera: Camera,
+    pub cam_from_world: Rigid3,
 }
 
 impl FrameReport {
@@ -74,6 +85,7 @@ impl FrameReport {
             inlier_rms_px: None,
             camera: None,
             cam_from_world: None,
+            rejected_candidate: None,
             timings: StageTimings::default(),
         }
     }
@@ -151,6 +163,12 @@ pub fn register_batch_frame(
                 inlier_rms_px: chosen.map(|h| h.inlier_rms_px),
                 camera: result.camera,
                 cam_from_world: result.cam_from_world,
+                rejected_candidate: chosen.filter(|_| !result.accepted).map(|h| {
+                    RejectedCandidate {
+                        camera: h.camera,
+                        cam_from_world: h.cam_from_world,
+                    }
+                }),
                 timings: result.timings,
             }
         }

@@ -163,7 +163,7 @@ fn register_scene(
             &mut workspace,
         )
         .unwrap_or(f64::NAN);
-        match after {
+        match after.filter(|_| report.accepted) {
             Some(after) => {
                 accepted += 1;
                 sum_before += before;

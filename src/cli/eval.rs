@@ -284,7 +284,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
 }
 
 /// Registers the frame `initial` of a scene folder (photo in `images/`, depth in `depth/` when
-/// `with_depth`) and returns its report and δ of the output pose to `gt` (None when no pose).
+/// `with_depth`) and returns its report and δ to `gt` of the output pose, or of a rejected frame's
+/// would-be output (None when there is no pose at all).
 #[allow(clippy::too_many_arguments)]
 pub fn register_scene_frame(
     mesh: &Mesh,
@@ -307,8 +308,14 @@ pub fn register_scene_frame(
         initial_cam_from_world: initial.cam_from_world,
     };
     let report = register_batch_frame(mesh, &frame, config, seed);
-    let final_delta_px = match (report.camera, report.cam_from_world) {
-        (Some(out_camera), Some(out_pose)) => mutual_reprojection_error_px(
+    let output = match (report.camera, report.cam_from_world) {
+        (Some(out_camera), Some(out_pose)) => Some((out_camera, out_pose)),
+        _ => report
+            .rejected_candidate
+            .map(|candidate| (candidate.camera, candidate.cam_from_world)),
+    };
+    let final_delta_px = match output {
+        Some((out_camera, out_pose)) => mutual_reprojection_error_px(
             mesh,
             &out_camera,
             &out_pose,
@@ -316,7 +323,7 @@ pub fn register_scene_frame(
             &gt.cam_from_world,
             workspace,
         ),
-        _ => None,
+        None => None,
     };
     (report, final_delta_px)
 }

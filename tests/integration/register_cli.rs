@@ -66,7 +66,12 @@ fn every_frame_gets_exactly_one_result_even_when_its_photo_is_missing() {
             "accepted frames have no reason: {frame}"
         );
         assert_eq!(accepted, !frame["cam_from_world"].is_null());
+        if accepted {
+            assert!(frame["rejected_candidate"].is_null(), "{frame}");
+        }
     }
+    // A frame that never got as far as a pose has no candidate either.
+    assert!(failed["rejected_candidate"].is_null(), "{failed}");
     // The COLMAP output lists exactly the accepted frames.
     let accepted = frames.iter().filter(|f| f["accepted"] == true).count();
     let poses = asgreg::io::colmap::read_images_txt(&out.join("images.txt")).unwrap();
