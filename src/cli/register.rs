@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use asgreg::batch::{depth_path_for, register_batch_frame, BatchFrame, FrameReport};
 use asgreg::core::register::{IntrinsicsMode, QueryMode, RegistrationConfig};
+use asgreg::core::verify::VerifyConfig;
 use asgreg::io::colmap::{
     write_cameras_txt, write_empty_points3d_txt, write_images_txt, ImagePose,
 };
@@ -53,7 +54,8 @@ pub struct RegisterArgs {
     pub no_overlays: bool,
 }
 
-/// How the coarse poses are drawn around the initial pose.
+/// How the coarse poses are drawn around the initial pose, and how far their refined poses must
+/// converge to be accepted.
 #[derive(clap::Args, Debug, Clone, Copy)]
 pub struct CoarseArgs {
     /// Coarse poses per frame.
@@ -65,6 +67,10 @@ pub struct CoarseArgs {
     /// Camera-centre noise of the coarse poses, as a fraction of the median scene depth (σ per axis).
     #[arg(long, default_value_t = 0.02)]
     pub coarse_translation_fraction: f64,
+    /// Verification: the agreeing refined poses' spread may be at most this fraction of their
+    /// coarse poses' spread (1 or more turns the convergence test off).
+    #[arg(long, default_value_t = 0.9)]
+    pub max_convergence_ratio: f64,
 }
 
 impl Default for CoarseArgs {
@@ -73,6 +79,7 @@ impl Default for CoarseArgs {
             coarse_poses: 15,
             coarse_rotation_deg: 1.0,
             coarse_translation_fraction: 0.02,
+            max_convergence_ratio: 0.9,
         }
     }
 }
@@ -102,6 +109,10 @@ pub fn registration_config(
         coarse_pose_count: coarse.coarse_poses,
         coarse_rotation_sigma_deg: coarse.coarse_rotation_deg,
         coarse_translation_sigma_fraction: coarse.coarse_translation_fraction,
+        verify: VerifyConfig {
+            max_convergence_ratio: coarse.max_convergence_ratio,
+            ..VerifyConfig::default()
+        },
         ..RegistrationConfig::default()
     }
 }
