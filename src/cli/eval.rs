@@ -314,17 +314,16 @@ pub fn register_scene_frame(
             .rejected_candidate
             .map(|candidate| (candidate.camera, candidate.cam_from_world)),
     };
-    let final_delta_px = match output {
-        Some((out_camera, out_pose)) => mutual_reprojection_error_px(
+    let final_delta_px = output.and_then(|(out_camera, out_pose)| {
+        mutual_reprojection_error_px(
             mesh,
             &out_camera,
             &out_pose,
             &camera,
             &gt.cam_from_world,
             workspace,
-        ),
-        None => None,
-    };
+        )
+    });
     (report, final_delta_px)
 }
 

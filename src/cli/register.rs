@@ -55,31 +55,32 @@ pub struct RegisterArgs {
 }
 
 /// How the coarse poses are drawn around the initial pose, and how far their refined poses must
-/// converge to be accepted.
+/// converge to be accepted. Every default is the library's (`RegistrationConfig::default()`).
 #[derive(clap::Args, Debug, Clone, Copy)]
 pub struct CoarseArgs {
     /// Coarse poses per frame.
-    #[arg(long, default_value_t = 15)]
+    #[arg(long, default_value_t = RegistrationConfig::default().coarse_pose_count)]
     pub coarse_poses: usize,
     /// Rotation noise of the coarse poses, degrees (σ per axis).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = RegistrationConfig::default().coarse_rotation_sigma_deg)]
     pub coarse_rotation_deg: f64,
     /// Camera-centre noise of the coarse poses, as a fraction of the median scene depth (σ per axis).
-    #[arg(long, default_value_t = 0.02)]
+    #[arg(long, default_value_t = RegistrationConfig::default().coarse_translation_sigma_fraction)]
     pub coarse_translation_fraction: f64,
     /// Verification: the agreeing refined poses' spread may be at most this fraction of their
     /// coarse poses' spread (1 or more turns the convergence test off).
-    #[arg(long, default_value_t = 0.9)]
+    #[arg(long, default_value_t = RegistrationConfig::default().verify.max_convergence_ratio)]
     pub max_convergence_ratio: f64,
 }
 
 impl Default for CoarseArgs {
     fn default() -> Self {
+        let defaults = RegistrationConfig::default();
         Self {
-            coarse_poses: 15,
-            coarse_rotation_deg: 1.0,
-            coarse_translation_fraction: 0.02,
-            max_convergence_ratio: 0.9,
+            coarse_poses: defaults.coarse_pose_count,
+            coarse_rotation_deg: defaults.coarse_rotation_sigma_deg,
+            coarse_translation_fraction: defaults.coarse_translation_sigma_fraction,
+            max_convergence_ratio: defaults.verify.max_convergence_ratio,
         }
     }
 }

@@ -333,19 +333,16 @@ fn choose_output(
             .copied()
             .max_by(|&a, &b| by_consensus(a, b))
             .unwrap_or(0),
-        OutputChoice::Medoid => {
-            let total_delta =
-                |a: usize| -> f64 { component.iter().map(|&b| delta_px[a * n + b]).sum() };
-            component
-                .iter()
-                .copied()
-                .min_by(|&a, &b| {
-                    total_delta(a)
-                        .total_cmp(&total_delta(b))
-                        .then(by_consensus(b, a))
-                })
-                .unwrap_or(0)
-        }
+        OutputChoice::Medoid => component
+            .iter()
+            .map(|&a| {
+                let total_delta_px: f64 = component.iter().map(|&b| delta_px[a * n + b]).sum();
+                (a, total_delta_px)
+            })
+            .min_by(|(a, total_a), (b, total_b)| {
+                total_a.total_cmp(total_b).then(by_consensus(*b, *a))
+            })
+            .map_or(0, |(chosen, _)| chosen),
     }
 }
 

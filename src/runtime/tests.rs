@@ -43,20 +43,27 @@ pub(crate) fn tiny_scene(dir: &Path) -> PipelineConfig {
     config
 }
 
-#[test]
-fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
-    let dir = tempfile::tempdir().unwrap();
-    let config = tiny_scene(dir.path());
+/// Runs `config` with every stage as a thread over crossbeam; returns the mesh it loaded and what
+/// was collected.
+fn run_on_crossbeam(config: &PipelineConfig) -> (crate::core::mesh::Mesh, collect::Collected) {
     let mesh = read_mesh(&config.mesh).unwrap();
     let transport = CrossbeamTransport::new(config.transport.clone());
     let collected = run_in_process(
-        &config,
+        config,
         &transport,
         &mesh,
         Duration::from_secs(300),
         &mut |_, _| {},
     )
     .unwrap();
+    (mesh, collected)
+}
+
+#[test]
+fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = tiny_scene(dir.path());
+    let (mesh, collected) = run_on_crossbeam(&config);
     assert_eq!(collected.frame_count, Some(4));
     assert!(collected.duplicates.is_empty() && collected.missing().is_empty());
     assert_eq!(collected.results.len(), 4);
@@ -175,16 +182,7 @@ fn drop_oldest_backpressure_reports_every_dropped_frame_as_its_result() {
     config.backpressure.policy = super::config::BackpressurePolicy::DropOldest;
     config.backpressure.frames_queued = 1;
     config.workers.flow = 1;
-    let mesh = read_mesh(&config.mesh).unwrap();
-    let transport = CrossbeamTransport::new(config.transport.clone());
-    let collected = run_in_process(
-        &config,
-        &transport,
-        &mesh,
-        Duration::from_secs(300),
-        &mut |_, _| {},
-    )
-    .unwrap();
+    let (_, collected) = run_on_crossbeam(&config);
     // The source reads frames far faster than one flow worker registers them: with one frame
     // of queue, some are dropped — and each still has exactly one result saying so.
     assert_eq!(collected.frame_count, Some(4));
