@@ -13,22 +13,7 @@ use crate::util::*;
 
 /// A synthetic scene of `frames` photos at 160×88, made once per test.
 fn scene(dir: &Path, frames: usize) -> PathBuf {
-    let scene = dir.join("scene");
-    let output = asgreg(&[
-        "synth",
-        "--out",
-        path_str(&scene),
-        "--width",
-        "160",
-        "--height",
-        "88",
-        "--images",
-        &frames.to_string(),
-        "--levels",
-        "30",
-    ]);
-    assert!(output.status.success(), "{}", stderr(&output));
-    scene
+    synth_scene(dir, 160, 88, frames)
 }
 
 /// A pipeline name no other test or process uses (iceoryx2 services are machine-global).

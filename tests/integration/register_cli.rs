@@ -7,21 +7,7 @@ use crate::util::*;
 #[test]
 fn every_frame_gets_exactly_one_result_even_when_its_photo_is_missing() {
     let dir = tempfile::tempdir().unwrap();
-    let scene = dir.path().join("scene");
-    let output = asgreg(&[
-        "synth",
-        "--out",
-        path_str(&scene),
-        "--width",
-        "160",
-        "--height",
-        "90",
-        "--images",
-        "3",
-        "--levels",
-        "30",
-    ]);
-    assert!(output.status.success(), "{}", stderr(&output));
+    let scene = synth_scene(dir.path(), 160, 90, 3);
     let missing = scene.join("images/view_001.jpg");
     std::fs::remove_file(&missing).unwrap();
     let out = dir.path().join("out");

@@ -89,3 +89,24 @@ pub fn write_png(path: &Path, width: u32, height: u32) {
 pub fn path_str(path: &Path) -> &str {
     path.to_str().unwrap()
 }
+
+/// Writes a synthetic scene (`asgreg synth`, 30 px initial poses) of `frames` photos at
+/// `width`×`height` into `dir/scene` and returns that folder.
+pub fn synth_scene(dir: &Path, width: u32, height: u32, frames: usize) -> PathBuf {
+    let scene = dir.join("scene");
+    let output = asgreg(&[
+        "synth",
+        "--out",
+        path_str(&scene),
+        "--width",
+        &width.to_string(),
+        "--height",
+        &height.to_string(),
+        "--images",
+        &frames.to_string(),
+        "--levels",
+        "30",
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    scene
+}
