@@ -73,7 +73,6 @@ fn messages() -> Vec<(&'static str, Vec<u8>)> {
             },
             image_points_px: Cow::Owned(vec![100.5; 2 * pairs]),
             world_points_m: Cow::Owned(vec![3.25; 3 * pairs]),
-            matching_costs: Cow::Owned(vec![0.1; pairs]),
         }),
     };
     vec![

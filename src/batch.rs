@@ -3,17 +3,18 @@
 //! failed frame with its reason, so one bad frame never stops the others. `asgreg register` and
 //! `asgreg eval` are built on this.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
 use crate::core::flow_consistency::GreyImage;
+use crate::core::frame::{
+    register_frame, FrameInput, IntrinsicsMode, RegistrationConfig, StageTimings,
+};
 use crate::core::mesh::Mesh;
-use crate::core::register::{register_frame, FrameInput, RegistrationConfig, StageTimings};
 use crate::core::rigid::Rigid3;
-use crate::io::images::{check_image_matches_camera, load_gray};
-use crate::io::pfm::read_pfm;
+use crate::frame_files::{frame_seed, load_frame_files};
 
 /// Where one frame's inputs are.
 #[derive(Clone, Debug)]
@@ -22,9 +23,11 @@ pub struct BatchFrame {
     pub camera_id: u32,
     pub name: String,
     pub image_path: PathBuf,
-    /// The photo's depth map (PFM), when registering with [`crate::core::register::QueryMode::DepthAsg`].
+    /// The photo's depth map (PFM), when registering with [`crate::core::frame::QueryMode::DepthAsg`].
     pub depth_path: Option<PathBuf>,
     pub camera: Camera,
+    /// Whether `camera`'s intrinsics are trusted or estimated.
+    pub intrinsics: IntrinsicsMode,
     pub initial_cam_from_world: Rigid3,
 }
 
@@ -91,15 +94,6 @@ impl FrameReport {
     }
 }
 
-/// The frame's depth file in `depth_dir`: `<stem of the image name>.pfm`.
-pub fn depth_path_for(depth_dir: &Path, image_name: &str) -> PathBuf {
-    let stem = Path::new(image_name)
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| image_name.to_string());
-    depth_dir.join(format!("{stem}.pfm"))
-}
-
 /// Registers one frame; never fails: problems become a failed report naming the file or reason.
 pub fn register_batch_frame(
     mesh: &Mesh,
@@ -107,68 +101,60 @@ pub fn register_batch_frame(
     config: &RegistrationConfig,
     seed: u64,
 ) -> FrameReport {
-    let photo = match load_gray(&frame.image_path) {
-        Ok(photo) => photo,
-        Err(error) => return FrameReport::failed(frame, error.to_string()),
-    };
-    if let Err(error) = check_image_matches_camera(
+    let files = match load_frame_files(
         &frame.image_path,
-        photo.width_px,
-        photo.height_px,
         frame.camera_id,
         &frame.camera,
+        frame.depth_path.as_deref(),
     ) {
-        return FrameReport::failed(frame, error.to_string());
-    }
-    let depth = match &frame.depth_path {
-        Some(path) => match read_pfm(path) {
-            Ok(depth) => Some(depth),
-            Err(error) => return FrameReport::failed(frame, error.to_string()),
-        },
-        None => None,
+        Ok(files) => files,
+        Err(error) => return FrameReport::failed(frame, error.to_string()),
     };
     let input = FrameInput {
         photo: GreyImage {
-            width_px: photo.width_px,
-            height_px: photo.height_px,
-            pixels: &photo.pixels,
+            width_px: files.photo.width_px,
+            height_px: files.photo.height_px,
+            pixels: &files.photo.pixels,
         },
-        depth_m: depth.as_ref().map(|d| GreyImage {
+        depth_m: files.depth.as_ref().map(|d| GreyImage {
             width_px: d.width_px,
             height_px: d.height_px,
             pixels: &d.depth_m,
         }),
         camera: &frame.camera,
+        intrinsics: frame.intrinsics,
         initial_cam_from_world: frame.initial_cam_from_world,
-        seed: crate::stage::ingest::frame_seed(seed, frame.image_id),
+        seed: frame_seed(seed, frame.image_id),
     };
     match register_frame(mesh, &input, config) {
         Ok(result) => {
-            let chosen = result
-                .verdict
-                .chosen
-                .and_then(|i| result.coarse.iter().filter_map(|o| o.hypothesis).nth(i));
+            let verdict = &result.verdict;
+            let chosen = verdict.chosen();
+            let accepted = verdict.accepted_pose();
             FrameReport {
                 image_id: frame.image_id,
                 name: frame.name.clone(),
-                accepted: result.accepted,
-                reason: result.verdict.rejection.as_ref().map(|r| r.to_string()),
-                confidence: result.verdict.confidence,
+                accepted: verdict.accepted(),
+                reason: verdict.rejection().map(|r| r.to_string()),
+                confidence: verdict.confidence,
                 consensus: chosen.map_or(0, |h| h.consensus),
-                component_size: result.verdict.component.len(),
-                direct_support: result.verdict.direct_support,
-                convergence_ratio: result.verdict.convergence_ratio,
-                hypotheses: result.verdict.hypothesis_count,
-                mean_delta_to_chosen_px: result.verdict.mean_delta_to_chosen_px,
+                component_size: verdict.component.len(),
+                direct_support: verdict.direct_support,
+                convergence_ratio: verdict.convergence_ratio,
+                hypotheses: verdict.hypothesis_count,
+                mean_delta_to_chosen_px: verdict.mean_delta_to_chosen_px,
                 inlier_rms_px: chosen.map(|h| h.inlier_rms_px),
-                camera: result.camera,
-                cam_from_world: result.cam_from_world,
-                rejected_candidate: chosen.filter(|_| !result.accepted).map(|h| {
-                    RejectedCandidate {
+                camera: accepted.map(|h| h.camera),
+                cam_from_world: accepted.map(|h| h.cam_from_world),
+                rejected_candidate: verdict
+                    .decision
+                    .as_ref()
+                    .err()
+                    .and_then(|rejection| rejection.candidate)
+                    .map(|h| RejectedCandidate {
                         camera: h.camera,
                         cam_from_world: h.cam_from_world,
-                    }
-                }),
+                    }),
                 timings: result.timings,
             }
         }

@@ -5,6 +5,7 @@
 pub mod batch;
 pub mod core;
 pub mod eval;
+pub mod frame_files;
 pub mod io;
 pub mod msg;
 pub mod runtime;

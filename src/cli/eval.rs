@@ -7,13 +7,14 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use asgreg::batch::{depth_path_for, register_batch_frame, BatchFrame, FrameReport};
+use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
 use asgreg::core::camera::Camera;
+use asgreg::core::frame::{IntrinsicsMode, RegistrationConfig};
 use asgreg::core::icp::{register_depth_to_mesh, IcpConfig, IcpVariant, ICP_SUCCESS_THRESHOLD_PX};
 use asgreg::core::mesh::Mesh;
-use asgreg::core::register::RegistrationConfig;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::eval::{cell_stats, format_accuracy, CellStats, EvalFrame};
+use asgreg::frame_files::depth_path_for;
 use asgreg::io::colmap::{read_cameras_txt, read_images_txt, ImagePose};
 use asgreg::io::mesh_file::read_mesh;
 use asgreg::io::pfm::read_pfm;
@@ -142,13 +143,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         .unwrap_or(f64::NAN);
         let outcome = match method {
             Method::Asg(intrinsics) => {
-                let config = registration_config(intrinsics, with_depth, &args.coarse);
+                let config = registration_config(with_depth, &args.coarse);
                 let (report, final_delta_px) = register_scene_frame(
                     &mesh,
                     &args.scene,
                     &initial,
                     gt,
                     camera,
+                    intrinsics.mode(),
                     with_depth,
                     &config,
                     args.seed,
@@ -293,6 +295,7 @@ pub fn register_scene_frame(
     initial: &ImagePose,
     gt: &ImagePose,
     camera: Camera,
+    intrinsics: IntrinsicsMode,
     with_depth: bool,
     config: &RegistrationConfig,
     seed: u64,
@@ -305,6 +308,7 @@ pub fn register_scene_frame(
         image_path: scene.join("images").join(&initial.name),
         depth_path: with_depth.then(|| depth_path_for(&scene.join("depth"), &initial.name)),
         camera,
+        intrinsics,
         initial_cam_from_world: initial.cam_from_world,
     };
     let report = register_batch_frame(mesh, &frame, config, seed);

@@ -5,9 +5,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use asgreg::batch::{depth_path_for, register_batch_frame, BatchFrame, FrameReport};
-use asgreg::core::register::{IntrinsicsMode, QueryMode, RegistrationConfig};
+use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
+use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig};
 use asgreg::core::verify::VerifyConfig;
+use asgreg::frame_files::depth_path_for;
 use asgreg::io::colmap::{
     write_cameras_txt, write_empty_points3d_txt, write_images_txt, ImagePose,
 };
@@ -91,17 +92,18 @@ pub enum IntrinsicsArg {
     Unknown,
 }
 
-/// The registration settings the command line selects.
-pub fn registration_config(
-    intrinsics: IntrinsicsArg,
-    with_depth: bool,
-    coarse: &CoarseArgs,
-) -> RegistrationConfig {
-    RegistrationConfig {
-        intrinsics: match intrinsics {
+impl IntrinsicsArg {
+    pub fn mode(self) -> IntrinsicsMode {
+        match self {
             IntrinsicsArg::Known => IntrinsicsMode::Known,
             IntrinsicsArg::Unknown => IntrinsicsMode::Unknown,
-        },
+        }
+    }
+}
+
+/// The registration settings the command line selects.
+pub fn registration_config(with_depth: bool, coarse: &CoarseArgs) -> RegistrationConfig {
+    RegistrationConfig {
         query_mode: if with_depth {
             QueryMode::DepthAsg
         } else {
@@ -132,7 +134,7 @@ pub fn progress_bar(count: usize, what: &str) -> indicatif::ProgressBar {
 
 pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
     let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
-    let config = registration_config(args.intrinsics, args.depth.is_some(), &args.coarse);
+    let config = registration_config(args.depth.is_some(), &args.coarse);
     config.validate()?;
     let mut frames = Vec::new();
     for image in inputs.images.iter().take(args.limit.unwrap_or(usize::MAX)) {
@@ -155,6 +157,7 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
                 .as_ref()
                 .map(|dir| depth_path_for(dir, &image.name)),
             camera: *camera,
+            intrinsics: args.intrinsics.mode(),
             initial_cam_from_world: image.cam_from_world,
         });
     }
@@ -211,7 +214,7 @@ fn write_outputs(
             continue;
         };
         // Unknown intrinsics: one camera per image (its id is the image id).
-        let camera_id = if config.intrinsics == IntrinsicsMode::Unknown {
+        let camera_id = if args.intrinsics.mode() == IntrinsicsMode::Unknown {
             let mut camera = camera;
             camera.intrinsics.skew_px = 0.0;
             cameras.insert(frame.image_id, camera);
@@ -231,7 +234,11 @@ fn write_outputs(
     write_images_txt(&args.out.join("images.txt"), &poses)?;
     write_empty_points3d_txt(&args.out.join("points3D.txt"))?;
     let report_path = args.out.join("report.json");
-    let json = serde_json::json!({ "config": config, "frames": reports });
+    let json = serde_json::json!({
+        "config": config,
+        "intrinsics": args.intrinsics.mode(),
+        "frames": reports,
+    });
     std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
 

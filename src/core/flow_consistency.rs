@@ -311,55 +311,90 @@ pub fn match_sift_images(
     Ok(())
 }
 
+/// What a query contributes to every pair it is matched in: its dense SIFT image and descriptor
+/// pyramid, computed once per frame (not once per rendering).
+#[derive(Debug, Default)]
+pub struct QueryFeatures {
+    pub sift: DenseSiftImage,
+    pub pyramid: SiftPyramid,
+}
+
+impl QueryFeatures {
+    /// Dense SIFT and pyramid of `query`.
+    pub fn compute(
+        query: GreyImage,
+        config: &DenseCorrespondenceConfig,
+        workspace: &mut DenseSiftWorkspace,
+    ) -> Result<Self, FlowError> {
+        config.validate()?;
+        let mut features = Self::default();
+        compute_dense_sift(
+            query.pixels,
+            query.width_px,
+            query.height_px,
+            &config.dense_sift,
+            workspace,
+            &mut features.sift,
+        )?;
+        features.pyramid.build(&features.sift, &config.sift_flow)?;
+        Ok(features)
+    }
+}
+
+/// Matches a query (its features) against one rendering: the rendering's dense SIFT, SIFT flow
+/// both ways, consistency check. The step every path runs per coarse view.
+pub fn match_rendering(
+    query: &QueryFeatures,
+    rendering: GreyImage,
+    rendering_valid: Option<&[bool]>,
+    config: &DenseCorrespondenceConfig,
+    workspace: &mut DenseCorrespondenceWorkspace,
+    out: &mut DenseCorrespondence,
+) -> Result<(), FlowError> {
+    let started = Instant::now();
+    let mut rendering_sift = std::mem::take(&mut workspace.rendering_sift);
+    let sift_result = compute_dense_sift(
+        rendering.pixels,
+        rendering.width_px,
+        rendering.height_px,
+        &config.dense_sift,
+        &mut workspace.sift_workspace,
+        &mut rendering_sift,
+    );
+    let dense_sift = started.elapsed();
+    let result = sift_result.and_then(|()| {
+        match_sift_images(
+            &query.sift,
+            &query.pyramid,
+            &rendering_sift,
+            rendering_valid,
+            config,
+            workspace,
+            out,
+        )
+    });
+    workspace.rendering_sift = rendering_sift;
+    result?;
+    out.timings.dense_sift = dense_sift;
+    out.timings.total = started.elapsed();
+    Ok(())
+}
+
 /// Matches one query against many renderings, in parallel over renderings (rayon), reusing one
-/// workspace per worker thread and the query's descriptors for every pair.
+/// workspace per worker thread and the query's features for every pair.
 pub fn match_query_to_renderings(
     query: GreyImage,
     renderings: &[(GreyImage, Option<&[bool]>)],
     config: &DenseCorrespondenceConfig,
 ) -> Result<Vec<DenseCorrespondence>, FlowError> {
-    config.validate()?;
-    let mut query_sift = DenseSiftImage::default();
-    compute_dense_sift(
-        query.pixels,
-        query.width_px,
-        query.height_px,
-        &config.dense_sift,
-        &mut DenseSiftWorkspace::default(),
-        &mut query_sift,
-    )?;
-    let mut query_pyramid = SiftPyramid::default();
-    query_pyramid.build(&query_sift, &config.sift_flow)?;
+    let features = QueryFeatures::compute(query, config, &mut DenseSiftWorkspace::default())?;
     renderings
         .par_iter()
         .map_init(
             DenseCorrespondenceWorkspace::default,
             |workspace, (rendering, valid)| {
-                let started = Instant::now();
-                let mut rendering_sift = std::mem::take(&mut workspace.rendering_sift);
-                compute_dense_sift(
-                    rendering.pixels,
-                    rendering.width_px,
-                    rendering.height_px,
-                    &config.dense_sift,
-                    &mut workspace.sift_workspace,
-                    &mut rendering_sift,
-                )?;
-                let dense_sift = started.elapsed();
                 let mut out = DenseCorrespondence::default();
-                let result = match_sift_images(
-                    &query_sift,
-                    &query_pyramid,
-                    &rendering_sift,
-                    *valid,
-                    config,
-                    workspace,
-                    &mut out,
-                );
-                workspace.rendering_sift = rendering_sift;
-                result?;
-                out.timings.dense_sift = dense_sift;
-                out.timings.total = started.elapsed();
+                match_rendering(&features, *rendering, *valid, config, workspace, &mut out)?;
                 Ok(out)
             },
         )

@@ -5,11 +5,11 @@
 pub mod camera;
 pub mod dense_sift;
 pub mod flow_consistency;
+pub mod frame;
 pub mod icp;
 pub mod mesh;
 pub mod pose;
 pub mod raster;
-pub mod register;
 pub mod reprojection;
 pub mod rigid;
 pub mod shading;

@@ -184,15 +184,20 @@ impl std::fmt::Display for RejectionReason {
     }
 }
 
+/// A frame that was not accepted: why, and the pose it would have output (evidence for diagnosing
+/// the verification, never a result; `None` when there were no hypotheses).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Rejection {
+    pub reason: RejectionReason,
+    pub candidate: Option<PoseHypothesis>,
+}
+
 /// The decision and its evidence.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Verdict {
-    pub accepted: bool,
-    pub rejection: Option<RejectionReason>,
-    /// Index (into the hypotheses) of the output pose in the largest component (see
-    /// [`VerifyConfig::output`]); present also for rejected frames that had hypotheses (as evidence).
-    pub chosen: Option<usize>,
-    /// Indices of the hypotheses in the largest component.
+    /// The output pose (see [`VerifyConfig::output`]) when accepted; otherwise why not.
+    pub decision: Result<PoseHypothesis, Rejection>,
+    /// Indices (into the hypotheses) of the largest component.
     pub component: Vec<usize>,
     /// Hypotheses directly compatible with the chosen one, itself included.
     pub direct_support: usize,
@@ -209,6 +214,29 @@ pub struct Verdict {
     pub confidence: f64,
 }
 
+impl Verdict {
+    pub fn accepted(&self) -> bool {
+        self.decision.is_ok()
+    }
+
+    /// The output pose if accepted, or the would-be output of a rejected frame.
+    pub fn chosen(&self) -> Option<&PoseHypothesis> {
+        match &self.decision {
+            Ok(hypothesis) => Some(hypothesis),
+            Err(rejection) => rejection.candidate.as_ref(),
+        }
+    }
+
+    /// The output pose; `None` when rejected.
+    pub fn accepted_pose(&self) -> Option<&PoseHypothesis> {
+        self.decision.as_ref().ok()
+    }
+
+    pub fn rejection(&self) -> Option<&RejectionReason> {
+        self.decision.as_ref().err().map(|r| &r.reason)
+    }
+}
+
 /// Runs the plausibility check over a frame's hypotheses. `coarse_camera` is the camera the coarse
 /// poses were rendered with; without it the convergence test is skipped.
 pub fn verify_hypotheses(
@@ -220,9 +248,10 @@ pub fn verify_hypotheses(
 ) -> Verdict {
     let Some(first) = hypotheses.first() else {
         return Verdict {
-            accepted: false,
-            rejection: Some(RejectionReason::NoHypotheses),
-            chosen: None,
+            decision: Err(Rejection {
+                reason: RejectionReason::NoHypotheses,
+                candidate: None,
+            }),
             component: Vec::new(),
             direct_support: 0,
             convergence_ratio: None,
@@ -294,9 +323,13 @@ pub fn verify_hypotheses(
             })
     };
     Verdict {
-        accepted: rejection.is_none(),
-        rejection,
-        chosen: Some(chosen),
+        decision: match rejection {
+            None => Ok(hypotheses[chosen]),
+            Some(reason) => Err(Rejection {
+                reason,
+                candidate: Some(hypotheses[chosen]),
+            }),
+        },
         component,
         direct_support,
         convergence_ratio,
@@ -468,10 +501,10 @@ mod tests {
             &config,
             &mut ReprojectionWorkspace::new(),
         );
-        assert!(!verdict.accepted);
+        assert!(!verdict.accepted());
         assert!((verdict.convergence_ratio.unwrap() - 1.0).abs() < 1e-9);
         assert!(matches!(
-            verdict.rejection,
+            verdict.rejection().cloned(),
             Some(RejectionReason::NotConverged { .. })
         ));
         // The same coarse poses refined to within 0.04 m (0.2 px) of each other: converged.
@@ -486,7 +519,7 @@ mod tests {
             &config,
             &mut ReprojectionWorkspace::new(),
         );
-        assert!(verdict.accepted, "{verdict:?}");
+        assert!(verdict.accepted(), "{verdict:?}");
         assert!((verdict.convergence_ratio.unwrap() - 0.025).abs() < 1e-6);
     }
 
@@ -506,11 +539,11 @@ mod tests {
             &VerifyConfig::default(),
             &mut ReprojectionWorkspace::new(),
         );
-        assert!(verdict.accepted, "{verdict:?}");
+        assert!(verdict.accepted(), "{verdict:?}");
         assert_eq!(verdict.component, vec![0, 1, 2, 3, 4]);
         assert_eq!(
-            verdict.chosen,
-            Some(2),
+            verdict.chosen(),
+            Some(&hypotheses[2]),
             "the medoid of the component (also its largest consensus)"
         );
         assert!((verdict.threshold_px - 10.0).abs() < 1e-12);
@@ -535,9 +568,9 @@ mod tests {
             &VerifyConfig::default(),
             &mut ReprojectionWorkspace::new(),
         );
-        assert!(!verdict.accepted);
+        assert!(!verdict.accepted());
         assert_eq!(
-            verdict.rejection,
+            verdict.rejection().cloned(),
             Some(RejectionReason::NoAgreement {
                 largest_component: 1,
                 required: 4
@@ -563,7 +596,7 @@ mod tests {
             &paper_rule,
             &mut ReprojectionWorkspace::new(),
         );
-        assert!(verdict.accepted);
+        assert!(verdict.accepted());
         assert_eq!(verdict.component, vec![0, 1, 2, 3]);
         // The chosen pose (largest consensus, at one end) agrees directly with one neighbour only.
         let verdict = verify_hypotheses(
@@ -576,10 +609,10 @@ mod tests {
             },
             &mut ReprojectionWorkspace::new(),
         );
-        assert!(!verdict.accepted);
+        assert!(!verdict.accepted());
         assert_eq!(verdict.direct_support, 2);
         assert_eq!(
-            verdict.rejection,
+            verdict.rejection().cloned(),
             Some(RejectionReason::WeakSupport {
                 direct_support: 2,
                 required: 4
@@ -593,9 +626,12 @@ mod tests {
             &VerifyConfig::default(),
             &mut ReprojectionWorkspace::new(),
         );
-        assert!(matches!(verdict.chosen, Some(1 | 2)), "{verdict:?}");
+        assert!(
+            [&hypotheses[1], &hypotheses[2]].contains(&verdict.chosen().unwrap()),
+            "{verdict:?}"
+        );
         assert_eq!(
-            verdict.rejection,
+            verdict.rejection().cloned(),
             Some(RejectionReason::WeakSupport {
                 direct_support: 3,
                 required: 4
@@ -621,12 +657,12 @@ mod tests {
             )
         };
         let paper = verify(OutputChoice::LargestConsensus);
-        assert_eq!(paper.chosen, Some(4));
+        assert_eq!(paper.chosen(), Some(&hypotheses[4]));
         // Mean δ from pose 4 to the others: (8 + 6 + 4 + 2) / 4 px.
         assert!((paper.mean_delta_to_chosen_px - 5.0).abs() < 1e-6);
         let medoid = verify(OutputChoice::Medoid);
-        assert!(medoid.accepted, "{medoid:?}");
-        assert_eq!(medoid.chosen, Some(2));
+        assert!(medoid.accepted(), "{medoid:?}");
+        assert_eq!(medoid.chosen(), Some(&hypotheses[2]));
         // (4 + 2 + 2 + 4) / 4 px: the medoid is tighter with the group, so more confident.
         assert!((medoid.mean_delta_to_chosen_px - 3.0).abs() < 1e-6);
         assert!(medoid.confidence > paper.confidence);
@@ -641,8 +677,8 @@ mod tests {
             &VerifyConfig::default(),
             &mut ReprojectionWorkspace::new(),
         );
-        assert!(!verdict.accepted);
-        assert_eq!(verdict.rejection, Some(RejectionReason::NoHypotheses));
+        assert!(!verdict.accepted());
+        assert_eq!(verdict.rejection(), Some(&RejectionReason::NoHypotheses));
         assert!(VerifyConfig {
             min_component_size: 0,
             ..VerifyConfig::default()

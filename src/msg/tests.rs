@@ -6,7 +6,7 @@ use nalgebra::{UnitQuaternion, Vector3};
 
 use super::*;
 use crate::core::camera::{Camera, PinholeIntrinsics};
-use crate::core::register::CoarseOutcome;
+use crate::core::frame::CoarseOutcome;
 use crate::core::rigid::Rigid3;
 
 fn info() -> FrameInfo {
@@ -37,8 +37,7 @@ fn every_kind() -> Vec<Body<'static>> {
     let outcome = CoarseOutcome {
         coarse_index: 4,
         consistent_matches: 321,
-        hypothesis: None,
-        failure: Some("too few points".to_string()),
+        hypothesis: Err("too few points".to_string()),
     };
     vec![
         Body::Frame(Frame {
@@ -71,7 +70,6 @@ fn every_kind() -> Vec<Body<'static>> {
             },
             image_points_px: Cow::Owned(vec![0.5, 1.5, 2.5, 3.5]),
             world_points_m: Cow::Owned(vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
-            matching_costs: Cow::Owned(vec![0.25, 0.75]),
         }),
         Body::Hypothesis(Hypothesis {
             info: info(),

@@ -7,7 +7,9 @@ use std::borrow::Cow;
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
-use crate::core::register::CoarseOutcome;
+use nalgebra::{Vector2, Vector3};
+
+use crate::core::frame::{CoarseOutcome, ViewCorrespondences};
 use crate::core::rigid::Rigid3;
 
 /// Bulk data of a message: borrowed from the received bytes when possible, owned otherwise.
@@ -63,7 +65,7 @@ pub struct Envelope<'a> {
     pub body: Body<'a>,
 }
 
-/// Every message body of schema v1.
+/// Every message body of the schema.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Body<'a> {
     Frame(Frame<'a>),
@@ -158,8 +160,48 @@ pub struct Correspondences<'a> {
     pub image_points_px: Blob<'a, f64>,
     /// World points (x, y, z) in metres, interleaved.
     pub world_points_m: Blob<'a, f64>,
-    /// SIFT matching cost of each correspondence.
-    pub matching_costs: Blob<'a, f32>,
+}
+
+impl Correspondences<'_> {
+    /// The message of one view's correspondences.
+    pub fn from_view(
+        meta: CorrespondencesMeta,
+        view: &ViewCorrespondences,
+    ) -> Correspondences<'static> {
+        Correspondences {
+            meta,
+            image_points_px: Cow::Owned(
+                view.image_points_px
+                    .iter()
+                    .flat_map(|p| [p.x, p.y])
+                    .collect(),
+            ),
+            world_points_m: Cow::Owned(
+                view.world_points_m
+                    .iter()
+                    .flat_map(|p| [p.x, p.y, p.z])
+                    .collect(),
+            ),
+        }
+    }
+
+    /// The view's correspondences the message carries.
+    pub fn to_view(&self) -> ViewCorrespondences {
+        ViewCorrespondences {
+            coarse_index: self.meta.coarse_index as usize,
+            coarse_cam_from_world: self.meta.coarse_cam_from_world,
+            image_points_px: self
+                .image_points_px
+                .chunks_exact(2)
+                .map(|p| Vector2::new(p[0], p[1]))
+                .collect(),
+            world_points_m: self
+                .world_points_m
+                .chunks_exact(3)
+                .map(|p| Vector3::new(p[0], p[1], p[2]))
+                .collect(),
+        }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -136,7 +136,6 @@ pub fn encode<'m>(message: &'m Envelope<'_>) -> Result<Encoded<'m>, EncodeError>
             vec![
                 bytemuck::cast_slice(&set.image_points_px),
                 bytemuck::cast_slice(&set.world_points_m),
-                bytemuck::cast_slice(&set.matching_costs),
             ],
         ),
         Body::Hypothesis(body) => (meta_bytes(kind, body)?, Vec::new()),
@@ -356,14 +355,13 @@ pub fn decode(bytes: &[u8]) -> Result<Envelope<'_>, DecodeError> {
             })
         }
         MessageKind::Correspondences => {
-            reader.expect_arrays(3)?;
+            reader.expect_arrays(2)?;
             let meta: CorrespondencesMeta = reader.meta()?;
-            let matching_costs: Blob<f32> = reader.array(2, "matching_costs", None)?;
-            let count = matching_costs.len();
+            let world_points_m: Blob<f64> = reader.array(1, "world_points_m", None)?;
+            let count = world_points_m.len() / 3;
             Body::Correspondences(Correspondences {
                 image_points_px: reader.array(0, "image_points_px", Some(2 * count))?,
                 world_points_m: reader.array(1, "world_points_m", Some(3 * count))?,
-                matching_costs,
                 meta,
             })
         }

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::core::register::RegistrationConfig;
+use crate::core::frame::RegistrationConfig;
 use crate::stage::ingest::SourceConfig;
 use crate::transport::zenoh::ZenohSettings;
 use crate::transport::{Backend, TransportConfig};

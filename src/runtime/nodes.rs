@@ -505,7 +505,7 @@ pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeErro
             };
             let started = Instant::now();
             // The job's images are read where they arrived (shared memory for iceoryx2).
-            let correspondences = stage.process(&job);
+            let correspondences = stage.process(frame_id, &job);
             record_compute(metrics, started);
             let key = JobKey {
                 frame_id,

@@ -2,6 +2,7 @@
 //! bus give the same poses as `batch::register_batch_frame`, every frame gets exactly one result,
 //! bad messages are rejected without killing a stage, and a dead worker's jobs are redone.
 
+use crate::core::frame::IntrinsicsMode;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
@@ -78,6 +79,7 @@ fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
             image_path: config.source.images.join(&image.name),
             depth_path: None,
             camera: cameras[&image.camera_id],
+            intrinsics: IntrinsicsMode::from_known(config.source.intrinsics_known),
             initial_cam_from_world: image.cam_from_world,
         };
         let batch = register_batch_frame(&mesh, &frame, &config.registration, config.source.seed);

@@ -1,25 +1,32 @@
 //! Stage "flow": one FlowJob (a frame's query and one coarse view) becomes that coarse pose's
-//! 2D–3D correspondences: SIFT flow both ways, consistent pairs, lifted onto the mesh. This is the
-//! expensive stage that runs as N workers.
+//! 2D–3D correspondences by the frame sequence's match and lift steps (`core::frame`). This is
+//! the expensive stage that runs as N workers; each keeps the query features of its latest
+//! frames, so a frame's query is described once per worker, not once per job.
 
-use std::borrow::Cow;
 use std::time::Instant;
 
-use crate::core::flow_consistency::{
-    match_query_to_rendering, DenseCorrespondence, DenseCorrespondenceWorkspace, GreyImage,
+use crate::core::flow_consistency::{GreyImage, QueryFeatures};
+use crate::core::frame::{
+    correspond_view, query_features, CorrespondWorkspace, RegistrationConfig, RegistrationError,
+    ViewCorrespondences, ViewRef,
 };
 use crate::core::mesh::Mesh;
-use crate::core::register::{lift_correspondences, RegistrationConfig, ViewGeometry};
 use crate::msg::{Correspondences, CorrespondencesMeta, FlowJob};
 
 use super::elapsed_ms;
+
+/// Query features kept per worker: a worker takes jobs of at most a few frames at a time.
+const CACHED_FRAMES: usize = 2;
 
 pub struct FlowStage<'m> {
     mesh: &'m Mesh,
     config: RegistrationConfig,
     worker_index: u32,
-    workspace: DenseCorrespondenceWorkspace,
-    dense: DenseCorrespondence,
+    workspace: CorrespondWorkspace,
+    /// (frame id, its query features), most recent last.
+    features: Vec<(u64, QueryFeatures)>,
+    /// Jobs whose frame's features were already here.
+    pub feature_cache_hits: u64,
 }
 
 impl<'m> FlowStage<'m> {
@@ -28,66 +35,42 @@ impl<'m> FlowStage<'m> {
             mesh,
             config,
             worker_index,
-            workspace: DenseCorrespondenceWorkspace::default(),
-            dense: DenseCorrespondence::default(),
+            workspace: CorrespondWorkspace::default(),
+            features: Vec::with_capacity(CACHED_FRAMES),
+            feature_cache_hits: 0,
         }
     }
 
     /// The job's correspondences; a flow error leaves them empty (the pose stage then reports
     /// too few correspondences for this coarse pose), with the error logged.
-    pub fn process(&mut self, job: &FlowJob) -> Correspondences<'static> {
+    pub fn process(&mut self, frame_id: u64, job: &FlowJob) -> Correspondences<'static> {
         let started = Instant::now();
         let meta = &job.meta;
-        let (width_px, height_px) = (
-            meta.info.camera.width_px as usize,
-            meta.info.camera.height_px as usize,
-        );
-        let grey = |pixels| GreyImage {
-            width_px,
-            height_px,
-            pixels,
+        let view = ViewRef {
+            coarse_index: meta.coarse_index as usize,
+            cam_from_world: meta.coarse_cam_from_world,
+            width_px: meta.info.camera.width_px as usize,
+            height_px: meta.info.camera.height_px as usize,
+            asg: &job.asg,
+            depth_m: &job.depth_m,
+            face_index: &job.face_index,
         };
-        let mut image_points_px = Vec::new();
-        let mut world_points_m = Vec::new();
-        let mut matching_costs = Vec::new();
-        // As in one-process registration (core::register::match_views), no validity mask.
-        match match_query_to_rendering(
-            grey(&job.query),
-            grey(&job.asg),
-            None,
-            &self.config.correspondence,
-            &mut self.workspace,
-            &mut self.dense,
-        ) {
-            Ok(()) => {
-                let geometry = ViewGeometry {
-                    coarse_index: meta.coarse_index as usize,
-                    cam_from_world: meta.coarse_cam_from_world,
-                    width_px,
-                    height_px,
-                    depth_m: &job.depth_m,
-                    face_index: &job.face_index,
-                };
-                let lifted =
-                    lift_correspondences(self.mesh, &meta.info.camera, geometry, &self.dense);
-                image_points_px.reserve(2 * lifted.image_points_px.len());
-                for point in &lifted.image_points_px {
-                    image_points_px.extend_from_slice(&[point.x, point.y]);
+        let correspondences = self
+            .correspond(frame_id, job, &view)
+            .unwrap_or_else(|error| {
+                tracing::warn!(
+                    "frame '{}' coarse pose {}: {error}",
+                    meta.info.name,
+                    meta.coarse_index
+                );
+                ViewCorrespondences {
+                    coarse_index: view.coarse_index,
+                    coarse_cam_from_world: view.cam_from_world,
+                    ..ViewCorrespondences::default()
                 }
-                world_points_m.reserve(3 * lifted.world_points.len());
-                for point in &lifted.world_points {
-                    world_points_m.extend_from_slice(&[point.x, point.y, point.z]);
-                }
-                matching_costs = lifted.matching_costs;
-            }
-            Err(error) => tracing::warn!(
-                "frame '{}' coarse pose {}: SIFT flow failed: {error}",
-                meta.info.name,
-                meta.coarse_index
-            ),
-        }
-        Correspondences {
-            meta: CorrespondencesMeta {
+            });
+        Correspondences::from_view(
+            CorrespondencesMeta {
                 info: meta.info.clone(),
                 coarse_index: meta.coarse_index,
                 coarse_count: meta.coarse_count,
@@ -96,9 +79,42 @@ impl<'m> FlowStage<'m> {
                 flow_ms: elapsed_ms(started),
                 flow_worker: self.worker_index,
             },
-            image_points_px: Cow::Owned(image_points_px),
-            world_points_m: Cow::Owned(world_points_m),
-            matching_costs: Cow::Owned(matching_costs),
-        }
+            &correspondences,
+        )
+    }
+
+    fn correspond(
+        &mut self,
+        frame_id: u64,
+        job: &FlowJob,
+        view: &ViewRef<'_>,
+    ) -> Result<ViewCorrespondences, RegistrationError> {
+        let position = match self.features.iter().position(|(id, _)| *id == frame_id) {
+            Some(position) => {
+                self.feature_cache_hits += 1;
+                position
+            }
+            None => {
+                let query = GreyImage {
+                    width_px: view.width_px,
+                    height_px: view.height_px,
+                    pixels: &job.query,
+                };
+                let features = query_features(query, &self.config)?;
+                if self.features.len() == CACHED_FRAMES {
+                    self.features.remove(0);
+                }
+                self.features.push((frame_id, features));
+                self.features.len() - 1
+            }
+        };
+        correspond_view(
+            self.mesh,
+            &job.meta.info.camera,
+            &self.features[position].1,
+            view,
+            &self.config,
+            &mut self.workspace,
+        )
     }
 }

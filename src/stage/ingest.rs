@@ -8,11 +8,9 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::batch::depth_path_for;
 use crate::core::camera::Camera;
+use crate::frame_files::{depth_path_for, frame_seed, load_frame_files};
 use crate::io::colmap::{read_cameras_txt, read_images_txt, ColmapError, ImagePose};
-use crate::io::images::{check_image_matches_camera, load_gray};
-use crate::io::pfm::read_pfm;
 use crate::msg::{Frame, FrameFailed, FrameInfo};
 
 /// Where the frames come from.
@@ -144,34 +142,18 @@ impl FolderSource {
                 image.name
             )));
         }
-        let path = self.config.images.join(&image.name);
-        let photo = load_gray(&path).map_err(|e| failed(e.to_string()))?;
-        check_image_matches_camera(
-            &path,
-            photo.width_px,
-            photo.height_px,
+        let depth_path = self
+            .config
+            .depth
+            .as_ref()
+            .map(|dir| depth_path_for(dir, &image.name));
+        let files = load_frame_files(
+            &self.config.images.join(&image.name),
             image.camera_id,
             &camera,
+            depth_path.as_deref(),
         )
         .map_err(|e| failed(e.to_string()))?;
-        let depth_m = match &self.config.depth {
-            Some(dir) => {
-                let path = depth_path_for(dir, &image.name);
-                let depth = read_pfm(&path).map_err(|e| failed(e.to_string()))?;
-                if depth.width_px != photo.width_px || depth.height_px != photo.height_px {
-                    return Err(failed(format!(
-                        "{}: depth map is {}×{} px but the photo is {}×{} px",
-                        path.display(),
-                        depth.width_px,
-                        depth.height_px,
-                        photo.width_px,
-                        photo.height_px
-                    )));
-                }
-                depth.depth_m
-            }
-            None => Vec::new(),
-        };
         Ok(Frame {
             info: FrameInfo {
                 name: image.name.clone(),
@@ -181,14 +163,8 @@ impl FolderSource {
                 initial_cam_from_world: image.cam_from_world,
                 seed: frame_seed(self.config.seed, image.image_id),
             },
-            image: Cow::Owned(photo.pixels),
-            depth_m: Cow::Owned(depth_m),
+            image: Cow::Owned(files.photo.pixels),
+            depth_m: Cow::Owned(files.depth.map(|d| d.depth_m).unwrap_or_default()),
         })
     }
-}
-
-/// The seed of a frame: the same derivation as batch registration, so `asgreg register` and the
-/// pipeline give the same result for the same seed.
-pub fn frame_seed(seed: u64, image_id: u32) -> u64 {
-    seed ^ u64::from(image_id).wrapping_mul(0x9E37_79B9_7F4A_7C15)
 }

@@ -8,20 +8,6 @@ pub mod pose;
 pub mod render;
 pub mod verify;
 
-use crate::core::register::{IntrinsicsMode, RegistrationConfig};
-use crate::msg::FrameInfo;
-
-/// The registration settings for one frame: the pipeline's, with the frame's intrinsics mode.
-pub(crate) fn frame_config(base: &RegistrationConfig, info: &FrameInfo) -> RegistrationConfig {
-    let mut config = base.clone();
-    config.intrinsics = if info.intrinsics_known {
-        IntrinsicsMode::Known
-    } else {
-        IntrinsicsMode::Unknown
-    };
-    config
-}
-
 /// Milliseconds since `started`.
 pub(crate) fn elapsed_ms(started: std::time::Instant) -> f64 {
     started.elapsed().as_secs_f64() * 1e3

@@ -1,19 +1,19 @@
-//! Stage "render": a Frame becomes one FlowJob per coarse pose: the photo's query gradient and
-//! the ASG rendering, depth and face index of each coarse pose around the initial pose.
+//! Stage "render": a Frame becomes one FlowJob per coarse pose (the query gradient and the ASG
+//! rendering, depth and face index of the view), by the frame sequence's own query, plan and
+//! render steps (`core::frame`).
 
 use std::borrow::Cow;
 use std::time::Instant;
 
 use crate::core::flow_consistency::GreyImage;
+use crate::core::frame::{
+    query_gradient, render_views, CoarseView, FrameInput, IntrinsicsMode, RegistrationConfig,
+};
 use crate::core::mesh::Mesh;
 use crate::core::raster::Rasterizer;
-use crate::core::register::{
-    coarse_poses, median_scene_depth_m, query_gradient, render_coarse_view, CoarseView, FrameInput,
-    RegistrationConfig,
-};
 use crate::msg::{FlowJob, FlowJobMeta, Frame, FrameFailed};
 
-use super::{elapsed_ms, frame_config};
+use super::elapsed_ms;
 
 pub struct RenderStage<'m> {
     mesh: &'m Mesh,
@@ -48,12 +48,6 @@ impl<'m> RenderStage<'m> {
             stage: "render".to_string(),
             reason,
         };
-        if !info.initial_cam_from_world.is_finite() {
-            return Err(failed(
-                "the initial pose is not finite (NaN or infinity)".to_string(),
-            ));
-        }
-        let config = frame_config(&self.config, info);
         let (width_px, height_px) = (
             info.camera.width_px as usize,
             info.camera.height_px as usize,
@@ -70,55 +64,35 @@ impl<'m> RenderStage<'m> {
                 pixels: &frame.depth_m,
             }),
             camera: &info.camera,
+            intrinsics: IntrinsicsMode::from_known(info.intrinsics_known),
             initial_cam_from_world: info.initial_cam_from_world,
             seed: info.seed,
         };
-        let query = query_gradient(&input, &config).map_err(|e| failed(e.to_string()))?;
-        // The initial pose's view gives the scene depth that scales the other coarse poses.
-        render_coarse_view(
+        let query = query_gradient(&input, &self.config).map_err(|e| failed(e.to_string()))?;
+        render_views(
             self.mesh,
             &info.camera,
-            0,
             &info.initial_cam_from_world,
-            &config,
+            &self.config,
+            info.seed,
             &mut self.rasterizer,
             &mut self.view,
-        );
-        let median_depth_m = median_scene_depth_m(&self.view.render).ok_or_else(|| {
-            failed("the model is not visible from the initial pose (check the pose and the mesh's coordinate frame)".to_string())
-        })?;
-        let poses = coarse_poses(
-            &info.initial_cam_from_world,
-            median_depth_m,
-            &config,
-            info.seed,
-        );
-        for (coarse_index, pose) in poses.iter().enumerate() {
-            if coarse_index > 0 {
-                render_coarse_view(
-                    self.mesh,
-                    &info.camera,
-                    coarse_index,
-                    pose,
-                    &config,
-                    &mut self.rasterizer,
-                    &mut self.view,
-                );
-            }
-            emit(FlowJob {
-                meta: FlowJobMeta {
-                    info: info.clone(),
-                    coarse_index: coarse_index as u32,
-                    coarse_count: poses.len() as u32,
-                    coarse_cam_from_world: *pose,
-                    render_ms: elapsed_ms(started),
-                },
-                query: Cow::Borrowed(&query.pixels),
-                asg: Cow::Borrowed(&self.view.asg),
-                depth_m: Cow::Borrowed(&self.view.render.depth_m),
-                face_index: Cow::Borrowed(&self.view.render.face_index),
-            });
-        }
-        Ok(poses.len())
+            &mut |view, coarse_count| {
+                emit(FlowJob {
+                    meta: FlowJobMeta {
+                        info: info.clone(),
+                        coarse_index: view.coarse_index as u32,
+                        coarse_count: coarse_count as u32,
+                        coarse_cam_from_world: view.cam_from_world,
+                        render_ms: elapsed_ms(started),
+                    },
+                    query: Cow::Borrowed(&query.pixels),
+                    asg: Cow::Borrowed(&view.asg),
+                    depth_m: Cow::Borrowed(&view.render.depth_m),
+                    face_index: Cow::Borrowed(&view.render.face_index),
+                })
+            },
+        )
+        .map_err(|e| failed(e.to_string()))
     }
 }

@@ -7,8 +7,8 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
 
 use crate::core::camera::Camera;
+use crate::core::frame::{decide_frame, CoarseOutcome, RegistrationConfig};
 use crate::core::mesh::Mesh;
-use crate::core::register::{verify_outcomes, CoarseOutcome, RegistrationConfig};
 use crate::msg::{
     CameraNumbers, Evidence, FrameFailed, Hypothesis, PoseNumbers, PoseResult, StageTimesMs,
 };
@@ -170,10 +170,9 @@ impl<'m> VerifyStage<'m> {
             .values()
             .map(|h| h.outcome.clone())
             .collect();
-        let (camera, pose, verdict) =
-            verify_outcomes(self.mesh, &frame.camera, &outcomes, &self.config);
-        let hypotheses: Vec<_> = outcomes.iter().filter_map(|o| o.hypothesis).collect();
-        let chosen = verdict.chosen.and_then(|i| hypotheses.get(i));
+        let verdict = decide_frame(self.mesh, &frame.camera, &outcomes, &self.config);
+        let chosen = verdict.chosen();
+        let accepted = verdict.accepted_pose();
         let mut times = StageTimesMs::default();
         for hypothesis in frame.hypotheses.values() {
             // Each job carries the render time up to its view: the frame's is the largest.
@@ -185,14 +184,13 @@ impl<'m> VerifyStage<'m> {
         PoseResult {
             frame_id,
             name: frame.name,
-            accepted: verdict.accepted,
+            accepted: verdict.accepted(),
             failure: verdict
-                .rejection
-                .as_ref()
+                .rejection()
                 .map(|reason| format!("verify: {reason}")),
             confidence: verdict.confidence,
-            camera: camera.as_ref().map(CameraNumbers::from),
-            cam_from_world: pose.as_ref().map(PoseNumbers::from),
+            camera: accepted.map(|h| CameraNumbers::from(&h.camera)),
+            cam_from_world: accepted.map(|h| PoseNumbers::from(&h.cam_from_world)),
             evidence: Evidence {
                 hypotheses: verdict.hypothesis_count as u32,
                 component_size: verdict.component.len() as u32,

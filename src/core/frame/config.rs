@@ -1,0 +1,192 @@
+//! The settings of a frame's registration (one struct, validated once) and why a frame cannot be
+//! registered at all. Whether the intrinsics are known is a property of the frame
+//! ([`super::FrameInput::intrinsics`]), not of the settings.
+
+use serde::{Deserialize, Serialize};
+
+use crate::core::flow_consistency::DenseCorrespondenceConfig;
+use crate::core::pose::estimate::PoseEstimationConfig;
+use crate::core::raster::RenderOptions;
+use crate::core::shading::AsgOptions;
+use crate::core::verify::VerifyConfig;
+
+/// Which gradient image stands for the photo (DESIGN §2 step 3).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum QueryMode {
+    /// Gradient magnitude of the photo (Plötz & Roth's choice).
+    #[default]
+    ImageGradient,
+    /// ASG of the normals of the photo's depth map (the paper's choice); needs a depth map.
+    DepthAsg,
+}
+
+/// Whether the photo's intrinsics are known.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum IntrinsicsMode {
+    /// Calibrated: EPnP, only the pose is estimated.
+    #[default]
+    Known,
+    /// Uncalibrated: DLT, focal lengths, principal point and pose are estimated.
+    Unknown,
+}
+
+impl IntrinsicsMode {
+    /// The mode of a frame whose intrinsics are (`true`) or are not known.
+    pub fn from_known(known: bool) -> Self {
+        if known {
+            Self::Known
+        } else {
+            Self::Unknown
+        }
+    }
+}
+
+/// Settings of the registration of one frame; `Default` is the paper's setup.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RegistrationConfig {
+    /// Coarse poses per frame (paper: 15). The first is the initial pose itself. The spread below
+    /// is not in the paper. Measured trade-off (synthetic house, depth query): at 1° / 2 % an ideal
+    /// query reaches 0.9 px, but on photos no frame's refined poses converge measurably, so the
+    /// convergence test rejects them all; at 3° / 6 % the ideal query only reaches 4.1 px (far
+    /// coarse views flow less accurately) while photo frames start to pass the test.
+    pub coarse_pose_count: usize,
+    /// Standard deviation of the coarse poses' rotation noise, degrees (per axis).
+    pub coarse_rotation_sigma_deg: f64,
+    /// Standard deviation of the coarse poses' camera-centre noise, as a fraction of the median
+    /// scene depth seen from the initial pose (dimensionless; 0.02 at 40 m is 0.8 m).
+    pub coarse_translation_sigma_fraction: f64,
+    pub query_mode: QueryMode,
+    /// [`QueryMode::DepthAsg`]: radius of the discontinuity-aware smoothing of the photo's depth
+    /// before normals are taken, px (0: none). MVS depth is noisy per pixel; normals of raw depth
+    /// are noise (a 0.7 % depth error at 20 m is 14 cm, more than the 5 cm pixel footprint).
+    pub query_depth_smoothing_radius_px: usize,
+    /// Neighbours whose depth differs by more than this fraction from the centre's are not
+    /// averaged (they are across an occlusion edge), dimensionless.
+    pub query_depth_max_relative_step: f32,
+    pub render: RenderOptions,
+    pub asg: AsgOptions,
+    pub correspondence: DenseCorrespondenceConfig,
+    /// At most this many correspondences per coarse pose go to RANSAC (an even subsample).
+    pub max_correspondences_per_pose: usize,
+    /// Fewer consistent correspondences than this: the coarse pose gives no hypothesis.
+    pub min_correspondences_per_pose: usize,
+    pub pose: PoseEstimationConfig,
+    pub verify: VerifyConfig,
+}
+
+impl Default for RegistrationConfig {
+    fn default() -> Self {
+        let correspondence = DenseCorrespondenceConfig {
+            sift_flow: crate::core::sift_flow::SiftFlowConfig::fast(),
+            ..DenseCorrespondenceConfig::default()
+        };
+        Self {
+            coarse_pose_count: 15,
+            coarse_rotation_sigma_deg: 1.0,
+            coarse_translation_sigma_fraction: 0.02,
+            query_mode: QueryMode::ImageGradient,
+            query_depth_smoothing_radius_px: 3,
+            query_depth_max_relative_step: 0.03,
+            render: RenderOptions::default(),
+            asg: AsgOptions::default(),
+            correspondence,
+            max_correspondences_per_pose: 3000,
+            min_correspondences_per_pose: 30,
+            pose: PoseEstimationConfig::default(),
+            verify: VerifyConfig::default(),
+        }
+    }
+}
+
+/// Why a frame could not be registered at all (as opposed to a rejection by verification).
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum RegistrationError {
+    #[error("registration config: {field}: {why}")]
+    InvalidConfig { field: &'static str, why: String },
+    #[error("the photo is {photo_width_px}x{photo_height_px} px but its camera is {camera_width_px}x{camera_height_px} px")]
+    PhotoSize {
+        photo_width_px: usize,
+        photo_height_px: usize,
+        camera_width_px: u32,
+        camera_height_px: u32,
+    },
+    #[error("query mode DepthAsg needs the photo's depth map, and none was given")]
+    MissingDepth,
+    #[error("the depth map is {depth_width_px}x{depth_height_px} px, the photo {photo_width_px}x{photo_height_px} px")]
+    DepthSize {
+        depth_width_px: usize,
+        depth_height_px: usize,
+        photo_width_px: usize,
+        photo_height_px: usize,
+    },
+    #[error("the initial pose is not finite (NaN or infinity in its rotation or translation)")]
+    NonFiniteInitialPose,
+    #[error("the model is not visible from the initial pose: check the pose convention (cam_from_world) and the mesh's coordinate frame")]
+    ModelNotVisible,
+    #[error("dense correspondence failed: {0}")]
+    Flow(String),
+}
+
+impl RegistrationConfig {
+    pub fn validate(&self) -> Result<(), RegistrationError> {
+        let bad =
+            |field: &'static str, why: String| Err(RegistrationError::InvalidConfig { field, why });
+        if self.coarse_pose_count == 0 {
+            return bad("coarse_pose_count", "must be at least 1".into());
+        }
+        for (field, value) in [
+            ("coarse_rotation_sigma_deg", self.coarse_rotation_sigma_deg),
+            (
+                "coarse_translation_sigma_fraction",
+                self.coarse_translation_sigma_fraction,
+            ),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return bad(field, format!("{value} is not a non-negative number"));
+            }
+        }
+        if !(self.query_depth_max_relative_step.is_finite()
+            && self.query_depth_max_relative_step >= 0.0)
+        {
+            return bad(
+                "query_depth_max_relative_step",
+                format!(
+                    "{} is not a non-negative number",
+                    self.query_depth_max_relative_step
+                ),
+            );
+        }
+        if self.min_correspondences_per_pose < 6 {
+            return bad(
+                "min_correspondences_per_pose",
+                "must be at least 6 (a DLT sample)".into(),
+            );
+        }
+        if self.max_correspondences_per_pose < self.min_correspondences_per_pose {
+            return bad(
+                "max_correspondences_per_pose",
+                "must not be below min_correspondences_per_pose".into(),
+            );
+        }
+        self.correspondence
+            .validate()
+            .map_err(|e| RegistrationError::InvalidConfig {
+                field: "correspondence",
+                why: e.to_string(),
+            })?;
+        self.pose
+            .validate()
+            .map_err(|e| RegistrationError::InvalidConfig {
+                field: "pose",
+                why: e.to_string(),
+            })?;
+        self.verify
+            .validate()
+            .map_err(|e| RegistrationError::InvalidConfig {
+                field: "verify",
+                why: e.to_string(),
+            })?;
+        Ok(())
+    }
+}

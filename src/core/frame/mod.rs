@@ -1,0 +1,232 @@
+//! One frame end to end (Schmitz et al. §3; DESIGN §2), written once as a sequence of steps:
+//!
+//! | step | runs | function | pipeline stage |
+//! |---|---|---|---|
+//! | query | once per frame | [`query::query_gradient`] | render |
+//! | plan + render | once per frame, a view at a time | [`views::render_views`] | render |
+//! | features | once per frame | [`correspond::query_features`] | flow (cached per frame) |
+//! | match + lift | per coarse view | [`correspond::correspond_view`] | flow (N workers) |
+//! | solve | per coarse view | [`solve::solve_view`] | pose |
+//! | verify | once per frame, over all views | [`decide::decide_frame`] | verify |
+//!
+//! [`register_frame`] (one process), the stage adapters (`stage::*`) and batch registration all
+//! call these functions and nothing else; none re-derives a step. A new step is one function
+//! here, called from the one place in this sequence where it belongs (a per-frame step before
+//! the views inside `render_views`' caller or after them inside `decide_frame`; a per-view step
+//! inside `correspond_view` or `solve_view`); see ARCHITECTURE.md.
+//!
+//! Determinism: every random draw comes from a ChaCha8 stream derived from the frame seed and the
+//! coarse pose's index, so results do not depend on thread scheduling or on which worker ran which
+//! coarse pose.
+
+pub mod config;
+pub mod correspond;
+pub mod decide;
+pub mod query;
+pub mod solve;
+pub mod views;
+
+use std::time::Instant;
+
+use nalgebra::{Vector2, Vector3};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+pub use config::{IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError};
+pub use correspond::{correspond_view, query_features, CorrespondWorkspace, ViewRef};
+pub use decide::decide_frame;
+pub use query::{query_gradient, smooth_depth};
+pub use solve::solve_view;
+pub use views::{coarse_poses, median_scene_depth_m, render_coarse_view, render_views};
+
+use super::camera::Camera;
+use super::flow_consistency::GreyImage;
+use super::mesh::Mesh;
+use super::raster::{Rasterizer, RenderBuffers};
+use super::rigid::Rigid3;
+use super::verify::{PoseHypothesis, Verdict};
+
+/// Photo gradients and ASG images are both scaled so that this percentile of their positive
+/// values is 1 (values above are clamped): they then live on the same 0..1 scale, which the
+/// texture threshold of the flow assumes.
+const GRADIENT_SCALE_PERCENTILE: f64 = 0.99;
+
+/// The photo side of a frame.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameInput<'a> {
+    /// Grey photo, row major, values 0..1.
+    pub photo: GreyImage<'a>,
+    /// The photo's depth map (metres along the optical axis, holes 0), for [`QueryMode::DepthAsg`].
+    pub depth_m: Option<GreyImage<'a>>,
+    /// The camera: known intrinsics, or the nominal ones coarse poses are rendered with.
+    pub camera: &'a Camera,
+    /// Whether `camera`'s intrinsics are trusted (EPnP) or estimated (DLT).
+    pub intrinsics: IntrinsicsMode,
+    pub initial_cam_from_world: Rigid3,
+    /// Seed of this frame's random draws.
+    pub seed: u64,
+}
+
+/// The query's gradient image, scaled to 0..1.
+#[derive(Clone, Debug, Default)]
+pub struct QueryGradient {
+    pub width_px: usize,
+    pub height_px: usize,
+    pub pixels: Vec<f32>,
+}
+
+impl QueryGradient {
+    pub fn as_grey(&self) -> GreyImage<'_> {
+        GreyImage {
+            width_px: self.width_px,
+            height_px: self.height_px,
+            pixels: &self.pixels,
+        }
+    }
+}
+
+/// One coarse pose's rendering: what the flow step needs and what lifts matches to 3D.
+#[derive(Clone, Debug, Default)]
+pub struct CoarseView {
+    pub coarse_index: usize,
+    pub cam_from_world: Rigid3,
+    /// ASG image scaled to 0..1.
+    pub asg: Vec<f32>,
+    pub render: RenderBuffers,
+}
+
+/// The 2D–3D correspondences of one coarse view.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ViewCorrespondences {
+    pub coarse_index: usize,
+    /// The coarse pose the rendering was made from.
+    pub coarse_cam_from_world: Rigid3,
+    /// Query image points, pixels (COLMAP convention: pixel centres at +0.5).
+    pub image_points_px: Vec<Vector2<f64>>,
+    /// The model points they see, world frame, metres.
+    pub world_points_m: Vec<Vector3<f64>>,
+}
+
+/// What became of one coarse view.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CoarseOutcome {
+    pub coarse_index: usize,
+    pub consistent_matches: usize,
+    /// The refined pose, or why there is none.
+    pub hypothesis: Result<PoseHypothesis, String>,
+}
+
+/// Time spent in each step of a frame, ms (wall time in one process).
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+pub struct StageTimings {
+    pub query_ms: f64,
+    pub render_ms: f64,
+    pub flow_ms: f64,
+    pub pose_ms: f64,
+    pub verify_ms: f64,
+    pub total_ms: f64,
+}
+
+/// The result of one frame: the verdict (the pose when accepted) and the evidence.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FrameResult {
+    pub verdict: Verdict,
+    pub coarse: Vec<CoarseOutcome>,
+    pub timings: StageTimings,
+}
+
+fn elapsed_ms(started: Instant) -> f64 {
+    started.elapsed().as_secs_f64() * 1e3
+}
+
+/// A ChaCha8 stream for one purpose of one frame (stream ids keep purposes independent).
+fn frame_rng(seed: u64, stream: u64) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(stream);
+    rng
+}
+
+/// Registers one frame: the steps of the sequence above, in one process.
+pub fn register_frame(
+    mesh: &Mesh,
+    input: &FrameInput,
+    config: &RegistrationConfig,
+) -> Result<FrameResult, RegistrationError> {
+    let started = Instant::now();
+    config.validate()?;
+    let query = query_gradient(input, config)?;
+    let query_ms = elapsed_ms(started);
+    let mut result = register_query(
+        mesh,
+        input.camera,
+        input.intrinsics,
+        &input.initial_cam_from_world,
+        &query,
+        config,
+        input.seed,
+    )?;
+    result.timings.query_ms = query_ms;
+    result.timings.total_ms = elapsed_ms(started);
+    Ok(result)
+}
+
+/// Registers a frame whose query gradient image is already made: every step after "query".
+/// `config` must be valid.
+pub fn register_query(
+    mesh: &Mesh,
+    camera: &Camera,
+    intrinsics: IntrinsicsMode,
+    initial_cam_from_world: &Rigid3,
+    query: &QueryGradient,
+    config: &RegistrationConfig,
+    seed: u64,
+) -> Result<FrameResult, RegistrationError> {
+    let started = Instant::now();
+    let mut timings = StageTimings::default();
+
+    let stage = Instant::now();
+    let mut views: Vec<CoarseView> = Vec::with_capacity(config.coarse_pose_count);
+    render_views(
+        mesh,
+        camera,
+        initial_cam_from_world,
+        config,
+        seed,
+        &mut Rasterizer::new(),
+        &mut CoarseView::default(),
+        &mut |view, _| views.push(view.clone()),
+    )?;
+    timings.render_ms = elapsed_ms(stage);
+
+    let stage = Instant::now();
+    let features = query_features(query.as_grey(), config)?;
+    let correspondences: Vec<ViewCorrespondences> = views
+        .par_iter()
+        .map_init(CorrespondWorkspace::default, |workspace, view| {
+            correspond_view(mesh, camera, &features, &view.as_ref(), config, workspace)
+        })
+        .collect::<Result<_, _>>()?;
+    timings.flow_ms = elapsed_ms(stage);
+
+    let stage = Instant::now();
+    let outcomes: Vec<CoarseOutcome> = correspondences
+        .par_iter()
+        .map(|set| solve_view(set, camera, intrinsics, config, seed))
+        .collect();
+    timings.pose_ms = elapsed_ms(stage);
+
+    let stage = Instant::now();
+    let verdict = decide_frame(mesh, camera, &outcomes, config);
+    timings.verify_ms = elapsed_ms(stage);
+    timings.total_ms = elapsed_ms(started);
+    Ok(FrameResult {
+        verdict,
+        coarse: outcomes,
+        timings,
+    })
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,204 @@
+//! The whole frame on an ideal query, and its input checks.
+
+use nalgebra::UnitQuaternion;
+
+use super::*;
+use crate::core::camera::PinholeIntrinsics;
+use crate::core::reprojection::mutual_reprojection_error_px;
+use crate::core::reprojection::ReprojectionWorkspace;
+use crate::synth::geometry::build_house;
+
+fn house_mesh() -> Mesh {
+    let scene = build_house(&mut ChaCha8Rng::seed_from_u64(3));
+    let positions: Vec<Vector3<f64>> = scene
+        .positions_m
+        .iter()
+        .map(|p| Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)))
+        .collect();
+    Mesh::from_world(&positions, scene.faces.clone(), None).unwrap()
+}
+
+/// The whole chain on an ideal query (the model's own ASG under the true pose): from an initial
+/// pose tens of pixels off, the accepted pose must be the true one to about a pixel. This
+/// checks rendering, flow, lifting, RANSAC, refinement and verification together; photos make it
+/// harder, which `asgreg eval` measures.
+#[test]
+fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
+    let mesh = house_mesh();
+    let camera = Camera::pinhole(505, 275, PinholeIntrinsics::centered(360.0, 505, 275));
+    let truth = Rigid3::look_at(
+        &Vector3::new(18.0, -14.0, 9.0),
+        &Vector3::new(0.0, 0.0, 3.0),
+        &Vector3::z(),
+    )
+    .unwrap();
+    let initial = Rigid3::new(
+        UnitQuaternion::from_scaled_axis(Vector3::new(0.04, -0.05, 0.02)) * truth.rotation,
+        truth.translation + Vector3::new(1.0, -0.6, 0.4),
+    );
+    let config = RegistrationConfig::default();
+    let mut workspace = ReprojectionWorkspace::new();
+    let initial_delta =
+        mutual_reprojection_error_px(&mesh, &camera, &initial, &camera, &truth, &mut workspace)
+            .unwrap();
+    let mut rasterizer = Rasterizer::new();
+    let mut truth_view = CoarseView::default();
+    render_coarse_view(
+        &mesh,
+        &camera,
+        0,
+        &truth,
+        &config,
+        &mut rasterizer,
+        &mut truth_view,
+    );
+    let query = QueryGradient {
+        width_px: 505,
+        height_px: 275,
+        pixels: truth_view.asg.clone(),
+    };
+    let result = register_query(
+        &mesh,
+        &camera,
+        IntrinsicsMode::Known,
+        &initial,
+        &query,
+        &config,
+        7,
+    )
+    .unwrap();
+    let output = result.verdict.accepted_pose().expect("accepted");
+    let final_delta = mutual_reprojection_error_px(
+        &mesh,
+        &output.camera,
+        &output.cam_from_world,
+        &camera,
+        &truth,
+        &mut workspace,
+    )
+    .unwrap();
+    println!(
+        "ideal query: δ {initial_delta:.1} px → {final_delta:.3} px, {} of {} poses agree",
+        result.verdict.component.len(),
+        result.verdict.hypothesis_count
+    );
+    assert!(
+        initial_delta > 15.0,
+        "the start must be far off: {initial_delta}"
+    );
+    // The target for known intrinsics at 30 px is 1.5 px; an ideal query must meet it
+    // (measured: 0.89 px from 22.6 px with seed 7, after the flow's banded BP landed; 1.12 px before; the residual is the flow's sub-pixel error on
+    // thin ASG edges and the coarse views' perspective differences).
+    assert!(final_delta < 1.5, "{final_delta}");
+    // Same seed, same result.
+    let again = register_query(
+        &mesh,
+        &camera,
+        IntrinsicsMode::Known,
+        &initial,
+        &query,
+        &config,
+        7,
+    )
+    .unwrap();
+    assert_eq!(again.verdict.decision, result.verdict.decision);
+}
+
+#[test]
+fn depth_smoothing_averages_within_surfaces_and_keeps_edges_and_holes() {
+    // Left half a wall at 10 m with ±0.1 m alternating noise, right half at 20 m, one hole.
+    let (width, height) = (10, 5);
+    let mut depth: Vec<f32> = (0..width * height)
+        .map(|i| {
+            if i % width < 5 {
+                10.0 + if i % 2 == 0 { 0.1 } else { -0.1 }
+            } else {
+                20.0
+            }
+        })
+        .collect();
+    depth[2 * width + 7] = 0.0;
+    let mut out = vec![0.0; width * height];
+    smooth_depth(&depth, width, height, 1, 0.03, &mut out);
+    assert_eq!(out[2 * width + 7], 0.0, "a hole stays a hole");
+    assert_eq!(
+        out[2 * width + 8],
+        20.0,
+        "the far wall is not pulled towards the near one"
+    );
+    // The noise alternates by column: a 3x3 window inside the wall holds columns -,+,- (mean
+    // 10 - 0.1/3); at the wall's edge the window keeps only columns 3 and 4 (-,+: mean 10).
+    assert!(
+        (out[2 * width + 2] - (10.0 - 0.1 / 3.0)).abs() < 1e-5,
+        "{}",
+        out[2 * width + 2]
+    );
+    assert!(
+        (out[2 * width + 4] - 10.0).abs() < 1e-5,
+        "{}",
+        out[2 * width + 4]
+    );
+}
+
+#[test]
+fn bad_inputs_are_reported_not_panicked() {
+    let mesh = house_mesh();
+    let camera = Camera::pinhole(64, 48, PinholeIntrinsics::centered(50.0, 64, 48));
+    let query = QueryGradient {
+        width_px: 64,
+        height_px: 48,
+        pixels: vec![0.0; 64 * 48],
+    };
+    let config = RegistrationConfig::default();
+    let nan_pose = Rigid3::new(UnitQuaternion::identity(), Vector3::new(f64::NAN, 0.0, 0.0));
+    assert_eq!(
+        register_query(
+            &mesh,
+            &camera,
+            IntrinsicsMode::Known,
+            &nan_pose,
+            &query,
+            &config,
+            1
+        )
+        .unwrap_err(),
+        RegistrationError::NonFiniteInitialPose
+    );
+    // Looking away from the house.
+    let away = Rigid3::look_at(
+        &Vector3::new(0.0, 0.0, 50.0),
+        &Vector3::new(0.0, 0.0, 100.0),
+        &Vector3::x(),
+    )
+    .unwrap();
+    assert_eq!(
+        register_query(
+            &mesh,
+            &camera,
+            IntrinsicsMode::Known,
+            &away,
+            &query,
+            &config,
+            1
+        )
+        .unwrap_err(),
+        RegistrationError::ModelNotVisible
+    );
+    let photo = vec![0.5f32; 10 * 10];
+    let input = FrameInput {
+        photo: GreyImage {
+            width_px: 10,
+            height_px: 10,
+            pixels: &photo,
+        },
+        depth_m: None,
+        camera: &camera,
+        intrinsics: IntrinsicsMode::Known,
+        initial_cam_from_world: Rigid3::identity(),
+        seed: 1,
+    };
+    assert!(matches!(
+        query_gradient(&input, &config),
+        Err(RegistrationError::PhotoSize { .. })
+    ));
+}

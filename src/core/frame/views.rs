@@ -1,0 +1,132 @@
+//! Steps "plan" and "render": the coarse poses around the initial pose (paper §3.1; their spread
+//! scales with the scene depth seen from the initial pose) and the ASG rendering of each, and
+//! [`render_views`], the order in which a frame's views are made (one process and the render
+//! stage both run it).
+
+use nalgebra::{UnitQuaternion, Vector3};
+use rand_distr::{Distribution, StandardNormal};
+
+use super::{
+    frame_rng, CoarseView, RegistrationConfig, RegistrationError, GRADIENT_SCALE_PERCENTILE,
+};
+use crate::core::camera::Camera;
+use crate::core::mesh::Mesh;
+use crate::core::raster::{Rasterizer, RenderBuffers, NO_FACE};
+use crate::core::rigid::Rigid3;
+use crate::core::shading::{asg_from_normals, scale_to_percentile};
+
+/// Plans and renders a frame's coarse views in coarse-pose order, handing each to `emit` with the
+/// number of views (`view` is reused: `emit` reads or copies it before the next one is rendered).
+/// The first view is the initial pose itself; its rendering also gives the scene depth that
+/// scales the other coarse poses. Returns the number of views.
+#[allow(clippy::too_many_arguments)]
+pub fn render_views(
+    mesh: &Mesh,
+    camera: &Camera,
+    initial_cam_from_world: &Rigid3,
+    config: &RegistrationConfig,
+    seed: u64,
+    rasterizer: &mut Rasterizer,
+    view: &mut CoarseView,
+    emit: &mut dyn FnMut(&CoarseView, usize),
+) -> Result<usize, RegistrationError> {
+    if !initial_cam_from_world.is_finite() {
+        return Err(RegistrationError::NonFiniteInitialPose);
+    }
+    render_coarse_view(
+        mesh,
+        camera,
+        0,
+        initial_cam_from_world,
+        config,
+        rasterizer,
+        view,
+    );
+    let median_depth_m =
+        median_scene_depth_m(&view.render).ok_or(RegistrationError::ModelNotVisible)?;
+    let poses = coarse_poses(initial_cam_from_world, median_depth_m, config, seed);
+    emit(view, poses.len());
+    for (coarse_index, pose) in poses.iter().enumerate().skip(1) {
+        render_coarse_view(mesh, camera, coarse_index, pose, config, rasterizer, view);
+        emit(view, poses.len());
+    }
+    Ok(poses.len())
+}
+
+/// Median depth of the surface in a rendering, metres; `None` when it shows no surface.
+pub fn median_scene_depth_m(buffers: &RenderBuffers) -> Option<f64> {
+    let mut depths: Vec<f32> = buffers
+        .depth_m
+        .iter()
+        .zip(&buffers.face_index)
+        .filter(|(_, f)| **f != NO_FACE)
+        .map(|(d, _)| *d)
+        .collect();
+    if depths.is_empty() {
+        return None;
+    }
+    let middle = depths.len() / 2;
+    let (_, median, _) = depths.select_nth_unstable_by(middle, f32::total_cmp);
+    Some(f64::from(*median))
+}
+
+/// Step "plan": the coarse poses around the initial pose (the first is the initial pose).
+/// Rotation noise is applied about the camera centre, centre noise in world coordinates.
+pub fn coarse_poses(
+    initial_cam_from_world: &Rigid3,
+    median_depth_m: f64,
+    config: &RegistrationConfig,
+    seed: u64,
+) -> Vec<Rigid3> {
+    let mut rng = frame_rng(seed, 1);
+    let rotation_sigma_rad = config.coarse_rotation_sigma_deg.to_radians();
+    let centre_sigma_m = config.coarse_translation_sigma_fraction * median_depth_m;
+    let centre = initial_cam_from_world.camera_center();
+    let mut normal3 = |sigma: f64| {
+        Vector3::new(
+            StandardNormal.sample(&mut rng),
+            StandardNormal.sample(&mut rng),
+            StandardNormal.sample(&mut rng),
+        ) * sigma
+    };
+    let mut poses = vec![*initial_cam_from_world];
+    for _ in 1..config.coarse_pose_count {
+        let rotation = UnitQuaternion::from_scaled_axis(normal3(rotation_sigma_rad))
+            * initial_cam_from_world.rotation;
+        let new_centre = centre + normal3(centre_sigma_m);
+        poses.push(Rigid3::new(rotation, -(rotation * new_centre)));
+    }
+    poses
+}
+
+/// Step "render": the ASG rendering of one coarse pose, into a reused view.
+pub fn render_coarse_view(
+    mesh: &Mesh,
+    camera: &Camera,
+    coarse_index: usize,
+    cam_from_world: &Rigid3,
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+    out: &mut CoarseView,
+) {
+    let (width_px, height_px) = (camera.width_px as usize, camera.height_px as usize);
+    out.coarse_index = coarse_index;
+    out.cam_from_world = *cam_from_world;
+    out.render.resize(width_px, height_px);
+    rasterizer.render(
+        mesh,
+        &camera.intrinsics,
+        cam_from_world,
+        &config.render,
+        &mut out.render,
+    );
+    out.asg.resize(width_px * height_px, 0.0);
+    asg_from_normals(
+        &out.render.normal_cam,
+        width_px,
+        height_px,
+        &config.asg,
+        &mut out.asg,
+    );
+    scale_to_percentile(&mut out.asg, GRADIENT_SCALE_PERCENTILE);
+}
