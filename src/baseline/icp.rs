@@ -74,10 +74,10 @@ use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector2, Vector3, Vector6};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use super::camera::{Camera, CameraError, MIN_DEPTH_M};
-use super::mesh::Mesh;
-use super::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
-use super::rigid::Rigid3;
+use crate::core::camera::{Camera, CameraError, MIN_DEPTH_M};
+use crate::core::mesh::Mesh;
+use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
+use crate::core::rigid::Rigid3;
 use crate::io::pfm::DepthImage;
 
 /// The paper's success criterion for ICP: δ(P_icp, P_gt) below this many pixels (at 505×275).
