@@ -17,14 +17,9 @@
 //! level, multigrid BP as the reference's `nHierarchy`: the same problem on 2×2, 4×4, … blocks
 //! (costs summed per label, γ halved) is solved first and its messages start the finer grid.
 //!
-//! Departures from the reference, each measured on the shared 505×275 pair: the coarsest grid
-//! starts its inter-layer messages at the data term's marginals instead of zero (from zero, the
-//! range term alone spreads through the first sweep and can lock the flow at 0: EPE 7.7 px
-//! instead of 0.57 px without multigrid); the integer flow is refined below a pixel by a parabola
-//! through the matching costs (0.445 → 0.277 px; the reference's integer flow scores 0.440 px);
-//! beliefs are computed once at the end
-//! of a level, not after every iteration. `SiftFlowConfig::fast` cuts the iterations to a third of
-//! the time at the same error.
+//! Departures from the reference (the coarsest grid's inter-layer messages start at the data
+//! term's marginals; the integer flow is refined below a pixel; beliefs are computed once per
+//! level) and what each bought: docs/measurements.md#coresift_flow.
 //!
 //! Preconditions: dense SIFT images from [`crate::core::dense_sift`]; masks, when given, have one
 //! entry per pixel. Flow convention: `source(x, y) ≈ target(x + u, y + v)`, 0-based pixels.
