@@ -2,6 +2,7 @@
 //! to an accurate camera pose and a verdict on whether it succeeded (Average Shading Gradients +
 //! SIFT flow + RANSAC + a plausibility check). See `ARCHITECTURE.md` for the module map.
 
+pub mod baseline;
 pub mod batch;
 pub mod core;
 pub mod eval;

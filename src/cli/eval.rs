@@ -7,10 +7,12 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
+use asgreg::baseline::icp::{
+    register_depth_to_mesh, IcpConfig, IcpVariant, ICP_SUCCESS_THRESHOLD_PX,
+};
 use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
 use asgreg::core::camera::Camera;
 use asgreg::core::frame::{IntrinsicsMode, RegistrationConfig};
-use asgreg::core::icp::{register_depth_to_mesh, IcpConfig, IcpVariant, ICP_SUCCESS_THRESHOLD_PX};
 use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::eval::{cell_stats, format_accuracy, CellStats, EvalFrame};

@@ -6,7 +6,6 @@ pub mod camera;
 pub mod dense_sift;
 pub mod flow_consistency;
 pub mod frame;
-pub mod icp;
 pub mod mesh;
 pub mod pose;
 pub mod raster;

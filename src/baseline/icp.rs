@@ -43,19 +43,8 @@
 //!   trimmed correspondence set can flip between a few states forever, a limit cycle whose poses
 //!   differ by well under a millimetre); otherwise it stops after [`IcpConfig::max_iterations`].
 //!
-//! **Measured** (test `icp_improves_initial_poses_on_a_synthetic_scene`: 4 synthetic photos at
-//! 505×275 with their MVS-like depth maps — 0.7 % depth noise, holes, clutter not in the model —
-//! against the degraded model, from the 30 px initial poses): point-to-plane brings the mean δ
-//! from 30.1 px to 1.0 px (every image below 20 px), point-to-point to 11.0 px (3 of 4 below
-//! 20 px). Point-to-point is the weaker one: on plane-dominated aerial geometry most pairs
-//! (ground, roofs) give no tangential pull against independently sampled model points, so it
-//! converges slowly and can stall where trimming drops the few informative wall pairs. PCL's
-//! default ICP is point-to-point, which fits the paper's ~10 px. A one-off run on 10 images of
-//! the same kind (synth seed 4, default config) gave, per initial level 30 / 57 / 80 / 104 px,
-//! successes (δ < 20 px) and mean ± std δ of the successes:
-//! point-to-plane 10, 10, 10, 9 of 10 at 1.2–1.3 ± 0.7–1.2 px;
-//! point-to-point 9, 7, 6, 5 of 10 at 5.6 ± 6.7, 5.2 ± 5.1, 8.2 ± 7.2, 10.3 ± 7.9 px
-//! (the paper's PCL ICP: 6 of 10 at every level, about 10 ± 5 px).
+//! Measurements (point-to-plane against point-to-point, against the paper's PCL ICP):
+//! docs/measurements.md#baselineicp.
 //!
 //! **Convention.** Photo points live in the camera frame, the model in the world frame, so ICP
 //! estimates `world_from_cam`; the pose returned is its inverse, `cam_from_world` (DESIGN §6).
@@ -74,10 +63,10 @@ use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector2, Vector3, Vector6};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use super::camera::{Camera, CameraError, MIN_DEPTH_M};
-use super::mesh::Mesh;
-use super::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
-use super::rigid::Rigid3;
+use crate::core::camera::{Camera, CameraError, MIN_DEPTH_M};
+use crate::core::mesh::Mesh;
+use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
+use crate::core::rigid::Rigid3;
 use crate::io::pfm::DepthImage;
 
 /// The paper's success criterion for ICP: δ(P_icp, P_gt) below this many pixels (at 505×275).

@@ -1,0 +1,521 @@
+//! SIFT flow: dense correspondence between two dense SIFT images by coarse-to-fine, dual-layer loopy
+//! belief propagation (Liu, Yuen, Torralba, "SIFT Flow: Dense Correspondence across Scenes and its
+//! Applications", TPAMI 2011, §3.2–3.3), following Ce Liu's reference (`BPFlow`, `SIFTflowc2f`).
+//!
+//! Energy over the flow `w = (u, v)` of every source pixel `p` (integer, px):
+//! `E(w) = Σ_p ‖s1(p) − s2(p + w(p))‖₁ + Σ_p γ(|u| + |v|) + Σ_{p~q} min(α|u_p − u_q|, d) + min(α|v_p − v_q|, d)`.
+//! `u` and `v` live on two coupled 4-connected layers (the data term couples them per pixel), so
+//! every message has `2r + 1` entries and the truncated-L1 messages take linear time (distance
+//! transform). Schedule as the reference's `BP_S`: iteration `k` updates layer `k mod 2`, sweeps
+//! forward (messages right and down) when `k mod 4 < 2` and backward otherwise, and refreshes the
+//! inter-layer messages when `k mod 8 < 4`. Candidates outside the target (or on invalid target
+//! pixels) cost the median of all matching costs, as in the reference.
+//!
+//! Coarse to fine: a descriptor pyramid (Gaussian 5 taps, σ 0.67, then 2× downsampling), search
+//! radius `top_search_radius_px` around zero at the top, and `search_radius_px + level` around the
+//! doubled, rounded flow of the level above elsewhere; γ doubles per coarser level. Within each
+//! level, multigrid BP as the reference's `nHierarchy`: the same problem on 2×2, 4×4, … blocks
+//! (costs summed per label, γ halved) is solved first and its messages start the finer grid.
+//!
+//! Departures from the reference (the coarsest grid's inter-layer messages start at the data
+//! term's marginals; the integer flow is refined below a pixel; beliefs are computed once per
+//! level) and what each bought: docs/measurements.md#coresift_flow.
+//!
+//! Preconditions: dense SIFT images from [`crate::core::dense_sift`]; masks, when given, have one
+//! entry per pixel. Flow convention: `source(x, y) ≈ target(x + u, y + v)`, 0-based pixels.
+
+mod bp;
+mod config;
+mod data_cost;
+mod kernels;
+mod pyramid;
+
+use std::time::{Duration, Instant};
+
+use bp::{compute_beliefs, solve_with_multigrid, LevelProblem, MultigridGrid};
+pub use config::{L1Kernel, SiftFlowConfig, SubpixelRefinement};
+use data_cost::compute_data_cost;
+pub use kernels::descriptor_l1_distance;
+pub use pyramid::SiftPyramid;
+use pyramid::{build_mask_pyramid, level_mask, upsample_flow};
+
+use crate::core::dense_sift::{DenseSiftImage, DESCRIPTOR_LEN};
+
+/// Errors of dense correspondence (dense SIFT, SIFT flow, consistency).
+#[derive(Debug, thiserror::Error)]
+pub enum FlowError {
+    #[error("invalid configuration: {field}: {reason}")]
+    InvalidConfig { field: &'static str, reason: String },
+    #[error("image of {width_px} x {height_px} px given {values} values")]
+    ImageSize {
+        width_px: usize,
+        height_px: usize,
+        values: usize,
+    },
+    #[error("{what}: expected {expected} entries, found {found}")]
+    SizeMismatch {
+        what: &'static str,
+        expected: usize,
+        found: usize,
+    },
+}
+
+/// A dense flow field, row major: `source(x, y) ≈ target(x + u, y + v)`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FlowField {
+    pub width_px: usize,
+    pub height_px: usize,
+    pub u_px: Vec<f32>,
+    pub v_px: Vec<f32>,
+}
+
+impl FlowField {
+    pub fn zeros(width_px: usize, height_px: usize) -> Self {
+        let mut field = Self::default();
+        field.resize(width_px, height_px);
+        field
+    }
+
+    /// Resizes (keeping capacity) and zeroes the field.
+    pub fn resize(&mut self, width_px: usize, height_px: usize) {
+        self.width_px = width_px;
+        self.height_px = height_px;
+        self.u_px.clear();
+        self.u_px.resize(width_px * height_px, 0.0);
+        self.v_px.clear();
+        self.v_px.resize(width_px * height_px, 0.0);
+    }
+}
+
+/// Time spent in each step of one SIFT flow.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SiftFlowTimings {
+    pub pyramid: Duration,
+    pub data_cost: Duration,
+    pub belief_propagation: Duration,
+    pub total: Duration,
+}
+
+/// Buffers reused between flows; grows to the largest problem seen and then stops allocating.
+#[derive(Debug, Default)]
+pub struct SiftFlowWorkspace {
+    /// Pyramids built by [`compute_sift_flow`].
+    source_pyramid: SiftPyramid,
+    target_pyramid: SiftPyramid,
+    /// Masks per level (level 0 included); empty vectors mean "all pixels".
+    source_masks: Vec<Vec<bool>>,
+    target_masks: Vec<Vec<bool>>,
+    offsets: [Vec<i32>; 2],
+    /// Integer flow (u, v) of the last level solved.
+    flow: [Vec<i32>; 2],
+    /// Chosen label per layer at the last level solved.
+    labels: [Vec<u8>; 2],
+    data_cost: Vec<f32>,
+    spatial_messages: [Vec<f32>; 2],
+    dual_messages: [Vec<f32>; 2],
+    beliefs: [Vec<f32>; 2],
+    /// Coarser grids of the multigrid belief propagation (reference `nHierarchy`).
+    multigrid: Vec<MultigridGrid>,
+}
+
+/// Computes the SIFT flow from `source` to `target` into `flow` (source size) and the matching cost
+/// of each pixel's chosen integer candidate into `matching_cost` (0 where the source pixel takes no
+/// part). `source_participates[p] == false` removes pixel `p`'s data term (it follows its
+/// neighbours); `target_valid[q] == false` makes target pixel `q` cost as much as an outside one.
+/// Builds both pyramids in the workspace; see [`compute_sift_flow_on_pyramids`] to reuse them.
+#[allow(clippy::too_many_arguments)]
+pub fn compute_sift_flow(
+    source: &DenseSiftImage,
+    source_participates: Option<&[bool]>,
+    target: &DenseSiftImage,
+    target_valid: Option<&[bool]>,
+    config: &SiftFlowConfig,
+    workspace: &mut SiftFlowWorkspace,
+    flow: &mut FlowField,
+    matching_cost: &mut Vec<f32>,
+) -> Result<SiftFlowTimings, FlowError> {
+    let started = Instant::now();
+    let mut source_pyramid = std::mem::take(&mut workspace.source_pyramid);
+    let mut target_pyramid = std::mem::take(&mut workspace.target_pyramid);
+    let (source_built, target_built) = rayon::join(
+        || source_pyramid.build(source, config),
+        || target_pyramid.build(target, config),
+    );
+    let pyramid_time = started.elapsed();
+    let result = source_built.and(target_built).and_then(|()| {
+        compute_sift_flow_on_pyramids(
+            (source, &source_pyramid, source_participates),
+            (target, &target_pyramid, target_valid),
+            config,
+            workspace,
+            flow,
+            matching_cost,
+        )
+    });
+    workspace.source_pyramid = source_pyramid;
+    workspace.target_pyramid = target_pyramid;
+    let mut timings = result?;
+    timings.pyramid += pyramid_time;
+    timings.total = started.elapsed();
+    Ok(timings)
+}
+
+/// A flow endpoint: the dense SIFT image, its pyramid (built with the same config) and its mask.
+pub type FlowInput<'a> = (&'a DenseSiftImage, &'a SiftPyramid, Option<&'a [bool]>);
+
+/// [`compute_sift_flow`] on pyramids the caller built (and may reuse) with [`SiftPyramid::build`].
+pub fn compute_sift_flow_on_pyramids(
+    (source, source_pyramid, source_participates): FlowInput,
+    (target, target_pyramid, target_valid): FlowInput,
+    config: &SiftFlowConfig,
+    workspace: &mut SiftFlowWorkspace,
+    flow: &mut FlowField,
+    matching_cost: &mut Vec<f32>,
+) -> Result<SiftFlowTimings, FlowError> {
+    let started = Instant::now();
+    config.validate()?;
+    check_sift_image(source, "source descriptors")?;
+    check_sift_image(target, "target descriptors")?;
+    for (mask, image, what) in [
+        (source_participates, source, "source mask"),
+        (target_valid, target, "target mask"),
+    ] {
+        if let Some(mask) = mask {
+            let expected = image.width_px * image.height_px;
+            if mask.len() != expected {
+                return Err(FlowError::SizeMismatch {
+                    what,
+                    expected,
+                    found: mask.len(),
+                });
+            }
+        }
+    }
+    for (pyramid, image, what) in [
+        (source_pyramid, source, "source pyramid"),
+        (target_pyramid, target, "target pyramid"),
+    ] {
+        let expected_width = image.width_px.div_ceil(1 << (config.pyramid_levels - 1));
+        let top_width = pyramid
+            .level(config.pyramid_levels - 1)
+            .map_or(image.width_px, |top| top.width_px);
+        match pyramid.coarser_levels.len() == config.pyramid_levels - 1
+            && top_width == expected_width
+        {
+            true => {}
+            false => {
+                return Err(FlowError::SizeMismatch {
+                    what,
+                    expected: config.pyramid_levels - 1,
+                    found: pyramid.coarser_levels.len(),
+                })
+            }
+        }
+    }
+    let mut timings = SiftFlowTimings::default();
+    let ws = workspace;
+    let level_count = config.pyramid_levels;
+    let top_level = level_count - 1;
+
+    // Mask pyramids.
+    let pyramid_started = Instant::now();
+    ws.source_masks.resize_with(level_count, Vec::new);
+    ws.target_masks.resize_with(level_count, Vec::new);
+    build_mask_pyramid(source_participates, source, &mut ws.source_masks);
+    build_mask_pyramid(target_valid, target, &mut ws.target_masks);
+    timings.pyramid = pyramid_started.elapsed();
+
+    for level in (0..level_count).rev() {
+        let (source_level, target_level) =
+            match (source_pyramid.level(level), target_pyramid.level(level)) {
+                (Some(source_level), Some(target_level)) => (source_level, target_level),
+                _ => (source, target),
+            };
+        let radius = config.level_radius(level, top_level);
+        let width = source_level.width_px;
+        let height = source_level.height_px;
+        let pixel_count = width * height;
+
+        // Offsets: zero at the top, the doubled and rounded flow of the level above elsewhere.
+        for offsets in &mut ws.offsets {
+            offsets.clear();
+            offsets.resize(pixel_count, 0);
+        }
+        if level != top_level {
+            let (coarse_width, coarse_height) = source_pyramid
+                .level(level + 1)
+                .map_or((1, 1), |coarse| (coarse.width_px, coarse.height_px));
+            for plane in 0..2 {
+                upsample_flow(
+                    &ws.flow[plane],
+                    coarse_width,
+                    coarse_height,
+                    width,
+                    height,
+                    &mut ws.offsets[plane],
+                );
+            }
+        }
+
+        let data_started = Instant::now();
+        let labels = 2 * radius + 1;
+        ws.data_cost.resize(pixel_count * labels * labels, 0.0);
+        compute_data_cost(
+            source_level,
+            level_mask(&ws.source_masks, level),
+            target_level,
+            level_mask(&ws.target_masks, level),
+            [&ws.offsets[0], &ws.offsets[1]],
+            radius,
+            config.truncate_data_cost,
+            config.l1_kernel,
+            &mut ws.data_cost,
+        );
+        timings.data_cost += data_started.elapsed();
+
+        let bp_started = Instant::now();
+        let problem = LevelProblem {
+            width,
+            height,
+            radius,
+            labels,
+            flow_magnitude_weight: config.flow_magnitude_weight * (1u32 << level) as f32,
+            smoothness_weight: config.smoothness_weight,
+            smoothness_truncation: config.smoothness_truncation,
+            offsets: [&ws.offsets[0], &ws.offsets[1]],
+            data_cost: &ws.data_cost,
+        };
+        let iterations = if level == top_level {
+            config.top_iterations
+        } else {
+            config.iterations
+        };
+        // The reference's multigrid depth: 2 at the top, `levels - 1 - level` elsewhere.
+        let multigrid_depth = if !config.multigrid {
+            0
+        } else if level == top_level {
+            2.min(config.max_multigrid_depth)
+        } else {
+            (top_level - level).min(config.max_multigrid_depth)
+        };
+        if ws.multigrid.len() < multigrid_depth {
+            ws.multigrid
+                .resize_with(multigrid_depth, MultigridGrid::default);
+        }
+        solve_with_multigrid(
+            &problem,
+            iterations,
+            config.multigrid_iterations,
+            config.specialised_kernels,
+            config.bp_bands,
+            &mut ws.multigrid[..multigrid_depth],
+            &mut ws.spatial_messages,
+            &mut ws.dual_messages,
+        );
+        compute_beliefs(
+            &problem,
+            &ws.spatial_messages,
+            &ws.dual_messages,
+            &mut ws.beliefs,
+        );
+        for plane in 0..2 {
+            ws.flow[plane].resize(pixel_count, 0);
+            ws.labels[plane].resize(pixel_count, 0);
+            let beliefs = &ws.beliefs[plane];
+            let offsets = &ws.offsets[plane];
+            for (pixel, (flow_value, label_out)) in ws.flow[plane]
+                .iter_mut()
+                .zip(ws.labels[plane].iter_mut())
+                .enumerate()
+            {
+                let belief = &beliefs[pixel * labels..(pixel + 1) * labels];
+                let label = argmin(belief);
+                *label_out = label as u8;
+                *flow_value = offsets[pixel] + label as i32 - radius as i32;
+            }
+        }
+        timings.belief_propagation += bp_started.elapsed();
+    }
+
+    // Finest level: integer flow, costs, optional sub-pixel refinement.
+    let width = source.width_px;
+    let height = source.height_px;
+    let pixel_count = width * height;
+    let radius = config.level_radius(0, top_level);
+    let labels = 2 * radius + 1;
+    flow.resize(width, height);
+    matching_cost.clear();
+    matching_cost.resize(pixel_count, 0.0);
+    let source_mask = &ws.source_masks[0];
+    for pixel in 0..pixel_count {
+        let label_u = ws.labels[0][pixel] as usize;
+        let label_v = ws.labels[1][pixel] as usize;
+        let costs = &ws.data_cost[pixel * labels * labels..(pixel + 1) * labels * labels];
+        let participates = source_mask.is_empty() || source_mask[pixel];
+        if participates {
+            matching_cost[pixel] = costs[label_v * labels + label_u];
+        }
+        let (delta_u, delta_v) = match config.subpixel {
+            SubpixelRefinement::None => (0.0, 0.0),
+            SubpixelRefinement::DataCostParabola if participates => {
+                let along_u = |label: usize| costs[label_v * labels + label];
+                let along_v = |label: usize| costs[label * labels + label_u];
+                (
+                    parabola_vertex(along_u, label_u, labels),
+                    parabola_vertex(along_v, label_v, labels),
+                )
+            }
+            SubpixelRefinement::DataCostParabola => (0.0, 0.0),
+            SubpixelRefinement::BeliefParabola => {
+                let belief_u = &ws.beliefs[0][pixel * labels..(pixel + 1) * labels];
+                let belief_v = &ws.beliefs[1][pixel * labels..(pixel + 1) * labels];
+                (
+                    parabola_vertex(|label| belief_u[label], label_u, labels),
+                    parabola_vertex(|label| belief_v[label], label_v, labels),
+                )
+            }
+        };
+        flow.u_px[pixel] = ws.flow[0][pixel] as f32 + delta_u;
+        flow.v_px[pixel] = ws.flow[1][pixel] as f32 + delta_v;
+    }
+    timings.total = started.elapsed();
+    Ok(timings)
+}
+
+fn check_sift_image(image: &DenseSiftImage, what: &'static str) -> Result<(), FlowError> {
+    let expected = image.width_px * image.height_px * DESCRIPTOR_LEN;
+    if image.width_px == 0 || image.height_px == 0 || image.descriptors.len() != expected {
+        return Err(FlowError::SizeMismatch {
+            what,
+            expected,
+            found: image.descriptors.len(),
+        });
+    }
+    Ok(())
+}
+
+/// Offset of the minimum of the parabola through `cost(label - 1), cost(label), cost(label + 1)`,
+/// in `[-0.5, 0.5]`; 0 at the window's edge or where the parabola is not convex.
+fn parabola_vertex(cost: impl Fn(usize) -> f32, label: usize, labels: usize) -> f32 {
+    if label == 0 || label + 1 >= labels {
+        return 0.0;
+    }
+    let (before, at, after) = (cost(label - 1), cost(label), cost(label + 1));
+    let curvature = before - 2.0 * at + after;
+    if curvature <= 0.0 || !curvature.is_finite() {
+        return 0.0;
+    }
+    (0.5 * (before - after) / curvature).clamp(-0.5, 0.5)
+}
+
+#[inline]
+fn argmin(values: &[f32]) -> usize {
+    let mut best = 0;
+    for (index, &value) in values.iter().enumerate().skip(1) {
+        if value < values[best] {
+            best = index;
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parabola_vertex_finds_the_minimum() {
+        // (x - 0.3)^2 sampled at -1, 0, 1.
+        let samples = [1.69f32, 0.09, 0.49];
+        let vertex = parabola_vertex(|label| samples[label], 1, 3);
+        assert!((vertex - 0.3).abs() < 1e-5, "{vertex}");
+        assert_eq!(parabola_vertex(|label| samples[label], 0, 3), 0.0);
+    }
+}
+
+/// Helpers shared by the tests of the dense-correspondence modules.
+#[cfg(test)]
+pub(crate) mod test_support {
+    use super::*;
+    use crate::core::dense_sift::{compute_dense_sift, DenseSiftConfig, DenseSiftWorkspace};
+
+    pub(crate) struct SharedPair {
+        pub width: usize,
+        pub height: usize,
+        pub first: Vec<f32>,
+        pub second: Vec<f32>,
+        pub truth: FlowField,
+    }
+
+    fn load_grey(path: &std::path::Path) -> (usize, usize, Vec<f32>) {
+        let image = image::open(path).unwrap().to_luma8();
+        let (width, height) = image.dimensions();
+        (
+            width as usize,
+            height as usize,
+            image
+                .pixels()
+                .map(|pixel| pixel.0[0] as f32 / 255.0)
+                .collect(),
+        )
+    }
+
+    /// Loads `NAME_im1.png`, `NAME_im2.png`, `NAME_gt.flo` from the shared flow pairs, or `None`
+    /// (with a printed note) when they are absent.
+    pub(crate) fn load_shared_pair(name: &str) -> Option<SharedPair> {
+        let directory = std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../shared/data/flow-pairs"
+        ));
+        let first_path = directory.join(format!("{name}_im1.png"));
+        if !first_path.exists() {
+            eprintln!("skipped: {} not found", first_path.display());
+            return None;
+        }
+        let (width, height, first) = load_grey(&first_path);
+        let (_, _, second) = load_grey(&directory.join(format!("{name}_im2.png")));
+        let truth = crate::io::flo::read_flo(&directory.join(format!("{name}_gt.flo"))).unwrap();
+        Some(SharedPair {
+            width,
+            height,
+            first,
+            second,
+            truth,
+        })
+    }
+
+    /// End-point error and fraction of pixels under 1 px, over pixels at least `border` px inside.
+    pub(crate) fn score_flow(flow: &FlowField, truth: &FlowField, border: usize) -> (f64, f64) {
+        let (mut sum, mut under_one, mut count) = (0.0f64, 0usize, 0usize);
+        for y in border..flow.height_px - border {
+            for x in border..flow.width_px - border {
+                let pixel = y * flow.width_px + x;
+                let error = ((flow.u_px[pixel] - truth.u_px[pixel]) as f64)
+                    .hypot((flow.v_px[pixel] - truth.v_px[pixel]) as f64);
+                sum += error;
+                under_one += (error < 1.0) as usize;
+                count += 1;
+            }
+        }
+        (sum / count as f64, under_one as f64 / count as f64)
+    }
+
+    pub(crate) fn sift_of(
+        image: &[f32],
+        width: usize,
+        height: usize,
+        config: &DenseSiftConfig,
+    ) -> DenseSiftImage {
+        let mut sift = DenseSiftImage::default();
+        compute_dense_sift(
+            image,
+            width,
+            height,
+            config,
+            &mut DenseSiftWorkspace::default(),
+            &mut sift,
+        )
+        .unwrap();
+        sift
+    }
+}
