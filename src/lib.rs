@@ -14,3 +14,6 @@ pub mod stage;
 pub mod synth;
 pub mod transport;
 pub mod viz;
+
+#[cfg(test)]
+pub(crate) mod test_data;

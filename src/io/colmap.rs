@@ -803,30 +803,14 @@ mod tests {
         );
     }
 
-    fn real_model_dir(name: &str) -> Option<PathBuf> {
-        let dir = Path::new(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../shared/data/brighton_beach"
-        ))
-        .join(name);
-        if dir.is_dir() {
-            Some(dir)
-        } else {
-            println!("skipped: {} is absent", dir.display());
-            None
-        }
-    }
-
-    #[test]
-    fn real_brighton_beach_models_read_and_round_trip() {
+    /// Checks the two real Brighton Beach models under `data` (the undistorted PINHOLE one and the
+    /// SIMPLE_RADIAL one): 18 nadir photos, one camera, and an unchanged write–read round trip.
+    fn check_brighton_beach_models(data: &Path) {
         for (name, model_id) in [
             ("gt_undistorted", CameraModelId::Pinhole),
             ("gt_simple_radial", CameraModelId::SimpleRadial),
         ] {
-            let Some(dir) = real_model_dir(name) else {
-                continue;
-            };
-            let model = read_model(&dir).unwrap();
+            let model = read_model(&data.join(name)).unwrap();
             assert_eq!(model.cameras.len(), 1, "{name}");
             assert_eq!(model.cameras[&1].model, model_id);
             assert_eq!(model.images.len(), 18, "{name}");
@@ -846,6 +830,19 @@ mod tests {
             let again = ColmapModel::read_model(out.path()).unwrap();
             assert_eq!(again, model, "{name}");
         }
+    }
+
+    /// The models cut to 3 observations per image (`tests/data/brighton_beach/README.md`).
+    #[test]
+    fn brighton_beach_model_excerpts_read_and_round_trip() {
+        check_brighton_beach_models(&crate::test_data::repo_data("brighton_beach"));
+    }
+
+    /// The whole models: about 7,500 keypoints per image, observation lines of up to 390 kB.
+    #[test]
+    #[ignore = "needs ../shared/data/brighton_beach (the shared data set beside the repo)"]
+    fn shared_data_brighton_beach_models_read_and_round_trip() {
+        check_brighton_beach_models(&crate::test_data::shared_data("brighton_beach"));
     }
 
     #[test]

@@ -174,16 +174,9 @@ mod tests {
     }
 
     #[test]
-    fn shared_ground_truth_has_the_documented_size() {
-        let path = Path::new(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../shared/data/flow-pairs/dji0024_505x275_gt.flo"
-        ));
-        if !path.exists() {
-            eprintln!("skipped: {} not found", path.display());
-            return;
-        }
-        let field = read_flo(path).unwrap();
+    fn real_pair_ground_truth_has_the_documented_size() {
+        let path = crate::test_data::repo_data("flow-pairs/dji0024_505x275_gt.flo");
+        let field = read_flo(&path).unwrap();
         assert_eq!((field.width_px, field.height_px), (505, 275));
         // Translation (7, -4) plus at most 3 px of sinusoid.
         let mean_u = field.u_px.iter().sum::<f32>() / field.u_px.len() as f32;

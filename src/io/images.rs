@@ -506,35 +506,47 @@ mod tests {
         );
     }
 
-    #[test]
-    fn real_photo_loads_and_a_truncated_copy_is_rejected() {
-        let path = Path::new(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../shared/data/brighton_beach/images_undistorted/DJI_0025.JPG"
-        ));
-        if !path.is_file() {
-            println!("skipped: {} is absent", path.display());
-            return;
-        }
+    /// Loads a real photo: its size, a plausible brightness, complete; a copy cut to two thirds is
+    /// rejected, naming the file.
+    fn check_real_photo(path: &Path, width_px: usize, height_px: usize) {
         let gray = load_gray(path).unwrap();
-        assert_eq!((gray.width_px, gray.height_px), (995, 558));
-        assert_eq!(read_image_size(path).unwrap(), (995, 558));
+        assert_eq!((gray.width_px, gray.height_px), (width_px, height_px));
+        assert_eq!(read_image_size(path).unwrap(), (width_px, height_px));
         let mean = gray.pixels.iter().sum::<f32>() / gray.pixels.len() as f32;
         assert!(mean > 0.05 && mean < 0.95, "mean {mean}");
+        let bytes = std::fs::read(path).unwrap();
+        assert!(jpeg_is_complete(&bytes), "{}", path.display());
+        let dir = tempfile::tempdir().unwrap();
+        let truncated = dir.path().join("photo_cut.jpg");
+        std::fs::write(&truncated, &bytes[..bytes.len() * 2 / 3]).unwrap();
+        let error = load_rgb(&truncated).unwrap_err();
+        assert!(error.to_string().contains("photo_cut.jpg"), "{error}");
+    }
+
+    /// A crop of a Brighton Beach photo that keeps the photo's EXIF segment, a JPEG thumbnail
+    /// inside it (`tests/data/brighton_beach/README.md`).
+    #[test]
+    fn real_photo_loads_and_a_truncated_copy_is_rejected() {
+        let path = crate::test_data::repo_data("brighton_beach/DJI_0025_crop.jpg");
+        check_real_photo(&path, 240, 136);
+    }
+
+    #[test]
+    #[ignore = "needs ../shared/data/brighton_beach (the shared data set beside the repo)"]
+    fn shared_data_brighton_beach_photos_load_and_are_complete() {
+        let data = crate::test_data::shared_data("brighton_beach");
+        check_real_photo(&data.join("images_undistorted/DJI_0025.JPG"), 995, 558);
         // No false alarms on any of the real photos (EXIF thumbnails, XMP, etc.).
         for folder in ["images_undistorted", "images_distorted"] {
-            let folder = path.parent().unwrap().parent().unwrap().join(folder);
+            let folder = crate::test_data::shared_data(&format!("brighton_beach/{folder}"));
+            let mut photos = 0;
             for entry in std::fs::read_dir(&folder).unwrap() {
                 let photo = entry.unwrap().path();
                 let bytes = std::fs::read(&photo).unwrap();
                 assert!(jpeg_is_complete(&bytes), "{}", photo.display());
+                photos += 1;
             }
+            assert_eq!(photos, 18, "{}", folder.display());
         }
-        let bytes = std::fs::read(path).unwrap();
-        let dir = tempfile::tempdir().unwrap();
-        let truncated = dir.path().join("DJI_0025_cut.JPG");
-        std::fs::write(&truncated, &bytes[..bytes.len() * 2 / 3]).unwrap();
-        let error = load_rgb(&truncated).unwrap_err();
-        assert!(error.to_string().contains("DJI_0025_cut.JPG"), "{error}");
     }
 }

@@ -1602,18 +1602,34 @@ end_header
             .starts_with("/nonexistent/dir/out.ply: could not write"));
     }
 
+    /// A patch of the Brighton Beach mesh with the original's header layout (binary, float32 x y z,
+    /// uint8/uint32 face lists), cut as `tests/data/brighton_beach/README.md` says.
     #[test]
-    fn brighton_beach_mesh_reads_fast() {
-        let path = Path::new(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../shared/data/brighton_beach/mesh.ply"
-        ));
-        if !path.exists() {
-            println!("skipped: {} is absent", path.display());
-            return;
-        }
+    fn brighton_beach_mesh_excerpt_reads() {
+        let path = crate::test_data::repo_data("brighton_beach/mesh_excerpt.ply");
+        let mesh = read_ply(&path).unwrap();
+        assert_eq!(mesh.vertex_count(), 724);
+        assert_eq!(mesh.face_count(), 1_335);
+        assert!(mesh.vertex_normals().is_none());
+        // A 6 m × 6 m patch of a flat park around (15.9, 63.2) near Z = 159.
+        let (min, max) = mesh.bounds_world_m();
+        assert!(
+            (min.x - 12.92).abs() < 0.01 && (max.x - 18.91).abs() < 0.01,
+            "{min} {max}"
+        );
+        assert!(
+            (min.y - 60.18).abs() < 0.01 && (max.y - 66.17).abs() < 0.01,
+            "{min} {max}"
+        );
+        assert!(min.z > 158.7 && max.z < 159.5, "{min} {max}");
+    }
+
+    #[test]
+    #[ignore = "needs ../shared/data/brighton_beach (the shared data set beside the repo)"]
+    fn shared_data_brighton_beach_mesh_reads_fast() {
+        let path = crate::test_data::shared_data("brighton_beach/mesh.ply");
         let start = std::time::Instant::now();
-        let mesh = read_ply(path).unwrap();
+        let mesh = read_ply(&path).unwrap();
         let elapsed = start.elapsed();
         println!(
             "read {} in {:.1} ms",

@@ -950,6 +950,7 @@ mod tests {
     }
 
     #[test]
+    #[ignore = "needs python3 with eclipse-zenoh (.ci/run installs it)"]
     fn python_subscriber_prints_published_results() {
         let python_has_zenoh = Command::new("python3")
             .args(["-c", "import zenoh"])
@@ -957,10 +958,11 @@ mod tests {
             .stderr(Stdio::null())
             .status()
             .is_ok_and(|status| status.success());
-        if !python_has_zenoh {
-            println!("skipped: python3 cannot import zenoh (pip install eclipse-zenoh==1.10.2)");
-            return;
-        }
+        assert!(
+            python_has_zenoh,
+            "python3 cannot import zenoh: pip install eclipse-zenoh==1.10.2 (this test is \
+             #[ignore]d because it needs that package)"
+        );
         let endpoint = shared_router_endpoint();
         let config = crate::transport::conformance::config("python");
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/subscribe.py");

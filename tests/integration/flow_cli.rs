@@ -1,18 +1,12 @@
-//! `asgreg flow` on the shared real flow pair: the written `.flo` is read back and scored against
-//! the true flow (Ce Liu's reference reaches 0.44 px end-point error at full resolution).
+//! `asgreg flow` on the real flow pair of `tests/data/flow-pairs`: the written `.flo` is read back
+//! and scored against the true flow (Ce Liu's reference reaches 0.44 px end-point error at full
+//! resolution).
 
 use crate::util::*;
 
 #[test]
-fn flow_on_the_shared_pair_beats_the_reference_end_point_error() {
-    let pairs = std::path::Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../shared/data/flow-pairs"
-    ));
-    if !pairs.is_dir() {
-        eprintln!("skipped: {} is absent", pairs.display());
-        return;
-    }
+fn flow_on_the_real_pair_beats_the_reference_end_point_error() {
+    let pairs = repo_data("flow-pairs");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("flow.flo");
     let output = asgreg(&[

@@ -4,6 +4,7 @@
 mod bad_input;
 mod cli_pictures;
 mod flow_cli;
+mod honest_tests;
 mod pipeline;
 mod register_cli;
 mod util;

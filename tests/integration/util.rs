@@ -11,6 +11,19 @@ pub fn asgreg(args: &[&str]) -> Output {
         .expect("the asgreg binary runs")
 }
 
+/// `tests/data/<relative>` (part of the repository, see `tests/data/README.md`), which must exist.
+pub fn repo_data(relative: &str) -> PathBuf {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(relative);
+    assert!(
+        path.exists(),
+        "{} is missing; it is part of the repository (tests/data/README.md)",
+        path.display()
+    );
+    path
+}
+
 pub fn stderr(output: &Output) -> String {
     String::from_utf8_lossy(&output.stderr).into_owned()
 }
