@@ -1,4 +1,4 @@
-//! The evaluation protocol of DESIGN §3, as numbers and tables: per initial-error level, the share
+//! The evaluation protocol of docs/design.md §3, as numbers and tables: per initial-error level, the share
 //! of accepted frames, mean ± std and range of δ(P_out, P_gt) over accepted frames, and false
 //! accepts (accepted, but δ to ground truth above a fraction of the long side). Kept apart from
 //! the command line so the statistics are tested on their own.

@@ -1,5 +1,5 @@
 //! The ICP baseline the paper compares its method against (paper §4, "Comparison to an ICP
-//! Implementation"; DESIGN §3: "ICP baseline on the same frames and initial poses").
+//! Implementation"; docs/design.md §3: "ICP baseline on the same frames and initial poses").
 //!
 //! The paper used PCL's ICP (Rusu & Cousins 2011): the photo's depth map and intrinsics give a
 //! point cloud in the camera frame, ICP aligns it with the model, and the camera pose follows from
@@ -13,7 +13,7 @@
 //!   back-projected with the camera (pinhole intrinsics; lens distortion is inverted when the
 //!   camera has one): `points_cam`.
 //! - **Model points** ([`sample_mesh_in_view`]): area-weighted uniform samples on the mesh surface
-//!   (seeded RNG passed in), each with its face normal, in the mesh's local frame (DESIGN §6: the
+//!   (seeded RNG passed in), each with its face normal, in the mesh's local frame (docs/design.md §6: the
 //!   f64 origin is kept apart so georeferenced meshes keep their precision). Only what is
 //!   *plausibly visible* is sampled: the surface inside the initial view's frustum enlarged by
 //!   [`IcpConfig::view_margin_fraction`] of the image size on every side (a generous region, since
@@ -47,7 +47,7 @@
 //! docs/measurements.md#baselineicp.
 //!
 //! **Convention.** Photo points live in the camera frame, the model in the world frame, so ICP
-//! estimates `world_from_cam`; the pose returned is its inverse, `cam_from_world` (DESIGN §6).
+//! estimates `world_from_cam`; the pose returned is its inverse, `cam_from_world` (docs/design.md §6).
 //!
 //! References: P. J. Besl, N. D. McKay, "A method for registration of 3-D shapes", TPAMI 1992;
 //! Y. Chen, G. Medioni, "Object modelling by registration of multiple range images", IVC 1992;

@@ -1,4 +1,4 @@
-//! `asgreg eval`: the evaluation protocol of DESIGN §3 on a scene folder (as `asgreg synth` writes
+//! `asgreg eval`: the evaluation protocol of docs/design.md §3 on a scene folder (as `asgreg synth` writes
 //! it): registration from every initial level with known and unknown intrinsics, δ to ground truth,
 //! acceptance and false accepts; tables laid out like the paper's, JSON, and an SVG plot.
 

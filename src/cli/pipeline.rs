@@ -148,7 +148,7 @@ fn default_scene_at(scene: &Path, frames: usize) -> anyhow::Result<PathBuf> {
         width: 505,
         height: 275,
         images: frames,
-        // The product's case (DESIGN §1: a drone over a town). The paper's free-standing house
+        // The product's case (docs/design.md §1: a drone over a town). The paper's free-standing house
         // (`asgreg synth --scene house`) is harder: see the #4 note in README.
         scene: SceneArg::Block,
         levels: vec![30.0],

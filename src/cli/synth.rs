@@ -1,4 +1,4 @@
-//! `asgreg synth`: writes an honest synthetic scene (DESIGN §4) to a directory.
+//! `asgreg synth`: writes an honest synthetic scene (docs/design.md §4) to a directory.
 
 use std::path::PathBuf;
 

@@ -3,7 +3,7 @@
 //! computed exactly as Ce Liu's reference `ImageFeature::imSIFT` does (cell size 3, step 1):
 //!
 //! 1. image derivatives by the 5-tap central difference `[1, -8, 0, 8, -1] / 12` (borders clamped);
-//!    DESIGN.md names 3×3 Sobel, which is offered as [`GradientFilter::Sobel`];
+//!    docs/design.md names 3×3 Sobel, which is offered as [`GradientFilter::Sobel`];
 //! 2. 8 signed orientation bins `θ_k = 2πk/8`, soft assignment `max(cos(θ - θ_k), 0)^9 · |g|`;
 //! 3. cell pooling by the reference's separable filter of half-width `cell_size` (taps
 //!    `0.25` at `-cell_size` and `1` at `2 - cell_size ..= 1`, i.e. a box of about one cell);

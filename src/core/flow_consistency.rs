@@ -746,20 +746,10 @@ mod tests {
 
     /// The 505×275 real pair of `tests/data/flow-pairs` (part of the repository).
     fn repo_pair() -> SharedPair {
-        let directory = crate::test_data::repo_data("flow-pairs");
-        let grey = |file: &str| crate::io::images::load_gray(&directory.join(file)).unwrap();
-        let (first, second) = (
-            grey("dji0024_505x275_im1.png"),
-            grey("dji0024_505x275_im2.png"),
-        );
-        let truth = crate::io::flo::read_flo(&directory.join("dji0024_505x275_gt.flo")).unwrap();
-        SharedPair {
-            width: first.width_px,
-            height: first.height_px,
-            first: first.pixels,
-            second: second.pixels,
-            truth,
-        }
+        load_pair(
+            &crate::test_data::repo_data("flow-pairs"),
+            "dji0024_505x275",
+        )
     }
 
     /// SIFT flow on a real pair against its true flow (pixels ≥ 20 px from the border).
@@ -807,9 +797,11 @@ mod tests {
     #[test]
     #[ignore = "needs ../shared/data/flow-pairs (the shared data set beside the repo)"]
     fn shared_data_pair_1010x550_fast_preset_beats_the_reference() {
-        // Fails here, naming the path, when the shared data is absent.
-        crate::test_data::shared_data("flow-pairs/dji0024_1010x550_im1.png");
-        let pair = load_shared_pair("dji0024_1010x550").expect("the shared 1010x550 pair");
+        // Fails, naming the path, when the shared data is absent.
+        let pair = load_pair(
+            &crate::test_data::shared_data("flow-pairs"),
+            "dji0024_1010x550",
+        );
         assert_beats_the_reference(&pair, "1010x550", SiftFlowConfig::fast());
     }
 

@@ -2,7 +2,7 @@
 //!
 //! Georeferenced meshes have coordinates like (512345, 5401234, 250) m, where f32 keeps only about
 //! half a metre. The mesh therefore keeps an f64 `origin_m` and f32 positions relative to it
-//! (DESIGN §6): world = origin + local. Renderers fold the origin into the pose in f64 before they
+//! (docs/design.md §6): world = origin + local. Renderers fold the origin into the pose in f64 before they
 //! touch f32, so a georeferenced mesh renders exactly like the same mesh at the origin.
 
 use glam::Vec3;

@@ -1,6 +1,6 @@
 //! The mutual reprojection error δ(P, P') of paper eq. 5: how far apart, in pixels, two poses put
-//! the model points they see. It is both the evaluation metric (DESIGN §3: every reported error)
-//! and the verification measure (DESIGN §2 step 7: poses with δ below 5 % of the longest image
+//! the model points they see. It is both the evaluation metric (docs/design.md §3: every reported error)
+//! and the verification measure (docs/design.md §2 step 7: poses with δ below 5 % of the longest image
 //! side are compatible), so it lives in one place.
 //!
 //! `δ(P, P') = ½ (mean_{x∈V} |P(x) − P'(x)| + mean_{x∈V'} |P(x) − P'(x)|)`, where `V` (`V'`) are

@@ -1,5 +1,5 @@
 //! Gradient images that SIFT flow compares: Average Shading Gradients (ASG, paper eq. 4) of a
-//! rendered normal map, and the two query representations of a photo (DESIGN §2 step 3):
+//! rendered normal map, and the two query representations of a photo (docs/design.md §2 step 3):
 //! (a) plain image gradients of the photo, (b) ASG of normals derived from the photo's depth map.
 //!
 //! ASG averages the gradient magnitude of Lambertian shading `max(0, -n·l)` over all light

@@ -1,4 +1,4 @@
-//! The wire types of the bus and the one place that encodes and decodes them (DESIGN §5).
+//! The wire types of the bus and the one place that encodes and decodes them (docs/design.md §5).
 //! `schemas/v1/` describes the same layout for subscribers in other languages.
 //!
 //! Layout of every message (all integers little-endian):

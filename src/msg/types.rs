@@ -1,4 +1,4 @@
-//! The message bodies: what each stage sends to the next (DESIGN §5 data flow
+//! The message bodies: what each stage sends to the next (docs/design.md §5 data flow
 //! frame → render → flow → pose → verify → pose result) plus control messages (credits,
 //! metrics, end of stream).
 

@@ -1,4 +1,4 @@
-//! Work sharing over a broadcast bus (DESIGN §5 "horizontal scaling"): the producer of a link
+//! Work sharing over a broadcast bus (docs/design.md §5 "horizontal scaling"): the producer of a link
 //! (ingest for frames, render for flow jobs) owns a [`Dispatcher`]; each worker owns a
 //! [`WorkerPort`]. Workers announce themselves with credits (worker index, incarnation, jobs
 //! finished, slots); the dispatcher sends each job to exactly one worker with a free slot, on

@@ -1,4 +1,4 @@
-//! Wiring from a configuration (DESIGN §5): the stage loops (`nodes`), work sharing with redo
+//! Wiring from a configuration (docs/design.md §5): the stage loops (`nodes`), work sharing with redo
 //! (`dispatch`), the bus wrappers (`bus`), the results collector and summary (`collect`), the
 //! one-process runner (`run_in_process`) and the process supervisor (`launch`).
 

@@ -1,4 +1,4 @@
-//! Stage adapters: message in → `core` → message out (DESIGN §5). Each stage is a plain struct
+//! Stage adapters: message in → `core` → message out (docs/design.md §5). Each stage is a plain struct
 //! with a `process` method, testable without any transport; `runtime` runs them as threads or
 //! processes and moves their messages. No transport, no async, no I/O of the bus here.
 

@@ -1,4 +1,4 @@
-//! Initial poses for the evaluation levels (DESIGN §3): ground truth plus Gaussian noise on rotation
+//! Initial poses for the evaluation levels (docs/design.md §3): ground truth plus Gaussian noise on rotation
 //! and translation, scaled so that the mean mutual reprojection error δ (paper eq. 5) over the
 //! images hits each level.
 //!

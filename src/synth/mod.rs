@@ -1,4 +1,4 @@
-//! Honest synthetic test scenes (DESIGN §4): a true scene (buildings, ground, clutter) rendered
+//! Honest synthetic test scenes (docs/design.md §4): a true scene (buildings, ground, clutter) rendered
 //! into photo-like JPEGs with materials, sun and sky light, cast shadows and camera effects; MVS-like
 //! depth maps; a Poisson-like degraded model for registration; ground-truth and noisy initial poses
 //! calibrated to the paper's initial-error levels. The photos and the model differ the way real
@@ -809,7 +809,7 @@ mod tests {
         asg
     }
 
-    /// DESIGN §4: the photo's gradients must differ substantially from the model's ASG (textures,
+    /// docs/design.md §4: the photo's gradients must differ substantially from the model's ASG (textures,
     /// shadows, clutter, noise), yet line up with it under the ground-truth pose.
     #[test]
     fn photo_gradients_differ_from_the_asg_but_line_up_under_the_true_pose() {

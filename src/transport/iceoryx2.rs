@@ -10,7 +10,7 @@
 //! not collide) and a small publish-subscribe service `<key>!attached` for the attach handshake
 //! below.
 //!
-//! iceoryx2's defaults are wrong for this pipeline (DESIGN §7); what is set instead and why:
+//! iceoryx2's defaults are wrong for this pipeline (docs/design.md §7); what is set instead and why:
 //! - **Lossless**: `enable_safe_overflow(false)` (the default overwrites the oldest queued
 //!   sample) and the publisher's `BackpressureStrategy::RetryUntilDelivered` (0.10's name for
 //!   "block"): a full subscriber queue (`TransportConfig::queue_depth`) blocks the publisher.

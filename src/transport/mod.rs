@@ -1,5 +1,5 @@
 //! Transports move encoded messages between stages. This module is the only code that names
-//! crossbeam, iceoryx2 or zenoh (DESIGN §5): one trait, three backends, one conformance suite
+//! crossbeam, iceoryx2 or zenoh (docs/design.md §5): one trait, three backends, one conformance suite
 //! (`conformance`) that every backend must pass.
 //!
 //! The contract every backend keeps (and the conformance suite checks):

@@ -1,6 +1,6 @@
 //! Network transport between hosts (zenoh): the stages of one pipeline spread over several
 //! machines (a ground station and remote flow-worker hosts), and any outside subscriber (Python,
-//! C, ROS 2 via zenoh) reading the results as `asgreg/v1/<pipeline>/results/json` (DESIGN §5).
+//! C, ROS 2 via zenoh) reading the results as `asgreg/v1/<pipeline>/results/json` (docs/design.md §5).
 //!
 //! **Topology.** The ground station runs one zenoh *router* (the launcher runs it as a process of
 //! its own that calls [`open_router`]; `deploy/zenoh/router.json5` is the same as a file). Every
@@ -11,7 +11,7 @@
 //! endpoints. Scouting is never used: every config built here forces
 //! `scouting/multicast/enabled: false` and `scouting/gossip/enabled: false`, even on top of a
 //! user's `config_file` (zenoh's defaults multicast to 224.0.0.224 and listen on all interfaces,
-//! DESIGN §7), and listen endpoints on an unspecified address (`0.0.0.0`, `[::]`) are refused:
+//! docs/design.md §7), and listen endpoints on an unspecified address (`0.0.0.0`, `[::]`) are refused:
 //! name the interface.
 //!
 //! **How the contract of `transport` is kept.**

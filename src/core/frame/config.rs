@@ -10,7 +10,7 @@ use crate::core::raster::RenderOptions;
 use crate::core::shading::AsgOptions;
 use crate::core::verify::VerifyConfig;
 
-/// Which gradient image stands for the photo (DESIGN §2 step 3).
+/// Which gradient image stands for the photo (docs/design.md §2 step 3).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub enum QueryMode {
     /// Gradient magnitude of the photo (Plötz & Roth's choice).

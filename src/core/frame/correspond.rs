@@ -1,6 +1,6 @@
 //! Steps "match" and "lift" of one coarse view: SIFT flow between the query and the view's ASG
 //! both ways (consistent pixel pairs only), then each pair's rendering pixel lifted onto the mesh
-//! (paper §3.2, DESIGN §2 steps 4–5). The query's features are computed once per frame
+//! (paper §3.2, docs/design.md §2 steps 4–5). The query's features are computed once per frame
 //! ([`query_features`]) and serve all its views.
 
 use nalgebra::{Vector2, Vector3};

@@ -1,5 +1,5 @@
 //! Step "verify": the plausibility check over all of a frame's coarse outcomes (paper §3.4,
-//! DESIGN §2 step 7); the verdict carries the chosen pose itself.
+//! docs/design.md §2 step 7); the verdict carries the chosen pose itself.
 
 use super::{CoarseOutcome, RegistrationConfig};
 use crate::core::camera::Camera;

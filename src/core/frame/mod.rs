@@ -1,4 +1,4 @@
-//! One frame end to end (Schmitz et al. §3; DESIGN §2), written once as a sequence of steps:
+//! One frame end to end (Schmitz et al. §3; docs/design.md §2), written once as a sequence of steps:
 //!
 //! | step | runs | function | pipeline stage |
 //! |---|---|---|---|

@@ -1,5 +1,5 @@
 //! Step "query": the image that stands for the photo in the flow, the photo's gradient magnitude
-//! or the ASG of its depth map's normals (DESIGN §2 step 3), on the same 0..1 scale as the ASG
+//! or the ASG of its depth map's normals (docs/design.md §2 step 3), on the same 0..1 scale as the ASG
 //! renderings.
 
 use rayon::prelude::*;

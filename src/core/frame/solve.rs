@@ -1,6 +1,6 @@
 //! Step "solve": one coarse view's 2D–3D correspondences become a refined pose by RANSAC (EPnP
 //! for known intrinsics, the 11-DoF DLT for unknown) and Levenberg–Marquardt (paper §3.3,
-//! DESIGN §2 step 6), or the reason there is none.
+//! docs/design.md §2 step 6), or the reason there is none.
 
 use nalgebra::{Vector2, Vector3};
 

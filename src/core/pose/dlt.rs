@@ -1,5 +1,5 @@
 //! Normalised Direct Linear Transform for a full projective camera, and its decomposition into
-//! intrinsics and pose: the paper's solver for unknown intrinsics (DESIGN.md §2 step 6).
+//! intrinsics and pose: the paper's solver for unknown intrinsics (docs/design.md §2 step 6).
 //!
 //! Reference: R. Hartley, A. Zisserman, *Multiple View Geometry in Computer Vision*, 2nd ed., 2003:
 //! Algorithm 7.1 (normalised DLT for `P`: 2D points to centroid 0 and mean distance √2, 3D points

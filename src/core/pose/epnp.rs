@@ -1,4 +1,4 @@
-//! EPnP: the camera pose from ≥ 4 correspondences when the intrinsics are known (DESIGN.md §2
+//! EPnP: the camera pose from ≥ 4 correspondences when the intrinsics are known (docs/design.md §2
 //! step 6, the paper's known-intrinsics case).
 //!
 //! Reference: V. Lepetit, F. Moreno-Noguer, P. Fua, "EPnP: An Accurate O(n) Solution to the PnP

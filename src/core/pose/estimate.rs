@@ -1,4 +1,4 @@
-//! The pose step for one coarse pose (DESIGN.md §2 step 6), end to end: look at the 3D points'
+//! The pose step for one coarse pose (docs/design.md §2 step 6), end to end: look at the 3D points'
 //! shape, pick the solver, run RANSAC, refine on the inliers, re-score.
 //!
 //! Solver choice and the planar policy:

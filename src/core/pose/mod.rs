@@ -1,4 +1,4 @@
-//! Pose solving (DESIGN.md §2 step 6): from 2D–3D correspondences (a photo pixel and the model
+//! Pose solving (docs/design.md §2 step 6): from 2D–3D correspondences (a photo pixel and the model
 //! point a rendering put there) to a camera, robustly.
 //!
 //! - [`dlt`]: normalised DLT on ≥ 6 points, decomposed into `K` and `cam_from_world` (unknown

@@ -1,4 +1,4 @@
-//! RANSAC for camera solvers (DESIGN.md §2 step 6): SIFT flow hands over thousands of 2D–3D
+//! RANSAC for camera solvers (docs/design.md §2 step 6): SIFT flow hands over thousands of 2D–3D
 //! correspondences of which many are wrong; a minimal solver inside RANSAC finds the camera the
 //! correct ones agree on.
 //!

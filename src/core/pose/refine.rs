@@ -1,4 +1,4 @@
-//! Levenberg–Marquardt refinement of a camera on its inliers (DESIGN.md §2 step 6, "refine on the
+//! Levenberg–Marquardt refinement of a camera on its inliers (docs/design.md §2 step 6, "refine on the
 //! inliers"): the minimal solvers fit 4–6 points exactly, so the consensus set's information is
 //! only used once the reprojection error over all inliers is minimised.
 //!

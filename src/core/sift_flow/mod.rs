@@ -448,7 +448,9 @@ pub(crate) mod test_support {
     }
 
     fn load_grey(path: &std::path::Path) -> (usize, usize, Vec<f32>) {
-        let image = image::open(path).unwrap().to_luma8();
+        let image = image::open(path)
+            .unwrap_or_else(|error| panic!("{}: {error}", path.display()))
+            .to_luma8();
         let (width, height) = image.dimensions();
         (
             width as usize,
@@ -460,28 +462,20 @@ pub(crate) mod test_support {
         )
     }
 
-    /// Loads `NAME_im1.png`, `NAME_im2.png`, `NAME_gt.flo` from the shared flow pairs, or `None`
-    /// (with a printed note) when they are absent.
-    pub(crate) fn load_shared_pair(name: &str) -> Option<SharedPair> {
-        let directory = std::path::Path::new(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../shared/data/flow-pairs"
-        ));
-        let first_path = directory.join(format!("{name}_im1.png"));
-        if !first_path.exists() {
-            eprintln!("skipped: {} not found", first_path.display());
-            return None;
-        }
-        let (width, height, first) = load_grey(&first_path);
+    /// Loads `NAME_im1.png`, `NAME_im2.png`, `NAME_gt.flo` from `directory` (panics, naming
+    /// the file, when one is missing).
+    pub(crate) fn load_pair(directory: &std::path::Path, name: &str) -> SharedPair {
+        let (width, height, first) = load_grey(&directory.join(format!("{name}_im1.png")));
         let (_, _, second) = load_grey(&directory.join(format!("{name}_im2.png")));
-        let truth = crate::io::flo::read_flo(&directory.join(format!("{name}_gt.flo"))).unwrap();
-        Some(SharedPair {
+        let truth = crate::io::flo::read_flo(&directory.join(format!("{name}_gt.flo")))
+            .unwrap_or_else(|error| panic!("{error}"));
+        SharedPair {
             width,
             height,
             first,
             second,
             truth,
-        })
+        }
     }
 
     /// End-point error and fraction of pixels under 1 px, over pixels at least `border` px inside.
