@@ -8,6 +8,7 @@ use super::*;
 use crate::core::camera::{Camera, PinholeIntrinsics};
 use crate::core::frame::CoarseOutcome;
 use crate::core::rigid::Rigid3;
+use crate::core::verify::PoseHypothesis;
 
 fn info() -> FrameInfo {
     FrameInfo {
@@ -80,6 +81,26 @@ fn every_kind() -> Vec<Body<'static>> {
             pose_ms: 3.0,
             flow_worker: 0,
         }),
+        Body::Hypothesis(Hypothesis {
+            info: info(),
+            coarse_count: 15,
+            outcome: CoarseOutcome {
+                coarse_index: 5,
+                consistent_matches: 1234,
+                hypothesis: Ok(PoseHypothesis {
+                    camera: info().camera,
+                    cam_from_world: info().initial_cam_from_world,
+                    consensus: 900,
+                    inlier_rms_px: 0.75,
+                    correspondence_count: 1100,
+                    coarse_cam_from_world: Rigid3::identity(),
+                }),
+            },
+            render_ms: 1.0,
+            flow_ms: 2.0,
+            pose_ms: 3.0,
+            flow_worker: 1,
+        }),
         Body::FrameFailed(FrameFailed {
             name: "a.png".to_string(),
             stage: "ingest".to_string(),
@@ -136,6 +157,52 @@ fn every_kind_round_trips() {
     }
 }
 
+/// The bytes of every message kind are pinned by golden files (`tests/data/wire/v<N>/`): a change
+/// to any struct that reaches the wire (a core type included) fails here, and must come with a
+/// new schema version (`SCHEMA_VERSION`, `schemas/v<N>/`) and new golden files. To write them
+/// for a new version: `ASGREG_WRITE_GOLDEN=1 cargo test --lib msg::tests::golden`.
+#[test]
+fn golden_bytes_of_every_kind() {
+    let folder = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/wire")
+        .join(format!("v{SCHEMA_VERSION}"));
+    let write = std::env::var_os("ASGREG_WRITE_GOLDEN").is_some();
+    let mut kinds_seen = std::collections::BTreeSet::new();
+    for (index, body) in every_kind().into_iter().enumerate() {
+        let kind = body.kind();
+        kinds_seen.insert(kind as u16);
+        let bytes = encode(&Envelope {
+            header: header(),
+            body,
+        })
+        .unwrap()
+        .to_vec();
+        let path = folder.join(format!("{index:02}_{kind:?}.bin"));
+        if write {
+            std::fs::create_dir_all(&folder).unwrap();
+            std::fs::write(&path, &bytes).unwrap();
+        }
+        let golden = std::fs::read(&path).unwrap_or_else(|error| {
+            panic!(
+                "{}: {error}; golden files are part of the repository (see this test's comment)",
+                path.display()
+            )
+        });
+        assert!(
+            golden == bytes,
+            "{kind:?}: the encoded bytes differ from {} (schema v{SCHEMA_VERSION} changed: bump \
+             SCHEMA_VERSION and write schemas/v<N+1>/ and new golden files)",
+            path.display()
+        );
+    }
+    let every_kind: Vec<u16> = (1..=9).collect();
+    assert_eq!(
+        kinds_seen.into_iter().collect::<Vec<_>>(),
+        every_kind,
+        "a golden file for every message kind"
+    );
+}
+
 #[test]
 fn aligned_arrays_are_read_in_place() {
     let message = Envelope {
@@ -180,18 +247,20 @@ fn wrong_schema_version_names_both_versions() {
         body: every_kind().swap_remove(0),
     };
     let mut bytes = encode(&message).unwrap().to_vec();
-    bytes[4..6].copy_from_slice(&2u16.to_le_bytes());
+    let other = SCHEMA_VERSION + 1;
+    bytes[4..6].copy_from_slice(&other.to_le_bytes());
     let error = decode(&bytes).unwrap_err();
     assert_eq!(
         error,
         DecodeError::WrongVersion {
-            found: 2,
+            found: other,
             frame_id: 9
         }
     );
     let text = error.to_string();
     assert!(
-        text.contains("schema version 2") && text.contains("version 1"),
+        text.contains(&format!("schema version {other}"))
+            && text.contains(&format!("version {SCHEMA_VERSION}")),
         "{text}"
     );
 }
@@ -243,14 +312,22 @@ fn array_sizes_are_checked_against_the_camera() {
     );
 }
 
+fn pose_result_example() -> PoseResult {
+    every_kind()
+        .into_iter()
+        .find_map(|body| match body {
+            Body::PoseResult(result) => Some(result),
+            _ => None,
+        })
+        .expect("every_kind has a PoseResult")
+}
+
 #[test]
 fn pose_result_json_carries_header_and_result() {
-    let Body::PoseResult(result) = every_kind().swap_remove(5) else {
-        panic!()
-    };
+    let result = pose_result_example();
     let json: serde_json::Value =
         serde_json::from_str(&pose_result_json(&header(), &result)).unwrap();
-    assert_eq!(json["schema_version"], 1);
+    assert_eq!(json["schema_version"], SCHEMA_VERSION);
     assert_eq!(json["frame_id"], 9);
     assert_eq!(json["accepted"], true);
     assert_eq!(
@@ -265,15 +342,13 @@ fn pose_result_json_carries_header_and_result() {
 #[test]
 fn pose_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v1/pose_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v2/pose_result.schema.json")).unwrap();
     let keys = |value: &serde_json::Value| -> Vec<String> {
         let mut keys: Vec<String> = value.as_object().unwrap().keys().cloned().collect();
         keys.sort();
         keys
     };
-    let Body::PoseResult(result) = every_kind().swap_remove(5) else {
-        panic!()
-    };
+    let result = pose_result_example();
     let json: serde_json::Value =
         serde_json::from_str(&pose_result_json(&header(), &result)).unwrap();
     let properties = &schema["properties"];

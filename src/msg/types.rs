@@ -310,7 +310,7 @@ pub struct StageTimesMs {
 }
 
 /// The one result of a frame (verify → subscribers); also published as JSON
-/// (`schemas/v1/pose_result.schema.json`).
+/// (`schemas/v2/pose_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseResult {
     pub frame_id: u64,
