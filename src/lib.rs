@@ -5,6 +5,7 @@
 pub mod baseline;
 pub mod batch;
 pub mod core;
+pub mod diagnose;
 pub mod eval;
 pub mod frame_files;
 pub mod io;

@@ -104,8 +104,6 @@ pub fn lift_matches(
     view: &ViewRef<'_>,
     dense: &DenseCorrespondence,
 ) -> ViewCorrespondences {
-    let width = view.width_px;
-    let height = view.height_px;
     let world_from_cam = view.cam_from_world.inverse();
     let mut out = ViewCorrespondences {
         coarse_index: view.coarse_index,
@@ -113,36 +111,52 @@ pub fn lift_matches(
         ..ViewCorrespondences::default()
     };
     for pair in &dense.correspondences {
-        let col = pair.rendering_x_px.round();
-        let row = pair.rendering_y_px.round();
-        if col < 0.0 || row < 0.0 || col >= width as f32 || row >= height as f32 {
-            continue;
-        }
-        let pixel = row as usize * width + col as usize;
-        let face_index = view.face_index[pixel];
-        if face_index == NO_FACE {
-            continue;
-        }
-        let normalized = camera.intrinsics.pixel_to_normalized(Vector2::new(
+        let rendering_px = Vector2::new(
             f64::from(pair.rendering_x_px) + 0.5,
             f64::from(pair.rendering_y_px) + 0.5,
-        ));
-        let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
-        let depth_m = f64::from(view.depth_m[pixel]);
-        let point_cam = ray_plane_point_cam(
-            mesh,
-            face_index as usize,
-            &view.cam_from_world,
-            &ray_cam,
-            depth_m,
-        )
-        .unwrap_or(ray_cam * depth_m);
-        out.image_points_px.push(Vector2::new(
-            f64::from(pair.query_x_px) + 0.5,
-            f64::from(pair.query_y_px) + 0.5,
-        ));
-        out.world_points_m
-            .push(world_from_cam.transform_point(&point_cam));
+        );
+        if let Some(point_world) = lift_pixel(mesh, camera, view, &world_from_cam, rendering_px) {
+            out.image_points_px.push(Vector2::new(
+                f64::from(pair.query_x_px) + 0.5,
+                f64::from(pair.query_y_px) + 0.5,
+            ));
+            out.world_points_m.push(point_world);
+        }
     }
     out
+}
+
+/// The model point a view sees through `pixel_px` (COLMAP pixel coordinates, sub-pixel): the
+/// pixel's ray meets the plane of the face rendered at the nearest pixel centre; world frame.
+/// `None` outside the image or where the view shows no surface. `world_from_cam` is the inverse
+/// of the view's pose (passed in so that callers lifting many pixels invert it once).
+pub fn lift_pixel(
+    mesh: &Mesh,
+    camera: &Camera,
+    view: &ViewRef<'_>,
+    world_from_cam: &Rigid3,
+    pixel_px: Vector2<f64>,
+) -> Option<Vector3<f64>> {
+    let col = (pixel_px.x - 0.5).round();
+    let row = (pixel_px.y - 0.5).round();
+    if col < 0.0 || row < 0.0 || col >= view.width_px as f64 || row >= view.height_px as f64 {
+        return None;
+    }
+    let pixel = row as usize * view.width_px + col as usize;
+    let face_index = view.face_index[pixel];
+    if face_index == NO_FACE {
+        return None;
+    }
+    let normalized = camera.intrinsics.pixel_to_normalized(pixel_px);
+    let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
+    let depth_m = f64::from(view.depth_m[pixel]);
+    let point_cam = ray_plane_point_cam(
+        mesh,
+        face_index as usize,
+        &view.cam_from_world,
+        &ray_cam,
+        depth_m,
+    )
+    .unwrap_or(ray_cam * depth_m);
+    Some(world_from_cam.transform_point(&point_cam))
 }

@@ -35,7 +35,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 pub use config::{IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError};
-pub use correspond::{correspond_view, query_features, CorrespondWorkspace, ViewRef};
+pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
 pub use decide::decide_frame;
 pub use query::{query_gradient, smooth_depth};
 pub use solve::solve_view;
