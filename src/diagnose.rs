@@ -22,6 +22,7 @@ use nalgebra::{Vector2, Vector3};
 use serde::Serialize;
 
 use crate::core::camera::Camera;
+use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::{
     correspond_view, decide_frame, lift_pixel, query_features, query_gradient, render_coarse_view,
     render_views, solve_view, CoarseOutcome, CoarseView, CorrespondWorkspace, FrameInput,
@@ -29,15 +30,13 @@ use crate::core::frame::{
     ViewRef,
 };
 use crate::core::mesh::Mesh;
-use crate::core::raster::{Rasterizer, RenderBuffers, NO_FACE};
+use crate::core::raster::{Rasterizer, RenderBuffers};
 use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
 use crate::core::verify::Verdict;
 
 /// Correspondences within this many query px of the truth feed the oracle pose.
 pub const ORACLE_MAX_ERROR_PX: f64 = 2.0;
-/// A depth step above this fraction between neighbouring rendering pixels is an edge.
-const EDGE_RELATIVE_DEPTH_STEP: f32 = 0.02;
 
 /// Median and mean of a set of errors, and the shares within 1, 2 and 5 px.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
@@ -264,7 +263,7 @@ fn correspondence_errors(
         let Some(matched_px) = project(&view.cam_from_world, point_world) else {
             continue;
         };
-        if is_near_edge(&view.render, matched_px) {
+        if is_near_depth_edge(&view.as_ref(), matched_px, 1) {
             out.near_edge_px.push(error_px);
         } else {
             out.away_from_edge_px.push(error_px);
@@ -295,26 +294,6 @@ fn nearest_pixel(render: &RenderBuffers, pixel_px: Vector2<f64>) -> Option<(usiz
         .then_some((col as usize, row as usize))
 }
 
-/// Whether the rendering pixel at `pixel_px` has a 3×3 neighbour on another surface.
-fn is_near_edge(render: &RenderBuffers, pixel_px: Vector2<f64>) -> bool {
-    let Some((col, row)) = nearest_pixel(render, pixel_px) else {
-        return true;
-    };
-    let width = render.width_px();
-    let centre = render.depth_m[row * width + col];
-    for r in row.saturating_sub(1)..(row + 2).min(render.height_px()) {
-        for c in col.saturating_sub(1)..(col + 2).min(width) {
-            let pixel = r * width + c;
-            if render.face_index[pixel] == NO_FACE
-                || (render.depth_m[pixel] - centre).abs() > EDGE_RELATIVE_DEPTH_STEP * centre
-            {
-                return true;
-            }
-        }
-    }
-    false
-}
-
 /// Whether the view sees `point_world` (projecting to `pixel_px`) rather than something in front.
 fn sees_unoccluded(
     render: &RenderBuffers,
@@ -328,7 +307,7 @@ fn sees_unoccluded(
     let rendered_m = f64::from(render.depth_m[row * render.width_px() + col]);
     let depth_m = cam_from_world.transform_point(point_world).z;
     rendered_m > 0.0
-        && (depth_m - rendered_m).abs() <= f64::from(EDGE_RELATIVE_DEPTH_STEP) * depth_m
+        && (depth_m - rendered_m).abs() <= f64::from(DEPTH_EDGE_RELATIVE_STEP) * depth_m
 }
 
 /// The averages of many frames' diagnoses (one table row).

@@ -72,6 +72,10 @@ pub struct CoarseArgs {
     /// coarse poses' spread (1 or more turns the convergence test off).
     #[arg(long, default_value_t = RegistrationConfig::default().verify.max_convergence_ratio)]
     pub max_convergence_ratio: f64,
+    /// Lifting: matches within this many px of a depth discontinuity of the rendering are not
+    /// lifted (0: every match is).
+    #[arg(long, default_value_t = RegistrationConfig::default().lift_edge_margin_px)]
+    pub lift_edge_margin_px: usize,
 }
 
 impl Default for CoarseArgs {
@@ -82,6 +86,7 @@ impl Default for CoarseArgs {
             coarse_rotation_deg: defaults.coarse_rotation_sigma_deg,
             coarse_translation_fraction: defaults.coarse_translation_sigma_fraction,
             max_convergence_ratio: defaults.verify.max_convergence_ratio,
+            lift_edge_margin_px: defaults.lift_edge_margin_px,
         }
     }
 }
@@ -112,6 +117,7 @@ pub fn registration_config(with_depth: bool, coarse: &CoarseArgs) -> Registratio
         coarse_pose_count: coarse.coarse_poses,
         coarse_rotation_sigma_deg: coarse.coarse_rotation_deg,
         coarse_translation_sigma_fraction: coarse.coarse_translation_fraction,
+        lift_edge_margin_px: coarse.lift_edge_margin_px,
         verify: VerifyConfig {
             max_convergence_ratio: coarse.max_convergence_ratio,
             ..VerifyConfig::default()

@@ -69,6 +69,10 @@ pub struct RegistrationConfig {
     pub correspondence: DenseCorrespondenceConfig,
     /// At most this many correspondences per coarse pose go to RANSAC (an even subsample).
     pub max_correspondences_per_pose: usize,
+    /// Matches whose rendering pixel has a neighbour within this many px on another surface
+    /// (a depth discontinuity, where the depth lookup picks foreground or background by chance)
+    /// are not lifted; 0 lifts every match.
+    pub lift_edge_margin_px: usize,
     /// Fewer consistent correspondences than this: the coarse pose gives no hypothesis.
     pub min_correspondences_per_pose: usize,
     pub pose: PoseEstimationConfig,
@@ -92,6 +96,7 @@ impl Default for RegistrationConfig {
             asg: AsgOptions::default(),
             correspondence,
             max_correspondences_per_pose: 3000,
+            lift_edge_margin_px: 0,
             min_correspondences_per_pose: 30,
             pose: PoseEstimationConfig::default(),
             verify: VerifyConfig::default(),

@@ -93,7 +93,13 @@ pub fn correspond_view(
         &mut workspace.matches,
     )
     .map_err(|e| RegistrationError::Flow(e.to_string()))?;
-    Ok(lift_matches(mesh, camera, view, &workspace.matches))
+    Ok(lift_matches(
+        mesh,
+        camera,
+        view,
+        &workspace.matches,
+        config.lift_edge_margin_px,
+    ))
 }
 
 /// Step "lift": each consistent pixel pair becomes (query pixel, 3D model point): the rendering
@@ -103,6 +109,7 @@ pub fn lift_matches(
     camera: &Camera,
     view: &ViewRef<'_>,
     dense: &DenseCorrespondence,
+    edge_margin_px: usize,
 ) -> ViewCorrespondences {
     let world_from_cam = view.cam_from_world.inverse();
     let mut out = ViewCorrespondences {
@@ -115,6 +122,9 @@ pub fn lift_matches(
             f64::from(pair.rendering_x_px) + 0.5,
             f64::from(pair.rendering_y_px) + 0.5,
         );
+        if edge_margin_px > 0 && is_near_depth_edge(view, rendering_px, edge_margin_px) {
+            continue;
+        }
         if let Some(point_world) = lift_pixel(mesh, camera, view, &world_from_cam, rendering_px) {
             out.image_points_px.push(Vector2::new(
                 f64::from(pair.query_x_px) + 0.5,
@@ -159,4 +169,82 @@ pub fn lift_pixel(
     )
     .unwrap_or(ray_cam * depth_m);
     Some(world_from_cam.transform_point(&point_cam))
+}
+
+/// A depth step above this fraction of the depth between neighbouring rendering pixels is a
+/// discontinuity (an occlusion edge), not a slanted surface.
+pub const DEPTH_EDGE_RELATIVE_STEP: f32 = 0.02;
+
+/// Whether the rendering pixel nearest `pixel_px` (COLMAP coordinates) has a neighbour within
+/// `radius_px` (Chebyshev) on another surface: no surface there, or a depth step above
+/// [`DEPTH_EDGE_RELATIVE_STEP`]. Outside the image counts as near an edge.
+pub fn is_near_depth_edge(view: &ViewRef<'_>, pixel_px: Vector2<f64>, radius_px: usize) -> bool {
+    let col = (pixel_px.x - 0.5).round();
+    let row = (pixel_px.y - 0.5).round();
+    if col < 0.0 || row < 0.0 || col >= view.width_px as f64 || row >= view.height_px as f64 {
+        return true;
+    }
+    let (col, row) = (col as usize, row as usize);
+    let width = view.width_px;
+    let centre = view.depth_m[row * width + col];
+    for r in row.saturating_sub(radius_px)..(row + radius_px + 1).min(view.height_px) {
+        for c in col.saturating_sub(radius_px)..(col + radius_px + 1).min(width) {
+            let pixel = r * width + c;
+            if view.face_index[pixel] == NO_FACE
+                || (view.depth_m[pixel] - centre).abs() > DEPTH_EDGE_RELATIVE_STEP * centre
+            {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn depth_edges_are_found_within_the_margin_and_not_on_slanted_surfaces() {
+        // 8 × 4: columns 0..4 a wall receding from 10.0 m by 0.5 % per pixel (slanted, not an
+        // edge), columns 4..7 a wall at 20 m, column 7 shows nothing.
+        let (width, height) = (8usize, 4usize);
+        let depth_m: Vec<f32> = (0..width * height)
+            .map(|i| match i % width {
+                c @ 0..4 => 10.0 * (1.0 + 0.005 * c as f32),
+                4..7 => 20.0,
+                _ => 0.0,
+            })
+            .collect();
+        let face_index: Vec<u32> = (0..width * height)
+            .map(|i| if i % width == 7 { NO_FACE } else { 0 })
+            .collect();
+        let asg = vec![0.0; width * height];
+        let view = ViewRef {
+            coarse_index: 0,
+            cam_from_world: Rigid3::identity(),
+            width_px: width,
+            height_px: height,
+            asg: &asg,
+            depth_m: &depth_m,
+            face_index: &face_index,
+        };
+        let at = |col: usize| Vector2::new(col as f64 + 0.5, 1.5);
+        assert!(!is_near_depth_edge(&view, at(0), 1));
+        assert!(
+            !is_near_depth_edge(&view, at(2), 1),
+            "a slanted wall is no edge"
+        );
+        assert!(is_near_depth_edge(&view, at(3), 1), "next to the 20 m wall");
+        assert!(is_near_depth_edge(&view, at(2), 2), "two pixels from it");
+        assert!(!is_near_depth_edge(&view, at(5), 1));
+        assert!(
+            is_near_depth_edge(&view, at(6), 1),
+            "next to the background"
+        );
+        assert!(
+            is_near_depth_edge(&view, Vector2::new(-3.0, 1.5), 1),
+            "outside"
+        );
+    }
 }
