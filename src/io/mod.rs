@@ -2,6 +2,7 @@
 //! names the file, and where it can the line or field, in its errors.
 
 pub mod colmap;
+pub mod colmap_bin;
 pub mod flo;
 pub mod images;
 pub mod mesh_file;
