@@ -3,6 +3,7 @@
 
 pub mod colmap;
 pub mod colmap_bin;
+pub mod colmap_model;
 pub mod flo;
 pub mod images;
 pub mod mesh_file;
