@@ -8,5 +8,6 @@ pub mod flo;
 pub mod images;
 pub mod mesh_file;
 pub mod obj;
+pub mod opk;
 pub mod pfm;
 pub mod ply;
