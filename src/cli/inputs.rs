@@ -7,10 +7,11 @@ use std::path::Path;
 use anyhow::{bail, Context};
 use asgreg::core::camera::Camera;
 use asgreg::core::mesh::Mesh;
-use asgreg::io::colmap::{read_cameras_txt, read_images_txt, ImagePose};
+use asgreg::io::colmap::ImagePose;
+use asgreg::io::colmap_model::{read_cameras_at, read_images_at};
 use asgreg::io::mesh_file::read_mesh;
 
-/// A mesh, the cameras and the poses of a COLMAP text model.
+/// A mesh, the cameras and the poses of a COLMAP model (text or binary).
 pub struct PosedInputs {
     pub mesh: Mesh,
     pub cameras: BTreeMap<u32, Camera>,
@@ -31,8 +32,16 @@ pub fn load_posed_inputs(
         mesh.face_count(),
         started.elapsed().as_secs_f64() * 1e3
     );
-    let cameras = read_cameras_txt(cameras_path)?;
-    let images = read_images_txt(poses_path)?;
+    // Each path is a cameras/images file (.bin binary, else text) or a model folder.
+    let (cameras, cameras_file) = read_cameras_at(cameras_path)?;
+    let (images, images_file) = read_images_at(poses_path)?;
+    tracing::info!(
+        "read {} cameras from {} and {} poses from {}",
+        cameras.len(),
+        cameras_file.display(),
+        images.len(),
+        images_file.display()
+    );
     Ok(PosedInputs {
         mesh,
         cameras,

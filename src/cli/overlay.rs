@@ -19,10 +19,10 @@ pub struct OverlayArgs {
     /// The photo; its file name must be listed in the poses file.
     #[arg(long)]
     pub image: PathBuf,
-    /// COLMAP cameras.txt.
+    /// COLMAP cameras.txt or cameras.bin, or a model folder.
     #[arg(long)]
     pub cameras: PathBuf,
-    /// COLMAP images.txt with the pose to draw the model under.
+    /// COLMAP images.txt or images.bin, or a model folder, with the pose to draw the model under.
     #[arg(long)]
     pub poses: PathBuf,
     /// Output PNG.

@@ -1,5 +1,6 @@
 //! `asgreg register`: refines the initial poses of a folder of photos against a mesh and writes
-//! the accepted poses (COLMAP text), a per-frame report and before/after overlays.
+//! the accepted poses (COLMAP text and binary, omega-phi-kappa CSV), a per-frame report and
+//! before/after overlays.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -9,10 +10,10 @@ use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig};
 use asgreg::core::verify::VerifyConfig;
 use asgreg::frame_files::depth_path_for;
-use asgreg::io::colmap::{
-    write_cameras_txt, write_empty_points3d_txt, write_images_txt, ImagePose,
-};
+use asgreg::io::colmap::{ColmapModel, ImagePose};
+use asgreg::io::colmap_model::write_model_dir;
 use asgreg::io::images::{load_rgb, save_rgb_png};
+use asgreg::io::opk::{write_opk_csv, OPK_FILE};
 use asgreg::viz::{overlay_model, OverlayStyle};
 
 use super::inputs::load_posed_inputs;
@@ -26,10 +27,10 @@ pub struct RegisterArgs {
     /// Folder with the photos named in the poses file.
     #[arg(long)]
     pub images: PathBuf,
-    /// COLMAP cameras.txt (known intrinsics, or the nominal ones when unknown).
+    /// COLMAP cameras.txt or cameras.bin, or a model folder (known intrinsics, or the nominal ones when unknown).
     #[arg(long)]
     pub cameras: PathBuf,
-    /// COLMAP images.txt with the initial poses.
+    /// COLMAP images.txt or images.bin, or a model folder, with the initial poses.
     #[arg(long)]
     pub poses: PathBuf,
     /// Known intrinsics (EPnP) or unknown (DLT, estimated per image).
@@ -236,9 +237,15 @@ fn write_outputs(
             cam_from_world,
         });
     }
-    write_cameras_txt(&args.out.join("cameras.txt"), &cameras)?;
-    write_images_txt(&args.out.join("images.txt"), &poses)?;
-    write_empty_points3d_txt(&args.out.join("points3D.txt"))?;
+    // The accepted poses as a COLMAP model, text and binary, and as omega-phi-kappa for GIS.
+    write_opk_csv(&args.out.join(OPK_FILE), &poses)?;
+    write_model_dir(
+        &args.out,
+        &ColmapModel {
+            cameras,
+            images: poses,
+        },
+    )?;
     let report_path = args.out.join("report.json");
     let json = serde_json::json!({
         "config": config,

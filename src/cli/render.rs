@@ -19,10 +19,10 @@ pub struct RenderArgs {
     /// The mesh (PLY or OBJ).
     #[arg(long)]
     pub mesh: PathBuf,
-    /// COLMAP cameras.txt.
+    /// COLMAP cameras.txt or cameras.bin, or a model folder.
     #[arg(long)]
     pub cameras: PathBuf,
-    /// COLMAP images.txt with the pose to render from.
+    /// COLMAP images.txt or images.bin, or a model folder, with the pose to render from.
     #[arg(long)]
     pub poses: PathBuf,
     /// The image whose pose and camera to use (its NAME in images.txt).

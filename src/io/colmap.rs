@@ -476,7 +476,7 @@ fn read_images_with_lines(path: &Path) -> Result<Vec<(ImagePose, usize)>, Colmap
 /// Builds a pose from COLMAP's fields. The quaternion (non-zero, finite) is normalised until its
 /// norm is exactly 1.0 in floating point (one division can leave it an ulp off), so that a
 /// normalised quaternion written by [`write_images_txt`] reads back bit for bit.
-fn pose_from_colmap(qvec_wxyz: [f64; 4], tvec: [f64; 3]) -> Rigid3 {
+pub(crate) fn pose_from_colmap(qvec_wxyz: [f64; 4], tvec: [f64; 3]) -> Rigid3 {
     let [w, x, y, z] = qvec_wxyz;
     let mut quaternion = Quaternion::new(w, x, y, z);
     for _ in 0..4 {
@@ -515,7 +515,11 @@ fn create_file(path: &Path, contents: &str) -> Result<(), ColmapError> {
 
 /// Checks that COLMAP can store `camera` exactly: no skew, and intrinsics and distortion that fit
 /// its model (e.g. `fx == fy` for SIMPLE_PINHOLE).
-fn check_representable(path: &Path, camera_id: u32, camera: &Camera) -> Result<(), ColmapError> {
+pub(crate) fn check_representable(
+    path: &Path,
+    camera_id: u32,
+    camera: &Camera,
+) -> Result<(), ColmapError> {
     if camera.intrinsics.skew_px != 0.0 {
         return Err(ColmapError::SkewNotRepresentable {
             path: path.to_path_buf(),

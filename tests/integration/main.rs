@@ -3,6 +3,7 @@
 
 mod bad_input;
 mod cli_pictures;
+mod colmap_cli;
 mod flow_cli;
 mod honest_tests;
 mod pipeline;

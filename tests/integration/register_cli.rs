@@ -1,6 +1,6 @@
 //! `asgreg register` on a tiny synthetic scene: every input frame gets exactly one entry in
 //! report.json, a frame whose photo is missing fails with a reason naming the file, and the run
-//! still writes its COLMAP output.
+//! still writes its COLMAP output (text and binary) and its omega-phi-kappa CSV.
 
 use crate::util::*;
 
@@ -62,6 +62,19 @@ fn every_frame_gets_exactly_one_result_even_when_its_photo_is_missing() {
     let accepted = frames.iter().filter(|f| f["accepted"] == true).count();
     let poses = asgreg::io::colmap::read_images_txt(&out.join("images.txt")).unwrap();
     assert_eq!(poses.len(), accepted);
+    // The same poses in COLMAP's binary format (read first), and one omega-phi-kappa row each.
+    let (binary, format) = asgreg::io::colmap_model::read_model_dir(&out).unwrap();
+    assert_eq!(format, asgreg::io::colmap_model::ModelFormat::Binary);
+    let names = |images: &[asgreg::io::colmap::ImagePose]| -> Vec<String> {
+        images.iter().map(|image| image.name.clone()).collect()
+    };
+    assert_eq!(names(&binary.images), names(&poses));
+    let opk = std::fs::read_to_string(out.join("poses_opk.csv")).unwrap();
+    assert!(
+        opk.starts_with("name,X,Y,Z,omega_deg,phi_deg,kappa_deg\n"),
+        "{opk}"
+    );
+    assert_eq!(opk.lines().count(), accepted + 1, "{opk}");
     assert!(out.join("overlays/view_000_before.png").is_file());
 }
 
