@@ -6,6 +6,7 @@ pub mod camera;
 pub mod dense_sift;
 pub mod flow_consistency;
 pub mod frame;
+pub mod image;
 pub mod mesh;
 pub mod pose;
 pub mod raster;
