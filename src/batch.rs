@@ -112,14 +112,14 @@ pub fn register_batch_frame(
     };
     let input = FrameInput {
         photo: GreyImage {
-            width_px: files.photo.width_px,
-            height_px: files.photo.height_px,
-            pixels: &files.photo.pixels,
+            width_px: files.photo.width_px(),
+            height_px: files.photo.height_px(),
+            pixels: files.photo.data(),
         },
-        depth_m: files.depth.as_ref().map(|d| GreyImage {
-            width_px: d.width_px,
-            height_px: d.height_px,
-            pixels: &d.depth_m,
+        depth_m: files.depth_m.as_ref().map(|d| GreyImage {
+            width_px: d.width_px(),
+            height_px: d.height_px(),
+            pixels: d.data(),
         }),
         camera: &frame.camera,
         intrinsics: frame.intrinsics,

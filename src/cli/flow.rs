@@ -9,9 +9,10 @@ use anyhow::{bail, Context};
 use asgreg::core::dense_sift::{
     compute_dense_sift, DenseSiftConfig, DenseSiftImage, DenseSiftWorkspace,
 };
+use asgreg::core::image::Image;
 use asgreg::core::sift_flow::{compute_sift_flow, FlowField, SiftFlowConfig, SiftFlowWorkspace};
 use asgreg::io::flo::{read_flo, write_flo};
-use asgreg::io::images::{load_gray, GrayImage};
+use asgreg::io::images::load_gray;
 
 #[derive(clap::Args, Debug)]
 pub struct FlowArgs {
@@ -44,26 +45,15 @@ pub enum Preset {
 }
 
 /// Halves an image by 2×2 box averaging (odd last rows/columns are dropped).
-fn halve(image: &GrayImage) -> GrayImage {
-    let (width_px, height_px) = (image.width_px / 2, image.height_px / 2);
-    let mut pixels = Vec::with_capacity(width_px * height_px);
-    for row in 0..height_px {
-        for col in 0..width_px {
-            let at = |r: usize, c: usize| image.pixels[r * image.width_px + c];
-            pixels.push(
-                (at(2 * row, 2 * col)
-                    + at(2 * row, 2 * col + 1)
-                    + at(2 * row + 1, 2 * col)
-                    + at(2 * row + 1, 2 * col + 1))
-                    / 4.0,
-            );
-        }
-    }
-    GrayImage {
-        width_px,
-        height_px,
-        pixels,
-    }
+fn halve(image: &Image<f32>) -> Image<f32> {
+    let at = |c: usize, r: usize| image.data()[r * image.width_px() + c];
+    Image::from_fn(image.width_px() / 2, image.height_px() / 2, |col, row| {
+        (at(2 * col, 2 * row)
+            + at(2 * col + 1, 2 * row)
+            + at(2 * col, 2 * row + 1)
+            + at(2 * col + 1, 2 * row + 1))
+            / 4.0
+    })
 }
 
 /// A half-resolution flow brought to `width_px × height_px`: bilinear sampling at the matching
@@ -100,28 +90,28 @@ pub fn run(args: &FlowArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let image_a = load_gray(&args.image_a)?;
     let image_b = load_gray(&args.image_b)?;
-    if (image_a.width_px, image_a.height_px) != (image_b.width_px, image_b.height_px) {
+    if image_a.size() != image_b.size() {
         bail!(
             "{} is {}x{} px but {} is {}x{} px: SIFT flow needs two images of the same size",
             args.image_a.display(),
-            image_a.width_px,
-            image_a.height_px,
+            image_a.width_px(),
+            image_a.height_px(),
             args.image_b.display(),
-            image_b.width_px,
-            image_b.height_px
+            image_b.width_px(),
+            image_b.height_px()
         );
     }
     let mask = match &args.mask_a {
         Some(path) => {
             let mask = load_gray(path)?;
-            if (mask.width_px, mask.height_px) != (image_a.width_px, image_a.height_px) {
+            if mask.size() != image_a.size() {
                 bail!(
                     "the mask {} is {}x{} px, image A is {}x{} px",
                     path.display(),
-                    mask.width_px,
-                    mask.height_px,
-                    image_a.width_px,
-                    image_a.height_px
+                    mask.width_px(),
+                    mask.height_px(),
+                    image_a.width_px(),
+                    image_a.height_px()
                 );
             }
             Some(mask)
@@ -129,13 +119,13 @@ pub fn run(args: &FlowArgs) -> anyhow::Result<()> {
         None => None,
     };
     let load_ms = started.elapsed().as_secs_f64() * 1e3;
-    let (full_width, full_height) = (image_a.width_px, image_a.height_px);
+    let (full_width, full_height) = image_a.size();
     let (a, b, mask) = if args.half {
         (halve(&image_a), halve(&image_b), mask.as_ref().map(halve))
     } else {
         (image_a, image_b, mask)
     };
-    let participates: Option<Vec<bool>> = mask.map(|m| m.pixels.iter().map(|v| *v > 0.0).collect());
+    let participates: Option<Vec<bool>> = mask.map(|m| m.data().iter().map(|v| *v > 0.0).collect());
 
     let sift_config = DenseSiftConfig::default();
     let flow_config = match args.preset {
@@ -147,9 +137,9 @@ pub fn run(args: &FlowArgs) -> anyhow::Result<()> {
     let (result_a, result_b) = rayon::join(
         || {
             compute_dense_sift(
-                &a.pixels,
-                a.width_px,
-                a.height_px,
+                a.data(),
+                a.width_px(),
+                a.height_px(),
                 &sift_config,
                 &mut DenseSiftWorkspace::default(),
                 &mut sift_a,
@@ -157,9 +147,9 @@ pub fn run(args: &FlowArgs) -> anyhow::Result<()> {
         },
         || {
             compute_dense_sift(
-                &b.pixels,
-                b.width_px,
-                b.height_px,
+                b.data(),
+                b.width_px(),
+                b.height_px(),
                 &sift_config,
                 &mut DenseSiftWorkspace::default(),
                 &mut sift_b,
@@ -169,7 +159,7 @@ pub fn run(args: &FlowArgs) -> anyhow::Result<()> {
     result_a?;
     result_b?;
     let sift_ms = sift_started.elapsed().as_secs_f64() * 1e3;
-    let mut flow = FlowField::zeros(a.width_px, a.height_px);
+    let mut flow = FlowField::zeros(a.width_px(), a.height_px());
     let mut matching_cost = Vec::new();
     let timings = compute_sift_flow(
         &sift_a,
@@ -190,8 +180,8 @@ pub fn run(args: &FlowArgs) -> anyhow::Result<()> {
         "flow {} -> {} ({}x{} px{}): load {load_ms:.0} ms, dense SIFT {sift_ms:.0} ms, pyramid {:.0} ms, data cost {:.0} ms, belief propagation {:.0} ms, total {:.0} ms -> {}",
         args.image_a.display(),
         args.image_b.display(),
-        a.width_px,
-        a.height_px,
+        a.width_px(),
+        a.height_px(),
         if args.half { ", halved" } else { "" },
         ms(timings.pyramid),
         ms(timings.data_cost),

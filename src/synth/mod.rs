@@ -460,15 +460,8 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
             .join("depth")
             .join(Path::new(&view.name).with_extension("pfm"));
         let depth_valid_fraction =
-            depth.iter().filter(|d| **d > 0.0).count() as f64 / (width * height) as f64;
-        crate::io::pfm::write_pfm(
-            &depth_path,
-            &crate::io::pfm::DepthImage {
-                width_px: width,
-                height_px: height,
-                depth_m: depth,
-            },
-        )?;
+            depth.data().iter().filter(|d| **d > 0.0).count() as f64 / (width * height) as f64;
+        crate::io::pfm::write_pfm(&depth_path, depth.view())?;
         let centre = view.cam_from_world.camera_center();
         images.push(ImageSummary {
             name: view.name.clone(),
@@ -697,8 +690,8 @@ mod tests {
         let model = crate::io::ply::read_ply(&dir.path().join("model.ply")).unwrap();
         assert_eq!(model.face_count(), summary.model_faces);
         let depth = crate::io::pfm::read_pfm(&dir.path().join("depth/view_000.pfm")).unwrap();
-        assert_eq!((depth.width_px, depth.height_px), (160, 88));
-        let valid = depth.valid_count() as f64 / (160.0 * 88.0);
+        assert_eq!(depth.size(), (160, 88));
+        let valid = crate::io::pfm::valid_depth_count(depth.view()) as f64 / (160.0 * 88.0);
         assert!(valid > 0.2 && valid < 0.95, "depth valid fraction {valid}");
         let photo = image::open(dir.path().join("images/view_000.jpg")).unwrap();
         assert_eq!((photo.width(), photo.height()), (160, 88));
@@ -976,7 +969,7 @@ mod tests {
         );
         let mut depth_normals = vec![Vec3::ZERO; w * h];
         crate::core::shading::normals_from_depth(
-            &depth,
+            depth.data(),
             w,
             h,
             &camera.intrinsics,
@@ -1173,13 +1166,13 @@ mod tests {
         )
         .unwrap();
         let max_depth = depth
-            .depth_m
+            .data()
             .iter()
             .copied()
             .fold(0.0f32, f32::max)
             .max(1e-3);
         let depth_png = image::GrayImage::from_fn(w, h, |c, r| {
-            let d = depth.depth_m[(r * w + c) as usize];
+            let d = depth.data()[(r * w + c) as usize];
             image::Luma([if d > 0.0 {
                 (255.0 * (1.0 - d / max_depth)).clamp(1.0, 255.0) as u8
             } else {

@@ -14,6 +14,7 @@ use rayon::prelude::*;
 use super::geometry::{FaceTag, PartKind, Scene, NO_PANEL};
 use super::texture::{self, fbm, hash_u64, value_noise, Material};
 use crate::core::camera::PinholeIntrinsics;
+use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::core::raster::{Rasterizer, RenderBuffers, RenderOptions, NO_FACE};
 use crate::core::rigid::Rigid3;
@@ -416,7 +417,7 @@ impl<'a> PhotoRenderer<'a> {
         cam_from_world: &Rigid3,
         params: &DepthParams,
         image_seed: u64,
-    ) -> Vec<f32> {
+    ) -> Image<f32> {
         let (w, h) = (photo.width_px, photo.height_px);
         self.render_visibility(intrinsics, w, h, cam_from_world);
         let luma = photo.luma();
@@ -424,31 +425,28 @@ impl<'a> PhotoRenderer<'a> {
         // Blob holes: threshold a smooth noise field so that about `hole_fraction` is removed.
         let blob_threshold = hole_threshold(params.hole_fraction);
         let depth = &self.depth_buffers.depth_m;
-        (0..w * h)
-            .map(|index| {
-                let (row, col) = (index / w, index % w);
-                let d = depth[index];
-                if d <= 0.0 || d > params.max_depth_m || local_std[index] < params.untextured_std_dn
-                {
-                    return 0.0;
-                }
-                let p = Vec3::new(col as f32 / 14.0, row as f32 / 14.0, 0.0);
-                let blob = 0.65 * value_noise(image_seed ^ 301, p)
-                    + 0.35 * value_noise(image_seed ^ 302, p * 2.7);
-                if blob > blob_threshold {
-                    return 0.0;
-                }
-                let correlated = fbm(
-                    image_seed ^ 303,
-                    Vec3::new(col as f32, row as f32, 0.0),
-                    20.0,
-                    3,
-                    0.0,
-                );
-                let white = gaussian_from_hash(hash_u64(image_seed ^ 0xD1 ^ index as u64));
-                d * (1.0 + params.relative_noise * (0.6 * white + 1.6 * correlated))
-            })
-            .collect()
+        Image::from_fn(w, h, |col, row| {
+            let index = row * w + col;
+            let d = depth[index];
+            if d <= 0.0 || d > params.max_depth_m || local_std[index] < params.untextured_std_dn {
+                return 0.0;
+            }
+            let p = Vec3::new(col as f32 / 14.0, row as f32 / 14.0, 0.0);
+            let blob = 0.65 * value_noise(image_seed ^ 301, p)
+                + 0.35 * value_noise(image_seed ^ 302, p * 2.7);
+            if blob > blob_threshold {
+                return 0.0;
+            }
+            let correlated = fbm(
+                image_seed ^ 303,
+                Vec3::new(col as f32, row as f32, 0.0),
+                20.0,
+                3,
+                0.0,
+            );
+            let white = gaussian_from_hash(hash_u64(image_seed ^ 0xD1 ^ index as u64));
+            d * (1.0 + params.relative_noise * (0.6 * white + 1.6 * correlated))
+        })
     }
 }
 
