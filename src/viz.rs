@@ -29,26 +29,30 @@ const CREASE_COS: f32 = 0.82;
 pub fn model_edges(render: &RenderBuffers) -> Image<bool> {
     let width = render.width_px();
     let height = render.height_px();
+    let (face_index, depth_m, normal_cam) = (
+        render.face_index().data(),
+        render.depth_m().data(),
+        render.normal_cam().data(),
+    );
     let mut edges = Image::filled(width, height, false);
     let edges_data = edges.data_mut();
     for row in 0..height {
         for col in 0..width {
             let index = row * width + col;
-            let here_valid = render.face_index[index] != NO_FACE;
+            let here_valid = face_index[index] != NO_FACE;
             let neighbours = [
                 (col + 1 < width).then(|| index + 1),
                 (row + 1 < height).then(|| index + width),
             ];
             for other in neighbours.into_iter().flatten() {
-                let other_valid = render.face_index[other] != NO_FACE;
+                let other_valid = face_index[other] != NO_FACE;
                 let edge = match (here_valid, other_valid) {
                     (false, false) => false,
                     (true, false) | (false, true) => true,
                     (true, true) => {
-                        let (d0, d1) = (render.depth_m[index], render.depth_m[other]);
+                        let (d0, d1) = (depth_m[index], depth_m[other]);
                         let jump = (d0 - d1).abs() > 0.05 * d0.min(d1);
-                        let crease =
-                            render.normal_cam[index].dot(render.normal_cam[other]) < CREASE_COS;
+                        let crease = normal_cam[index].dot(normal_cam[other]) < CREASE_COS;
                         jump || crease
                     }
                 };
@@ -82,6 +86,7 @@ pub fn overlay_model(
     photo_rgb.check_size("the photo", render.width_px(), render.height_px())?;
     let alpha = alpha.clamp(0.0, 1.0);
     let edges = model_edges(render);
+    let (face_index, normal_cam) = (render.face_index().data(), render.normal_cam().data());
     let pixels = photo_rgb
         .data()
         .iter()
@@ -90,10 +95,10 @@ pub fn overlay_model(
             if edges.data()[index] {
                 return EDGE_RGB;
             }
-            if style == OverlayStyle::Edges || render.face_index[index] == NO_FACE {
+            if style == OverlayStyle::Edges || face_index[index] == NO_FACE {
                 return *photo;
             }
-            let model = normal_rgb(render.normal_cam[index]);
+            let model = normal_rgb(normal_cam[index]);
             std::array::from_fn(|c| {
                 (f32::from(photo[c]) * (1.0 - alpha) + model[c] * alpha).round() as u8
             })

@@ -71,13 +71,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     save_gray_png(&asg_path, asg_display_image(&render).view())?;
     let photo_path = scene_dir.join("images").join(&first);
     let photo = load_gray(&photo_path)?;
-    let mut gradient = Image::filled(photo.width_px(), photo.height_px(), 0.0f32);
-    gradient_magnitude(
-        photo.data(),
-        photo.width_px(),
-        photo.height_px(),
-        gradient.data_mut(),
-    );
+    let mut gradient = Image::default();
+    gradient_magnitude(photo.view(), &mut gradient);
     let gradient_path = args.out.join(format!("{stem}_photo_gradient.png"));
     save_gray_png(
         &gradient_path,

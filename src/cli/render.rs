@@ -80,26 +80,17 @@ pub fn render_view(
 
 /// The ASG image of a rendering, scaled to 0..1 for display.
 pub fn asg_display_image(render: &RenderBuffers) -> Image<f32> {
-    let (width_px, height_px) = (render.width_px(), render.height_px());
-    let mut asg = Image::filled(width_px, height_px, 0.0f32);
-    asg_from_normals(
-        &render.normal_cam,
-        width_px,
-        height_px,
-        &AsgOptions::default(),
-        asg.data_mut(),
-    );
+    let mut asg = Image::default();
+    asg_from_normals(render.normal_cam().view(), &AsgOptions::default(), &mut asg);
     normalize_for_display(asg.view())
 }
 
 pub fn write_render(render: &RenderBuffers, what: RenderWhat, out: &Path) -> anyhow::Result<()> {
-    let (width_px, height_px) = (render.width_px(), render.height_px());
     match what {
         RenderWhat::Asg => save_gray_png(out, asg_display_image(render).view())?,
         RenderWhat::Normals => {
-            let rgb = Image::from_fn(width_px, height_px, |col, row| {
-                let n = render.normal_cam[row * width_px + col];
-                if n == glam::Vec3::ZERO {
+            let rgb = render.normal_cam().map(|n| {
+                if *n == glam::Vec3::ZERO {
                     [0, 0, 0]
                 } else {
                     [n.x, -n.y, -n.z].map(|c| ((c * 0.5 + 0.5) * 255.0).round() as u8)
@@ -108,14 +99,9 @@ pub fn write_render(render: &RenderBuffers, what: RenderWhat, out: &Path) -> any
             save_rgb_png(out, rgb.view())?;
         }
         RenderWhat::Depth => {
-            let inverse = Image::from_fn(width_px, height_px, |col, row| {
-                let d = render.depth_m[row * width_px + col];
-                if d > 0.0 {
-                    1.0 / d
-                } else {
-                    0.0
-                }
-            });
+            let inverse = render
+                .depth_m()
+                .map(|d| if *d > 0.0 { 1.0 / d } else { 0.0 });
             save_gray_png(out, normalize_for_display(inverse.view()).view())?;
         }
     }

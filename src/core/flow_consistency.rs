@@ -15,8 +15,8 @@
 //!   rendering pixel (rounded to the nearest), and the round trip `‖w_f(p) + w_b(q)‖` is at most
 //!   `max_round_trip_error_px`.
 //!
-//! Preconditions: grey images as `&[f32]`, row major, values in `0..=1` (see dense SIFT); the
-//! validity mask, when given, has one entry per rendering pixel.
+//! Preconditions: grey images with values in `0..=1` (see dense SIFT); the validity mask, when
+//! given, has the rendering's size.
 
 use std::time::{Duration, Instant};
 
@@ -26,18 +26,11 @@ use serde::{Deserialize, Serialize};
 use crate::core::dense_sift::{
     compute_dense_sift, DenseSiftConfig, DenseSiftImage, DenseSiftWorkspace,
 };
+use crate::core::image::{Image, ImageView};
 use crate::core::sift_flow::{
     compute_sift_flow_on_pyramids, FlowError, FlowField, SiftFlowConfig, SiftFlowWorkspace,
     SiftPyramid,
 };
-
-/// A grey image borrowed from the caller: row major, `width_px · height_px` values in `0..=1`.
-#[derive(Clone, Copy, Debug)]
-pub struct GreyImage<'a> {
-    pub width_px: usize,
-    pub height_px: usize,
-    pub pixels: &'a [f32],
-}
 
 /// Parameters of the two-way matching and of the consistency check.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -131,17 +124,17 @@ pub struct DenseCorrespondenceWorkspace {
     rendering_sift: DenseSiftImage,
     query_pyramid: SiftPyramid,
     rendering_pyramid: SiftPyramid,
-    query_textured: Vec<bool>,
-    rendering_participates: Vec<bool>,
-    forward_cost: Vec<f32>,
-    backward_cost: Vec<f32>,
+    query_textured: Image<bool>,
+    rendering_participates: Image<bool>,
+    forward_cost: Image<f32>,
+    backward_cost: Image<f32>,
 }
 
 /// Dense SIFT of both images, SIFT flow both ways, consistency check: the per-pair entry point.
 pub fn match_query_to_rendering(
-    query: GreyImage,
-    rendering: GreyImage,
-    rendering_valid: Option<&[bool]>,
+    query: ImageView<'_, f32>,
+    rendering: ImageView<'_, f32>,
+    rendering_valid: Option<ImageView<'_, bool>>,
     config: &DenseCorrespondenceConfig,
     workspace: &mut DenseCorrespondenceWorkspace,
     out: &mut DenseCorrespondence,
@@ -152,9 +145,7 @@ pub fn match_query_to_rendering(
     let (query_result, rendering_result) = rayon::join(
         || {
             compute_dense_sift(
-                query.pixels,
-                query.width_px,
-                query.height_px,
+                query,
                 &config.dense_sift,
                 &mut ws.sift_workspace,
                 &mut ws.query_sift,
@@ -162,9 +153,7 @@ pub fn match_query_to_rendering(
         },
         || {
             compute_dense_sift(
-                rendering.pixels,
-                rendering.width_px,
-                rendering.height_px,
+                rendering,
                 &config.dense_sift,
                 &mut ws.rendering_sift_workspace,
                 &mut ws.rendering_sift,
@@ -206,7 +195,7 @@ pub fn match_sift_images(
     query_sift: &DenseSiftImage,
     query_pyramid: &SiftPyramid,
     rendering_sift: &DenseSiftImage,
-    rendering_valid: Option<&[bool]>,
+    rendering_valid: Option<ImageView<'_, bool>>,
     config: &DenseCorrespondenceConfig,
     workspace: &mut DenseCorrespondenceWorkspace,
     out: &mut DenseCorrespondence,
@@ -214,33 +203,30 @@ pub fn match_sift_images(
     let started = Instant::now();
     config.validate()?;
     let ws = workspace;
-    let rendering_pixels = rendering_sift.width_px * rendering_sift.height_px;
     if let Some(valid) = rendering_valid {
-        if valid.len() != rendering_pixels {
-            return Err(FlowError::SizeMismatch {
-                what: "rendering validity mask",
-                expected: rendering_pixels,
-                found: valid.len(),
-            });
-        }
+        valid.check_size(
+            "rendering validity mask",
+            rendering_sift.width_px,
+            rendering_sift.height_px,
+        )?;
     }
     for (image, what) in [
         (query_sift, "query support gradient"),
         (rendering_sift, "rendering support gradient"),
     ] {
-        let pixels = image.width_px * image.height_px;
-        if image.support_gradient.len() != pixels {
-            return Err(FlowError::SizeMismatch {
-                what,
-                expected: pixels,
-                found: image.support_gradient.len(),
-            });
-        }
+        image
+            .support_gradient
+            .check_size(what, image.width_px, image.height_px)?;
     }
     query_sift.textured_mask(config.min_support_gradient, &mut ws.query_textured);
     rendering_sift.textured_mask(config.min_support_gradient, &mut ws.rendering_participates);
     if let Some(valid) = rendering_valid {
-        for (participates, &is_valid) in ws.rendering_participates.iter_mut().zip(valid) {
+        for (participates, &is_valid) in ws
+            .rendering_participates
+            .data_mut()
+            .iter_mut()
+            .zip(valid.data())
+        {
             *participates &= is_valid;
         }
     }
@@ -261,7 +247,7 @@ pub fn match_sift_images(
         || {
             let started = Instant::now();
             compute_sift_flow_on_pyramids(
-                (query_sift, query_pyramid, Some(query_textured)),
+                (query_sift, query_pyramid, Some(query_textured.view())),
                 (rendering_sift, rendering_pyramid, rendering_valid),
                 &config.sift_flow,
                 forward_workspace,
@@ -276,7 +262,7 @@ pub fn match_sift_images(
                 (
                     rendering_sift,
                     rendering_pyramid,
-                    Some(rendering_participates),
+                    Some(rendering_participates.view()),
                 ),
                 (query_sift, query_pyramid, None),
                 &config.sift_flow,
@@ -294,9 +280,9 @@ pub fn match_sift_images(
     collect_consistent_pairs(
         &out.forward,
         &out.backward,
-        &ws.query_textured,
-        &ws.rendering_participates,
-        &ws.forward_cost,
+        ws.query_textured.view(),
+        ws.rendering_participates.view(),
+        ws.forward_cost.view(),
         config.max_round_trip_error_px,
         &mut out.correspondences,
     )?;
@@ -322,20 +308,13 @@ pub struct QueryFeatures {
 impl QueryFeatures {
     /// Dense SIFT and pyramid of `query`.
     pub fn compute(
-        query: GreyImage,
+        query: ImageView<'_, f32>,
         config: &DenseCorrespondenceConfig,
         workspace: &mut DenseSiftWorkspace,
     ) -> Result<Self, FlowError> {
         config.validate()?;
         let mut features = Self::default();
-        compute_dense_sift(
-            query.pixels,
-            query.width_px,
-            query.height_px,
-            &config.dense_sift,
-            workspace,
-            &mut features.sift,
-        )?;
+        compute_dense_sift(query, &config.dense_sift, workspace, &mut features.sift)?;
         features.pyramid.build(&features.sift, &config.sift_flow)?;
         Ok(features)
     }
@@ -345,8 +324,8 @@ impl QueryFeatures {
 /// both ways, consistency check. The step every path runs per coarse view.
 pub fn match_rendering(
     query: &QueryFeatures,
-    rendering: GreyImage,
-    rendering_valid: Option<&[bool]>,
+    rendering: ImageView<'_, f32>,
+    rendering_valid: Option<ImageView<'_, bool>>,
     config: &DenseCorrespondenceConfig,
     workspace: &mut DenseCorrespondenceWorkspace,
     out: &mut DenseCorrespondence,
@@ -354,9 +333,7 @@ pub fn match_rendering(
     let started = Instant::now();
     let mut rendering_sift = std::mem::take(&mut workspace.rendering_sift);
     let sift_result = compute_dense_sift(
-        rendering.pixels,
-        rendering.width_px,
-        rendering.height_px,
+        rendering,
         &config.dense_sift,
         &mut workspace.sift_workspace,
         &mut rendering_sift,
@@ -383,8 +360,8 @@ pub fn match_rendering(
 /// Matches one query against many renderings, in parallel over renderings (rayon), reusing one
 /// workspace per worker thread and the query's features for every pair.
 pub fn match_query_to_renderings(
-    query: GreyImage,
-    renderings: &[(GreyImage, Option<&[bool]>)],
+    query: ImageView<'_, f32>,
+    renderings: &[(ImageView<'_, f32>, Option<ImageView<'_, bool>>)],
     config: &DenseCorrespondenceConfig,
 ) -> Result<Vec<DenseCorrespondence>, FlowError> {
     let features = QueryFeatures::compute(query, config, &mut DenseSiftWorkspace::default())?;
@@ -402,51 +379,40 @@ pub fn match_query_to_renderings(
 }
 
 /// Keeps the query pixels whose forward and backward flows agree (see the module comment) and
-/// writes them into `correspondences`. `query_textured` and `forward_cost` have one entry per
-/// query pixel, `rendering_participates` one per rendering pixel.
+/// writes them into `correspondences`. `query_textured` and `forward_cost` have the query's size
+/// (the forward flow's), `rendering_participates` the rendering's (the backward flow's).
 pub fn collect_consistent_pairs(
     forward: &FlowField,
     backward: &FlowField,
-    query_textured: &[bool],
-    rendering_participates: &[bool],
-    forward_cost: &[f32],
+    query_textured: ImageView<'_, bool>,
+    rendering_participates: ImageView<'_, bool>,
+    forward_cost: ImageView<'_, f32>,
     max_round_trip_error_px: f32,
     correspondences: &mut Vec<PixelCorrespondence>,
 ) -> Result<(), FlowError> {
     correspondences.clear();
-    let (width, height) = (forward.width_px, forward.height_px);
-    let query_pixels = width * height;
-    let rendering_pixels = backward.width_px * backward.height_px;
-    for (what, expected, found) in [
-        ("forward flow u", query_pixels, forward.u_px.len()),
-        ("forward flow v", query_pixels, forward.v_px.len()),
-        ("backward flow u", rendering_pixels, backward.u_px.len()),
-        ("backward flow v", rendering_pixels, backward.v_px.len()),
-        ("query texture mask", query_pixels, query_textured.len()),
-        (
-            "rendering mask",
-            rendering_pixels,
-            rendering_participates.len(),
-        ),
-        ("forward matching costs", query_pixels, forward_cost.len()),
-    ] {
-        if expected != found {
-            return Err(FlowError::SizeMismatch {
-                what,
-                expected,
-                found,
-            });
-        }
-    }
-    let (rendering_width, rendering_height) = (backward.width_px as i64, backward.height_px as i64);
+    let (width, height) = forward.size();
+    let (rendering_width_px, rendering_height_px) = backward.size();
+    query_textured.check_size("query texture mask", width, height)?;
+    forward_cost.check_size("forward matching costs", width, height)?;
+    rendering_participates.check_size("rendering mask", rendering_width_px, rendering_height_px)?;
+    let (query_textured, rendering_participates, forward_cost) = (
+        query_textured.data(),
+        rendering_participates.data(),
+        forward_cost.data(),
+    );
+    let (forward_u, forward_v) = (forward.u_px().data(), forward.v_px().data());
+    let (backward_u, backward_v) = (backward.u_px().data(), backward.v_px().data());
+    let (rendering_width, rendering_height) =
+        (rendering_width_px as i64, rendering_height_px as i64);
     for y in 0..height {
         for x in 0..width {
             let pixel = y * width + x;
             if !query_textured[pixel] {
                 continue;
             }
-            let target_x = x as f32 + forward.u_px[pixel];
-            let target_y = y as f32 + forward.v_px[pixel];
+            let target_x = x as f32 + forward_u[pixel];
+            let target_y = y as f32 + forward_v[pixel];
             let (nearest_x, nearest_y) = (target_x.round() as i64, target_y.round() as i64);
             if nearest_x < 0
                 || nearest_y < 0
@@ -459,8 +425,8 @@ pub fn collect_consistent_pairs(
             if !rendering_participates[target] {
                 continue;
             }
-            let error_u = forward.u_px[pixel] + backward.u_px[target];
-            let error_v = forward.v_px[pixel] + backward.v_px[target];
+            let error_u = forward_u[pixel] + backward_u[target];
+            let error_v = forward_v[pixel] + backward_v[target];
             let round_trip_error_px = error_u.hypot(error_v);
             if round_trip_error_px <= max_round_trip_error_px {
                 correspondences.push(PixelCorrespondence {
@@ -481,6 +447,7 @@ pub fn collect_consistent_pairs(
 mod tests {
     use super::*;
     use crate::core::dense_sift::DenseSiftConfig;
+    use crate::core::image::ImageError;
     use crate::core::sift_flow::test_support::*;
 
     /// A deterministic textured image: hashed white noise smoothed by two 3×3 box passes (texture at
@@ -542,17 +509,9 @@ mod tests {
     ) -> DenseCorrespondence {
         let mut out = DenseCorrespondence::default();
         match_query_to_rendering(
-            GreyImage {
-                width_px: width,
-                height_px: height,
-                pixels: query,
-            },
-            GreyImage {
-                width_px: width,
-                height_px: height,
-                pixels: rendering,
-            },
-            valid,
+            ImageView::new(width, height, query).unwrap(),
+            ImageView::new(width, height, rendering).unwrap(),
+            valid.map(|valid| ImageView::new(width, height, valid).unwrap()),
             config,
             &mut DenseCorrespondenceWorkspace::default(),
             &mut out,
@@ -568,18 +527,14 @@ mod tests {
         let mut config = DenseCorrespondenceConfig::default();
         config.sift_flow.subpixel = crate::core::sift_flow::SubpixelRefinement::None;
         let out = run_pair(&image, &image, width, height, None, &config);
-        assert!(out
-            .forward
-            .u_px
-            .iter()
-            .chain(&out.forward.v_px)
-            .all(|&value| value == 0.0));
-        assert!(out
-            .backward
-            .u_px
-            .iter()
-            .chain(&out.backward.v_px)
-            .all(|&value| value == 0.0));
+        for field in [&out.forward, &out.backward] {
+            assert!(field
+                .u_px()
+                .data()
+                .iter()
+                .chain(field.v_px().data())
+                .all(|&value| value == 0.0));
+        }
         assert_eq!(out.correspondences.len(), width * height);
         assert!(out
             .correspondences
@@ -622,24 +577,27 @@ mod tests {
             None,
             &DenseCorrespondenceConfig::default(),
         );
+        let (integer_u, integer_v) = (integer.forward.u_px(), integer.forward.v_px());
+        let (refined_u, refined_v) = (refined.forward.u_px(), refined.forward.v_px());
         for y in 12..height - 12 {
             for x in 12..width - 12 {
-                let pixel = y * width + x;
                 assert_eq!(
-                    integer.forward.u_px[pixel], shift_x as f32,
+                    integer_u.get(x, y),
+                    Some(&(shift_x as f32)),
                     "u at ({x}, {y})"
                 );
                 assert_eq!(
-                    integer.forward.v_px[pixel], shift_y as f32,
+                    integer_v.get(x, y),
+                    Some(&(shift_y as f32)),
                     "v at ({x}, {y})"
                 );
                 // The parabola fit may move a little off the exact integer, never far.
                 assert!(
-                    (refined.forward.u_px[pixel] - shift_x as f32).abs() < 0.25,
+                    (refined_u.get(x, y).unwrap() - shift_x as f32).abs() < 0.25,
                     "refined u at ({x}, {y})"
                 );
                 assert!(
-                    (refined.forward.v_px[pixel] - shift_y as f32).abs() < 0.25,
+                    (refined_v.get(x, y).unwrap() - shift_y as f32).abs() < 0.25,
                     "refined v at ({x}, {y})"
                 );
             }
@@ -731,12 +689,11 @@ mod tests {
             None,
             &DenseCorrespondenceConfig::default(),
         );
-        let mut truth = FlowField::zeros(width, height);
-        for pixel in 0..width * height {
-            let (u, v) = flow_at((pixel % width) as f32, (pixel / width) as f32);
-            truth.u_px[pixel] = u;
-            truth.v_px[pixel] = v;
-        }
+        let truth = FlowField::new(
+            Image::from_fn(width, height, |x, y| flow_at(x as f32, y as f32).0),
+            Image::from_fn(width, height, |x, y| flow_at(x as f32, y as f32).1),
+        )
+        .unwrap();
         let (epe, under_one) = score_flow(&out.forward, &truth, 12);
         println!("synthetic warp: EPE {epe:.3} px, < 1 px {under_one:.3}");
         // Measured: EPE 0.13 px, all pixels under 1 px.
@@ -755,10 +712,10 @@ mod tests {
     /// SIFT flow on a real pair against its true flow (pixels ≥ 20 px from the border).
     fn pair_scores(pair: &SharedPair, name: &str, sift_flow: SiftFlowConfig) -> (f64, f64) {
         let sift_config = DenseSiftConfig::default();
-        let first = sift_of(&pair.first, pair.width, pair.height, &sift_config);
-        let second = sift_of(&pair.second, pair.width, pair.height, &sift_config);
+        let first = sift_of(pair.first.view(), &sift_config);
+        let second = sift_of(pair.second.view(), &sift_config);
         let mut forward = FlowField::default();
-        let mut cost = Vec::new();
+        let mut cost = Image::default();
         crate::core::sift_flow::compute_sift_flow(
             &first,
             None,
@@ -860,14 +817,10 @@ mod tests {
             sift_flow: SiftFlowConfig::fast(),
             ..Default::default()
         };
-        fn grey(pixels: &[f32], width_px: usize, height_px: usize) -> GreyImage<'_> {
-            GreyImage {
-                width_px,
-                height_px,
-                pixels,
-            }
+        fn grey(pixels: &[f32], width_px: usize, height_px: usize) -> ImageView<'_, f32> {
+            ImageView::new(width_px, height_px, pixels).unwrap()
         }
-        let inputs: Vec<(GreyImage, Option<&[bool]>)> = renderings
+        let inputs: Vec<(ImageView<f32>, Option<ImageView<bool>>)> = renderings
             .iter()
             .map(|rendering| (grey(rendering, width, height), None))
             .collect();
@@ -895,11 +848,7 @@ mod tests {
                     .collect()
             };
             let (query, rendering) = (crop(shift), crop(0));
-            let grey = |pixels| GreyImage {
-                width_px: width,
-                height_px: height,
-                pixels,
-            };
+            let grey = |pixels| ImageView::new(width, height, pixels).unwrap();
             let mut reused = DenseCorrespondence::default();
             match_query_to_rendering(
                 grey(&query),
@@ -924,8 +873,8 @@ mod tests {
     fn banded_belief_propagation_is_reproducible_and_as_accurate() {
         let pair = repo_pair();
         let sift_config = DenseSiftConfig::default();
-        let first = sift_of(&pair.first, pair.width, pair.height, &sift_config);
-        let second = sift_of(&pair.second, pair.width, pair.height, &sift_config);
+        let first = sift_of(pair.first.view(), &sift_config);
+        let second = sift_of(pair.second.view(), &sift_config);
         let run = |threads: usize, bands: usize| {
             let config = SiftFlowConfig {
                 bp_bands: bands,
@@ -937,7 +886,7 @@ mod tests {
                 .unwrap();
             pool.install(|| {
                 let mut field = FlowField::default();
-                let mut cost = Vec::new();
+                let mut cost = Image::default();
                 crate::core::sift_flow::compute_sift_flow(
                     &first,
                     None,
@@ -967,21 +916,22 @@ mod tests {
 
     #[test]
     fn round_trip_check_keeps_only_agreeing_in_view_pairs() {
-        let mut forward = FlowField::zeros(4, 1);
-        forward.u_px = vec![1.0, 1.0, 1.0, 1.0];
-        let mut backward = FlowField::zeros(4, 1);
+        let row = |values: Vec<f32>| Image::new(4, 1, values).unwrap();
+        let forward = FlowField::new(row(vec![1.0; 4]), row(vec![0.0; 4])).unwrap();
         // Query 0 → rendering 1 and back: agrees. Query 1 → rendering 2, whose backward flow
         // points elsewhere (an occlusion): rejected. Query 2 → rendering 3: agrees but rendering 3
         // takes no part. Query 3 → x = 4: out of view.
-        backward.u_px = vec![-1.0, -1.0, 2.0, -1.0];
-        let participates = [true, true, true, false];
+        let backward = FlowField::new(row(vec![-1.0, -1.0, 2.0, -1.0]), row(vec![0.0; 4])).unwrap();
+        let participates = Image::new(4, 1, vec![true, true, true, false]).unwrap();
+        let all_textured = Image::filled(4, 1, true);
+        let costs = Image::filled(4, 1, 7.0);
         let mut pairs = Vec::new();
         collect_consistent_pairs(
             &forward,
             &backward,
-            &[true; 4],
-            &participates,
-            &[7.0; 4],
+            all_textured.view(),
+            participates.view(),
+            costs.view(),
             0.5,
             &mut pairs,
         )
@@ -992,18 +942,18 @@ mod tests {
         let error = collect_consistent_pairs(
             &forward,
             &backward,
-            &[true; 3],
-            &participates,
-            &[7.0; 4],
+            Image::filled(3, 1, true).view(),
+            participates.view(),
+            costs.view(),
             0.5,
             &mut pairs,
         );
         assert!(matches!(
             error,
-            Err(FlowError::SizeMismatch {
+            Err(FlowError::Image(ImageError::SizeMismatch {
                 what: "query texture mask",
                 ..
-            })
+            }))
         ));
     }
 
@@ -1011,23 +961,25 @@ mod tests {
     fn bad_masks_and_configs_are_rejected() {
         let (width, height) = (16, 16);
         let image = textured_image(width, height);
-        let grey = GreyImage {
-            width_px: width,
-            height_px: height,
-            pixels: &image,
-        };
+        let grey = ImageView::new(width, height, &image).unwrap();
         let mut out = DenseCorrespondence::default();
         let mut workspace = DenseCorrespondenceWorkspace::default();
-        let short_mask = vec![true; 3];
+        let small_mask = Image::filled(3, 1, true);
         let error = match_query_to_rendering(
             grey,
             grey,
-            Some(&short_mask),
+            Some(small_mask.view()),
             &DenseCorrespondenceConfig::default(),
             &mut workspace,
             &mut out,
         );
-        assert!(matches!(error, Err(FlowError::SizeMismatch { .. })));
+        assert!(matches!(
+            error,
+            Err(FlowError::Image(ImageError::SizeMismatch {
+                what: "rendering validity mask",
+                ..
+            }))
+        ));
         let config = DenseCorrespondenceConfig {
             max_round_trip_error_px: -1.0,
             ..Default::default()

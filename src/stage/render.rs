@@ -5,10 +5,10 @@
 use std::borrow::Cow;
 use std::time::Instant;
 
-use crate::core::flow_consistency::GreyImage;
 use crate::core::frame::{
     query_gradient, render_views, CoarseView, FrameInput, IntrinsicsMode, RegistrationConfig,
 };
+use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::raster::Rasterizer;
 use crate::msg::{FlowJob, FlowJobMeta, Frame, FrameFailed};
@@ -52,17 +52,18 @@ impl<'m> RenderStage<'m> {
             info.camera.width_px as usize,
             info.camera.height_px as usize,
         );
+        let photo =
+            ImageView::new(width_px, height_px, &frame.image).map_err(|e| failed(e.to_string()))?;
+        let depth_m = match frame.depth_m.is_empty() {
+            true => None,
+            false => Some(
+                ImageView::new(width_px, height_px, &frame.depth_m)
+                    .map_err(|e| failed(e.to_string()))?,
+            ),
+        };
         let input = FrameInput {
-            photo: GreyImage {
-                width_px,
-                height_px,
-                pixels: &frame.image,
-            },
-            depth_m: (!frame.depth_m.is_empty()).then_some(GreyImage {
-                width_px,
-                height_px,
-                pixels: &frame.depth_m,
-            }),
+            photo,
+            depth_m,
             camera: &info.camera,
             intrinsics: IntrinsicsMode::from_known(info.intrinsics_known),
             initial_cam_from_world: info.initial_cam_from_world,
@@ -86,10 +87,10 @@ impl<'m> RenderStage<'m> {
                         coarse_cam_from_world: view.cam_from_world,
                         render_ms: elapsed_ms(started),
                     },
-                    query: Cow::Borrowed(&query.pixels),
-                    asg: Cow::Borrowed(&view.asg),
-                    depth_m: Cow::Borrowed(&view.render.depth_m),
-                    face_index: Cow::Borrowed(&view.render.face_index),
+                    query: Cow::Borrowed(query.data()),
+                    asg: Cow::Borrowed(view.asg.data()),
+                    depth_m: Cow::Borrowed(view.render.depth_m().data()),
+                    face_index: Cow::Borrowed(view.render.face_index().data()),
                 })
             },
         )

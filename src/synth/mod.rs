@@ -427,7 +427,7 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         let (building_fraction, clutter_fraction) = {
             let buffers =
                 renderer.render_visibility(&camera.intrinsics, width, height, &view.cam_from_world);
-            let faces = buffers.face_index.clone();
+            let faces = buffers.face_index().data().to_vec();
             let mut building = 0usize;
             let mut clutter = 0usize;
             for face in faces {
@@ -621,6 +621,7 @@ fn write_jpeg(path: &Path, photo: &photo::Photo, quality: u8) -> Result<(), Synt
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::image::{Image, ImageView};
     use crate::core::raster::{NormalSource, Rasterizer, RenderBuffers, RenderOptions};
     use rand::SeedableRng;
 
@@ -791,15 +792,13 @@ mod tests {
             ..RenderOptions::default()
         };
         Rasterizer::new().render(mesh, &camera.intrinsics, pose, &options, &mut buffers);
-        let mut asg = vec![0.0; w * h];
+        let mut asg = Image::default();
         crate::core::shading::asg_from_normals(
-            &buffers.normal_cam,
-            w,
-            h,
+            buffers.normal_cam().view(),
             &crate::core::shading::AsgOptions::default(),
             &mut asg,
         );
-        asg
+        asg.into_data()
     }
 
     /// docs/design.md §4: the photo's gradients must differ substantially from the model's ASG (textures,
@@ -849,8 +848,12 @@ mod tests {
             .unwrap();
         let decoded = image::load_from_memory(&jpeg).unwrap().to_luma32f();
         let luma: Vec<f32> = decoded.as_raw().iter().map(|v| v * 255.0).collect();
-        let mut photo_gradient = vec![0.0; w * h];
-        crate::core::shading::gradient_magnitude(&luma, w, h, &mut photo_gradient);
+        let mut photo_gradient = Image::default();
+        crate::core::shading::gradient_magnitude(
+            ImageView::new(w, h, &luma).unwrap(),
+            &mut photo_gradient,
+        );
+        let photo_gradient = photo_gradient.into_data();
 
         let mut true_model = scene
             .to_mesh(|t| {
@@ -967,23 +970,19 @@ mod tests {
             },
             77,
         );
-        let mut depth_normals = vec![Vec3::ZERO; w * h];
+        let mut depth_normals = Image::default();
         crate::core::shading::normals_from_depth(
-            depth.data(),
-            w,
-            h,
+            depth.view(),
             &camera.intrinsics,
             &mut depth_normals,
         );
-        let mut depth_asg = vec![0.0; w * h];
+        let mut depth_asg = Image::default();
         crate::core::shading::asg_from_normals(
-            &depth_normals,
-            w,
-            h,
+            depth_normals.view(),
             &crate::core::shading::AsgOptions::default(),
             &mut depth_asg,
         );
-        let depth_asg = blur(&depth_asg, w, h, 1.5);
+        let depth_asg = blur(depth_asg.data(), w, h, 1.5);
         let depth_scores: Vec<f64> = [gt, shifted, initial_pose]
             .iter()
             .map(|pose| {

@@ -71,7 +71,7 @@ struct ShadowMap {
     intrinsics: PinholeIntrinsics,
     cam_from_world: Rigid3,
     size_px: usize,
-    depth_m: Vec<f32>,
+    depth_m: Image<f32>,
     texel_m: f32,
 }
 
@@ -100,7 +100,7 @@ impl ShadowMap {
                     lit += 1.0;
                     continue;
                 }
-                let stored = self.depth_m[r as usize * self.size_px + c as usize];
+                let stored = self.depth_m.data()[r as usize * self.size_px + c as usize];
                 if stored == 0.0 || depth <= stored + bias {
                     lit += 1.0;
                 }
@@ -182,7 +182,7 @@ impl<'a> PhotoRenderer<'a> {
             intrinsics,
             cam_from_world,
             size_px,
-            depth_m: shadow_buffers.depth_m,
+            depth_m: shadow_buffers.depth_m().clone(),
             texel_m: (distance / focal) as f32,
         };
         Ok(Self {
@@ -261,7 +261,10 @@ impl<'a> PhotoRenderer<'a> {
         let shadow = &self.shadow;
         let sun = self.sun_direction;
         let face_normals = &self.face_normals;
-        let buffers = &self.buffers;
+        let (face_index, depth_m) = (
+            self.buffers.face_index().data(),
+            self.buffers.depth_m().data(),
+        );
         let mut radiance = vec![Vec3::ZERO; sw * sh];
         radiance
             .par_chunks_mut(sw)
@@ -275,12 +278,12 @@ impl<'a> PhotoRenderer<'a> {
                     ));
                     let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
                     let ray = to_world_dir(ray_cam).normalize();
-                    let face = buffers.face_index[index];
+                    let face = face_index[index];
                     if face == NO_FACE {
                         *out = sky(seed, ray, sun);
                         continue;
                     }
-                    let depth = buffers.depth_m[index];
+                    let depth = depth_m[index];
                     let p = eye + to_world_dir(ray_cam * f64::from(depth));
                     let tag = scene.tags[face as usize];
                     let mut normal = face_normals[face as usize];
@@ -424,7 +427,7 @@ impl<'a> PhotoRenderer<'a> {
         let local_std = local_std_dev(&luma, w, h, 2);
         // Blob holes: threshold a smooth noise field so that about `hole_fraction` is removed.
         let blob_threshold = hole_threshold(params.hole_fraction);
-        let depth = &self.depth_buffers.depth_m;
+        let depth = self.depth_buffers.depth_m().data();
         Image::from_fn(w, h, |col, row| {
             let index = row * w + col;
             let d = depth[index];

@@ -126,6 +126,8 @@ pub enum RegistrationError {
     ModelNotVisible,
     #[error("dense correspondence failed: {0}")]
     Flow(String),
+    #[error(transparent)]
+    Image(#[from] crate::core::image::ImageError),
 }
 
 impl RegistrationConfig {

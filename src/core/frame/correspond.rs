@@ -9,41 +9,82 @@ use super::{CoarseView, RegistrationConfig, RegistrationError, ViewCorrespondenc
 use crate::core::camera::Camera;
 use crate::core::dense_sift::DenseSiftWorkspace;
 use crate::core::flow_consistency::{
-    match_rendering, DenseCorrespondence, DenseCorrespondenceWorkspace, GreyImage, QueryFeatures,
+    match_rendering, DenseCorrespondence, DenseCorrespondenceWorkspace, QueryFeatures,
 };
+use crate::core::image::{ImageError, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::raster::NO_FACE;
 use crate::core::reprojection::ray_plane_point_cam;
 use crate::core::rigid::Rigid3;
 
 /// A coarse view as the flow step reads it: borrowed from a [`CoarseView`] in one process, or
-/// from a received flow job in the pipeline.
+/// from a received flow job in the pipeline. Its three images have the same size (checked by
+/// [`ViewRef::new`]).
 #[derive(Clone, Copy, Debug)]
 pub struct ViewRef<'a> {
     pub coarse_index: usize,
     pub cam_from_world: Rigid3,
-    pub width_px: usize,
-    pub height_px: usize,
+    asg: ImageView<'a, f32>,
+    depth_m: ImageView<'a, f32>,
+    face_index: ImageView<'a, u32>,
+}
+
+impl<'a> ViewRef<'a> {
+    /// A view of a rendering: its ASG image (0..1), depth along the optical axis (metres) and
+    /// face per pixel ([`NO_FACE`] where nothing was hit), all of the same size.
+    pub fn new(
+        coarse_index: usize,
+        cam_from_world: Rigid3,
+        asg: ImageView<'a, f32>,
+        depth_m: ImageView<'a, f32>,
+        face_index: ImageView<'a, u32>,
+    ) -> Result<Self, ImageError> {
+        let (width_px, height_px) = asg.size();
+        depth_m.check_size("the rendered depth", width_px, height_px)?;
+        face_index.check_size("the rendered face index", width_px, height_px)?;
+        Ok(Self {
+            coarse_index,
+            cam_from_world,
+            asg,
+            depth_m,
+            face_index,
+        })
+    }
+
+    pub fn width_px(&self) -> usize {
+        self.asg.width_px()
+    }
+
+    pub fn height_px(&self) -> usize {
+        self.asg.height_px()
+    }
+
     /// ASG image, 0..1.
-    pub asg: &'a [f32],
+    pub fn asg(&self) -> ImageView<'a, f32> {
+        self.asg
+    }
+
     /// Rendered depth along the optical axis, metres.
-    pub depth_m: &'a [f32],
+    pub fn depth_m(&self) -> ImageView<'a, f32> {
+        self.depth_m
+    }
+
     /// Rendered face per pixel ([`NO_FACE`] where nothing was hit).
-    pub face_index: &'a [u32],
+    pub fn face_index(&self) -> ImageView<'a, u32> {
+        self.face_index
+    }
 }
 
 impl CoarseView {
     /// The view as the flow step reads it.
-    pub fn as_ref(&self) -> ViewRef<'_> {
-        ViewRef {
-            coarse_index: self.coarse_index,
-            cam_from_world: self.cam_from_world,
-            width_px: self.render.width_px(),
-            height_px: self.render.height_px(),
-            asg: &self.asg,
-            depth_m: &self.render.depth_m,
-            face_index: &self.render.face_index,
-        }
+    pub fn as_ref(&self) -> Result<ViewRef<'_>, ImageError> {
+        ViewRef::new(
+            self.coarse_index,
+            self.cam_from_world,
+            self.asg.view(),
+            self.render.depth_m().view(),
+            self.render.face_index().view(),
+        )
     }
 }
 
@@ -56,7 +97,7 @@ pub struct CorrespondWorkspace {
 
 /// The query's features for matching (dense SIFT and pyramid), once per frame.
 pub fn query_features(
-    query: GreyImage,
+    query: ImageView<'_, f32>,
     config: &RegistrationConfig,
 ) -> Result<QueryFeatures, RegistrationError> {
     QueryFeatures::compute(
@@ -76,17 +117,12 @@ pub fn correspond_view(
     config: &RegistrationConfig,
     workspace: &mut CorrespondWorkspace,
 ) -> Result<ViewCorrespondences, RegistrationError> {
-    let rendering = GreyImage {
-        width_px: view.width_px,
-        height_px: view.height_px,
-        pixels: view.asg,
-    };
     // The validity mask is not passed: with it, SIFT flow lost the true match on every ASG pair
     // with 30–55 px displacement (0 % of pixels within 2 px of the true flow, against 85–96 %
     // without). Invalid pixels have zero ASG, and lifting drops matches that land on them.
     match_rendering(
         query,
-        rendering,
+        view.asg,
         None,
         &config.correspondence,
         &mut workspace.matching,
@@ -104,8 +140,8 @@ pub fn lift_matches(
     view: &ViewRef<'_>,
     dense: &DenseCorrespondence,
 ) -> ViewCorrespondences {
-    let width = view.width_px;
-    let height = view.height_px;
+    let (width, height) = view.asg.size();
+    let (face_index, depth_m) = (view.face_index.data(), view.depth_m.data());
     let world_from_cam = view.cam_from_world.inverse();
     let mut out = ViewCorrespondences {
         coarse_index: view.coarse_index,
@@ -119,7 +155,7 @@ pub fn lift_matches(
             continue;
         }
         let pixel = row as usize * width + col as usize;
-        let face_index = view.face_index[pixel];
+        let face_index = face_index[pixel];
         if face_index == NO_FACE {
             continue;
         }
@@ -128,7 +164,7 @@ pub fn lift_matches(
             f64::from(pair.rendering_y_px) + 0.5,
         ));
         let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
-        let depth_m = f64::from(view.depth_m[pixel]);
+        let depth_m = f64::from(depth_m[pixel]);
         let point_cam = ray_plane_point_cam(
             mesh,
             face_index as usize,
