@@ -8,9 +8,8 @@ use std::time::Instant;
 use crate::core::flow_consistency::QueryFeatures;
 use crate::core::frame::{
     correspond_view, query_features, CorrespondWorkspace, RegistrationConfig, RegistrationError,
-    ViewCorrespondences, ViewRef,
+    ViewCorrespondences,
 };
-use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::msg::{Correspondences, CorrespondencesMeta, FlowJob};
 
@@ -78,26 +77,14 @@ impl<'m> FlowStage<'m> {
         frame_id: u64,
         job: &FlowJob,
     ) -> Result<ViewCorrespondences, RegistrationError> {
-        let meta = &job.meta;
-        let (width_px, height_px) = (
-            meta.info.camera.width_px as usize,
-            meta.info.camera.height_px as usize,
-        );
-        let view = ViewRef::new(
-            meta.coarse_index as usize,
-            meta.coarse_cam_from_world,
-            ImageView::new(width_px, height_px, &job.asg)?,
-            ImageView::new(width_px, height_px, &job.depth_m)?,
-            ImageView::new(width_px, height_px, &job.face_index)?,
-        )?;
+        let view = job.view()?;
         let position = match self.features.iter().position(|(id, _)| *id == frame_id) {
             Some(position) => {
                 self.feature_cache_hits += 1;
                 position
             }
             None => {
-                let query = ImageView::new(width_px, height_px, &job.query)?;
-                let features = query_features(query, &self.config)?;
+                let features = query_features(job.query_image()?, &self.config)?;
                 if self.features.len() == CACHED_FRAMES {
                     self.features.remove(0);
                 }

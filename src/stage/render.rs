@@ -8,7 +8,6 @@ use std::time::Instant;
 use crate::core::frame::{
     query_gradient, render_views, CoarseView, FrameInput, IntrinsicsMode, RegistrationConfig,
 };
-use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::raster::Rasterizer;
 use crate::msg::{FlowJob, FlowJobMeta, Frame, FrameFailed};
@@ -48,22 +47,11 @@ impl<'m> RenderStage<'m> {
             stage: "render".to_string(),
             reason,
         };
-        let (width_px, height_px) = (
-            info.camera.width_px as usize,
-            info.camera.height_px as usize,
-        );
-        let photo =
-            ImageView::new(width_px, height_px, &frame.image).map_err(|e| failed(e.to_string()))?;
-        let depth_m = match frame.depth_m.is_empty() {
-            true => None,
-            false => Some(
-                ImageView::new(width_px, height_px, &frame.depth_m)
-                    .map_err(|e| failed(e.to_string()))?,
-            ),
-        };
         let input = FrameInput {
-            photo,
-            depth_m,
+            photo: frame.photo().map_err(|e| failed(format!("photo: {e}")))?,
+            depth_m: frame
+                .depth()
+                .map_err(|e| failed(format!("depth map: {e}")))?,
             camera: &info.camera,
             intrinsics: IntrinsicsMode::from_known(info.intrinsics_known),
             initial_cam_from_world: info.initial_cam_from_world,
