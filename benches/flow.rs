@@ -1,4 +1,4 @@
-//! Benchmarks of dense correspondence (dense SIFT and SIFT flow, Liu, Yuen, Torralba, TPAMI 2011)
+//! Benchmarks of dense matching (dense SIFT and SIFT flow, Liu, Yuen, Torralba, TPAMI 2011)
 //! on the real pairs: 505×275 from `tests/data/flow-pairs` (always there) and 1010×550 from the
 //! shared data set (`../shared/data/flow-pairs`; the report says when it is absent and not measured):
 //! per pair at 505×275 and 1010×550 on one and two threads, a frame's worth of flows (30 pairs),
@@ -15,8 +15,7 @@ use asgreg::core::dense_sift::{
     compute_dense_sift, DenseSiftConfig, DenseSiftImage, DenseSiftWorkspace,
 };
 use asgreg::core::flow_consistency::{
-    match_query_to_renderings, match_sift_images, DenseCorrespondence, DenseCorrespondenceConfig,
-    DenseCorrespondenceWorkspace,
+    match_query_to_renderings, match_sift_images, MatchConfig, MatchWorkspace, PixelMatches,
 };
 use asgreg::core::image::{Image, ImageView};
 use asgreg::core::sift_flow::{
@@ -276,7 +275,7 @@ fn quick_report(pairs: &[Pair]) {
         // A pair both ways: two independent flows (four pyramids, one after the other) against the
         // pair API (two pyramids, both directions side by side), fast preset.
         for threads in [1, 2] {
-            let config = DenseCorrespondenceConfig {
+            let config = MatchConfig {
                 sift_flow: SiftFlowConfig::fast(),
                 ..Default::default()
             };
@@ -289,8 +288,8 @@ fn quick_report(pairs: &[Pair]) {
                         (forward, backward)
                     })
                 });
-                let mut pair_workspace = DenseCorrespondenceWorkspace::default();
-                let mut out = DenseCorrespondence::default();
+                let mut pair_workspace = MatchWorkspace::default();
+                let mut out = PixelMatches::default();
                 let mut first_pyramid = SiftPyramid::default();
                 first_pyramid.build(&first, &config.sift_flow).expect("pyramid");
                 let (api_cpu, (api_wall, ())) = cpu_time(|| {
@@ -337,7 +336,7 @@ fn quick_report(pairs: &[Pair]) {
             .iter()
             .filter(|(preset, _)| preset.starts_with("fast"))
         {
-            let config = DenseCorrespondenceConfig {
+            let config = MatchConfig {
                 sift_flow: sift_flow.clone(),
                 ..Default::default()
             };
@@ -386,11 +385,11 @@ fn quick_report(pairs: &[Pair]) {
                 })
             });
             println!(
-                "{} frame, {preset}: 30 pairs both ways + dense SIFT + consistency, 2 threads: {:.0} ms wall, {:.0} ms CPU, {} correspondences per pair",
+                "{} frame, {preset}: 30 pairs both ways + dense SIFT + consistency, 2 threads: {:.0} ms wall, {:.0} ms CPU, {} matches per pair",
                 pair.name,
                 wall.as_secs_f64() * 1000.0,
                 cpu.as_secs_f64() * 1000.0,
-                results.first().map_or(0, |result| result.correspondences.len())
+                results.first().map_or(0, |result| result.matches.len())
             );
         }
     }

@@ -1,4 +1,4 @@
-//! Query ↔ rendering correspondences from SIFT flow in both directions, kept only where the two
+//! Query ↔ rendering pixel matches from SIFT flow in both directions, kept only where the two
 //! flows agree (forward–backward consistency). The paper (§3.2) computes SIFT flow (Liu, Yuen,
 //! Torralba, TPAMI 2011) between the photo's gradient image and each ASG rendering and lets only
 //! textured pixels take part; this module is that step, as one library call per pair that also
@@ -14,6 +14,10 @@
 //! - a query pixel `p` is kept when it is textured, `q = p + w_f(p)` falls on a valid, textured
 //!   rendering pixel (rounded to the nearest), and the round trip `‖w_f(p) + w_b(q)‖` is at most
 //!   `max_round_trip_error_px`.
+//!
+//! Names: a *match* ([`PixelMatch`]) is a pair of pixels, query and rendering, as this module
+//! makes them; a *correspondence* is a query pixel and a 3D model point, made from a match by
+//! lifting it onto the mesh (`core::frame::correspond`, `core::pose::Correspondences`).
 //!
 //! Preconditions: grey images with values in `0..=1` (see dense SIFT); the validity mask, when
 //! given, has the rendering's size.
@@ -35,7 +39,7 @@ use crate::core::sift_flow::{
 /// Parameters of the two-way matching and of the consistency check.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct DenseCorrespondenceConfig {
+pub struct MatchConfig {
     pub dense_sift: DenseSiftConfig,
     pub sift_flow: SiftFlowConfig,
     /// Minimum mean gradient magnitude over a descriptor's support for a pixel to count as
@@ -45,7 +49,7 @@ pub struct DenseCorrespondenceConfig {
     pub max_round_trip_error_px: f32,
 }
 
-impl Default for DenseCorrespondenceConfig {
+impl Default for MatchConfig {
     fn default() -> Self {
         Self {
             dense_sift: DenseSiftConfig::default(),
@@ -56,7 +60,7 @@ impl Default for DenseCorrespondenceConfig {
     }
 }
 
-impl DenseCorrespondenceConfig {
+impl MatchConfig {
     /// Checks every field once.
     pub fn validate(&self) -> Result<(), FlowError> {
         self.dense_sift.validate()?;
@@ -79,7 +83,7 @@ impl DenseCorrespondenceConfig {
 
 /// One consistent pixel pair: a query pixel centre and where it lands in the rendering (sub-pixel).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PixelCorrespondence {
+pub struct PixelMatch {
     pub query_x_px: f32,
     pub query_y_px: f32,
     pub rendering_x_px: f32,
@@ -92,7 +96,7 @@ pub struct PixelCorrespondence {
 
 /// Time spent in each step of one pair.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct CorrespondenceTimings {
+pub struct MatchTimings {
     pub dense_sift: Duration,
     /// Descriptor pyramid of the rendering (and of the query in [`match_query_to_rendering`]).
     pub pyramid: Duration,
@@ -104,18 +108,19 @@ pub struct CorrespondenceTimings {
 
 /// The result of matching one query against one rendering.
 #[derive(Clone, Debug, Default)]
-pub struct DenseCorrespondence {
+pub struct PixelMatches {
     /// Query → rendering flow (query size).
     pub forward: FlowField,
     /// Rendering → query flow (rendering size).
     pub backward: FlowField,
-    pub correspondences: Vec<PixelCorrespondence>,
-    pub timings: CorrespondenceTimings,
+    /// The forward–backward consistent pixel pairs.
+    pub matches: Vec<PixelMatch>,
+    pub timings: MatchTimings,
 }
 
 /// Buffers reused between pairs.
 #[derive(Debug, Default)]
-pub struct DenseCorrespondenceWorkspace {
+pub struct MatchWorkspace {
     sift_workspace: DenseSiftWorkspace,
     rendering_sift_workspace: DenseSiftWorkspace,
     flow_workspace: SiftFlowWorkspace,
@@ -135,9 +140,9 @@ pub fn match_query_to_rendering(
     query: ImageView<'_, f32>,
     rendering: ImageView<'_, f32>,
     rendering_valid: Option<ImageView<'_, bool>>,
-    config: &DenseCorrespondenceConfig,
-    workspace: &mut DenseCorrespondenceWorkspace,
-    out: &mut DenseCorrespondence,
+    config: &MatchConfig,
+    workspace: &mut MatchWorkspace,
+    out: &mut PixelMatches,
 ) -> Result<(), FlowError> {
     let started = Instant::now();
     config.validate()?;
@@ -196,9 +201,9 @@ pub fn match_sift_images(
     query_pyramid: &SiftPyramid,
     rendering_sift: &DenseSiftImage,
     rendering_valid: Option<ImageView<'_, bool>>,
-    config: &DenseCorrespondenceConfig,
-    workspace: &mut DenseCorrespondenceWorkspace,
-    out: &mut DenseCorrespondence,
+    config: &MatchConfig,
+    workspace: &mut MatchWorkspace,
+    out: &mut PixelMatches,
 ) -> Result<(), FlowError> {
     let started = Instant::now();
     config.validate()?;
@@ -284,9 +289,9 @@ pub fn match_sift_images(
         ws.rendering_participates.view(),
         ws.forward_cost.view(),
         config.max_round_trip_error_px,
-        &mut out.correspondences,
+        &mut out.matches,
     )?;
-    out.timings = CorrespondenceTimings {
+    out.timings = MatchTimings {
         dense_sift: Duration::ZERO,
         pyramid,
         forward_flow,
@@ -309,7 +314,7 @@ impl QueryFeatures {
     /// Dense SIFT and pyramid of `query`.
     pub fn compute(
         query: ImageView<'_, f32>,
-        config: &DenseCorrespondenceConfig,
+        config: &MatchConfig,
         workspace: &mut DenseSiftWorkspace,
     ) -> Result<Self, FlowError> {
         config.validate()?;
@@ -326,9 +331,9 @@ pub fn match_rendering(
     query: &QueryFeatures,
     rendering: ImageView<'_, f32>,
     rendering_valid: Option<ImageView<'_, bool>>,
-    config: &DenseCorrespondenceConfig,
-    workspace: &mut DenseCorrespondenceWorkspace,
-    out: &mut DenseCorrespondence,
+    config: &MatchConfig,
+    workspace: &mut MatchWorkspace,
+    out: &mut PixelMatches,
 ) -> Result<(), FlowError> {
     let started = Instant::now();
     let mut rendering_sift = std::mem::take(&mut workspace.rendering_sift);
@@ -362,24 +367,21 @@ pub fn match_rendering(
 pub fn match_query_to_renderings(
     query: ImageView<'_, f32>,
     renderings: &[(ImageView<'_, f32>, Option<ImageView<'_, bool>>)],
-    config: &DenseCorrespondenceConfig,
-) -> Result<Vec<DenseCorrespondence>, FlowError> {
+    config: &MatchConfig,
+) -> Result<Vec<PixelMatches>, FlowError> {
     let features = QueryFeatures::compute(query, config, &mut DenseSiftWorkspace::default())?;
     renderings
         .par_iter()
-        .map_init(
-            DenseCorrespondenceWorkspace::default,
-            |workspace, (rendering, valid)| {
-                let mut out = DenseCorrespondence::default();
-                match_rendering(&features, *rendering, *valid, config, workspace, &mut out)?;
-                Ok(out)
-            },
-        )
+        .map_init(MatchWorkspace::default, |workspace, (rendering, valid)| {
+            let mut out = PixelMatches::default();
+            match_rendering(&features, *rendering, *valid, config, workspace, &mut out)?;
+            Ok(out)
+        })
         .collect()
 }
 
 /// Keeps the query pixels whose forward and backward flows agree (see the module comment) and
-/// writes them into `correspondences`. `query_textured` and `forward_cost` have the query's size
+/// writes them into `matches`. `query_textured` and `forward_cost` have the query's size
 /// (the forward flow's), `rendering_participates` the rendering's (the backward flow's).
 pub fn collect_consistent_pairs(
     forward: &FlowField,
@@ -388,9 +390,9 @@ pub fn collect_consistent_pairs(
     rendering_participates: ImageView<'_, bool>,
     forward_cost: ImageView<'_, f32>,
     max_round_trip_error_px: f32,
-    correspondences: &mut Vec<PixelCorrespondence>,
+    matches: &mut Vec<PixelMatch>,
 ) -> Result<(), FlowError> {
-    correspondences.clear();
+    matches.clear();
     let (width, height) = forward.size();
     let (rendering_width_px, rendering_height_px) = backward.size();
     query_textured.check_size("query texture mask", width, height)?;
@@ -429,7 +431,7 @@ pub fn collect_consistent_pairs(
             let error_v = forward_v[pixel] + backward_v[target];
             let round_trip_error_px = error_u.hypot(error_v);
             if round_trip_error_px <= max_round_trip_error_px {
-                correspondences.push(PixelCorrespondence {
+                matches.push(PixelMatch {
                     query_x_px: x as f32,
                     query_y_px: y as f32,
                     rendering_x_px: target_x,
@@ -505,15 +507,15 @@ mod tests {
         width: usize,
         height: usize,
         valid: Option<&[bool]>,
-        config: &DenseCorrespondenceConfig,
-    ) -> DenseCorrespondence {
-        let mut out = DenseCorrespondence::default();
+        config: &MatchConfig,
+    ) -> PixelMatches {
+        let mut out = PixelMatches::default();
         match_query_to_rendering(
             ImageView::new(width, height, query).unwrap(),
             ImageView::new(width, height, rendering).unwrap(),
             valid.map(|valid| ImageView::new(width, height, valid).unwrap()),
             config,
-            &mut DenseCorrespondenceWorkspace::default(),
+            &mut MatchWorkspace::default(),
             &mut out,
         )
         .unwrap();
@@ -524,7 +526,7 @@ mod tests {
     fn identity_pair_gives_zero_flow_and_full_consistency() {
         let (width, height) = (96, 64);
         let image = textured_image(width, height);
-        let mut config = DenseCorrespondenceConfig::default();
+        let mut config = MatchConfig::default();
         config.sift_flow.subpixel = crate::core::sift_flow::SubpixelRefinement::None;
         let out = run_pair(&image, &image, width, height, None, &config);
         for field in [&out.forward, &out.backward] {
@@ -535,11 +537,8 @@ mod tests {
                 .chain(field.v_px().data())
                 .all(|&value| value == 0.0));
         }
-        assert_eq!(out.correspondences.len(), width * height);
-        assert!(out
-            .correspondences
-            .iter()
-            .all(|pair| pair.matching_cost == 0.0));
+        assert_eq!(out.matches.len(), width * height);
+        assert!(out.matches.iter().all(|pair| pair.matching_cost == 0.0));
     }
 
     #[test]
@@ -559,7 +558,7 @@ mod tests {
         };
         let query_crop = crop(0, 0);
         let rendering_crop = crop(-shift_x, -shift_y);
-        let mut integer_config = DenseCorrespondenceConfig::default();
+        let mut integer_config = MatchConfig::default();
         integer_config.sift_flow.subpixel = crate::core::sift_flow::SubpixelRefinement::None;
         let integer = run_pair(
             &query_crop,
@@ -575,7 +574,7 @@ mod tests {
             width,
             height,
             None,
-            &DenseCorrespondenceConfig::default(),
+            &MatchConfig::default(),
         );
         let (integer_u, integer_v) = (integer.forward.u_px(), integer.forward.v_px());
         let (refined_u, refined_v) = (refined.forward.u_px(), refined.forward.v_px());
@@ -631,14 +630,14 @@ mod tests {
             width,
             height,
             Some(&valid),
-            &DenseCorrespondenceConfig::default(),
+            &MatchConfig::default(),
         );
         assert!(
-            out.correspondences.len() > width * height / 2,
+            out.matches.len() > width * height / 2,
             "{} pairs",
-            out.correspondences.len()
+            out.matches.len()
         );
-        for pair in &out.correspondences {
+        for pair in &out.matches {
             let (x, y) = (
                 pair.rendering_x_px.round() as usize,
                 pair.rendering_y_px.round() as usize,
@@ -652,14 +651,14 @@ mod tests {
         }
         // Away from the occluder and the borders the pairs are right.
         let good = out
-            .correspondences
+            .matches
             .iter()
             .filter(|pair| (pair.rendering_x_px - pair.query_x_px - shift_x as f32).abs() < 0.5)
             .count();
         assert!(
-            good as f64 > 0.95 * out.correspondences.len() as f64,
+            good as f64 > 0.95 * out.matches.len() as f64,
             "{good} of {}",
-            out.correspondences.len()
+            out.matches.len()
         );
     }
 
@@ -681,14 +680,7 @@ mod tests {
                 sample(&image, width, height, x + u, y + v)
             })
             .collect();
-        let out = run_pair(
-            &query,
-            &image,
-            width,
-            height,
-            None,
-            &DenseCorrespondenceConfig::default(),
-        );
+        let out = run_pair(&query, &image, width, height, None, &MatchConfig::default());
         let truth = FlowField::new(
             Image::from_fn(width, height, |x, y| flow_at(x as f32, y as f32).0),
             Image::from_fn(width, height, |x, y| flow_at(x as f32, y as f32).1),
@@ -776,7 +768,7 @@ mod tests {
     }
 
     #[test]
-    fn untextured_query_pixels_give_no_correspondences() {
+    fn untextured_query_pixels_give_no_matches() {
         let (width, height) = (96, 64);
         let mut query = textured_image(width, height);
         // A flat block, far wider than a descriptor's support.
@@ -792,10 +784,10 @@ mod tests {
             width,
             height,
             None,
-            &DenseCorrespondenceConfig::default(),
+            &MatchConfig::default(),
         );
-        assert!(!out.correspondences.is_empty());
-        for pair in &out.correspondences {
+        assert!(!out.matches.is_empty());
+        for pair in &out.matches {
             let inside_flat_core =
                 (30.0..66.0).contains(&pair.query_x_px) && (20.0..44.0).contains(&pair.query_y_px);
             assert!(!inside_flat_core, "{pair:?}");
@@ -813,7 +805,7 @@ mod tests {
         };
         let query = crop(4);
         let renderings: Vec<Vec<f32>> = (0..3).map(|shift| crop(2 * shift)).collect();
-        let config = DenseCorrespondenceConfig {
+        let config = MatchConfig {
             sift_flow: SiftFlowConfig::fast(),
             ..Default::default()
         };
@@ -831,15 +823,15 @@ mod tests {
             let single = run_pair(&query, rendering, width, height, None, &config);
             assert_eq!(single.forward, from_frame.forward);
             assert_eq!(single.backward, from_frame.backward);
-            assert_eq!(single.correspondences, from_frame.correspondences);
-            assert!(!single.correspondences.is_empty());
+            assert_eq!(single.matches, from_frame.matches);
+            assert!(!single.matches.is_empty());
         }
     }
 
     #[test]
     fn reused_workspace_gives_the_same_results_as_a_fresh_one() {
-        let config = DenseCorrespondenceConfig::default();
-        let mut shared_workspace = DenseCorrespondenceWorkspace::default();
+        let config = MatchConfig::default();
+        let mut shared_workspace = MatchWorkspace::default();
         for (width, height, shift) in [(120, 90, 3usize), (64, 48, 1), (120, 90, 2)] {
             let image = textured_image(width + 4, height);
             let crop = |start: usize| -> Vec<f32> {
@@ -849,7 +841,7 @@ mod tests {
             };
             let (query, rendering) = (crop(shift), crop(0));
             let grey = |pixels| ImageView::new(width, height, pixels).unwrap();
-            let mut reused = DenseCorrespondence::default();
+            let mut reused = PixelMatches::default();
             match_query_to_rendering(
                 grey(&query),
                 grey(&rendering),
@@ -862,10 +854,7 @@ mod tests {
             let fresh = run_pair(&query, &rendering, width, height, None, &config);
             assert_eq!(reused.forward, fresh.forward, "{width}x{height}");
             assert_eq!(reused.backward, fresh.backward, "{width}x{height}");
-            assert_eq!(
-                reused.correspondences, fresh.correspondences,
-                "{width}x{height}"
-            );
+            assert_eq!(reused.matches, fresh.matches, "{width}x{height}");
         }
     }
 
@@ -962,14 +951,14 @@ mod tests {
         let (width, height) = (16, 16);
         let image = textured_image(width, height);
         let grey = ImageView::new(width, height, &image).unwrap();
-        let mut out = DenseCorrespondence::default();
-        let mut workspace = DenseCorrespondenceWorkspace::default();
+        let mut out = PixelMatches::default();
+        let mut workspace = MatchWorkspace::default();
         let small_mask = Image::filled(3, 1, true);
         let error = match_query_to_rendering(
             grey,
             grey,
             Some(small_mask.view()),
-            &DenseCorrespondenceConfig::default(),
+            &MatchConfig::default(),
             &mut workspace,
             &mut out,
         );
@@ -980,7 +969,7 @@ mod tests {
                 ..
             }))
         ));
-        let config = DenseCorrespondenceConfig {
+        let config = MatchConfig {
             max_round_trip_error_px: -1.0,
             ..Default::default()
         };

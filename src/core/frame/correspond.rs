@@ -8,9 +8,7 @@ use nalgebra::{Vector2, Vector3};
 use super::{CoarseView, RegistrationConfig, RegistrationError, ViewCorrespondences};
 use crate::core::camera::Camera;
 use crate::core::dense_sift::DenseSiftWorkspace;
-use crate::core::flow_consistency::{
-    match_rendering, DenseCorrespondence, DenseCorrespondenceWorkspace, QueryFeatures,
-};
+use crate::core::flow_consistency::{match_rendering, MatchWorkspace, PixelMatches, QueryFeatures};
 use crate::core::image::{ImageError, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::raster::NO_FACE;
@@ -91,8 +89,8 @@ impl CoarseView {
 /// Buffers the flow step reuses from view to view.
 #[derive(Debug, Default)]
 pub struct CorrespondWorkspace {
-    matching: DenseCorrespondenceWorkspace,
-    matches: DenseCorrespondence,
+    matching: MatchWorkspace,
+    matches: PixelMatches,
 }
 
 /// The query's features for matching (dense SIFT and pyramid), once per frame.
@@ -100,12 +98,8 @@ pub fn query_features(
     query: ImageView<'_, f32>,
     config: &RegistrationConfig,
 ) -> Result<QueryFeatures, RegistrationError> {
-    QueryFeatures::compute(
-        query,
-        &config.correspondence,
-        &mut DenseSiftWorkspace::default(),
-    )
-    .map_err(|e| RegistrationError::Flow(e.to_string()))
+    QueryFeatures::compute(query, &config.matching, &mut DenseSiftWorkspace::default())
+        .map_err(|e| RegistrationError::Flow(e.to_string()))
 }
 
 /// Steps "match" and "lift" of one view: its 2D–3D correspondences.
@@ -124,7 +118,7 @@ pub fn correspond_view(
         query,
         view.asg,
         None,
-        &config.correspondence,
+        &config.matching,
         &mut workspace.matching,
         &mut workspace.matches,
     )
@@ -138,7 +132,7 @@ pub fn lift_matches(
     mesh: &Mesh,
     camera: &Camera,
     view: &ViewRef<'_>,
-    dense: &DenseCorrespondence,
+    dense: &PixelMatches,
 ) -> ViewCorrespondences {
     let (width, height) = view.asg.size();
     let (face_index, depth_m) = (view.face_index.data(), view.depth_m.data());
@@ -148,7 +142,7 @@ pub fn lift_matches(
         coarse_cam_from_world: view.cam_from_world,
         ..ViewCorrespondences::default()
     };
-    for pair in &dense.correspondences {
+    for pair in &dense.matches {
         let col = pair.rendering_x_px.round();
         let row = pair.rendering_y_px.round();
         if col < 0.0 || row < 0.0 || col >= width as f32 || row >= height as f32 {

@@ -1,4 +1,4 @@
-//! SIFT flow: dense correspondence between two dense SIFT images by coarse-to-fine, dual-layer loopy
+//! SIFT flow: dense matching of two dense SIFT images by coarse-to-fine, dual-layer loopy
 //! belief propagation (Liu, Yuen, Torralba, "SIFT Flow: Dense Correspondence across Scenes and its
 //! Applications", TPAMI 2011, §3.2–3.3), following Ce Liu's reference (`BPFlow`, `SIFTflowc2f`).
 //!
@@ -43,7 +43,7 @@ use pyramid::{build_mask_pyramid, level_mask, upsample_flow};
 use crate::core::dense_sift::{DenseSiftImage, DESCRIPTOR_LEN};
 use crate::core::image::{Image, ImageError, ImageView};
 
-/// Errors of dense correspondence (dense SIFT, SIFT flow, consistency).
+/// Errors of dense matching (dense SIFT, SIFT flow, consistency).
 #[derive(Debug, thiserror::Error)]
 pub enum FlowError {
     #[error("invalid configuration: {field}: {reason}")]
@@ -469,7 +469,7 @@ mod tests {
     }
 }
 
-/// Helpers shared by the tests of the dense-correspondence modules.
+/// Helpers shared by the tests of the dense-matching modules.
 #[cfg(test)]
 pub(crate) mod test_support {
     use super::*;
