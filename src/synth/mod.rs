@@ -25,6 +25,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::{Camera, PinholeIntrinsics};
+use crate::core::image::Image;
 use crate::core::mesh::{Mesh, MeshError};
 use crate::core::rigid::Rigid3;
 use crate::io::colmap::{self, ImagePose};
@@ -601,15 +602,16 @@ fn write_colmap(
     Ok(())
 }
 
-fn write_jpeg(path: &Path, photo: &photo::Photo, quality: u8) -> Result<(), SynthError> {
+/// Writes an 8-bit sRGB photo as a JPEG.
+fn write_jpeg(path: &Path, photo: &Image<[u8; 3]>, quality: u8) -> Result<(), SynthError> {
     let file = std::fs::File::create(path).map_err(io_error(path))?;
     let mut writer = std::io::BufWriter::new(file);
     let mut encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut writer, quality);
     encoder
         .encode(
-            &photo.rgb,
-            photo.width_px as u32,
-            photo.height_px as u32,
+            photo.data().as_flattened(),
+            photo.width_px() as u32,
+            photo.height_px() as u32,
             image::ExtendedColorType::Rgb8,
         )
         .map_err(|e| SynthError::Encode {
@@ -840,7 +842,7 @@ mod tests {
         let mut jpeg = Vec::new();
         image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, config.jpeg_quality)
             .encode(
-                &photo.rgb,
+                photo.data().as_flattened(),
                 w as u32,
                 h as u32,
                 image::ExtendedColorType::Rgb8,

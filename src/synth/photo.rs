@@ -49,22 +49,13 @@ pub struct DepthParams {
     pub untextured_std_dn: f32,
 }
 
-/// A rendered photo: 8-bit sRGB, row-major RGB.
-#[derive(Clone, Debug)]
-pub struct Photo {
-    pub width_px: usize,
-    pub height_px: usize,
-    pub rgb: Vec<u8>,
-}
-
-impl Photo {
-    /// Luma (Rec. 601) in `[0, 255]`.
-    pub fn luma(&self) -> Vec<f32> {
-        self.rgb
-            .chunks_exact(3)
-            .map(|c| 0.299 * f32::from(c[0]) + 0.587 * f32::from(c[1]) + 0.114 * f32::from(c[2]))
-            .collect()
-    }
+/// Luma (Rec. 601) in `[0, 255]` of a rendered photo (8-bit sRGB).
+fn luma(photo: &Image<[u8; 3]>) -> Vec<f32> {
+    photo
+        .data()
+        .iter()
+        .map(|c| 0.299 * f32::from(c[0]) + 0.587 * f32::from(c[1]) + 0.114 * f32::from(c[2]))
+        .collect()
 }
 
 struct ShadowMap {
@@ -226,7 +217,7 @@ impl<'a> PhotoRenderer<'a> {
         &self.depth_buffers
     }
 
-    /// Renders one photo. `image_seed` varies noise and exposure between photos.
+    /// Renders one photo, 8-bit sRGB. `image_seed` varies noise and exposure between photos.
     pub fn render_photo(
         &mut self,
         intrinsics: &PinholeIntrinsics,
@@ -234,7 +225,7 @@ impl<'a> PhotoRenderer<'a> {
         height_px: usize,
         cam_from_world: &Rigid3,
         image_seed: u64,
-    ) -> Photo {
+    ) -> Image<[u8; 3]> {
         let ss = self.params.supersampling.max(1) as usize;
         let (sw, sh) = (width_px * ss, height_px * ss);
         let ss_intrinsics = intrinsics.scaled(ss as f64);
@@ -387,8 +378,9 @@ impl<'a> PhotoRenderer<'a> {
 
         let blurred = gaussian_blur_rgb(&image, width_px, height_px, self.params.blur_sigma_px);
         let noise_sigma = self.params.noise_sigma_dn;
-        let mut rgb = vec![0u8; width_px * height_px * 3];
-        rgb.par_chunks_mut(width_px * 3)
+        let mut rgb = Image::filled(width_px, height_px, [0u8; 3]);
+        rgb.data_mut()
+            .par_chunks_mut(width_px)
             .enumerate()
             .for_each(|(row, line)| {
                 for col in 0..width_px {
@@ -400,15 +392,11 @@ impl<'a> PhotoRenderer<'a> {
                             image_seed ^ ((row * width_px + col) as u64 * 3 + channel as u64),
                         );
                         let noisy = v + sigma * gaussian_from_hash(key);
-                        line[col * 3 + channel] = noisy.round().clamp(0.0, 255.0) as u8;
+                        line[col][channel] = noisy.round().clamp(0.0, 255.0) as u8;
                     }
                 }
             });
-        Photo {
-            width_px,
-            height_px,
-            rgb,
-        }
+        rgb
     }
 
     /// The MVS-like depth map of a photo: true depth incl. clutter with multiplicative noise,
@@ -416,14 +404,14 @@ impl<'a> PhotoRenderer<'a> {
     pub fn depth_map(
         &mut self,
         intrinsics: &PinholeIntrinsics,
-        photo: &Photo,
+        photo: &Image<[u8; 3]>,
         cam_from_world: &Rigid3,
         params: &DepthParams,
         image_seed: u64,
     ) -> Image<f32> {
-        let (w, h) = (photo.width_px, photo.height_px);
+        let (w, h) = photo.size();
         self.render_visibility(intrinsics, w, h, cam_from_world);
-        let luma = photo.luma();
+        let luma = luma(photo);
         let local_std = local_std_dev(&luma, w, h, 2);
         // Blob holes: threshold a smooth noise field so that about `hole_fraction` is removed.
         let blob_threshold = hole_threshold(params.hole_fraction);
