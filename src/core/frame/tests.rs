@@ -191,3 +191,20 @@ fn bad_inputs_are_reported_not_panicked() {
         Err(RegistrationError::PhotoSize { .. })
     ));
 }
+
+#[test]
+fn the_matching_settings_are_read_under_their_name() {
+    let config: RegistrationConfig = toml::from_str(
+        "coarse_pose_count = 5\n[matching]\nmin_support_gradient = 0.004\n[matching.sift_flow]\nbp_bands = 1\n",
+    )
+    .unwrap();
+    assert_eq!(config.coarse_pose_count, 5);
+    assert_eq!(config.matching.min_support_gradient, 0.004);
+    assert_eq!(config.matching.sift_flow.bp_bands, 1);
+    assert!(config.validate().is_ok());
+    // The old name of the section is an unknown field, not silently ignored.
+    let error =
+        toml::from_str::<RegistrationConfig>("[correspondence]\nmin_support_gradient = 0.004\n")
+            .unwrap_err();
+    assert!(error.to_string().contains("correspondence"), "{error}");
+}
