@@ -1,4 +1,4 @@
-//! Benchmarks of dense correspondence (dense SIFT and SIFT flow, Liu, Yuen, Torralba, TPAMI 2011)
+//! Benchmarks of dense matching (dense SIFT and SIFT flow, Liu, Yuen, Torralba, TPAMI 2011)
 //! on the real pairs: 505×275 from `tests/data/flow-pairs` (always there) and 1010×550 from the
 //! shared data set (`../shared/data/flow-pairs`; the report says when it is absent and not measured):
 //! per pair at 505×275 and 1010×550 on one and two threads, a frame's worth of flows (30 pairs),
@@ -15,9 +15,9 @@ use asgreg::core::dense_sift::{
     compute_dense_sift, DenseSiftConfig, DenseSiftImage, DenseSiftWorkspace,
 };
 use asgreg::core::flow_consistency::{
-    match_query_to_renderings, match_sift_images, DenseCorrespondence, DenseCorrespondenceConfig,
-    DenseCorrespondenceWorkspace, GreyImage,
+    match_query_to_renderings, match_sift_images, MatchConfig, MatchWorkspace, PixelMatches,
 };
+use asgreg::core::image::{Image, ImageView};
 use asgreg::core::sift_flow::{
     compute_sift_flow, compute_sift_flow_on_pyramids, descriptor_l1_distance, FlowField, L1Kernel,
     SiftFlowConfig, SiftFlowWorkspace, SiftPyramid, SubpixelRefinement,
@@ -27,53 +27,48 @@ use rayon::prelude::*;
 
 struct Pair {
     name: &'static str,
-    width: usize,
-    height: usize,
-    first: Vec<f32>,
-    second: Vec<f32>,
+    first: Image<f32>,
+    second: Image<f32>,
     truth: FlowField,
 }
 
-fn load_grey(path: &Path) -> Option<(usize, usize, Vec<f32>)> {
+fn load_grey(path: &Path) -> Option<Image<f32>> {
     let image = image::open(path).ok()?.to_luma8();
     let (width, height) = image.dimensions();
-    Some((
+    Image::new(
         width as usize,
         height as usize,
         image
             .pixels()
             .map(|pixel| pixel.0[0] as f32 / 255.0)
             .collect(),
-    ))
+    )
+    .ok()
 }
 
 fn load_pair((name, folder): (&'static str, &str)) -> Option<Pair> {
     let directory = Path::new(env!("CARGO_MANIFEST_DIR")).join(folder);
-    let Some((width, height, first)) = load_grey(&directory.join(format!("{name}_im1.png"))) else {
+    let Some(first) = load_grey(&directory.join(format!("{name}_im1.png"))) else {
         eprintln!(
             "pair {name} not measured: it is not in {}",
             directory.display()
         );
         return None;
     };
-    let (_, _, second) = load_grey(&directory.join(format!("{name}_im2.png")))?;
+    let second = load_grey(&directory.join(format!("{name}_im2.png")))?;
     let truth = asgreg::io::flo::read_flo(&directory.join(format!("{name}_gt.flo"))).ok()?;
     Some(Pair {
         name,
-        width,
-        height,
         first,
         second,
         truth,
     })
 }
 
-fn sift(image: &[f32], width: usize, height: usize) -> DenseSiftImage {
+fn sift(image: ImageView<'_, f32>) -> DenseSiftImage {
     let mut out = DenseSiftImage::default();
     compute_dense_sift(
         image,
-        width,
-        height,
         &DenseSiftConfig::default(),
         &mut DenseSiftWorkspace::default(),
         &mut out,
@@ -89,7 +84,7 @@ fn flow(
     workspace: &mut SiftFlowWorkspace,
 ) -> FlowField {
     let mut field = FlowField::default();
-    let mut cost = Vec::new();
+    let mut cost = Image::default();
     compute_sift_flow(
         first, None, second, None, config, workspace, &mut field, &mut cost,
     )
@@ -107,11 +102,13 @@ fn pool(threads: usize) -> rayon::ThreadPool {
 /// EPE and fraction under 1 px over pixels at least 20 px from the border.
 fn score(field: &FlowField, truth: &FlowField) -> (f64, f64) {
     let (mut sum, mut under, mut count) = (0.0, 0usize, 0usize);
-    for y in 20..field.height_px - 20 {
-        for x in 20..field.width_px - 20 {
-            let pixel = y * field.width_px + x;
-            let error = ((field.u_px[pixel] - truth.u_px[pixel]) as f64)
-                .hypot((field.v_px[pixel] - truth.v_px[pixel]) as f64);
+    let (u, v) = (field.u_px().data(), field.v_px().data());
+    let (true_u, true_v) = (truth.u_px().data(), truth.v_px().data());
+    for y in 20..field.height_px() - 20 {
+        for x in 20..field.width_px() - 20 {
+            let pixel = y * field.width_px() + x;
+            let error =
+                ((u[pixel] - true_u[pixel]) as f64).hypot((v[pixel] - true_v[pixel]) as f64);
             sum += error;
             under += (error < 1.0) as usize;
             count += 1;
@@ -174,9 +171,7 @@ fn quick_report(pairs: &[Pair]) {
                 let mut out = DenseSiftImage::default();
                 let run = |workspace: &mut DenseSiftWorkspace, out: &mut DenseSiftImage| {
                     compute_dense_sift(
-                        &pair.first,
-                        pair.width,
-                        pair.height,
+                        pair.first.view(),
                         &DenseSiftConfig::default(),
                         workspace,
                         out,
@@ -193,8 +188,8 @@ fn quick_report(pairs: &[Pair]) {
                 );
             });
         }
-        let first = sift(&pair.first, pair.width, pair.height);
-        let second = sift(&pair.second, pair.width, pair.height);
+        let first = sift(pair.first.view());
+        let second = sift(pair.second.view());
         for (preset, config) in &presets {
             for threads in [1, 2] {
                 pool(threads).install(|| {
@@ -280,7 +275,7 @@ fn quick_report(pairs: &[Pair]) {
         // A pair both ways: two independent flows (four pyramids, one after the other) against the
         // pair API (two pyramids, both directions side by side), fast preset.
         for threads in [1, 2] {
-            let config = DenseCorrespondenceConfig {
+            let config = MatchConfig {
                 sift_flow: SiftFlowConfig::fast(),
                 ..Default::default()
             };
@@ -293,8 +288,8 @@ fn quick_report(pairs: &[Pair]) {
                         (forward, backward)
                     })
                 });
-                let mut pair_workspace = DenseCorrespondenceWorkspace::default();
-                let mut out = DenseCorrespondence::default();
+                let mut pair_workspace = MatchWorkspace::default();
+                let mut out = PixelMatches::default();
                 let mut first_pyramid = SiftPyramid::default();
                 first_pyramid.build(&first, &config.sift_flow).expect("pyramid");
                 let (api_cpu, (api_wall, ())) = cpu_time(|| {
@@ -335,25 +330,18 @@ fn quick_report(pairs: &[Pair]) {
         }
     }
     if let Some(pair) = pairs.first() {
-        fn grey<'a>(pair: &Pair, pixels: &'a [f32]) -> GreyImage<'a> {
-            GreyImage {
-                width_px: pair.width,
-                height_px: pair.height,
-                pixels,
-            }
-        }
-        let renderings: Vec<(GreyImage, Option<&[bool]>)> =
-            (0..30).map(|_| (grey(pair, &pair.second), None)).collect();
+        let renderings: Vec<(ImageView<f32>, Option<ImageView<bool>>)> =
+            (0..30).map(|_| (pair.second.view(), None)).collect();
         for (preset, sift_flow) in presets
             .iter()
             .filter(|(preset, _)| preset.starts_with("fast"))
         {
-            let config = DenseCorrespondenceConfig {
+            let config = MatchConfig {
                 sift_flow: sift_flow.clone(),
                 ..Default::default()
             };
-            let first = sift(&pair.first, pair.width, pair.height);
-            let second = sift(&pair.second, pair.width, pair.height);
+            let first = sift(pair.first.view());
+            let second = sift(pair.second.view());
             let mut first_pyramid = SiftPyramid::default();
             let mut second_pyramid = SiftPyramid::default();
             first_pyramid.build(&first, sift_flow).expect("pyramid");
@@ -366,7 +354,7 @@ fn quick_report(pairs: &[Pair]) {
                                 .into_par_iter()
                                 .map_init(SiftFlowWorkspace::default, |workspace, _| {
                                     let mut field = FlowField::default();
-                                    let mut cost = Vec::new();
+                                    let mut cost = Image::default();
                                     compute_sift_flow_on_pyramids(
                                         (&first, &first_pyramid, None),
                                         (&second, &second_pyramid, None),
@@ -391,17 +379,17 @@ fn quick_report(pairs: &[Pair]) {
             let (cpu, (wall, results)) = cpu_time(|| {
                 time(|| {
                     pool(2).install(|| {
-                        match_query_to_renderings(grey(pair, &pair.first), &renderings, &config)
+                        match_query_to_renderings(pair.first.view(), &renderings, &config)
                             .expect("frame")
                     })
                 })
             });
             println!(
-                "{} frame, {preset}: 30 pairs both ways + dense SIFT + consistency, 2 threads: {:.0} ms wall, {:.0} ms CPU, {} correspondences per pair",
+                "{} frame, {preset}: 30 pairs both ways + dense SIFT + consistency, 2 threads: {:.0} ms wall, {:.0} ms CPU, {} matches per pair",
                 pair.name,
                 wall.as_secs_f64() * 1000.0,
                 cpu.as_secs_f64() * 1000.0,
-                results.first().map_or(0, |result| result.correspondences.len())
+                results.first().map_or(0, |result| result.matches.len())
             );
         }
     }
@@ -423,9 +411,7 @@ fn criterion_benches(criterion: &mut Criterion, pairs: &[Pair]) {
                     bench.iter(|| {
                         thread_pool.install(|| {
                             compute_dense_sift(
-                                &pair.first,
-                                pair.width,
-                                pair.height,
+                                pair.first.view(),
                                 &DenseSiftConfig::default(),
                                 &mut workspace,
                                 &mut out,
@@ -443,8 +429,8 @@ fn criterion_benches(criterion: &mut Criterion, pairs: &[Pair]) {
         .sample_size(10)
         .measurement_time(Duration::from_secs(10));
     for pair in pairs {
-        let first = sift(&pair.first, pair.width, pair.height);
-        let second = sift(&pair.second, pair.width, pair.height);
+        let first = sift(pair.first.view());
+        let second = sift(pair.second.view());
         let variants = [
             ("default", SiftFlowConfig::default()),
             (
@@ -474,8 +460,8 @@ fn criterion_benches(criterion: &mut Criterion, pairs: &[Pair]) {
     group.finish();
 
     if let Some(pair) = pairs.first() {
-        let first = sift(&pair.first, pair.width, pair.height);
-        let second = sift(&pair.second, pair.width, pair.height);
+        let first = sift(pair.first.view());
+        let second = sift(pair.second.view());
         let mut group = criterion.benchmark_group("frame");
         group
             .sample_size(10)
@@ -514,8 +500,8 @@ fn main() {
     );
     if std::env::var_os("FLOW_BENCH_ITERATIONS").is_some() {
         for pair in &pairs {
-            let first = sift(&pair.first, pair.width, pair.height);
-            let second = sift(&pair.second, pair.width, pair.height);
+            let first = sift(pair.first.view());
+            let second = sift(pair.second.view());
             let mut workspace = SiftFlowWorkspace::default();
             pool(1).install(|| {
                 for (iterations, top_iterations, max_multigrid_depth, multigrid_iterations) in [(4, 20, 8, 4), (4, 10, 8, 4), (4, 20, 2, 4), (4, 20, 1, 4), (4, 12, 2, 4), (8, 20, 1, 4), (8, 12, 0, 4)] {
@@ -531,13 +517,13 @@ fn main() {
     if std::env::var_os("FLOW_BENCH_PROFILE").is_some() {
         // One pair, three flows on one thread: a target for `perf record`.
         if let Some(pair) = pairs.first() {
-            let first = sift(&pair.first, pair.width, pair.height);
-            let second = sift(&pair.second, pair.width, pair.height);
+            let first = sift(pair.first.view());
+            let second = sift(pair.second.view());
             let mut workspace = SiftFlowWorkspace::default();
             pool(1).install(|| {
                 for _ in 0..3 {
                     let mut field = FlowField::default();
-                    let mut cost = Vec::new();
+                    let mut cost = Image::default();
                     let timings = compute_sift_flow(
                         &first,
                         None,

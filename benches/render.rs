@@ -11,6 +11,7 @@
 use std::time::Instant;
 
 use asgreg::core::camera::PinholeIntrinsics;
+use asgreg::core::image::Image;
 use asgreg::core::mesh::Mesh;
 use asgreg::core::raster::{Rasterizer, RenderBuffers, RenderOptions};
 use asgreg::core::rigid::Rigid3;
@@ -99,10 +100,8 @@ fn oblique_pose() -> Rigid3 {
 struct Frame {
     rasterizer: Rasterizer,
     buffers: RenderBuffers,
-    asg: Vec<f32>,
+    asg: Image<f32>,
     intrinsics: PinholeIntrinsics,
-    width_px: usize,
-    height_px: usize,
 }
 
 impl Frame {
@@ -112,10 +111,8 @@ impl Frame {
         Self {
             rasterizer: Rasterizer::new(),
             buffers: RenderBuffers::new(width_px, height_px),
-            asg: vec![0.0; width_px * height_px],
+            asg: Image::filled(width_px, height_px, 0.0),
             intrinsics: PinholeIntrinsics::centered(focal_px, width_px as u32, height_px as u32),
-            width_px,
-            height_px,
         }
     }
 
@@ -131,9 +128,7 @@ impl Frame {
 
     fn asg(&mut self) {
         asg_from_normals(
-            &self.buffers.normal_cam,
-            self.width_px,
-            self.height_px,
+            self.buffers.normal_cam().view(),
             &AsgOptions::default(),
             &mut self.asg,
         );

@@ -8,10 +8,10 @@ use std::path::PathBuf;
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
-use crate::core::flow_consistency::GreyImage;
 use crate::core::frame::{
     register_frame, FrameInput, IntrinsicsMode, RegistrationConfig, StageTimings,
 };
+use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::core::rigid::Rigid3;
 use crate::frame_files::{frame_seed, load_frame_files};
@@ -111,16 +111,8 @@ pub fn register_batch_frame(
         Err(error) => return FrameReport::failed(frame, error.to_string()),
     };
     let input = FrameInput {
-        photo: GreyImage {
-            width_px: files.photo.width_px,
-            height_px: files.photo.height_px,
-            pixels: &files.photo.pixels,
-        },
-        depth_m: files.depth.as_ref().map(|d| GreyImage {
-            width_px: d.width_px,
-            height_px: d.height_px,
-            pixels: &d.depth_m,
-        }),
+        photo: files.photo.view(),
+        depth_m: files.depth_m.as_ref().map(Image::view),
         camera: &frame.camera,
         intrinsics: frame.intrinsics,
         initial_cam_from_world: frame.initial_cam_from_world,

@@ -26,9 +26,9 @@ use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STE
 use crate::core::frame::{
     correspond_view, decide_frame, lift_pixel, query_features, query_gradient, render_coarse_view,
     render_views, solve_view, CoarseOutcome, CoarseView, CorrespondWorkspace, FrameInput,
-    IntrinsicsMode, QueryGradient, RegistrationConfig, RegistrationError, ViewCorrespondences,
-    ViewRef,
+    IntrinsicsMode, RegistrationConfig, RegistrationError, ViewCorrespondences, ViewRef,
 };
+use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::raster::{Rasterizer, RenderBuffers};
 use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
@@ -116,7 +116,7 @@ pub fn diagnose_frame(
         input.camera,
         input.intrinsics,
         &input.initial_cam_from_world,
-        &query,
+        query.view(),
         truth,
         config,
         input.seed,
@@ -131,7 +131,7 @@ pub fn diagnose_query(
     camera: &Camera,
     intrinsics: IntrinsicsMode,
     initial_cam_from_world: &Rigid3,
-    query: &QueryGradient,
+    query: ImageView<'_, f32>,
     truth: &Rigid3,
     config: &RegistrationConfig,
     seed: u64,
@@ -158,7 +158,7 @@ pub fn diagnose_query(
         &mut rasterizer,
         &mut truth_view,
     );
-    let features = query_features(query.as_grey(), config)?;
+    let features = query_features(query, config)?;
     let mut workspace = CorrespondWorkspace::default();
     let mut reprojection = ReprojectionWorkspace::new();
     let mut delta = |cam: &Camera, pose: &Rigid3| {
@@ -171,13 +171,13 @@ pub fn diagnose_query(
             mesh,
             camera,
             &features,
-            &view.as_ref(),
+            &view.as_ref()?,
             config,
             &mut workspace,
         )?;
         let outcome = solve_view(&correspondences, camera, intrinsics, config, seed);
         let errors =
-            correspondence_errors(mesh, camera, truth, &truth_view, view, &correspondences);
+            correspondence_errors(mesh, camera, truth, &truth_view, view, &correspondences)?;
         let oracle = ViewCorrespondences {
             image_points_px: pick(&correspondences.image_points_px, &errors.within_oracle),
             world_points_m: pick(&correspondences.world_points_m, &errors.within_oracle),
@@ -238,9 +238,10 @@ fn correspondence_errors(
     truth_view: &CoarseView,
     view: &CoarseView,
     correspondences: &ViewCorrespondences,
-) -> CorrespondenceErrors {
+) -> Result<CorrespondenceErrors, RegistrationError> {
     let mut out = CorrespondenceErrors::default();
-    let truth_ref: ViewRef = truth_view.as_ref();
+    let view_ref = view.as_ref()?;
+    let truth_ref: ViewRef = truth_view.as_ref()?;
     let world_from_truth = truth.inverse();
     let project = |pose: &Rigid3, point: &Vector3<f64>| {
         camera.intrinsics.project(&pose.transform_point(point))
@@ -263,7 +264,7 @@ fn correspondence_errors(
         let Some(matched_px) = project(&view.cam_from_world, point_world) else {
             continue;
         };
-        if is_near_depth_edge(&view.as_ref(), matched_px, 1) {
+        if is_near_depth_edge(&view_ref, matched_px, 1) {
             out.near_edge_px.push(error_px);
         } else {
             out.away_from_edge_px.push(error_px);
@@ -274,7 +275,7 @@ fn correspondence_errors(
             }
         }
     }
-    out
+    Ok(out)
 }
 
 fn pick<T: Copy>(values: &[T], keep: &[bool]) -> Vec<T> {
@@ -304,7 +305,7 @@ fn sees_unoccluded(
     let Some((col, row)) = nearest_pixel(render, pixel_px) else {
         return false;
     };
-    let rendered_m = f64::from(render.depth_m[row * render.width_px() + col]);
+    let rendered_m = f64::from(render.depth_m().data()[row * render.width_px() + col]);
     let depth_m = cam_from_world.transform_point(point_world).z;
     rendered_m > 0.0
         && (depth_m - rendered_m).abs() <= f64::from(DEPTH_EDGE_RELATIVE_STEP) * depth_m
@@ -392,8 +393,8 @@ mod tests {
 
     use super::*;
     use crate::core::camera::PinholeIntrinsics;
-    use crate::core::flow_consistency::GreyImage;
     use crate::core::frame::{register_frame, register_query, QueryMode};
+    use crate::core::image::Image;
     use crate::synth::geometry::build_house;
 
     fn house_and_poses() -> (Mesh, Camera, Rigid3, Rigid3) {
@@ -444,14 +445,19 @@ mod tests {
     fn ideal_query_has_a_small_error_budget_and_the_registrations_verdict() {
         let (mesh, camera, truth, initial) = house_and_poses();
         let config = RegistrationConfig::default();
-        let query = QueryGradient {
-            width_px: 505,
-            height_px: 275,
-            pixels: truth_view(&mesh, &camera, &truth, &config).asg,
-        };
+        let query = truth_view(&mesh, &camera, &truth, &config).asg;
         let known = IntrinsicsMode::Known;
-        let diagnosis =
-            diagnose_query(&mesh, &camera, known, &initial, &query, &truth, &config, 7).unwrap();
+        let diagnosis = diagnose_query(
+            &mesh,
+            &camera,
+            known,
+            &initial,
+            query.view(),
+            &truth,
+            &config,
+            7,
+        )
+        .unwrap();
         let summary = DiagnosisSummary::of(std::slice::from_ref(&diagnosis));
         println!("{summary:#?}");
         assert!(diagnosis.verdict.accepted(), "{:?}", diagnosis.verdict);
@@ -467,7 +473,7 @@ mod tests {
         assert!(diagnosis.chosen_delta_px.unwrap() < 1.5, "{summary:?}");
         assert!(diagnosis.best_delta_px.unwrap() <= diagnosis.chosen_delta_px.unwrap());
         let registered =
-            register_query(&mesh, &camera, known, &initial, &query, &config, 7).unwrap();
+            register_query(&mesh, &camera, known, &initial, query.view(), &config, 7).unwrap();
         assert_eq!(registered.verdict, diagnosis.verdict);
     }
 
@@ -482,16 +488,12 @@ mod tests {
             query_mode: QueryMode::DepthAsg,
             ..RegistrationConfig::default()
         };
-        let depth = truth_view(&mesh, &camera, &truth, &config).render.depth_m;
-        let photo = vec![0.5f32; depth.len()];
-        let grey = |pixels| GreyImage {
-            width_px: 505,
-            height_px: 275,
-            pixels,
-        };
+        let view = truth_view(&mesh, &camera, &truth, &config);
+        let depth = view.render.depth_m();
+        let photo = Image::filled(505, 275, 0.5f32);
         let input = FrameInput {
-            photo: grey(&photo),
-            depth_m: Some(grey(&depth)),
+            photo: photo.view(),
+            depth_m: Some(depth.view()),
             camera: &camera,
             intrinsics: IntrinsicsMode::Known,
             initial_cam_from_world: initial,

@@ -5,8 +5,9 @@
 use std::path::{Path, PathBuf};
 
 use crate::core::camera::Camera;
-use crate::io::images::{check_image_matches_camera, load_gray, GrayImage, ImageIoError};
-use crate::io::pfm::{read_pfm, DepthImage, PfmError};
+use crate::core::image::Image;
+use crate::io::images::{check_image_matches_camera, load_gray, ImageIoError};
+use crate::io::pfm::{read_pfm, PfmError};
 
 /// Why a frame's files cannot be used.
 #[derive(Debug, thiserror::Error)]
@@ -25,10 +26,12 @@ pub enum FrameFilesError {
     },
 }
 
-/// A frame's photo (grey, 0..1) and, when asked for, its depth map of the same size.
+/// A frame's photo and, when asked for, its depth map of the same size.
 pub struct FrameFiles {
-    pub photo: GrayImage,
-    pub depth: Option<DepthImage>,
+    /// Grey, 0..1.
+    pub photo: Image<f32>,
+    /// Metres along the optical axis, holes 0 (`io::pfm`).
+    pub depth_m: Option<Image<f32>>,
 }
 
 /// Reads the photo at `image_path` (it must have `camera`'s size) and the depth map at
@@ -42,28 +45,28 @@ pub fn load_frame_files(
     let photo = load_gray(image_path)?;
     check_image_matches_camera(
         image_path,
-        photo.width_px,
-        photo.height_px,
+        photo.width_px(),
+        photo.height_px(),
         camera_id,
         camera,
     )?;
-    let depth = match depth_path {
+    let depth_m = match depth_path {
         Some(path) => {
             let depth = read_pfm(path)?;
-            if depth.width_px != photo.width_px || depth.height_px != photo.height_px {
+            if depth.size() != photo.size() {
                 return Err(FrameFilesError::DepthSize {
                     path: path.to_path_buf(),
-                    depth_width_px: depth.width_px,
-                    depth_height_px: depth.height_px,
-                    photo_width_px: photo.width_px,
-                    photo_height_px: photo.height_px,
+                    depth_width_px: depth.width_px(),
+                    depth_height_px: depth.height_px(),
+                    photo_width_px: photo.width_px(),
+                    photo_height_px: photo.height_px(),
                 });
             }
             Some(depth)
         }
         None => None,
     };
-    Ok(FrameFiles { photo, depth })
+    Ok(FrameFiles { photo, depth_m })
 }
 
 /// The frame's depth file in `depth_dir`: `<stem of the image name>.pfm`.

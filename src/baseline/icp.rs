@@ -64,10 +64,11 @@ use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::{Camera, CameraError, MIN_DEPTH_M};
+use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
-use crate::io::pfm::DepthImage;
+use crate::io::pfm::{depth_at, valid_depth_count};
 
 /// The paper's success criterion for ICP: δ(P_icp, P_gt) below this many pixels (at 505×275).
 pub const ICP_SUCCESS_THRESHOLD_PX: f64 = 20.0;
@@ -271,9 +272,10 @@ pub struct IcpResult {
 /// Back-projects the valid depths on a grid of pixel centres (every `grid_stride_px` pixels,
 /// starting at `grid_stride_px / 2`) into camera-frame points, metres. The camera is rescaled
 /// to the depth map's size when they differ. Pixels whose ray cannot be computed are skipped.
+/// `depth` is metres along the optical axis, holes 0 (`io::pfm`).
 pub fn back_project_depth(
     camera: &Camera,
-    depth: &DepthImage,
+    depth: &Image<f32>,
     grid_stride_px: usize,
 ) -> Result<Vec<Vector3<f64>>, IcpError> {
     camera.validate()?;
@@ -282,23 +284,19 @@ pub fn back_project_depth(
             "depth_grid_stride_px must be at least 1".into(),
         ));
     }
-    if depth.width_px == 0
-        || depth.height_px == 0
-        || depth.depth_m.len() != depth.width_px * depth.height_px
-        || depth.valid_count() == 0
-    {
+    if depth.is_empty() || valid_depth_count(depth.view()) == 0 {
         return Err(IcpError::EmptyDepth {
-            width_px: depth.width_px,
-            height_px: depth.height_px,
+            width_px: depth.width_px(),
+            height_px: depth.height_px(),
         });
     }
     let (Ok(width_px), Ok(height_px)) = (
-        u32::try_from(depth.width_px),
-        u32::try_from(depth.height_px),
+        u32::try_from(depth.width_px()),
+        u32::try_from(depth.height_px()),
     ) else {
         return Err(IcpError::EmptyDepth {
-            width_px: depth.width_px,
-            height_px: depth.height_px,
+            width_px: depth.width_px(),
+            height_px: depth.height_px(),
         });
     };
     let camera = if (camera.width_px, camera.height_px) == (width_px, height_px) {
@@ -308,9 +306,9 @@ pub fn back_project_depth(
     };
     let start = grid_stride_px / 2;
     let mut points_cam_m = Vec::new();
-    for row in (start..depth.height_px).step_by(grid_stride_px) {
-        for col in (start..depth.width_px).step_by(grid_stride_px) {
-            let Some(depth_m) = depth.depth_at(col, row) else {
+    for row in (start..depth.height_px()).step_by(grid_stride_px) {
+        for col in (start..depth.width_px()).step_by(grid_stride_px) {
+            let Some(depth_m) = depth_at(depth.view(), col, row) else {
                 continue;
             };
             let pixel = Vector2::new(col as f64 + 0.5, row as f64 + 0.5);
@@ -828,7 +826,7 @@ pub fn align_to_model(
 pub fn register_depth_to_mesh(
     mesh: &Mesh,
     camera: &Camera,
-    depth: &DepthImage,
+    depth: &Image<f32>,
     initial_cam_from_world: &Rigid3,
     config: &IcpConfig,
     rng: &mut impl Rng,
@@ -1185,9 +1183,9 @@ mod tests {
                 skew_px: 0.0,
             },
         );
-        let mut depth = DepthImage::new_holes(8, 6);
-        depth.depth_m[3 * 8 + 5] = 2.0; // (col 5, row 3)
-        depth.depth_m[8 + 1] = f32::NAN; // a hole in another notation
+        let mut depth = Image::filled(8, 6, 0.0);
+        *depth.get_mut(5, 3).unwrap() = 2.0;
+        *depth.get_mut(1, 1).unwrap() = f32::NAN; // a hole in another notation
         let points = back_project_depth(&camera, &depth, 1).unwrap();
         assert_eq!(points.len(), 1);
         let expected = Vector3::new((5.5 - 4.0) / 10.0 * 2.0, (3.5 - 3.0) / 12.0 * 2.0, 2.0);
@@ -1195,11 +1193,7 @@ mod tests {
         // Stride 2 samples (1, 1), (3, 1), … (5, 3) included.
         assert_eq!(back_project_depth(&camera, &depth, 2).unwrap().len(), 1);
         // A depth map at half the camera's size uses the rescaled intrinsics.
-        let half = DepthImage {
-            width_px: 4,
-            height_px: 3,
-            depth_m: vec![1.0; 12],
-        };
+        let half = Image::filled(4, 3, 1.0);
         let points = back_project_depth(&camera, &half, 1).unwrap();
         assert_eq!(points.len(), 12);
         assert!(
@@ -1215,7 +1209,7 @@ mod tests {
         let config = IcpConfig::default();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
 
-        let empty = DepthImage::new_holes(200, 120);
+        let empty = Image::filled(200, 120, 0.0);
         assert_eq!(
             register_depth_to_mesh(&mesh, &camera, &empty, &truth, &config, &mut rng),
             Err(IcpError::EmptyDepth {
@@ -1223,9 +1217,9 @@ mod tests {
                 height_px: 120
             })
         );
-        let mut sparse = DepthImage::new_holes(200, 120);
+        let mut sparse = Image::filled(200, 120, 0.0);
         for col in 0..5 {
-            sparse.depth_m[62 * 200 + 2 + col * 4] = 30.0;
+            *sparse.get_mut(2 + col * 4, 62).unwrap() = 30.0;
         }
         assert_eq!(
             register_depth_to_mesh(&mesh, &camera, &sparse, &truth, &config, &mut rng),
@@ -1234,11 +1228,7 @@ mod tests {
                 required: MIN_CORRESPONDENCES
             })
         );
-        let full = DepthImage {
-            width_px: 200,
-            height_px: 120,
-            depth_m: vec![40.0; 200 * 120],
-        };
+        let full = Image::filled(200, 120, 40.0);
         let nan_pose = Rigid3::new(truth.rotation, Vector3::new(f64::NAN, 0.0, 0.0));
         assert_eq!(
             register_depth_to_mesh(&mesh, &camera, &full, &nan_pose, &config, &mut rng),

@@ -6,10 +6,11 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use asgreg::core::image::Image;
 use asgreg::core::raster::NormalSource;
 use asgreg::core::shading::gradient_magnitude;
 use asgreg::io::colmap::read_images_txt;
-use asgreg::io::images::{load_gray, load_rgb, save_gray_png, save_rgb_png, GrayImage};
+use asgreg::io::images::{load_gray, load_rgb, save_gray_png, save_rgb_png};
 use asgreg::viz::{normalize_for_display, overlay_model, OverlayStyle};
 
 use super::inputs::load_posed_inputs;
@@ -67,24 +68,15 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     );
     let render_ms = started.elapsed().as_secs_f64() * 1e3;
     let asg_path = args.out.join(format!("{stem}_asg.png"));
-    save_gray_png(&asg_path, &asg_display_image(&render))?;
+    save_gray_png(&asg_path, asg_display_image(&render).view())?;
     let photo_path = scene_dir.join("images").join(&first);
     let photo = load_gray(&photo_path)?;
-    let mut gradient = vec![0.0f32; photo.pixels.len()];
-    gradient_magnitude(
-        &photo.pixels,
-        photo.width_px,
-        photo.height_px,
-        &mut gradient,
-    );
+    let mut gradient = Image::default();
+    gradient_magnitude(photo.view(), &mut gradient);
     let gradient_path = args.out.join(format!("{stem}_photo_gradient.png"));
     save_gray_png(
         &gradient_path,
-        &GrayImage {
-            width_px: photo.width_px,
-            height_px: photo.height_px,
-            pixels: normalize_for_display(&gradient),
-        },
+        normalize_for_display(gradient.view()).view(),
     )?;
     println!(
         "    rendered the model in {render_ms:.1} ms -> {}",
@@ -95,7 +87,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     println!(
         "3/4 the model over the photo under the ground-truth pose and the 104 px initial pose"
     );
-    let (width_px, height_px, rgb) = load_rgb(&photo_path)?;
+    let rgb = load_rgb(&photo_path)?;
     let initial_poses_path = scene_dir.join("initial/104/images.txt");
     let initial = read_images_txt(&initial_poses_path)?;
     let initial_pose = initial
@@ -107,9 +99,9 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         ("initial104", &initial_pose.cam_from_world),
     ] {
         let render = render_view(&inputs.mesh, camera, pose, NormalSource::Vertex);
-        let picture = overlay_model(&rgb, &render, OverlayStyle::NormalsAndEdges, 0.45);
+        let picture = overlay_model(rgb.view(), &render, OverlayStyle::NormalsAndEdges, 0.45)?;
         let path = args.out.join(format!("{stem}_overlay_{label}.png"));
-        save_rgb_png(&path, width_px, height_px, &picture)?;
+        save_rgb_png(&path, picture.view())?;
         println!("    {label} -> {}", path.display());
     }
     register_scene(&scene_dir, &inputs, &args.out, args.seed)?;

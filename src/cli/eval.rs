@@ -12,7 +12,6 @@ use asgreg::baseline::icp::{
 };
 use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
 use asgreg::core::camera::Camera;
-use asgreg::core::flow_consistency::GreyImage;
 use asgreg::core::frame::FrameInput;
 use asgreg::core::frame::{IntrinsicsMode, RegistrationConfig};
 use asgreg::core::mesh::Mesh;
@@ -380,16 +379,8 @@ fn diagnose_scene_frame(
     )
     .map_err(|e| e.to_string())?;
     let input = FrameInput {
-        photo: GreyImage {
-            width_px: files.photo.width_px,
-            height_px: files.photo.height_px,
-            pixels: &files.photo.pixels,
-        },
-        depth_m: files.depth.as_ref().map(|d| GreyImage {
-            width_px: d.width_px,
-            height_px: d.height_px,
-            pixels: &d.depth_m,
-        }),
+        photo: files.photo.view(),
+        depth_m: files.depth_m.as_ref().map(|d| d.view()),
         camera: &camera,
         intrinsics,
         initial_cam_from_world: initial.cam_from_world,

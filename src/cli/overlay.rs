@@ -50,8 +50,14 @@ pub fn run(args: &OverlayArgs) -> anyhow::Result<()> {
         .map(|f| f.to_string_lossy().into_owned())
         .unwrap_or_default();
     let (image, camera) = inputs.find_image(&name, &args.poses, &args.cameras)?;
-    let (width_px, height_px, photo) = load_rgb(&args.image)?;
-    check_image_matches_camera(&args.image, width_px, height_px, image.camera_id, camera)?;
+    let photo = load_rgb(&args.image)?;
+    check_image_matches_camera(
+        &args.image,
+        photo.width_px(),
+        photo.height_px(),
+        image.camera_id,
+        camera,
+    )?;
     let render = render_view(
         &inputs.mesh,
         camera,
@@ -62,8 +68,8 @@ pub fn run(args: &OverlayArgs) -> anyhow::Result<()> {
         StyleArg::Normals => OverlayStyle::NormalsAndEdges,
         StyleArg::Edges => OverlayStyle::Edges,
     };
-    let picture = overlay_model(&photo, &render, style, args.alpha);
-    save_rgb_png(&args.out, width_px, height_px, &picture)
+    let picture = overlay_model(photo.view(), &render, style, args.alpha)?;
+    save_rgb_png(&args.out, picture.view())
         .with_context(|| format!("writing {}", args.out.display()))?;
     println!(
         "drew {} over {} under the pose in {} -> {}",

@@ -274,7 +274,7 @@ fn write_overlays(
     report: &FrameReport,
     overlay_dir: &Path,
 ) -> anyhow::Result<()> {
-    let (width_px, height_px, rgb) = load_rgb(&frame.image_path)?;
+    let rgb = load_rgb(&frame.image_path)?;
     let stem = Path::new(&frame.name)
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
@@ -290,12 +290,10 @@ fn write_overlays(
             &pose,
             asgreg::core::raster::NormalSource::Vertex,
         );
-        let picture = overlay_model(&rgb, &render, OverlayStyle::NormalsAndEdges, 0.4);
+        let picture = overlay_model(rgb.view(), &render, OverlayStyle::NormalsAndEdges, 0.4)?;
         save_rgb_png(
             &overlay_dir.join(format!("{stem}_{label}.png")),
-            width_px,
-            height_px,
-            &picture,
+            picture.view(),
         )?;
     }
     Ok(())

@@ -5,11 +5,12 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use asgreg::core::camera::Camera;
+use asgreg::core::image::Image;
 use asgreg::core::mesh::Mesh;
 use asgreg::core::raster::{NormalSource, Rasterizer, RenderBuffers, RenderOptions};
 use asgreg::core::rigid::Rigid3;
 use asgreg::core::shading::{asg_from_normals, AsgOptions};
-use asgreg::io::images::{save_gray_png, save_rgb_png, GrayImage};
+use asgreg::io::images::{save_gray_png, save_rgb_png};
 use asgreg::viz::normalize_for_display;
 
 use super::inputs::load_posed_inputs;
@@ -78,53 +79,30 @@ pub fn render_view(
 }
 
 /// The ASG image of a rendering, scaled to 0..1 for display.
-pub fn asg_display_image(render: &RenderBuffers) -> GrayImage {
-    let (width_px, height_px) = (render.width_px(), render.height_px());
-    let mut asg = vec![0.0f32; width_px * height_px];
-    asg_from_normals(
-        &render.normal_cam,
-        width_px,
-        height_px,
-        &AsgOptions::default(),
-        &mut asg,
-    );
-    GrayImage {
-        width_px,
-        height_px,
-        pixels: normalize_for_display(&asg),
-    }
+pub fn asg_display_image(render: &RenderBuffers) -> Image<f32> {
+    let mut asg = Image::default();
+    asg_from_normals(render.normal_cam().view(), &AsgOptions::default(), &mut asg);
+    normalize_for_display(asg.view())
 }
 
 pub fn write_render(render: &RenderBuffers, what: RenderWhat, out: &Path) -> anyhow::Result<()> {
-    let (width_px, height_px) = (render.width_px(), render.height_px());
     match what {
-        RenderWhat::Asg => save_gray_png(out, &asg_display_image(render))?,
+        RenderWhat::Asg => save_gray_png(out, asg_display_image(render).view())?,
         RenderWhat::Normals => {
-            let rgb: Vec<[u8; 3]> = render
-                .normal_cam
-                .iter()
-                .map(|n| {
-                    if *n == glam::Vec3::ZERO {
-                        [0, 0, 0]
-                    } else {
-                        [n.x, -n.y, -n.z].map(|c| ((c * 0.5 + 0.5) * 255.0).round() as u8)
-                    }
-                })
-                .collect();
-            save_rgb_png(out, width_px, height_px, &rgb)?;
+            let rgb = render.normal_cam().map(|n| {
+                if *n == glam::Vec3::ZERO {
+                    [0, 0, 0]
+                } else {
+                    [n.x, -n.y, -n.z].map(|c| ((c * 0.5 + 0.5) * 255.0).round() as u8)
+                }
+            });
+            save_rgb_png(out, rgb.view())?;
         }
         RenderWhat::Depth => {
-            let inverse: Vec<f32> = render
-                .depth_m
-                .iter()
-                .map(|d| if *d > 0.0 { 1.0 / d } else { 0.0 })
-                .collect();
-            let image = GrayImage {
-                width_px,
-                height_px,
-                pixels: normalize_for_display(&inverse),
-            };
-            save_gray_png(out, &image)?;
+            let inverse = render
+                .depth_m()
+                .map(|d| if *d > 0.0 { 1.0 / d } else { 0.0 });
+            save_gray_png(out, normalize_for_display(inverse.view()).view())?;
         }
     }
     Ok(())

@@ -11,7 +11,7 @@
 //!    concatenated row by row (8 bins per cell) → 128 values;
 //! 5. `v / (‖v‖₂ + ε) · 255`, saturated and truncated to `u8` (ε = 0.01).
 //!
-//! Preconditions: a grey image as `&[f32]`, row major, `width_px · height_px` values. The scale
+//! Preconditions: a grey, non-empty [`ImageView<f32>`]. The scale
 //! matters only relative to ε and to the texture threshold: both are stated for intensities in
 //! `0..=1` (multiply them by 255 for 0..255 images). Each pixel also gets the mean gradient
 //! magnitude over its descriptor's support (`support_gradient`), which defines "textured".
@@ -19,7 +19,25 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::core::sift_flow::FlowError;
+use crate::core::image::{Image, ImageError, ImageView};
+
+/// Errors of dense matching (dense SIFT, SIFT flow, consistency); defined here, in the lowest of
+/// the three layers, so that none imports a layer above it.
+#[derive(Debug, thiserror::Error)]
+pub enum FlowError {
+    #[error("invalid configuration: {field}: {reason}")]
+    InvalidConfig { field: &'static str, reason: String },
+    #[error("image of {width_px} x {height_px} px has no pixels")]
+    EmptyImage { width_px: usize, height_px: usize },
+    #[error(transparent)]
+    Image(#[from] ImageError),
+    #[error("{what}: expected {expected} entries, found {found}")]
+    SizeMismatch {
+        what: &'static str,
+        expected: usize,
+        found: usize,
+    },
+}
 
 /// Bytes per descriptor: 4×4 cells × 8 orientation bins.
 pub const DESCRIPTOR_LEN: usize = 128;
@@ -111,8 +129,8 @@ pub struct DenseSiftImage {
     /// `width_px · height_px · 128` bytes; pixel `p`'s descriptor is `[p·128, (p+1)·128)`.
     pub descriptors: Vec<u8>,
     /// Mean gradient magnitude over each descriptor's 4×4-cell support, intensity units per px.
-    /// Empty for pyramid levels made by downsampling.
-    pub support_gradient: Vec<f32>,
+    /// Empty (0 × 0) for pyramid levels made by downsampling.
+    pub support_gradient: Image<f32>,
 }
 
 impl DenseSiftImage {
@@ -122,14 +140,18 @@ impl DenseSiftImage {
         &self.descriptors[pixel * DESCRIPTOR_LEN..(pixel + 1) * DESCRIPTOR_LEN]
     }
 
-    /// Writes `textured[p] = support_gradient[p] >= min_support_gradient` into the caller's buffer.
-    pub fn textured_mask(&self, min_support_gradient: f32, textured: &mut Vec<bool>) {
-        textured.clear();
-        textured.extend(
-            self.support_gradient
-                .iter()
-                .map(|&gradient| gradient >= min_support_gradient),
-        );
+    /// Writes `textured[p] = support_gradient[p] >= min_support_gradient` into the caller's
+    /// image, made the size of `support_gradient`.
+    pub fn textured_mask(&self, min_support_gradient: f32, textured: &mut Image<bool>) {
+        let (width_px, height_px) = self.support_gradient.size();
+        textured.resize(width_px, height_px, false);
+        for (is_textured, &gradient) in textured
+            .data_mut()
+            .iter_mut()
+            .zip(self.support_gradient.data())
+        {
+            *is_textured = gradient >= min_support_gradient;
+        }
     }
 
     pub(crate) fn resize(&mut self, width_px: usize, height_px: usize, with_support: bool) {
@@ -137,14 +159,11 @@ impl DenseSiftImage {
         self.height_px = height_px;
         self.descriptors
             .resize(width_px * height_px * DESCRIPTOR_LEN, 0);
-        self.support_gradient.resize(
-            if with_support {
-                width_px * height_px
-            } else {
-                0
-            },
-            0.0,
-        );
+        if with_support {
+            self.support_gradient.resize(width_px, height_px, 0.0);
+        } else {
+            self.support_gradient.resize(0, 0, 0.0);
+        }
     }
 }
 
@@ -160,23 +179,22 @@ pub struct DenseSiftWorkspace {
     bands_pooled: Vec<f32>,
 }
 
-/// Computes the dense SIFT image of `image` (row major, `width_px · height_px` values) into `out`.
+/// Computes the dense SIFT image of a grey `image` into `out`.
 pub fn compute_dense_sift(
-    image: &[f32],
-    width_px: usize,
-    height_px: usize,
+    image: ImageView<'_, f32>,
     config: &DenseSiftConfig,
     workspace: &mut DenseSiftWorkspace,
     out: &mut DenseSiftImage,
 ) -> Result<(), FlowError> {
     config.validate()?;
-    if width_px == 0 || height_px == 0 || image.len() != width_px * height_px {
-        return Err(FlowError::ImageSize {
+    let (width_px, height_px) = image.size();
+    if image.is_empty() {
+        return Err(FlowError::EmptyImage {
             width_px,
             height_px,
-            values: image.len(),
         });
     }
+    let image = image.data();
     let pixel_count = width_px * height_px;
     let ws = workspace;
 
@@ -275,7 +293,7 @@ pub fn compute_dense_sift(
     let support_scale = 1.0 / (16.0 * pooling_weight_sum * pooling_weight_sum);
     out.descriptors
         .par_chunks_mut(width_px * DESCRIPTOR_LEN)
-        .zip(out.support_gradient.par_chunks_mut(width_px))
+        .zip(out.support_gradient.data_mut().par_chunks_mut(width_px))
         .enumerate()
         .for_each(|(y, (descriptor_row, support_row))| {
             let mut cells = [0.0f32; DESCRIPTOR_LEN];
@@ -421,10 +439,10 @@ fn compute_gradients(
 mod tests {
     use super::*;
 
-    fn ramp_image(width: usize, height: usize, slope_x: f32, slope_y: f32) -> Vec<f32> {
-        (0..width * height)
-            .map(|pixel| (pixel % width) as f32 * slope_x + (pixel / width) as f32 * slope_y)
-            .collect()
+    fn ramp_image(width: usize, height: usize, slope_x: f32, slope_y: f32) -> Image<f32> {
+        Image::from_fn(width, height, |col, row| {
+            col as f32 * slope_x + row as f32 * slope_y
+        })
     }
 
     #[test]
@@ -437,9 +455,7 @@ mod tests {
             ..Default::default()
         };
         compute_dense_sift(
-            &image,
-            width,
-            height,
+            image.view(),
             &config,
             &mut DenseSiftWorkspace::default(),
             &mut sift,
@@ -458,30 +474,29 @@ mod tests {
         }
         // Mean gradient over the support is the slope (the 5-point filter is exact on ramps).
         assert!(
-            (sift.support_gradient[centre] - 0.01).abs() < 1e-4,
+            (sift.support_gradient.data()[centre] - 0.01).abs() < 1e-4,
             "{}",
-            sift.support_gradient[centre]
+            sift.support_gradient.data()[centre]
         );
     }
 
     #[test]
     fn flat_image_gives_zero_descriptors_and_is_untextured() {
         let (width, height) = (20, 10);
-        let image = vec![0.5f32; width * height];
+        let image = Image::filled(width, height, 0.5f32);
         let mut sift = DenseSiftImage::default();
         compute_dense_sift(
-            &image,
-            width,
-            height,
+            image.view(),
             &DenseSiftConfig::default(),
             &mut DenseSiftWorkspace::default(),
             &mut sift,
         )
         .unwrap();
         assert!(sift.descriptors.iter().all(|&byte| byte == 0));
-        let mut textured = Vec::new();
+        let mut textured = Image::default();
         sift.textured_mask(1e-3, &mut textured);
-        assert!(textured.iter().all(|&is_textured| !is_textured));
+        assert_eq!(textured.size(), (width, height));
+        assert!(textured.data().iter().all(|&is_textured| !is_textured));
     }
 
     #[test]
@@ -496,9 +511,7 @@ mod tests {
             };
             let mut sift = DenseSiftImage::default();
             compute_dense_sift(
-                &image,
-                width,
-                height,
+                image.view(),
                 &config,
                 &mut DenseSiftWorkspace::default(),
                 &mut sift,
@@ -521,20 +534,20 @@ mod tests {
     fn bad_inputs_are_rejected() {
         let mut sift = DenseSiftImage::default();
         let mut workspace = DenseSiftWorkspace::default();
+        let empty = ImageView::new(0, 2, &[]).unwrap();
         let error = compute_dense_sift(
-            &[0.0; 5],
-            2,
-            2,
+            empty,
             &DenseSiftConfig::default(),
             &mut workspace,
             &mut sift,
         );
-        assert!(matches!(error, Err(FlowError::ImageSize { .. })));
+        assert!(matches!(error, Err(FlowError::EmptyImage { .. })));
         let config = DenseSiftConfig {
             cell_size_px: 0,
             ..Default::default()
         };
-        let error = compute_dense_sift(&[0.0; 4], 2, 2, &config, &mut workspace, &mut sift);
+        let image = ImageView::new(2, 2, &[0.0; 4]).unwrap();
+        let error = compute_dense_sift(image, &config, &mut workspace, &mut sift);
         assert!(matches!(
             error,
             Err(FlowError::InvalidConfig {

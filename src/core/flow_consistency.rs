@@ -1,4 +1,4 @@
-//! Query ↔ rendering correspondences from SIFT flow in both directions, kept only where the two
+//! Query ↔ rendering pixel matches from SIFT flow in both directions, kept only where the two
 //! flows agree (forward–backward consistency). The paper (§3.2) computes SIFT flow (Liu, Yuen,
 //! Torralba, TPAMI 2011) between the photo's gradient image and each ASG rendering and lets only
 //! textured pixels take part; this module is that step, as one library call per pair that also
@@ -15,8 +15,12 @@
 //!   rendering pixel (rounded to the nearest), and the round trip `‖w_f(p) + w_b(q)‖` is at most
 //!   `max_round_trip_error_px`.
 //!
-//! Preconditions: grey images as `&[f32]`, row major, values in `0..=1` (see dense SIFT); the
-//! validity mask, when given, has one entry per rendering pixel.
+//! Names: a *match* ([`PixelMatch`]) is a pair of pixels, query and rendering, as this module
+//! makes them; a *correspondence* is a query pixel and a 3D model point, made from a match by
+//! lifting it onto the mesh (`core::frame::correspond`, `core::pose::Correspondences`).
+//!
+//! Preconditions: grey images with values in `0..=1` (see dense SIFT); the validity mask, when
+//! given, has the rendering's size.
 
 use std::time::{Duration, Instant};
 
@@ -26,23 +30,16 @@ use serde::{Deserialize, Serialize};
 use crate::core::dense_sift::{
     compute_dense_sift, DenseSiftConfig, DenseSiftImage, DenseSiftWorkspace,
 };
+use crate::core::image::{Image, ImageView};
 use crate::core::sift_flow::{
     compute_sift_flow_on_pyramids, FlowError, FlowField, SiftFlowConfig, SiftFlowWorkspace,
     SiftPyramid,
 };
 
-/// A grey image borrowed from the caller: row major, `width_px · height_px` values in `0..=1`.
-#[derive(Clone, Copy, Debug)]
-pub struct GreyImage<'a> {
-    pub width_px: usize,
-    pub height_px: usize,
-    pub pixels: &'a [f32],
-}
-
 /// Parameters of the two-way matching and of the consistency check.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct DenseCorrespondenceConfig {
+pub struct MatchConfig {
     pub dense_sift: DenseSiftConfig,
     pub sift_flow: SiftFlowConfig,
     /// Minimum mean gradient magnitude over a descriptor's support for a pixel to count as
@@ -52,7 +49,7 @@ pub struct DenseCorrespondenceConfig {
     pub max_round_trip_error_px: f32,
 }
 
-impl Default for DenseCorrespondenceConfig {
+impl Default for MatchConfig {
     fn default() -> Self {
         Self {
             dense_sift: DenseSiftConfig::default(),
@@ -63,7 +60,7 @@ impl Default for DenseCorrespondenceConfig {
     }
 }
 
-impl DenseCorrespondenceConfig {
+impl MatchConfig {
     /// Checks every field once.
     pub fn validate(&self) -> Result<(), FlowError> {
         self.dense_sift.validate()?;
@@ -86,7 +83,7 @@ impl DenseCorrespondenceConfig {
 
 /// One consistent pixel pair: a query pixel centre and where it lands in the rendering (sub-pixel).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PixelCorrespondence {
+pub struct PixelMatch {
     pub query_x_px: f32,
     pub query_y_px: f32,
     pub rendering_x_px: f32,
@@ -99,7 +96,7 @@ pub struct PixelCorrespondence {
 
 /// Time spent in each step of one pair.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct CorrespondenceTimings {
+pub struct MatchTimings {
     pub dense_sift: Duration,
     /// Descriptor pyramid of the rendering (and of the query in [`match_query_to_rendering`]).
     pub pyramid: Duration,
@@ -111,18 +108,19 @@ pub struct CorrespondenceTimings {
 
 /// The result of matching one query against one rendering.
 #[derive(Clone, Debug, Default)]
-pub struct DenseCorrespondence {
+pub struct PixelMatches {
     /// Query → rendering flow (query size).
     pub forward: FlowField,
     /// Rendering → query flow (rendering size).
     pub backward: FlowField,
-    pub correspondences: Vec<PixelCorrespondence>,
-    pub timings: CorrespondenceTimings,
+    /// The forward–backward consistent pixel pairs.
+    pub matches: Vec<PixelMatch>,
+    pub timings: MatchTimings,
 }
 
 /// Buffers reused between pairs.
 #[derive(Debug, Default)]
-pub struct DenseCorrespondenceWorkspace {
+pub struct MatchWorkspace {
     sift_workspace: DenseSiftWorkspace,
     rendering_sift_workspace: DenseSiftWorkspace,
     flow_workspace: SiftFlowWorkspace,
@@ -131,20 +129,20 @@ pub struct DenseCorrespondenceWorkspace {
     rendering_sift: DenseSiftImage,
     query_pyramid: SiftPyramid,
     rendering_pyramid: SiftPyramid,
-    query_textured: Vec<bool>,
-    rendering_participates: Vec<bool>,
-    forward_cost: Vec<f32>,
-    backward_cost: Vec<f32>,
+    query_textured: Image<bool>,
+    rendering_participates: Image<bool>,
+    forward_cost: Image<f32>,
+    backward_cost: Image<f32>,
 }
 
 /// Dense SIFT of both images, SIFT flow both ways, consistency check: the per-pair entry point.
 pub fn match_query_to_rendering(
-    query: GreyImage,
-    rendering: GreyImage,
-    rendering_valid: Option<&[bool]>,
-    config: &DenseCorrespondenceConfig,
-    workspace: &mut DenseCorrespondenceWorkspace,
-    out: &mut DenseCorrespondence,
+    query: ImageView<'_, f32>,
+    rendering: ImageView<'_, f32>,
+    rendering_valid: Option<ImageView<'_, bool>>,
+    config: &MatchConfig,
+    workspace: &mut MatchWorkspace,
+    out: &mut PixelMatches,
 ) -> Result<(), FlowError> {
     let started = Instant::now();
     config.validate()?;
@@ -152,9 +150,7 @@ pub fn match_query_to_rendering(
     let (query_result, rendering_result) = rayon::join(
         || {
             compute_dense_sift(
-                query.pixels,
-                query.width_px,
-                query.height_px,
+                query,
                 &config.dense_sift,
                 &mut ws.sift_workspace,
                 &mut ws.query_sift,
@@ -162,9 +158,7 @@ pub fn match_query_to_rendering(
         },
         || {
             compute_dense_sift(
-                rendering.pixels,
-                rendering.width_px,
-                rendering.height_px,
+                rendering,
                 &config.dense_sift,
                 &mut ws.rendering_sift_workspace,
                 &mut ws.rendering_sift,
@@ -206,41 +200,38 @@ pub fn match_sift_images(
     query_sift: &DenseSiftImage,
     query_pyramid: &SiftPyramid,
     rendering_sift: &DenseSiftImage,
-    rendering_valid: Option<&[bool]>,
-    config: &DenseCorrespondenceConfig,
-    workspace: &mut DenseCorrespondenceWorkspace,
-    out: &mut DenseCorrespondence,
+    rendering_valid: Option<ImageView<'_, bool>>,
+    config: &MatchConfig,
+    workspace: &mut MatchWorkspace,
+    out: &mut PixelMatches,
 ) -> Result<(), FlowError> {
     let started = Instant::now();
     config.validate()?;
     let ws = workspace;
-    let rendering_pixels = rendering_sift.width_px * rendering_sift.height_px;
     if let Some(valid) = rendering_valid {
-        if valid.len() != rendering_pixels {
-            return Err(FlowError::SizeMismatch {
-                what: "rendering validity mask",
-                expected: rendering_pixels,
-                found: valid.len(),
-            });
-        }
+        valid.check_size(
+            "rendering validity mask",
+            rendering_sift.width_px,
+            rendering_sift.height_px,
+        )?;
     }
     for (image, what) in [
         (query_sift, "query support gradient"),
         (rendering_sift, "rendering support gradient"),
     ] {
-        let pixels = image.width_px * image.height_px;
-        if image.support_gradient.len() != pixels {
-            return Err(FlowError::SizeMismatch {
-                what,
-                expected: pixels,
-                found: image.support_gradient.len(),
-            });
-        }
+        image
+            .support_gradient
+            .check_size(what, image.width_px, image.height_px)?;
     }
     query_sift.textured_mask(config.min_support_gradient, &mut ws.query_textured);
     rendering_sift.textured_mask(config.min_support_gradient, &mut ws.rendering_participates);
     if let Some(valid) = rendering_valid {
-        for (participates, &is_valid) in ws.rendering_participates.iter_mut().zip(valid) {
+        for (participates, &is_valid) in ws
+            .rendering_participates
+            .data_mut()
+            .iter_mut()
+            .zip(valid.data())
+        {
             *participates &= is_valid;
         }
     }
@@ -261,7 +252,7 @@ pub fn match_sift_images(
         || {
             let started = Instant::now();
             compute_sift_flow_on_pyramids(
-                (query_sift, query_pyramid, Some(query_textured)),
+                (query_sift, query_pyramid, Some(query_textured.view())),
                 (rendering_sift, rendering_pyramid, rendering_valid),
                 &config.sift_flow,
                 forward_workspace,
@@ -276,7 +267,7 @@ pub fn match_sift_images(
                 (
                     rendering_sift,
                     rendering_pyramid,
-                    Some(rendering_participates),
+                    Some(rendering_participates.view()),
                 ),
                 (query_sift, query_pyramid, None),
                 &config.sift_flow,
@@ -294,13 +285,13 @@ pub fn match_sift_images(
     collect_consistent_pairs(
         &out.forward,
         &out.backward,
-        &ws.query_textured,
-        &ws.rendering_participates,
-        &ws.forward_cost,
+        ws.query_textured.view(),
+        ws.rendering_participates.view(),
+        ws.forward_cost.view(),
         config.max_round_trip_error_px,
-        &mut out.correspondences,
+        &mut out.matches,
     )?;
-    out.timings = CorrespondenceTimings {
+    out.timings = MatchTimings {
         dense_sift: Duration::ZERO,
         pyramid,
         forward_flow,
@@ -322,20 +313,13 @@ pub struct QueryFeatures {
 impl QueryFeatures {
     /// Dense SIFT and pyramid of `query`.
     pub fn compute(
-        query: GreyImage,
-        config: &DenseCorrespondenceConfig,
+        query: ImageView<'_, f32>,
+        config: &MatchConfig,
         workspace: &mut DenseSiftWorkspace,
     ) -> Result<Self, FlowError> {
         config.validate()?;
         let mut features = Self::default();
-        compute_dense_sift(
-            query.pixels,
-            query.width_px,
-            query.height_px,
-            &config.dense_sift,
-            workspace,
-            &mut features.sift,
-        )?;
+        compute_dense_sift(query, &config.dense_sift, workspace, &mut features.sift)?;
         features.pyramid.build(&features.sift, &config.sift_flow)?;
         Ok(features)
     }
@@ -345,18 +329,16 @@ impl QueryFeatures {
 /// both ways, consistency check. The step every path runs per coarse view.
 pub fn match_rendering(
     query: &QueryFeatures,
-    rendering: GreyImage,
-    rendering_valid: Option<&[bool]>,
-    config: &DenseCorrespondenceConfig,
-    workspace: &mut DenseCorrespondenceWorkspace,
-    out: &mut DenseCorrespondence,
+    rendering: ImageView<'_, f32>,
+    rendering_valid: Option<ImageView<'_, bool>>,
+    config: &MatchConfig,
+    workspace: &mut MatchWorkspace,
+    out: &mut PixelMatches,
 ) -> Result<(), FlowError> {
     let started = Instant::now();
     let mut rendering_sift = std::mem::take(&mut workspace.rendering_sift);
     let sift_result = compute_dense_sift(
-        rendering.pixels,
-        rendering.width_px,
-        rendering.height_px,
+        rendering,
         &config.dense_sift,
         &mut workspace.sift_workspace,
         &mut rendering_sift,
@@ -383,70 +365,56 @@ pub fn match_rendering(
 /// Matches one query against many renderings, in parallel over renderings (rayon), reusing one
 /// workspace per worker thread and the query's features for every pair.
 pub fn match_query_to_renderings(
-    query: GreyImage,
-    renderings: &[(GreyImage, Option<&[bool]>)],
-    config: &DenseCorrespondenceConfig,
-) -> Result<Vec<DenseCorrespondence>, FlowError> {
+    query: ImageView<'_, f32>,
+    renderings: &[(ImageView<'_, f32>, Option<ImageView<'_, bool>>)],
+    config: &MatchConfig,
+) -> Result<Vec<PixelMatches>, FlowError> {
     let features = QueryFeatures::compute(query, config, &mut DenseSiftWorkspace::default())?;
     renderings
         .par_iter()
-        .map_init(
-            DenseCorrespondenceWorkspace::default,
-            |workspace, (rendering, valid)| {
-                let mut out = DenseCorrespondence::default();
-                match_rendering(&features, *rendering, *valid, config, workspace, &mut out)?;
-                Ok(out)
-            },
-        )
+        .map_init(MatchWorkspace::default, |workspace, (rendering, valid)| {
+            let mut out = PixelMatches::default();
+            match_rendering(&features, *rendering, *valid, config, workspace, &mut out)?;
+            Ok(out)
+        })
         .collect()
 }
 
 /// Keeps the query pixels whose forward and backward flows agree (see the module comment) and
-/// writes them into `correspondences`. `query_textured` and `forward_cost` have one entry per
-/// query pixel, `rendering_participates` one per rendering pixel.
+/// writes them into `matches`. `query_textured` and `forward_cost` have the query's size
+/// (the forward flow's), `rendering_participates` the rendering's (the backward flow's).
 pub fn collect_consistent_pairs(
     forward: &FlowField,
     backward: &FlowField,
-    query_textured: &[bool],
-    rendering_participates: &[bool],
-    forward_cost: &[f32],
+    query_textured: ImageView<'_, bool>,
+    rendering_participates: ImageView<'_, bool>,
+    forward_cost: ImageView<'_, f32>,
     max_round_trip_error_px: f32,
-    correspondences: &mut Vec<PixelCorrespondence>,
+    matches: &mut Vec<PixelMatch>,
 ) -> Result<(), FlowError> {
-    correspondences.clear();
-    let (width, height) = (forward.width_px, forward.height_px);
-    let query_pixels = width * height;
-    let rendering_pixels = backward.width_px * backward.height_px;
-    for (what, expected, found) in [
-        ("forward flow u", query_pixels, forward.u_px.len()),
-        ("forward flow v", query_pixels, forward.v_px.len()),
-        ("backward flow u", rendering_pixels, backward.u_px.len()),
-        ("backward flow v", rendering_pixels, backward.v_px.len()),
-        ("query texture mask", query_pixels, query_textured.len()),
-        (
-            "rendering mask",
-            rendering_pixels,
-            rendering_participates.len(),
-        ),
-        ("forward matching costs", query_pixels, forward_cost.len()),
-    ] {
-        if expected != found {
-            return Err(FlowError::SizeMismatch {
-                what,
-                expected,
-                found,
-            });
-        }
-    }
-    let (rendering_width, rendering_height) = (backward.width_px as i64, backward.height_px as i64);
+    matches.clear();
+    let (width, height) = forward.size();
+    let (rendering_width_px, rendering_height_px) = backward.size();
+    query_textured.check_size("query texture mask", width, height)?;
+    forward_cost.check_size("forward matching costs", width, height)?;
+    rendering_participates.check_size("rendering mask", rendering_width_px, rendering_height_px)?;
+    let (query_textured, rendering_participates, forward_cost) = (
+        query_textured.data(),
+        rendering_participates.data(),
+        forward_cost.data(),
+    );
+    let (forward_u, forward_v) = (forward.u_px().data(), forward.v_px().data());
+    let (backward_u, backward_v) = (backward.u_px().data(), backward.v_px().data());
+    let (rendering_width, rendering_height) =
+        (rendering_width_px as i64, rendering_height_px as i64);
     for y in 0..height {
         for x in 0..width {
             let pixel = y * width + x;
             if !query_textured[pixel] {
                 continue;
             }
-            let target_x = x as f32 + forward.u_px[pixel];
-            let target_y = y as f32 + forward.v_px[pixel];
+            let target_x = x as f32 + forward_u[pixel];
+            let target_y = y as f32 + forward_v[pixel];
             let (nearest_x, nearest_y) = (target_x.round() as i64, target_y.round() as i64);
             if nearest_x < 0
                 || nearest_y < 0
@@ -459,11 +427,11 @@ pub fn collect_consistent_pairs(
             if !rendering_participates[target] {
                 continue;
             }
-            let error_u = forward.u_px[pixel] + backward.u_px[target];
-            let error_v = forward.v_px[pixel] + backward.v_px[target];
+            let error_u = forward_u[pixel] + backward_u[target];
+            let error_v = forward_v[pixel] + backward_v[target];
             let round_trip_error_px = error_u.hypot(error_v);
             if round_trip_error_px <= max_round_trip_error_px {
-                correspondences.push(PixelCorrespondence {
+                matches.push(PixelMatch {
                     query_x_px: x as f32,
                     query_y_px: y as f32,
                     rendering_x_px: target_x,
@@ -481,6 +449,7 @@ pub fn collect_consistent_pairs(
 mod tests {
     use super::*;
     use crate::core::dense_sift::DenseSiftConfig;
+    use crate::core::image::ImageError;
     use crate::core::sift_flow::test_support::*;
 
     /// A deterministic textured image: hashed white noise smoothed by two 3×3 box passes (texture at
@@ -538,23 +507,15 @@ mod tests {
         width: usize,
         height: usize,
         valid: Option<&[bool]>,
-        config: &DenseCorrespondenceConfig,
-    ) -> DenseCorrespondence {
-        let mut out = DenseCorrespondence::default();
+        config: &MatchConfig,
+    ) -> PixelMatches {
+        let mut out = PixelMatches::default();
         match_query_to_rendering(
-            GreyImage {
-                width_px: width,
-                height_px: height,
-                pixels: query,
-            },
-            GreyImage {
-                width_px: width,
-                height_px: height,
-                pixels: rendering,
-            },
-            valid,
+            ImageView::new(width, height, query).unwrap(),
+            ImageView::new(width, height, rendering).unwrap(),
+            valid.map(|valid| ImageView::new(width, height, valid).unwrap()),
             config,
-            &mut DenseCorrespondenceWorkspace::default(),
+            &mut MatchWorkspace::default(),
             &mut out,
         )
         .unwrap();
@@ -565,26 +526,19 @@ mod tests {
     fn identity_pair_gives_zero_flow_and_full_consistency() {
         let (width, height) = (96, 64);
         let image = textured_image(width, height);
-        let mut config = DenseCorrespondenceConfig::default();
+        let mut config = MatchConfig::default();
         config.sift_flow.subpixel = crate::core::sift_flow::SubpixelRefinement::None;
         let out = run_pair(&image, &image, width, height, None, &config);
-        assert!(out
-            .forward
-            .u_px
-            .iter()
-            .chain(&out.forward.v_px)
-            .all(|&value| value == 0.0));
-        assert!(out
-            .backward
-            .u_px
-            .iter()
-            .chain(&out.backward.v_px)
-            .all(|&value| value == 0.0));
-        assert_eq!(out.correspondences.len(), width * height);
-        assert!(out
-            .correspondences
-            .iter()
-            .all(|pair| pair.matching_cost == 0.0));
+        for field in [&out.forward, &out.backward] {
+            assert!(field
+                .u_px()
+                .data()
+                .iter()
+                .chain(field.v_px().data())
+                .all(|&value| value == 0.0));
+        }
+        assert_eq!(out.matches.len(), width * height);
+        assert!(out.matches.iter().all(|pair| pair.matching_cost == 0.0));
     }
 
     #[test]
@@ -604,7 +558,7 @@ mod tests {
         };
         let query_crop = crop(0, 0);
         let rendering_crop = crop(-shift_x, -shift_y);
-        let mut integer_config = DenseCorrespondenceConfig::default();
+        let mut integer_config = MatchConfig::default();
         integer_config.sift_flow.subpixel = crate::core::sift_flow::SubpixelRefinement::None;
         let integer = run_pair(
             &query_crop,
@@ -620,26 +574,29 @@ mod tests {
             width,
             height,
             None,
-            &DenseCorrespondenceConfig::default(),
+            &MatchConfig::default(),
         );
+        let (integer_u, integer_v) = (integer.forward.u_px(), integer.forward.v_px());
+        let (refined_u, refined_v) = (refined.forward.u_px(), refined.forward.v_px());
         for y in 12..height - 12 {
             for x in 12..width - 12 {
-                let pixel = y * width + x;
                 assert_eq!(
-                    integer.forward.u_px[pixel], shift_x as f32,
+                    integer_u.get(x, y),
+                    Some(&(shift_x as f32)),
                     "u at ({x}, {y})"
                 );
                 assert_eq!(
-                    integer.forward.v_px[pixel], shift_y as f32,
+                    integer_v.get(x, y),
+                    Some(&(shift_y as f32)),
                     "v at ({x}, {y})"
                 );
                 // The parabola fit may move a little off the exact integer, never far.
                 assert!(
-                    (refined.forward.u_px[pixel] - shift_x as f32).abs() < 0.25,
+                    (refined_u.get(x, y).unwrap() - shift_x as f32).abs() < 0.25,
                     "refined u at ({x}, {y})"
                 );
                 assert!(
-                    (refined.forward.v_px[pixel] - shift_y as f32).abs() < 0.25,
+                    (refined_v.get(x, y).unwrap() - shift_y as f32).abs() < 0.25,
                     "refined v at ({x}, {y})"
                 );
             }
@@ -673,14 +630,14 @@ mod tests {
             width,
             height,
             Some(&valid),
-            &DenseCorrespondenceConfig::default(),
+            &MatchConfig::default(),
         );
         assert!(
-            out.correspondences.len() > width * height / 2,
+            out.matches.len() > width * height / 2,
             "{} pairs",
-            out.correspondences.len()
+            out.matches.len()
         );
-        for pair in &out.correspondences {
+        for pair in &out.matches {
             let (x, y) = (
                 pair.rendering_x_px.round() as usize,
                 pair.rendering_y_px.round() as usize,
@@ -694,14 +651,14 @@ mod tests {
         }
         // Away from the occluder and the borders the pairs are right.
         let good = out
-            .correspondences
+            .matches
             .iter()
             .filter(|pair| (pair.rendering_x_px - pair.query_x_px - shift_x as f32).abs() < 0.5)
             .count();
         assert!(
-            good as f64 > 0.95 * out.correspondences.len() as f64,
+            good as f64 > 0.95 * out.matches.len() as f64,
             "{good} of {}",
-            out.correspondences.len()
+            out.matches.len()
         );
     }
 
@@ -723,20 +680,12 @@ mod tests {
                 sample(&image, width, height, x + u, y + v)
             })
             .collect();
-        let out = run_pair(
-            &query,
-            &image,
-            width,
-            height,
-            None,
-            &DenseCorrespondenceConfig::default(),
-        );
-        let mut truth = FlowField::zeros(width, height);
-        for pixel in 0..width * height {
-            let (u, v) = flow_at((pixel % width) as f32, (pixel / width) as f32);
-            truth.u_px[pixel] = u;
-            truth.v_px[pixel] = v;
-        }
+        let out = run_pair(&query, &image, width, height, None, &MatchConfig::default());
+        let truth = FlowField::new(
+            Image::from_fn(width, height, |x, y| flow_at(x as f32, y as f32).0),
+            Image::from_fn(width, height, |x, y| flow_at(x as f32, y as f32).1),
+        )
+        .unwrap();
         let (epe, under_one) = score_flow(&out.forward, &truth, 12);
         println!("synthetic warp: EPE {epe:.3} px, < 1 px {under_one:.3}");
         // Measured: EPE 0.13 px, all pixels under 1 px.
@@ -755,10 +704,10 @@ mod tests {
     /// SIFT flow on a real pair against its true flow (pixels ≥ 20 px from the border).
     fn pair_scores(pair: &SharedPair, name: &str, sift_flow: SiftFlowConfig) -> (f64, f64) {
         let sift_config = DenseSiftConfig::default();
-        let first = sift_of(&pair.first, pair.width, pair.height, &sift_config);
-        let second = sift_of(&pair.second, pair.width, pair.height, &sift_config);
+        let first = sift_of(pair.first.view(), &sift_config);
+        let second = sift_of(pair.second.view(), &sift_config);
         let mut forward = FlowField::default();
-        let mut cost = Vec::new();
+        let mut cost = Image::default();
         crate::core::sift_flow::compute_sift_flow(
             &first,
             None,
@@ -819,7 +768,7 @@ mod tests {
     }
 
     #[test]
-    fn untextured_query_pixels_give_no_correspondences() {
+    fn untextured_query_pixels_give_no_matches() {
         let (width, height) = (96, 64);
         let mut query = textured_image(width, height);
         // A flat block, far wider than a descriptor's support.
@@ -835,10 +784,10 @@ mod tests {
             width,
             height,
             None,
-            &DenseCorrespondenceConfig::default(),
+            &MatchConfig::default(),
         );
-        assert!(!out.correspondences.is_empty());
-        for pair in &out.correspondences {
+        assert!(!out.matches.is_empty());
+        for pair in &out.matches {
             let inside_flat_core =
                 (30.0..66.0).contains(&pair.query_x_px) && (20.0..44.0).contains(&pair.query_y_px);
             assert!(!inside_flat_core, "{pair:?}");
@@ -856,18 +805,14 @@ mod tests {
         };
         let query = crop(4);
         let renderings: Vec<Vec<f32>> = (0..3).map(|shift| crop(2 * shift)).collect();
-        let config = DenseCorrespondenceConfig {
+        let config = MatchConfig {
             sift_flow: SiftFlowConfig::fast(),
             ..Default::default()
         };
-        fn grey(pixels: &[f32], width_px: usize, height_px: usize) -> GreyImage<'_> {
-            GreyImage {
-                width_px,
-                height_px,
-                pixels,
-            }
+        fn grey(pixels: &[f32], width_px: usize, height_px: usize) -> ImageView<'_, f32> {
+            ImageView::new(width_px, height_px, pixels).unwrap()
         }
-        let inputs: Vec<(GreyImage, Option<&[bool]>)> = renderings
+        let inputs: Vec<(ImageView<f32>, Option<ImageView<bool>>)> = renderings
             .iter()
             .map(|rendering| (grey(rendering, width, height), None))
             .collect();
@@ -878,15 +823,15 @@ mod tests {
             let single = run_pair(&query, rendering, width, height, None, &config);
             assert_eq!(single.forward, from_frame.forward);
             assert_eq!(single.backward, from_frame.backward);
-            assert_eq!(single.correspondences, from_frame.correspondences);
-            assert!(!single.correspondences.is_empty());
+            assert_eq!(single.matches, from_frame.matches);
+            assert!(!single.matches.is_empty());
         }
     }
 
     #[test]
     fn reused_workspace_gives_the_same_results_as_a_fresh_one() {
-        let config = DenseCorrespondenceConfig::default();
-        let mut shared_workspace = DenseCorrespondenceWorkspace::default();
+        let config = MatchConfig::default();
+        let mut shared_workspace = MatchWorkspace::default();
         for (width, height, shift) in [(120, 90, 3usize), (64, 48, 1), (120, 90, 2)] {
             let image = textured_image(width + 4, height);
             let crop = |start: usize| -> Vec<f32> {
@@ -895,12 +840,8 @@ mod tests {
                     .collect()
             };
             let (query, rendering) = (crop(shift), crop(0));
-            let grey = |pixels| GreyImage {
-                width_px: width,
-                height_px: height,
-                pixels,
-            };
-            let mut reused = DenseCorrespondence::default();
+            let grey = |pixels| ImageView::new(width, height, pixels).unwrap();
+            let mut reused = PixelMatches::default();
             match_query_to_rendering(
                 grey(&query),
                 grey(&rendering),
@@ -913,10 +854,7 @@ mod tests {
             let fresh = run_pair(&query, &rendering, width, height, None, &config);
             assert_eq!(reused.forward, fresh.forward, "{width}x{height}");
             assert_eq!(reused.backward, fresh.backward, "{width}x{height}");
-            assert_eq!(
-                reused.correspondences, fresh.correspondences,
-                "{width}x{height}"
-            );
+            assert_eq!(reused.matches, fresh.matches, "{width}x{height}");
         }
     }
 
@@ -924,8 +862,8 @@ mod tests {
     fn banded_belief_propagation_is_reproducible_and_as_accurate() {
         let pair = repo_pair();
         let sift_config = DenseSiftConfig::default();
-        let first = sift_of(&pair.first, pair.width, pair.height, &sift_config);
-        let second = sift_of(&pair.second, pair.width, pair.height, &sift_config);
+        let first = sift_of(pair.first.view(), &sift_config);
+        let second = sift_of(pair.second.view(), &sift_config);
         let run = |threads: usize, bands: usize| {
             let config = SiftFlowConfig {
                 bp_bands: bands,
@@ -937,7 +875,7 @@ mod tests {
                 .unwrap();
             pool.install(|| {
                 let mut field = FlowField::default();
-                let mut cost = Vec::new();
+                let mut cost = Image::default();
                 crate::core::sift_flow::compute_sift_flow(
                     &first,
                     None,
@@ -967,21 +905,22 @@ mod tests {
 
     #[test]
     fn round_trip_check_keeps_only_agreeing_in_view_pairs() {
-        let mut forward = FlowField::zeros(4, 1);
-        forward.u_px = vec![1.0, 1.0, 1.0, 1.0];
-        let mut backward = FlowField::zeros(4, 1);
+        let row = |values: Vec<f32>| Image::new(4, 1, values).unwrap();
+        let forward = FlowField::new(row(vec![1.0; 4]), row(vec![0.0; 4])).unwrap();
         // Query 0 → rendering 1 and back: agrees. Query 1 → rendering 2, whose backward flow
         // points elsewhere (an occlusion): rejected. Query 2 → rendering 3: agrees but rendering 3
         // takes no part. Query 3 → x = 4: out of view.
-        backward.u_px = vec![-1.0, -1.0, 2.0, -1.0];
-        let participates = [true, true, true, false];
+        let backward = FlowField::new(row(vec![-1.0, -1.0, 2.0, -1.0]), row(vec![0.0; 4])).unwrap();
+        let participates = Image::new(4, 1, vec![true, true, true, false]).unwrap();
+        let all_textured = Image::filled(4, 1, true);
+        let costs = Image::filled(4, 1, 7.0);
         let mut pairs = Vec::new();
         collect_consistent_pairs(
             &forward,
             &backward,
-            &[true; 4],
-            &participates,
-            &[7.0; 4],
+            all_textured.view(),
+            participates.view(),
+            costs.view(),
             0.5,
             &mut pairs,
         )
@@ -992,18 +931,18 @@ mod tests {
         let error = collect_consistent_pairs(
             &forward,
             &backward,
-            &[true; 3],
-            &participates,
-            &[7.0; 4],
+            Image::filled(3, 1, true).view(),
+            participates.view(),
+            costs.view(),
             0.5,
             &mut pairs,
         );
         assert!(matches!(
             error,
-            Err(FlowError::SizeMismatch {
+            Err(FlowError::Image(ImageError::SizeMismatch {
                 what: "query texture mask",
                 ..
-            })
+            }))
         ));
     }
 
@@ -1011,24 +950,26 @@ mod tests {
     fn bad_masks_and_configs_are_rejected() {
         let (width, height) = (16, 16);
         let image = textured_image(width, height);
-        let grey = GreyImage {
-            width_px: width,
-            height_px: height,
-            pixels: &image,
-        };
-        let mut out = DenseCorrespondence::default();
-        let mut workspace = DenseCorrespondenceWorkspace::default();
-        let short_mask = vec![true; 3];
+        let grey = ImageView::new(width, height, &image).unwrap();
+        let mut out = PixelMatches::default();
+        let mut workspace = MatchWorkspace::default();
+        let small_mask = Image::filled(3, 1, true);
         let error = match_query_to_rendering(
             grey,
             grey,
-            Some(&short_mask),
-            &DenseCorrespondenceConfig::default(),
+            Some(small_mask.view()),
+            &MatchConfig::default(),
             &mut workspace,
             &mut out,
         );
-        assert!(matches!(error, Err(FlowError::SizeMismatch { .. })));
-        let config = DenseCorrespondenceConfig {
+        assert!(matches!(
+            error,
+            Err(FlowError::Image(ImageError::SizeMismatch {
+                what: "rendering validity mask",
+                ..
+            }))
+        ));
+        let config = MatchConfig {
             max_round_trip_error_px: -1.0,
             ..Default::default()
         };

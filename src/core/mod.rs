@@ -1,4 +1,4 @@
-//! The algorithm core: camera geometry, meshes, rendering, dense correspondence, pose solving and
+//! The algorithm core: camera geometry, meshes, rendering, dense matching, pose solving and
 //! verification. Pure: no transport, no async runtime, no message types, no global state;
 //! randomness is passed in; hot paths write into caller-provided buffers.
 
@@ -6,6 +6,7 @@ pub mod camera;
 pub mod dense_sift;
 pub mod flow_consistency;
 pub mod frame;
+pub mod image;
 pub mod mesh;
 pub mod pose;
 pub mod raster;

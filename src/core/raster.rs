@@ -29,6 +29,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::camera::PinholeIntrinsics;
+use super::image::Image;
 use super::mesh::Mesh;
 use super::rigid::Rigid3;
 
@@ -74,17 +75,15 @@ impl Default for RenderOptions {
     }
 }
 
-/// The output of one rendering, row-major, `width_px * height_px` entries each.
+/// The output of one rendering: three images of the same size.
 #[derive(Clone, Debug, Default)]
 pub struct RenderBuffers {
-    width_px: usize,
-    height_px: usize,
     /// Distance along the optical axis (camera z) in metres; 0 where no surface.
-    pub depth_m: Vec<f32>,
+    depth_m: Image<f32>,
     /// Unit surface normal in the camera frame; zero where no surface.
-    pub normal_cam: Vec<Vec3>,
+    normal_cam: Image<Vec3>,
     /// Index of the visible face; [`NO_FACE`] where no surface (the validity mask).
-    pub face_index: Vec<u32>,
+    face_index: Image<u32>,
 }
 
 impl RenderBuffers {
@@ -94,32 +93,51 @@ impl RenderBuffers {
         buffers
     }
 
-    /// Sets the size; allocates only when the pixel count grows.
+    /// Sets the size; allocates only when the pixel count grows. The pixels are meaningful only
+    /// after the next [`Rasterizer::render`].
     pub fn resize(&mut self, width_px: usize, height_px: usize) {
-        self.width_px = width_px;
-        self.height_px = height_px;
-        let n = width_px * height_px;
-        self.depth_m.resize(n, 0.0);
-        self.normal_cam.resize(n, Vec3::ZERO);
-        self.face_index.resize(n, NO_FACE);
+        self.depth_m.resize(width_px, height_px, 0.0);
+        self.normal_cam.resize(width_px, height_px, Vec3::ZERO);
+        self.face_index.resize(width_px, height_px, NO_FACE);
     }
 
     pub fn width_px(&self) -> usize {
-        self.width_px
+        self.depth_m.width_px()
     }
 
     pub fn height_px(&self) -> usize {
-        self.height_px
+        self.depth_m.height_px()
     }
 
-    /// Whether pixel `(col, row)` shows a surface.
+    /// Distance along the optical axis (camera z) in metres; 0 where no surface.
+    pub fn depth_m(&self) -> &Image<f32> {
+        &self.depth_m
+    }
+
+    /// Unit surface normal in the camera frame; zero where no surface.
+    pub fn normal_cam(&self) -> &Image<Vec3> {
+        &self.normal_cam
+    }
+
+    /// Index of the visible face; [`NO_FACE`] where no surface (the validity mask).
+    pub fn face_index(&self) -> &Image<u32> {
+        &self.face_index
+    }
+
+    /// Whether pixel `(col, row)` shows a surface (`false` outside the image).
     pub fn is_valid(&self, col: usize, row: usize) -> bool {
-        self.face_index[row * self.width_px + col] != NO_FACE
+        self.face_index
+            .get(col, row)
+            .is_some_and(|&face| face != NO_FACE)
     }
 
     /// Number of pixels that show a surface.
     pub fn valid_count(&self) -> usize {
-        self.face_index.iter().filter(|&&f| f != NO_FACE).count()
+        self.face_index
+            .data()
+            .iter()
+            .filter(|&&f| f != NO_FACE)
+            .count()
     }
 }
 
@@ -190,8 +208,8 @@ impl Rasterizer {
         options: &RenderOptions,
         out: &mut RenderBuffers,
     ) {
-        let width = out.width_px;
-        let height = out.height_px;
+        let width = out.width_px();
+        let height = out.height_px();
         out.depth_m.fill(0.0);
         out.normal_cam.fill(Vec3::ZERO);
         out.face_index.fill(NO_FACE);
@@ -295,9 +313,10 @@ impl Rasterizer {
         let bins = &self.bins;
         let normals_cam = &self.normals_cam;
         out.depth_m
+            .data_mut()
             .par_chunks_mut(BAND_ROWS * width)
-            .zip(out.normal_cam.par_chunks_mut(BAND_ROWS * width))
-            .zip(out.face_index.par_chunks_mut(BAND_ROWS * width))
+            .zip(out.normal_cam.data_mut().par_chunks_mut(BAND_ROWS * width))
+            .zip(out.face_index.data_mut().par_chunks_mut(BAND_ROWS * width))
             .enumerate()
             .for_each(|(band, ((depth, normal), face_out))| {
                 let mut band_target = BandTarget {
@@ -676,10 +695,11 @@ mod tests {
         assert_eq!(out.valid_count(), 40 * 40);
         assert!(out.is_valid(30, 20) && out.is_valid(69, 59));
         assert!(!out.is_valid(29, 40) && !out.is_valid(70, 40));
-        let centre = 40 * 100 + 50;
-        assert!((out.depth_m[centre] - 5.0).abs() < 1e-5);
+        assert!((out.depth_m().get(50, 40).unwrap() - 5.0).abs() < 1e-5);
         // Counter-clockwise seen from the camera (y down): the normal points at the camera.
-        assert!((out.normal_cam[centre] - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-5);
+        assert!(
+            (*out.normal_cam().get(50, 40).unwrap() - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-5
+        );
     }
 
     #[test]
@@ -704,7 +724,7 @@ mod tests {
         // Below the horizon (row 50) everything is ground; the bottom row is at depth 2 * 50 / 49.5.
         assert!(out.is_valid(10, 99) && out.is_valid(90, 60));
         assert!(!out.is_valid(50, 40));
-        let depth = out.depth_m[99 * 100 + 50];
+        let depth = *out.depth_m().get(50, 99).unwrap();
         assert!((depth - 2.0 * 50.0 / 49.5).abs() < 1e-3, "{depth}");
     }
 
@@ -780,38 +800,42 @@ mod tests {
 
         // Front face, pixel (80, 42): ray (0.305, -0.075), depth 4.5.
         let p = at(80, 42);
-        assert!((face.depth_m[p] - 4.5).abs() < 1e-5, "{}", face.depth_m[p]);
-        assert!(close(face.normal_cam[p], Vec3::new(0.0, 0.0, -1.0)));
+        assert!(
+            (face.depth_m.data()[p] - 4.5).abs() < 1e-5,
+            "{}",
+            face.depth_m.data()[p]
+        );
+        assert!(close(face.normal_cam.data()[p], Vec3::new(0.0, 0.0, -1.0)));
         // Vertex normals interpolate linearly over the face: n ∝ (2 (X − 1.5), 2 Y, −1) with
         // X = 0.305 · 4.5, Y = −0.075 · 4.5 (both triangles of the face fit the same linear map).
         let (x, y) = (0.305 * 4.5 - 1.5, -0.075 * 4.5);
         let expected = Vec3::new(2.0 * x, 2.0 * y, -1.0).normalize();
         assert!(
-            close(vertex.normal_cam[p], expected),
+            close(vertex.normal_cam.data()[p], expected),
             "{} vs {expected}",
-            vertex.normal_cam[p]
+            vertex.normal_cam.data()[p]
         );
-        assert_eq!(vertex.depth_m[p], face.depth_m[p]);
+        assert_eq!(vertex.depth_m.data()[p], face.depth_m.data()[p]);
 
         // Left face, pixel (70, 50): ray (0.205, 0.005) meets x = 1 at z = 1 / 0.205.
         let p = at(70, 50);
         let z = 1.0 / 0.205;
         assert!(
-            (face.depth_m[p] - z).abs() < 1e-4,
+            (face.depth_m.data()[p] - z).abs() < 1e-4,
             "{} vs {z}",
-            face.depth_m[p]
+            face.depth_m.data()[p]
         );
-        assert!(close(face.normal_cam[p], Vec3::new(-1.0, 0.0, 0.0)));
+        assert!(close(face.normal_cam.data()[p], Vec3::new(-1.0, 0.0, 0.0)));
         // On x = 1: n ∝ (−1, 2 Y, 2 (Z − 5)).
         let expected = Vec3::new(-1.0, 2.0 * 0.005 * z, 2.0 * (z - 5.0)).normalize();
         assert!(
-            close(vertex.normal_cam[p], expected),
+            close(vertex.normal_cam.data()[p], expected),
             "{} vs {expected}",
-            vertex.normal_cam[p]
+            vertex.normal_cam.data()[p]
         );
         // The face index tells the two apart: x− is quad 4 (faces 8, 9), z− quad 0 (faces 0, 1).
-        assert!(matches!(face.face_index[p], 8 | 9));
-        assert!(matches!(face.face_index[at(80, 42)], 0 | 1));
+        assert!(matches!(face.face_index.data()[p], 8 | 9));
+        assert!(matches!(face.face_index.data()[at(80, 42)], 0 | 1));
     }
 
     #[test]
@@ -887,15 +911,16 @@ mod tests {
             local.valid_count()
         );
         let mut worst_m = 0.0f32;
-        for (a, b) in local.depth_m.iter().zip(&utm.depth_m) {
+        for (a, b) in local.depth_m.data().iter().zip(utm.depth_m.data()) {
             assert_eq!(*a == 0.0, *b == 0.0);
             worst_m = worst_m.max((a - b).abs());
         }
         assert!(worst_m < 1e-3, "worst depth difference {worst_m} m");
         let differing_faces = local
             .face_index
+            .data()
             .iter()
-            .zip(&utm.face_index)
+            .zip(utm.face_index.data())
             .filter(|(a, b)| a != b)
             .count();
         assert!(
@@ -914,9 +939,18 @@ mod tests {
         rasterizer.render(&mesh, &intrinsics, &pose, &options, &mut out);
         let fingerprint = |r: &Rasterizer, out: &RenderBuffers| {
             let mut prints = vec![
-                (out.depth_m.as_ptr() as usize, out.depth_m.capacity()),
-                (out.normal_cam.as_ptr() as usize, out.normal_cam.capacity()),
-                (out.face_index.as_ptr() as usize, out.face_index.capacity()),
+                (
+                    out.depth_m.data().as_ptr() as usize,
+                    out.depth_m.pixel_count(),
+                ),
+                (
+                    out.normal_cam.data().as_ptr() as usize,
+                    out.normal_cam.pixel_count(),
+                ),
+                (
+                    out.face_index.data().as_ptr() as usize,
+                    out.face_index.pixel_count(),
+                ),
                 (r.vertices_cam.as_ptr() as usize, r.vertices_cam.capacity()),
                 (r.normals_cam.as_ptr() as usize, r.normals_cam.capacity()),
                 (
@@ -957,7 +991,9 @@ mod tests {
         let shown = render_identity(&away, &RenderOptions::default());
         assert_eq!(shown.valid_count(), 40 * 40);
         // Without culling the normal is the face's, pointing away from the camera.
-        assert!((shown.normal_cam[50 * 100 + 50] - Vec3::new(0.0, 0.0, 1.0)).length() < 1e-5);
+        assert!(
+            (shown.normal_cam.data()[50 * 100 + 50] - Vec3::new(0.0, 0.0, 1.0)).length() < 1e-5
+        );
         assert_eq!(render_identity(&away, &culled).valid_count(), 0);
         assert_eq!(
             render_identity(&square_facing_camera(), &culled).valid_count(),

@@ -178,11 +178,12 @@ pub fn visible_points_into(
         buffers,
     );
     let world_from_cam = cam_from_world.inverse();
+    let (face_index, depth_m) = (buffers.face_index().data(), buffers.depth_m().data());
     let first = stride / 2;
     for row in (first..height).step_by(stride) {
         for col in (first..width).step_by(stride) {
             let pixel = row * width + col;
-            let face_index = buffers.face_index[pixel];
+            let face_index = face_index[pixel];
             if face_index == NO_FACE {
                 continue;
             }
@@ -190,7 +191,7 @@ pub fn visible_points_into(
                 .intrinsics
                 .pixel_to_normalized(Vector2::new(col as f64 + 0.5, row as f64 + 0.5));
             let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
-            let depth_m = f64::from(buffers.depth_m[pixel]);
+            let depth_m = f64::from(depth_m[pixel]);
             let point_cam =
                 ray_plane_point_cam(mesh, face_index as usize, cam_from_world, &ray_cam, depth_m)
                     .unwrap_or(ray_cam * depth_m);

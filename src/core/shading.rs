@@ -10,14 +10,15 @@
 //! *mean* over directions too — the tests measure by how much. The scale does not matter to SIFT
 //! (descriptors are normalised); the shape of the response does.
 //!
-//! All functions write into caller-provided buffers and run over rows with rayon: one rendering
-//! per coarse pose goes through here.
+//! All functions write into caller-provided images (resized to the input's size, allocating only
+//! when it grows) and run over rows with rayon: one rendering per coarse pose goes through here.
 
 use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::camera::PinholeIntrinsics;
+use super::image::{Image, ImageView};
 
 /// `sqrt(pi / 3)`, the constant of the closed form (paper eq. 4).
 pub const ASG_SCALE: f32 = 1.023_326_7;
@@ -99,25 +100,18 @@ pub struct AsgOptions {
 /// The normal a background pixel stands for in [`SilhouetteMode::BackgroundFacesCamera`].
 const BACKGROUND_NORMAL_CAM: Vec3 = Vec3::new(0.0, 0.0, -1.0);
 
-/// Closed-form ASG (paper eq. 4) of a row-major normal map; a zero normal means "no surface".
-/// Image borders replicate the edge pixels. `normals` and `out` hold `width_px * height_px`
-/// entries; a mismatch writes nothing beyond the shorter of them (debug builds assert).
-pub fn asg_from_normals(
-    normals: &[Vec3],
-    width_px: usize,
-    height_px: usize,
-    options: &AsgOptions,
-    out: &mut [f32],
-) {
-    let pixel_count = width_px * height_px;
-    debug_assert_eq!(normals.len(), pixel_count);
-    debug_assert_eq!(out.len(), pixel_count);
-    if width_px == 0 || normals.len() < pixel_count || out.len() < pixel_count {
+/// Closed-form ASG (paper eq. 4) of a normal map into `out` (made the normal map's size); a zero
+/// normal means "no surface". Image borders replicate the edge pixels.
+pub fn asg_from_normals(normals: ImageView<'_, Vec3>, options: &AsgOptions, out: &mut Image<f32>) {
+    let (width_px, height_px) = normals.size();
+    out.resize(width_px, height_px, 0.0);
+    if normals.is_empty() {
         return;
     }
+    let normals = normals.data();
     let cross_weights = options.derivative_filter.cross_weights();
     let silhouette_mode = options.silhouette_mode;
-    out[..pixel_count]
+    out.data_mut()
         .par_chunks_mut(width_px)
         .enumerate()
         .for_each(|(row, out_row)| {
@@ -156,34 +150,27 @@ pub fn asg_from_normals(
         });
 }
 
-/// Gradient magnitude `sqrt((hx*I)^2 + (hy*I)^2)` of a row-major grey image with the default
-/// derivative filter of [`AsgOptions`] (query mode (a)). Borders replicate the edge pixels.
-pub fn gradient_magnitude(pixels: &[f32], width_px: usize, height_px: usize, out: &mut [f32]) {
-    gradient_magnitude_with_filter(
-        pixels,
-        width_px,
-        height_px,
-        AsgOptions::default().derivative_filter,
-        out,
-    );
+/// Gradient magnitude `sqrt((hx*I)^2 + (hy*I)^2)` of a grey image into `out` (made the image's
+/// size) with the default derivative filter of [`AsgOptions`] (query mode (a)). Borders
+/// replicate the edge pixels.
+pub fn gradient_magnitude(image: ImageView<'_, f32>, out: &mut Image<f32>) {
+    gradient_magnitude_with_filter(image, AsgOptions::default().derivative_filter, out);
 }
 
 /// [`gradient_magnitude`] with an explicit filter (use the one of the ASG renderings).
 pub fn gradient_magnitude_with_filter(
-    pixels: &[f32],
-    width_px: usize,
-    height_px: usize,
+    image: ImageView<'_, f32>,
     filter: DerivativeFilter,
-    out: &mut [f32],
+    out: &mut Image<f32>,
 ) {
-    let pixel_count = width_px * height_px;
-    debug_assert_eq!(pixels.len(), pixel_count);
-    debug_assert_eq!(out.len(), pixel_count);
-    if width_px == 0 || pixels.len() < pixel_count || out.len() < pixel_count {
+    let (width_px, height_px) = image.size();
+    out.resize(width_px, height_px, 0.0);
+    if image.is_empty() {
         return;
     }
+    let pixels = image.data();
     let cross_weights = filter.cross_weights();
-    out[..pixel_count]
+    out.data_mut()
         .par_chunks_mut(width_px)
         .enumerate()
         .for_each(|(row, out_row)| {
@@ -203,25 +190,23 @@ pub fn gradient_magnitude_with_filter(
         });
 }
 
-/// Unit surface normals (camera frame, facing the camera) from a depth map: pixel centres are
-/// back-projected with the depth (metres along the optical axis; holes are 0 or non-finite),
-/// tangents are central differences of the 3D points, one-sided where a neighbour is a hole;
-/// the normal is their cross product oriented toward the camera. Zero where it cannot be
-/// computed (a hole, or no neighbour along one axis). Query mode (b) is
-/// `asg_from_normals(normals_from_depth(..))`.
+/// Unit surface normals (camera frame, facing the camera) from a depth map, into `out` (made the
+/// depth map's size): pixel centres are back-projected with the depth (metres along the optical
+/// axis; holes are 0 or non-finite), tangents are central differences of the 3D points,
+/// one-sided where a neighbour is a hole; the normal is their cross product oriented toward the
+/// camera. Zero where it cannot be computed (a hole, or no neighbour along one axis). Query mode
+/// (b) is `asg_from_normals(normals_from_depth(..))`.
 pub fn normals_from_depth(
-    depth_m: &[f32],
-    width_px: usize,
-    height_px: usize,
+    depth_m: ImageView<'_, f32>,
     intrinsics: &PinholeIntrinsics,
-    out: &mut [Vec3],
+    out: &mut Image<Vec3>,
 ) {
-    let pixel_count = width_px * height_px;
-    debug_assert_eq!(depth_m.len(), pixel_count);
-    debug_assert_eq!(out.len(), pixel_count);
-    if width_px == 0 || depth_m.len() < pixel_count || out.len() < pixel_count {
+    let (width_px, height_px) = depth_m.size();
+    out.resize(width_px, height_px, Vec3::ZERO);
+    if depth_m.is_empty() {
         return;
     }
+    let depth_m = depth_m.data();
     let back_project = |col: usize, row: usize| -> Option<Vec3> {
         let depth = depth_m[row * width_px + col];
         if !(depth.is_finite() && depth > 0.0) {
@@ -242,7 +227,7 @@ pub fn normals_from_depth(
         (Some(before), None) => Some(centre - before),
         (None, None) => None,
     };
-    out[..pixel_count]
+    out.data_mut()
         .par_chunks_mut(width_px)
         .enumerate()
         .for_each(|(row, out_row)| {
@@ -350,16 +335,16 @@ mod tests {
     fn a_constant_normal_map_has_no_gradient() {
         let (width, height) = (13, 9);
         let normal = Vec3::new(0.3, -0.4, -0.8).normalize();
-        let normals = vec![normal; width * height];
-        let mut out = vec![f32::NAN; width * height];
+        let normals = Image::filled(width, height, normal);
+        let mut out = Image::filled(width, height, f32::NAN);
         for derivative_filter in FILTERS {
             for silhouette_mode in MODES {
                 let options = AsgOptions {
                     derivative_filter,
                     silhouette_mode,
                 };
-                asg_from_normals(&normals, width, height, &options, &mut out);
-                assert!(out.iter().all(|&v| v == 0.0), "{options:?}: {out:?}");
+                asg_from_normals(normals.view(), &options, &mut out);
+                assert!(out.data().iter().all(|&v| v == 0.0), "{options:?}: {out:?}");
             }
         }
     }
@@ -370,23 +355,21 @@ mod tests {
         let (width, height) = (12, 7);
         let n1 = Vec3::new(-0.6, 0.0, -0.8);
         let n2 = Vec3::new(0.6, 0.0, -0.8);
-        let normals: Vec<Vec3> = (0..width * height)
-            .map(|i| if i % width < 6 { n1 } else { n2 })
-            .collect();
+        let normals = Image::from_fn(width, height, |col, _| if col < 6 { n1 } else { n2 });
         // Both filters: hx = (n2 - n1) / 2 at columns 5 and 6 (the only ones whose stencil
         // straddles the crease), hy = 0 (constant along columns, borders replicated).
         // |n2 - n1| = 1.2 → ASG = sqrt(pi/3) * 0.6.
         let expected = (std::f32::consts::PI / 3.0).sqrt() * 0.6;
-        let mut out = vec![f32::NAN; width * height];
+        let mut out = Image::filled(width, height, f32::NAN);
         for derivative_filter in FILTERS {
             let options = AsgOptions {
                 derivative_filter,
                 ..AsgOptions::default()
             };
-            asg_from_normals(&normals, width, height, &options, &mut out);
+            asg_from_normals(normals.view(), &options, &mut out);
             for row in 0..height {
                 for col in 0..width {
-                    let value = out[row * width + col];
+                    let value = out.data()[row * width + col];
                     let want = if col == 5 || col == 6 { expected } else { 0.0 };
                     assert!(
                         (value - want).abs() < 1e-6,
@@ -403,37 +386,35 @@ mod tests {
         let (width, height) = (10, 10);
         let tilted = Vec3::new(0.0, 0.6, -0.8);
         let inside = |col: usize, row: usize| (3..7).contains(&col) && (3..7).contains(&row);
-        let normals: Vec<Vec3> = (0..width * height)
-            .map(|i| {
-                if inside(i % width, i / width) {
-                    tilted
-                } else {
-                    Vec3::ZERO
-                }
-            })
-            .collect();
-        let mut valid_only = vec![f32::NAN; width * height];
-        let mut facing = vec![f32::NAN; width * height];
+        let normals = Image::from_fn(width, height, |col, row| {
+            if inside(col, row) {
+                tilted
+            } else {
+                Vec3::ZERO
+            }
+        });
+        let mut valid_only = Image::filled(width, height, f32::NAN);
+        let mut facing = Image::filled(width, height, f32::NAN);
         let options = |silhouette_mode| AsgOptions {
             derivative_filter: DerivativeFilter::CentralDifference,
             silhouette_mode,
         };
         asg_from_normals(
-            &normals,
-            width,
-            height,
+            normals.view(),
             &options(SilhouetteMode::ValidOnly),
             &mut valid_only,
         );
         asg_from_normals(
-            &normals,
-            width,
-            height,
+            normals.view(),
             &options(SilhouetteMode::BackgroundFacesCamera),
             &mut facing,
         );
+        let facing = facing.data();
         // ValidOnly: a constant surface has no gradient anywhere, background is 0.
-        assert!(valid_only.iter().all(|&v| v == 0.0), "{valid_only:?}");
+        assert!(
+            valid_only.data().iter().all(|&v| v == 0.0),
+            "{valid_only:?}"
+        );
         // BackgroundFacesCamera: the left border pixel (3, 4) sees background (0,0,-1) on its
         // left: hx = (tilted - bg) / 2, |tilted - bg| = sqrt(0.36 + 0.04) → ASG = s * sqrt(0.4)/2.
         let s = (std::f32::consts::PI / 3.0).sqrt();
@@ -447,7 +428,7 @@ mod tests {
     }
 
     /// A smooth random unit normal field facing the camera.
-    fn smooth_random_normals(width: usize, height: usize, seed: u64) -> Vec<Vec3> {
+    fn smooth_random_normals(width: usize, height: usize, seed: u64) -> Image<Vec3> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let waves: Vec<(f32, f32, f32, f32)> = (0..6)
             .map(|_| {
@@ -459,21 +440,19 @@ mod tests {
                 )
             })
             .collect();
-        (0..width * height)
-            .map(|i| {
-                let (x, y) = ((i % width) as f32, (i / width) as f32);
-                let mut n = Vec3::new(0.0, 0.0, -1.0);
-                for (k, &(fx, fy, phase, amplitude)) in waves.iter().enumerate() {
-                    let v = amplitude * (fx * x + fy * y + phase).sin();
-                    if k % 2 == 0 {
-                        n.x += v;
-                    } else {
-                        n.y += v;
-                    }
+        Image::from_fn(width, height, |col, row| {
+            let (x, y) = (col as f32, row as f32);
+            let mut n = Vec3::new(0.0, 0.0, -1.0);
+            for (k, &(fx, fy, phase, amplitude)) in waves.iter().enumerate() {
+                let v = amplitude * (fx * x + fy * y + phase).sin();
+                if k % 2 == 0 {
+                    n.x += v;
+                } else {
+                    n.y += v;
                 }
-                n.normalize()
-            })
-            .collect()
+            }
+            n.normalize()
+        })
     }
 
     /// `count` directions spread evenly over the unit sphere (Fibonacci lattice).
@@ -499,30 +478,24 @@ mod tests {
                 derivative_filter,
                 ..AsgOptions::default()
             };
-            let mut closed_form = vec![0.0; width * height];
-            asg_from_normals(&normals, width, height, &options, &mut closed_form);
+            let mut closed_form = Image::default();
+            asg_from_normals(normals.view(), &options, &mut closed_form);
 
             let mut average = vec![0.0f64; width * height];
-            let mut shading = vec![0.0f32; width * height];
-            let mut gradient = vec![0.0f32; width * height];
+            let mut shading = Image::filled(width, height, 0.0f32);
+            let mut gradient = Image::default();
             for light in &directions {
-                for (s, n) in shading.iter_mut().zip(&normals) {
+                for (s, n) in shading.data_mut().iter_mut().zip(normals.data()) {
                     *s = (-n.dot(*light)).max(0.0);
                 }
-                gradient_magnitude_with_filter(
-                    &shading,
-                    width,
-                    height,
-                    derivative_filter,
-                    &mut gradient,
-                );
-                for (a, g) in average.iter_mut().zip(&gradient) {
+                gradient_magnitude_with_filter(shading.view(), derivative_filter, &mut gradient);
+                for (a, g) in average.iter_mut().zip(gradient.data()) {
                     *a += f64::from(*g);
                 }
             }
             let mut ratio_sum = 0.0;
             let mut ratio_count = 0;
-            for (pixel, (&avg_sum, &closed)) in average.iter().zip(&closed_form).enumerate() {
+            for (pixel, (&avg_sum, &closed)) in average.iter().zip(closed_form.data()).enumerate() {
                 let mean = avg_sum / directions.len() as f64;
                 assert!(
                     mean <= f64::from(closed) + 1e-6,
@@ -549,29 +522,25 @@ mod tests {
     fn gradient_magnitude_of_a_step_edge() {
         // Intensity 0 left of column 5, 10 from column 5 on.
         let (width, height) = (10, 6);
-        let pixels: Vec<f32> = (0..width * height)
-            .map(|i| if i % width < 5 { 0.0 } else { 10.0 })
-            .collect();
-        let mut out = vec![f32::NAN; width * height];
+        let pixels = Image::from_fn(width, height, |col, _| if col < 5 { 0.0 } else { 10.0 });
+        let mut out = Image::filled(width, height, f32::NAN);
         for filter in FILTERS {
-            gradient_magnitude_with_filter(&pixels, width, height, filter, &mut out);
+            gradient_magnitude_with_filter(pixels.view(), filter, &mut out);
             for row in 0..height {
                 for col in 0..width {
                     let want = if col == 4 || col == 5 { 5.0 } else { 0.0 };
                     assert!(
-                        (out[row * width + col] - want).abs() < 1e-6,
+                        (out.data()[row * width + col] - want).abs() < 1e-6,
                         "{filter:?} ({col}, {row})"
                     );
                 }
             }
         }
         // The default entry point uses the default filter.
-        let mut default_out = vec![f32::NAN; width * height];
-        gradient_magnitude(&pixels, width, height, &mut default_out);
+        let mut default_out = Image::filled(width, height, f32::NAN);
+        gradient_magnitude(pixels.view(), &mut default_out);
         gradient_magnitude_with_filter(
-            &pixels,
-            width,
-            height,
+            pixels.view(),
             AsgOptions::default().derivative_filter,
             &mut out,
         );
@@ -600,18 +569,18 @@ mod tests {
         );
         assert_eq!(buffers.valid_count(), width * height);
         // Punch a hole so the one-sided fallback is exercised.
-        let mut depth = buffers.depth_m.clone();
-        depth[20 * width + 30] = 0.0;
-        depth[21 * width + 30] = f32::NAN;
-        let mut normals = vec![Vec3::splat(f32::NAN); width * height];
-        normals_from_depth(&depth, width, height, &intrinsics, &mut normals);
+        let mut depth = buffers.depth_m().clone();
+        *depth.get_mut(30, 20).unwrap() = 0.0;
+        *depth.get_mut(30, 21).unwrap() = f32::NAN;
+        let mut normals = Image::filled(width, height, Vec3::splat(f32::NAN));
+        normals_from_depth(depth.view(), &intrinsics, &mut normals);
         // The normal facing the camera (the camera looks along +z, so n_z < 0).
         let expected = Vec3::new(
             plane_normal.x as f32,
             plane_normal.y as f32,
             plane_normal.z as f32,
         );
-        for (pixel, normal) in normals.iter().enumerate() {
+        for (pixel, normal) in normals.data().iter().enumerate() {
             if pixel == 20 * width + 30 || pixel == 21 * width + 30 {
                 assert_eq!(*normal, Vec3::ZERO);
             } else {
@@ -622,12 +591,12 @@ mod tests {
             }
         }
         // A plane has no ASG (away from the hole, whose border sees only valid pixels).
-        let mut asg = vec![f32::NAN; width * height];
-        asg_from_normals(&normals, width, height, &AsgOptions::default(), &mut asg);
+        let mut asg = Image::filled(width, height, f32::NAN);
+        asg_from_normals(normals.view(), &AsgOptions::default(), &mut asg);
         assert!(
-            asg.iter().all(|&a| a < 5e-3),
+            asg.data().iter().all(|&a| a < 5e-3),
             "max {:?}",
-            asg.iter().cloned().fold(0.0, f32::max)
+            asg.data().iter().cloned().fold(0.0, f32::max)
         );
     }
 
@@ -635,17 +604,15 @@ mod tests {
     fn normals_from_depth_are_zero_where_a_whole_axis_is_missing() {
         // A single valid column: no horizontal neighbour anywhere → all zero.
         let (width, height) = (5, 5);
-        let depth: Vec<f32> = (0..width * height)
-            .map(|i| if i % width == 2 { 3.0 } else { 0.0 })
-            .collect();
-        let mut normals = vec![Vec3::ONE; width * height];
+        let depth = Image::from_fn(width, height, |col, _| if col == 2 { 3.0 } else { 0.0 });
+        let mut normals = Image::filled(width, height, Vec3::ONE);
         let intrinsics = PinholeIntrinsics::centered(10.0, 5, 5);
-        normals_from_depth(&depth, width, height, &intrinsics, &mut normals);
-        assert!(normals.iter().all(|n| *n == Vec3::ZERO));
+        normals_from_depth(depth.view(), &intrinsics, &mut normals);
+        assert!(normals.data().iter().all(|n| *n == Vec3::ZERO));
         // A fronto-parallel plane: normal (0, 0, -1) everywhere, borders included.
-        let depth = vec![3.0; width * height];
-        normals_from_depth(&depth, width, height, &intrinsics, &mut normals);
-        for n in &normals {
+        let depth = Image::filled(width, height, 3.0);
+        normals_from_depth(depth.view(), &intrinsics, &mut normals);
+        for n in normals.data() {
             assert!((*n - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-6, "{n}");
         }
     }

@@ -34,14 +34,6 @@ pub enum FloError {
         width: i64,
         height: i64,
     },
-    #[error("{path}: flow field has {u_len} u and {v_len} v values for {width} x {height} pixels")]
-    InconsistentField {
-        path: PathBuf,
-        width: usize,
-        height: usize,
-        u_len: usize,
-        v_len: usize,
-    },
 }
 
 /// Reads a Middlebury `.flo` file.
@@ -78,33 +70,22 @@ pub fn read_flo(path: &Path) -> Result<FlowField, FloError> {
     let mut bytes = vec![0u8; pixel_count * 8];
     reader.read_exact(&mut bytes).map_err(io_error)?;
     let mut field = FlowField::zeros(width_px, height_px);
-    for (pixel, chunk) in bytes.chunks_exact(8).enumerate() {
-        field.u_px[pixel] = f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
-        field.v_px[pixel] = f32::from_le_bytes([chunk[4], chunk[5], chunk[6], chunk[7]]);
+    let (u_px, v_px) = field.planes_mut();
+    for ((u, v), chunk) in u_px.iter_mut().zip(v_px).zip(bytes.chunks_exact(8)) {
+        *u = f32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
+        *v = f32::from_le_bytes([chunk[4], chunk[5], chunk[6], chunk[7]]);
     }
     Ok(field)
 }
 
 /// Writes a Middlebury `.flo` file.
 pub fn write_flo(path: &Path, field: &FlowField) -> Result<(), FloError> {
-    let pixel_count = field.width_px * field.height_px;
-    if field.u_px.len() != pixel_count || field.v_px.len() != pixel_count {
-        return Err(FloError::InconsistentField {
-            path: path.to_path_buf(),
-            width: field.width_px,
-            height: field.height_px,
-            u_len: field.u_px.len(),
-            v_len: field.v_px.len(),
-        });
-    }
-    let (Ok(width), Ok(height)) = (
-        i32::try_from(field.width_px),
-        i32::try_from(field.height_px),
-    ) else {
+    let (width_px, height_px) = field.size();
+    let (Ok(width), Ok(height)) = (i32::try_from(width_px), i32::try_from(height_px)) else {
         return Err(FloError::BadSize {
             path: path.to_path_buf(),
-            width: field.width_px as i64,
-            height: field.height_px as i64,
+            width: width_px as i64,
+            height: height_px as i64,
         });
     };
     let io_error = |source| FloError::Io {
@@ -113,11 +94,11 @@ pub fn write_flo(path: &Path, field: &FlowField) -> Result<(), FloError> {
     };
     let file = File::create(path).map_err(io_error)?;
     let mut writer = BufWriter::new(file);
-    let mut bytes = Vec::with_capacity(12 + pixel_count * 8);
+    let mut bytes = Vec::with_capacity(12 + field.u_px().pixel_count() * 8);
     bytes.extend_from_slice(&FLO_MAGIC.to_le_bytes());
     bytes.extend_from_slice(&width.to_le_bytes());
     bytes.extend_from_slice(&height.to_le_bytes());
-    for (u, v) in field.u_px.iter().zip(&field.v_px) {
+    for (u, v) in field.u_px().data().iter().zip(field.v_px().data()) {
         bytes.extend_from_slice(&u.to_le_bytes());
         bytes.extend_from_slice(&v.to_le_bytes());
     }
@@ -134,9 +115,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("field.flo");
         let mut field = FlowField::zeros(3, 2);
+        let (u_px, v_px) = field.planes_mut();
         for pixel in 0..6 {
-            field.u_px[pixel] = pixel as f32 * 0.5 - 1.0;
-            field.v_px[pixel] = -(pixel as f32) * 1.25;
+            u_px[pixel] = pixel as f32 * 0.5 - 1.0;
+            v_px[pixel] = -(pixel as f32) * 1.25;
         }
         write_flo(&path, &field).unwrap();
         let read_back = read_flo(&path).unwrap();
@@ -177,9 +159,10 @@ mod tests {
     fn real_pair_ground_truth_has_the_documented_size() {
         let path = crate::test_data::repo_data("flow-pairs/dji0024_505x275_gt.flo");
         let field = read_flo(&path).unwrap();
-        assert_eq!((field.width_px, field.height_px), (505, 275));
+        assert_eq!(field.size(), (505, 275));
         // Translation (7, -4) plus at most 3 px of sinusoid.
-        let mean_u = field.u_px.iter().sum::<f32>() / field.u_px.len() as f32;
+        let u_px = field.u_px().data();
+        let mean_u = u_px.iter().sum::<f32>() / u_px.len() as f32;
         assert!((mean_u - 7.0).abs() < 3.0, "mean u {mean_u}");
     }
 }

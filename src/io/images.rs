@@ -4,7 +4,9 @@
 //!
 //! PNG and JPEG are supported (the `image` crate's decoders; the format is recognised from the
 //! file's content, not its extension). Grayscale is Rec. 601 luma, `0.299 R + 0.587 G + 0.114 B`,
-//! in `0..=1`; alpha is ignored; 16-bit images keep their precision. Every error names the file.
+//! in `0..=1`; alpha is ignored; 16-bit images keep their precision. Images are
+//! [`crate::core::image::Image`]s: grey ones `Image<f32>` (row-major, top row first, `0..=1`),
+//! colour ones `Image<[u8; 3]>`. Every error names the file.
 
 use std::fs::File;
 use std::io::BufReader;
@@ -13,6 +15,7 @@ use std::path::{Path, PathBuf};
 use image::{DynamicImage, ImageFormat, ImageReader};
 
 use crate::core::camera::Camera;
+use crate::core::image::{Image, ImageView};
 
 /// Errors of loading, saving and checking images; each names the file.
 #[derive(Debug, thiserror::Error)]
@@ -39,15 +42,13 @@ pub enum ImageIoError {
         source: image::ImageError,
     },
     #[error(
-        "cannot write image {}: a {width_px}x{height_px} image needs {expected_pixels} pixels, the buffer has {found_pixels}",
+        "cannot write image {}: a {width_px}x{height_px} image is empty or too large for a PNG",
         path.display()
     )]
-    BufferSize {
+    EmptyOrTooLarge {
         path: PathBuf,
         width_px: usize,
         height_px: usize,
-        expected_pixels: usize,
-        found_pixels: usize,
     },
     #[error(
         "image {} is {width_px}x{height_px} px but camera {camera_id} in cameras.txt is {camera_width_px}x{camera_height_px} px; resize the image to {camera_width_px}x{camera_height_px} px or fix camera {camera_id} in cameras.txt (its WIDTH, HEIGHT and intrinsics together)",
@@ -61,31 +62,6 @@ pub enum ImageIoError {
         camera_width_px: u32,
         camera_height_px: u32,
     },
-}
-
-/// A grayscale image: row-major (`pixels[row * width_px + col]`), top row first, values `0..=1`.
-#[derive(Clone, Debug, PartialEq)]
-pub struct GrayImage {
-    pub width_px: usize,
-    pub height_px: usize,
-    pub pixels: Vec<f32>,
-}
-
-impl GrayImage {
-    /// A black image.
-    pub fn new(width_px: usize, height_px: usize) -> Self {
-        Self {
-            width_px,
-            height_px,
-            pixels: vec![0.0; width_px * height_px],
-        }
-    }
-
-    /// The value at `(col, row)`; `None` outside the image.
-    pub fn get(&self, col: usize, row: usize) -> Option<f32> {
-        (col < self.width_px && row < self.height_px)
-            .then(|| self.pixels[row * self.width_px + col])
-    }
 }
 
 /// Rec. 601 luma of linear-in-file RGB values in `0..=1`.
@@ -197,7 +173,7 @@ pub fn read_image_size(path: &Path) -> Result<(usize, usize), ImageIoError> {
 }
 
 /// Loads an image as Rec. 601 luma in `0..=1` (grayscale files are taken as they are).
-pub fn load_gray(path: &Path) -> Result<GrayImage, ImageIoError> {
+pub fn load_gray(path: &Path) -> Result<Image<f32>, ImageIoError> {
     let image = decode(path)?;
     let (width_px, height_px) = (image.width() as usize, image.height() as usize);
     let pixels = if image.color().has_color() {
@@ -209,36 +185,41 @@ pub fn load_gray(path: &Path) -> Result<GrayImage, ImageIoError> {
     } else {
         image.to_luma32f().into_raw()
     };
-    Ok(GrayImage {
-        width_px,
-        height_px,
-        pixels,
-    })
+    Image::new(width_px, height_px, pixels).map_err(|error| decoded_size_error(path, error))
 }
 
-/// Loads an image as 8-bit RGB: `(width_px, height_px, pixels)`, row-major, top row first.
-pub fn load_rgb(path: &Path) -> Result<(usize, usize, Vec<[u8; 3]>), ImageIoError> {
+/// Loads an image as 8-bit RGB.
+pub fn load_rgb(path: &Path) -> Result<Image<[u8; 3]>, ImageIoError> {
     let image = decode(path)?.to_rgb8();
     let (width_px, height_px) = (image.width() as usize, image.height() as usize);
     let pixels = image.pixels().map(|pixel| pixel.0).collect();
-    Ok((width_px, height_px, pixels))
+    Image::new(width_px, height_px, pixels).map_err(|error| decoded_size_error(path, error))
 }
 
-/// Checks the buffer length and that the size fits a PNG; returns the size as `u32`s.
+/// A decoder that returned a buffer of another size than it announced (never seen; reported as
+/// a decoding error of the file rather than a panic).
+fn decoded_size_error(path: &Path, error: crate::core::image::ImageError) -> ImageIoError {
+    ImageIoError::Decode {
+        path: path.to_path_buf(),
+        source: image::ImageError::Decoding(image::error::DecodingError::new(
+            image::error::ImageFormatHint::Unknown,
+            error.to_string(),
+        )),
+    }
+}
+
+/// Checks that the size fits a PNG (not empty, each side a `u32`); returns it as `u32`s.
 fn checked_size(
     path: &Path,
     width_px: usize,
     height_px: usize,
-    found_pixels: usize,
 ) -> Result<(u32, u32), ImageIoError> {
-    let size_error = || ImageIoError::BufferSize {
+    let size_error = || ImageIoError::EmptyOrTooLarge {
         path: path.to_path_buf(),
         width_px,
         height_px,
-        expected_pixels: width_px.saturating_mul(height_px),
-        found_pixels,
     };
-    if width_px == 0 || height_px == 0 || width_px.checked_mul(height_px) != Some(found_pixels) {
+    if width_px == 0 || height_px == 0 {
         return Err(size_error());
     }
     match (u32::try_from(width_px), u32::try_from(height_px)) {
@@ -263,44 +244,35 @@ where
 }
 
 /// Saves a grayscale image as an 8-bit PNG; values are clamped to `0..=1` (NaN becomes 0).
-pub fn save_gray_png(path: &Path, image: &GrayImage) -> Result<(), ImageIoError> {
-    let (width, height) = checked_size(path, image.width_px, image.height_px, image.pixels.len())?;
+pub fn save_gray_png(path: &Path, image: ImageView<'_, f32>) -> Result<(), ImageIoError> {
+    let (width, height) = checked_size(path, image.width_px(), image.height_px())?;
     let bytes: Vec<u8> = image
-        .pixels
+        .data()
         .iter()
         .map(|value| (value.clamp(0.0, 1.0) * 255.0).round() as u8)
         .collect();
-    let buffer = image::GrayImage::from_raw(width, height, bytes).ok_or_else(|| {
-        ImageIoError::BufferSize {
-            path: path.to_path_buf(),
-            width_px: image.width_px,
-            height_px: image.height_px,
-            expected_pixels: image.width_px * image.height_px,
-            found_pixels: image.pixels.len(),
-        }
-    })?;
+    // The image's size is checked at construction: the buffer always fits.
+    let buffer = image::GrayImage::from_raw(width, height, bytes)
+        .ok_or_else(|| unexpected_length(path, image.width_px(), image.height_px()))?;
     save_png(path, buffer)
 }
 
-/// Saves 8-bit RGB pixels (row-major, top row first) as a PNG.
-pub fn save_rgb_png(
-    path: &Path,
-    width_px: usize,
-    height_px: usize,
-    rgb: &[[u8; 3]],
-) -> Result<(), ImageIoError> {
-    let (width, height) = checked_size(path, width_px, height_px, rgb.len())?;
-    let bytes: Vec<u8> = rgb.iter().flatten().copied().collect();
-    let buffer = image::RgbImage::from_raw(width, height, bytes).ok_or_else(|| {
-        ImageIoError::BufferSize {
-            path: path.to_path_buf(),
-            width_px,
-            height_px,
-            expected_pixels: width_px * height_px,
-            found_pixels: rgb.len(),
-        }
-    })?;
+/// Saves an 8-bit RGB image as a PNG.
+pub fn save_rgb_png(path: &Path, image: ImageView<'_, [u8; 3]>) -> Result<(), ImageIoError> {
+    let (width, height) = checked_size(path, image.width_px(), image.height_px())?;
+    let bytes: Vec<u8> = image.data().iter().flatten().copied().collect();
+    let buffer = image::RgbImage::from_raw(width, height, bytes)
+        .ok_or_else(|| unexpected_length(path, image.width_px(), image.height_px()))?;
     save_png(path, buffer)
+}
+
+/// The `image` crate refused a buffer of the right length (cannot happen; an error, not a panic).
+fn unexpected_length(path: &Path, width_px: usize, height_px: usize) -> ImageIoError {
+    ImageIoError::EmptyOrTooLarge {
+        path: path.to_path_buf(),
+        width_px,
+        height_px,
+    }
 }
 
 /// Checks that an image of `width_px` × `height_px` (the size of the file at `image_path`) is the
@@ -345,19 +317,15 @@ mod tests {
     fn gray_png_round_trips_to_8_bit_precision_and_clamps() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("gray.png");
-        let image = GrayImage {
-            width_px: 3,
-            height_px: 2,
-            pixels: vec![0.0, 0.25, 1.0, -0.5, 1.7, 100.0 / 255.0],
-        };
-        save_gray_png(&path, &image).unwrap();
+        let image = Image::new(3, 2, vec![0.0, 0.25, 1.0, -0.5, 1.7, 100.0 / 255.0]).unwrap();
+        save_gray_png(&path, image.view()).unwrap();
         let loaded = load_gray(&path).unwrap();
-        assert_eq!((loaded.width_px, loaded.height_px), (3, 2));
+        assert_eq!(loaded.size(), (3, 2));
         let expected = [0.0, 64.0 / 255.0, 1.0, 0.0, 1.0, 100.0 / 255.0];
-        for (got, want) in loaded.pixels.iter().zip(expected) {
+        for (got, want) in loaded.data().iter().zip(expected) {
             assert!((got - want).abs() < 1e-6, "{got} vs {want}");
         }
-        assert_eq!(loaded.get(2, 1), Some(loaded.pixels[5]));
+        assert_eq!(loaded.get(2, 1), Some(&loaded.data()[5]));
         assert_eq!(loaded.get(3, 0), None);
         assert_eq!(read_image_size(&path).unwrap(), (3, 2));
     }
@@ -367,8 +335,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("rgb.png");
         let rgb = [[255, 0, 0], [0, 255, 0], [0, 0, 255], [10, 200, 30]];
-        save_rgb_png(&path, 2, 2, &rgb).unwrap();
-        assert_eq!(load_rgb(&path).unwrap(), (2, 2, rgb.to_vec()));
+        let image = Image::new(2, 2, rgb.to_vec()).unwrap();
+        save_rgb_png(&path, image.view()).unwrap();
+        assert_eq!(load_rgb(&path).unwrap(), image);
 
         let gray = load_gray(&path).unwrap();
         let expected = [
@@ -377,7 +346,7 @@ mod tests {
             0.114,
             (0.299 * 10.0 + 0.587 * 200.0 + 0.114 * 30.0) / 255.0,
         ];
-        for (got, want) in gray.pixels.iter().zip(expected) {
+        for (got, want) in gray.data().iter().zip(expected) {
             assert!((got - want).abs() < 1e-6, "{got} vs {want}");
         }
     }
@@ -389,9 +358,9 @@ mod tests {
         let buffer = image::RgbImage::from_fn(16, 8, |x, _| image::Rgb([(x * 16) as u8, 128, 64]));
         buffer.save_with_format(&path, ImageFormat::Jpeg).unwrap();
         let gray = load_gray(&path).unwrap();
-        assert_eq!((gray.width_px, gray.height_px), (16, 8));
+        assert_eq!(gray.size(), (16, 8));
         // Brightness rises left to right.
-        assert!(gray.get(15, 4).unwrap() > gray.get(0, 4).unwrap() + 0.2);
+        assert!(gray.get(15, 4).unwrap() > &(gray.get(0, 4).unwrap() + 0.2));
     }
 
     #[test]
@@ -412,7 +381,7 @@ mod tests {
                 ]
             })
             .collect();
-        save_rgb_png(&good, 64, 64, &noise).unwrap();
+        save_rgb_png(&good, Image::new(64, 64, noise).unwrap().view()).unwrap();
         let bytes = std::fs::read(&good).unwrap();
         let truncated = dir.path().join("truncated.png");
         std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
@@ -450,25 +419,25 @@ mod tests {
     }
 
     #[test]
-    fn saving_checks_the_buffer_and_names_the_file() {
+    fn saving_checks_the_size_and_names_the_file() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("short.png");
-        let error = save_rgb_png(&path, 2, 2, &[[0, 0, 0]; 3]).unwrap_err();
+        let path = dir.path().join("empty.png");
+        let error = save_gray_png(&path, Image::filled(0, 5, 0.0).view()).unwrap_err();
         assert!(matches!(
             error,
-            ImageIoError::BufferSize {
-                expected_pixels: 4,
-                found_pixels: 3,
+            ImageIoError::EmptyOrTooLarge {
+                width_px: 0,
+                height_px: 5,
                 ..
             }
         ));
-        assert!(error.to_string().contains("short.png"), "{error}");
-        let error = save_gray_png(&path, &GrayImage::new(0, 5)).unwrap_err();
-        assert!(matches!(error, ImageIoError::BufferSize { .. }));
+        assert!(error.to_string().contains("empty.png"), "{error}");
+        let error = save_rgb_png(&path, Image::filled(3, 0, [0; 3]).view()).unwrap_err();
+        assert!(matches!(error, ImageIoError::EmptyOrTooLarge { .. }));
         assert!(!path.exists());
 
         let unwritable = dir.path().join("no_such_dir").join("out.png");
-        let error = save_gray_png(&unwritable, &GrayImage::new(2, 2)).unwrap_err();
+        let error = save_gray_png(&unwritable, Image::filled(2, 2, 0.0).view()).unwrap_err();
         assert!(matches!(error, ImageIoError::Write { .. }));
         assert!(error.to_string().contains("out.png"), "{error}");
     }
@@ -494,7 +463,7 @@ mod tests {
 
         let dir = tempfile::tempdir().unwrap();
         let file = dir.path().join("small.png");
-        save_gray_png(&file, &GrayImage::new(4, 3)).unwrap();
+        save_gray_png(&file, Image::filled(4, 3, 0.0).view()).unwrap();
         let small = Camera::pinhole(4, 3, PinholeIntrinsics::centered(5.0, 4, 3));
         assert!(check_image_file_matches_camera(&file, 2, &small).is_ok());
         let message = check_image_file_matches_camera(&file, 2, &camera)
@@ -510,9 +479,9 @@ mod tests {
     /// rejected, naming the file.
     fn check_real_photo(path: &Path, width_px: usize, height_px: usize) {
         let gray = load_gray(path).unwrap();
-        assert_eq!((gray.width_px, gray.height_px), (width_px, height_px));
+        assert_eq!(gray.size(), (width_px, height_px));
         assert_eq!(read_image_size(path).unwrap(), (width_px, height_px));
-        let mean = gray.pixels.iter().sum::<f32>() / gray.pixels.len() as f32;
+        let mean = gray.data().iter().sum::<f32>() / gray.pixel_count() as f32;
         assert!(mean > 0.05 && mean < 0.95, "mean {mean}");
         let bytes = std::fs::read(path).unwrap();
         assert!(jpeg_is_complete(&bytes), "{}", path.display());

@@ -1,11 +1,12 @@
 //! Depth maps as grayscale PFM files (`Pf`, 32-bit floats): the format COLMAP-adjacent tools and
 //! renderers exchange depth in, used here to save rendered depth and to read reference depth.
 //!
-//! Conventions of [`DepthImage`]:
+//! Conventions of a depth map (an [`Image<f32>`]):
 //! - values are **metres along the optical axis** (the camera-frame z), not along the ray;
 //! - **holes are `0.0`**. Files from other tools mark holes with NaN, infinity or negative values:
 //!   [`read_pfm`] turns all of those into `0.0`, [`write_pfm`] writes every hole as `0.0`, and
-//!   [`DepthImage::is_hole`] treats them all as holes for images built in memory;
+//!   [`is_hole_value`] (with [`depth_at`], [`valid_depth_count`]) treats them all as holes for
+//!   depth maps built in memory;
 //! - memory is row-major with the **top row first** (image convention); the file stores rows
 //!   bottom-to-top as the PFM format prescribes, and the reader and writer flip them.
 //!
@@ -16,6 +17,8 @@
 
 use std::fs;
 use std::path::{Path, PathBuf};
+
+use crate::core::image::{Image, ImageView};
 
 /// Errors of reading and writing PFM depth maps; each names the file.
 #[derive(Debug, thiserror::Error)]
@@ -58,53 +61,31 @@ pub enum PfmError {
     },
 }
 
-/// A depth map: metres along the optical axis, `0.0` for holes, row-major, top row first.
-#[derive(Clone, Debug, PartialEq)]
-pub struct DepthImage {
-    pub width_px: usize,
-    pub height_px: usize,
-    /// `depth_m[row * width_px + col]`.
-    pub depth_m: Vec<f32>,
-}
-
 /// Whether a depth value marks a hole: zero, negative or not finite.
 pub fn is_hole_value(depth_m: f32) -> bool {
     !(depth_m.is_finite() && depth_m > 0.0)
 }
 
-impl DepthImage {
-    /// A depth map of the given size with holes everywhere.
-    pub fn new_holes(width_px: usize, height_px: usize) -> Self {
-        Self {
-            width_px,
-            height_px,
-            depth_m: vec![0.0; width_px * height_px],
-        }
-    }
+/// The depth at `(col, row)` of a depth map, `None` for a hole or a position outside the image.
+pub fn depth_at(depth_m: ImageView<'_, f32>, col: usize, row: usize) -> Option<f32> {
+    depth_m
+        .get(col, row)
+        .copied()
+        .filter(|depth| !is_hole_value(*depth))
+}
 
-    /// Whether the value at `index` (row-major) is a hole: zero, negative or not finite.
-    pub fn is_hole(&self, index: usize) -> bool {
-        is_hole_value(self.depth_m[index])
-    }
-
-    /// The depth at `(col, row)`, `None` for a hole or a position outside the image.
-    pub fn depth_at(&self, col: usize, row: usize) -> Option<f32> {
-        if col >= self.width_px || row >= self.height_px {
-            return None;
-        }
-        let depth_m = self.depth_m[row * self.width_px + col];
-        (!is_hole_value(depth_m)).then_some(depth_m)
-    }
-
-    /// Number of pixels that hold a valid depth.
-    pub fn valid_count(&self) -> usize {
-        self.depth_m.iter().filter(|d| !is_hole_value(**d)).count()
-    }
+/// Number of pixels of a depth map that hold a valid depth.
+pub fn valid_depth_count(depth_m: ImageView<'_, f32>) -> usize {
+    depth_m
+        .data()
+        .iter()
+        .filter(|d| !is_hole_value(**d))
+        .count()
 }
 
 /// Reads a grayscale PFM. Holes (NaN, infinity, negative, zero) come back as `0.0`; rows are
 /// returned top row first.
-pub fn read_pfm(path: &Path) -> Result<DepthImage, PfmError> {
+pub fn read_pfm(path: &Path) -> Result<Image<f32>, PfmError> {
     let bytes = fs::read(path).map_err(|source| PfmError::Io {
         path: path.to_path_buf(),
         source,
@@ -209,30 +190,33 @@ pub fn read_pfm(path: &Path) -> Result<DepthImage, PfmError> {
             *value = if is_hole_value(depth) { 0.0 } else { depth };
         }
     }
-    Ok(DepthImage {
+    Image::new(width_px, height_px, depth_m).map_err(|_| PfmError::SizeMismatch {
+        path: path.to_path_buf(),
+        what: "the decoded values do not fill the image",
         width_px,
         height_px,
-        depth_m,
+        expected_values,
+        found_values: expected_values,
     })
 }
 
 /// Writes a grayscale little-endian PFM (scale `-1`); holes are written as `0.0`.
-pub fn write_pfm(path: &Path, depth: &DepthImage) -> Result<(), PfmError> {
-    let expected_values = depth.width_px.checked_mul(depth.height_px);
-    if depth.width_px == 0 || depth.height_px == 0 || expected_values != Some(depth.depth_m.len()) {
+pub fn write_pfm(path: &Path, depth_m: ImageView<'_, f32>) -> Result<(), PfmError> {
+    let (width_px, height_px) = depth_m.size();
+    if width_px == 0 || height_px == 0 {
         return Err(PfmError::SizeMismatch {
             path: path.to_path_buf(),
-            what: "the depth map's buffer does not match its size (or the size is empty)",
-            width_px: depth.width_px,
-            height_px: depth.height_px,
-            expected_values: expected_values.unwrap_or(usize::MAX),
-            found_values: depth.depth_m.len(),
+            what: "the depth map is empty",
+            width_px,
+            height_px,
+            expected_values: 0,
+            found_values: 0,
         });
     }
-    let header = format!("Pf\n{} {}\n-1\n", depth.width_px, depth.height_px);
-    let mut bytes = Vec::with_capacity(header.len() + depth.depth_m.len() * 4);
+    let header = format!("Pf\n{width_px} {height_px}\n-1\n");
+    let mut bytes = Vec::with_capacity(header.len() + depth_m.pixel_count() * 4);
     bytes.extend_from_slice(header.as_bytes());
-    for row in depth.depth_m.chunks_exact(depth.width_px).rev() {
+    for row in depth_m.data().chunks_exact(width_px).rev() {
         for &value in row {
             let value = if is_hole_value(value) { 0.0_f32 } else { value };
             bytes.extend_from_slice(&value.to_le_bytes());
@@ -248,13 +232,9 @@ pub fn write_pfm(path: &Path, depth: &DepthImage) -> Result<(), PfmError> {
 mod tests {
     use super::*;
 
-    fn sample() -> DepthImage {
+    fn sample() -> Image<f32> {
         // 3 wide, 2 high; top row 1 2 3, bottom row 4 (hole) 6.
-        DepthImage {
-            width_px: 3,
-            height_px: 2,
-            depth_m: vec![1.0, 2.5, 3.0, 4.0, 0.0, 6.125],
-        }
+        Image::new(3, 2, vec![1.0, 2.5, 3.0, 4.0, 0.0, 6.125]).unwrap()
     }
 
     #[test]
@@ -262,7 +242,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("depth.pfm");
         let depth = sample();
-        write_pfm(&path, &depth).unwrap();
+        write_pfm(&path, depth.view()).unwrap();
         assert_eq!(read_pfm(&path).unwrap(), depth);
 
         let bytes = fs::read(&path).unwrap();
@@ -286,35 +266,33 @@ mod tests {
         fs::write(&path, &bytes).unwrap();
         let depth = read_pfm(&path).unwrap();
         // File rows bottom-to-top: [10, NaN] is the bottom row, [-3, 40] the top row.
-        assert_eq!(depth.depth_m, vec![0.0, 40.0, 10.0, 0.0]);
-        assert_eq!(depth.depth_at(1, 0), Some(40.0));
-        assert_eq!(depth.depth_at(0, 1), Some(10.0));
-        assert_eq!(depth.depth_at(0, 0), None);
-        assert_eq!(depth.depth_at(2, 0), None);
-        assert_eq!(depth.valid_count(), 2);
+        assert_eq!(depth.data(), &[0.0, 40.0, 10.0, 0.0]);
+        assert_eq!(depth_at(depth.view(), 1, 0), Some(40.0));
+        assert_eq!(depth_at(depth.view(), 0, 1), Some(10.0));
+        assert_eq!(depth_at(depth.view(), 0, 0), None);
+        assert_eq!(depth_at(depth.view(), 2, 0), None);
+        assert_eq!(valid_depth_count(depth.view()), 2);
     }
 
     #[test]
     fn holes_of_every_kind_are_holes() {
-        let mut depth = DepthImage::new_holes(5, 1);
-        depth.depth_m = vec![0.0, -1.0, f32::NAN, f32::INFINITY, 2.0];
-        let holes: Vec<bool> = (0..5).map(|i| depth.is_hole(i)).collect();
+        let depth = Image::new(5, 1, vec![0.0, -1.0, f32::NAN, f32::INFINITY, 2.0]).unwrap();
+        let holes: Vec<bool> = depth.data().iter().map(|d| is_hole_value(*d)).collect();
         assert_eq!(holes, vec![true, true, true, true, false]);
+        assert_eq!(valid_depth_count(depth.view()), 1);
+        assert_eq!(depth_at(depth.view(), 2, 0), None);
 
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("holes.pfm");
-        write_pfm(&path, &depth).unwrap();
-        assert_eq!(
-            read_pfm(&path).unwrap().depth_m,
-            vec![0.0, 0.0, 0.0, 0.0, 2.0]
-        );
+        write_pfm(&path, depth.view()).unwrap();
+        assert_eq!(read_pfm(&path).unwrap().data(), &[0.0, 0.0, 0.0, 0.0, 2.0]);
     }
 
     #[test]
     fn truncated_bad_and_colour_files_are_rejected_naming_the_file() {
         let dir = tempfile::tempdir().unwrap();
         let good = dir.path().join("good.pfm");
-        write_pfm(&good, &sample()).unwrap();
+        write_pfm(&good, sample().view()).unwrap();
         let bytes = fs::read(&good).unwrap();
 
         let truncated = dir.path().join("truncated.pfm");
@@ -371,21 +349,19 @@ mod tests {
     }
 
     #[test]
-    fn writing_a_buffer_of_the_wrong_size_fails() {
+    fn writing_an_empty_depth_map_fails() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("bad.pfm");
-        let mut depth = sample();
-        depth.depth_m.pop();
-        let error = write_pfm(&path, &depth).unwrap_err();
+        let path = dir.path().join("empty.pfm");
+        let error = write_pfm(&path, Image::filled(0, 3, 0.0).view()).unwrap_err();
         assert!(matches!(
             error,
             PfmError::SizeMismatch {
-                expected_values: 6,
-                found_values: 5,
+                width_px: 0,
+                height_px: 3,
                 ..
             }
         ));
-        assert!(error.to_string().contains("bad.pfm"), "{error}");
+        assert!(error.to_string().contains("empty.pfm"), "{error}");
         assert!(!path.exists());
     }
 }

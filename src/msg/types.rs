@@ -9,10 +9,13 @@ use serde::{Deserialize, Serialize};
 use crate::core::camera::Camera;
 use nalgebra::{Vector2, Vector3};
 
-use crate::core::frame::{CoarseOutcome, ViewCorrespondences};
+use crate::core::frame::{CoarseOutcome, ViewCorrespondences, ViewRef};
+use crate::core::image::{ImageError, ImageView};
 use crate::core::rigid::Rigid3;
 
 /// Bulk data of a message: borrowed from the received bytes when possible, owned otherwise.
+/// Per-pixel blobs are read as images through their message's accessors (`Frame::photo`,
+/// `FlowJob::view`, ...), which check their length against the frame's camera.
 pub type Blob<'a, T> = Cow<'a, [T]>;
 
 /// The fixed header of every message.
@@ -110,6 +113,22 @@ pub struct FrameInfo {
     pub seed: u64,
 }
 
+impl FrameInfo {
+    /// The frame's image size, `(width_px, height_px)`: the camera's.
+    pub fn image_size(&self) -> (usize, usize) {
+        (
+            self.camera.width_px as usize,
+            self.camera.height_px as usize,
+        )
+    }
+
+    /// `data` as an image of the frame's size.
+    fn image<'a, T>(&self, data: &'a [T]) -> Result<ImageView<'a, T>, ImageError> {
+        let (width_px, height_px) = self.image_size();
+        ImageView::new(width_px, height_px, data)
+    }
+}
+
 /// A photo to register (ingest → render).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Frame<'a> {
@@ -118,6 +137,22 @@ pub struct Frame<'a> {
     pub image: Blob<'a, f32>,
     /// The photo's depth map in metres (0 = hole), same size; empty when there is none.
     pub depth_m: Blob<'a, f32>,
+}
+
+impl Frame<'_> {
+    /// The grey photo (0..1) as an image of the camera's size.
+    pub fn photo(&self) -> Result<ImageView<'_, f32>, ImageError> {
+        self.info.image(&self.image)
+    }
+
+    /// The photo's depth map (metres along the optical axis, 0 = hole) as an image of the
+    /// camera's size; `None` when the frame carries none.
+    pub fn depth(&self) -> Result<Option<ImageView<'_, f32>>, ImageError> {
+        if self.depth_m.is_empty() {
+            return Ok(None);
+        }
+        self.info.image(&self.depth_m).map(Some)
+    }
 }
 
 /// Identifies a unit of parallel work: one coarse pose of one frame.
@@ -140,6 +175,26 @@ pub struct FlowJob<'a> {
     pub depth_m: Blob<'a, f32>,
     /// Rendered face per pixel (u32::MAX where nothing was hit).
     pub face_index: Blob<'a, u32>,
+}
+
+impl FlowJob<'_> {
+    /// The photo's gradient image (query, 0..1) as an image of the camera's size.
+    pub fn query_image(&self) -> Result<ImageView<'_, f32>, ImageError> {
+        self.meta.info.image(&self.query)
+    }
+
+    /// The coarse view (its ASG, depth and face index as images of the camera's size) as the
+    /// flow step reads it.
+    pub fn view(&self) -> Result<ViewRef<'_>, ImageError> {
+        let info = &self.meta.info;
+        ViewRef::new(
+            self.meta.coarse_index as usize,
+            self.meta.coarse_cam_from_world,
+            info.image(&self.asg)?,
+            info.image(&self.depth_m)?,
+            info.image(&self.face_index)?,
+        )
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -374,4 +429,71 @@ pub struct StreamEnd {
     pub frame_count: u64,
     /// Frames whose result the source has already seen (a restarted verify learns them here).
     pub finished_frames: Vec<u64>,
+}
+
+#[cfg(test)]
+mod image_accessor_tests {
+    use super::*;
+    use crate::core::camera::PinholeIntrinsics;
+
+    fn info() -> FrameInfo {
+        FrameInfo {
+            name: "a.jpg".into(),
+            camera_id: 1,
+            camera: Camera::pinhole(3, 2, PinholeIntrinsics::centered(4.0, 3, 2)),
+            intrinsics_known: true,
+            initial_cam_from_world: Rigid3::identity(),
+            seed: 1,
+        }
+    }
+
+    #[test]
+    fn frame_blobs_read_as_images_of_the_camera_size() {
+        let mut frame = Frame {
+            info: info(),
+            image: Cow::Owned(vec![0.5; 6]),
+            depth_m: Cow::Owned(Vec::new()),
+        };
+        assert_eq!(frame.photo().unwrap().size(), (3, 2));
+        assert_eq!(frame.depth().unwrap(), None);
+        frame.depth_m = Cow::Owned(vec![2.0; 6]);
+        assert_eq!(frame.depth().unwrap().unwrap().get(2, 1), Some(&2.0));
+        frame.image = Cow::Owned(vec![0.5; 5]);
+        let error = frame.photo().unwrap_err();
+        assert!(matches!(
+            error,
+            ImageError::DataLength {
+                expected: 6,
+                found: 5,
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn a_flow_job_reads_as_a_checked_view() {
+        let asg = [0.25f32; 6];
+        let mut job = FlowJob {
+            meta: FlowJobMeta {
+                info: info(),
+                coarse_index: 4,
+                coarse_count: 15,
+                coarse_cam_from_world: Rigid3::identity(),
+                render_ms: 1.0,
+            },
+            query: Cow::Borrowed(&asg),
+            asg: Cow::Borrowed(&asg),
+            depth_m: Cow::Borrowed(&asg),
+            face_index: Cow::Owned(vec![7; 6]),
+        };
+        assert_eq!(job.query_image().unwrap().size(), (3, 2));
+        let view = job.view().unwrap();
+        assert_eq!(view.coarse_index, 4);
+        assert_eq!((view.width_px(), view.height_px()), (3, 2));
+        assert_eq!(view.face_index().get(1, 1), Some(&7));
+        job.face_index = Cow::Owned(vec![7; 4]);
+        assert!(job.view().is_err());
+        job.query = Cow::Owned(Vec::new());
+        assert!(job.query_image().is_err());
+    }
 }

@@ -5,10 +5,10 @@
 
 use std::time::Instant;
 
-use crate::core::flow_consistency::{GreyImage, QueryFeatures};
+use crate::core::flow_consistency::QueryFeatures;
 use crate::core::frame::{
     correspond_view, query_features, CorrespondWorkspace, RegistrationConfig, RegistrationError,
-    ViewCorrespondences, ViewRef,
+    ViewCorrespondences,
 };
 use crate::core::mesh::Mesh;
 use crate::msg::{Correspondences, CorrespondencesMeta, FlowJob};
@@ -46,29 +46,18 @@ impl<'m> FlowStage<'m> {
     pub fn process(&mut self, frame_id: u64, job: &FlowJob) -> Correspondences<'static> {
         let started = Instant::now();
         let meta = &job.meta;
-        let view = ViewRef {
-            coarse_index: meta.coarse_index as usize,
-            cam_from_world: meta.coarse_cam_from_world,
-            width_px: meta.info.camera.width_px as usize,
-            height_px: meta.info.camera.height_px as usize,
-            asg: &job.asg,
-            depth_m: &job.depth_m,
-            face_index: &job.face_index,
-        };
-        let correspondences = self
-            .correspond(frame_id, job, &view)
-            .unwrap_or_else(|error| {
-                tracing::warn!(
-                    "frame '{}' coarse pose {}: {error}",
-                    meta.info.name,
-                    meta.coarse_index
-                );
-                ViewCorrespondences {
-                    coarse_index: view.coarse_index,
-                    coarse_cam_from_world: view.cam_from_world,
-                    ..ViewCorrespondences::default()
-                }
-            });
+        let correspondences = self.correspond(frame_id, job).unwrap_or_else(|error| {
+            tracing::warn!(
+                "frame '{}' coarse pose {}: {error}",
+                meta.info.name,
+                meta.coarse_index
+            );
+            ViewCorrespondences {
+                coarse_index: meta.coarse_index as usize,
+                coarse_cam_from_world: meta.coarse_cam_from_world,
+                ..ViewCorrespondences::default()
+            }
+        });
         Correspondences::from_view(
             CorrespondencesMeta {
                 info: meta.info.clone(),
@@ -87,20 +76,15 @@ impl<'m> FlowStage<'m> {
         &mut self,
         frame_id: u64,
         job: &FlowJob,
-        view: &ViewRef<'_>,
     ) -> Result<ViewCorrespondences, RegistrationError> {
+        let view = job.view()?;
         let position = match self.features.iter().position(|(id, _)| *id == frame_id) {
             Some(position) => {
                 self.feature_cache_hits += 1;
                 position
             }
             None => {
-                let query = GreyImage {
-                    width_px: view.width_px,
-                    height_px: view.height_px,
-                    pixels: &job.query,
-                };
-                let features = query_features(query, &self.config)?;
+                let features = query_features(job.query_image()?, &self.config)?;
                 if self.features.len() == CACHED_FRAMES {
                     self.features.remove(0);
                 }
@@ -112,7 +96,7 @@ impl<'m> FlowStage<'m> {
             self.mesh,
             &job.meta.info.camera,
             &self.features[position].1,
-            view,
+            &view,
             &self.config,
             &mut self.workspace,
         )

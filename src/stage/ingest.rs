@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
+use crate::core::image::Image;
 use crate::frame_files::{depth_path_for, frame_seed, load_frame_files};
 use crate::io::colmap::{read_cameras_txt, read_images_txt, ColmapError, ImagePose};
 use crate::msg::{Frame, FrameFailed, FrameInfo};
@@ -163,8 +164,8 @@ impl FolderSource {
                 initial_cam_from_world: image.cam_from_world,
                 seed: frame_seed(self.config.seed, image.image_id),
             },
-            image: Cow::Owned(files.photo.pixels),
-            depth_m: Cow::Owned(files.depth.map(|d| d.depth_m).unwrap_or_default()),
+            image: Cow::Owned(files.photo.into_data()),
+            depth_m: Cow::Owned(files.depth_m.map(Image::into_data).unwrap_or_default()),
         })
     }
 }

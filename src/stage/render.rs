@@ -5,7 +5,6 @@
 use std::borrow::Cow;
 use std::time::Instant;
 
-use crate::core::flow_consistency::GreyImage;
 use crate::core::frame::{
     query_gradient, render_views, CoarseView, FrameInput, IntrinsicsMode, RegistrationConfig,
 };
@@ -48,21 +47,11 @@ impl<'m> RenderStage<'m> {
             stage: "render".to_string(),
             reason,
         };
-        let (width_px, height_px) = (
-            info.camera.width_px as usize,
-            info.camera.height_px as usize,
-        );
         let input = FrameInput {
-            photo: GreyImage {
-                width_px,
-                height_px,
-                pixels: &frame.image,
-            },
-            depth_m: (!frame.depth_m.is_empty()).then_some(GreyImage {
-                width_px,
-                height_px,
-                pixels: &frame.depth_m,
-            }),
+            photo: frame.photo().map_err(|e| failed(format!("photo: {e}")))?,
+            depth_m: frame
+                .depth()
+                .map_err(|e| failed(format!("depth map: {e}")))?,
             camera: &info.camera,
             intrinsics: IntrinsicsMode::from_known(info.intrinsics_known),
             initial_cam_from_world: info.initial_cam_from_world,
@@ -86,10 +75,10 @@ impl<'m> RenderStage<'m> {
                         coarse_cam_from_world: view.cam_from_world,
                         render_ms: elapsed_ms(started),
                     },
-                    query: Cow::Borrowed(&query.pixels),
-                    asg: Cow::Borrowed(&view.asg),
-                    depth_m: Cow::Borrowed(&view.render.depth_m),
-                    face_index: Cow::Borrowed(&view.render.face_index),
+                    query: Cow::Borrowed(query.data()),
+                    asg: Cow::Borrowed(view.asg.data()),
+                    depth_m: Cow::Borrowed(view.render.depth_m().data()),
+                    face_index: Cow::Borrowed(view.render.face_index().data()),
                 })
             },
         )

@@ -25,6 +25,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::{Camera, PinholeIntrinsics};
+use crate::core::image::Image;
 use crate::core::mesh::{Mesh, MeshError};
 use crate::core::rigid::Rigid3;
 use crate::io::colmap::{self, ImagePose};
@@ -427,7 +428,7 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         let (building_fraction, clutter_fraction) = {
             let buffers =
                 renderer.render_visibility(&camera.intrinsics, width, height, &view.cam_from_world);
-            let faces = buffers.face_index.clone();
+            let faces = buffers.face_index().data().to_vec();
             let mut building = 0usize;
             let mut clutter = 0usize;
             for face in faces {
@@ -460,15 +461,8 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
             .join("depth")
             .join(Path::new(&view.name).with_extension("pfm"));
         let depth_valid_fraction =
-            depth.iter().filter(|d| **d > 0.0).count() as f64 / (width * height) as f64;
-        crate::io::pfm::write_pfm(
-            &depth_path,
-            &crate::io::pfm::DepthImage {
-                width_px: width,
-                height_px: height,
-                depth_m: depth,
-            },
-        )?;
+            depth.data().iter().filter(|d| **d > 0.0).count() as f64 / (width * height) as f64;
+        crate::io::pfm::write_pfm(&depth_path, depth.view())?;
         let centre = view.cam_from_world.camera_center();
         images.push(ImageSummary {
             name: view.name.clone(),
@@ -608,15 +602,16 @@ fn write_colmap(
     Ok(())
 }
 
-fn write_jpeg(path: &Path, photo: &photo::Photo, quality: u8) -> Result<(), SynthError> {
+/// Writes an 8-bit sRGB photo as a JPEG.
+fn write_jpeg(path: &Path, photo: &Image<[u8; 3]>, quality: u8) -> Result<(), SynthError> {
     let file = std::fs::File::create(path).map_err(io_error(path))?;
     let mut writer = std::io::BufWriter::new(file);
     let mut encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut writer, quality);
     encoder
         .encode(
-            &photo.rgb,
-            photo.width_px as u32,
-            photo.height_px as u32,
+            photo.data().as_flattened(),
+            photo.width_px() as u32,
+            photo.height_px() as u32,
             image::ExtendedColorType::Rgb8,
         )
         .map_err(|e| SynthError::Encode {
@@ -628,6 +623,7 @@ fn write_jpeg(path: &Path, photo: &photo::Photo, quality: u8) -> Result<(), Synt
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::image::{Image, ImageView};
     use crate::core::raster::{NormalSource, Rasterizer, RenderBuffers, RenderOptions};
     use rand::SeedableRng;
 
@@ -697,8 +693,8 @@ mod tests {
         let model = crate::io::ply::read_ply(&dir.path().join("model.ply")).unwrap();
         assert_eq!(model.face_count(), summary.model_faces);
         let depth = crate::io::pfm::read_pfm(&dir.path().join("depth/view_000.pfm")).unwrap();
-        assert_eq!((depth.width_px, depth.height_px), (160, 88));
-        let valid = depth.valid_count() as f64 / (160.0 * 88.0);
+        assert_eq!(depth.size(), (160, 88));
+        let valid = crate::io::pfm::valid_depth_count(depth.view()) as f64 / (160.0 * 88.0);
         assert!(valid > 0.2 && valid < 0.95, "depth valid fraction {valid}");
         let photo = image::open(dir.path().join("images/view_000.jpg")).unwrap();
         assert_eq!((photo.width(), photo.height()), (160, 88));
@@ -798,15 +794,13 @@ mod tests {
             ..RenderOptions::default()
         };
         Rasterizer::new().render(mesh, &camera.intrinsics, pose, &options, &mut buffers);
-        let mut asg = vec![0.0; w * h];
+        let mut asg = Image::default();
         crate::core::shading::asg_from_normals(
-            &buffers.normal_cam,
-            w,
-            h,
+            buffers.normal_cam().view(),
             &crate::core::shading::AsgOptions::default(),
             &mut asg,
         );
-        asg
+        asg.into_data()
     }
 
     /// docs/design.md §4: the photo's gradients must differ substantially from the model's ASG (textures,
@@ -848,7 +842,7 @@ mod tests {
         let mut jpeg = Vec::new();
         image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, config.jpeg_quality)
             .encode(
-                &photo.rgb,
+                photo.data().as_flattened(),
                 w as u32,
                 h as u32,
                 image::ExtendedColorType::Rgb8,
@@ -856,8 +850,12 @@ mod tests {
             .unwrap();
         let decoded = image::load_from_memory(&jpeg).unwrap().to_luma32f();
         let luma: Vec<f32> = decoded.as_raw().iter().map(|v| v * 255.0).collect();
-        let mut photo_gradient = vec![0.0; w * h];
-        crate::core::shading::gradient_magnitude(&luma, w, h, &mut photo_gradient);
+        let mut photo_gradient = Image::default();
+        crate::core::shading::gradient_magnitude(
+            ImageView::new(w, h, &luma).unwrap(),
+            &mut photo_gradient,
+        );
+        let photo_gradient = photo_gradient.into_data();
 
         let mut true_model = scene
             .to_mesh(|t| {
@@ -974,23 +972,19 @@ mod tests {
             },
             77,
         );
-        let mut depth_normals = vec![Vec3::ZERO; w * h];
+        let mut depth_normals = Image::default();
         crate::core::shading::normals_from_depth(
-            &depth,
-            w,
-            h,
+            depth.view(),
             &camera.intrinsics,
             &mut depth_normals,
         );
-        let mut depth_asg = vec![0.0; w * h];
+        let mut depth_asg = Image::default();
         crate::core::shading::asg_from_normals(
-            &depth_normals,
-            w,
-            h,
+            depth_normals.view(),
             &crate::core::shading::AsgOptions::default(),
             &mut depth_asg,
         );
-        let depth_asg = blur(&depth_asg, w, h, 1.5);
+        let depth_asg = blur(depth_asg.data(), w, h, 1.5);
         let depth_scores: Vec<f64> = [gt, shifted, initial_pose]
             .iter()
             .map(|pose| {
@@ -1173,13 +1167,13 @@ mod tests {
         )
         .unwrap();
         let max_depth = depth
-            .depth_m
+            .data()
             .iter()
             .copied()
             .fold(0.0f32, f32::max)
             .max(1e-3);
         let depth_png = image::GrayImage::from_fn(w, h, |c, r| {
-            let d = depth.depth_m[(r * w + c) as usize];
+            let d = depth.data()[(r * w + c) as usize];
             image::Luma([if d > 0.0 {
                 (255.0 * (1.0 - d / max_depth)).clamp(1.0, 255.0) as u8
             } else {

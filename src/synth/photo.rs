@@ -14,6 +14,7 @@ use rayon::prelude::*;
 use super::geometry::{FaceTag, PartKind, Scene, NO_PANEL};
 use super::texture::{self, fbm, hash_u64, value_noise, Material};
 use crate::core::camera::PinholeIntrinsics;
+use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::core::raster::{Rasterizer, RenderBuffers, RenderOptions, NO_FACE};
 use crate::core::rigid::Rigid3;
@@ -48,29 +49,20 @@ pub struct DepthParams {
     pub untextured_std_dn: f32,
 }
 
-/// A rendered photo: 8-bit sRGB, row-major RGB.
-#[derive(Clone, Debug)]
-pub struct Photo {
-    pub width_px: usize,
-    pub height_px: usize,
-    pub rgb: Vec<u8>,
-}
-
-impl Photo {
-    /// Luma (Rec. 601) in `[0, 255]`.
-    pub fn luma(&self) -> Vec<f32> {
-        self.rgb
-            .chunks_exact(3)
-            .map(|c| 0.299 * f32::from(c[0]) + 0.587 * f32::from(c[1]) + 0.114 * f32::from(c[2]))
-            .collect()
-    }
+/// Luma (Rec. 601) in `[0, 255]` of a rendered photo (8-bit sRGB).
+fn luma(photo: &Image<[u8; 3]>) -> Vec<f32> {
+    photo
+        .data()
+        .iter()
+        .map(|c| 0.299 * f32::from(c[0]) + 0.587 * f32::from(c[1]) + 0.114 * f32::from(c[2]))
+        .collect()
 }
 
 struct ShadowMap {
     intrinsics: PinholeIntrinsics,
     cam_from_world: Rigid3,
     size_px: usize,
-    depth_m: Vec<f32>,
+    depth_m: Image<f32>,
     texel_m: f32,
 }
 
@@ -99,7 +91,7 @@ impl ShadowMap {
                     lit += 1.0;
                     continue;
                 }
-                let stored = self.depth_m[r as usize * self.size_px + c as usize];
+                let stored = self.depth_m.data()[r as usize * self.size_px + c as usize];
                 if stored == 0.0 || depth <= stored + bias {
                     lit += 1.0;
                 }
@@ -181,7 +173,7 @@ impl<'a> PhotoRenderer<'a> {
             intrinsics,
             cam_from_world,
             size_px,
-            depth_m: shadow_buffers.depth_m,
+            depth_m: shadow_buffers.depth_m().clone(),
             texel_m: (distance / focal) as f32,
         };
         Ok(Self {
@@ -225,7 +217,7 @@ impl<'a> PhotoRenderer<'a> {
         &self.depth_buffers
     }
 
-    /// Renders one photo. `image_seed` varies noise and exposure between photos.
+    /// Renders one photo, 8-bit sRGB. `image_seed` varies noise and exposure between photos.
     pub fn render_photo(
         &mut self,
         intrinsics: &PinholeIntrinsics,
@@ -233,7 +225,7 @@ impl<'a> PhotoRenderer<'a> {
         height_px: usize,
         cam_from_world: &Rigid3,
         image_seed: u64,
-    ) -> Photo {
+    ) -> Image<[u8; 3]> {
         let ss = self.params.supersampling.max(1) as usize;
         let (sw, sh) = (width_px * ss, height_px * ss);
         let ss_intrinsics = intrinsics.scaled(ss as f64);
@@ -260,7 +252,10 @@ impl<'a> PhotoRenderer<'a> {
         let shadow = &self.shadow;
         let sun = self.sun_direction;
         let face_normals = &self.face_normals;
-        let buffers = &self.buffers;
+        let (face_index, depth_m) = (
+            self.buffers.face_index().data(),
+            self.buffers.depth_m().data(),
+        );
         let mut radiance = vec![Vec3::ZERO; sw * sh];
         radiance
             .par_chunks_mut(sw)
@@ -274,12 +269,12 @@ impl<'a> PhotoRenderer<'a> {
                     ));
                     let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
                     let ray = to_world_dir(ray_cam).normalize();
-                    let face = buffers.face_index[index];
+                    let face = face_index[index];
                     if face == NO_FACE {
                         *out = sky(seed, ray, sun);
                         continue;
                     }
-                    let depth = buffers.depth_m[index];
+                    let depth = depth_m[index];
                     let p = eye + to_world_dir(ray_cam * f64::from(depth));
                     let tag = scene.tags[face as usize];
                     let mut normal = face_normals[face as usize];
@@ -383,8 +378,9 @@ impl<'a> PhotoRenderer<'a> {
 
         let blurred = gaussian_blur_rgb(&image, width_px, height_px, self.params.blur_sigma_px);
         let noise_sigma = self.params.noise_sigma_dn;
-        let mut rgb = vec![0u8; width_px * height_px * 3];
-        rgb.par_chunks_mut(width_px * 3)
+        let mut rgb = Image::filled(width_px, height_px, [0u8; 3]);
+        rgb.data_mut()
+            .par_chunks_mut(width_px)
             .enumerate()
             .for_each(|(row, line)| {
                 for col in 0..width_px {
@@ -396,15 +392,11 @@ impl<'a> PhotoRenderer<'a> {
                             image_seed ^ ((row * width_px + col) as u64 * 3 + channel as u64),
                         );
                         let noisy = v + sigma * gaussian_from_hash(key);
-                        line[col * 3 + channel] = noisy.round().clamp(0.0, 255.0) as u8;
+                        line[col][channel] = noisy.round().clamp(0.0, 255.0) as u8;
                     }
                 }
             });
-        Photo {
-            width_px,
-            height_px,
-            rgb,
-        }
+        rgb
     }
 
     /// The MVS-like depth map of a photo: true depth incl. clutter with multiplicative noise,
@@ -412,43 +404,40 @@ impl<'a> PhotoRenderer<'a> {
     pub fn depth_map(
         &mut self,
         intrinsics: &PinholeIntrinsics,
-        photo: &Photo,
+        photo: &Image<[u8; 3]>,
         cam_from_world: &Rigid3,
         params: &DepthParams,
         image_seed: u64,
-    ) -> Vec<f32> {
-        let (w, h) = (photo.width_px, photo.height_px);
+    ) -> Image<f32> {
+        let (w, h) = photo.size();
         self.render_visibility(intrinsics, w, h, cam_from_world);
-        let luma = photo.luma();
+        let luma = luma(photo);
         let local_std = local_std_dev(&luma, w, h, 2);
         // Blob holes: threshold a smooth noise field so that about `hole_fraction` is removed.
         let blob_threshold = hole_threshold(params.hole_fraction);
-        let depth = &self.depth_buffers.depth_m;
-        (0..w * h)
-            .map(|index| {
-                let (row, col) = (index / w, index % w);
-                let d = depth[index];
-                if d <= 0.0 || d > params.max_depth_m || local_std[index] < params.untextured_std_dn
-                {
-                    return 0.0;
-                }
-                let p = Vec3::new(col as f32 / 14.0, row as f32 / 14.0, 0.0);
-                let blob = 0.65 * value_noise(image_seed ^ 301, p)
-                    + 0.35 * value_noise(image_seed ^ 302, p * 2.7);
-                if blob > blob_threshold {
-                    return 0.0;
-                }
-                let correlated = fbm(
-                    image_seed ^ 303,
-                    Vec3::new(col as f32, row as f32, 0.0),
-                    20.0,
-                    3,
-                    0.0,
-                );
-                let white = gaussian_from_hash(hash_u64(image_seed ^ 0xD1 ^ index as u64));
-                d * (1.0 + params.relative_noise * (0.6 * white + 1.6 * correlated))
-            })
-            .collect()
+        let depth = self.depth_buffers.depth_m().data();
+        Image::from_fn(w, h, |col, row| {
+            let index = row * w + col;
+            let d = depth[index];
+            if d <= 0.0 || d > params.max_depth_m || local_std[index] < params.untextured_std_dn {
+                return 0.0;
+            }
+            let p = Vec3::new(col as f32 / 14.0, row as f32 / 14.0, 0.0);
+            let blob = 0.65 * value_noise(image_seed ^ 301, p)
+                + 0.35 * value_noise(image_seed ^ 302, p * 2.7);
+            if blob > blob_threshold {
+                return 0.0;
+            }
+            let correlated = fbm(
+                image_seed ^ 303,
+                Vec3::new(col as f32, row as f32, 0.0),
+                20.0,
+                3,
+                0.0,
+            );
+            let white = gaussian_from_hash(hash_u64(image_seed ^ 0xD1 ^ index as u64));
+            d * (1.0 + params.relative_noise * (0.6 * white + 1.6 * correlated))
+        })
     }
 }
 

@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::core::flow_consistency::DenseCorrespondenceConfig;
+use crate::core::flow_consistency::MatchConfig;
 use crate::core::pose::estimate::PoseEstimationConfig;
 use crate::core::raster::RenderOptions;
 use crate::core::shading::AsgOptions;
@@ -66,7 +66,8 @@ pub struct RegistrationConfig {
     pub query_depth_max_relative_step: f32,
     pub render: RenderOptions,
     pub asg: AsgOptions,
-    pub correspondence: DenseCorrespondenceConfig,
+    /// Dense matching of the query against each rendering (pixel pairs; paper §3.2).
+    pub matching: MatchConfig,
     /// At most this many correspondences per coarse pose go to RANSAC (an even subsample).
     pub max_correspondences_per_pose: usize,
     /// Matches whose rendering pixel has a neighbour within this many px on another surface
@@ -81,9 +82,9 @@ pub struct RegistrationConfig {
 
 impl Default for RegistrationConfig {
     fn default() -> Self {
-        let correspondence = DenseCorrespondenceConfig {
+        let matching = MatchConfig {
             sift_flow: crate::core::sift_flow::SiftFlowConfig::fast(),
-            ..DenseCorrespondenceConfig::default()
+            ..MatchConfig::default()
         };
         Self {
             coarse_pose_count: 15,
@@ -94,7 +95,7 @@ impl Default for RegistrationConfig {
             query_depth_max_relative_step: 0.03,
             render: RenderOptions::default(),
             asg: AsgOptions::default(),
-            correspondence,
+            matching,
             max_correspondences_per_pose: 3000,
             lift_edge_margin_px: 0,
             min_correspondences_per_pose: 30,
@@ -129,8 +130,10 @@ pub enum RegistrationError {
     NonFiniteInitialPose,
     #[error("the model is not visible from the initial pose: check the pose convention (cam_from_world) and the mesh's coordinate frame")]
     ModelNotVisible,
-    #[error("dense correspondence failed: {0}")]
+    #[error("dense matching failed: {0}")]
     Flow(String),
+    #[error(transparent)]
+    Image(#[from] crate::core::image::ImageError),
 }
 
 impl RegistrationConfig {
@@ -174,10 +177,10 @@ impl RegistrationConfig {
                 "must not be below min_correspondences_per_pose".into(),
             );
         }
-        self.correspondence
+        self.matching
             .validate()
             .map_err(|e| RegistrationError::InvalidConfig {
-                field: "correspondence",
+                field: "matching",
                 why: e.to_string(),
             })?;
         self.pose

@@ -8,63 +8,98 @@ use nalgebra::{Vector2, Vector3};
 use super::{CoarseView, RegistrationConfig, RegistrationError, ViewCorrespondences};
 use crate::core::camera::Camera;
 use crate::core::dense_sift::DenseSiftWorkspace;
-use crate::core::flow_consistency::{
-    match_rendering, DenseCorrespondence, DenseCorrespondenceWorkspace, GreyImage, QueryFeatures,
-};
+use crate::core::flow_consistency::{match_rendering, MatchWorkspace, PixelMatches, QueryFeatures};
+use crate::core::image::{ImageError, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::raster::NO_FACE;
 use crate::core::reprojection::ray_plane_point_cam;
 use crate::core::rigid::Rigid3;
 
 /// A coarse view as the flow step reads it: borrowed from a [`CoarseView`] in one process, or
-/// from a received flow job in the pipeline.
+/// from a received flow job in the pipeline. Its three images have the same size (checked by
+/// [`ViewRef::new`]).
 #[derive(Clone, Copy, Debug)]
 pub struct ViewRef<'a> {
     pub coarse_index: usize,
     pub cam_from_world: Rigid3,
-    pub width_px: usize,
-    pub height_px: usize,
+    asg: ImageView<'a, f32>,
+    depth_m: ImageView<'a, f32>,
+    face_index: ImageView<'a, u32>,
+}
+
+impl<'a> ViewRef<'a> {
+    /// A view of a rendering: its ASG image (0..1), depth along the optical axis (metres) and
+    /// face per pixel ([`NO_FACE`] where nothing was hit), all of the same size.
+    pub fn new(
+        coarse_index: usize,
+        cam_from_world: Rigid3,
+        asg: ImageView<'a, f32>,
+        depth_m: ImageView<'a, f32>,
+        face_index: ImageView<'a, u32>,
+    ) -> Result<Self, ImageError> {
+        let (width_px, height_px) = asg.size();
+        depth_m.check_size("the rendered depth", width_px, height_px)?;
+        face_index.check_size("the rendered face index", width_px, height_px)?;
+        Ok(Self {
+            coarse_index,
+            cam_from_world,
+            asg,
+            depth_m,
+            face_index,
+        })
+    }
+
+    pub fn width_px(&self) -> usize {
+        self.asg.width_px()
+    }
+
+    pub fn height_px(&self) -> usize {
+        self.asg.height_px()
+    }
+
     /// ASG image, 0..1.
-    pub asg: &'a [f32],
+    pub fn asg(&self) -> ImageView<'a, f32> {
+        self.asg
+    }
+
     /// Rendered depth along the optical axis, metres.
-    pub depth_m: &'a [f32],
+    pub fn depth_m(&self) -> ImageView<'a, f32> {
+        self.depth_m
+    }
+
     /// Rendered face per pixel ([`NO_FACE`] where nothing was hit).
-    pub face_index: &'a [u32],
+    pub fn face_index(&self) -> ImageView<'a, u32> {
+        self.face_index
+    }
 }
 
 impl CoarseView {
     /// The view as the flow step reads it.
-    pub fn as_ref(&self) -> ViewRef<'_> {
-        ViewRef {
-            coarse_index: self.coarse_index,
-            cam_from_world: self.cam_from_world,
-            width_px: self.render.width_px(),
-            height_px: self.render.height_px(),
-            asg: &self.asg,
-            depth_m: &self.render.depth_m,
-            face_index: &self.render.face_index,
-        }
+    pub fn as_ref(&self) -> Result<ViewRef<'_>, ImageError> {
+        ViewRef::new(
+            self.coarse_index,
+            self.cam_from_world,
+            self.asg.view(),
+            self.render.depth_m().view(),
+            self.render.face_index().view(),
+        )
     }
 }
 
 /// Buffers the flow step reuses from view to view.
 #[derive(Debug, Default)]
 pub struct CorrespondWorkspace {
-    matching: DenseCorrespondenceWorkspace,
-    matches: DenseCorrespondence,
+    matching: MatchWorkspace,
+    matches: PixelMatches,
 }
 
 /// The query's features for matching (dense SIFT and pyramid), once per frame.
 pub fn query_features(
-    query: GreyImage,
+    query: ImageView<'_, f32>,
     config: &RegistrationConfig,
 ) -> Result<QueryFeatures, RegistrationError> {
-    QueryFeatures::compute(
-        query,
-        &config.correspondence,
-        &mut DenseSiftWorkspace::default(),
-    )
-    .map_err(|e| RegistrationError::Flow(e.to_string()))
+    QueryFeatures::compute(query, &config.matching, &mut DenseSiftWorkspace::default())
+        .map_err(|e| RegistrationError::Flow(e.to_string()))
 }
 
 /// Steps "match" and "lift" of one view: its 2D–3D correspondences.
@@ -76,19 +111,14 @@ pub fn correspond_view(
     config: &RegistrationConfig,
     workspace: &mut CorrespondWorkspace,
 ) -> Result<ViewCorrespondences, RegistrationError> {
-    let rendering = GreyImage {
-        width_px: view.width_px,
-        height_px: view.height_px,
-        pixels: view.asg,
-    };
     // The validity mask is not passed: with it, SIFT flow lost the true match on every ASG pair
     // with 30–55 px displacement (0 % of pixels within 2 px of the true flow, against 85–96 %
     // without). Invalid pixels have zero ASG, and lifting drops matches that land on them.
     match_rendering(
         query,
-        rendering,
+        view.asg,
         None,
-        &config.correspondence,
+        &config.matching,
         &mut workspace.matching,
         &mut workspace.matches,
     )
@@ -108,7 +138,7 @@ pub fn lift_matches(
     mesh: &Mesh,
     camera: &Camera,
     view: &ViewRef<'_>,
-    dense: &DenseCorrespondence,
+    dense: &PixelMatches,
     edge_margin_px: usize,
 ) -> ViewCorrespondences {
     let world_from_cam = view.cam_from_world.inverse();
@@ -117,7 +147,7 @@ pub fn lift_matches(
         coarse_cam_from_world: view.cam_from_world,
         ..ViewCorrespondences::default()
     };
-    for pair in &dense.correspondences {
+    for pair in &dense.matches {
         let rendering_px = Vector2::new(
             f64::from(pair.rendering_x_px) + 0.5,
             f64::from(pair.rendering_y_px) + 0.5,
@@ -149,17 +179,17 @@ pub fn lift_pixel(
 ) -> Option<Vector3<f64>> {
     let col = (pixel_px.x - 0.5).round();
     let row = (pixel_px.y - 0.5).round();
-    if col < 0.0 || row < 0.0 || col >= view.width_px as f64 || row >= view.height_px as f64 {
+    if col < 0.0 || row < 0.0 || col >= view.width_px() as f64 || row >= view.height_px() as f64 {
         return None;
     }
-    let pixel = row as usize * view.width_px + col as usize;
-    let face_index = view.face_index[pixel];
+    let pixel = row as usize * view.width_px() + col as usize;
+    let face_index = view.face_index().data()[pixel];
     if face_index == NO_FACE {
         return None;
     }
     let normalized = camera.intrinsics.pixel_to_normalized(pixel_px);
     let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
-    let depth_m = f64::from(view.depth_m[pixel]);
+    let depth_m = f64::from(view.depth_m().data()[pixel]);
     let point_cam = ray_plane_point_cam(
         mesh,
         face_index as usize,
@@ -179,19 +209,20 @@ pub const DEPTH_EDGE_RELATIVE_STEP: f32 = 0.02;
 /// `radius_px` (Chebyshev) on another surface: no surface there, or a depth step above
 /// [`DEPTH_EDGE_RELATIVE_STEP`]. Outside the image counts as near an edge.
 pub fn is_near_depth_edge(view: &ViewRef<'_>, pixel_px: Vector2<f64>, radius_px: usize) -> bool {
+    let (width, height) = (view.width_px(), view.height_px());
     let col = (pixel_px.x - 0.5).round();
     let row = (pixel_px.y - 0.5).round();
-    if col < 0.0 || row < 0.0 || col >= view.width_px as f64 || row >= view.height_px as f64 {
+    if col < 0.0 || row < 0.0 || col >= width as f64 || row >= height as f64 {
         return true;
     }
     let (col, row) = (col as usize, row as usize);
-    let width = view.width_px;
-    let centre = view.depth_m[row * width + col];
-    for r in row.saturating_sub(radius_px)..(row + radius_px + 1).min(view.height_px) {
+    let (depth_m, face_index) = (view.depth_m().data(), view.face_index().data());
+    let centre = depth_m[row * width + col];
+    for r in row.saturating_sub(radius_px)..(row + radius_px + 1).min(height) {
         for c in col.saturating_sub(radius_px)..(col + radius_px + 1).min(width) {
             let pixel = r * width + c;
-            if view.face_index[pixel] == NO_FACE
-                || (view.depth_m[pixel] - centre).abs() > DEPTH_EDGE_RELATIVE_STEP * centre
+            if face_index[pixel] == NO_FACE
+                || (depth_m[pixel] - centre).abs() > DEPTH_EDGE_RELATIVE_STEP * centre
             {
                 return true;
             }
@@ -220,15 +251,15 @@ mod tests {
             .map(|i| if i % width == 7 { NO_FACE } else { 0 })
             .collect();
         let asg = vec![0.0; width * height];
-        let view = ViewRef {
-            coarse_index: 0,
-            cam_from_world: Rigid3::identity(),
-            width_px: width,
-            height_px: height,
-            asg: &asg,
-            depth_m: &depth_m,
-            face_index: &face_index,
-        };
+        let image = |data| ImageView::new(width, height, data).unwrap();
+        let view = ViewRef::new(
+            0,
+            Rigid3::identity(),
+            image(&asg),
+            image(&depth_m),
+            ImageView::new(width, height, &face_index).unwrap(),
+        )
+        .unwrap();
         let at = |col: usize| Vector2::new(col as f64 + 0.5, 1.5);
         assert!(!is_near_depth_edge(&view, at(0), 1));
         assert!(

@@ -42,7 +42,7 @@ pub use solve::solve_view;
 pub use views::{coarse_poses, median_scene_depth_m, render_coarse_view, render_views};
 
 use super::camera::Camera;
-use super::flow_consistency::GreyImage;
+use super::image::{Image, ImageView};
 use super::mesh::Mesh;
 use super::raster::{Rasterizer, RenderBuffers};
 use super::rigid::Rigid3;
@@ -56,10 +56,10 @@ const GRADIENT_SCALE_PERCENTILE: f64 = 0.99;
 /// The photo side of a frame.
 #[derive(Clone, Copy, Debug)]
 pub struct FrameInput<'a> {
-    /// Grey photo, row major, values 0..1.
-    pub photo: GreyImage<'a>,
+    /// Grey photo, values 0..1.
+    pub photo: ImageView<'a, f32>,
     /// The photo's depth map (metres along the optical axis, holes 0), for [`QueryMode::DepthAsg`].
-    pub depth_m: Option<GreyImage<'a>>,
+    pub depth_m: Option<ImageView<'a, f32>>,
     /// The camera: known intrinsics, or the nominal ones coarse poses are rendered with.
     pub camera: &'a Camera,
     /// Whether `camera`'s intrinsics are trusted (EPnP) or estimated (DLT).
@@ -69,31 +69,13 @@ pub struct FrameInput<'a> {
     pub seed: u64,
 }
 
-/// The query's gradient image, scaled to 0..1.
-#[derive(Clone, Debug, Default)]
-pub struct QueryGradient {
-    pub width_px: usize,
-    pub height_px: usize,
-    pub pixels: Vec<f32>,
-}
-
-impl QueryGradient {
-    pub fn as_grey(&self) -> GreyImage<'_> {
-        GreyImage {
-            width_px: self.width_px,
-            height_px: self.height_px,
-            pixels: &self.pixels,
-        }
-    }
-}
-
 /// One coarse pose's rendering: what the flow step needs and what lifts matches to 3D.
 #[derive(Clone, Debug, Default)]
 pub struct CoarseView {
     pub coarse_index: usize,
     pub cam_from_world: Rigid3,
     /// ASG image scaled to 0..1.
-    pub asg: Vec<f32>,
+    pub asg: Image<f32>,
     pub render: RenderBuffers,
 }
 
@@ -163,7 +145,7 @@ pub fn register_frame(
         input.camera,
         input.intrinsics,
         &input.initial_cam_from_world,
-        &query,
+        query.view(),
         config,
         input.seed,
     )?;
@@ -172,14 +154,14 @@ pub fn register_frame(
     Ok(result)
 }
 
-/// Registers a frame whose query gradient image is already made: every step after "query".
-/// `config` must be valid.
+/// Registers a frame whose query gradient image (0..1, [`query_gradient`]) is already made:
+/// every step after "query". `config` must be valid.
 pub fn register_query(
     mesh: &Mesh,
     camera: &Camera,
     intrinsics: IntrinsicsMode,
     initial_cam_from_world: &Rigid3,
-    query: &QueryGradient,
+    query: ImageView<'_, f32>,
     config: &RegistrationConfig,
     seed: u64,
 ) -> Result<FrameResult, RegistrationError> {
@@ -201,11 +183,11 @@ pub fn register_query(
     timings.render_ms = elapsed_ms(stage);
 
     let stage = Instant::now();
-    let features = query_features(query.as_grey(), config)?;
+    let features = query_features(query, config)?;
     let correspondences: Vec<ViewCorrespondences> = views
         .par_iter()
         .map_init(CorrespondWorkspace::default, |workspace, view| {
-            correspond_view(mesh, camera, &features, &view.as_ref(), config, workspace)
+            correspond_view(mesh, camera, &features, &view.as_ref()?, config, workspace)
         })
         .collect::<Result<_, _>>()?;
     timings.flow_ms = elapsed_ms(stage);

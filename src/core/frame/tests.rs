@@ -52,17 +52,13 @@ fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
         &mut rasterizer,
         &mut truth_view,
     );
-    let query = QueryGradient {
-        width_px: 505,
-        height_px: 275,
-        pixels: truth_view.asg.clone(),
-    };
+    let query = truth_view.asg.view();
     let result = register_query(
         &mesh,
         &camera,
         IntrinsicsMode::Known,
         &initial,
-        &query,
+        query,
         &config,
         7,
     )
@@ -96,7 +92,7 @@ fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
         &camera,
         IntrinsicsMode::Known,
         &initial,
-        &query,
+        query,
         &config,
         7,
     )
@@ -108,18 +104,18 @@ fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
 fn depth_smoothing_averages_within_surfaces_and_keeps_edges_and_holes() {
     // Left half a wall at 10 m with ±0.1 m alternating noise, right half at 20 m, one hole.
     let (width, height) = (10, 5);
-    let mut depth: Vec<f32> = (0..width * height)
-        .map(|i| {
-            if i % width < 5 {
-                10.0 + if i % 2 == 0 { 0.1 } else { -0.1 }
-            } else {
-                20.0
-            }
-        })
-        .collect();
-    depth[2 * width + 7] = 0.0;
-    let mut out = vec![0.0; width * height];
-    smooth_depth(&depth, width, height, 1, 0.03, &mut out);
+    let mut depth = Image::from_fn(width, height, |col, row| {
+        let i = row * width + col;
+        if col < 5 {
+            10.0 + if i % 2 == 0 { 0.1 } else { -0.1 }
+        } else {
+            20.0
+        }
+    });
+    *depth.get_mut(7, 2).unwrap() = 0.0;
+    let mut out = Image::default();
+    smooth_depth(depth.view(), 1, 0.03, &mut out);
+    let out = out.data();
     assert_eq!(out[2 * width + 7], 0.0, "a hole stays a hole");
     assert_eq!(
         out[2 * width + 8],
@@ -144,11 +140,8 @@ fn depth_smoothing_averages_within_surfaces_and_keeps_edges_and_holes() {
 fn bad_inputs_are_reported_not_panicked() {
     let mesh = house_mesh();
     let camera = Camera::pinhole(64, 48, PinholeIntrinsics::centered(50.0, 64, 48));
-    let query = QueryGradient {
-        width_px: 64,
-        height_px: 48,
-        pixels: vec![0.0; 64 * 48],
-    };
+    let query = Image::filled(64, 48, 0.0);
+    let query = query.view();
     let config = RegistrationConfig::default();
     let nan_pose = Rigid3::new(UnitQuaternion::identity(), Vector3::new(f64::NAN, 0.0, 0.0));
     assert_eq!(
@@ -157,7 +150,7 @@ fn bad_inputs_are_reported_not_panicked() {
             &camera,
             IntrinsicsMode::Known,
             &nan_pose,
-            &query,
+            query,
             &config,
             1
         )
@@ -177,20 +170,16 @@ fn bad_inputs_are_reported_not_panicked() {
             &camera,
             IntrinsicsMode::Known,
             &away,
-            &query,
+            query,
             &config,
             1
         )
         .unwrap_err(),
         RegistrationError::ModelNotVisible
     );
-    let photo = vec![0.5f32; 10 * 10];
+    let photo = Image::filled(10, 10, 0.5f32);
     let input = FrameInput {
-        photo: GreyImage {
-            width_px: 10,
-            height_px: 10,
-            pixels: &photo,
-        },
+        photo: photo.view(),
         depth_m: None,
         camera: &camera,
         intrinsics: IntrinsicsMode::Known,
@@ -201,4 +190,21 @@ fn bad_inputs_are_reported_not_panicked() {
         query_gradient(&input, &config),
         Err(RegistrationError::PhotoSize { .. })
     ));
+}
+
+#[test]
+fn the_matching_settings_are_read_under_their_name() {
+    let config: RegistrationConfig = toml::from_str(
+        "coarse_pose_count = 5\n[matching]\nmin_support_gradient = 0.004\n[matching.sift_flow]\nbp_bands = 1\n",
+    )
+    .unwrap();
+    assert_eq!(config.coarse_pose_count, 5);
+    assert_eq!(config.matching.min_support_gradient, 0.004);
+    assert_eq!(config.matching.sift_flow.bp_bands, 1);
+    assert!(config.validate().is_ok());
+    // The old name of the section is an unknown field, not silently ignored.
+    let error =
+        toml::from_str::<RegistrationConfig>("[correspondence]\nmin_support_gradient = 0.004\n")
+            .unwrap_err();
+    assert!(error.to_string().contains("correspondence"), "{error}");
 }

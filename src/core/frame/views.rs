@@ -56,9 +56,10 @@ pub fn render_views(
 /// Median depth of the surface in a rendering, metres; `None` when it shows no surface.
 pub fn median_scene_depth_m(buffers: &RenderBuffers) -> Option<f64> {
     let mut depths: Vec<f32> = buffers
-        .depth_m
+        .depth_m()
+        .data()
         .iter()
-        .zip(&buffers.face_index)
+        .zip(buffers.face_index().data())
         .filter(|(_, f)| **f != NO_FACE)
         .map(|(d, _)| *d)
         .collect();
@@ -120,13 +121,6 @@ pub fn render_coarse_view(
         &config.render,
         &mut out.render,
     );
-    out.asg.resize(width_px * height_px, 0.0);
-    asg_from_normals(
-        &out.render.normal_cam,
-        width_px,
-        height_px,
-        &config.asg,
-        &mut out.asg,
-    );
-    scale_to_percentile(&mut out.asg, GRADIENT_SCALE_PERCENTILE);
+    asg_from_normals(out.render.normal_cam().view(), &config.asg, &mut out.asg);
+    scale_to_percentile(out.asg.data_mut(), GRADIENT_SCALE_PERCENTILE);
 }

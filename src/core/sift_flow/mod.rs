@@ -1,4 +1,4 @@
-//! SIFT flow: dense correspondence between two dense SIFT images by coarse-to-fine, dual-layer loopy
+//! SIFT flow: dense matching of two dense SIFT images by coarse-to-fine, dual-layer loopy
 //! belief propagation (Liu, Yuen, Torralba, "SIFT Flow: Dense Correspondence across Scenes and its
 //! Applications", TPAMI 2011, §3.2–3.3), following Ce Liu's reference (`BPFlow`, `SIFTflowc2f`).
 //!
@@ -21,8 +21,9 @@
 //! term's marginals; the integer flow is refined below a pixel; beliefs are computed once per
 //! level) and what each bought: docs/measurements.md#coresift_flow.
 //!
-//! Preconditions: dense SIFT images from [`crate::core::dense_sift`]; masks, when given, have one
-//! entry per pixel. Flow convention: `source(x, y) ≈ target(x + u, y + v)`, 0-based pixels.
+//! Preconditions: dense SIFT images from [`crate::core::dense_sift`]; masks, when given, are
+//! images of the same size. Flow convention: `source(x, y) ≈ target(x + u, y + v)`, 0-based
+//! pixels.
 
 mod bp;
 mod config;
@@ -40,50 +41,63 @@ pub use pyramid::SiftPyramid;
 use pyramid::{build_mask_pyramid, level_mask, upsample_flow};
 
 use crate::core::dense_sift::{DenseSiftImage, DESCRIPTOR_LEN};
+use crate::core::image::{Image, ImageError, ImageView};
 
-/// Errors of dense correspondence (dense SIFT, SIFT flow, consistency).
-#[derive(Debug, thiserror::Error)]
-pub enum FlowError {
-    #[error("invalid configuration: {field}: {reason}")]
-    InvalidConfig { field: &'static str, reason: String },
-    #[error("image of {width_px} x {height_px} px given {values} values")]
-    ImageSize {
-        width_px: usize,
-        height_px: usize,
-        values: usize,
-    },
-    #[error("{what}: expected {expected} entries, found {found}")]
-    SizeMismatch {
-        what: &'static str,
-        expected: usize,
-        found: usize,
-    },
-}
+pub use crate::core::dense_sift::FlowError;
 
-/// A dense flow field, row major: `source(x, y) ≈ target(x + u, y + v)`.
+/// A dense flow field, `source(x, y) ≈ target(x + u, y + v)`: two planes (u, v) of the same size.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FlowField {
-    pub width_px: usize,
-    pub height_px: usize,
-    pub u_px: Vec<f32>,
-    pub v_px: Vec<f32>,
+    u_px: Image<f32>,
+    v_px: Image<f32>,
 }
 
 impl FlowField {
+    /// A zero flow of the given size.
     pub fn zeros(width_px: usize, height_px: usize) -> Self {
         let mut field = Self::default();
-        field.resize(width_px, height_px);
+        field.reset(width_px, height_px);
         field
     }
 
+    /// The flow of two planes, which must have the same size.
+    pub fn new(u_px: Image<f32>, v_px: Image<f32>) -> Result<Self, ImageError> {
+        v_px.check_size("the v plane of a flow", u_px.width_px(), u_px.height_px())?;
+        Ok(Self { u_px, v_px })
+    }
+
     /// Resizes (keeping capacity) and zeroes the field.
-    pub fn resize(&mut self, width_px: usize, height_px: usize) {
-        self.width_px = width_px;
-        self.height_px = height_px;
-        self.u_px.clear();
-        self.u_px.resize(width_px * height_px, 0.0);
-        self.v_px.clear();
-        self.v_px.resize(width_px * height_px, 0.0);
+    pub fn reset(&mut self, width_px: usize, height_px: usize) {
+        self.u_px.reset(width_px, height_px, 0.0);
+        self.v_px.reset(width_px, height_px, 0.0);
+    }
+
+    pub fn width_px(&self) -> usize {
+        self.u_px.width_px()
+    }
+
+    pub fn height_px(&self) -> usize {
+        self.u_px.height_px()
+    }
+
+    /// `(width_px, height_px)`.
+    pub fn size(&self) -> (usize, usize) {
+        self.u_px.size()
+    }
+
+    /// Horizontal flow, px.
+    pub fn u_px(&self) -> &Image<f32> {
+        &self.u_px
+    }
+
+    /// Vertical flow, px.
+    pub fn v_px(&self) -> &Image<f32> {
+        &self.v_px
+    }
+
+    /// Both planes' pixels to write in place, `(u, v)` (the size cannot change through this).
+    pub fn planes_mut(&mut self) -> (&mut [f32], &mut [f32]) {
+        (self.u_px.data_mut(), self.v_px.data_mut())
     }
 }
 
@@ -119,20 +133,21 @@ pub struct SiftFlowWorkspace {
 }
 
 /// Computes the SIFT flow from `source` to `target` into `flow` (source size) and the matching cost
-/// of each pixel's chosen integer candidate into `matching_cost` (0 where the source pixel takes no
-/// part). `source_participates[p] == false` removes pixel `p`'s data term (it follows its
-/// neighbours); `target_valid[q] == false` makes target pixel `q` cost as much as an outside one.
-/// Builds both pyramids in the workspace; see [`compute_sift_flow_on_pyramids`] to reuse them.
+/// of each pixel's chosen integer candidate into `matching_cost` (source size; 0 where the source
+/// pixel takes no part). `source_participates[p] == false` removes pixel `p`'s data term (it
+/// follows its neighbours); `target_valid[q] == false` makes target pixel `q` cost as much as an
+/// outside one. Builds both pyramids in the workspace; see [`compute_sift_flow_on_pyramids`] to
+/// reuse them.
 #[allow(clippy::too_many_arguments)]
 pub fn compute_sift_flow(
     source: &DenseSiftImage,
-    source_participates: Option<&[bool]>,
+    source_participates: Option<ImageView<'_, bool>>,
     target: &DenseSiftImage,
-    target_valid: Option<&[bool]>,
+    target_valid: Option<ImageView<'_, bool>>,
     config: &SiftFlowConfig,
     workspace: &mut SiftFlowWorkspace,
     flow: &mut FlowField,
-    matching_cost: &mut Vec<f32>,
+    matching_cost: &mut Image<f32>,
 ) -> Result<SiftFlowTimings, FlowError> {
     let started = Instant::now();
     let mut source_pyramid = std::mem::take(&mut workspace.source_pyramid);
@@ -161,7 +176,11 @@ pub fn compute_sift_flow(
 }
 
 /// A flow endpoint: the dense SIFT image, its pyramid (built with the same config) and its mask.
-pub type FlowInput<'a> = (&'a DenseSiftImage, &'a SiftPyramid, Option<&'a [bool]>);
+pub type FlowInput<'a> = (
+    &'a DenseSiftImage,
+    &'a SiftPyramid,
+    Option<ImageView<'a, bool>>,
+);
 
 /// [`compute_sift_flow`] on pyramids the caller built (and may reuse) with [`SiftPyramid::build`].
 pub fn compute_sift_flow_on_pyramids(
@@ -170,7 +189,7 @@ pub fn compute_sift_flow_on_pyramids(
     config: &SiftFlowConfig,
     workspace: &mut SiftFlowWorkspace,
     flow: &mut FlowField,
-    matching_cost: &mut Vec<f32>,
+    matching_cost: &mut Image<f32>,
 ) -> Result<SiftFlowTimings, FlowError> {
     let started = Instant::now();
     config.validate()?;
@@ -181,14 +200,7 @@ pub fn compute_sift_flow_on_pyramids(
         (target_valid, target, "target mask"),
     ] {
         if let Some(mask) = mask {
-            let expected = image.width_px * image.height_px;
-            if mask.len() != expected {
-                return Err(FlowError::SizeMismatch {
-                    what,
-                    expected,
-                    found: mask.len(),
-                });
-            }
+            mask.check_size(what, image.width_px, image.height_px)?;
         }
     }
     for (pyramid, image, what) in [
@@ -221,8 +233,16 @@ pub fn compute_sift_flow_on_pyramids(
     let pyramid_started = Instant::now();
     ws.source_masks.resize_with(level_count, Vec::new);
     ws.target_masks.resize_with(level_count, Vec::new);
-    build_mask_pyramid(source_participates, source, &mut ws.source_masks);
-    build_mask_pyramid(target_valid, target, &mut ws.target_masks);
+    build_mask_pyramid(
+        source_participates.map(|mask| mask.data()),
+        source,
+        &mut ws.source_masks,
+    );
+    build_mask_pyramid(
+        target_valid.map(|mask| mask.data()),
+        target,
+        &mut ws.target_masks,
+    );
     timings.pyramid = pyramid_started.elapsed();
 
     for level in (0..level_count).rev() {
@@ -343,9 +363,10 @@ pub fn compute_sift_flow_on_pyramids(
     let pixel_count = width * height;
     let radius = config.level_radius(0, top_level);
     let labels = 2 * radius + 1;
-    flow.resize(width, height);
-    matching_cost.clear();
-    matching_cost.resize(pixel_count, 0.0);
+    flow.reset(width, height);
+    matching_cost.reset(width, height, 0.0);
+    let (flow_u, flow_v) = flow.planes_mut();
+    let matching_cost = matching_cost.data_mut();
     let source_mask = &ws.source_masks[0];
     for pixel in 0..pixel_count {
         let label_u = ws.labels[0][pixel] as usize;
@@ -375,8 +396,8 @@ pub fn compute_sift_flow_on_pyramids(
                 )
             }
         };
-        flow.u_px[pixel] = ws.flow[0][pixel] as f32 + delta_u;
-        flow.v_px[pixel] = ws.flow[1][pixel] as f32 + delta_v;
+        flow_u[pixel] = ws.flow[0][pixel] as f32 + delta_u;
+        flow_v[pixel] = ws.flow[1][pixel] as f32 + delta_v;
     }
     timings.total = started.elapsed();
     Ok(timings)
@@ -433,26 +454,24 @@ mod tests {
     }
 }
 
-/// Helpers shared by the tests of the dense-correspondence modules.
+/// Helpers shared by the tests of the dense-matching modules.
 #[cfg(test)]
 pub(crate) mod test_support {
     use super::*;
     use crate::core::dense_sift::{compute_dense_sift, DenseSiftConfig, DenseSiftWorkspace};
 
     pub(crate) struct SharedPair {
-        pub width: usize,
-        pub height: usize,
-        pub first: Vec<f32>,
-        pub second: Vec<f32>,
+        pub first: Image<f32>,
+        pub second: Image<f32>,
         pub truth: FlowField,
     }
 
-    fn load_grey(path: &std::path::Path) -> (usize, usize, Vec<f32>) {
+    fn load_grey(path: &std::path::Path) -> Image<f32> {
         let image = image::open(path)
             .unwrap_or_else(|error| panic!("{}: {error}", path.display()))
             .to_luma8();
         let (width, height) = image.dimensions();
-        (
+        Image::new(
             width as usize,
             height as usize,
             image
@@ -460,18 +479,17 @@ pub(crate) mod test_support {
                 .map(|pixel| pixel.0[0] as f32 / 255.0)
                 .collect(),
         )
+        .unwrap()
     }
 
     /// Loads `NAME_im1.png`, `NAME_im2.png`, `NAME_gt.flo` from `directory` (panics, naming
     /// the file, when one is missing).
     pub(crate) fn load_pair(directory: &std::path::Path, name: &str) -> SharedPair {
-        let (width, height, first) = load_grey(&directory.join(format!("{name}_im1.png")));
-        let (_, _, second) = load_grey(&directory.join(format!("{name}_im2.png")));
+        let first = load_grey(&directory.join(format!("{name}_im1.png")));
+        let second = load_grey(&directory.join(format!("{name}_im2.png")));
         let truth = crate::io::flo::read_flo(&directory.join(format!("{name}_gt.flo")))
             .unwrap_or_else(|error| panic!("{error}"));
         SharedPair {
-            width,
-            height,
             first,
             second,
             truth,
@@ -481,11 +499,13 @@ pub(crate) mod test_support {
     /// End-point error and fraction of pixels under 1 px, over pixels at least `border` px inside.
     pub(crate) fn score_flow(flow: &FlowField, truth: &FlowField, border: usize) -> (f64, f64) {
         let (mut sum, mut under_one, mut count) = (0.0f64, 0usize, 0usize);
-        for y in border..flow.height_px - border {
-            for x in border..flow.width_px - border {
-                let pixel = y * flow.width_px + x;
-                let error = ((flow.u_px[pixel] - truth.u_px[pixel]) as f64)
-                    .hypot((flow.v_px[pixel] - truth.v_px[pixel]) as f64);
+        let (u, v) = (flow.u_px().data(), flow.v_px().data());
+        let (true_u, true_v) = (truth.u_px().data(), truth.v_px().data());
+        for y in border..flow.height_px() - border {
+            for x in border..flow.width_px() - border {
+                let pixel = y * flow.width_px() + x;
+                let error =
+                    ((u[pixel] - true_u[pixel]) as f64).hypot((v[pixel] - true_v[pixel]) as f64);
                 sum += error;
                 under_one += (error < 1.0) as usize;
                 count += 1;
@@ -494,22 +514,9 @@ pub(crate) mod test_support {
         (sum / count as f64, under_one as f64 / count as f64)
     }
 
-    pub(crate) fn sift_of(
-        image: &[f32],
-        width: usize,
-        height: usize,
-        config: &DenseSiftConfig,
-    ) -> DenseSiftImage {
+    pub(crate) fn sift_of(image: ImageView<'_, f32>, config: &DenseSiftConfig) -> DenseSiftImage {
         let mut sift = DenseSiftImage::default();
-        compute_dense_sift(
-            image,
-            width,
-            height,
-            config,
-            &mut DenseSiftWorkspace::default(),
-            &mut sift,
-        )
-        .unwrap();
+        compute_dense_sift(image, config, &mut DenseSiftWorkspace::default(), &mut sift).unwrap();
         sift
     }
 }
