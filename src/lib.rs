@@ -10,6 +10,7 @@ pub mod eval;
 pub mod frame_files;
 pub mod io;
 pub mod msg;
+pub mod priors;
 pub mod runtime;
 pub mod stage;
 pub mod synth;

@@ -7,6 +7,7 @@ mod flow;
 mod inputs;
 mod overlay;
 mod pipeline;
+mod priors;
 mod register;
 mod render;
 mod synth;
@@ -56,6 +57,9 @@ pub enum Command {
     Bench(pipeline::BenchArgs),
     /// Draw the mesh over a photo under its pose (normal colours and edges), as PNG.
     Overlay(overlay::OverlayArgs),
+    /// Initial poses from the photos themselves (GPS and DJI gimbal angles in EXIF/XMP, or an
+    /// exiftool CSV) in the mesh's local UTM frame, as a COLMAP model with the frame's offset.
+    Priors(priors::PriorsArgs),
 }
 
 pub fn init_logging(verbose: u8) {
@@ -88,5 +92,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Synth(args) => synth::run(&args),
         Command::Render(args) => render::run(&args),
         Command::Overlay(args) => overlay::run(&args),
+        Command::Priors(args) => priors::run(&args),
     }
 }

@@ -7,5 +7,6 @@ mod colmap_cli;
 mod flow_cli;
 mod honest_tests;
 mod pipeline;
+mod priors_cli;
 mod register_cli;
 mod util;
