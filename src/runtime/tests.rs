@@ -210,3 +210,44 @@ fn drop_oldest_backpressure_reports_every_dropped_frame_as_its_result() {
         "{summary}"
     );
 }
+
+/// A flow worker describes a frame's query once (its first job) and reuses it for the frame's
+/// other jobs; the correspondences are exactly those of a worker that describes it every time.
+#[test]
+fn flow_workers_describe_each_query_once_with_the_same_correspondences() {
+    use std::borrow::Cow;
+
+    use crate::msg::FlowJob;
+    use crate::stage::flow::FlowStage;
+    use crate::stage::ingest::FolderSource;
+    use crate::stage::render::RenderStage;
+
+    let dir = tempfile::tempdir().unwrap();
+    let config = tiny_scene(dir.path());
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let mut source = FolderSource::open(&config.source).unwrap();
+    let (frame_id, frame) = source.next_frame().unwrap();
+    let frame = frame.unwrap();
+    let mut jobs: Vec<FlowJob<'static>> = Vec::new();
+    RenderStage::new(&mesh, config.registration.clone())
+        .process(&frame, &mut |job| {
+            jobs.push(FlowJob {
+                meta: job.meta.clone(),
+                query: Cow::Owned(job.query.to_vec()),
+                asg: Cow::Owned(job.asg.to_vec()),
+                depth_m: Cow::Owned(job.depth_m.to_vec()),
+                face_index: Cow::Owned(job.face_index.to_vec()),
+            })
+        })
+        .unwrap();
+    assert_eq!(jobs.len(), config.registration.coarse_pose_count);
+    let mut caching = FlowStage::new(&mesh, config.registration.clone(), 0);
+    for job in &jobs {
+        let cached = caching.process(frame_id, job);
+        let fresh = FlowStage::new(&mesh, config.registration.clone(), 0).process(frame_id, job);
+        assert_eq!(cached.image_points_px, fresh.image_points_px);
+        assert_eq!(cached.world_points_m, fresh.world_points_m);
+        assert!(!cached.image_points_px.is_empty());
+    }
+    assert_eq!(caching.feature_cache_hits as usize, jobs.len() - 1);
+}
