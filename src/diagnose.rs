@@ -387,37 +387,11 @@ impl DiagnosisSummary {
 
 #[cfg(test)]
 mod tests {
-    use nalgebra::UnitQuaternion;
-    use rand::SeedableRng;
-    use rand_chacha::ChaCha8Rng;
 
     use super::*;
-    use crate::core::camera::PinholeIntrinsics;
+    use crate::core::frame::tests::house_and_poses;
     use crate::core::frame::{register_frame, register_query, QueryMode};
     use crate::core::image::Image;
-    use crate::synth::geometry::build_house;
-
-    fn house_and_poses() -> (Mesh, Camera, Rigid3, Rigid3) {
-        let scene = build_house(&mut ChaCha8Rng::seed_from_u64(3));
-        let positions: Vec<Vector3<f64>> = scene
-            .positions_m
-            .iter()
-            .map(|p| Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)))
-            .collect();
-        let mesh = Mesh::from_world(&positions, scene.faces.clone(), None).unwrap();
-        let camera = Camera::pinhole(505, 275, PinholeIntrinsics::centered(360.0, 505, 275));
-        let truth = Rigid3::look_at(
-            &Vector3::new(18.0, -14.0, 9.0),
-            &Vector3::new(0.0, 0.0, 3.0),
-            &Vector3::z(),
-        )
-        .unwrap();
-        let initial = Rigid3::new(
-            UnitQuaternion::from_scaled_axis(Vector3::new(0.04, -0.05, 0.02)) * truth.rotation,
-            truth.translation + Vector3::new(1.0, -0.6, 0.4),
-        );
-        (mesh, camera, truth, initial)
-    }
 
     fn truth_view(
         mesh: &Mesh,

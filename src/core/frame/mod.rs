@@ -211,4 +211,4 @@ pub fn register_query(
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

@@ -8,7 +8,8 @@ use crate::core::reprojection::mutual_reprojection_error_px;
 use crate::core::reprojection::ReprojectionWorkspace;
 use crate::synth::geometry::build_house;
 
-fn house_mesh() -> Mesh {
+/// The synthetic house as a mesh (seed 3), shared by the tests of whole frames.
+pub(crate) fn house_mesh() -> Mesh {
     let scene = build_house(&mut ChaCha8Rng::seed_from_u64(3));
     let positions: Vec<Vector3<f64>> = scene
         .positions_m
@@ -22,9 +23,8 @@ fn house_mesh() -> Mesh {
 /// pose tens of pixels off, the accepted pose must be the true one to about a pixel. This
 /// checks rendering, flow, lifting, RANSAC, refinement and verification together; photos make it
 /// harder, which `asgreg eval` measures.
-#[test]
-fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
-    let mesh = house_mesh();
+/// The house seen by a 505×275 camera: (mesh, camera, true pose, an initial pose about 20 px off).
+pub(crate) fn house_and_poses() -> (Mesh, Camera, Rigid3, Rigid3) {
     let camera = Camera::pinhole(505, 275, PinholeIntrinsics::centered(360.0, 505, 275));
     let truth = Rigid3::look_at(
         &Vector3::new(18.0, -14.0, 9.0),
@@ -36,6 +36,12 @@ fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
         UnitQuaternion::from_scaled_axis(Vector3::new(0.04, -0.05, 0.02)) * truth.rotation,
         truth.translation + Vector3::new(1.0, -0.6, 0.4),
     );
+    (house_mesh(), camera, truth, initial)
+}
+
+#[test]
+fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
+    let (mesh, camera, truth, initial) = house_and_poses();
     let config = RegistrationConfig::default();
     let mut workspace = ReprojectionWorkspace::new();
     let initial_delta =
