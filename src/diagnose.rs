@@ -95,6 +95,10 @@ pub struct ViewDiagnosis {
 #[derive(Clone, Debug, Serialize)]
 pub struct FrameDiagnosis {
     pub views: Vec<ViewDiagnosis>,
+    /// The same for a view rendered at the true pose (not one of the frame's views): the floor
+    /// of the flow's error when no pose error is left, and where solving from there ends (what
+    /// a refinement that re-renders at its current pose could reach at best).
+    pub at_truth: ViewDiagnosis,
     pub verdict: Verdict,
     /// δ(output or would-be output, truth), px.
     pub chosen_delta_px: Option<f64>,
@@ -164,46 +168,59 @@ pub fn diagnose_query(
     let mut delta = |cam: &Camera, pose: &Rigid3| {
         mutual_reprojection_error_px(mesh, cam, pose, camera, truth, &mut reprojection)
     };
+    let mut diagnose_view =
+        |view: &CoarseView| -> Result<(ViewDiagnosis, CoarseOutcome), RegistrationError> {
+            let correspondences = correspond_view(
+                mesh,
+                camera,
+                &features,
+                &view.as_ref()?,
+                config,
+                &mut workspace,
+            )?;
+            let outcome = solve_view(&correspondences, camera, intrinsics, config, seed);
+            let errors =
+                correspondence_errors(mesh, camera, truth, &truth_view, view, &correspondences)?;
+            let oracle = ViewCorrespondences {
+                image_points_px: pick(&correspondences.image_points_px, &errors.within_oracle),
+                world_points_m: pick(&correspondences.world_points_m, &errors.within_oracle),
+                ..correspondences.clone()
+            };
+            let oracle_delta_px = solve_view(&oracle, camera, intrinsics, config, seed)
+                .hypothesis
+                .ok()
+                .and_then(|h| delta(&h.camera, &h.cam_from_world));
+            let diagnosis = ViewDiagnosis {
+                coarse_index: view.coarse_index,
+                coarse_delta_px: delta(camera, &view.cam_from_world),
+                correspondence_error: ErrorStats::of(&errors.query_px),
+                near_edge_error: ErrorStats::of(&errors.near_edge_px),
+                away_from_edge_error: ErrorStats::of(&errors.away_from_edge_px),
+                flow_error: ErrorStats::of(&errors.flow_px),
+                hypothesis_delta_px: outcome
+                    .hypothesis
+                    .as_ref()
+                    .ok()
+                    .and_then(|h| delta(&h.camera, &h.cam_from_world)),
+                failure: outcome.hypothesis.as_ref().err().cloned(),
+                oracle_delta_px,
+            };
+            Ok((diagnosis, outcome))
+        };
     let mut outcomes: Vec<CoarseOutcome> = Vec::with_capacity(views.len());
     let mut diagnoses = Vec::with_capacity(views.len());
     for view in &views {
-        let correspondences = correspond_view(
-            mesh,
-            camera,
-            &features,
-            &view.as_ref()?,
-            config,
-            &mut workspace,
-        )?;
-        let outcome = solve_view(&correspondences, camera, intrinsics, config, seed);
-        let errors =
-            correspondence_errors(mesh, camera, truth, &truth_view, view, &correspondences)?;
-        let oracle = ViewCorrespondences {
-            image_points_px: pick(&correspondences.image_points_px, &errors.within_oracle),
-            world_points_m: pick(&correspondences.world_points_m, &errors.within_oracle),
-            ..correspondences.clone()
-        };
-        let oracle_delta_px = solve_view(&oracle, camera, intrinsics, config, seed)
-            .hypothesis
-            .ok()
-            .and_then(|h| delta(&h.camera, &h.cam_from_world));
-        diagnoses.push(ViewDiagnosis {
-            coarse_index: view.coarse_index,
-            coarse_delta_px: delta(camera, &view.cam_from_world),
-            correspondence_error: ErrorStats::of(&errors.query_px),
-            near_edge_error: ErrorStats::of(&errors.near_edge_px),
-            away_from_edge_error: ErrorStats::of(&errors.away_from_edge_px),
-            flow_error: ErrorStats::of(&errors.flow_px),
-            hypothesis_delta_px: outcome
-                .hypothesis
-                .as_ref()
-                .ok()
-                .and_then(|h| delta(&h.camera, &h.cam_from_world)),
-            failure: outcome.hypothesis.as_ref().err().cloned(),
-            oracle_delta_px,
-        });
+        let (diagnosis, outcome) = diagnose_view(view)?;
+        diagnoses.push(diagnosis);
         outcomes.push(outcome);
     }
+    // The same measurements for a view rendered at the true pose: what the flow's bias is when
+    // no pose error is left to bridge, and where solving from there ends.
+    let truth_copy = CoarseView {
+        coarse_index: views.len(),
+        ..truth_view.clone()
+    };
+    let (at_truth, _) = diagnose_view(&truth_copy)?;
     let verdict = decide_frame(mesh, camera, &outcomes, config);
     let chosen_delta_px = verdict
         .chosen()
@@ -214,6 +231,7 @@ pub fn diagnose_query(
         .min_by(f64::total_cmp);
     Ok(FrameDiagnosis {
         views: diagnoses,
+        at_truth,
         verdict,
         chosen_delta_px,
         best_delta_px,
@@ -329,6 +347,10 @@ pub struct DiagnosisSummary {
     /// Means over views that gave a pose, px.
     pub hypothesis_delta_px: Option<f64>,
     pub oracle_delta_px: Option<f64>,
+    /// From views rendered at the true pose: mean of the flow-error medians and of the δ of
+    /// the pose solved from them, px.
+    pub at_truth_flow_median_px: Option<f64>,
+    pub at_truth_delta_px: Option<f64>,
     /// Means over frames, px.
     pub best_delta_px: Option<f64>,
     pub chosen_delta_px: Option<f64>,
@@ -379,6 +401,12 @@ impl DiagnosisSummary {
             },
             hypothesis_delta_px: mean(views.iter().filter_map(|v| v.hypothesis_delta_px)),
             oracle_delta_px: mean(views.iter().filter_map(|v| v.oracle_delta_px)),
+            at_truth_flow_median_px: mean(
+                frames
+                    .iter()
+                    .filter_map(|f| f.at_truth.flow_error.median_px),
+            ),
+            at_truth_delta_px: mean(frames.iter().filter_map(|f| f.at_truth.hypothesis_delta_px)),
             best_delta_px: mean(frames.iter().filter_map(|f| f.best_delta_px)),
             chosen_delta_px: mean(frames.iter().filter_map(|f| f.chosen_delta_px)),
         }
@@ -443,6 +471,14 @@ mod tests {
             "{summary:?}"
         );
         assert!(summary.within_2px > 0.4, "{summary:?}");
+        // At the true pose the ideal query is the rendering itself: the measurement must then
+        // find no error (measured 0.085 px flow, 0.014 px pose), which rules out an offset
+        // (a half-pixel convention slip) in the diagnosis itself.
+        assert!(
+            summary.at_truth_flow_median_px.unwrap() < 0.5,
+            "{summary:?}"
+        );
+        assert!(summary.at_truth_delta_px.unwrap() < 0.2, "{summary:?}");
         assert!(summary.oracle_delta_px.unwrap() < 1.0, "{summary:?}");
         assert!(diagnosis.chosen_delta_px.unwrap() < 1.5, "{summary:?}");
         assert!(diagnosis.best_delta_px.unwrap() <= diagnosis.chosen_delta_px.unwrap());

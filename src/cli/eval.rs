@@ -400,19 +400,20 @@ fn diagnosis_markdown(diagnoses: &BTreeMap<(u32, &str), Vec<(String, FrameDiagno
 true pose puts the query pixel's model point, rendering px; near edge: lifted within a pixel of a depth \
 discontinuity. Medians per view, averaged. Solver: δ of the refined poses (mean over views), and of an \
 oracle pose solved from only the pairs within {ORACLE_MAX_ERROR_PX} px. Choice: δ of the output against the \
-best hypothesis.\n"
+best hypothesis. At truth: a view rendered at the true pose, its flow-error median and the δ of \
+the pose solved from it (the floor for a refinement that re-renders at its current pose).\n"
     );
     let _ = writeln!(
         out,
-        "| level | method | frames | corr. median | near edge (share) | away from edge | flow median | ≤1 / ≤2 / ≤5 px | hypotheses δ | oracle δ | best δ | output δ |"
+        "| level | method | frames | corr. median | near edge (share) | away from edge | flow median | ≤1 / ≤2 / ≤5 px | hypotheses δ | oracle δ | best δ | output δ | at truth: flow median, δ |"
     );
-    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for ((level, method), frames) in diagnoses {
         let all: Vec<FrameDiagnosis> = frames.iter().map(|(_, d)| d.clone()).collect();
         let s = DiagnosisSummary::of(&all);
         let _ = writeln!(
             out,
-            "| {level} | {method} | {} | {} | {} ({:.0} %) | {} | {} | {:.0} / {:.0} / {:.0} % | {} | {} | {} | {} |",
+            "| {level} | {method} | {} | {} | {} ({:.0} %) | {} | {} | {:.0} / {:.0} / {:.0} % | {} | {} | {} | {} | {}, {} |",
             s.frames,
             px(s.correspondence_median_px),
             px(s.near_edge_median_px),
@@ -426,6 +427,8 @@ best hypothesis.\n"
             px(s.oracle_delta_px),
             px(s.best_delta_px),
             px(s.chosen_delta_px),
+            px(s.at_truth_flow_median_px),
+            px(s.at_truth_delta_px),
         );
     }
     let _ = writeln!(out, "\n## Frames\n");
