@@ -11,7 +11,8 @@ use serde::{Deserialize, Serialize};
 use crate::core::camera::Camera;
 use crate::core::image::Image;
 use crate::frame_files::{depth_path_for, frame_seed, load_frame_files};
-use crate::io::colmap::{read_cameras_txt, read_images_txt, ColmapError, ImagePose};
+use crate::io::colmap::ImagePose;
+use crate::io::colmap_model::{read_cameras_at, read_images_at, ModelError};
 use crate::msg::{Frame, FrameFailed, FrameInfo};
 
 /// Where the frames come from.
@@ -20,9 +21,9 @@ use crate::msg::{Frame, FrameFailed, FrameInfo};
 pub struct SourceConfig {
     /// Folder of the photos (names as in images.txt).
     pub images: PathBuf,
-    /// COLMAP cameras.txt of the photos.
+    /// The photos' cameras: a COLMAP `cameras.txt` or `cameras.bin`, or a model folder.
     pub cameras: PathBuf,
-    /// COLMAP images.txt with the initial (GPS/IMU) poses.
+    /// The initial (GPS/IMU) poses: a COLMAP `images.txt` or `images.bin`, or a model folder.
     pub poses: PathBuf,
     /// Folder of depth maps (`<image stem>.pfm`); set to register with the depth-ASG query.
     pub depth: Option<PathBuf>,
@@ -58,7 +59,7 @@ impl SourceConfig {
 #[derive(Debug, thiserror::Error)]
 pub enum SourceError {
     #[error(transparent)]
-    Colmap(#[from] ColmapError),
+    Model(Box<ModelError>),
     #[error("{poses}: image '{name}' uses camera {camera_id}, which {cameras} does not define")]
     UnknownCamera {
         poses: PathBuf,
@@ -68,6 +69,14 @@ pub enum SourceError {
     },
     #[error("{poses}: lists no images; nothing to register")]
     NoImages { poses: PathBuf },
+}
+
+impl From<ModelError> for SourceError {
+    fn from(error: ModelError) -> Self {
+        // Boxed: a model error is large and a source error travels up through every stage's
+        // `Result`.
+        Self::Model(Box::new(error))
+    }
 }
 
 /// A folder source: the list is read up front, each photo when its frame is emitted.
@@ -80,8 +89,8 @@ pub struct FolderSource {
 
 impl FolderSource {
     pub fn open(config: &SourceConfig) -> Result<Self, SourceError> {
-        let cameras = read_cameras_txt(&config.cameras)?;
-        let mut images = read_images_txt(&config.poses)?;
+        let (cameras, _) = read_cameras_at(&config.cameras)?;
+        let (mut images, _) = read_images_at(&config.poses)?;
         if config.max_frames > 0 {
             images.truncate(config.max_frames);
         }
