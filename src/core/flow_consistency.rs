@@ -98,7 +98,7 @@ pub struct PixelMatch {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct MatchTimings {
     pub dense_sift: Duration,
-    /// Descriptor pyramid of the rendering (and of the query in [`match_query_to_rendering`]).
+    /// Descriptor pyramid of the rendering.
     pub pyramid: Duration,
     pub forward_flow: Duration,
     pub backward_flow: Duration,
@@ -122,12 +122,9 @@ pub struct PixelMatches {
 #[derive(Debug, Default)]
 pub struct MatchWorkspace {
     sift_workspace: DenseSiftWorkspace,
-    rendering_sift_workspace: DenseSiftWorkspace,
     flow_workspace: SiftFlowWorkspace,
     backward_flow_workspace: SiftFlowWorkspace,
-    query_sift: DenseSiftImage,
     rendering_sift: DenseSiftImage,
-    query_pyramid: SiftPyramid,
     rendering_pyramid: SiftPyramid,
     query_textured: Image<bool>,
     rendering_participates: Image<bool>,
@@ -135,7 +132,9 @@ pub struct MatchWorkspace {
     backward_cost: Image<f32>,
 }
 
-/// Dense SIFT of both images, SIFT flow both ways, consistency check: the per-pair entry point.
+/// Dense SIFT of both images, SIFT flow both ways, consistency check: the per-pair entry point
+/// for a query matched once. A query matched against many renderings computes its
+/// [`QueryFeatures`] once and calls [`match_rendering`] for each.
 pub fn match_query_to_rendering(
     query: ImageView<'_, f32>,
     rendering: ImageView<'_, f32>,
@@ -145,50 +144,11 @@ pub fn match_query_to_rendering(
     out: &mut PixelMatches,
 ) -> Result<(), FlowError> {
     let started = Instant::now();
-    config.validate()?;
-    let ws = workspace;
-    let (query_result, rendering_result) = rayon::join(
-        || {
-            compute_dense_sift(
-                query,
-                &config.dense_sift,
-                &mut ws.sift_workspace,
-                &mut ws.query_sift,
-            )
-        },
-        || {
-            compute_dense_sift(
-                rendering,
-                &config.dense_sift,
-                &mut ws.rendering_sift_workspace,
-                &mut ws.rendering_sift,
-            )
-        },
-    );
-    query_result?;
-    rendering_result?;
-    let dense_sift = started.elapsed();
-    let pyramid_started = Instant::now();
-    ws.query_pyramid.build(&ws.query_sift, &config.sift_flow)?;
-    let query_pyramid_time = pyramid_started.elapsed();
-    let query_sift = std::mem::take(&mut ws.query_sift);
-    let rendering_sift = std::mem::take(&mut ws.rendering_sift);
-    let query_pyramid = std::mem::take(&mut ws.query_pyramid);
-    let result = match_sift_images(
-        &query_sift,
-        &query_pyramid,
-        &rendering_sift,
-        rendering_valid,
-        config,
-        ws,
-        out,
-    );
-    ws.query_sift = query_sift;
-    ws.rendering_sift = rendering_sift;
-    ws.query_pyramid = query_pyramid;
-    result?;
-    out.timings.dense_sift = dense_sift;
-    out.timings.pyramid += query_pyramid_time;
+    let query = QueryFeatures::compute(query, config, &mut workspace.sift_workspace)?;
+    // The query's dense SIFT and pyramid count as dense SIFT here.
+    let query_time = started.elapsed();
+    match_rendering(&query, rendering, rendering_valid, config, workspace, out)?;
+    out.timings.dense_sift += query_time;
     out.timings.total = started.elapsed();
     Ok(())
 }
