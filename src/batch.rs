@@ -14,7 +14,7 @@ use crate::core::frame::{
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::core::rigid::Rigid3;
-use crate::frame_files::{frame_seed, load_frame_files};
+use crate::frame_files::{frame_seed, load_frame_files, FrameFiles, FrameFilesError};
 
 /// Where one frame's inputs are.
 #[derive(Clone, Debug)]
@@ -94,6 +94,31 @@ impl FrameReport {
     }
 }
 
+impl BatchFrame {
+    /// Reads the frame's photo and depth map, checked against its camera.
+    pub fn load(&self) -> Result<FrameFiles, FrameFilesError> {
+        load_frame_files(
+            &self.image_path,
+            self.camera_id,
+            &self.camera,
+            self.depth_path.as_deref(),
+        )
+    }
+
+    /// The frame as registration's input, from its loaded files; `seed` is the run's seed (the
+    /// frame's own is derived from it and the image id).
+    pub fn input<'a>(&'a self, files: &'a FrameFiles, seed: u64) -> FrameInput<'a> {
+        FrameInput {
+            photo: files.photo.view(),
+            depth_m: files.depth_m.as_ref().map(Image::view),
+            camera: &self.camera,
+            intrinsics: self.intrinsics,
+            initial_cam_from_world: self.initial_cam_from_world,
+            seed: frame_seed(seed, self.image_id),
+        }
+    }
+}
+
 /// Registers one frame; never fails: problems become a failed report naming the file or reason.
 pub fn register_batch_frame(
     mesh: &Mesh,
@@ -101,24 +126,11 @@ pub fn register_batch_frame(
     config: &RegistrationConfig,
     seed: u64,
 ) -> FrameReport {
-    let files = match load_frame_files(
-        &frame.image_path,
-        frame.camera_id,
-        &frame.camera,
-        frame.depth_path.as_deref(),
-    ) {
+    let files = match frame.load() {
         Ok(files) => files,
         Err(error) => return FrameReport::failed(frame, error.to_string()),
     };
-    let input = FrameInput {
-        photo: files.photo.view(),
-        depth_m: files.depth_m.as_ref().map(Image::view),
-        camera: &frame.camera,
-        intrinsics: frame.intrinsics,
-        initial_cam_from_world: frame.initial_cam_from_world,
-        seed: frame_seed(seed, frame.image_id),
-    };
-    match register_frame(mesh, &input, config) {
+    match register_frame(mesh, &frame.input(&files, seed), config) {
         Ok(result) => {
             let verdict = &result.verdict;
             let chosen = verdict.chosen();

@@ -21,7 +21,7 @@
 use nalgebra::{Vector2, Vector3};
 use serde::Serialize;
 
-use crate::core::camera::Camera;
+use crate::core::camera::{nearest_pixel, Camera};
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::{
     correspond_view, decide_frame, lift_pixel, query_features, query_gradient, render_coarse_view,
@@ -150,13 +150,14 @@ pub fn diagnose_query(
         seed,
         &mut rasterizer,
         &mut CoarseView::default(),
-        &mut |view, _| views.push(view.clone()),
+        &mut |view, _| views.push(std::mem::take(view)),
     )?;
+    // Numbered after the frame's views, so that its diagnosis is told apart from theirs.
     let mut truth_view = CoarseView::default();
     render_coarse_view(
         mesh,
         camera,
-        0,
+        views.len(),
         truth,
         config,
         &mut rasterizer,
@@ -216,11 +217,7 @@ pub fn diagnose_query(
     }
     // The same measurements for a view rendered at the true pose: what the flow's bias is when
     // no pose error is left to bridge, and where solving from there ends.
-    let truth_copy = CoarseView {
-        coarse_index: views.len(),
-        ..truth_view.clone()
-    };
-    let (at_truth, _) = diagnose_view(&truth_copy)?;
+    let (at_truth, _) = diagnose_view(&truth_view)?;
     let verdict = decide_frame(mesh, camera, &outcomes, config);
     let chosen_delta_px = verdict
         .chosen()
@@ -305,14 +302,6 @@ fn pick<T: Copy>(values: &[T], keep: &[bool]) -> Vec<T> {
         .collect()
 }
 
-/// The rendering pixel nearest `pixel_px` (COLMAP coordinates), if inside.
-fn nearest_pixel(render: &RenderBuffers, pixel_px: Vector2<f64>) -> Option<(usize, usize)> {
-    let col = (pixel_px.x - 0.5).round();
-    let row = (pixel_px.y - 0.5).round();
-    (col >= 0.0 && row >= 0.0 && col < render.width_px() as f64 && row < render.height_px() as f64)
-        .then_some((col as usize, row as usize))
-}
-
 /// Whether the view sees `point_world` (projecting to `pixel_px`) rather than something in front.
 fn sees_unoccluded(
     render: &RenderBuffers,
@@ -320,7 +309,7 @@ fn sees_unoccluded(
     point_world: &Vector3<f64>,
     pixel_px: Vector2<f64>,
 ) -> bool {
-    let Some((col, row)) = nearest_pixel(render, pixel_px) else {
+    let Some((col, row)) = nearest_pixel(pixel_px, render.width_px(), render.height_px()) else {
         return false;
     };
     let rendered_m = f64::from(render.depth_m().data()[row * render.width_px() + col]);
@@ -362,7 +351,8 @@ fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
 }
 
 impl DiagnosisSummary {
-    pub fn of(frames: &[FrameDiagnosis]) -> Self {
+    pub fn of<'a>(frames: impl IntoIterator<Item = &'a FrameDiagnosis>) -> Self {
+        let frames: Vec<&FrameDiagnosis> = frames.into_iter().collect();
         let views: Vec<&ViewDiagnosis> = frames.iter().flat_map(|f| &f.views).collect();
         let with_matches: Vec<&&ViewDiagnosis> = views
             .iter()

@@ -12,13 +12,12 @@ use asgreg::baseline::icp::{
 };
 use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
 use asgreg::core::camera::Camera;
-use asgreg::core::frame::FrameInput;
 use asgreg::core::frame::{IntrinsicsMode, RegistrationConfig};
 use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::diagnose::{diagnose_frame, DiagnosisSummary, FrameDiagnosis, ORACLE_MAX_ERROR_PX};
 use asgreg::eval::{cell_stats, format_accuracy, CellStats, EvalFrame};
-use asgreg::frame_files::{depth_path_for, frame_seed, load_frame_files};
+use asgreg::frame_files::depth_path_for;
 use asgreg::io::colmap::{read_cameras_txt, read_images_txt, ImagePose};
 use asgreg::io::mesh_file::read_mesh;
 use asgreg::io::pfm::read_pfm;
@@ -157,7 +156,6 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             Method::Asg(intrinsics) if args.diagnose => {
                 let config = registration_config(with_depth, &args.coarse);
                 let started = std::time::Instant::now();
-                let seed = frame_seed(args.seed, initial.image_id);
                 match diagnose_scene_frame(
                     &mesh,
                     &args.scene,
@@ -167,7 +165,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     intrinsics.mode(),
                     with_depth,
                     &config,
-                    seed,
+                    args.seed,
                 ) {
                     Ok(diagnosis) => {
                         let outcome = FrameOutcome {
@@ -335,7 +333,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             "cells": diagnoses.iter().map(|((level, method), frames)| serde_json::json!({
                 "level_px": level,
                 "method": method,
-                "summary": DiagnosisSummary::of(&frames.iter().map(|(_, d)| d.clone()).collect::<Vec<_>>()),
+                "summary": DiagnosisSummary::of(frames.iter().map(|(_, d)| d)),
                 "frames": frames.iter().map(|(name, d)| serde_json::json!({"name": name, "diagnosis": d})).collect::<Vec<_>>(),
             })).collect::<Vec<_>>(),
         });
@@ -370,23 +368,32 @@ fn diagnose_scene_frame(
     config: &RegistrationConfig,
     seed: u64,
 ) -> Result<FrameDiagnosis, String> {
-    let depth_path = with_depth.then(|| depth_path_for(&scene.join("depth"), &initial.name));
-    let files = load_frame_files(
-        &scene.join("images").join(&initial.name),
-        gt.camera_id,
-        &camera,
-        depth_path.as_deref(),
-    )
-    .map_err(|e| e.to_string())?;
-    let input = FrameInput {
-        photo: files.photo.view(),
-        depth_m: files.depth_m.as_ref().map(|d| d.view()),
-        camera: &camera,
+    let frame = scene_batch_frame(scene, initial, gt, camera, intrinsics, with_depth);
+    let files = frame.load().map_err(|e| e.to_string())?;
+    diagnose_frame(mesh, &frame.input(&files, seed), &gt.cam_from_world, config)
+        .map_err(|e| e.to_string())
+}
+
+/// The frame `initial` of a scene folder (photo in `images/`, depth in `depth/` when
+/// `with_depth`) with the camera of its ground truth `gt`.
+fn scene_batch_frame(
+    scene: &Path,
+    initial: &ImagePose,
+    gt: &ImagePose,
+    camera: Camera,
+    intrinsics: IntrinsicsMode,
+    with_depth: bool,
+) -> BatchFrame {
+    BatchFrame {
+        image_id: initial.image_id,
+        camera_id: gt.camera_id,
+        name: initial.name.clone(),
+        image_path: scene.join("images").join(&initial.name),
+        depth_path: with_depth.then(|| depth_path_for(&scene.join("depth"), &initial.name)),
+        camera,
         intrinsics,
         initial_cam_from_world: initial.cam_from_world,
-        seed,
-    };
-    diagnose_frame(mesh, &input, &gt.cam_from_world, config).map_err(|e| e.to_string())
+    }
 }
 
 /// The diagnosis tables: one row per (level, method), then one line per frame.
@@ -409,8 +416,7 @@ the pose solved from it (the floor for a refinement that re-renders at its curre
     );
     let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for ((level, method), frames) in diagnoses {
-        let all: Vec<FrameDiagnosis> = frames.iter().map(|(_, d)| d.clone()).collect();
-        let s = DiagnosisSummary::of(&all);
+        let s = DiagnosisSummary::of(frames.iter().map(|(_, d)| d));
         let _ = writeln!(
             out,
             "| {level} | {method} | {} | {} | {} ({:.0} %) | {} | {} | {:.0} / {:.0} / {:.0} % | {} | {} | {} | {} | {}, {} |",
@@ -477,16 +483,7 @@ pub fn register_scene_frame(
     seed: u64,
     workspace: &mut ReprojectionWorkspace,
 ) -> (FrameReport, Option<f64>) {
-    let frame = BatchFrame {
-        image_id: initial.image_id,
-        camera_id: gt.camera_id,
-        name: initial.name.clone(),
-        image_path: scene.join("images").join(&initial.name),
-        depth_path: with_depth.then(|| depth_path_for(&scene.join("depth"), &initial.name)),
-        camera,
-        intrinsics,
-        initial_cam_from_world: initial.cam_from_world,
-    };
+    let frame = scene_batch_frame(scene, initial, gt, camera, intrinsics, with_depth);
     let report = register_batch_frame(mesh, &frame, config, seed);
     let output = match (report.camera, report.cam_from_world) {
         (Some(out_camera), Some(out_pose)) => Some((out_camera, out_pose)),

@@ -39,6 +39,19 @@ pub fn pixel_center(col: usize, row: usize) -> Vector2<f64> {
     Vector2::new(col as f64 + 0.5, row as f64 + 0.5)
 }
 
+/// The pixel `(col, row)` whose centre is nearest `point_px` (COLMAP convention, the inverse of
+/// [`pixel_center`]); `None` outside a `width_px × height_px` image.
+pub fn nearest_pixel(
+    point_px: Vector2<f64>,
+    width_px: usize,
+    height_px: usize,
+) -> Option<(usize, usize)> {
+    let col = (point_px.x - 0.5).round();
+    let row = (point_px.y - 0.5).round();
+    (col >= 0.0 && row >= 0.0 && col < width_px as f64 && row < height_px as f64)
+        .then_some((col as usize, row as usize))
+}
+
 /// The linear part of a camera: `K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]`, all in pixels.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PinholeIntrinsics {

@@ -6,7 +6,7 @@
 use nalgebra::{Vector2, Vector3};
 
 use super::{CoarseView, RegistrationConfig, RegistrationError, ViewCorrespondences};
-use crate::core::camera::Camera;
+use crate::core::camera::{nearest_pixel, Camera};
 use crate::core::dense_sift::DenseSiftWorkspace;
 use crate::core::flow_consistency::{match_rendering, MatchWorkspace, PixelMatches, QueryFeatures};
 use crate::core::image::{ImageError, ImageView};
@@ -177,12 +177,8 @@ pub fn lift_pixel(
     world_from_cam: &Rigid3,
     pixel_px: Vector2<f64>,
 ) -> Option<Vector3<f64>> {
-    let col = (pixel_px.x - 0.5).round();
-    let row = (pixel_px.y - 0.5).round();
-    if col < 0.0 || row < 0.0 || col >= view.width_px() as f64 || row >= view.height_px() as f64 {
-        return None;
-    }
-    let pixel = row as usize * view.width_px() + col as usize;
+    let (col, row) = nearest_pixel(pixel_px, view.width_px(), view.height_px())?;
+    let pixel = row * view.width_px() + col;
     let face_index = view.face_index().data()[pixel];
     if face_index == NO_FACE {
         return None;
@@ -210,12 +206,9 @@ pub const DEPTH_EDGE_RELATIVE_STEP: f32 = 0.02;
 /// [`DEPTH_EDGE_RELATIVE_STEP`]. Outside the image counts as near an edge.
 pub fn is_near_depth_edge(view: &ViewRef<'_>, pixel_px: Vector2<f64>, radius_px: usize) -> bool {
     let (width, height) = (view.width_px(), view.height_px());
-    let col = (pixel_px.x - 0.5).round();
-    let row = (pixel_px.y - 0.5).round();
-    if col < 0.0 || row < 0.0 || col >= width as f64 || row >= height as f64 {
+    let Some((col, row)) = nearest_pixel(pixel_px, width, height) else {
         return true;
-    }
-    let (col, row) = (col as usize, row as usize);
+    };
     let (depth_m, face_index) = (view.depth_m().data(), view.face_index().data());
     let centre = depth_m[row * width + col];
     for r in row.saturating_sub(radius_px)..(row + radius_px + 1).min(height) {

@@ -178,7 +178,7 @@ pub fn register_query(
         seed,
         &mut Rasterizer::new(),
         &mut CoarseView::default(),
-        &mut |view, _| views.push(view.clone()),
+        &mut |view, _| views.push(std::mem::take(view)),
     )?;
     timings.render_ms = elapsed_ms(stage);
 

@@ -16,7 +16,8 @@ use crate::core::rigid::Rigid3;
 use crate::core::shading::{asg_from_normals, scale_to_percentile};
 
 /// Plans and renders a frame's coarse views in coarse-pose order, handing each to `emit` with the
-/// number of views (`view` is reused: `emit` reads or copies it before the next one is rendered).
+/// number of views. `view` is rendered into again for the next one: `emit` reads it, or takes it
+/// (`std::mem::take`) to keep it, and the next view is then rendered into fresh buffers.
 /// The first view is the initial pose itself; its rendering also gives the scene depth that
 /// scales the other coarse poses. Returns the number of views.
 #[allow(clippy::too_many_arguments)]
@@ -28,7 +29,7 @@ pub fn render_views(
     seed: u64,
     rasterizer: &mut Rasterizer,
     view: &mut CoarseView,
-    emit: &mut dyn FnMut(&CoarseView, usize),
+    emit: &mut dyn FnMut(&mut CoarseView, usize),
 ) -> Result<usize, RegistrationError> {
     if !initial_cam_from_world.is_finite() {
         return Err(RegistrationError::NonFiniteInitialPose);
