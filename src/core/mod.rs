@@ -4,6 +4,7 @@
 
 pub mod camera;
 pub mod dense_sift;
+pub mod edge_align;
 pub mod flow_consistency;
 pub mod frame;
 pub mod image;

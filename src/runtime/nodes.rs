@@ -431,23 +431,44 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             // counts as transport time, like every Outbox send.
             let mut encoded: Result<(), BusError> = Ok(());
             let mut encode_ms = 0.0;
-            let outcome = stage.process(&frame, &mut |job| {
-                let encode_started = Instant::now();
-                let key = JobKey {
-                    frame_id,
-                    coarse_index: job.meta.coarse_index,
-                };
-                match encode_to_vec(frame_id, capture, Body::FlowJob(job)) {
-                    Ok(bytes) => dispatcher.push(key, bytes),
-                    Err(error) => {
-                        if encoded.is_ok() {
-                            encoded = Err(error);
+            // The query goes to verify (its send time is counted by the Outbox).
+            let mut query_sent: Result<(), BusError> = Ok(());
+            let mut query_ms = 0.0;
+            let outcome = stage.process(
+                &frame,
+                &mut |query| {
+                    let send_started = Instant::now();
+                    query_sent = verify
+                        .send(frame_id, capture, Body::FrameQuery(query), metrics)
+                        .map(|_| ());
+                    query_ms += send_started.elapsed().as_secs_f64() * 1e3;
+                },
+                &mut |job| {
+                    let encode_started = Instant::now();
+                    let key = JobKey {
+                        frame_id,
+                        coarse_index: job.meta.coarse_index,
+                    };
+                    match encode_to_vec(frame_id, capture, Body::FlowJob(job)) {
+                        Ok(bytes) => dispatcher.push(key, bytes),
+                        Err(error) => {
+                            if encoded.is_ok() {
+                                encoded = Err(error);
+                            }
                         }
                     }
+                    encode_ms += encode_started.elapsed().as_secs_f64() * 1e3;
+                },
+            );
+            if let Err(error) = query_sent {
+                if encoded.is_ok() {
+                    encoded = Err(error);
                 }
-                encode_ms += encode_started.elapsed().as_secs_f64() * 1e3;
-            });
-            record_compute_ms(metrics, started.elapsed().as_secs_f64() * 1e3 - encode_ms);
+            }
+            record_compute_ms(
+                metrics,
+                started.elapsed().as_secs_f64() * 1e3 - encode_ms - query_ms,
+            );
             metrics.send_ms += encode_ms;
             let key = JobKey {
                 frame_id,
@@ -598,6 +619,12 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                         .entry(frame_id)
                         .or_insert(message.header.capture_time_ns);
                     produced.extend(stage.on_failure(frame_id, &failure));
+                }
+                Body::FrameQuery(query) => {
+                    capture_times
+                        .entry(frame_id)
+                        .or_insert(message.header.capture_time_ns);
+                    produced.extend(stage.on_query(frame_id, &query));
                 }
                 Body::StreamEnd(end) => stage.on_stream_end(end.frame_count, &end.finished_frames),
                 other => unexpected("verify", other.kind(), frame_id),

@@ -230,7 +230,7 @@ fn flow_workers_describe_each_query_once_with_the_same_correspondences() {
     let frame = frame.unwrap();
     let mut jobs: Vec<FlowJob<'static>> = Vec::new();
     RenderStage::new(&mesh, config.registration.clone())
-        .process(&frame, &mut |job| {
+        .process(&frame, &mut |_| {}, &mut |job| {
             jobs.push(FlowJob {
                 meta: job.meta.clone(),
                 query: Cow::Owned(job.query.to_vec()),
