@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
 use crate::core::frame::{
-    register_frame, FrameInput, IntrinsicsMode, RegistrationConfig, StageTimings,
+    register_frame, FrameInput, IntrinsicsMode, PoseRefinement, RegistrationConfig, StageTimings,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
@@ -61,6 +61,9 @@ pub struct FrameReport {
     /// evidence for diagnosing the verification; never a result. None for accepted frames and
     /// for frames without hypotheses.
     pub rejected_candidate: Option<RejectedCandidate>,
+    /// The final refinement of the chosen pose (already applied to `cam_from_world` when kept:
+    /// its evidence before and after), or why there was none.
+    pub refinement: Result<PoseRefinement, String>,
     pub timings: StageTimings,
 }
 
@@ -89,6 +92,7 @@ impl FrameReport {
             camera: None,
             cam_from_world: None,
             rejected_candidate: None,
+            refinement: Err("the frame was not registered".to_string()),
             timings: StageTimings::default(),
         }
     }
@@ -159,6 +163,7 @@ pub fn register_batch_frame(
                         camera: h.camera,
                         cam_from_world: h.cam_from_world,
                     }),
+                refinement: result.refinement,
                 timings: result.timings,
             }
         }

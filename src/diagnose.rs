@@ -24,12 +24,13 @@ use nalgebra::{Vector2, Vector3};
 use serde::Serialize;
 
 use crate::core::camera::{nearest_pixel, Camera};
+use crate::core::edge_align::AlignedParameters;
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::{
     correspond_view, decide_frame, lift_pixel, query_features, query_gradient, refine_pose,
-    refine_verdict, render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView,
-    CorrespondWorkspace, FrameInput, IntrinsicsMode, PoseRefinement, RefineWorkspace,
-    RegistrationConfig, RegistrationError, ViewCorrespondences, ViewRef,
+    render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView, CorrespondWorkspace,
+    Decision, FrameInput, IntrinsicsMode, PoseRefinement, RefineWorkspace, RegistrationConfig,
+    RegistrationError, ViewCorrespondences, ViewRef,
 };
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
@@ -229,23 +230,43 @@ pub fn diagnose_query(
     // The same measurements for a view rendered at the true pose: what the flow's bias is when
     // no pose error is left to bridge, and where solving from there ends.
     let (at_truth, _) = diagnose_view(&truth_view)?;
-    let mut verdict = decide_frame(mesh, camera, &outcomes, config);
-    let verified_delta_px = verdict
-        .chosen()
-        .and_then(|h| delta(&h.camera, &h.cam_from_world));
     let mut refine_workspace = RefineWorkspace::default();
-    let refinement = refine_verdict(mesh, query, &mut verdict, config, &mut refine_workspace);
+    let Decision {
+        verdict,
+        refinement,
+    } = decide_frame(
+        mesh,
+        camera,
+        &outcomes,
+        Some(query),
+        intrinsics,
+        config,
+        &mut refine_workspace,
+    );
+    let verified_delta_px = match &refinement {
+        Ok(r) => delta(&r.verified_camera, &r.verified_cam_from_world),
+        Err(_) => verdict
+            .chosen()
+            .and_then(|h| delta(&h.camera, &h.cam_from_world)),
+    };
     let chosen_delta_px = verdict
         .chosen()
         .and_then(|h| delta(&h.camera, &h.cam_from_world));
-    let aligned_delta_px = match (&refinement, verdict.chosen()) {
-        (Ok(r), Some(h)) => delta(&h.camera, &r.aligned_cam_from_world),
-        _ => None,
-    };
-    let aligned_from_truth_delta_px =
-        refine_pose(mesh, camera, query, truth, config, &mut refine_workspace)
-            .ok()
-            .and_then(|r| delta(camera, &r.aligned_cam_from_world));
+    let aligned_delta_px = refinement
+        .as_ref()
+        .ok()
+        .and_then(|r| delta(&r.aligned_camera, &r.aligned_cam_from_world));
+    let aligned_from_truth_delta_px = refine_pose(
+        mesh,
+        camera,
+        query,
+        truth,
+        AlignedParameters::Pose,
+        config,
+        &mut refine_workspace,
+    )
+    .ok()
+    .and_then(|r| delta(&r.aligned_camera, &r.aligned_cam_from_world));
     let best_delta_px = diagnoses
         .iter()
         .filter_map(|v| v.hypothesis_delta_px)

@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
+use asgreg::core::edge_align::EdgeAlignConfig;
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig};
 use asgreg::core::verify::VerifyConfig;
 use asgreg::frame_files::depth_path_for;
@@ -77,6 +78,12 @@ pub struct CoarseArgs {
     /// lifted (0: every match is).
     #[arg(long, default_value_t = RegistrationConfig::default().lift_edge_margin_px)]
     pub lift_edge_margin_px: usize,
+    /// Skip the final refinement (alignment of the chosen pose with the photo's edges).
+    #[arg(long)]
+    pub no_edge_align: bool,
+    /// Final refinement: search half-length of its first level, px (levels halve it down to 2).
+    #[arg(long, default_value_t = RegistrationConfig::default().edge_align.initial_search_radius_px)]
+    pub edge_search_px: f64,
 }
 
 impl Default for CoarseArgs {
@@ -88,6 +95,8 @@ impl Default for CoarseArgs {
             coarse_translation_fraction: defaults.coarse_translation_sigma_fraction,
             max_convergence_ratio: defaults.verify.max_convergence_ratio,
             lift_edge_margin_px: defaults.lift_edge_margin_px,
+            no_edge_align: false,
+            edge_search_px: defaults.edge_align.initial_search_radius_px,
         }
     }
 }
@@ -122,6 +131,11 @@ pub fn registration_config(with_depth: bool, coarse: &CoarseArgs) -> Registratio
         verify: VerifyConfig {
             max_convergence_ratio: coarse.max_convergence_ratio,
             ..VerifyConfig::default()
+        },
+        edge_align: EdgeAlignConfig {
+            enabled: !coarse.no_edge_align,
+            initial_search_radius_px: coarse.edge_search_px,
+            ..EdgeAlignConfig::default()
         },
         ..RegistrationConfig::default()
     }

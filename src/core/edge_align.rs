@@ -24,7 +24,7 @@
 //! the one it started from. Preconditions: a pinhole camera (distortion is not modelled here), the
 //! query and the rendering on the camera's pixel grid (COLMAP convention, centres at +0.5).
 
-use nalgebra::{Matrix6, UnitQuaternion, Vector2, Vector3, Vector6};
+use nalgebra::{UnitQuaternion, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::camera::{pixel_center, Camera, PinholeIntrinsics, MIN_DEPTH_M};
@@ -380,24 +380,37 @@ pub struct LevelSummary {
     pub scale_px: f64,
 }
 
-/// One level of alignment from `cam_from_world`: `iterations` rounds of search in `query` (already
-/// blurred for the level) and a robust Gauss–Newton step. Returns the new pose and what happened;
-/// the pose is unchanged when too few samples match.
+/// What the alignment may change.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum AlignedParameters {
+    /// Rotation and translation (known intrinsics).
+    Pose,
+    /// The pose and one focal scale for `fx` and `fy` together (intrinsics estimated by the DLT:
+    /// the focal length is what a drone's EXIF leaves most uncertain); the principal point and
+    /// skew stay.
+    PoseAndFocal,
+}
+
+/// One level of alignment from `camera` at `cam_from_world`: `iterations` rounds of search in
+/// `query` (already blurred for the level) and a robust Gauss–Newton step. Returns the new camera
+/// and pose and what happened; they are unchanged when too few samples match.
 pub fn align_level(
     samples: &[EdgeSample],
     query: &ImageView<'_, f32>,
-    intrinsics: &PinholeIntrinsics,
     camera: &Camera,
     cam_from_world: &Rigid3,
+    parameters: AlignedParameters,
     radius_px: f64,
     config: &EdgeAlignConfig,
-) -> (Rigid3, LevelSummary) {
+) -> (Camera, Rigid3, LevelSummary) {
     let mut pose = *cam_from_world;
+    let mut camera = *camera;
     let mut summary = LevelSummary {
         search_radius_px: radius_px,
         ..LevelSummary::default()
     };
-    let mut matches: Vec<(Vector3<f64>, Vector2<f64>, f64)> = Vec::with_capacity(samples.len());
+    let mut matches: Vec<(Vector3<f64>, Vector2<f64>, Vector2<f64>, f64)> =
+        Vec::with_capacity(samples.len());
     for _ in 0..config.iterations_per_level {
         matches.clear();
         for sample in samples {
@@ -412,35 +425,42 @@ pub fn align_level(
                 radius_px,
                 config.min_query_ridge,
             ) {
-                matches.push((point_cam, sample.normal, offset));
+                matches.push((point_cam, projected, sample.normal, offset));
             }
         }
         summary.matched = matches.len();
         if matches.len() < config.min_samples {
             break;
         }
-        let mut magnitudes: Vec<f64> = matches.iter().map(|m| m.2.abs()).collect();
+        let mut magnitudes: Vec<f64> = matches.iter().map(|m| m.3.abs()).collect();
         let middle = magnitudes.len() / 2;
         let (_, median, _) = magnitudes.select_nth_unstable_by(middle, f64::total_cmp);
         // Floor: the search quantises to sub-pixel, no finer than ~0.2 px.
         let scale_px = (1.4826 * *median).max(0.2);
         summary.scale_px = scale_px;
         let tukey_c = 4.685 * scale_px;
-        let mut normal_matrix = Matrix6::<f64>::zeros();
-        let mut gradient = Vector6::<f64>::zeros();
-        for (point_cam, normal, offset) in &matches {
+        let k = camera.intrinsics;
+        let mut normal_matrix = Matrix7::zeros();
+        let mut gradient = Vector7::zeros();
+        for (point_cam, projected, normal, offset) in &matches {
             let ratio = offset / tukey_c;
             if ratio.abs() >= 1.0 {
                 continue;
             }
             let weight = (1.0 - ratio * ratio).powi(2);
-            let (row_u, row_v) = pose_jacobian_rows(intrinsics, point_cam);
-            let g = row_u * normal.x + row_v * normal.y;
+            let (row_u, row_v) = pose_jacobian_rows(&k, point_cam);
+            let mut g = Vector7::zeros();
+            g.fixed_rows_mut::<6>(0)
+                .copy_from(&(row_u * normal.x + row_v * normal.y));
+            if parameters == AlignedParameters::PoseAndFocal {
+                // u = fx·(1 + s)·x + skew·y + cx: du/ds = u − cx − skew·y ≈ u − cx.
+                g[6] = (projected.x - k.cx_px) * normal.x + (projected.y - k.cy_px) * normal.y;
+            }
             normal_matrix += g * g.transpose() * weight;
             gradient += g * (weight * offset);
         }
-        for i in 0..6 {
-            normal_matrix[(i, i)] *= 1.0 + 1e-3;
+        for i in 0..7 {
+            normal_matrix[(i, i)] = normal_matrix[(i, i)] * (1.0 + 1e-3) + 1e-9;
         }
         let Some(step) = normal_matrix.cholesky().map(|c| c.solve(&gradient)) else {
             break;
@@ -448,11 +468,19 @@ pub fn align_level(
         if !step.iter().all(|v| v.is_finite()) {
             break;
         }
-        pose = apply_pose_step(&pose, &step);
+        pose = apply_pose_step(&pose, &step.fixed_rows::<6>(0).into_owned());
+        if parameters == AlignedParameters::PoseAndFocal {
+            let scale = (1.0 + step[6]).clamp(0.8, 1.25);
+            camera.intrinsics.fx_px *= scale;
+            camera.intrinsics.fy_px *= scale;
+        }
         summary.steps += 1;
     }
-    (pose, summary)
+    (camera, pose, summary)
 }
+
+type Matrix7 = nalgebra::SMatrix<f64, 7, 7>;
+type Vector7 = nalgebra::SVector<f64, 7>;
 
 /// `d(u)/dξ` and `d(v)/dξ` of a pinhole projection of `point_cam` for the left perturbation
 /// `ξ = (ω, δt)`: `point_cam' = exp([ω]×) point_cam + δt`.

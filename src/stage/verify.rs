@@ -8,13 +8,13 @@ use std::time::{Duration, Instant};
 
 use crate::core::camera::Camera;
 use crate::core::frame::{
-    decide_frame, refine_verdict, CoarseOutcome, RefineWorkspace, RegistrationConfig,
+    decide_frame, CoarseOutcome, Decision, IntrinsicsMode, RefineWorkspace, RegistrationConfig,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::msg::{
-    CameraNumbers, Evidence, FrameFailed, FrameQuery, Hypothesis, PoseNumbers, PoseResult,
-    RefinementNumbers, StageTimesMs,
+    CameraNumbers, Evidence, FrameFailed, FrameInfo, FrameQuery, Hypothesis, PoseNumbers,
+    PoseResult, RefinementNumbers, StageTimesMs,
 };
 
 use super::elapsed_ms;
@@ -22,6 +22,7 @@ use super::elapsed_ms;
 struct PendingFrame {
     name: String,
     camera: Camera,
+    intrinsics: IntrinsicsMode,
     /// Known from the first hypothesis.
     coarse_count: Option<u32>,
     hypotheses: BTreeMap<u32, Hypothesis>,
@@ -31,10 +32,11 @@ struct PendingFrame {
 }
 
 impl PendingFrame {
-    fn new(name: &str, camera: Camera) -> Self {
+    fn new(info: &FrameInfo) -> Self {
         Self {
-            name: name.to_string(),
-            camera,
+            name: info.name.clone(),
+            camera: info.camera,
+            intrinsics: IntrinsicsMode::from_known(info.intrinsics_known),
             coarse_count: None,
             hypotheses: BTreeMap::new(),
             query: None,
@@ -105,7 +107,7 @@ impl<'m> VerifyStage<'m> {
         let pending = self
             .pending
             .entry(frame_id)
-            .or_insert_with(|| PendingFrame::new(&hypothesis.info.name, hypothesis.info.camera));
+            .or_insert_with(|| PendingFrame::new(&hypothesis.info));
         pending.coarse_count = Some(hypothesis.coarse_count);
         if pending
             .hypotheses
@@ -136,7 +138,7 @@ impl<'m> VerifyStage<'m> {
         let pending = self
             .pending
             .entry(frame_id)
-            .or_insert_with(|| PendingFrame::new(&query.info.name, query.info.camera));
+            .or_insert_with(|| PendingFrame::new(&query.info));
         if pending.query.replace(image).is_some() {
             self.late_messages += 1;
         }
@@ -233,17 +235,18 @@ impl<'m> VerifyStage<'m> {
             .values()
             .map(|h| h.outcome.clone())
             .collect();
-        let mut verdict = decide_frame(self.mesh, &frame.camera, &outcomes, &self.config);
-        let refinement = match &frame.query {
-            Some(query) => refine_verdict(
-                self.mesh,
-                query.view(),
-                &mut verdict,
-                &self.config,
-                &mut self.refine_workspace,
-            ),
-            None => Err("the frame's query never reached verify".to_string()),
-        };
+        let Decision {
+            verdict,
+            refinement,
+        } = decide_frame(
+            self.mesh,
+            &frame.camera,
+            &outcomes,
+            frame.query.as_ref().map(|query| query.view()),
+            frame.intrinsics,
+            &self.config,
+            &mut self.refine_workspace,
+        );
         if let Err(why) = &refinement {
             tracing::debug!(
                 "frame {frame_id} '{}': no final refinement: {why}",

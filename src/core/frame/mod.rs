@@ -7,8 +7,7 @@
 //! | features | once per frame | [`correspond::query_features`] | flow (cached per frame) |
 //! | match + lift | per coarse view | [`correspond::correspond_view`] | flow (N workers) |
 //! | solve | per coarse view | [`solve::solve_view`] | pose |
-//! | verify | once per frame, over all views | [`decide::decide_frame`] | verify |
-//! | refine | once per frame, the chosen pose | [`refine::refine_verdict`] | verify |
+//! | verify + refine | once per frame, over all views | [`decide::decide_frame`] (plausibility check, then [`refine::refine_verdict`]) | verify |
 //!
 //! [`register_frame`] (one process), the stage adapters (`stage::*`) and batch registration all
 //! call these functions and nothing else; none re-derives a step. A new step is one function
@@ -38,7 +37,7 @@ use serde::{Deserialize, Serialize};
 
 pub use config::{IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError};
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
-pub use decide::decide_frame;
+pub use decide::{decide_frame, Decision};
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
 pub use solve::solve_view;
@@ -110,8 +109,8 @@ pub struct StageTimings {
     pub render_ms: f64,
     pub flow_ms: f64,
     pub pose_ms: f64,
+    /// Verification and the final refinement.
     pub verify_ms: f64,
-    pub refine_ms: f64,
     pub total_ms: f64,
 }
 
@@ -207,18 +206,19 @@ pub fn register_query(
     timings.pose_ms = elapsed_ms(stage);
 
     let stage = Instant::now();
-    let mut verdict = decide_frame(mesh, camera, &outcomes, config);
-    timings.verify_ms = elapsed_ms(stage);
-
-    let stage = Instant::now();
-    let refinement = refine_verdict(
+    let Decision {
+        verdict,
+        refinement,
+    } = decide_frame(
         mesh,
-        query,
-        &mut verdict,
+        camera,
+        &outcomes,
+        Some(query),
+        intrinsics,
         config,
         &mut RefineWorkspace::default(),
     );
-    timings.refine_ms = elapsed_ms(stage);
+    timings.verify_ms = elapsed_ms(stage);
     timings.total_ms = elapsed_ms(started);
     Ok(FrameResult {
         verdict,

@@ -5,11 +5,11 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{render_coarse_view, CoarseView, RegistrationConfig};
+use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::edge_align::{
-    align_level, blurred_query, edge_evidence, model_edge_samples, EdgeEvidence, EdgeSample,
-    LevelSummary,
+    align_level, blurred_query, edge_evidence, model_edge_samples, AlignedParameters, EdgeEvidence,
+    EdgeSample, LevelSummary,
 };
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
@@ -20,10 +20,13 @@ use crate::core::verify::Verdict;
 /// What the refinement did to a frame's chosen pose.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseRefinement {
-    /// The pose verification chose.
+    /// The camera and pose verification chose.
+    pub verified_camera: Camera,
     pub verified_cam_from_world: Rigid3,
-    /// Where the edge alignment ended.
+    /// Where the edge alignment ended, and its camera (the focal length is aligned too when the
+    /// intrinsics are unknown).
     pub aligned_cam_from_world: Rigid3,
+    pub aligned_camera: Camera,
     /// Evidence of the verified pose.
     pub verified: EdgeEvidence,
     /// Evidence of the aligned pose.
@@ -47,6 +50,7 @@ pub struct RefineWorkspace {
 pub fn refine_verdict(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
+    intrinsics: IntrinsicsMode,
     verdict: &mut Verdict,
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
@@ -58,26 +62,33 @@ pub fn refine_verdict(
     let Some(chosen) = verdict.chosen_mut() else {
         return Err("verification chose no pose".into());
     };
+    let parameters = match intrinsics {
+        IntrinsicsMode::Known => AlignedParameters::Pose,
+        IntrinsicsMode::Unknown => AlignedParameters::PoseAndFocal,
+    };
     let refinement = refine_pose(
         mesh,
         &chosen.camera,
         query,
         &chosen.cam_from_world,
+        parameters,
         config,
         workspace,
     )?;
     if refinement.kept {
         chosen.cam_from_world = refinement.aligned_cam_from_world;
+        chosen.camera = refinement.aligned_camera;
     }
     Ok(refinement)
 }
 
-/// Aligns `start` with the photo's edges, coarse to fine, re-rendering at each level.
+/// Aligns `camera` at `start` with the photo's edges, coarse to fine, re-rendering at each level.
 pub fn refine_pose(
     mesh: &Mesh,
     camera: &Camera,
     query: ImageView<'_, f32>,
     start: &Rigid3,
+    parameters: AlignedParameters,
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) -> Result<PoseRefinement, String> {
@@ -96,7 +107,7 @@ pub fn refine_pose(
         samples,
         blurred,
     } = workspace;
-    let mut sample_at = |pose: &Rigid3, samples: &mut Vec<EdgeSample>| {
+    let mut sample_at = |camera: &Camera, pose: &Rigid3, samples: &mut Vec<EdgeSample>| {
         render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
         model_edge_samples(
             view.asg.view(),
@@ -107,7 +118,7 @@ pub fn refine_pose(
             samples,
         );
     };
-    sample_at(start, samples);
+    sample_at(camera, start, samples);
     let verified = edge_evidence(samples, &query, camera, start, align);
     if samples.len() < align.min_samples {
         return Err(format!(
@@ -117,29 +128,32 @@ pub fn refine_pose(
         ));
     }
     let mut pose = *start;
+    let mut aligned_camera = *camera;
     let mut levels = Vec::new();
     for (level, radius_px) in align.level_radii_px().into_iter().enumerate() {
         if level > 0 {
-            sample_at(&pose, samples);
+            sample_at(&aligned_camera, &pose, samples);
         }
         blurred_query(query, radius_px, blurred);
-        let (aligned, summary) = align_level(
+        let (next_camera, next_pose, summary) = align_level(
             samples,
             &blurred.view(),
-            &camera.intrinsics,
-            camera,
+            &aligned_camera,
             &pose,
+            parameters,
             radius_px,
             align,
         );
-        pose = aligned;
+        (aligned_camera, pose) = (next_camera, next_pose);
         levels.push(summary);
     }
-    sample_at(&pose, samples);
-    let aligned = edge_evidence(samples, &query, camera, &pose, align);
+    sample_at(&aligned_camera, &pose, samples);
+    let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
     Ok(PoseRefinement {
+        verified_camera: *camera,
         verified_cam_from_world: *start,
         aligned_cam_from_world: pose,
+        aligned_camera,
         verified,
         aligned,
         kept: aligned.support_fraction() > verified.support_fraction(),
@@ -187,6 +201,7 @@ mod tests {
             &camera,
             truth_view.asg.view(),
             &start,
+            AlignedParameters::Pose,
             &config,
             &mut workspace,
         )
@@ -213,12 +228,75 @@ mod tests {
             &camera,
             truth_view.asg.view(),
             &truth,
+            AlignedParameters::Pose,
             &config,
             &mut workspace,
         )
         .unwrap();
         let stays_px = delta(&from_truth.aligned_cam_from_world);
         assert!(stays_px < 0.2, "{stays_px}");
+    }
+
+    /// Unknown intrinsics: a focal length 3 % off (as a DLT may leave it) is aligned with the pose.
+    #[test]
+    fn edge_alignment_recovers_the_focal_length_with_the_pose() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let mut workspace = RefineWorkspace::default();
+        let mut truth_view = CoarseView::default();
+        render_coarse_view(
+            &mesh,
+            &camera,
+            0,
+            &truth,
+            &config,
+            &mut workspace.rasterizer,
+            &mut truth_view,
+        );
+        let mut wrong_focal = camera;
+        wrong_focal.intrinsics.fx_px *= 1.03;
+        wrong_focal.intrinsics.fy_px *= 1.03;
+        let start = Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.004, -0.006, 0.003)) * truth.rotation,
+            truth.translation + Vector3::new(0.08, -0.05, 0.06),
+        );
+        let mut reprojection = ReprojectionWorkspace::new();
+        let mut delta = |camera_used: &Camera, pose: &Rigid3| {
+            mutual_reprojection_error_px(
+                &mesh,
+                camera_used,
+                pose,
+                &camera,
+                &truth,
+                &mut reprojection,
+            )
+            .unwrap()
+        };
+        let start_delta_px = delta(&wrong_focal, &start);
+        let refinement = refine_pose(
+            &mesh,
+            &wrong_focal,
+            truth_view.asg.view(),
+            &start,
+            AlignedParameters::PoseAndFocal,
+            &config,
+            &mut workspace,
+        )
+        .unwrap();
+        let aligned_delta_px = delta(
+            &refinement.aligned_camera,
+            &refinement.aligned_cam_from_world,
+        );
+        let focal_error =
+            refinement.aligned_camera.intrinsics.fx_px / camera.intrinsics.fx_px - 1.0;
+        println!(
+            "ideal query, focal +3 %: δ {start_delta_px:.2} px → {aligned_delta_px:.3} px, focal error {:.2} %",
+            100.0 * focal_error
+        );
+        assert!(start_delta_px > 3.0, "{start_delta_px}");
+        assert!(aligned_delta_px < 0.5, "{aligned_delta_px}");
+        assert!(focal_error.abs() < 0.01, "{focal_error}");
+        assert!(refinement.kept);
     }
 
     #[test]
@@ -242,6 +320,7 @@ mod tests {
         let why = refine_verdict(
             &mesh,
             query.view(),
+            IntrinsicsMode::Known,
             &mut verdict,
             &config,
             &mut RefineWorkspace::default(),
@@ -251,6 +330,7 @@ mod tests {
         let why = refine_verdict(
             &mesh,
             query.view(),
+            IntrinsicsMode::Known,
             &mut verdict,
             &RegistrationConfig::default(),
             &mut RefineWorkspace::default(),
