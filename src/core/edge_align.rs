@@ -409,8 +409,8 @@ pub fn align_level(
         search_radius_px: radius_px,
         ..LevelSummary::default()
     };
-    let mut matches: Vec<(Vector3<f64>, Vector2<f64>, Vector2<f64>, f64)> =
-        Vec::with_capacity(samples.len());
+    // (point in the camera frame, its projection px, search direction, offset to the ridge px).
+    let mut matches: Vec<EdgeMatch> = Vec::with_capacity(samples.len());
     for _ in 0..config.iterations_per_level {
         matches.clear();
         for sample in samples {
@@ -479,6 +479,7 @@ pub fn align_level(
     (camera, pose, summary)
 }
 
+type EdgeMatch = (Vector3<f64>, Vector2<f64>, Vector2<f64>, f64);
 type Matrix7 = nalgebra::SMatrix<f64, 7, 7>;
 type Vector7 = nalgebra::SVector<f64, 7>;
 
