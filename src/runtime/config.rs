@@ -139,8 +139,16 @@ pub struct LaunchSettings {
     /// With the zenoh backend: endpoints the launcher's own zenoh router listens on (stages and
     /// remote workers connect to it). Empty: no router (one runs elsewhere).
     pub zenoh_router_listen: Vec<String>,
-    /// Restarts allowed per stage worker before the launcher gives up on the run.
+    /// Restart intensity, as Erlang's and systemd's supervisors have it: a stage worker that
+    /// dies more than `max_restarts` times within `restart_window_s` makes the launcher give up
+    /// on the run (it crashes faster than it can work); slower crashes are restarted forever.
+    /// 0: never restart.
     pub max_restarts: u32,
+    /// The sliding window of `max_restarts`, s.
+    pub restart_window_s: f64,
+    /// How long a stage has to stop after SIGTERM (finish or hand back its job, flush, close
+    /// its shared memory) before the launcher sends SIGKILL, s.
+    pub stop_grace_s: f64,
     /// Longest run, s; frames without a result by then are reported missing.
     pub deadline_s: f64,
 }
@@ -150,6 +158,8 @@ impl Default for LaunchSettings {
         Self {
             zenoh_router_listen: Vec::new(),
             max_restarts: 5,
+            restart_window_s: 60.0,
+            stop_grace_s: 10.0,
             deadline_s: 3600.0,
         }
     }
@@ -277,6 +287,9 @@ impl PipelineConfig {
             ("timeouts.frame_timeout_s", self.timeouts.frame_timeout_s),
             ("timeouts.worker_silence_s", self.timeouts.worker_silence_s),
             ("timeouts.startup_s", self.timeouts.startup_s),
+            ("launch.restart_window_s", self.launch.restart_window_s),
+            ("launch.stop_grace_s", self.launch.stop_grace_s),
+            ("launch.deadline_s", self.launch.deadline_s),
         ] {
             if !(value.is_finite() && value > 0.0) {
                 return Err(invalid(

@@ -1,6 +1,9 @@
 //! The loop of each stage: receive, call the stage adapter, send. The same functions run as
 //! threads (`asgreg run`) or as processes (`asgreg stage`, `asgreg launch`); `main` only wires.
 //! Every loop checks the stop flag, reports metrics once a second, and returns its metrics.
+//! A stage process's stop flag is set by SIGTERM or SIGINT ([`termination_flag`]): the loop
+//! finishes the message in hand, sends what it produced, hands back the jobs it was given and
+//! not finished (flow, render), and returns, so its bus ports close cleanly.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -30,6 +33,33 @@ pub enum NodeError {
     Bus(#[from] BusError),
     #[error(transparent)]
     Source(#[from] SourceError),
+    #[error("cannot install the SIGTERM/SIGINT handler of the stage: {0}")]
+    Signal(std::io::Error),
+}
+
+/// Set by SIGTERM or SIGINT in a stage process.
+static TERMINATION_REQUESTED: AtomicBool = AtomicBool::new(false);
+
+#[cfg(unix)]
+extern "C" fn on_termination_signal(_signal: libc::c_int) {
+    // A store to a lock-free atomic is async-signal-safe.
+    TERMINATION_REQUESTED.store(true, Ordering::Relaxed);
+}
+
+/// The stop flag of a stage process: SIGTERM or SIGINT sets it and the stage stops cleanly at
+/// its next poll (within a message's compute time) instead of dying with its shared memory open.
+/// The launcher sends SIGTERM first and SIGKILL only after `launch.stop_grace_s`.
+pub fn termination_flag() -> Result<&'static AtomicBool, NodeError> {
+    #[cfg(unix)]
+    for signal in [libc::SIGTERM, libc::SIGINT] {
+        let handler = on_termination_signal as extern "C" fn(libc::c_int);
+        // SAFETY: the handler only stores to an atomic; `signal` installs it process-wide.
+        let previous = unsafe { libc::signal(signal, handler as libc::sighandler_t) };
+        if previous == libc::SIG_ERR {
+            return Err(NodeError::Signal(std::io::Error::last_os_error()));
+        }
+    }
+    Ok(&TERMINATION_REQUESTED)
 }
 
 /// What every stage loop gets.
@@ -474,6 +504,10 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         metrics.redispatched = dispatcher.metrics.redispatched;
         reporter.tick(&metrics, false);
     }
+    // Frames not yet handed out to flow go back to ingest, which gives them to another start.
+    if let Err(error) = port.leave() {
+        tracing::debug!("jobs not handed back (their producer is gone too): {error}");
+    }
     metrics.messages_out += dispatcher.metrics.messages_out;
     metrics.bytes_out += dispatcher.metrics.bytes_out;
     metrics.send_ms += dispatcher.metrics.send_ms;
@@ -525,6 +559,10 @@ pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeErro
             port.finished(finished?)?;
         }
         reporter.tick(&metrics, false);
+    }
+    // Jobs given to this worker after its last one are redone elsewhere at once.
+    if let Err(error) = port.leave() {
+        tracing::debug!("jobs not handed back (their producer is gone too): {error}");
     }
     reporter.tick(&metrics, true);
     Ok(metrics)

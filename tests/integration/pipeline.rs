@@ -1,7 +1,8 @@
 //! The streaming pipeline as processes: the same synthetic frames through `asgreg run` (one
 //! process, crossbeam), `asgreg launch` (one process per stage over iceoryx2) and with the flow
 //! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker, render and
-//! verify mid-stream loses no frame; a stage process rejects a message with a wrong schema version and lives on.
+//! verify mid-stream loses no frame; a stage process rejects a message with a wrong schema version
+//! and lives on, and stops cleanly on SIGTERM with a plain (colourless) log.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -332,9 +333,21 @@ fn a_stage_process_rejects_a_wrong_schema_version_and_keeps_running() {
         verify.try_wait().unwrap().is_none(),
         "the verify stage died on a bad message"
     );
-    let _ = verify.kill();
-    let output = verify.wait_with_output().unwrap();
-    let log = String::from_utf8_lossy(&output.stderr);
+    // SIGTERM stops it cleanly: it leaves its loop, reports, closes its ports and exits 0.
+    let terminated = Command::new("kill")
+        .args(["-TERM", &verify.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(terminated.success());
+    let (stopped, stdout, log) = finish(verify, Duration::from_secs(20));
+    assert!(
+        stopped,
+        "the verify stage did not exit cleanly on SIGTERM:\n{stdout}\n{log}"
+    );
+    assert!(
+        log.contains("done: "),
+        "no final report after SIGTERM:\n{log}"
+    );
     assert!(
         log.contains("schema version 9") && log.contains("rejected"),
         "no clear log line for the wrong schema version:\n{log}"
@@ -342,6 +355,11 @@ fn a_stage_process_rejects_a_wrong_schema_version_and_keeps_running() {
     assert!(
         log.contains("shorter than") || log.contains("not an asgreg message"),
         "{log}"
+    );
+    // stderr is a pipe here, not a terminal: plain text, no colour codes.
+    assert!(
+        !log.contains('\u{1b}'),
+        "terminal escape codes in a log that is not a terminal:\n{log:?}"
     );
 }
 
