@@ -31,6 +31,11 @@ pub struct PipelineConfig {
     pub timeouts: Timeouts,
     pub launch: LaunchSettings,
     pub registration: RegistrationConfig,
+    /// Folder of the run's durable state: the results journal (`<pipeline>.results-journal`,
+    /// the frames whose result is published), which a restarted ingest resumes from and a
+    /// restarted verify reads so it publishes no result twice. Ingest and verify must see the
+    /// same folder (same host). Unset: `asgreg-state` in the system's temporary folder.
+    pub state_dir: Option<PathBuf>,
 }
 
 impl Default for PipelineConfig {
@@ -47,6 +52,7 @@ impl Default for PipelineConfig {
             timeouts: Timeouts::default(),
             launch: LaunchSettings::default(),
             registration: RegistrationConfig::default(),
+            state_dir: None,
         }
     }
 }
@@ -227,6 +233,9 @@ impl PipelineConfig {
         resolve(&mut self.source.poses);
         if let Some(depth) = &mut self.source.depth {
             resolve(depth);
+        }
+        if let Some(state_dir) = &mut self.state_dir {
+            resolve(state_dir);
         }
     }
 

@@ -121,6 +121,9 @@ pub fn launch(
     on_started: &mut dyn FnMut(&str, u32, u32),
     on_result: &mut dyn FnMut(&Header, &PoseResult),
 ) -> Result<Collected, RuntimeError> {
+    // A new run: the results journal starts empty (restarted stages resume from it).
+    let journal_path = super::journal::path(config);
+    super::journal::reset(&journal_path)?;
     let mut collector = Collector::open(transport)?;
     let window = Duration::from_secs_f64(config.launch.restart_window_s);
     let mut processes: Vec<Supervised> = Vec::new();
@@ -200,6 +203,10 @@ pub fn launch(
     collector.drain_metrics(&mut collected)?;
     if let Some(error) = failure {
         return Err(error);
+    }
+    if collected.frame_count.is_some() && collected.missing().is_empty() {
+        // Complete: nothing to resume.
+        super::journal::reset(&journal_path)?;
     }
     Ok(collected)
 }

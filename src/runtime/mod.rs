@@ -1,11 +1,13 @@
 //! Wiring from a configuration (docs/design.md §5): the stage loops (`nodes`), work sharing with redo
 //! (`dispatch`), the bus wrappers (`bus`), the results collector and summary (`collect`), the
-//! one-process runner (`run_in_process`) and the process supervisor (`launch`).
+//! one-process runner (`run_in_process`), the process supervisor (`launch`) and the results
+//! journal that makes "has a result" survive a crash (`journal`).
 
 pub mod bus;
 pub mod collect;
 pub mod config;
 pub mod dispatch;
+pub mod journal;
 pub mod launch;
 pub mod nodes;
 
@@ -39,11 +41,32 @@ pub enum RuntimeError {
     Panicked { stage: &'static str, worker: u32 },
     #[error("{0}")]
     Launch(String),
+    #[error(transparent)]
+    Journal(#[from] journal::JournalError),
 }
 
 /// Runs the whole pipeline as threads of this process on `transport` (crossbeam for the
 /// embedded default; any backend works) until every frame has its result.
 pub fn run_in_process(
+    config: &PipelineConfig,
+    transport: &dyn Transport,
+    mesh: &Mesh,
+    deadline: Duration,
+    on_result: &mut dyn FnMut(&Header, &PoseResult),
+) -> Result<Collected, RuntimeError> {
+    // A new run: no frame has a result yet (and threads do not restart, so nothing resumes).
+    let journal_path = journal::path(config);
+    journal::reset(&journal_path)?;
+    let collected = run_stage_threads(config, transport, mesh, deadline, on_result);
+    if let Err(error) = journal::reset(&journal_path) {
+        tracing::warn!("{error}");
+    }
+    collected
+}
+
+/// Every stage as a thread, continuing the results journal as it is (the frames it lists are
+/// neither sent nor published again, as after a restart of ingest and verify).
+fn run_stage_threads(
     config: &PipelineConfig,
     transport: &dyn Transport,
     mesh: &Mesh,

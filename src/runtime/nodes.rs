@@ -21,6 +21,7 @@ use crate::transport::{keys, Transport};
 use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
 use super::config::{BackpressurePolicy, PipelineConfig};
 use super::dispatch::{Dispatcher, WorkerPort};
+use super::journal::{self, JournalError, ResultsJournal};
 
 /// How long a loop waits for a message before checking the stop flag.
 const POLL: Duration = Duration::from_millis(20);
@@ -35,6 +36,8 @@ pub enum NodeError {
     Source(#[from] SourceError),
     #[error("cannot install the SIGTERM/SIGINT handler of the stage: {0}")]
     Signal(std::io::Error),
+    #[error(transparent)]
+    Journal(#[from] JournalError),
 }
 
 /// Set by SIGTERM or SIGINT in a stage process.
@@ -139,21 +142,51 @@ struct Recovery {
     kept: std::collections::BTreeMap<u64, Kept>,
     finished: std::collections::BTreeSet<u64>,
     incarnations: HashMap<(String, u32), u64>,
+    /// The results journal (path, header) and when it was last read: it also lists results
+    /// published while this process was not there to receive them.
+    journal: (std::path::PathBuf, String),
+    journal_read: Instant,
+    /// Frames in the source: ids at or above it in a journal are not this run's.
+    frame_count: u64,
 }
 
 impl Recovery {
-    fn open(transport: &dyn Transport) -> Result<Self, BusError> {
-        Ok(Self {
+    /// Subscribes to results first, then reads the journal, so a result is either in the
+    /// journal or arrives on the bus.
+    fn open(
+        transport: &dyn Transport,
+        config: &PipelineConfig,
+        frame_count: u64,
+    ) -> Result<Self, NodeError> {
+        let mut recovery = Self {
             results: Inbox::open(transport, keys::RESULTS, "ingest")?,
             metrics: Inbox::open(transport, keys::METRICS, "ingest")?,
             kept: std::collections::BTreeMap::new(),
             finished: std::collections::BTreeSet::new(),
             incarnations: HashMap::new(),
-        })
+            journal: (journal::path(config), journal::header(config)),
+            journal_read: Instant::now(),
+            frame_count,
+        };
+        recovery.read_journal()?;
+        Ok(recovery)
+    }
+
+    fn read_journal(&mut self) -> Result<(), JournalError> {
+        let published = journal::read_published(&self.journal.0, &self.journal.1)?;
+        self.journal_read = Instant::now();
+        for frame_id in published.range(..self.frame_count) {
+            self.kept.remove(frame_id);
+            self.finished.insert(*frame_id);
+        }
+        Ok(())
     }
 
     /// Takes the results and metrics that arrived; true when pose or verify restarted.
-    fn poll(&mut self) -> Result<bool, BusError> {
+    fn poll(&mut self) -> Result<bool, NodeError> {
+        if self.journal_read.elapsed() >= Duration::from_secs(1) {
+            self.read_journal()?;
+        }
         let mut scratch = StageMetrics::default();
         let (kept, finished) = (&mut self.kept, &mut self.finished);
         while self
@@ -196,7 +229,7 @@ impl Recovery {
         verify: &mut Outbox,
         stream_end: Option<u64>,
         metrics: &mut StageMetrics,
-    ) -> Result<(), BusError> {
+    ) -> Result<(), NodeError> {
         if self.poll()? {
             self.redo(dispatcher, verify, stream_end, metrics)?;
         }
@@ -285,13 +318,22 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     )?;
     let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
     verify.wait_for_reader("verify", ctx.startup())?;
-    let mut recovery = Recovery::open(ctx.transport)?;
+    let frame_count = source.len() as u64;
+    let mut recovery = Recovery::open(ctx.transport, config, frame_count)?;
+    if !recovery.finished.is_empty() {
+        // A restart: resume instead of replaying what already has its result.
+        tracing::info!(
+            "ingest: resuming: {} of {frame_count} frames already have their published result ({}); sending the other {}",
+            recovery.finished.len(),
+            recovery.journal.0.display(),
+            frame_count - recovery.finished.len() as u64
+        );
+    }
     let period =
         (config.source.rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / config.source.rate_hz));
     let mut next_emit = Instant::now();
     let mut names: HashMap<u64, (String, u64)> = HashMap::new();
-    let frame_count = source.len() as u64;
-    while let Some((frame_id, frame)) = source.next_frame() {
+    while let Some((frame_id, frame)) = source.next_frame_except(&recovery.finished) {
         if ctx.stopped() {
             return Ok(metrics);
         }
@@ -619,6 +661,17 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     );
     let mut capture_times: HashMap<u64, u64> = HashMap::new();
     let mut stream_ended = false;
+    // Results published before a restart of this stage are not published again.
+    let (mut journal, mut published) =
+        ResultsJournal::open(&journal::path(config), &journal::header(config))?;
+    if !published.is_empty() {
+        tracing::info!(
+            "verify: {} frames already have their published result ({}); they are not published again",
+            published.len(),
+            journal.path().display()
+        );
+    }
+    let mut journal_failed = false;
     while !ctx.stopped() {
         let mut produced = Vec::new();
         inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
@@ -645,6 +698,14 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         produced.extend(stage.expire(Instant::now()));
         for mut result in produced {
             let capture = capture_times.remove(&result.frame_id).unwrap_or(0);
+            if published.contains(&result.frame_id) {
+                tracing::info!(
+                    "verify: frame {} already has its published result (before a restart); not publishing it again",
+                    result.frame_id
+                );
+                stage.late_messages += 1;
+                continue;
+            }
             if capture > 0 {
                 result.times.latency_ms = unix_time_ns().saturating_sub(capture) as f64 / 1e6;
             }
@@ -655,6 +716,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 sent_time_ns: unix_time_ns(),
             };
             let json = pose_result_json(&header, &result);
+            let frame_id = result.frame_id;
             results.send(
                 result.frame_id,
                 capture,
@@ -662,6 +724,15 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 &mut metrics,
             )?;
             results_json.send_raw(json.as_bytes())?;
+            published.insert(frame_id);
+            // The result is out; the journal only helps a restart, so a failure to write it
+            // is reported once and the stage goes on.
+            if let Err(error) = journal.append(frame_id) {
+                if !journal_failed {
+                    tracing::error!("verify: {error}; a restart may publish results again");
+                    journal_failed = true;
+                }
+            }
         }
         if !stream_ended {
             if let Some(frame_count) = stage.stream_complete() {

@@ -1,7 +1,7 @@
 //! The streaming pipeline as processes: the same synthetic frames through `asgreg run` (one
 //! process, crossbeam), `asgreg launch` (one process per stage over iceoryx2) and with the flow
-//! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker, render and
-//! verify mid-stream loses no frame; a stage process rejects a message with a wrong schema version
+//! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker, render,
+//! verify and ingest mid-stream gives every frame exactly one result; a stage process rejects a message with a wrong schema version
 //! and lives on, and stops cleanly on SIGTERM with a plain (colourless) log.
 
 use std::io::{BufRead, BufReader};
@@ -186,7 +186,7 @@ enum Event {
 }
 
 #[test]
-fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
+fn sigkill_of_flow_render_verify_and_ingest_mid_stream_gives_one_result_per_frame() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene(dir.path(), 10);
     let body = common(&unique("kill"), 2, "")
@@ -205,7 +205,7 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
         let mut text = String::new();
         for line in BufReader::new(stderr).lines() {
             let line = line.unwrap();
-            for stage in ["flow", "render", "verify"] {
+            for stage in ["flow", "render", "verify", "ingest"] {
                 if let Some(pid) = line.strip_prefix(&format!("launch: {stage} worker 0 pid ")) {
                     let pid = pid.trim().parse::<u32>().unwrap();
                     let _ = pid_events.send(Event::Started { stage, pid });
@@ -229,8 +229,9 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
         }
         text
     });
-    // Kill flow worker 0, then render, then verify, once the first result is out: 10 frames at 2 frames/s,
-    // so most of the stream is still to come.
+    // Kill flow worker 0, then render, then verify, then ingest, once the first result is out: 10
+    // frames at 2 frames/s, so most of the stream is still to come. The restarted ingest resumes
+    // from the results journal instead of replaying the source.
     let mut started = Vec::new();
     loop {
         match received.recv_timeout(Duration::from_secs(120)) {
@@ -255,6 +256,8 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
     kill("render", &started);
     std::thread::sleep(Duration::from_millis(700));
     kill("verify", &started);
+    std::thread::sleep(Duration::from_millis(700));
+    kill("ingest", &started);
     let status = launcher.wait().unwrap();
     let log = log.join().unwrap();
     let stdout = printed.join().unwrap();
@@ -267,7 +270,7 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
             started.push((stage, pid));
         }
     }
-    for stage in ["flow", "render", "verify"] {
+    for stage in ["flow", "render", "verify", "ingest"] {
         let starts = started.iter().filter(|(s, _)| *s == stage).count();
         assert!(
             starts >= 2,
@@ -275,6 +278,10 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
         );
     }
     assert!(log.contains("restarting"), "{log}");
+    assert!(
+        log.contains("ingest: resuming"),
+        "the restarted ingest did not resume from the journal:\n{log}"
+    );
     assert!(
         stdout.contains("exactly one result per frame: yes"),
         "{stdout}"
