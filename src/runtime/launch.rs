@@ -189,10 +189,9 @@ pub fn launch(
         true
     });
     // Give the stages a moment to send their final metrics, then stop them.
-    let outcome = outcome.map(|collected| {
+    if outcome.is_ok() {
         std::thread::sleep(Duration::from_millis(1200));
-        collected
-    });
+    }
     let grace = Duration::from_secs_f64(config.launch.stop_grace_s);
     let mut children: Vec<(String, &mut Child)> = processes
         .iter_mut()
