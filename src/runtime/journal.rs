@@ -3,8 +3,9 @@
 //! none of those again, and a restarted ingest reads it and resumes instead of replaying the
 //! source (it sends only the frames without a result). One text file per pipeline under
 //! `state_dir`: a header line naming the run's pipeline and source, then one frame id per line.
-//! `asgreg launch` and `asgreg run` start each run with an empty journal; stages started by hand
-//! continue the one they find (delete it to start over). A line cut short by a crash is ignored
+//! `asgreg launch` starts each run with an empty journal and removes it when the run is
+//! complete; `asgreg run` (threads, which never restart) keeps one of its own in a temporary
+//! folder; stages started by hand continue the one they find (delete it to start over). A line cut short by a crash is ignored
 //! (that frame may be published once more: the window is one `write` call). Appends are not
 //! fsync'ed: the journal survives a process crash, not a power cut.
 

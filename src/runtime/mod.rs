@@ -54,12 +54,20 @@ pub fn run_in_process(
     deadline: Duration,
     on_result: &mut dyn FnMut(&Header, &PoseResult),
 ) -> Result<Collected, RuntimeError> {
-    // A new run: no frame has a result yet (and threads do not restart, so nothing resumes).
-    let journal_path = journal::path(config);
-    journal::reset(&journal_path)?;
-    let collected = run_stage_threads(config, transport, mesh, deadline, on_result);
-    if let Err(error) = journal::reset(&journal_path) {
-        tracing::warn!("{error}");
+    // Threads do not restart, so nothing resumes: the run keeps its results journal in a folder
+    // of its own (never shared with another run of the same pipeline name), removed at the end.
+    let mut config = config.clone();
+    let state_dir = std::env::temp_dir().join(format!(
+        "asgreg-run-{}-{}",
+        std::process::id(),
+        bus::unix_time_ns()
+    ));
+    config.state_dir = Some(state_dir.clone());
+    let collected = run_stage_threads(&config, transport, mesh, deadline, on_result);
+    if let Err(error) = std::fs::remove_dir_all(&state_dir) {
+        if error.kind() != std::io::ErrorKind::NotFound {
+            tracing::warn!("{}: cannot remove: {error}", state_dir.display());
+        }
     }
     collected
 }

@@ -133,6 +133,11 @@ fn run_launch_and_a_zenoh_flow_worker_give_identical_results() {
         .unwrap();
     let (ok, stdout, stderr) = finish(child, Duration::from_secs(240));
     assert!(ok, "launch over iceoryx2 failed:\n{stdout}\n{stderr}");
+    // At the end every stage stops on SIGTERM, within the grace period.
+    assert!(
+        !stderr.contains("did not stop within"),
+        "a stage needed SIGKILL:\n{stderr}"
+    );
     assert!(
         stdout.contains("exactly one result per frame: yes"),
         "{stdout}"
