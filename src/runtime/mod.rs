@@ -130,6 +130,9 @@ fn run_stage_threads(
         for (name, worker, handle) in handles {
             match handle.join() {
                 Ok(Ok(metrics)) => finals.push(metrics),
+                // Ingest stopped with the others before its stream was complete (deadline or
+                // a stage error): the collected results say what is missing.
+                Ok(Err(NodeError::Stopped { .. })) => {}
                 Ok(Err(error)) => {
                     first_error.get_or_insert(RuntimeError::Stage {
                         stage: name,

@@ -38,6 +38,8 @@ pub enum NodeError {
     Signal(std::io::Error),
     #[error(transparent)]
     Journal(#[from] JournalError),
+    #[error("{stage}: stopped by a signal before the end of the stream: {detail}")]
+    Stopped { stage: &'static str, detail: String },
 }
 
 /// Set by SIGTERM or SIGINT in a stage process.
@@ -301,6 +303,18 @@ fn unexpected(stage: &str, kind: crate::msg::MessageKind, frame_id: u64) {
     tracing::error!("{stage}: ignored an unexpected {kind:?} message (frame {frame_id})");
 }
 
+/// Ingest stopped (SIGTERM) before every frame had its result: an error, so that the
+/// supervisor restarts it (a clean exit of ingest means the stream is complete).
+fn stopped_early(recovery: &Recovery, frame_count: u64) -> NodeError {
+    NodeError::Stopped {
+        stage: "ingest",
+        detail: format!(
+            "{} of {frame_count} frames have their result; a restart resumes from the results journal",
+            recovery.finished.len()
+        ),
+    }
+}
+
 /// Stage "ingest": reads the source, dispatches frames to render workers by the backpressure
 /// policy, sends failures and the end of the stream to verify, and stays until every frame has
 /// its result: it redoes the frames of a render worker that died (dispatcher) and, when pose or
@@ -335,7 +349,8 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     let mut names: HashMap<u64, (String, u64)> = HashMap::new();
     while let Some((frame_id, frame)) = source.next_frame_except(&recovery.finished) {
         if ctx.stopped() {
-            return Ok(metrics);
+            reporter.tick(&metrics, true);
+            return Err(stopped_early(&recovery, frame_count));
         }
         recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
         if let Some(period) = period {
@@ -374,6 +389,10 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                 while !dispatcher.has_room() {
                     match config.backpressure.policy {
                         BackpressurePolicy::Block => {
+                            if ctx.stopped() {
+                                reporter.tick(&metrics, true);
+                                return Err(stopped_early(&recovery, frame_count));
+                            }
                             dispatcher.pump(POLL)?;
                             recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
                         }
@@ -426,8 +445,12 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     // Until every frame has its result: redo what a crashed stage took with it.
     loop {
         let complete = dispatcher.is_idle() && recovery.finished.len() as u64 >= frame_count;
-        if complete || ctx.stopped() {
+        if complete {
             break;
+        }
+        if ctx.stopped() {
+            reporter.tick(&metrics, true);
+            return Err(stopped_early(&recovery, frame_count));
         }
         dispatcher.pump(POLL)?;
         recovery.service(

@@ -412,3 +412,29 @@ fn restarted_ingest_and_verify_resume_from_the_results_journal() {
     let journaled = journal::read_published(&path, &journal::header(&config)).unwrap();
     assert_eq!(journaled, [0, 1, 2, 3].into());
 }
+
+/// Ingest stopped by a signal before its stream is complete ends with an error (the supervisor
+/// restarts it, and the restart resumes); a clean exit of ingest means the stream is complete.
+#[test]
+fn ingest_stopped_before_the_end_of_its_stream_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    config.state_dir = Some(dir.path().join("state"));
+    let transport = CrossbeamTransport::new(config.transport.clone());
+    // Verify's input, so that ingest finds its reader.
+    let _verify_in = bus::Inbox::open(&transport, keys::VERIFY_IN, "test").unwrap();
+    let stop = AtomicBool::new(true);
+    let context = nodes::NodeContext {
+        transport: &transport,
+        config: &config,
+        worker_index: 0,
+        stop: &stop,
+    };
+    match nodes::run_ingest(&context) {
+        Err(NodeError::Stopped { stage, detail }) => {
+            assert_eq!(stage, "ingest");
+            assert!(detail.contains("0 of 4 frames"), "{detail}");
+        }
+        other => panic!("ingest stopped early returned {other:?}"),
+    }
+}

@@ -181,6 +181,10 @@ fn run_launch_and_a_zenoh_flow_worker_give_identical_results() {
         reference,
         "zenoh run differs from the one-process run"
     );
+    assert!(
+        !stderr.contains("did not stop within"),
+        "a stage needed SIGKILL over zenoh:\n{stderr}"
+    );
 }
 
 /// What the launcher printed that the kill test waits for.
