@@ -5,9 +5,10 @@
 //! `state_dir`: a header line naming the run's pipeline and source, then one frame id per line.
 //! `asgreg launch` starts each run with an empty journal and removes it when the run is
 //! complete; `asgreg run` (threads, which never restart) keeps one of its own in a temporary
-//! folder; stages started by hand continue the one they find (delete it to start over). A line cut short by a crash is ignored
-//! (that frame may be published once more: the window is one `write` call). Appends are not
-//! fsync'ed: the journal survives a process crash, not a power cut.
+//! folder; stages started by hand continue the one they find (delete it to start over). A line
+//! cut short by a crash is ignored. The one window left for a repeated result is a crash of
+//! verify between publishing a result and appending its id (the JSON send and one `write`
+//! call). Appends are not fsync'ed: the journal survives a process crash, not a power cut.
 
 use std::collections::BTreeSet;
 use std::io::{Read, Seek, SeekFrom, Write};
