@@ -1,6 +1,7 @@
 //! Stage "ingest": turns a folder of photos with COLMAP poses into Frame messages, one per image
 //! listed in images.txt, in that order. A frame whose inputs are unusable becomes a FrameFailed
-//! naming the file, so that it still gets its one result.
+//! naming the file, so that it still gets its one result. A restarted ingest passes over the
+//! frames that already have theirs (`next_frame_except`).
 
 use std::borrow::Cow;
 use std::collections::BTreeMap;
@@ -132,6 +133,18 @@ impl FolderSource {
         let frame_id = self.next as u64;
         self.next += 1;
         Some((frame_id, self.load(&image)))
+    }
+
+    /// The next frame whose id is not in `done` (frames that already have their result: a
+    /// restarted ingest resumes instead of replaying); the frames passed over are not read.
+    pub fn next_frame_except(
+        &mut self,
+        done: &std::collections::BTreeSet<u64>,
+    ) -> Option<(u64, Result<Frame<'static>, FrameFailed>)> {
+        while self.next < self.images.len() && done.contains(&(self.next as u64)) {
+            self.next += 1;
+        }
+        self.next_frame()
     }
 
     fn load(&self, image: &ImagePose) -> Result<Frame<'static>, FrameFailed> {
