@@ -1,15 +1,16 @@
 //! `asgreg register`: refines the initial poses of a folder of photos against a mesh and writes
 //! the accepted poses (COLMAP text and binary, omega-phi-kappa CSV), a per-frame report and
-//! before/after overlays.
+//! before/after overlays. Photos are registered with their working camera (undistorted, at the
+//! working width: `frame_files`) and the poses are written for their own camera.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
+use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig};
 use asgreg::core::verify::VerifyConfig;
-use asgreg::frame_files::depth_path_for;
+use asgreg::frame_files::{depth_path_for, FrameLoader, DEFAULT_WORKING_WIDTH_PX};
 use asgreg::io::colmap::{ColmapModel, ImagePose};
 use asgreg::io::colmap_model::write_model_dir;
 use asgreg::io::images::{load_rgb, save_rgb_png};
@@ -48,6 +49,13 @@ pub struct RegisterArgs {
     pub seed: u64,
     #[command(flatten)]
     pub coarse: CoarseArgs,
+    /// Width (px) at which photos are registered: wider ones are averaged down to it (height in
+    /// proportion) and the poses are written for the photo's own camera; 0 registers every
+    /// photo at its own size. The default is the paper's 505 px width. Photos whose camera has
+    /// lens distortion (SIMPLE_RADIAL, RADIAL, OPENCV) are also undistorted to a PINHOLE camera
+    /// the way COLMAP's image_undistorter does it; the output keeps their camera.
+    #[arg(long, default_value_t = DEFAULT_WORKING_WIDTH_PX, value_name = "PX")]
+    pub working_width: u32,
     /// Register only the first N frames of the poses file.
     #[arg(long)]
     pub limit: Option<usize>,
@@ -171,10 +179,11 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating the output folder {}", args.out.display()))?;
 
+    let loader = FrameLoader::new((args.working_width > 0).then_some(args.working_width));
     let bar = progress_bar(frames.len(), "registering");
     let mut reports = Vec::with_capacity(frames.len());
     for frame in &frames {
-        let report = register_batch_frame(&inputs.mesh, frame, &config, args.seed);
+        let report = register_batch_frame_with(&inputs.mesh, frame, &loader, &config, args.seed);
         bar.println(format!(
             "{}: {}",
             report.name,
@@ -250,6 +259,7 @@ fn write_outputs(
     let json = serde_json::json!({
         "config": config,
         "intrinsics": args.intrinsics.mode(),
+        "working_width_px": (args.working_width > 0).then_some(args.working_width),
         "frames": reports,
     });
     std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
