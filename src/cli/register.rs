@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig};
+use asgreg::core::image::Image;
+use asgreg::core::undistort::WorkingCamera;
 use asgreg::core::verify::VerifyConfig;
 use asgreg::frame_files::{depth_path_for, FrameLoader, DEFAULT_WORKING_WIDTH_PX};
 use asgreg::io::colmap::{ColmapModel, ImagePose};
@@ -205,7 +207,7 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
 
-    write_outputs(args, &inputs.mesh, &frames, &reports, &config)?;
+    write_outputs(args, &inputs.mesh, &frames, &reports, &config, &loader)?;
     let accepted = reports.iter().filter(|r| r.accepted).count();
     println!(
         "registered {accepted} of {} frames; poses in {}, report in {}",
@@ -222,6 +224,7 @@ fn write_outputs(
     frames: &[BatchFrame],
     reports: &[FrameReport],
     config: &RegistrationConfig,
+    loader: &FrameLoader,
 ) -> anyhow::Result<()> {
     let mut cameras = BTreeMap::new();
     let mut poses = Vec::new();
@@ -270,7 +273,7 @@ fn write_outputs(
         std::fs::create_dir_all(&overlay_dir)
             .with_context(|| format!("creating {}", overlay_dir.display()))?;
         for (frame, report) in frames.iter().zip(reports) {
-            if let Err(error) = write_overlays(mesh, frame, report, &overlay_dir) {
+            if let Err(error) = write_overlays(mesh, frame, report, loader, &overlay_dir) {
                 tracing::warn!("{}: no overlay: {error:#}", frame.name);
             }
         }
@@ -278,20 +281,25 @@ fn write_outputs(
     Ok(())
 }
 
+/// The frame's photo with the model drawn over it at the initial and (when accepted) the
+/// registered pose, as registration saw it: with the working camera (undistorted, at the working
+/// width), so that a lens's distortion does not show as misalignment.
 fn write_overlays(
     mesh: &asgreg::core::mesh::Mesh,
     frame: &BatchFrame,
     report: &FrameReport,
+    loader: &FrameLoader,
     overlay_dir: &Path,
 ) -> anyhow::Result<()> {
-    let rgb = load_rgb(&frame.image_path)?;
+    let working = loader.working_camera(&frame.image_path, frame.camera_id, &frame.camera)?;
+    let rgb = working_rgb(&working, &load_rgb(&frame.image_path)?)?;
     let stem = Path::new(&frame.name)
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| frame.name.clone());
-    let mut views = vec![("before", frame.camera, frame.initial_cam_from_world)];
+    let mut views = vec![("before", working.working, frame.initial_cam_from_world)];
     if let (Some(camera), Some(pose)) = (report.camera, report.cam_from_world) {
-        views.push(("after", camera, pose));
+        views.push(("after", working.working_camera_for(&camera), pose));
     }
     for (label, camera, pose) in views {
         let render = render_view(
@@ -307,4 +315,23 @@ fn write_overlays(
         )?;
     }
     Ok(())
+}
+
+/// A colour photo as the working camera sees it (each channel resampled like the grey photo).
+fn working_rgb(working: &WorkingCamera, rgb: &Image<[u8; 3]>) -> anyhow::Result<Image<[u8; 3]>> {
+    if working.is_identity() {
+        return Ok(rgb.clone());
+    }
+    let mut channels = Vec::with_capacity(3);
+    for channel in 0..3 {
+        let plane = rgb.map(|pixel| f32::from(pixel[channel]) / 255.0);
+        channels.push(working.photo(plane.view())?);
+    }
+    let (width_px, height_px) = channels[0].size();
+    Ok(Image::from_fn(width_px, height_px, |col, row| {
+        std::array::from_fn(|channel| {
+            let value = channels[channel].get(col, row).copied().unwrap_or(0.0);
+            (value.clamp(0.0, 1.0) * 255.0).round() as u8
+        })
+    }))
 }

@@ -411,17 +411,35 @@ impl WorkingCamera {
         }
     }
 
+    /// `A = K_working · K_source⁻¹`: working pixels from the source's undistorted pixels (the
+    /// resize and the principal-point shift of the undistortion).
+    fn working_from_source(&self) -> Matrix3<f64> {
+        let source_k = self.source.intrinsics.k_matrix();
+        self.working.intrinsics.k_matrix()
+            * source_k.try_inverse().unwrap_or_else(Matrix3::identity)
+    }
+
+    /// The working camera for a camera `estimated` of the original photo (the inverse of
+    /// [`Self::source_camera_for`]): PINHOLE at the working size.
+    pub fn working_camera_for(&self, estimated: &Camera) -> Camera {
+        let k = self.working_from_source() * estimated.intrinsics.k_matrix();
+        Camera::pinhole(
+            self.working.width_px,
+            self.working.height_px,
+            PinholeIntrinsics::from_k_matrix(&k),
+        )
+    }
+
     /// The camera of the original photo for a camera `estimated` with the working camera (the
     /// intrinsics a DLT found at the working size): its `K` taken back through the resize and
     /// the principal-point shift of the undistortion, with the source's distortion. Models with
     /// one focal length become their two-focal counterpart (PINHOLE, OPENCV) so that `fx ≠ fy`
     /// is kept; the skew (which COLMAP cannot store) is kept in memory as it is.
     pub fn source_camera_for(&self, estimated: &Camera) -> Camera {
-        // Working pixels = A · source pixels (undistorted part), A = K_working · K_source⁻¹.
-        let source_k = self.source.intrinsics.k_matrix();
-        let working_k = self.working.intrinsics.k_matrix();
-        let a = working_k * source_k.try_inverse().unwrap_or_else(Matrix3::identity);
-        let a_inverse = a.try_inverse().unwrap_or_else(Matrix3::identity);
+        let a_inverse = self
+            .working_from_source()
+            .try_inverse()
+            .unwrap_or_else(Matrix3::identity);
         let intrinsics =
             PinholeIntrinsics::from_k_matrix(&(a_inverse * estimated.intrinsics.k_matrix()));
         let (model, distortion) = match self.source.distortion {
@@ -685,6 +703,10 @@ mod tests {
                 "{got:?} vs {want:?}"
             );
             assert_eq!(back.distortion, source.distortion);
+            let again = working.working_camera_for(&back);
+            let difference = again.intrinsics.k_matrix() - working.working.intrinsics.k_matrix();
+            assert!(difference.norm() < 1e-6, "{again:?}");
+            assert_eq!(again.width_px, working.working.width_px);
         }
     }
 }
