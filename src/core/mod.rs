@@ -15,4 +15,5 @@ pub mod reprojection;
 pub mod rigid;
 pub mod shading;
 pub mod sift_flow;
+pub mod undistort;
 pub mod verify;

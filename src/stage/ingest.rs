@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
 use crate::core::image::Image;
-use crate::frame_files::{depth_path_for, frame_seed, load_frame_files};
+use crate::frame_files::{depth_path_for, frame_seed, FrameLoader};
 use crate::io::colmap::ImagePose;
 use crate::io::colmap_model::{read_cameras_at, read_images_at, ModelError};
 use crate::msg::{Frame, FrameFailed, FrameInfo};
@@ -86,6 +86,8 @@ pub struct FolderSource {
     cameras: BTreeMap<u32, Camera>,
     images: Vec<ImagePose>,
     next: usize,
+    /// Brings photos to the working camera (default working width), each camera's plan once.
+    loader: FrameLoader,
 }
 
 impl FolderSource {
@@ -115,6 +117,7 @@ impl FolderSource {
             cameras,
             images,
             next: 0,
+            loader: FrameLoader::default(),
         })
     }
 
@@ -170,18 +173,21 @@ impl FolderSource {
             .depth
             .as_ref()
             .map(|dir| depth_path_for(dir, &image.name));
-        let files = load_frame_files(
-            &self.config.images.join(&image.name),
-            image.camera_id,
-            &camera,
-            depth_path.as_deref(),
-        )
-        .map_err(|e| failed(e.to_string()))?;
+        let files = self
+            .loader
+            .load(
+                &self.config.images.join(&image.name),
+                image.camera_id,
+                &camera,
+                depth_path.as_deref(),
+            )
+            .map_err(|e| failed(e.to_string()))?;
         Ok(Frame {
             info: FrameInfo {
                 name: image.name.clone(),
                 camera_id: image.camera_id,
-                camera,
+                // The working camera (undistorted, at the working width): the photo's.
+                camera: files.camera,
                 intrinsics_known: self.config.intrinsics_known,
                 initial_cam_from_world: image.cam_from_world,
                 seed: frame_seed(self.config.seed, image.image_id),
