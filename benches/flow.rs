@@ -6,6 +6,13 @@
 //!
 //! `FLOW_BENCH_QUICK=1 cargo bench --bench flow` prints one-shot timings, end-point errors and the
 //! side-by-side figures without criterion's repetitions (a few minutes on 2 cores).
+//!
+//! `FLOW_BENCH_STAGES=1 cargo bench --bench flow` times one one-way flow of the fast preset per
+//! stage on one thread (dense SIFT of both images, pyramids, data cost, belief propagation): the
+//! first run with fresh buffers (as a process that flows once pays, page faults included) and the
+//! minimum of `FLOW_BENCH_REPEATS` (default 15) runs with reused buffers, in process CPU time
+//! (dense SIFT, whole flow) and wall time (the flow's own per-stage timings); with the EPE.
+//! `FLOW_BENCH_CONFIG='{"bp_bands": 1}'` replaces fields of the preset.
 
 use std::hint::black_box;
 use std::path::Path;
@@ -126,6 +133,113 @@ fn process_cpu_time() -> Option<Duration> {
     let user: u64 = fields.get(11)?.parse().ok()?;
     let system: u64 = fields.get(12)?.parse().ok()?;
     Some(Duration::from_millis((user + system) * 10))
+}
+
+/// High-resolution CPU time of this process (`CLOCK_PROCESS_CPUTIME_ID`), Linux only.
+fn precise_process_cpu_time() -> Duration {
+    #[repr(C)]
+    struct Timespec {
+        seconds: i64,
+        nanoseconds: i64,
+    }
+    extern "C" {
+        fn clock_gettime(clock: i32, time: *mut Timespec) -> i32;
+    }
+    const CLOCK_PROCESS_CPUTIME_ID: i32 = 2;
+    let mut time = Timespec {
+        seconds: 0,
+        nanoseconds: 0,
+    };
+    // SAFETY: `time` is a valid, writable timespec; the call only writes it.
+    let status = unsafe { clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &mut time) };
+    assert_eq!(status, 0, "clock_gettime");
+    Duration::new(time.seconds as u64, time.nanoseconds as u32)
+}
+
+/// Per-stage times of one one-way flow (fast preset, one thread), see the module comment.
+fn stages_report(pairs: &[Pair]) {
+    let repeats: usize = std::env::var("FLOW_BENCH_REPEATS")
+        .ok()
+        .and_then(|value| value.parse().ok())
+        .unwrap_or(15);
+    // `FLOW_BENCH_CONFIG='{"bp_bands": 1}'`: fields that replace the fast preset's.
+    let config = match std::env::var("FLOW_BENCH_CONFIG") {
+        Ok(json) => {
+            let mut value = serde_json::to_value(SiftFlowConfig::fast()).expect("config");
+            let changes: serde_json::Value = serde_json::from_str(&json).expect("FLOW_BENCH_CONFIG");
+            for (key, field) in changes.as_object().expect("a JSON object") {
+                value[key] = field.clone();
+            }
+            serde_json::from_value(value).expect("FLOW_BENCH_CONFIG fields")
+        }
+        Err(_) => SiftFlowConfig::fast(),
+    };
+    let ms = |duration: Duration| duration.as_secs_f64() * 1e3;
+    pool(1).install(|| {
+        for pair in pairs {
+            let mut sift_workspace = DenseSiftWorkspace::default();
+            let (mut first, mut second) = (DenseSiftImage::default(), DenseSiftImage::default());
+            let mut workspace = SiftFlowWorkspace::default();
+            let mut field = FlowField::default();
+            let mut cost = Image::default();
+            // [sift, flow cpu, total cpu, pyramid, data cost, bp (wall)] of each run.
+            let mut runs: Vec<[Duration; 6]> = Vec::new();
+            for _ in 0..=repeats {
+                let started = precise_process_cpu_time();
+                for (image, out) in [(&pair.first, &mut first), (&pair.second, &mut second)] {
+                    compute_dense_sift(
+                        image.view(),
+                        &DenseSiftConfig::default(),
+                        &mut sift_workspace,
+                        out,
+                    )
+                    .expect("dense SIFT");
+                }
+                let sift_done = precise_process_cpu_time();
+                let timings = compute_sift_flow(
+                    &first,
+                    None,
+                    &second,
+                    None,
+                    &config,
+                    &mut workspace,
+                    &mut field,
+                    &mut cost,
+                )
+                .expect("SIFT flow");
+                let done = precise_process_cpu_time();
+                runs.push([
+                    sift_done - started,
+                    done - sift_done,
+                    done - started,
+                    timings.pyramid,
+                    timings.data_cost,
+                    timings.belief_propagation,
+                ]);
+            }
+            let (epe, under_one) = score(&field, &pair.truth);
+            let cold = runs[0];
+            let warm: [Duration; 6] = std::array::from_fn(|stage| {
+                runs[1..]
+                    .iter()
+                    .map(|run| run[stage])
+                    .min()
+                    .unwrap_or_default()
+            });
+            for (label, run) in [("first run", cold), ("min of reruns", warm)] {
+                println!(
+                    "{} one-way flow, fast preset, 1 thread, {label}: CPU {:.1} ms (dense SIFT x2 {:.1}, flow {:.1}); wall pyramid {:.1}, data cost {:.1}, BP {:.1} ms; EPE {epe:.4} px, < 1 px {under_one:.4}",
+                    pair.name,
+                    ms(run[2]),
+                    ms(run[0]),
+                    ms(run[1]),
+                    ms(run[3]),
+                    ms(run[4]),
+                    ms(run[5]),
+                );
+            }
+        }
+    });
 }
 
 fn cpu_time<T>(mut run: impl FnMut() -> T) -> (Duration, T) {
@@ -539,6 +653,10 @@ fn main() {
                 }
             });
         }
+        return;
+    }
+    if std::env::var_os("FLOW_BENCH_STAGES").is_some() {
+        stages_report(&pairs);
         return;
     }
     if std::env::var_os("FLOW_BENCH_QUICK").is_some() {

@@ -42,8 +42,6 @@ pub enum FlowError {
 /// Bytes per descriptor: 4×4 cells × 8 orientation bins.
 pub const DESCRIPTOR_LEN: usize = 128;
 const ORIENTATION_BINS: usize = 8;
-/// Channels of the per-pixel band image: the 8 orientation energies and the gradient magnitude.
-const BAND_CHANNELS: usize = ORIENTATION_BINS + 1;
 const CELL_OFFSETS: [isize; 4] = [-1, 0, 1, 2];
 
 /// The derivative filter of step 1.
@@ -167,19 +165,56 @@ impl DenseSiftImage {
     }
 }
 
+/// Compiles `fn $name` twice, for the x86-64 baseline and for AVX2, and picks the AVX2 copy at run
+/// time when the CPU has it (the detection is cached). The body is plain Rust that the compiler
+/// vectorises; both copies perform the same operations in the same order, so they give identical
+/// results.
+macro_rules! multiversioned {
+    ($(#[$meta:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $body:block) => {
+        $(#[$meta])*
+        $vis fn $name($($arg: $ty),*) {
+            #[inline(always)]
+            fn generic($($arg: $ty),*) $body
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx2")]
+            unsafe fn avx2($($arg: $ty),*) {
+                generic($($arg),*)
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU has AVX2 (checked just above).
+                return unsafe { avx2($($arg),*) };
+            }
+            generic($($arg),*)
+        }
+    };
+}
+pub(crate) use multiversioned;
+
 /// Scratch buffers reused between calls (no allocation once they have grown to the image size).
 #[derive(Debug, Default)]
 pub struct DenseSiftWorkspace {
     smoothed: Vec<f32>,
     smoothing_scratch: Vec<f32>,
-    gradient_x: Vec<f32>,
-    gradient_y: Vec<f32>,
-    bands: Vec<f32>,
+    /// Orientation energies pooled along x, 8 per pixel (pixel-major).
     bands_pooled_rows: Vec<f32>,
+    /// Gradient magnitude pooled along x.
+    magnitude_pooled_rows: Vec<f32>,
+    /// Both passes of the pooling: 8 energies per pixel, and the magnitude.
     bands_pooled: Vec<f32>,
+    magnitude_pooled: Vec<f32>,
 }
 
+/// Rows per parallel task of the band step (its per-task scratch is a few rows long).
+const BAND_ROWS_PER_TASK: usize = 16;
+
 /// Computes the dense SIFT image of a grey `image` into `out`.
+///
+/// The steps run as separable row passes over planar (one value per pixel) and pixel-major
+/// 8-band images that the compiler vectorises, each pass with the operations of the definition
+/// in their order (so the pooled energies are exactly those of a straightforward implementation);
+/// only the descriptor's norm sums its 128 squares in a different order (8 partial sums), which
+/// can move a byte by one where `v · 255 / ‖v‖` falls within a rounding error of an integer.
 pub fn compute_dense_sift(
     image: ImageView<'_, f32>,
     config: &DenseSiftConfig,
@@ -218,53 +253,16 @@ pub fn compute_dense_sift(
         image
     };
 
-    // 1. Derivatives.
-    ws.gradient_x.resize(pixel_count, 0.0);
-    ws.gradient_y.resize(pixel_count, 0.0);
-    compute_gradients(
-        source,
-        width_px,
-        height_px,
-        config.gradient_filter,
-        &mut ws.gradient_x,
-        &mut ws.gradient_y,
-    );
-
-    // 2. Orientation bands (8 energies + magnitude per pixel).
-    ws.bands.resize(pixel_count * BAND_CHANNELS, 0.0);
+    // 1–3a. Per row: derivatives, orientation energies, pooling along x.
     let bin_directions: [(f32, f32); ORIENTATION_BINS] = std::array::from_fn(|bin| {
         let angle = std::f32::consts::TAU * bin as f32 / ORIENTATION_BINS as f32;
         (angle.cos(), angle.sin())
     });
-    let sharpness = config.orientation_sharpness;
-    ws.bands
-        .par_chunks_mut(width_px * BAND_CHANNELS)
-        .zip(
-            ws.gradient_x
-                .par_chunks(width_px)
-                .zip(ws.gradient_y.par_chunks(width_px)),
-        )
-        .for_each(|(band_row, (gx_row, gy_row))| {
-            for ((bands, &gx), &gy) in band_row
-                .chunks_exact_mut(BAND_CHANNELS)
-                .zip(gx_row)
-                .zip(gy_row)
-            {
-                let magnitude = (gx * gx + gy * gy).sqrt();
-                let inverse = if magnitude > 0.0 {
-                    1.0 / magnitude
-                } else {
-                    0.0
-                };
-                for (band, &(cos_k, sin_k)) in bands.iter_mut().zip(&bin_directions) {
-                    let cosine = ((gx * cos_k + gy * sin_k) * inverse).max(0.0);
-                    *band = cosine.powi(sharpness) * magnitude;
-                }
-                bands[ORIENTATION_BINS] = magnitude;
-            }
-        });
-
-    // 3. Cell pooling with the reference's filter.
+    let directions = BinDirections {
+        cos: bin_directions.map(|(cos, _)| cos),
+        sin: bin_directions.map(|(_, sin)| sin),
+    };
+    let sharpness = config.orientation_sharpness as u32;
     let cell = config.cell_size_px;
     let mut pooling_taps = vec![0.0f32; 2 * cell + 1];
     pooling_taps[0] = 0.25;
@@ -272,58 +270,107 @@ pub fn compute_dense_sift(
         *tap = 1.0;
     }
     let pooling_weight_sum: f32 = pooling_taps.iter().sum();
+    let pooling = nonzero_taps(&pooling_taps, cell);
+    let band_row_len = width_px * ORIENTATION_BINS;
+    ws.bands_pooled_rows.resize(pixel_count * ORIENTATION_BINS, 0.0);
+    ws.magnitude_pooled_rows.resize(pixel_count, 0.0);
+    let filter = config.gradient_filter;
     ws.bands_pooled_rows
-        .resize(pixel_count * BAND_CHANNELS, 0.0);
-    ws.bands_pooled.resize(pixel_count * BAND_CHANNELS, 0.0);
-    separable_filter_clamped(
-        &ws.bands,
+        .par_chunks_mut(BAND_ROWS_PER_TASK * band_row_len)
+        .zip(
+            ws.magnitude_pooled_rows
+                .par_chunks_mut(BAND_ROWS_PER_TASK * width_px),
+        )
+        .enumerate()
+        .for_each(|(task, (bands_rows, magnitude_rows))| {
+            let mut scratch = vec![0.0f32; width_px * (2 + ORIENTATION_BINS + 1)];
+            let (gradients, rest) = scratch.split_at_mut(2 * width_px);
+            let (gradient_x, gradient_y) = gradients.split_at_mut(width_px);
+            let (band_row, magnitude_row) = rest.split_at_mut(band_row_len);
+            for (row_in_task, (bands_out, magnitude_out)) in bands_rows
+                .chunks_exact_mut(band_row_len)
+                .zip(magnitude_rows.chunks_exact_mut(width_px))
+                .enumerate()
+            {
+                let y = task * BAND_ROWS_PER_TASK + row_in_task;
+                gradient_row(
+                    source,
+                    width_px,
+                    height_px,
+                    y,
+                    filter,
+                    gradient_x,
+                    gradient_y,
+                );
+                orientation_band_row(
+                    gradient_x,
+                    gradient_y,
+                    &directions,
+                    sharpness,
+                    band_row,
+                    magnitude_row,
+                );
+                filter_row_clamped(band_row, ORIENTATION_BINS, &pooling, cell, bands_out);
+                filter_row_clamped(magnitude_row, 1, &pooling, cell, magnitude_out);
+            }
+        });
+
+    // 3b. Pooling along y.
+    ws.bands_pooled.resize(pixel_count * ORIENTATION_BINS, 0.0);
+    ws.magnitude_pooled.resize(pixel_count, 0.0);
+    filter_columns_clamped(
+        &ws.bands_pooled_rows,
+        band_row_len,
+        height_px,
+        &pooling,
+        cell,
+        &mut ws.bands_pooled,
+    );
+    filter_columns_clamped(
+        &ws.magnitude_pooled_rows,
         width_px,
         height_px,
-        BAND_CHANNELS,
-        &pooling_taps,
+        &pooling,
         cell,
-        &mut ws.bands_pooled_rows,
-        &mut ws.bands_pooled,
+        &mut ws.magnitude_pooled,
     );
 
     // 4–5. Sampling of the 4×4 cells and normalisation.
     out.resize(width_px, height_px, true);
-    let pooled = &ws.bands_pooled;
-    let floor = config.normalisation_floor;
-    let support_scale = 1.0 / (16.0 * pooling_weight_sum * pooling_weight_sum);
+    let (bands, magnitudes) = (&ws.bands_pooled, &ws.magnitude_pooled);
+    let normalisation = Normalisation {
+        floor: config.normalisation_floor,
+        support_scale: 1.0 / (16.0 * pooling_weight_sum * pooling_weight_sum),
+    };
     out.descriptors
         .par_chunks_mut(width_px * DESCRIPTOR_LEN)
         .zip(out.support_gradient.data_mut().par_chunks_mut(width_px))
         .enumerate()
         .for_each(|(y, (descriptor_row, support_row))| {
-            let mut cells = [0.0f32; DESCRIPTOR_LEN];
             let sample_rows: [usize; 4] = CELL_OFFSETS
                 .map(|offset| clamp_index(y as isize + offset * cell as isize, height_px));
-            for x in 0..width_px {
-                let sample_columns: [usize; 4] = CELL_OFFSETS
-                    .map(|offset| clamp_index(x as isize + offset * cell as isize, width_px));
-                let mut support = 0.0f32;
-                for (cell_row, &sample_y) in sample_rows.iter().enumerate() {
-                    for (cell_column, &sample_x) in sample_columns.iter().enumerate() {
-                        let at = (sample_y * width_px + sample_x) * BAND_CHANNELS;
-                        let cell_index = cell_row * 4 + cell_column;
-                        cells[cell_index * ORIENTATION_BINS..(cell_index + 1) * ORIENTATION_BINS]
-                            .copy_from_slice(&pooled[at..at + ORIENTATION_BINS]);
-                        support += pooled[at + ORIENTATION_BINS];
-                    }
-                }
-                let norm = cells.iter().map(|value| value * value).sum::<f32>().sqrt();
-                let scale = 255.0 / (norm + floor);
-                for (byte, value) in descriptor_row[x * DESCRIPTOR_LEN..(x + 1) * DESCRIPTOR_LEN]
-                    .iter_mut()
-                    .zip(&cells)
-                {
-                    *byte = (value * scale).min(255.0) as u8;
-                }
-                support_row[x] = support * support_scale;
-            }
+            descriptor_row_kernel(
+                sample_rows.map(|row| &bands[row * band_row_len..(row + 1) * band_row_len]),
+                sample_rows.map(|row| &magnitudes[row * width_px..(row + 1) * width_px]),
+                cell,
+                normalisation,
+                descriptor_row,
+                support_row,
+            );
         });
     Ok(())
+}
+
+/// `cos θ_k`, `sin θ_k` of the 8 bins.
+struct BinDirections {
+    cos: [f32; ORIENTATION_BINS],
+    sin: [f32; ORIENTATION_BINS],
+}
+
+#[derive(Clone, Copy)]
+struct Normalisation {
+    floor: f32,
+    support_scale: f32,
 }
 
 #[inline]
@@ -344,8 +391,19 @@ pub(crate) fn gaussian_taps(sigma_px: f32, radius: usize) -> Vec<f32> {
     taps
 }
 
+/// The non-zero taps as `(index, weight)`, index `0..=2·radius` standing for offset `index − radius`.
+fn nonzero_taps(taps: &[f32], radius: usize) -> Vec<(usize, f32)> {
+    debug_assert_eq!(taps.len(), 2 * radius + 1);
+    taps.iter()
+        .enumerate()
+        .filter(|(_, &weight)| weight != 0.0)
+        .map(|(index, &weight)| (index, weight))
+        .collect()
+}
+
 /// Correlates a `channels`-interleaved image with `taps` (offsets `-radius..=radius`) along x and
-/// then along y, clamping at the borders. `rows_scratch` receives the horizontal pass.
+/// then along y, clamping at the borders. `rows_scratch` receives the horizontal pass. Each output
+/// value is `((0 + v₀·w₀) + v₁·w₁) + …` over the non-zero taps in order.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn separable_filter_clamped(
     input: &[f32],
@@ -358,81 +416,376 @@ pub(crate) fn separable_filter_clamped(
     output: &mut [f32],
 ) {
     let row_len = width_px * channels;
-    let nonzero_taps: Vec<(isize, f32)> = taps
-        .iter()
-        .enumerate()
-        .filter(|(_, &weight)| weight != 0.0)
-        .map(|(index, &weight)| (index as isize - radius as isize, weight))
-        .collect();
+    let nonzero = nonzero_taps(taps, radius);
     rows_scratch
         .par_chunks_mut(row_len)
         .zip(input.par_chunks(row_len))
         .for_each(|(out_row, in_row)| {
-            for x in 0..width_px {
-                let out = &mut out_row[x * channels..(x + 1) * channels];
-                out.fill(0.0);
-                for &(offset, weight) in &nonzero_taps {
-                    let source_x = clamp_index(x as isize + offset, width_px);
-                    let source = &in_row[source_x * channels..(source_x + 1) * channels];
-                    for (value, &input_value) in out.iter_mut().zip(source) {
-                        *value += input_value * weight;
-                    }
+            filter_row_clamped(in_row, channels, &nonzero, radius, out_row)
+        });
+    filter_columns_clamped(rows_scratch, row_len, height_px, &nonzero, radius, output);
+}
+
+/// `out[x] = Σ_k in[clamp(x + index_k − radius)] · w_k` on one row of `channels`-interleaved
+/// pixels: shifted whole-slice passes inside, clamped reads at the two ends.
+fn filter_row_clamped(
+    input: &[f32],
+    channels: usize,
+    taps: &[(usize, f32)],
+    radius: usize,
+    out: &mut [f32],
+) {
+    filter_row_kernel(input, channels, taps, radius, out)
+}
+
+multiversioned! {
+    fn filter_row_kernel(
+        input: &[f32],
+        channels: usize,
+        taps: &[(usize, f32)],
+        radius: usize,
+        out: &mut [f32],
+    ) {
+        let width = input.len() / channels;
+        let interior = radius..width.saturating_sub(radius).max(radius);
+        out.fill(0.0);
+        if !interior.is_empty() {
+            let interior_len = interior.len() * channels;
+            let out_interior = &mut out[interior.start * channels..interior.end * channels];
+            for &(index, weight) in taps {
+                let source = &input[index * channels..index * channels + interior_len];
+                for (value, &input_value) in out_interior.iter_mut().zip(source) {
+                    *value += input_value * weight;
                 }
             }
-        });
-    let rows: &[f32] = rows_scratch;
+        }
+        for x in (0..width).filter(|x| !interior.contains(x)) {
+            let out = &mut out[x * channels..(x + 1) * channels];
+            for &(index, weight) in taps {
+                let source_x = clamp_index(x as isize + index as isize - radius as isize, width);
+                let source = &input[source_x * channels..(source_x + 1) * channels];
+                for (value, &input_value) in out.iter_mut().zip(source) {
+                    *value += input_value * weight;
+                }
+            }
+        }
+    }
+}
+
+/// The vertical pass: `out[y] = Σ_k rows[clamp(y + index_k − radius)] · w_k`, row by row.
+fn filter_columns_clamped(
+    rows: &[f32],
+    row_len: usize,
+    height_px: usize,
+    taps: &[(usize, f32)],
+    radius: usize,
+    output: &mut [f32],
+) {
     output
         .par_chunks_mut(row_len)
         .enumerate()
         .for_each(|(y, out_row)| {
-            out_row.fill(0.0);
-            for &(offset, weight) in &nonzero_taps {
-                let source_y = clamp_index(y as isize + offset, height_px);
-                let source = &rows[source_y * row_len..(source_y + 1) * row_len];
-                for (value, &input_value) in out_row.iter_mut().zip(source) {
-                    *value += input_value * weight;
-                }
-            }
+            let sources: Vec<(&[f32], f32)> = taps
+                .iter()
+                .map(|&(index, weight)| {
+                    let source_y =
+                        clamp_index(y as isize + index as isize - radius as isize, height_px);
+                    (&rows[source_y * row_len..(source_y + 1) * row_len], weight)
+                })
+                .collect();
+            weighted_row_sum(&sources, out_row);
         });
 }
 
-fn compute_gradients(
+multiversioned! {
+    fn weighted_row_sum(sources: &[(&[f32], f32)], out: &mut [f32]) {
+        out.fill(0.0);
+        for &(source, weight) in sources {
+            for (value, &input_value) in out.iter_mut().zip(source) {
+                *value += input_value * weight;
+            }
+        }
+    }
+}
+
+/// The derivatives of row `y` of `image` (clamped borders).
+fn gradient_row(
     image: &[f32],
     width_px: usize,
     height_px: usize,
+    y: usize,
     filter: GradientFilter,
     gradient_x: &mut [f32],
     gradient_y: &mut [f32],
 ) {
-    let at =
-        |x: isize, y: isize| image[clamp_index(y, height_px) * width_px + clamp_index(x, width_px)];
-    gradient_x
-        .par_chunks_mut(width_px)
-        .zip(gradient_y.par_chunks_mut(width_px))
-        .enumerate()
-        .for_each(|(y, (gx_row, gy_row))| {
-            let y = y as isize;
+    let row = |offset: isize| {
+        let source_y = clamp_index(y as isize + offset, height_px);
+        &image[source_y * width_px..(source_y + 1) * width_px]
+    };
+    match filter {
+        GradientFilter::CentralFivePoint => {
+            central_five_point_rows(
+                row(0),
+                [row(-2), row(-1), row(1), row(2)],
+                gradient_x,
+                gradient_y,
+            );
+        }
+        GradientFilter::Sobel => {
+            let rows = [row(-1), row(0), row(1)];
             for x in 0..width_px {
-                let xi = x as isize;
-                let (gx, gy) = match filter {
-                    GradientFilter::CentralFivePoint => (
-                        (at(xi - 2, y) - 8.0 * at(xi - 1, y) + 8.0 * at(xi + 1, y) - at(xi + 2, y))
-                            / 12.0,
-                        (at(xi, y - 2) - 8.0 * at(xi, y - 1) + 8.0 * at(xi, y + 1) - at(xi, y + 2))
-                            / 12.0,
-                    ),
-                    GradientFilter::Sobel => {
-                        let gx = (at(xi + 1, y - 1) + 2.0 * at(xi + 1, y) + at(xi + 1, y + 1))
-                            - (at(xi - 1, y - 1) + 2.0 * at(xi - 1, y) + at(xi - 1, y + 1));
-                        let gy = (at(xi - 1, y + 1) + 2.0 * at(xi, y + 1) + at(xi + 1, y + 1))
-                            - (at(xi - 1, y - 1) + 2.0 * at(xi, y - 1) + at(xi + 1, y - 1));
-                        (gx / 8.0, gy / 8.0)
-                    }
-                };
-                gx_row[x] = gx;
-                gy_row[x] = gy;
+                let at = |dx: isize, row: usize| rows[row][clamp_index(x as isize + dx, width_px)];
+                let gx = (at(1, 0) + 2.0 * at(1, 1) + at(1, 2))
+                    - (at(-1, 0) + 2.0 * at(-1, 1) + at(-1, 2));
+                let gy = (at(-1, 2) + 2.0 * at(0, 2) + at(1, 2))
+                    - (at(-1, 0) + 2.0 * at(0, 0) + at(1, 0));
+                gradient_x[x] = gx / 8.0;
+                gradient_y[x] = gy / 8.0;
             }
-        });
+        }
+    }
+}
+
+multiversioned! {
+    /// `[1, -8, 0, 8, -1] / 12` along the row (`centre`) and across `rows` (y − 2, y − 1, y + 1,
+    /// y + 2), as `(((a − 8b) + 8c) − d) / 12`.
+    fn central_five_point_rows(
+        centre: &[f32],
+        rows: [&[f32]; 4],
+        gradient_x: &mut [f32],
+        gradient_y: &mut [f32],
+    ) {
+        let five_point = |a: f32, b: f32, c: f32, d: f32| (a - 8.0 * b + 8.0 * c - d) / 12.0;
+        let width = centre.len();
+        if width > 4 {
+            for (x, value) in gradient_x[2..width - 2].iter_mut().enumerate() {
+                *value = five_point(centre[x], centre[x + 1], centre[x + 3], centre[x + 4]);
+            }
+        }
+        for x in (0..width).filter(|&x| x < 2 || x + 2 >= width) {
+            let at = |dx: isize| centre[clamp_index(x as isize + dx, width)];
+            gradient_x[x] = five_point(at(-2), at(-1), at(1), at(2));
+        }
+        let [above2, above1, below1, below2] = rows;
+        for ((((value, &a), &b), &c), &d) in gradient_y
+            .iter_mut()
+            .zip(above2)
+            .zip(above1)
+            .zip(below1)
+            .zip(below2)
+        {
+            *value = five_point(a, b, c, d);
+        }
+    }
+}
+
+multiversioned! {
+    /// Per pixel: the gradient magnitude and the 8 energies `max(cos(θ − θ_k), 0)^e · |g|`
+    /// (pixel-major), with `x^e` by the same square-and-multiply as `f32::powi`.
+    fn orientation_band_row(
+        gradient_x: &[f32],
+        gradient_y: &[f32],
+        directions: &BinDirections,
+        sharpness: u32,
+        bands: &mut [f32],
+        magnitudes: &mut [f32],
+    ) {
+        for (((&gx, &gy), bands), magnitude_out) in gradient_x
+            .iter()
+            .zip(gradient_y)
+            .zip(bands.chunks_exact_mut(ORIENTATION_BINS))
+            .zip(magnitudes.iter_mut())
+        {
+            let magnitude = (gx * gx + gy * gy).sqrt();
+            let inverse = if magnitude > 0.0 { 1.0 / magnitude } else { 0.0 };
+            let mut base = [0.0f32; ORIENTATION_BINS];
+            for bin in 0..ORIENTATION_BINS {
+                let cosine = (gx * directions.cos[bin] + gy * directions.sin[bin]) * inverse;
+                base[bin] = if cosine > 0.0 { cosine } else { 0.0 };
+            }
+            // compiler-builtins' `__powisf2` (what `powi` with a run-time exponent calls).
+            let mut power = [1.0f32; ORIENTATION_BINS];
+            let mut exponent = sharpness;
+            loop {
+                if exponent & 1 != 0 {
+                    for bin in 0..ORIENTATION_BINS {
+                        power[bin] *= base[bin];
+                    }
+                }
+                exponent >>= 1;
+                if exponent == 0 {
+                    break;
+                }
+                for value in &mut base {
+                    *value *= *value;
+                }
+            }
+            for (band, &value) in bands.iter_mut().zip(&power) {
+                *band = value * magnitude;
+            }
+            *magnitude_out = magnitude;
+        }
+    }
+}
+
+/// One row of descriptors from the pooled energies of its 4 sample rows (pixel-major, 8 per pixel)
+/// and the pooled magnitudes of the same rows: explicit AVX2 where the CPU has it (the compiler
+/// turns the saturating float-to-byte conversion into scalar code), the same arithmetic in plain
+/// Rust elsewhere.
+fn descriptor_row_kernel(
+    band_rows: [&[f32]; 4],
+    magnitude_rows: [&[f32]; 4],
+    cell: usize,
+    normalisation: Normalisation,
+    descriptors: &mut [u8],
+    support: &mut [f32],
+) {
+    let width = support.len();
+    assert!(descriptors.len() == width * DESCRIPTOR_LEN);
+    assert!(band_rows.iter().all(|row| row.len() == width * ORIENTATION_BINS));
+    assert!(magnitude_rows.iter().all(|row| row.len() == width));
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked just above); the slice lengths are checked above.
+        unsafe {
+            descriptor_row_avx2(
+                band_rows,
+                magnitude_rows,
+                cell,
+                normalisation,
+                descriptors,
+                support,
+            )
+        };
+        return;
+    }
+    descriptor_row_portable(
+        band_rows,
+        magnitude_rows,
+        cell,
+        normalisation,
+        descriptors,
+        support,
+    );
+}
+
+/// The 4 sample columns of pixel `x`'s cells and its support (the sum of the 16 pooled magnitudes,
+/// rows outer, columns inner).
+#[inline(always)]
+fn cell_columns_and_support(
+    x: usize,
+    width: usize,
+    cell: usize,
+    magnitude_rows: &[&[f32]; 4],
+) -> ([usize; 4], f32) {
+    let sample_columns: [usize; 4] =
+        CELL_OFFSETS.map(|offset| clamp_index(x as isize + offset * cell as isize, width));
+    let mut support = 0.0f32;
+    for magnitudes in magnitude_rows {
+        for &sample_x in &sample_columns {
+            support += magnitudes[sample_x];
+        }
+    }
+    (sample_columns, support)
+}
+
+/// The descriptor kernel in plain Rust: squares summed in 8 partial sums (one per bin, cells in
+/// order), combined as `((s0 + s4) + (s2 + s6)) + ((s1 + s5) + (s3 + s7))`, as the AVX2 kernel does.
+fn descriptor_row_portable(
+    band_rows: [&[f32]; 4],
+    magnitude_rows: [&[f32]; 4],
+    cell: usize,
+    normalisation: Normalisation,
+    descriptors: &mut [u8],
+    support: &mut [f32],
+) {
+    let width = support.len();
+    for (x, (descriptor, support_out)) in descriptors
+        .chunks_exact_mut(DESCRIPTOR_LEN)
+        .zip(support.iter_mut())
+        .enumerate()
+    {
+        let (sample_columns, support_sum) =
+            cell_columns_and_support(x, width, cell, &magnitude_rows);
+        let mut cells = [[0.0f32; ORIENTATION_BINS]; 16];
+        let mut squares = [0.0f32; ORIENTATION_BINS];
+        for (cell_row, bands) in band_rows.iter().enumerate() {
+            for (cell_column, &sample_x) in sample_columns.iter().enumerate() {
+                let values = &bands[sample_x * ORIENTATION_BINS..(sample_x + 1) * ORIENTATION_BINS];
+                for (bin, &value) in values.iter().enumerate() {
+                    squares[bin] += value * value;
+                    cells[cell_row * 4 + cell_column][bin] = value;
+                }
+            }
+        }
+        let scale = 255.0 / (descriptor_norm(squares) + normalisation.floor);
+        for (bytes, values) in descriptor.chunks_exact_mut(ORIENTATION_BINS).zip(&cells) {
+            for (byte, &value) in bytes.iter_mut().zip(values) {
+                let scaled = value * scale;
+                *byte = (if scaled < 255.0 { scaled } else { 255.0 }) as u8;
+            }
+        }
+        *support_out = support_sum * normalisation.support_scale;
+    }
+}
+
+#[inline(always)]
+fn descriptor_norm(squares: [f32; ORIENTATION_BINS]) -> f32 {
+    (((squares[0] + squares[4]) + (squares[2] + squares[6]))
+        + ((squares[1] + squares[5]) + (squares[3] + squares[7])))
+    .sqrt()
+}
+
+/// [`descriptor_row_portable`] in AVX2: one register per cell, four cells packed into 32 bytes.
+///
+/// # Safety
+/// The CPU must have AVX2; `descriptors` holds `128 · width` bytes and every band row `8 · width`
+/// values, `width = support.len()` (as [`descriptor_row_kernel`] checks).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn descriptor_row_avx2(
+    band_rows: [&[f32]; 4],
+    magnitude_rows: [&[f32]; 4],
+    cell: usize,
+    normalisation: Normalisation,
+    descriptors: &mut [u8],
+    support: &mut [f32],
+) {
+    use std::arch::x86_64::*;
+    let width = support.len();
+    let ceiling = _mm256_set1_ps(255.0);
+    // packs/packus leave 32-bit groups in the order a0 b0 c0 d0 | a1 b1 c1 d1.
+    let unshuffle = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+    for x in 0..width {
+        let (sample_columns, support_sum) =
+            cell_columns_and_support(x, width, cell, &magnitude_rows);
+        let mut cells = [_mm256_setzero_ps(); 16];
+        let mut squares = _mm256_setzero_ps();
+        for (cell_row, bands) in band_rows.iter().enumerate() {
+            for (cell_column, &sample_x) in sample_columns.iter().enumerate() {
+                // SAFETY: sample_x < width and the row holds 8 · width values.
+                let value = _mm256_loadu_ps(bands.as_ptr().add(sample_x * ORIENTATION_BINS));
+                squares = _mm256_add_ps(squares, _mm256_mul_ps(value, value));
+                cells[cell_row * 4 + cell_column] = value;
+            }
+        }
+        let mut partial = [0.0f32; ORIENTATION_BINS];
+        _mm256_storeu_ps(partial.as_mut_ptr(), squares);
+        let scale = _mm256_set1_ps(255.0 / (descriptor_norm(partial) + normalisation.floor));
+        let out = descriptors.as_mut_ptr().add(x * DESCRIPTOR_LEN);
+        for quad in 0..4 {
+            let bytes: [__m256i; 4] = std::array::from_fn(|index| {
+                let scaled = _mm256_mul_ps(cells[quad * 4 + index], scale);
+                _mm256_cvttps_epi32(_mm256_min_ps(scaled, ceiling))
+            });
+            let low = _mm256_packs_epi32(bytes[0], bytes[1]);
+            let high = _mm256_packs_epi32(bytes[2], bytes[3]);
+            let packed = _mm256_permutevar8x32_epi32(_mm256_packus_epi16(low, high), unshuffle);
+            // SAFETY: the row holds 128 · width bytes; this writes bytes 32·quad.. of pixel x.
+            _mm256_storeu_si256(out.add(quad * 32) as *mut __m256i, packed);
+        }
+        support[x] = support_sum * normalisation.support_scale;
+    }
 }
 
 #[cfg(test)]
@@ -443,6 +796,179 @@ mod tests {
         Image::from_fn(width, height, |col, row| {
             col as f32 * slope_x + row as f32 * slope_y
         })
+    }
+
+    /// The definition, computed the straightforward way (the code before the vectorised passes):
+    /// 9-channel interleaved bands, clamped reads everywhere, the norm summed in order.
+    fn reference_dense_sift(image: &Image<f32>, config: &DenseSiftConfig) -> DenseSiftImage {
+        let (width, height) = image.size();
+        let filter = |input: &[f32], channels: usize, taps: &[f32], radius: usize| {
+            let taps: Vec<(isize, f32)> = taps
+                .iter()
+                .enumerate()
+                .filter(|(_, &weight)| weight != 0.0)
+                .map(|(index, &weight)| (index as isize - radius as isize, weight))
+                .collect();
+            let mut rows = vec![0.0f32; input.len()];
+            for y in 0..height {
+                for x in 0..width {
+                    for (offset, weight) in &taps {
+                        let source = clamp_index(x as isize + offset, width);
+                        for channel in 0..channels {
+                            rows[(y * width + x) * channels + channel] +=
+                                input[(y * width + source) * channels + channel] * weight;
+                        }
+                    }
+                }
+            }
+            let mut out = vec![0.0f32; input.len()];
+            for y in 0..height {
+                for (offset, weight) in &taps {
+                    let source = clamp_index(y as isize + offset, height);
+                    for index in 0..width * channels {
+                        out[y * width * channels + index] +=
+                            rows[source * width * channels + index] * weight;
+                    }
+                }
+            }
+            out
+        };
+        let smoothed = filter(
+            image.data(),
+            1,
+            &gaussian_taps(config.presmoothing_sigma_px, 3),
+            3,
+        );
+        let at = |x: isize, y: isize| {
+            smoothed[clamp_index(y, height) * width + clamp_index(x, width)]
+        };
+        let mut bands = vec![0.0f32; width * height * 9];
+        for y in 0..height as isize {
+            for x in 0..width as isize {
+                let gx = (at(x - 2, y) - 8.0 * at(x - 1, y) + 8.0 * at(x + 1, y) - at(x + 2, y))
+                    / 12.0;
+                let gy = (at(x, y - 2) - 8.0 * at(x, y - 1) + 8.0 * at(x, y + 1) - at(x, y + 2))
+                    / 12.0;
+                let magnitude = (gx * gx + gy * gy).sqrt();
+                let inverse = if magnitude > 0.0 { 1.0 / magnitude } else { 0.0 };
+                let pixel = (y as usize * width + x as usize) * 9;
+                for bin in 0..8 {
+                    let angle = std::f32::consts::TAU * bin as f32 / 8.0;
+                    let cosine = ((gx * angle.cos() + gy * angle.sin()) * inverse).max(0.0);
+                    bands[pixel + bin] = cosine.powi(config.orientation_sharpness) * magnitude;
+                }
+                bands[pixel + 8] = magnitude;
+            }
+        }
+        let cell = config.cell_size_px;
+        let mut taps = vec![0.0f32; 2 * cell + 1];
+        taps[0] = 0.25;
+        taps[2..cell + 2].fill(1.0);
+        let weight_sum: f32 = taps.iter().sum();
+        let pooled = filter(&bands, 9, &taps, cell);
+        let mut out = DenseSiftImage::default();
+        out.resize(width, height, true);
+        for y in 0..height {
+            for x in 0..width {
+                let mut cells = [0.0f32; DESCRIPTOR_LEN];
+                let mut support = 0.0f32;
+                for (row, &dy) in CELL_OFFSETS.iter().enumerate() {
+                    for (column, &dx) in CELL_OFFSETS.iter().enumerate() {
+                        let sample_y = clamp_index(y as isize + dy * cell as isize, height);
+                        let sample_x = clamp_index(x as isize + dx * cell as isize, width);
+                        let at = (sample_y * width + sample_x) * 9;
+                        cells[(row * 4 + column) * 8..(row * 4 + column + 1) * 8]
+                            .copy_from_slice(&pooled[at..at + 8]);
+                        support += pooled[at + 8];
+                    }
+                }
+                let norm = cells.iter().map(|value| value * value).sum::<f32>().sqrt();
+                let scale = 255.0 / (norm + config.normalisation_floor);
+                let pixel = y * width + x;
+                for (byte, value) in out.descriptors[pixel * 128..(pixel + 1) * 128]
+                    .iter_mut()
+                    .zip(&cells)
+                {
+                    *byte = (value * scale).min(255.0) as u8;
+                }
+                out.support_gradient.data_mut()[pixel] =
+                    support * (1.0 / (16.0 * weight_sum * weight_sum));
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn vectorised_passes_match_the_definition() {
+        // Odd sizes (and one narrower than the filters' reach) exercise the clamped borders.
+        let config = DenseSiftConfig::default();
+        let pair = crate::core::sift_flow::test_support::load_pair(
+            &crate::test_data::repo_data("flow-pairs"),
+            "dji0024_505x275",
+        );
+        let crop = |width: usize, height: usize| {
+            Image::from_fn(width, height, |x, y| pair.first.data()[y * 505 + x + 40])
+        };
+        let mut workspace = DenseSiftWorkspace::default();
+        for image in [pair.first.clone(), crop(101, 57), crop(5, 9)] {
+            let expected = reference_dense_sift(&image, &config);
+            let mut got = DenseSiftImage::default();
+            compute_dense_sift(image.view(), &config, &mut workspace, &mut got).unwrap();
+            assert!(
+                got.support_gradient == expected.support_gradient,
+                "support gradients differ"
+            );
+            // Only the norm's summation order differs: a byte may move by one.
+            let differing = got
+                .descriptors
+                .iter()
+                .zip(&expected.descriptors)
+                .filter(|(a, b)| a != b)
+                .count();
+            assert!(got
+                .descriptors
+                .iter()
+                .zip(&expected.descriptors)
+                .all(|(&a, &b)| a.abs_diff(b) <= 1));
+            println!(
+                "{}x{}: {differing} of {} bytes differ by one",
+                image.width_px(),
+                image.height_px(),
+                got.descriptors.len()
+            );
+            assert!(
+                differing * 10_000 <= got.descriptors.len(),
+                "{differing} of {} bytes differ",
+                got.descriptors.len()
+            );
+            // The plain-Rust descriptor kernel gives the bytes of the dispatched (AVX2) one.
+            let (width, height) = image.size();
+            let cell = config.cell_size_px;
+            let weight_sum = 0.25 + cell as f32;
+            let normalisation = Normalisation {
+                floor: config.normalisation_floor,
+                support_scale: 1.0 / (16.0 * weight_sum * weight_sum),
+            };
+            for y in 0..height {
+                let rows = CELL_OFFSETS
+                    .map(|offset| clamp_index(y as isize + offset * cell as isize, height));
+                let mut descriptors = vec![0u8; width * DESCRIPTOR_LEN];
+                let mut support = vec![0.0f32; width];
+                descriptor_row_portable(
+                    rows.map(|row| &workspace.bands_pooled[row * width * 8..(row + 1) * width * 8]),
+                    rows.map(|row| &workspace.magnitude_pooled[row * width..(row + 1) * width]),
+                    cell,
+                    normalisation,
+                    &mut descriptors,
+                    &mut support,
+                );
+                assert!(
+                    descriptors == got.descriptors[y * width * 128..(y + 1) * width * 128],
+                    "row {y}"
+                );
+                assert!(support == got.support_gradient.data()[y * width..(y + 1) * width]);
+            }
+        }
     }
 
     #[test]

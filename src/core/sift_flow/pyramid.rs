@@ -72,32 +72,59 @@ fn downsample_descriptors(
     output.resize(out_width, out_height, false);
     row_buffer.resize(width * DESCRIPTOR_LEN, 0.0);
     let row_len = width * DESCRIPTOR_LEN;
-    for out_y in 0..out_height {
-        row_buffer.fill(0.0);
-        for (tap_index, &weight) in taps.iter().enumerate() {
-            let source_y = (2 * out_y + tap_index).saturating_sub(2).min(height - 1);
-            let source_row = &input.descriptors[source_y * row_len..(source_y + 1) * row_len];
-            for (accumulator, &byte) in row_buffer.iter_mut().zip(source_row) {
-                *accumulator += weight * byte as f32;
-            }
+    let source_row = |y: usize| &input.descriptors[y * row_len..(y + 1) * row_len];
+    for (out_y, out_row) in output
+        .descriptors
+        .chunks_exact_mut(out_width * DESCRIPTOR_LEN)
+        .enumerate()
+    {
+        let rows: [&[u8]; 6] = std::array::from_fn(|tap_index| {
+            source_row((2 * out_y + tap_index).saturating_sub(2).min(height - 1))
+        });
+        blur_rows(rows, taps, row_buffer);
+        blur_and_halve_row(row_buffer, taps, out_row);
+    }
+}
+
+crate::core::dense_sift::multiversioned! {
+    /// The vertical pass for one output row: `((0 + w₀·r₀) + w₁·r₁) + …` per byte, all six taps
+    /// in one pass.
+    fn blur_rows(rows: [&[u8]; 6], taps: &[f32; 6], out: &mut [f32]) {
+        let [r0, r1, r2, r3, r4, r5] = rows;
+        for (index, value) in out.iter_mut().enumerate() {
+            let mut sum = 0.0f32;
+            sum += taps[0] * r0[index] as f32;
+            sum += taps[1] * r1[index] as f32;
+            sum += taps[2] * r2[index] as f32;
+            sum += taps[3] * r3[index] as f32;
+            sum += taps[4] * r4[index] as f32;
+            sum += taps[5] * r5[index] as f32;
+            *value = sum;
         }
-        let out_row = &mut output.descriptors
-            [out_y * out_width * DESCRIPTOR_LEN..(out_y + 1) * out_width * DESCRIPTOR_LEN];
-        for out_x in 0..out_width {
-            let mut accumulated = [0.0f32; DESCRIPTOR_LEN];
-            for (tap_index, &weight) in taps.iter().enumerate() {
+    }
+}
+
+crate::core::dense_sift::multiversioned! {
+    /// The horizontal pass and the halving: output pixel `X` takes the six columns around `2X`
+    /// (clamped), rounds and saturates to a byte.
+    fn blur_and_halve_row(row: &[f32], taps: &[f32; 6], out: &mut [u8]) {
+        let width = row.len() / DESCRIPTOR_LEN;
+        for (out_x, bytes) in out.chunks_exact_mut(DESCRIPTOR_LEN).enumerate() {
+            let columns: [&[f32]; 6] = std::array::from_fn(|tap_index| {
                 let source_x = (2 * out_x + tap_index).saturating_sub(2).min(width - 1);
-                let source =
-                    &row_buffer[source_x * DESCRIPTOR_LEN..(source_x + 1) * DESCRIPTOR_LEN];
-                for (accumulator, &value) in accumulated.iter_mut().zip(source) {
-                    *accumulator += weight * value;
+                &row[source_x * DESCRIPTOR_LEN..(source_x + 1) * DESCRIPTOR_LEN]
+            });
+            for (index, byte) in bytes.iter_mut().enumerate() {
+                let mut sum = 0.0f32;
+                for (column, &weight) in columns.iter().zip(taps) {
+                    sum += weight * column[index];
                 }
-            }
-            for (byte, value) in out_row[out_x * DESCRIPTOR_LEN..(out_x + 1) * DESCRIPTOR_LEN]
-                .iter_mut()
-                .zip(&accumulated)
-            {
-                *byte = (value + 0.5).min(255.0) as u8;
+                let rounded = sum + 0.5;
+                let clamped = if rounded < 255.0 { rounded } else { 255.0 };
+                // SAFETY: `clamped` is finite and in 0..=255 (non-negative taps and bytes), so
+                // the conversion is exact truncation; `as` would add a saturation that keeps the
+                // loop from vectorising.
+                *byte = unsafe { clamped.to_int_unchecked::<i32>() } as u8;
             }
         }
     }
@@ -168,4 +195,64 @@ pub(super) fn upsample_flow(
 pub(super) fn level_mask(masks: &[Vec<bool>], level: usize) -> Option<&[bool]> {
     let mask = &masks[level];
     (!mask.is_empty()).then_some(mask.as_slice())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The blur-then-halve of the definition, one byte at a time (the code before the
+    /// vectorised passes).
+    fn reference_downsample(input: &DenseSiftImage, taps: &[f32; 6]) -> Vec<u8> {
+        let (width, height) = (input.width_px, input.height_px);
+        let (out_width, out_height) = (width.div_ceil(2), height.div_ceil(2));
+        let mut out = vec![0u8; out_width * out_height * DESCRIPTOR_LEN];
+        let mut row = vec![0.0f32; width * DESCRIPTOR_LEN];
+        for out_y in 0..out_height {
+            row.fill(0.0);
+            for (tap_index, &weight) in taps.iter().enumerate() {
+                let y = (2 * out_y + tap_index).saturating_sub(2).min(height - 1);
+                for (index, value) in row.iter_mut().enumerate() {
+                    *value += weight * input.descriptors[y * width * DESCRIPTOR_LEN + index] as f32;
+                }
+            }
+            for out_x in 0..out_width {
+                for element in 0..DESCRIPTOR_LEN {
+                    let mut sum = 0.0f32;
+                    for (tap_index, &weight) in taps.iter().enumerate() {
+                        let x = (2 * out_x + tap_index).saturating_sub(2).min(width - 1);
+                        sum += weight * row[x * DESCRIPTOR_LEN + element];
+                    }
+                    out[(out_y * out_width + out_x) * DESCRIPTOR_LEN + element] =
+                        (sum + 0.5).min(255.0) as u8;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn pyramid_levels_equal_the_definition() {
+        for (width, height) in [(37, 21), (8, 5), (1, 3)] {
+            let mut base = DenseSiftImage::default();
+            base.resize(width, height, true);
+            for (index, byte) in base.descriptors.iter_mut().enumerate() {
+                *byte = (index.wrapping_mul(2_654_435_761) >> 7) as u8;
+            }
+            let config = SiftFlowConfig::default();
+            let mut pyramid = SiftPyramid::default();
+            pyramid.build(&base, &config).unwrap();
+            let taps = downsampling_taps(config.pyramid_sigma_px);
+            let mut finer = &base;
+            for level in 1..config.pyramid_levels {
+                let coarser = pyramid.level(level).unwrap();
+                assert_eq!(
+                    coarser.descriptors,
+                    reference_downsample(finer, &taps),
+                    "{width}x{height} level {level}"
+                );
+                finer = coarser;
+            }
+        }
+    }
 }
