@@ -272,7 +272,8 @@ pub fn compute_dense_sift(
     let pooling_weight_sum: f32 = pooling_taps.iter().sum();
     let pooling = nonzero_taps(&pooling_taps, cell);
     let band_row_len = width_px * ORIENTATION_BINS;
-    ws.bands_pooled_rows.resize(pixel_count * ORIENTATION_BINS, 0.0);
+    ws.bands_pooled_rows
+        .resize(pixel_count * ORIENTATION_BINS, 0.0);
     ws.magnitude_pooled_rows.resize(pixel_count, 0.0);
     let filter = config.gradient_filter;
     ws.bands_pooled_rows
@@ -294,13 +295,7 @@ pub fn compute_dense_sift(
             {
                 let y = task * BAND_ROWS_PER_TASK + row_in_task;
                 gradient_row(
-                    source,
-                    width_px,
-                    height_px,
-                    y,
-                    filter,
-                    gradient_x,
-                    gradient_y,
+                    source, width_px, height_px, y, filter, gradient_x, gradient_y,
                 );
                 orientation_band_row(
                     gradient_x,
@@ -599,9 +594,9 @@ multiversioned! {
             let magnitude = (gx * gx + gy * gy).sqrt();
             let inverse = if magnitude > 0.0 { 1.0 / magnitude } else { 0.0 };
             let mut base = [0.0f32; ORIENTATION_BINS];
-            for bin in 0..ORIENTATION_BINS {
+            for (bin, value) in base.iter_mut().enumerate() {
                 let cosine = (gx * directions.cos[bin] + gy * directions.sin[bin]) * inverse;
-                base[bin] = if cosine > 0.0 { cosine } else { 0.0 };
+                *value = if cosine > 0.0 { cosine } else { 0.0 };
             }
             // compiler-builtins' `__powisf2` (what `powi` with a run-time exponent calls).
             let mut power = [1.0f32; ORIENTATION_BINS];
@@ -642,7 +637,9 @@ fn descriptor_row_kernel(
 ) {
     let width = support.len();
     assert!(descriptors.len() == width * DESCRIPTOR_LEN);
-    assert!(band_rows.iter().all(|row| row.len() == width * ORIENTATION_BINS));
+    assert!(band_rows
+        .iter()
+        .all(|row| row.len() == width * ORIENTATION_BINS));
     assert!(magnitude_rows.iter().all(|row| row.len() == width));
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
@@ -733,7 +730,7 @@ fn descriptor_row_portable(
 fn descriptor_norm(squares: [f32; ORIENTATION_BINS]) -> f32 {
     (((squares[0] + squares[4]) + (squares[2] + squares[6]))
         + ((squares[1] + squares[5]) + (squares[3] + squares[7])))
-    .sqrt()
+        .sqrt()
 }
 
 /// [`descriptor_row_portable`] in AVX2: one register per cell, four cells packed into 32 bytes.
@@ -756,7 +753,7 @@ unsafe fn descriptor_row_avx2(
     let ceiling = _mm256_set1_ps(255.0);
     // packs/packus leave 32-bit groups in the order a0 b0 c0 d0 | a1 b1 c1 d1.
     let unshuffle = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
-    for x in 0..width {
+    for (x, support_x) in support.iter_mut().enumerate() {
         let (sample_columns, support_sum) =
             cell_columns_and_support(x, width, cell, &magnitude_rows);
         let mut cells = [_mm256_setzero_ps(); 16];
@@ -784,7 +781,7 @@ unsafe fn descriptor_row_avx2(
             // SAFETY: the row holds 128 · width bytes; this writes bytes 32·quad.. of pixel x.
             _mm256_storeu_si256(out.add(quad * 32) as *mut __m256i, packed);
         }
-        support[x] = support_sum * normalisation.support_scale;
+        *support_x = support_sum * normalisation.support_scale;
     }
 }
 
@@ -839,18 +836,21 @@ mod tests {
             &gaussian_taps(config.presmoothing_sigma_px, 3),
             3,
         );
-        let at = |x: isize, y: isize| {
-            smoothed[clamp_index(y, height) * width + clamp_index(x, width)]
-        };
+        let at =
+            |x: isize, y: isize| smoothed[clamp_index(y, height) * width + clamp_index(x, width)];
         let mut bands = vec![0.0f32; width * height * 9];
         for y in 0..height as isize {
             for x in 0..width as isize {
-                let gx = (at(x - 2, y) - 8.0 * at(x - 1, y) + 8.0 * at(x + 1, y) - at(x + 2, y))
-                    / 12.0;
-                let gy = (at(x, y - 2) - 8.0 * at(x, y - 1) + 8.0 * at(x, y + 1) - at(x, y + 2))
-                    / 12.0;
+                let gx =
+                    (at(x - 2, y) - 8.0 * at(x - 1, y) + 8.0 * at(x + 1, y) - at(x + 2, y)) / 12.0;
+                let gy =
+                    (at(x, y - 2) - 8.0 * at(x, y - 1) + 8.0 * at(x, y + 1) - at(x, y + 2)) / 12.0;
                 let magnitude = (gx * gx + gy * gy).sqrt();
-                let inverse = if magnitude > 0.0 { 1.0 / magnitude } else { 0.0 };
+                let inverse = if magnitude > 0.0 {
+                    1.0 / magnitude
+                } else {
+                    0.0
+                };
                 let pixel = (y as usize * width + x as usize) * 9;
                 for bin in 0..8 {
                     let angle = std::f32::consts::TAU * bin as f32 / 8.0;
