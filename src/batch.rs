@@ -9,6 +9,7 @@ use std::path::PathBuf;
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
+use crate::core::confidence::FrameEvidence;
 use crate::core::frame::{
     register_frame, FrameInput, IntrinsicsMode, PoseRefinement, RegistrationConfig, StageTimings,
 };
@@ -65,6 +66,8 @@ pub struct FrameReport {
     /// The final refinement of the chosen pose (already applied to `cam_from_world` when kept:
     /// its evidence before and after), or why there was none.
     pub refinement: Result<PoseRefinement, String>,
+    /// What the decision rests on (None when the frame was not registered).
+    pub evidence: Option<FrameEvidence>,
     pub timings: StageTimings,
 }
 
@@ -94,6 +97,7 @@ impl FrameReport {
             cam_from_world: None,
             rejected_candidate: None,
             refinement: Err("the frame was not registered".to_string()),
+            evidence: None,
             timings: StageTimings::default(),
         }
     }
@@ -196,6 +200,7 @@ pub fn register_batch_frame_with(
                         cam_from_world: h.cam_from_world,
                     }),
                 refinement: result.refinement,
+                evidence: Some(result.evidence),
                 timings: result.timings,
             }
         }

@@ -234,6 +234,7 @@ pub fn diagnose_query(
     let Decision {
         verdict,
         refinement,
+        ..
     } = decide_frame(
         mesh,
         camera,

@@ -5,6 +5,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::core::confidence::FrameEvidence;
+
 /// One frame of one evaluation run.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct EvalFrame {
@@ -16,6 +18,9 @@ pub struct EvalFrame {
     /// there was no pose at all).
     pub final_delta_px: Option<f64>,
     pub confidence: f64,
+    /// What the decision rested on (for calibrating the confidence); None for baselines and
+    /// frames that were not registered.
+    pub evidence: Option<FrameEvidence>,
     pub reason: Option<String>,
     pub total_ms: f64,
 }
@@ -64,6 +69,49 @@ pub fn cell_stats(frames: &[EvalFrame], false_accept_px: f64) -> CellStats {
     }
 }
 
+/// One confidence bin of a calibration table: frames with an output pose (accepted or not) whose
+/// confidence lies in `[lower, upper)` (the last bin includes 1), and how many of them are
+/// correct (δ to ground truth at most the false-accept threshold).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationBin {
+    pub lower: f64,
+    pub upper: f64,
+    pub frames: usize,
+    pub correct: usize,
+    /// Of these frames, how many were accepted.
+    pub accepted: usize,
+}
+
+/// The share of correct poses per confidence bin (`bins` equal bins over 0..1), over every frame
+/// that has an output pose: a calibrated confidence has about `(lower + upper) / 2` correct.
+pub fn calibration_bins<'a>(
+    frames: impl IntoIterator<Item = &'a EvalFrame>,
+    false_accept_px: f64,
+    bins: usize,
+) -> Vec<CalibrationBin> {
+    let bins = bins.max(1);
+    let mut table: Vec<CalibrationBin> = (0..bins)
+        .map(|i| CalibrationBin {
+            lower: i as f64 / bins as f64,
+            upper: (i + 1) as f64 / bins as f64,
+            frames: 0,
+            correct: 0,
+            accepted: 0,
+        })
+        .collect();
+    for frame in frames {
+        let Some(delta_px) = frame.final_delta_px else {
+            continue;
+        };
+        let index = ((frame.confidence.clamp(0.0, 1.0) * bins as f64) as usize).min(bins - 1);
+        let bin = &mut table[index];
+        bin.frames += 1;
+        bin.correct += usize::from(delta_px <= false_accept_px);
+        bin.accepted += usize::from(frame.accepted);
+    }
+    table
+}
+
 /// `mean ± std (min–max)` or `–` when nothing was accepted.
 pub fn format_accuracy(stats: &CellStats) -> String {
     match (stats.mean_px, stats.std_px, stats.min_px, stats.max_px) {
@@ -85,9 +133,34 @@ mod tests {
             accepted,
             final_delta_px,
             confidence: 0.5,
+            evidence: None,
             reason: None,
             total_ms: 100.0,
         }
+    }
+
+    #[test]
+    fn calibration_bins_count_correct_poses_per_confidence() {
+        let mut frames = vec![
+            frame(true, Some(1.0)),
+            frame(false, Some(40.0)),
+            frame(true, Some(30.0)),
+            frame(false, None),
+        ];
+        frames[0].confidence = 0.95;
+        frames[1].confidence = 0.05;
+        frames[2].confidence = 1.0;
+        let table = calibration_bins(&frames, 25.25, 10);
+        assert_eq!(table.len(), 10);
+        assert_eq!(
+            (table[0].frames, table[0].correct, table[0].accepted),
+            (1, 0, 0)
+        );
+        assert_eq!(
+            (table[9].frames, table[9].correct, table[9].accepted),
+            (2, 1, 2)
+        );
+        assert_eq!(table.iter().map(|b| b.frames).sum::<usize>(), 3);
     }
 
     #[test]

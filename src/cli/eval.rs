@@ -12,11 +12,14 @@ use asgreg::baseline::icp::{
 };
 use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
 use asgreg::core::camera::Camera;
+use asgreg::core::confidence::FrameEvidence;
 use asgreg::core::frame::{IntrinsicsMode, RegistrationConfig};
 use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::diagnose::{diagnose_frame, DiagnosisSummary, FrameDiagnosis, ORACLE_MAX_ERROR_PX};
-use asgreg::eval::{cell_stats, format_accuracy, CellStats, EvalFrame};
+use asgreg::eval::{
+    calibration_bins, cell_stats, format_accuracy, CalibrationBin, CellStats, EvalFrame,
+};
 use asgreg::frame_files::depth_path_for;
 use asgreg::io::colmap::{read_cameras_txt, read_images_txt, ImagePose};
 use asgreg::io::mesh_file::read_mesh;
@@ -172,6 +175,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             accepted: diagnosis.verdict.accepted(),
                             final_delta_px: diagnosis.chosen_delta_px,
                             confidence: diagnosis.verdict.confidence,
+                            evidence: None,
                             reason: diagnosis.verdict.rejection().map(|r| r.to_string()),
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
                         };
@@ -185,6 +189,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         accepted: false,
                         final_delta_px: None,
                         confidence: 0.0,
+                        evidence: None,
                         reason: Some(reason),
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
                     },
@@ -208,6 +213,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     accepted: report.accepted,
                     final_delta_px,
                     confidence: report.confidence,
+                    evidence: report.evidence,
                     reason: report.reason,
                     total_ms: report.timings.total_ms,
                 }
@@ -247,6 +253,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             accepted: success,
                             final_delta_px,
                             confidence: 0.0,
+                            evidence: None,
                             reason: (!success).then(|| {
                                 format!("δ to ground truth not below {ICP_SUCCESS_THRESHOLD_PX} px")
                             }),
@@ -257,6 +264,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         accepted: false,
                         final_delta_px: None,
                         confidence: 0.0,
+                        evidence: None,
                         reason: Some(reason),
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
                     },
@@ -294,6 +302,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 accepted: outcome.accepted,
                 final_delta_px: outcome.final_delta_px,
                 confidence: outcome.confidence,
+                evidence: outcome.evidence,
                 reason: outcome.reason,
                 total_ms: outcome.total_ms,
             });
@@ -305,13 +314,29 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         .map(|(key, frames)| (*key, cell_stats(frames, false_accept_px)))
         .collect();
     let methods: Vec<&str> = methods_seen.iter().map(|m| m.name()).collect();
-    let table = results_markdown(args, &stats, &methods, false_accept_px);
+    let mut table = results_markdown(args, &stats, &methods, false_accept_px);
+    let calibration: BTreeMap<&str, Vec<CalibrationBin>> = methods
+        .iter()
+        .filter(|method| !method.starts_with("ICP"))
+        .map(|&method| {
+            let frames = results
+                .iter()
+                .filter(|((_, m), _)| *m == method)
+                .flat_map(|(_, frames)| frames.iter());
+            (
+                method,
+                calibration_bins(frames, false_accept_px, CALIBRATION_BINS),
+            )
+        })
+        .collect();
+    table.push_str(&calibration_markdown(&calibration, false_accept_px));
     std::fs::write(args.out.join("results.md"), &table)
         .with_context(|| format!("writing {}", args.out.join("results.md").display()))?;
     let json = serde_json::json!({
         "scene": args.scene,
         "query": format!("{:?}", args.query),
         "false_accept_threshold_px": false_accept_px,
+        "calibration": calibration,
         "cells": stats.iter().map(|((level, method), s)| serde_json::json!({
             "level_px": level, "method": method, "stats": s,
             "frames": results.get(&(*level, *method)),
@@ -531,11 +556,49 @@ pub fn register_scene_frame(
     (report, final_delta_px)
 }
 
+/// Confidence bins of the calibration table.
+const CALIBRATION_BINS: usize = 10;
+
+/// The calibration table of each method: per confidence bin, frames with an output pose, the
+/// share of them that is correct, and how many were accepted.
+fn calibration_markdown(
+    calibration: &BTreeMap<&str, Vec<CalibrationBin>>,
+    false_accept_px: f64,
+) -> String {
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "\n## Calibration: share of correct poses per confidence bin (all levels)\n\n\
+Every frame with an output pose, accepted or not; correct = δ to ground truth ≤ {false_accept_px:.2} px.\n"
+    );
+    for (method, bins) in calibration {
+        let _ = writeln!(
+            out,
+            "| {method}: confidence | frames | correct | share correct | accepted |\n|---|---|---|---|---|"
+        );
+        for bin in bins.iter().filter(|b| b.frames > 0) {
+            let _ = writeln!(
+                out,
+                "| {:.1}–{:.1} | {} | {} | {:.0} % | {} |",
+                bin.lower,
+                bin.upper,
+                bin.frames,
+                bin.correct,
+                100.0 * bin.correct as f64 / bin.frames as f64,
+                bin.accepted
+            );
+        }
+        out.push('\n');
+    }
+    out
+}
+
 /// One frame's result under one method.
 struct FrameOutcome {
     accepted: bool,
     final_delta_px: Option<f64>,
     confidence: f64,
+    evidence: Option<FrameEvidence>,
     reason: Option<String>,
     total_ms: f64,
 }

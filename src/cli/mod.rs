@@ -1,6 +1,7 @@
 //! Subcommands of the `asgreg` binary. Each file parses its own arguments and calls the library;
 //! errors are `anyhow` here (and only here) so they can carry the file and what to do.
 
+mod calibrate;
 mod demo;
 mod eval;
 mod flow;
@@ -36,6 +37,8 @@ pub enum Command {
     Register(register::RegisterArgs),
     /// Evaluate registration on a scene folder the paper's way (tables, JSON, plot).
     Eval(eval::EvalArgs),
+    /// Fit the confidence model and its accept threshold on `eval` results with ground truth.
+    Calibrate(calibrate::CalibrateArgs),
     /// Dense SIFT flow between two images, written as Middlebury .flo.
     Flow(flow::FlowArgs),
     /// Write an honest synthetic test scene (photos, degraded model, depth, ground truth, initial poses).
@@ -90,6 +93,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(args) => demo::run(&args),
         Command::Register(args) => register::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Calibrate(args) => calibrate::run(&args),
         Command::Flow(args) => flow::run(&args),
         Command::Synth(args) => synth::run(&args),
         Command::Render(args) => render::run(&args),

@@ -369,6 +369,67 @@ pub fn edge_evidence(
     }
 }
 
+/// How sharply a pose's edge support peaks: the support at the pose, and at poses turned so that
+/// the image moves by a few pixels (where a correct pose's edges leave their photo ridges) and by
+/// many (where only chance keeps them: the photo's clutter). A wrong pose that several coarse
+/// poses agree on is a basin of the flow, not of the photo's edges; its support is near chance.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SupportPeak {
+    /// Share of model edge samples supported at the pose (as [`EdgeEvidence::support_fraction`]).
+    pub at_pose: f64,
+    /// Mean share at the eight poses whose image moves by `near_shift_px`.
+    pub near: f64,
+    /// Mean share at the eight poses whose image moves by `far_shift_px` (chance level).
+    pub far: f64,
+    pub near_shift_px: f64,
+    pub far_shift_px: f64,
+}
+
+/// Image shifts of [`support_peak`]'s two rings, px: the near one just beyond the final search
+/// radius (a correct pose loses most support), the far one beyond the evidence radius (only
+/// chance supports).
+pub const SUPPORT_PEAK_SHIFTS_PX: [f64; 2] = [3.0, 12.0];
+
+/// The edge support of `samples` (lifted at `cam_from_world`) at the pose and at poses turned
+/// about the camera's x and y axes so that the image moves by each of
+/// [`SUPPORT_PEAK_SHIFTS_PX`] in eight directions (no re-rendering: the samples are kept).
+pub fn support_peak(
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    config: &EdgeAlignConfig,
+) -> SupportPeak {
+    let focal_px = 0.5 * (camera.intrinsics.fx_px + camera.intrinsics.fy_px);
+    let ring = |shift_px: f64| {
+        let mut total = 0.0;
+        for direction in 0..8 {
+            let angle = direction as f64 * std::f64::consts::FRAC_PI_4;
+            // A small turn ω moves a point on the axis by (f ω_y, −f ω_x) in the image.
+            let turn = Vector3::new(
+                -shift_px * angle.sin() / focal_px,
+                shift_px * angle.cos() / focal_px,
+                0.0,
+            );
+            let delta = UnitQuaternion::from_scaled_axis(turn);
+            let turned = Rigid3::new(
+                delta * cam_from_world.rotation,
+                delta * cam_from_world.translation,
+            );
+            total += edge_evidence(samples, query, camera, &turned, config).support_fraction();
+        }
+        total / 8.0
+    };
+    let [near_shift_px, far_shift_px] = SUPPORT_PEAK_SHIFTS_PX;
+    SupportPeak {
+        at_pose: edge_evidence(samples, query, camera, cam_from_world, config).support_fraction(),
+        near: ring(near_shift_px),
+        far: ring(far_shift_px),
+        near_shift_px,
+        far_shift_px,
+    }
+}
+
 /// What one level of alignment did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct LevelSummary {

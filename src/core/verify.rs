@@ -151,6 +151,14 @@ pub enum RejectionReason {
         convergence_ratio: f64,
         max_ratio: f64,
     },
+    /// The plausibility check passed but the photo does not confirm the pose: its calibrated
+    /// confidence (edge support at the pose, [`crate::core::confidence`]) is below the threshold.
+    NotConfirmed {
+        confidence: f64,
+        threshold: f64,
+        edge_support: f64,
+        edge_support_chance: f64,
+    },
 }
 
 impl std::fmt::Display for RejectionReason {
@@ -179,6 +187,17 @@ impl std::fmt::Display for RejectionReason {
             } => write!(
                 f,
                 "the refined poses did not converge: their spread is {convergence_ratio:.2} of the coarse poses' spread (at most {max_ratio:.2} allowed); the flow found no consistent displacement"
+            ),
+            RejectionReason::NotConfirmed {
+                confidence,
+                threshold,
+                edge_support,
+                edge_support_chance,
+            } => write!(
+                f,
+                "the photo does not confirm the agreed pose: confidence {confidence:.2} < {threshold:.2} ({:.0} % of the model's edges on a photo edge, {:.0} % by chance)",
+                100.0 * edge_support,
+                100.0 * edge_support_chance
             ),
         }
     }
@@ -209,8 +228,10 @@ pub struct Verdict {
     pub threshold_px: f64,
     /// Mean δ from the chosen pose to the other members of its component, px (0 when alone).
     pub mean_delta_to_chosen_px: f64,
-    /// 0..1, for users to threshold: the fraction of hypotheses in the component times how tightly
-    /// they agree (`1 - mean_delta_to_chosen / threshold`). Rejected frames keep their value.
+    /// 0..1. Here the agreement score: the fraction of hypotheses in the component times how
+    /// tightly they agree (`1 - mean_delta_to_chosen / threshold`). A frame's decision
+    /// (`core::frame::decide_frame`) replaces it with the calibrated confidence, the probability
+    /// that the output pose is correct ([`crate::core::confidence`]). Rejected frames keep theirs.
     pub confidence: f64,
 }
 

@@ -238,6 +238,7 @@ impl<'m> VerifyStage<'m> {
         let Decision {
             verdict,
             refinement,
+            ..
         } = decide_frame(
             self.mesh,
             &frame.camera,

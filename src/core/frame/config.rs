@@ -4,6 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::core::confidence::ConfidenceConfig;
 use crate::core::edge_align::EdgeAlignConfig;
 use crate::core::flow_consistency::MatchConfig;
 use crate::core::pose::estimate::PoseEstimationConfig;
@@ -81,6 +82,8 @@ pub struct RegistrationConfig {
     pub verify: VerifyConfig,
     /// The final refinement of the chosen pose against the photo's edges (step "refine").
     pub edge_align: EdgeAlignConfig,
+    /// The calibrated confidence and the accept threshold (step "decide").
+    pub confidence: ConfidenceConfig,
 }
 
 impl Default for RegistrationConfig {
@@ -105,6 +108,7 @@ impl Default for RegistrationConfig {
             pose: PoseEstimationConfig::default(),
             verify: VerifyConfig::default(),
             edge_align: EdgeAlignConfig::default(),
+            confidence: ConfidenceConfig::default(),
         }
     }
 }
@@ -203,6 +207,12 @@ impl RegistrationConfig {
             .validate()
             .map_err(|e| RegistrationError::InvalidConfig {
                 field: "edge_align",
+                why: e.to_string(),
+            })?;
+        self.confidence
+            .validate()
+            .map_err(|e| RegistrationError::InvalidConfig {
+                field: "confidence",
                 why: e.to_string(),
             })?;
         Ok(())

@@ -44,6 +44,7 @@ pub use solve::solve_view;
 pub use views::{coarse_poses, median_scene_depth_m, render_coarse_view, render_views};
 
 use super::camera::Camera;
+use super::confidence::FrameEvidence;
 use super::image::{Image, ImageView};
 use super::mesh::Mesh;
 use super::raster::{Rasterizer, RenderBuffers};
@@ -122,6 +123,8 @@ pub struct FrameResult {
     /// The final refinement of the chosen pose (already applied to the verdict when kept), or why
     /// there was none.
     pub refinement: Result<PoseRefinement, String>,
+    /// What the decision rests on.
+    pub evidence: FrameEvidence,
     pub timings: StageTimings,
 }
 
@@ -209,6 +212,7 @@ pub fn register_query(
     let Decision {
         verdict,
         refinement,
+        evidence,
     } = decide_frame(
         mesh,
         camera,
@@ -224,6 +228,7 @@ pub fn register_query(
         verdict,
         coarse: outcomes,
         refinement,
+        evidence,
         timings,
     })
 }

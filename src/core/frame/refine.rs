@@ -8,8 +8,8 @@ use serde::{Deserialize, Serialize};
 use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::edge_align::{
-    align_level, blurred_query, edge_evidence, model_edge_samples, AlignedParameters, EdgeEvidence,
-    EdgeSample, LevelSummary,
+    align_level, blurred_query, edge_evidence, model_edge_samples, support_peak, AlignedParameters,
+    EdgeEvidence, EdgeSample, LevelSummary, SupportPeak,
 };
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
@@ -33,6 +33,8 @@ pub struct PoseRefinement {
     pub aligned: EdgeEvidence,
     /// Whether the aligned pose replaced the verified one (its evidence is better).
     pub kept: bool,
+    /// How sharply the edge support peaks at the output pose (aligned when kept, else verified).
+    pub peak: SupportPeak,
     pub levels: Vec<LevelSummary>,
 }
 
@@ -149,6 +151,13 @@ pub fn refine_pose(
     }
     sample_at(&aligned_camera, &pose, samples);
     let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
+    let kept = aligned.support_fraction() > verified.support_fraction();
+    let peak = if kept {
+        support_peak(samples, &query, &aligned_camera, &pose, align)
+    } else {
+        sample_at(camera, start, samples);
+        support_peak(samples, &query, camera, start, align)
+    };
     Ok(PoseRefinement {
         verified_camera: *camera,
         verified_cam_from_world: *start,
@@ -156,7 +165,8 @@ pub fn refine_pose(
         aligned_camera,
         verified,
         aligned,
-        kept: aligned.support_fraction() > verified.support_fraction(),
+        kept,
+        peak,
         levels,
     })
 }

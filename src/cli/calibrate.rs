@@ -1,0 +1,256 @@
+//! `asgreg calibrate`: fits the confidence model ([`asgreg::core::confidence`]) on `asgreg eval`
+//! results with ground truth and chooses the accept threshold so that the measured false-accept
+//! rate among accepted frames stays below a bound (issue #11 item 4). Prints the calibration
+//! table of the fit and of held-out results; writes the model as JSON.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context};
+use asgreg::core::confidence::{features, fit_logistic, LogisticModel, FEATURE_NAMES};
+use asgreg::eval::{calibration_bins, EvalFrame};
+use clap::Args;
+use serde::Deserialize;
+
+#[derive(Args, Debug)]
+pub struct CalibrateArgs {
+    /// results.json files of `asgreg eval` to fit on (ICP cells are skipped).
+    #[arg(long, required = true, num_args = 1..)]
+    pub results: Vec<PathBuf>,
+    /// Held-out results.json files: the fitted model's table on them.
+    #[arg(long, num_args = 0..)]
+    pub validate: Vec<PathBuf>,
+    /// L2 penalty of the fit on the standardised weights.
+    #[arg(long, default_value_t = 1.0)]
+    pub ridge: f64,
+    /// Highest false-accept rate allowed among accepted frames when choosing the threshold.
+    #[arg(long, default_value_t = 0.005)]
+    pub max_false_accept_rate: f64,
+    /// Write the fitted model and threshold here (JSON).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+#[derive(Deserialize)]
+struct ResultsFile {
+    false_accept_threshold_px: f64,
+    cells: Vec<ResultsCell>,
+}
+
+#[derive(Deserialize)]
+struct ResultsCell {
+    method: String,
+    frames: Vec<EvalFrame>,
+}
+
+/// A frame with evidence and a pose, labelled.
+struct Labelled {
+    frame: EvalFrame,
+    correct: bool,
+    check_passed: bool,
+}
+
+fn load(paths: &[PathBuf]) -> anyhow::Result<Vec<Labelled>> {
+    let mut out = Vec::new();
+    for path in paths {
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let file: ResultsFile = serde_json::from_str(&text).with_context(|| {
+            format!(
+                "{}: not a results.json of `asgreg eval` (rerun eval to write one)",
+                path.display()
+            )
+        })?;
+        // Results written before the check's outcome was recorded read it as false everywhere;
+        // their `accepted` was the check's outcome.
+        let check_recorded = file
+            .cells
+            .iter()
+            .flat_map(|c| c.frames.iter())
+            .any(|f| f.evidence.is_some_and(|e| e.check_passed));
+        for cell in file
+            .cells
+            .into_iter()
+            .filter(|c| !c.method.starts_with("ICP"))
+        {
+            for mut frame in cell.frames {
+                let (Some(mut evidence), Some(delta_px)) = (frame.evidence, frame.final_delta_px)
+                else {
+                    continue;
+                };
+                if !check_recorded {
+                    evidence.check_passed = frame.accepted;
+                    frame.evidence = Some(evidence);
+                }
+                out.push(Labelled {
+                    correct: delta_px <= file.false_accept_threshold_px,
+                    check_passed: evidence.check_passed,
+                    frame,
+                });
+            }
+        }
+    }
+    Ok(out)
+}
+
+pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
+    let per_file: Vec<Vec<Labelled>> = args
+        .results
+        .iter()
+        .map(|path| load(std::slice::from_ref(path)))
+        .collect::<anyhow::Result<_>>()?;
+    let train: Vec<&Labelled> = per_file.iter().flatten().collect();
+    if train.is_empty() {
+        bail!("the results files hold no frame with evidence and a pose; run `asgreg eval` (known or unknown K) to make some");
+    }
+    let model = fit(&train, args.ridge)?;
+    println!(
+        "fitted on {} frames ({} correct); bias {:.3}",
+        train.len(),
+        train.iter().filter(|l| l.correct).count(),
+        model.bias
+    );
+    for (name, weight) in FEATURE_NAMES.iter().zip(model.weights.iter()) {
+        println!("  {name:<28} {weight:+.3}");
+    }
+    let mut threshold = report(
+        &train,
+        &model,
+        args.max_false_accept_rate,
+        "fit (in sample)",
+    );
+    // Each file held out in turn: fitted on the others, measured on it. The threshold must hold
+    // on every held-out file, not only in sample.
+    if per_file.len() > 1 {
+        for (held_out_index, held_out) in per_file.iter().enumerate() {
+            let others: Vec<&Labelled> = per_file
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| *i != held_out_index)
+                .flat_map(|(_, frames)| frames.iter())
+                .collect();
+            let Ok(partial) = fit(&others, args.ridge) else {
+                println!(
+                    "\n{}: not held out (the other files have one class only)",
+                    args.results[held_out_index].display()
+                );
+                continue;
+            };
+            let title = format!(
+                "held out {} (fitted on the others)",
+                args.results[held_out_index].display()
+            );
+            let held_out: Vec<&Labelled> = held_out.iter().collect();
+            threshold = threshold.max(report(
+                &held_out,
+                &partial,
+                args.max_false_accept_rate,
+                &title,
+            ));
+        }
+    }
+    for path in &args.validate {
+        let frames = load(std::slice::from_ref(path))?;
+        let frames: Vec<&Labelled> = frames.iter().collect();
+        report(
+            &frames,
+            &model,
+            args.max_false_accept_rate,
+            &format!("validate {}", path.display()),
+        );
+    }
+    println!("\nthreshold (the highest of the in-sample and held-out ones): {threshold:.2}");
+    if let Some(out) = &args.out {
+        let json = serde_json::json!({
+            "model": model,
+            "accept_above": threshold,
+            "features": FEATURE_NAMES,
+            "fitted_on": args.results,
+            "ridge": args.ridge,
+            "max_false_accept_rate": args.max_false_accept_rate,
+        });
+        std::fs::write(out, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("writing {}", out.display()))?;
+        println!("wrote {}", out.display());
+    }
+    Ok(())
+}
+
+fn fit(frames: &[&Labelled], ridge: f64) -> anyhow::Result<LogisticModel> {
+    let samples: Vec<_> = frames
+        .iter()
+        .filter_map(|l| l.frame.evidence.map(|e| (features(&e), l.correct)))
+        .collect();
+    fit_logistic(&samples, ridge).context("fitting the confidence model")
+}
+
+/// Prints the calibration table of `frames` under `model` and, per threshold, the frames a
+/// decision "accept when the confidence is at least the threshold" accepts, its false accepts and
+/// their mean δ; returns the lowest threshold at which (and above which) the false-accept rate
+/// among accepted frames is within `max_rate`.
+fn report(frames: &[&Labelled], model: &LogisticModel, max_rate: f64, title: &str) -> f64 {
+    // Rescored by the model, with δ replaced by its label so that the bins count correct frames
+    // whatever each file's false-accept threshold was.
+    let rescored: Vec<EvalFrame> = frames
+        .iter()
+        .map(|l| {
+            let mut frame = l.frame.clone();
+            frame.confidence = l.frame.evidence.map_or(0.0, |e| model.probability(&e));
+            frame.final_delta_px = Some(if l.correct { 0.0 } else { 1.0 });
+            frame
+        })
+        .collect();
+    println!(
+        "\n{title}: {} frames, {} correct",
+        frames.len(),
+        frames.iter().filter(|l| l.correct).count()
+    );
+    println!("| confidence | frames | correct | share correct |\n|---|---|---|---|");
+    for bin in calibration_bins(&rescored, 0.5, 10)
+        .iter()
+        .filter(|b| b.frames > 0)
+    {
+        println!(
+            "| {:.1}–{:.1} | {} | {} | {:.0} % |",
+            bin.lower,
+            bin.upper,
+            bin.frames,
+            bin.correct,
+            100.0 * bin.correct as f64 / bin.frames as f64
+        );
+    }
+    println!("| threshold | accepted | of them check passed | false accepts | mean δ of correct accepted (px) |\n|---|---|---|---|---|");
+    let mut chosen = 1.0;
+    let mut still_within = true;
+    for step in (0..20).rev() {
+        let threshold = step as f64 / 20.0;
+        let accepted: Vec<&&Labelled> = frames
+            .iter()
+            .zip(&rescored)
+            .filter(|(_, f)| f.confidence >= threshold)
+            .map(|(l, _)| l)
+            .collect();
+        let wrong = accepted.iter().filter(|l| !l.correct).count();
+        let checked = accepted.iter().filter(|l| l.check_passed).count();
+        let correct_deltas: Vec<f64> = accepted
+            .iter()
+            .filter(|l| l.correct)
+            .filter_map(|l| l.frame.final_delta_px)
+            .collect();
+        let mean_px = if correct_deltas.is_empty() {
+            f64::NAN
+        } else {
+            correct_deltas.iter().sum::<f64>() / correct_deltas.len() as f64
+        };
+        println!(
+            "| {threshold:.2} | {} | {checked} | {wrong} | {mean_px:.2} |",
+            accepted.len()
+        );
+        let rate = wrong as f64 / accepted.len().max(1) as f64;
+        still_within &= rate <= max_rate;
+        if still_within {
+            chosen = threshold;
+        }
+    }
+    println!("{title}: lowest threshold with a false-accept rate ≤ {max_rate}: {chosen:.2}");
+    chosen
+}
