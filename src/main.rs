@@ -5,6 +5,12 @@ mod cli;
 
 use clap::Parser;
 
+/// Forwards to the system allocator; counts only while `asgreg fuzz` has armed it (one relaxed
+/// load per allocation otherwise), so that the fuzz run finds allocation blow-ups.
+#[global_allocator]
+static ALLOCATOR: asgreg::fuzz::alloc_guard::GuardedAllocator =
+    asgreg::fuzz::alloc_guard::GuardedAllocator;
+
 fn main() -> std::process::ExitCode {
     let args = cli::Cli::parse();
     cli::init_logging(args.verbose);

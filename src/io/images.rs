@@ -69,6 +69,23 @@ fn rec601_luma(rgb: [f32; 3]) -> f32 {
     0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]
 }
 
+/// Decoded bytes allowed per byte of the file: more than any PNG (deflate expands at most 1032
+/// times; 1-bit pixels become bytes: 8 × 1032) or JPEG (a block of 64 pixels takes at least a
+/// bit per component) can hold, so only a header that lies about the size is refused.
+const DECODED_BYTES_PER_FILE_BYTE: u64 = 16_384;
+/// Decoded bytes allowed whatever the file's size.
+const DECODED_BYTES_BASE: u64 = 16 << 20;
+
+/// The decoder's memory limit for a file of `file_bytes`: a 600-byte PNG whose header claims
+/// 20000×20000 pixels is refused before 400 MB are reserved for it.
+fn decode_limits(file_bytes: u64) -> image::Limits {
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(
+        DECODED_BYTES_BASE.saturating_add(file_bytes.saturating_mul(DECODED_BYTES_PER_FILE_BYTE)),
+    );
+    limits
+}
+
 fn decode(path: &Path) -> Result<DynamicImage, ImageIoError> {
     let file = File::open(path).map_err(|source| ImageIoError::Open {
         path: path.to_path_buf(),
@@ -78,9 +95,17 @@ fn decode(path: &Path) -> Result<DynamicImage, ImageIoError> {
         path: path.to_path_buf(),
         source,
     };
-    let reader = ImageReader::new(BufReader::new(file))
+    let file_bytes = file
+        .metadata()
+        .map_err(|source| ImageIoError::Open {
+            path: path.to_path_buf(),
+            source,
+        })?
+        .len();
+    let mut reader = ImageReader::new(BufReader::new(file))
         .with_guessed_format()
         .map_err(|source| decode_error(image::ImageError::IoError(source)))?;
+    reader.limits(decode_limits(file_bytes));
     let is_jpeg = reader.format() == Some(ImageFormat::Jpeg);
     let image = reader.decode().map_err(decode_error)?;
     // The JPEG decoder fills a file that ends early with grey instead of failing: check the end.

@@ -926,6 +926,7 @@ fn parse_ply(bytes: &[u8]) -> Result<PlyGeometry, PlyParseError> {
     let header = parse_header(bytes)?;
     let (plans, has_normals) = plan_elements(&header)?;
     let data = &bytes[header.data_offset..];
+    check_counts_fit(&header, data.len())?;
     match header.format {
         DataFormat::Ascii => read_records(
             &mut AsciiSource::new(data, header.end_line_number + 1),
@@ -946,6 +947,40 @@ fn parse_ply(bytes: &[u8]) -> Result<PlyGeometry, PlyParseError> {
             header.format,
         ),
     }
+}
+
+/// Refuses, before anything is allocated, element counts the data cannot hold: every record takes
+/// at least the bytes of its properties (binary: each scalar's size, each list's count; ASCII: one
+/// character and a separator per value), so a 700-byte file cannot claim 10^12 vertices, nor
+/// 4 billion faces that would have us reserve gigabytes.
+fn check_counts_fit(header: &PlyHeader, data_bytes: usize) -> Result<(), PlyParseError> {
+    let mut needed_bytes: u128 = 0;
+    for element in &header.elements {
+        let record_bytes: u128 = element
+            .properties
+            .iter()
+            .map(|property| match (header.format, property.kind) {
+                (DataFormat::Ascii, _) => 2,
+                (_, PropertyKind::Scalar(scalar)) => scalar.size_bytes() as u128,
+                (_, PropertyKind::List { count_type, .. }) => count_type.size_bytes() as u128,
+            })
+            .sum();
+        needed_bytes += record_bytes * element.count as u128;
+        // The last ASCII value may end the file without its separator.
+        let available = data_bytes as u128 + u128::from(header.format == DataFormat::Ascii);
+        if needed_bytes > available {
+            return Err(PlyParseError::header(
+                element.line_number,
+                format!(
+                    "element '{}' declares {} records, but the {data_bytes} bytes after the header \
+                     cannot hold them (each takes at least {record_bytes} bytes); the count is wrong \
+                     or the file is cut short",
+                    element.name, element.count
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// A list length or vertex index read as f64 must be a non-negative integer (ASCII could say -1 or
