@@ -101,7 +101,11 @@ pub fn run(args: &FuzzArgs) -> anyhow::Result<()> {
                     let path = saved.with_extension("min");
                     std::fs::write(&path, &minimised)
                         .with_context(|| format!("writing {}", path.display()))?;
-                    eprintln!("    minimised to {} bytes: {}", minimised.len(), path.display());
+                    eprintln!(
+                        "    minimised to {} bytes: {}",
+                        minimised.len(),
+                        path.display()
+                    );
                 }
             }
         }

@@ -98,14 +98,12 @@ pub fn reset_thread_counters() {
 
 /// This thread's figures since the last [`reset_thread_counters`].
 pub fn thread_figures() -> AllocationFigures {
-    let counters = COUNTERS
-        .try_with(Cell::get)
-        .unwrap_or(ThreadCounters {
-            tracking: false,
-            live_bytes: 0,
-            peak_bytes: 0,
-            largest_request_bytes: 0,
-        });
+    let counters = COUNTERS.try_with(Cell::get).unwrap_or(ThreadCounters {
+        tracking: false,
+        live_bytes: 0,
+        peak_bytes: 0,
+        largest_request_bytes: 0,
+    });
     AllocationFigures {
         peak_bytes: counters.peak_bytes,
         largest_request_bytes: counters.largest_request_bytes,

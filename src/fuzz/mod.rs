@@ -228,8 +228,7 @@ pub fn input_for(target: &Target, seed: u64, index: usize) -> Vec<u8> {
         .fold(0xcbf2_9ce4_8422_2325_u64, |hash, byte| {
             (hash ^ u64::from(byte)).wrapping_mul(0x0100_0000_01b3)
         });
-    let input_seed = seed
-        .wrapping_mul(0x9e37_79b9_7f4a_7c15)
+    let input_seed = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15)
         ^ name_hash
         ^ (index as u64).wrapping_mul(0xbf58_476d_1ce4_e5b9);
     let mut mutator = mutate::Mutator::new(input_seed);
@@ -247,7 +246,10 @@ fn run_one(target: &Target, path: &Path, index: Option<usize>, input: Vec<u8>) -
         return Outcome {
             index,
             input,
-            result: Ok(Err(format!("fuzz: could not write the input {}: {error}", path.display()))),
+            result: Ok(Err(format!(
+                "fuzz: could not write the input {}: {error}",
+                path.display()
+            ))),
             elapsed: Duration::ZERO,
             figures: alloc_guard::AllocationFigures::default(),
         };
@@ -401,7 +403,11 @@ pub fn run_target(target: &Target, options: &FuzzOptions) -> Result<TargetReport
         if outcome.elapsed > options.time_limit {
             findings.push((
                 FindingKind::Hang,
-                format!("took {:.2} s (limit {:?})", outcome.elapsed.as_secs_f64(), options.time_limit),
+                format!(
+                    "took {:.2} s (limit {:?})",
+                    outcome.elapsed.as_secs_f64(),
+                    options.time_limit
+                ),
             ));
         }
         let budget = options.allocation_budget(target, outcome.input.len());
@@ -442,7 +448,10 @@ fn mib(bytes: usize) -> f64 {
 
 /// Counts a finding, and keeps and saves the first few of each kind.
 fn record(report: &mut TargetReport, findings_dir: &Path, target: &Target, mut finding: Finding) {
-    let count = report.counts.entry(format!("{:?}", finding.kind)).or_insert(0);
+    let count = report
+        .counts
+        .entry(format!("{:?}", finding.kind))
+        .or_insert(0);
     *count += 1;
     if *count > KEPT_PER_KIND {
         return;
@@ -454,7 +463,9 @@ fn record(report: &mut TargetReport, findings_dir: &Path, target: &Target, mut f
         "{}-{:?}-{index}-{}",
         target.name, finding.kind, target.file_name
     ));
-    if std::fs::create_dir_all(findings_dir).is_ok() && std::fs::write(&file, &finding.input).is_ok() {
+    if std::fs::create_dir_all(findings_dir).is_ok()
+        && std::fs::write(&file, &finding.input).is_ok()
+    {
         finding.saved_to = Some(file);
     }
     report.findings.push(finding);
@@ -467,7 +478,8 @@ pub fn minimise_panic(target: &Target, path: &Path, input: &[u8], max_attempts: 
     let was_fuzz_thread = IS_FUZZ_THREAD.with(|flag| flag.replace(true));
     let panics = |candidate: &[u8]| {
         std::fs::write(path, candidate).is_ok()
-            && std::panic::catch_unwind(AssertUnwindSafe(|| (target.parse)(path, candidate))).is_err()
+            && std::panic::catch_unwind(AssertUnwindSafe(|| (target.parse)(path, candidate)))
+                .is_err()
     };
     let mut best = input.to_vec();
     let mut attempts = 0;

@@ -113,7 +113,8 @@ impl Mutator {
             }
             1 if len > 0 => {
                 let at = self.offset(len);
-                data[at] = [0x00, 0xff, 0x7f, 0x80, b'\n', b' ', b'-', b'9'][self.rng.random_range(0..8)];
+                data[at] =
+                    [0x00, 0xff, 0x7f, 0x80, b'\n', b' ', b'-', b'9'][self.rng.random_range(0..8)];
             }
             2 => {
                 let at = self.rng.random_range(0..=len);
@@ -140,7 +141,8 @@ impl Mutator {
             }
             6 | 7 if len > 0 => {
                 // An integer overwritten (u8/u16/u32/u64, either byte order).
-                let value = INTERESTING_INTEGERS[self.rng.random_range(0..INTERESTING_INTEGERS.len())];
+                let value =
+                    INTERESTING_INTEGERS[self.rng.random_range(0..INTERESTING_INTEGERS.len())];
                 let width = [1usize, 2, 4, 8][self.rng.random_range(0..4)];
                 let big_endian = self.rng.random_bool(0.3);
                 let bytes = value.to_le_bytes();
@@ -178,8 +180,10 @@ impl Mutator {
         match self.rng.random_range(0..5) {
             0 | 1 => self.replace_number(data),
             choice => {
-                let mut lines: Vec<Vec<u8>> =
-                    data.split_inclusive(|&byte| byte == b'\n').map(<[u8]>::to_vec).collect();
+                let mut lines: Vec<Vec<u8>> = data
+                    .split_inclusive(|&byte| byte == b'\n')
+                    .map(<[u8]>::to_vec)
+                    .collect();
                 if lines.is_empty() {
                     return;
                 }
@@ -203,7 +207,8 @@ impl Mutator {
     /// Replaces one number (a run of digits with its sign, dot and exponent) by an interesting
     /// token; a random position when there is no number.
     fn replace_number(&mut self, data: &mut Vec<u8>) {
-        let is_number_byte = |byte: u8| byte.is_ascii_digit() || matches!(byte, b'.' | b'-' | b'+' | b'e' | b'E');
+        let is_number_byte =
+            |byte: u8| byte.is_ascii_digit() || matches!(byte, b'.' | b'-' | b'+' | b'e' | b'E');
         let mut numbers = Vec::new();
         let mut index = 0;
         while index < data.len() {
@@ -222,7 +227,8 @@ impl Mutator {
                 index += 1;
             }
         }
-        let token = INTERESTING_TOKENS[self.rng.random_range(0..INTERESTING_TOKENS.len())].as_bytes();
+        let token =
+            INTERESTING_TOKENS[self.rng.random_range(0..INTERESTING_TOKENS.len())].as_bytes();
         if numbers.is_empty() {
             let at = self.rng.random_range(0..=data.len());
             data.splice(at..at, token.iter().copied());
@@ -245,7 +251,8 @@ mod tests {
 
     #[test]
     fn same_seed_same_inputs_and_every_input_differs_from_the_seed_often() {
-        let seed_input = b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n0 0 0\n1 0 0\n0 1 0\n";
+        let seed_input =
+            b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n0 0 0\n1 0 0\n0 1 0\n";
         let first: Vec<Vec<u8>> = {
             let mut mutator = Mutator::new(7);
             (0..200).map(|_| mutator.mutate(seed_input, true)).collect()
@@ -255,8 +262,14 @@ mod tests {
             (0..200).map(|_| mutator.mutate(seed_input, true)).collect()
         };
         assert_eq!(first, second);
-        let changed = first.iter().filter(|input| input.as_slice() != seed_input).count();
-        assert!(changed > 180, "only {changed} of 200 inputs differ from the seed");
+        let changed = first
+            .iter()
+            .filter(|input| input.as_slice() != seed_input)
+            .count();
+        assert!(
+            changed > 180,
+            "only {changed} of 200 inputs differ from the seed"
+        );
         // Huge counts do appear in headers.
         assert!(first
             .iter()

@@ -40,12 +40,12 @@ pub struct Target {
     pub allocation_per_input_byte: usize,
     /// Run on each mutated input before parsing (e.g. PNG chunk checksums recomputed, so the
     /// mutations reach the decoder instead of stopping at the checksum).
-    pub fixup: Option<fn(&mut Vec<u8>)>,
+    pub fixup: Option<fn(&mut [u8])>,
     pub parse: ParseFn,
 }
 
 impl Target {
-    fn with_fixup(mut self, fixup: fn(&mut Vec<u8>)) -> Self {
+    fn with_fixup(mut self, fixup: fn(&mut [u8])) -> Self {
         self.fixup = Some(fixup);
         self
     }
@@ -61,11 +61,15 @@ impl Target {
 const IMAGE_ALLOCATION_PER_INPUT_BYTE: usize = 4 * 16_384;
 
 /// Recomputes the CRC of every complete PNG chunk, so that a mutated chunk reaches the decoder.
-pub fn fix_png_checksums(data: &mut Vec<u8>) {
+pub fn fix_png_checksums(data: &mut [u8]) {
     let mut at = 8;
     while at + 12 <= data.len() {
-        let length = u32::from_be_bytes([data[at], data[at + 1], data[at + 2], data[at + 3]]) as usize;
-        let Some(end) = (at + 8).checked_add(length).filter(|end| end + 4 <= data.len()) else {
+        let length =
+            u32::from_be_bytes([data[at], data[at + 1], data[at + 2], data[at + 3]]) as usize;
+        let Some(end) = (at + 8)
+            .checked_add(length)
+            .filter(|end| end + 4 <= data.len())
+        else {
             return;
         };
         let crc = crc32(&data[at + 4..end]);
@@ -80,7 +84,11 @@ fn crc32(bytes: &[u8]) -> u32 {
     for &byte in bytes {
         crc ^= u32::from(byte);
         for _ in 0..8 {
-            crc = if crc & 1 == 1 { (crc >> 1) ^ 0xedb8_8320 } else { crc >> 1 };
+            crc = if crc & 1 == 1 {
+                (crc >> 1) ^ 0xedb8_8320
+            } else {
+                crc >> 1
+            };
         }
     }
     !crc
@@ -194,22 +202,27 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
         write_ply(path, &mesh, PlyEncoding::Ascii)
     })?;
     let cameras_txt = [
-        read_seed(repo, "tests/data/brighton_beach/gt_simple_radial/cameras.txt")?,
+        read_seed(
+            repo,
+            "tests/data/brighton_beach/gt_simple_radial/cameras.txt",
+        )?,
         read_seed(repo, "tests/data/brighton_beach/gt_undistorted/cameras.txt")?,
     ];
     let images_txt = [
-        read_seed(repo, "tests/data/brighton_beach/gt_simple_radial/images.txt")?,
+        read_seed(
+            repo,
+            "tests/data/brighton_beach/gt_simple_radial/images.txt",
+        )?,
         read_seed(repo, "tests/data/brighton_beach/gt_undistorted/images.txt")?,
     ];
     // The binary model: the text model written with our writer, images with observations and
     // 3D points with tracks.
     let model_dir = repo.join("tests/data/brighton_beach/gt_simple_radial");
-    let cameras = read_cameras_txt(&model_dir.join("cameras.txt")).map_err(|error| {
-        SeedError::Missing {
+    let cameras =
+        read_cameras_txt(&model_dir.join("cameras.txt")).map_err(|error| SeedError::Missing {
             path: model_dir.join("cameras.txt"),
             detail: error.to_string(),
-        }
-    })?;
+        })?;
     let images: Vec<ImagePose> = read_images_txt(&model_dir.join("images.txt"))
         .map_err(|error| SeedError::Missing {
             path: model_dir.join("images.txt"),
@@ -263,7 +276,13 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
         12,
         8,
         (0..96)
-            .map(|i| if i % 7 == 0 { 0.0 } else { 20.0 + i as f32 * 0.25 })
+            .map(|i| {
+                if i % 7 == 0 {
+                    0.0
+                } else {
+                    20.0 + i as f32 * 0.25
+                }
+            })
             .collect(),
     )
     .map_err(|error| SeedError::Unwritable {
@@ -281,11 +300,15 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             *v = -(i as f32) * 0.125;
         }
     }
-    let flo = written_seed(scratch, "flow.flo", |path| crate::io::flo::write_flo(path, &field))?;
+    let flo = written_seed(scratch, "flow.flo", |path| {
+        crate::io::flo::write_flo(path, &field)
+    })?;
     let grey = Image::new(
         24,
         16,
-        (0..24 * 16).map(|i| ((i * 37) % 256) as f32 / 255.0).collect(),
+        (0..24 * 16)
+            .map(|i| ((i * 37) % 256) as f32 / 255.0)
+            .collect(),
     )
     .map_err(|error| SeedError::Unwritable {
         path: PathBuf::from("(image seed)"),
@@ -311,7 +334,9 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
     let photo_jpg = read_seed(repo, "tests/data/brighton_beach/DJI_0025_crop.jpg")?;
     let small_jpg = {
         let mut bytes = Vec::new();
-        let buffer = image::RgbImage::from_fn(16, 16, |x, y| image::Rgb([(x * 16) as u8, (y * 16) as u8, 128]));
+        let buffer = image::RgbImage::from_fn(16, 16, |x, y| {
+            image::Rgb([(x * 16) as u8, (y * 16) as u8, 128])
+        });
         image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 80)
             .encode_image(&buffer)
             .map_err(|error| SeedError::Unwritable {
@@ -335,65 +360,161 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
     ];
 
     let mut targets = vec![
-        file_target("ply-binary", "mesh.ply", vec![excerpt_ply, box_ply_binary], true, |path, _| {
-            crate::io::mesh_file::read_mesh(path).map(drop).map_err(display_error)
-        }),
-        file_target("ply-ascii", "mesh.ply", vec![box_ply_ascii], true, |path, _| {
-            crate::io::mesh_file::read_mesh(path).map(drop).map_err(display_error)
-        }),
-        file_target("obj", "mesh.obj", vec![OBJ_SEED.as_bytes().to_vec()], true, |path, _| {
-            crate::io::mesh_file::read_mesh(path).map(drop).map_err(display_error)
-        }),
-        file_target("colmap-cameras-txt", "cameras.txt", cameras_txt.to_vec(), true, |path, _| {
-            read_cameras_txt(path).map(drop).map_err(display_error)
-        }),
-        file_target("colmap-images-txt", "images.txt", images_txt.to_vec(), true, |path, _| {
-            read_images_txt(path).map(drop).map_err(display_error)
-        }),
-        file_target("colmap-cameras-bin", "cameras.bin", vec![cameras_bin], false, |path, _| {
-            read_cameras_bin(path).map(drop).map_err(display_error)
-        }),
-        file_target("colmap-images-bin", "images.bin", vec![images_bin], false, |path, _| {
-            read_image_records_bin(path).map(drop).map_err(display_error)
-        }),
-        file_target("colmap-points3d-bin", "points3D.bin", vec![points3d_bin], false, |path, _| {
-            read_points3d_bin(path).map(drop).map_err(display_error)
-        }),
+        file_target(
+            "ply-binary",
+            "mesh.ply",
+            vec![excerpt_ply, box_ply_binary],
+            true,
+            |path, _| {
+                crate::io::mesh_file::read_mesh(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
+        file_target(
+            "ply-ascii",
+            "mesh.ply",
+            vec![box_ply_ascii],
+            true,
+            |path, _| {
+                crate::io::mesh_file::read_mesh(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
+        file_target(
+            "obj",
+            "mesh.obj",
+            vec![OBJ_SEED.as_bytes().to_vec()],
+            true,
+            |path, _| {
+                crate::io::mesh_file::read_mesh(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
+        file_target(
+            "colmap-cameras-txt",
+            "cameras.txt",
+            cameras_txt.to_vec(),
+            true,
+            |path, _| read_cameras_txt(path).map(drop).map_err(display_error),
+        ),
+        file_target(
+            "colmap-images-txt",
+            "images.txt",
+            images_txt.to_vec(),
+            true,
+            |path, _| read_images_txt(path).map(drop).map_err(display_error),
+        ),
+        file_target(
+            "colmap-cameras-bin",
+            "cameras.bin",
+            vec![cameras_bin],
+            false,
+            |path, _| read_cameras_bin(path).map(drop).map_err(display_error),
+        ),
+        file_target(
+            "colmap-images-bin",
+            "images.bin",
+            vec![images_bin],
+            false,
+            |path, _| {
+                read_image_records_bin(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
+        file_target(
+            "colmap-points3d-bin",
+            "points3D.bin",
+            vec![points3d_bin],
+            false,
+            |path, _| read_points3d_bin(path).map(drop).map_err(display_error),
+        ),
         file_target("pfm", "depth.pfm", vec![pfm], true, |path, _| {
-            crate::io::pfm::read_pfm(path).map(drop).map_err(display_error)
+            crate::io::pfm::read_pfm(path)
+                .map(drop)
+                .map_err(display_error)
         }),
         file_target("flo", "flow.flo", vec![flo], false, |path, _| {
-            crate::io::flo::read_flo(path).map(drop).map_err(display_error)
+            crate::io::flo::read_flo(path)
+                .map(drop)
+                .map_err(display_error)
         }),
-        file_target("image-png", "photo.png", vec![png, png_rgb], false, |path, _| {
-            crate::io::images::read_image_size(path).map_err(display_error)?;
-            crate::io::images::load_gray(path).map(drop).map_err(display_error)
-        })
+        file_target(
+            "image-png",
+            "photo.png",
+            vec![png, png_rgb],
+            false,
+            |path, _| {
+                crate::io::images::read_image_size(path).map_err(display_error)?;
+                crate::io::images::load_gray(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        )
         .with_fixup(fix_png_checksums)
         .with_allocation_per_input_byte(IMAGE_ALLOCATION_PER_INPUT_BYTE),
-        file_target("image-jpeg", "photo.jpg", vec![photo_jpg.clone(), small_jpg], false, |path, _| {
-            crate::io::images::read_image_size(path).map_err(display_error)?;
-            crate::io::images::load_gray(path).map(drop).map_err(display_error)
-        })
+        file_target(
+            "image-jpeg",
+            "photo.jpg",
+            vec![photo_jpg.clone(), small_jpg],
+            false,
+            |path, _| {
+                crate::io::images::read_image_size(path).map_err(display_error)?;
+                crate::io::images::load_gray(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        )
         .with_allocation_per_input_byte(IMAGE_ALLOCATION_PER_INPUT_BYTE),
-        file_target("priors-jpeg", "DJI_0025.JPG", vec![photo_jpg], false, |path, _| {
-            crate::priors::jpeg::read_photo(path).map(drop).map_err(display_error)
-        }),
-        file_target("priors-exif-csv", "exif.csv", vec![EXIF_CSV_SEED.as_bytes().to_vec()], true, |path, _| {
-            crate::priors::exif_csv::read_exif_csv(path).map(drop).map_err(display_error)
-        }),
-        file_target("priors-offset", "utm_offset.txt", vec![offset_txt], true, |path, bytes| {
-            let text = std::str::from_utf8(bytes)
-                .map_err(|_| format!("{}: not UTF-8 text", path.display()))?;
-            crate::priors::utm::LocalFrame::parse_file(path, text)
-                .map(drop)
-                .map_err(display_error)
-        }),
-        file_target("pipeline-config", "pipeline.toml", configs, true, |path, _| {
-            crate::runtime::config::PipelineConfig::read(path)
-                .map(drop)
-                .map_err(display_error)
-        }),
+        file_target(
+            "priors-jpeg",
+            "DJI_0025.JPG",
+            vec![photo_jpg],
+            false,
+            |path, _| {
+                crate::priors::jpeg::read_photo(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
+        file_target(
+            "priors-exif-csv",
+            "exif.csv",
+            vec![EXIF_CSV_SEED.as_bytes().to_vec()],
+            true,
+            |path, _| {
+                crate::priors::exif_csv::read_exif_csv(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
+        file_target(
+            "priors-offset",
+            "utm_offset.txt",
+            vec![offset_txt],
+            true,
+            |path, bytes| {
+                let text = std::str::from_utf8(bytes)
+                    .map_err(|_| format!("{}: not UTF-8 text", path.display()))?;
+                crate::priors::utm::LocalFrame::parse_file(path, text)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
+        file_target(
+            "pipeline-config",
+            "pipeline.toml",
+            configs,
+            true,
+            |path, _| {
+                crate::runtime::config::PipelineConfig::read(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
     ];
     for kind in MESSAGE_KINDS {
         let seeds = message_seeds(repo, kind)?;

@@ -18,7 +18,11 @@ fn run_all(inputs_per_target: usize) {
     for target in &targets {
         let report = run_target(target, &options).unwrap();
         println!("{}", markdown_row(&report));
-        assert_eq!(report.inputs, inputs_per_target, "{}: inputs run", target.name);
+        assert_eq!(
+            report.inputs, inputs_per_target,
+            "{}: inputs run",
+            target.name
+        );
         for finding in &report.findings {
             failures.push(format!(
                 "{} input {:?}: {:?}: {} ({} bytes: {:?})",
@@ -31,7 +35,11 @@ fn run_all(inputs_per_target: usize) {
             ));
         }
     }
-    assert!(failures.is_empty(), "fuzz findings:\n{}", failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "fuzz findings:\n{}",
+        failures.join("\n")
+    );
 }
 
 #[test]
@@ -78,7 +86,10 @@ fn every_reader_of_user_files_and_every_message_kind_is_a_target() {
         "msg-StreamEnd",
         "msg-FrameQuery",
     ] {
-        assert!(names.contains(&expected), "no fuzz target {expected}: {names:?}");
+        assert!(
+            names.contains(&expected),
+            "no fuzz target {expected}: {names:?}"
+        );
     }
 }
 
@@ -137,16 +148,27 @@ fn a_panic_and_an_error_without_the_file_are_found_and_the_panic_minimised() {
     let options = FuzzOptions::new(300, 5, work.path().to_path_buf());
     let report = run_target(&target, &options).unwrap();
     assert!(report.count(FindingKind::Panic) > 0, "{report:?}");
-    assert!(report.count(FindingKind::ErrorWithoutFile) > 0, "{report:?}");
+    assert!(
+        report.count(FindingKind::ErrorWithoutFile) > 0,
+        "{report:?}"
+    );
     let panic = report
         .findings
         .iter()
         .find(|finding| finding.kind == FindingKind::Panic)
         .unwrap();
-    assert!(panic.detail.contains("src/fuzz/tests.rs"), "{}", panic.detail);
+    assert!(
+        panic.detail.contains("src/fuzz/tests.rs"),
+        "{}",
+        panic.detail
+    );
     let minimised = minimise_panic(&target, &work.path().join("min.txt"), &panic.input, 2000);
     assert!(minimised.len() <= panic.input.len());
-    assert!(minimised.len() <= 10, "{:?}", String::from_utf8_lossy(&minimised));
+    assert!(
+        minimised.len() <= 10,
+        "{:?}",
+        String::from_utf8_lossy(&minimised)
+    );
 }
 
 #[test]

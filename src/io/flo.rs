@@ -162,7 +162,7 @@ mod tests {
         truncated.extend_from_slice(&[0u8; 10]);
         std::fs::write(&path, &truncated).unwrap();
         let error = read_flo(&path).unwrap_err();
-        assert!(matches!(error, FloError::Io { .. }));
+        assert!(matches!(error, FloError::Truncated { .. }), "{error}");
         assert!(error.to_string().contains("bad.flo"));
 
         let mut negative = Vec::new();

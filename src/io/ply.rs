@@ -51,6 +51,30 @@ pub fn read_ply(path: &Path) -> Result<Mesh, MeshIoError> {
     })
 }
 
+/// The vertex and face counts a PLY file declares, read from its header alone (the first MiB of
+/// the file), to judge its size before loading it ([`crate::io::mesh_file::check_mesh_fits`]).
+pub(crate) fn read_ply_counts(path: &Path) -> Result<(u64, u64), MeshIoError> {
+    use std::io::Read as _;
+    let read_error = |source| MeshIoError::Read {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = std::fs::File::open(path).map_err(read_error)?;
+    let mut prefix = Vec::new();
+    file.take(1 << 20)
+        .read_to_end(&mut prefix)
+        .map_err(read_error)?;
+    let header = parse_header(&prefix).map_err(|error| error.with_path(path))?;
+    let count = |name: &str| {
+        header
+            .elements
+            .iter()
+            .find(|element| element.name == name)
+            .map_or(0, |element| element.count as u64)
+    };
+    Ok((count("vertex"), count("face")))
+}
+
 /// Writes a mesh as PLY: world coordinates as `double x y z` (so georeferenced meshes keep their
 /// precision), `float nx ny nz` when the mesh has vertex normals, and faces as
 /// `list uchar int vertex_indices` (the most widely read index type).
@@ -926,61 +950,52 @@ fn parse_ply(bytes: &[u8]) -> Result<PlyGeometry, PlyParseError> {
     let header = parse_header(bytes)?;
     let (plans, has_normals) = plan_elements(&header)?;
     let data = &bytes[header.data_offset..];
-    check_counts_fit(&header, data.len())?;
     match header.format {
         DataFormat::Ascii => read_records(
             &mut AsciiSource::new(data, header.end_line_number + 1),
             &plans,
             has_normals,
             header.format,
+            data.len(),
         ),
         DataFormat::BinaryLittleEndian => read_records(
             &mut BinarySource::<false> { data, position: 0 },
             &plans,
             has_normals,
             header.format,
+            data.len(),
         ),
         DataFormat::BinaryBigEndian => read_records(
             &mut BinarySource::<true> { data, position: 0 },
             &plans,
             has_normals,
             header.format,
+            data.len(),
         ),
     }
 }
 
-/// Refuses, before anything is allocated, element counts the data cannot hold: every record takes
-/// at least the bytes of its properties (binary: each scalar's size, each list's count; ASCII: one
-/// character and a separator per value), so a 700-byte file cannot claim 10^12 vertices, nor
-/// 4 billion faces that would have us reserve gigabytes.
-fn check_counts_fit(header: &PlyHeader, data_bytes: usize) -> Result<(), PlyParseError> {
-    let mut needed_bytes: u128 = 0;
-    for element in &header.elements {
-        let record_bytes: u128 = element
-            .properties
-            .iter()
-            .map(|property| match (header.format, property.kind) {
-                (DataFormat::Ascii, _) => 2,
-                (_, PropertyKind::Scalar(scalar)) => scalar.size_bytes() as u128,
-                (_, PropertyKind::List { count_type, .. }) => count_type.size_bytes() as u128,
-            })
-            .sum();
-        needed_bytes += record_bytes * element.count as u128;
-        // The last ASCII value may end the file without its separator.
-        let available = data_bytes as u128 + u128::from(header.format == DataFormat::Ascii);
-        if needed_bytes > available {
-            return Err(PlyParseError::header(
-                element.line_number,
-                format!(
-                    "element '{}' declares {} records, but the {data_bytes} bytes after the header \
-                     cannot hold them (each takes at least {record_bytes} bytes); the count is wrong \
-                     or the file is cut short",
-                    element.name, element.count
-                ),
-            ));
-        }
-    }
-    Ok(())
+/// The most records of `element` that `data_bytes` can hold: every record takes at least the
+/// bytes of its properties (binary: each scalar's size, each list's count; ASCII: a character and
+/// a separator per value). Capacities are reserved up to this, never up to a count the header
+/// merely claims: a 700-byte file claiming 4 billion faces must not reserve gigabytes (the
+/// reading then stops at the end of the data, naming the element and record).
+fn records_data_can_hold(
+    element: &ElementDeclaration,
+    format: DataFormat,
+    data_bytes: usize,
+) -> usize {
+    let record_bytes: usize = element
+        .properties
+        .iter()
+        .map(|property| match (format, property.kind) {
+            (DataFormat::Ascii, _) => 2,
+            (_, PropertyKind::Scalar(scalar)) => scalar.size_bytes(),
+            (_, PropertyKind::List { count_type, .. }) => count_type.size_bytes(),
+        })
+        .sum();
+    // The last ASCII value may end the file without its separator.
+    (data_bytes + 1) / record_bytes.max(1)
 }
 
 /// A list length or vertex index read as f64 must be a non-negative integer (ASCII could say -1 or
@@ -994,17 +1009,25 @@ fn read_records<S: RecordSource>(
     plans: &[ElementPlan<'_>],
     has_normals: bool,
     format: DataFormat,
+    data_bytes: usize,
 ) -> Result<PlyGeometry, PlyParseError> {
-    // Capacities are capped so that a lying header cannot make us allocate terabytes.
+    // Capacities are capped so that a lying header cannot make us allocate terabytes: by what the
+    // data can hold, and by 2^24 records.
     let capacity_cap = 1 << 24;
-    let vertex_count = plans
-        .iter()
-        .find(|plan| plan.declaration.name == "vertex")
-        .map_or(0, |plan| plan.declaration.count);
-    let face_count = plans
-        .iter()
-        .find(|plan| plan.declaration.name == "face")
-        .map_or(0, |plan| plan.declaration.count);
+    let capacity_of = |name: &str| {
+        plans
+            .iter()
+            .find(|plan| plan.declaration.name == name)
+            .map_or(0, |plan| {
+                plan.declaration.count.min(records_data_can_hold(
+                    plan.declaration,
+                    format,
+                    data_bytes,
+                ))
+            })
+    };
+    let vertex_count = capacity_of("vertex");
+    let face_count = capacity_of("face");
     let mut positions_m = Vec::with_capacity(vertex_count.min(capacity_cap));
     let mut vertex_normals = Vec::with_capacity(if has_normals {
         vertex_count.min(capacity_cap)
