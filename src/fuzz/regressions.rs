@@ -127,3 +127,17 @@ fn png_claiming_more_pixels_than_its_file_can_hold_is_refused_before_allocating(
     assert!(error.contains("limit"), "{error}");
     assert!(peak_bytes < 20 * MIB, "allocated {peak_bytes} bytes");
 }
+
+/// Found by `asgreg fuzz` (image-jpeg, 10^5 inputs, seed 2, input 60503): the 16×16 seed JPEG
+/// with its width mutated to 32528 (255 rows) and cut to 701 bytes. The decoder filled the
+/// missing data with grey (0.8 s), the loader then made an RGB f32 copy (95 MiB), and only then
+/// refused the file as truncated: 150 MiB at once for 701 bytes. Now the end is checked first,
+/// JPEG's decoder limit follows what a JPEG of this size can hold, and RGB photos go to grey
+/// without the f32 copy.
+#[test]
+fn jpeg_cut_short_with_a_huge_width_is_refused_before_decoding() {
+    let bytes = include_bytes!("../../tests/data/fuzz/jpeg_cut_32528x255.jpg");
+    let (error, peak_bytes) = refuse("photo.jpg", bytes, crate::io::images::load_gray);
+    assert!(error.contains("truncated"), "{error}");
+    assert!(peak_bytes < MIB, "allocated {peak_bytes} bytes");
+}

@@ -12,3 +12,4 @@ pub mod opk;
 pub mod output;
 pub mod pfm;
 pub mod ply;
+pub mod text;
