@@ -8,6 +8,7 @@ pub mod core;
 pub mod diagnose;
 pub mod eval;
 pub mod frame_files;
+pub mod fuzz;
 pub mod io;
 pub mod msg;
 pub mod priors;
@@ -19,3 +20,8 @@ pub mod viz;
 
 #[cfg(test)]
 pub(crate) mod test_data;
+
+/// The library's tests run the fuzz short form, which measures allocations (`fuzz::alloc_guard`).
+#[cfg(test)]
+#[global_allocator]
+static TEST_ALLOCATOR: fuzz::alloc_guard::GuardedAllocator = fuzz::alloc_guard::GuardedAllocator;

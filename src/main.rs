@@ -5,14 +5,34 @@ mod cli;
 
 use clap::Parser;
 
+/// Forwards to the system allocator; counts only while `asgreg fuzz` has armed it (one relaxed
+/// load per allocation otherwise), so that the fuzz run finds allocation blow-ups.
+#[global_allocator]
+static ALLOCATOR: asgreg::fuzz::alloc_guard::GuardedAllocator =
+    asgreg::fuzz::alloc_guard::GuardedAllocator;
+
 fn main() -> std::process::ExitCode {
     let args = cli::Cli::parse();
     cli::init_logging(args.verbose);
     match cli::run(args) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(error) => {
-            eprintln!("error: {error:#}");
+            eprintln!("error: {}", one_line(&error));
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// The error and its causes, each cause once: most library errors already write their
+/// cause into their message (`{path}: {source}`), which `{:#}` would repeat.
+fn one_line(error: &anyhow::Error) -> String {
+    let mut message = error.to_string();
+    for cause in error.chain().skip(1) {
+        let cause = cause.to_string();
+        if !message.contains(&cause) {
+            message.push_str(": ");
+            message.push_str(&cause);
+        }
+    }
+    message
 }

@@ -5,6 +5,7 @@ mod calibrate;
 mod demo;
 mod eval;
 mod flow;
+mod fuzz;
 mod inputs;
 mod overlay;
 mod pipeline;
@@ -63,6 +64,9 @@ pub enum Command {
     /// Initial poses from the photos themselves (GPS and DJI gimbal angles in EXIF/XMP, or an
     /// exiftool CSV) in the mesh's local UTM frame, as a COLMAP model with the frame's offset.
     Priors(priors::PriorsArgs),
+    /// Dev command: fuzz every reader of user files and every message decoder with mutated
+    /// inputs (panics, hangs, allocation blow-ups); one Markdown row per target.
+    Fuzz(fuzz::FuzzArgs),
 }
 
 pub fn init_logging(verbose: u8) {
@@ -99,5 +103,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(args) => render::run(&args),
         Command::Overlay(args) => overlay::run(&args),
         Command::Priors(args) => priors::run(&args),
+        Command::Fuzz(args) => fuzz::run(&args),
     }
 }

@@ -17,7 +17,9 @@ use asgreg::frame_files::{depth_path_for, FrameLoader, DEFAULT_WORKING_WIDTH_PX}
 use asgreg::io::colmap::{ColmapModel, ImagePose};
 use asgreg::io::colmap_model::write_model_dir;
 use asgreg::io::images::{load_rgb, save_rgb_png};
+use asgreg::io::mesh_file::check_mesh_fits;
 use asgreg::io::opk::{write_opk_csv, OPK_FILE};
+use asgreg::io::output::prepare_output_dir;
 use asgreg::viz::{overlay_model, OverlayStyle};
 
 use super::inputs::load_posed_inputs;
@@ -65,6 +67,10 @@ pub struct RegisterArgs {
     /// Skip the overlay pictures.
     #[arg(long)]
     pub no_overlays: bool,
+    /// Refuse a mesh that would take more memory than this to load (MiB), judged from its header
+    /// before loading it (PLY: declared vertices and faces; OBJ: the file's size).
+    #[arg(long, value_name = "MIB")]
+    pub max_mesh_mib: Option<u64>,
 }
 
 /// How the coarse poses are drawn around the initial pose, and how far their refined poses must
@@ -164,6 +170,12 @@ pub fn progress_bar(count: usize, what: &str) -> indicatif::ProgressBar {
 }
 
 pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
+    // The environment first: an output folder that cannot be written, or a mesh too large for the
+    // memory given, fail in a second, not after the registration.
+    prepare_output_dir(&args.out)?;
+    if let Some(limit_mib) = args.max_mesh_mib {
+        check_mesh_fits(&args.mesh, limit_mib)?;
+    }
     let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
     let config = registration_config(args.depth.is_some(), &args.coarse);
     config.validate()?;
@@ -192,8 +204,6 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
             initial_cam_from_world: image.cam_from_world,
         });
     }
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating the output folder {}", args.out.display()))?;
 
     let loader = FrameLoader::new((args.working_width > 0).then_some(args.working_width));
     let bar = progress_bar(frames.len(), "registering");

@@ -223,7 +223,7 @@ pub fn write_model(dir: &Path, model: &ColmapModel) -> Result<(), ColmapError> {
 /// The data lines of a text file: `(1-based line number, trimmed text)`, comments and blank
 /// lines included (callers decide what to skip).
 fn read_lines(path: &Path) -> Result<Vec<(usize, String)>, ColmapError> {
-    let text = fs::read_to_string(path).map_err(|source| ColmapError::Io {
+    let text = crate::io::text::read_utf8(path).map_err(|source| ColmapError::Io {
         path: path.to_path_buf(),
         source,
     })?;

@@ -28,6 +28,14 @@ pub enum FloError {
     },
     #[error("{path}: not a .flo file (magic {found} instead of 202021.25)")]
     BadMagic { path: PathBuf, found: f32 },
+    #[error("{path}: the header's size {width_px} x {height_px} needs {expected_bytes} bytes, the file has {file_bytes}: the file is cut short or its width/height fields are damaged")]
+    Truncated {
+        path: PathBuf,
+        width_px: usize,
+        height_px: usize,
+        expected_bytes: u64,
+        file_bytes: u64,
+    },
     #[error("{path}: bad .flo size {width} x {height}")]
     BadSize {
         path: PathBuf,
@@ -66,6 +74,19 @@ pub fn read_flo(path: &Path) -> Result<FlowField, FloError> {
     let pixel_count = width_px.checked_mul(height_px).ok_or_else(bad_size)?;
     if pixel_count == 0 || pixel_count > MAX_FLO_PIXELS {
         return Err(bad_size());
+    }
+    // The header's size must match the file's before anything is allocated for it: a 12-byte
+    // file claiming 2^28 pixels would otherwise reserve 2 GiB.
+    let file_bytes = reader.get_ref().metadata().map_err(io_error)?.len();
+    let expected_bytes = 12 + pixel_count as u64 * 8;
+    if file_bytes < expected_bytes {
+        return Err(FloError::Truncated {
+            path: path.to_path_buf(),
+            width_px,
+            height_px,
+            expected_bytes,
+            file_bytes,
+        });
     }
     let mut bytes = vec![0u8; pixel_count * 8];
     reader.read_exact(&mut bytes).map_err(io_error)?;
@@ -141,7 +162,7 @@ mod tests {
         truncated.extend_from_slice(&[0u8; 10]);
         std::fs::write(&path, &truncated).unwrap();
         let error = read_flo(&path).unwrap_err();
-        assert!(matches!(error, FloError::Io { .. }));
+        assert!(matches!(error, FloError::Truncated { .. }), "{error}");
         assert!(error.to_string().contains("bad.flo"));
 
         let mut negative = Vec::new();

@@ -56,6 +56,17 @@ pub enum MeshIoError {
         #[source]
         source: tobj::LoadError,
     },
+    /// Loading the mesh would take more memory than the limit the user gave.
+    #[error(
+        "{}: the mesh needs about {needed_mib} MiB to load ({what}), more than the limit of {limit_mib} MiB; simplify or tile the mesh, or raise the limit (--max-mesh-mib)",
+        .path.display()
+    )]
+    TooLarge {
+        path: PathBuf,
+        needed_mib: u64,
+        limit_mib: u64,
+        what: String,
+    },
     /// The file parsed, but its contents are not a valid triangle mesh.
     #[error("{}: {source}", .path.display())]
     Mesh {
@@ -76,6 +87,7 @@ impl MeshIoError {
             | Self::PlyData { path, .. }
             | Self::Unwritable { path, .. }
             | Self::Obj { path, .. }
+            | Self::TooLarge { path, .. }
             | Self::Mesh { path, .. } => path,
         }
     }
@@ -99,6 +111,74 @@ pub fn read_mesh(path: &Path) -> Result<Mesh, MeshIoError> {
             extension,
         }),
     }
+}
+
+/// Bytes loading a PLY takes per declared vertex: f64 positions while reading (24), the mesh's
+/// f32 local positions (12), normals while reading and in the mesh (2 × 12).
+const PLY_BYTES_PER_VERTEX: u64 = 60;
+/// Bytes per declared face: one triangle's indices (12); polygons take more.
+const PLY_BYTES_PER_FACE: u64 = 12;
+/// Bytes loading an OBJ takes per byte of the file (it has no header to count from): tobj's
+/// arrays and ours, for the usual ~40-byte vertex and ~30-byte face lines, come to about twice
+/// the file; three leaves room.
+const OBJ_BYTES_PER_FILE_BYTE: u64 = 3;
+
+/// Estimates, before loading, the memory a mesh file will take (the file's bytes, which the PLY
+/// reader holds, plus its vertices and faces as the header declares them; for OBJ, from the file
+/// size) and refuses a file above `limit_mib`. Cheap: reads the PLY header only.
+pub fn check_mesh_fits(path: &Path, limit_mib: u64) -> Result<(), MeshIoError> {
+    let file_bytes = std::fs::metadata(path)
+        .map_err(|source| MeshIoError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?
+        .len();
+    let extension = path
+        .extension()
+        .map(|extension| extension.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    let (needed_bytes, what) = match extension.as_str() {
+        "ply" => {
+            let (vertices, faces) = crate::io::ply::read_ply_counts(path)?;
+            let needed = file_bytes
+                .saturating_add(vertices.saturating_mul(PLY_BYTES_PER_VERTEX))
+                .saturating_add(faces.saturating_mul(PLY_BYTES_PER_FACE));
+            (
+                needed,
+                format!(
+                    "{vertices} vertices and {faces} faces in its header, a {file_bytes}-byte file"
+                ),
+            )
+        }
+        "obj" => (
+            file_bytes.saturating_mul(OBJ_BYTES_PER_FILE_BYTE),
+            format!("estimated from the {file_bytes}-byte OBJ file"),
+        ),
+        _ => {
+            return Err(MeshIoError::UnsupportedFormat {
+                path: path.to_path_buf(),
+                extension,
+            })
+        }
+    };
+    let needed_mib = needed_bytes.div_ceil(1 << 20);
+    if needed_mib > limit_mib {
+        return Err(MeshIoError::TooLarge {
+            path: path.to_path_buf(),
+            needed_mib,
+            limit_mib,
+            what,
+        });
+    }
+    Ok(())
+}
+
+/// [`read_mesh`], after [`check_mesh_fits`] when a limit is given.
+pub fn read_mesh_within(path: &Path, limit_mib: Option<u64>) -> Result<Mesh, MeshIoError> {
+    if let Some(limit_mib) = limit_mib {
+        check_mesh_fits(path, limit_mib)?;
+    }
+    read_mesh(path)
 }
 
 #[cfg(test)]
@@ -148,5 +228,52 @@ mod tests {
         assert!(error
             .to_string()
             .starts_with("/nonexistent/dir/mesh.ply: could not read"));
+    }
+
+    /// A header claiming 10^8 vertices is refused against a 100 MiB limit from its first lines,
+    /// without reading the (absent) data; a real small mesh fits.
+    #[test]
+    fn a_mesh_above_the_memory_limit_is_refused_from_its_header() {
+        let dir = tempfile::tempdir().unwrap();
+        let big = dir.path().join("big.ply");
+        std::fs::write(
+            &big,
+            "ply\nformat binary_little_endian 1.0\nelement vertex 100000000\nproperty float x\n\
+             property float y\nproperty float z\nelement face 200000000\n\
+             property list uchar int vertex_indices\nend_header\n",
+        )
+        .unwrap();
+        let error = read_mesh_within(&big, Some(100)).unwrap_err();
+        let message = error.to_string();
+        assert!(
+            matches!(
+                error,
+                MeshIoError::TooLarge {
+                    needed_mib: 8011,
+                    limit_mib: 100,
+                    ..
+                }
+            ),
+            "{message}"
+        );
+        assert!(
+            message.starts_with(&format!("{}: the mesh needs about 8011 MiB", big.display())),
+            "{message}"
+        );
+        assert!(
+            message.contains("100000000 vertices and 200000000 faces"),
+            "{message}"
+        );
+        assert!(!message.contains('\n'), "one line: {message}");
+
+        let small = dir.path().join("small.ply");
+        write_ply(&small, &triangle(), PlyEncoding::BinaryLittleEndian).unwrap();
+        assert_eq!(read_mesh_within(&small, Some(1)).unwrap().face_count(), 1);
+        let obj = dir.path().join("big.obj");
+        std::fs::write(&obj, vec![b'#'; 3 << 20]).unwrap();
+        assert!(matches!(
+            check_mesh_fits(&obj, 8),
+            Err(MeshIoError::TooLarge { needed_mib: 9, .. })
+        ));
     }
 }

@@ -9,5 +9,7 @@ pub mod images;
 pub mod mesh_file;
 pub mod obj;
 pub mod opk;
+pub mod output;
 pub mod pfm;
 pub mod ply;
+pub mod text;

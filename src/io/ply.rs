@@ -51,6 +51,30 @@ pub fn read_ply(path: &Path) -> Result<Mesh, MeshIoError> {
     })
 }
 
+/// The vertex and face counts a PLY file declares, read from its header alone (the first MiB of
+/// the file), to judge its size before loading it ([`crate::io::mesh_file::check_mesh_fits`]).
+pub(crate) fn read_ply_counts(path: &Path) -> Result<(u64, u64), MeshIoError> {
+    use std::io::Read as _;
+    let read_error = |source| MeshIoError::Read {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = std::fs::File::open(path).map_err(read_error)?;
+    let mut prefix = Vec::new();
+    file.take(1 << 20)
+        .read_to_end(&mut prefix)
+        .map_err(read_error)?;
+    let header = parse_header(&prefix).map_err(|error| error.with_path(path))?;
+    let count = |name: &str| {
+        header
+            .elements
+            .iter()
+            .find(|element| element.name == name)
+            .map_or(0, |element| element.count as u64)
+    };
+    Ok((count("vertex"), count("face")))
+}
+
 /// Writes a mesh as PLY: world coordinates as `double x y z` (so georeferenced meshes keep their
 /// precision), `float nx ny nz` when the mesh has vertex normals, and faces as
 /// `list uchar int vertex_indices` (the most widely read index type).
@@ -932,20 +956,46 @@ fn parse_ply(bytes: &[u8]) -> Result<PlyGeometry, PlyParseError> {
             &plans,
             has_normals,
             header.format,
+            data.len(),
         ),
         DataFormat::BinaryLittleEndian => read_records(
             &mut BinarySource::<false> { data, position: 0 },
             &plans,
             has_normals,
             header.format,
+            data.len(),
         ),
         DataFormat::BinaryBigEndian => read_records(
             &mut BinarySource::<true> { data, position: 0 },
             &plans,
             has_normals,
             header.format,
+            data.len(),
         ),
     }
+}
+
+/// The most records of `element` that `data_bytes` can hold: every record takes at least the
+/// bytes of its properties (binary: each scalar's size, each list's count; ASCII: a character and
+/// a separator per value). Capacities are reserved up to this, never up to a count the header
+/// merely claims: a 700-byte file claiming 4 billion faces must not reserve gigabytes (the
+/// reading then stops at the end of the data, naming the element and record).
+fn records_data_can_hold(
+    element: &ElementDeclaration,
+    format: DataFormat,
+    data_bytes: usize,
+) -> usize {
+    let record_bytes: usize = element
+        .properties
+        .iter()
+        .map(|property| match (format, property.kind) {
+            (DataFormat::Ascii, _) => 2,
+            (_, PropertyKind::Scalar(scalar)) => scalar.size_bytes(),
+            (_, PropertyKind::List { count_type, .. }) => count_type.size_bytes(),
+        })
+        .sum();
+    // The last ASCII value may end the file without its separator.
+    (data_bytes + 1) / record_bytes.max(1)
 }
 
 /// A list length or vertex index read as f64 must be a non-negative integer (ASCII could say -1 or
@@ -959,17 +1009,25 @@ fn read_records<S: RecordSource>(
     plans: &[ElementPlan<'_>],
     has_normals: bool,
     format: DataFormat,
+    data_bytes: usize,
 ) -> Result<PlyGeometry, PlyParseError> {
-    // Capacities are capped so that a lying header cannot make us allocate terabytes.
+    // Capacities are capped so that a lying header cannot make us allocate terabytes: by what the
+    // data can hold, and by 2^24 records.
     let capacity_cap = 1 << 24;
-    let vertex_count = plans
-        .iter()
-        .find(|plan| plan.declaration.name == "vertex")
-        .map_or(0, |plan| plan.declaration.count);
-    let face_count = plans
-        .iter()
-        .find(|plan| plan.declaration.name == "face")
-        .map_or(0, |plan| plan.declaration.count);
+    let capacity_of = |name: &str| {
+        plans
+            .iter()
+            .find(|plan| plan.declaration.name == name)
+            .map_or(0, |plan| {
+                plan.declaration.count.min(records_data_can_hold(
+                    plan.declaration,
+                    format,
+                    data_bytes,
+                ))
+            })
+    };
+    let vertex_count = capacity_of("vertex");
+    let face_count = capacity_of("face");
     let mut positions_m = Vec::with_capacity(vertex_count.min(capacity_cap));
     let mut vertex_normals = Vec::with_capacity(if has_normals {
         vertex_count.min(capacity_cap)

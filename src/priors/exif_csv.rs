@@ -95,7 +95,7 @@ fn parse_angle_deg(text: &str) -> Option<f64> {
 
 /// Reads the CSV. Every error names the file, and the line and column where there is one.
 pub fn read_exif_csv(path: &Path) -> Result<Vec<PhotoMetadata>, PriorsError> {
-    let text = std::fs::read_to_string(path).map_err(|source| PriorsError::Io {
+    let text = crate::io::text::read_utf8(path).map_err(|source| PriorsError::Io {
         path: path.to_path_buf(),
         source,
     })?;

@@ -66,7 +66,9 @@ impl UtmZone {
     /// Parses `15N`, `15n`, `33S` (number 1–60, then N or S).
     pub fn parse(text: &str) -> Option<Self> {
         let text = text.trim();
-        let (number, hemisphere) = text.split_at(text.len().checked_sub(1)?);
+        // Split before the last character, not the last byte: `15é` must be refused, not panic.
+        let (last_start, _) = text.char_indices().next_back()?;
+        let (number, hemisphere) = text.split_at(last_start);
         let number: u8 = number.parse().ok()?;
         if !(1..=60).contains(&number) {
             return None;

@@ -191,7 +191,7 @@ pub enum ConfigError {
 impl PipelineConfig {
     /// Reads and validates a TOML file; relative paths in it are relative to the file.
     pub fn read(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        let text = crate::io::text::read_utf8(path).map_err(|source| ConfigError::Read {
             path: path.to_path_buf(),
             source,
         })?;
