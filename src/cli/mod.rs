@@ -1,8 +1,10 @@
 //! Subcommands of the `asgreg` binary. Each file parses its own arguments and calls the library;
 //! errors are `anyhow` here (and only here) so they can carry the file and what to do.
 
+mod changes;
 mod demo;
 mod eval;
+mod eval_changes;
 mod flow;
 mod inputs;
 mod overlay;
@@ -36,6 +38,8 @@ pub enum Command {
     Register(register::RegisterArgs),
     /// Evaluate registration on a scene folder the paper's way (tables, JSON, plot).
     Eval(eval::EvalArgs),
+    /// Change detection on registered photos: masks, overlays, changes.geojson, report.json.
+    Changes(changes::ChangesArgs),
     /// Dense SIFT flow between two images, written as Middlebury .flo.
     Flow(flow::FlowArgs),
     /// Write an honest synthetic test scene (photos, degraded model, depth, ground truth, initial poses).
@@ -90,6 +94,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(args) => demo::run(&args),
         Command::Register(args) => register::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Changes(args) => changes::run(&args),
         Command::Flow(args) => flow::run(&args),
         Command::Synth(args) => synth::run(&args),
         Command::Render(args) => render::run(&args),

@@ -2,6 +2,7 @@
 //! binary the way a user would and check what it prints and how it exits.
 
 mod bad_input;
+mod changes_cli;
 mod cli_pictures;
 mod colmap_cli;
 mod flow_cli;

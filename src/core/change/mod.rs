@@ -358,7 +358,13 @@ fn open_class(
     }
 }
 
-/// The frame's changed regions: 8-connected components of each changed class with at least
+/// Neighbouring pixels of one region differ in depth by at most this fraction of the depth…
+const CONTINUITY_RELATIVE: f32 = 0.04;
+/// …plus this, metres.
+const CONTINUITY_M: f32 = 0.3;
+
+/// The frame's changed regions: 8-connected components (continuous in depth) of each changed
+/// class with at least
 /// `config.min_pixels` pixels and `config.min_area_m2` of surface, measured in the model's
 /// frame through `cam_from_world` (world = the model's georeferenced frame). Pixels of regions
 /// that are too small become `unchanged` in `classes`.
@@ -391,7 +397,12 @@ pub fn extract_regions(
         if labels[seed] != u32::MAX {
             continue;
         }
-        // Flood fill (8-connected).
+        // Flood fill (8-connected, and continuous in depth: two objects that touch in the
+        // image but stand metres apart are two regions).
+        let changed_depth = |index: usize| match kind {
+            ChangeKind::Added => photo_depth_m.data()[index],
+            ChangeKind::Removed => model_depth_m.data()[index],
+        };
         members.clear();
         stack.clear();
         stack.push(seed);
@@ -406,7 +417,12 @@ pub fn extract_regions(
                         continue;
                     }
                     let neighbour = rr as usize * w + cc as usize;
-                    if labels[neighbour] == u32::MAX && classes.data()[neighbour] == class {
+                    let (a, b) = (changed_depth(index), changed_depth(neighbour));
+                    let continuous = (a - b).abs() <= CONTINUITY_RELATIVE * a.min(b) + CONTINUITY_M;
+                    if labels[neighbour] == u32::MAX
+                        && classes.data()[neighbour] == class
+                        && continuous
+                    {
                         labels[neighbour] = next_label;
                         stack.push(neighbour);
                     }
@@ -444,6 +460,21 @@ fn quantile(values: &mut [f64], q: f64) -> f64 {
     let k = ((values.len() - 1) as f64 * q).round() as usize;
     let (_, v, _) = values.select_nth_unstable_by(k, f64::total_cmp);
     *v
+}
+
+/// The points without stragglers (mixed depths at a region's edge land far behind or in
+/// front of it): those farther from the median than 1.5 × the 90th-percentile distance + 0.5 m.
+fn trim_outliers(points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
+    if points.len() < 10 {
+        return points;
+    }
+    let mut xs: Vec<f64> = points.iter().map(|p| p[0]).collect();
+    let mut ys: Vec<f64> = points.iter().map(|p| p[1]).collect();
+    let centre = [quantile(&mut xs, 0.5), quantile(&mut ys, 0.5)];
+    let distance = |p: &[f64; 2]| ((p[0] - centre[0]).powi(2) + (p[1] - centre[1]).powi(2)).sqrt();
+    let mut distances: Vec<f64> = points.iter().map(distance).collect();
+    let limit = 1.5 * quantile(&mut distances, 0.9) + 0.5;
+    points.into_iter().filter(|p| distance(p) <= limit).collect()
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -498,7 +529,7 @@ fn measure_region(
         ];
     }
     let n = members.len().max(1) as f64;
-    let footprint = polygon::convex_hull(&xy);
+    let footprint = polygon::convex_hull(&trim_outliers(xy));
     let top = quantile(&mut changed_z, 0.98);
     let base = quantile(&mut all_z, 0.02);
     let centroid = centroid / n;
