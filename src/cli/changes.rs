@@ -44,6 +44,10 @@ pub struct ChangesArgs {
     /// Least surface area of a region, m².
     #[arg(long, default_value_t = ChangeConfig::default().min_area_m2)]
     pub min_area_m2: f64,
+    /// A region must extend at least this far in two of: vertical extent, footprint width,
+    /// footprint length (m).
+    #[arg(long, default_value_t = ChangeConfig::default().min_extent_m)]
+    pub min_extent_m: f64,
     /// Threshold in standard deviations of the depth-difference noise model.
     #[arg(long, default_value_t = ChangeConfig::default().threshold_sigmas)]
     pub threshold_sigmas: f32,
@@ -68,6 +72,7 @@ impl ChangesArgs {
     pub fn change_config(&self) -> ChangeConfig {
         ChangeConfig {
             min_area_m2: self.min_area_m2,
+            min_extent_m: self.min_extent_m,
             threshold_sigmas: self.threshold_sigmas,
             relative_sigma: self.relative_sigma,
             model_sigma_m: self.model_sigma_m,
@@ -152,15 +157,19 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         };
         let image_path = args.images.join(&image.name);
         let depth_path = depth_path_for(depth_dir, &image.name);
-        let files =
-            match loader.load(&image_path, image.camera_id, camera, Some(depth_path.as_path())) {
-                Ok(files) => files,
-                Err(error) => {
-                    tracing::warn!("{}: no change result: {error}", image.name);
-                    frames.push(failed(error.to_string()));
-                    continue;
-                }
-            };
+        let files = match loader.load(
+            &image_path,
+            image.camera_id,
+            camera,
+            Some(depth_path.as_path()),
+        ) {
+            Ok(files) => files,
+            Err(error) => {
+                tracing::warn!("{}: no change result: {error}", image.name);
+                frames.push(failed(error.to_string()));
+                continue;
+            }
+        };
         let Some(depth) = &files.depth_m else {
             frames.push(failed(format!("no depth map at {}", depth_path.display())));
             continue;

@@ -66,15 +66,14 @@ fn matches(detection: &FusedChange, truth: &TrueChange) -> bool {
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let scene = &args.scene;
     let objects_path = scene.join(OBJECTS_FILE);
-    let truth: ChangesFile = serde_json::from_str(
-        &std::fs::read_to_string(&objects_path).with_context(|| {
+    let truth: ChangesFile =
+        serde_json::from_str(&std::fs::read_to_string(&objects_path).with_context(|| {
             format!(
                 "cannot read {}: make the scene with `asgreg synth --changes`",
                 objects_path.display()
             )
-        })?,
-    )
-    .with_context(|| format!("{} is not a changes file", objects_path.display()))?;
+        })?)
+        .with_context(|| format!("{} is not a changes file", objects_path.display()))?;
     let poses = args
         .changes_poses
         .clone()
@@ -87,6 +86,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         depth: Some(scene.join("depth")),
         out: args.out.join("changes"),
         min_area_m2: asgreg::core::change::ChangeConfig::default().min_area_m2,
+        min_extent_m: asgreg::core::change::ChangeConfig::default().min_extent_m,
         threshold_sigmas: asgreg::core::change::ChangeConfig::default().threshold_sigmas,
         relative_sigma: asgreg::core::change::ChangeConfig::default().relative_sigma,
         model_sigma_m: asgreg::core::change::ChangeConfig::default().model_sigma_m,
@@ -118,7 +118,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             detected.dimensions()
         );
         for (t, d) in truth_mask.as_raw().iter().zip(detected.as_raw()) {
-            let (t, d) = (ChangeClass::from_mask_value(*t), ChangeClass::from_mask_value(*d));
+            let (t, d) = (
+                ChangeClass::from_mask_value(*t),
+                ChangeClass::from_mask_value(*d),
+            );
             for kind in [ChangeKind::Added, ChangeKind::Removed] {
                 let scores = pixels.entry(kind).or_default();
                 match (t == kind.class(), d == kind.class()) {
@@ -204,7 +207,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         100.0 * precision,
         report.objects.len() - confirmed.len()
     )?;
-    writeln!(text, "| true object | kind | area m² | height m | frames seen | found |")?;
+    writeln!(
+        text,
+        "| true object | kind | area m² | height m | frames seen | found |"
+    )?;
     writeln!(text, "|---|---|---|---|---|---|")?;
     for object in &truth.objects {
         writeln!(

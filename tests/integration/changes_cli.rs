@@ -96,5 +96,8 @@ fn changes_finds_the_new_and_the_demolished_buildings_of_a_synth_changes_scene()
         });
         assert!(found, "{object} not among {geojson}");
     }
-    assert!(checked >= 2, "only {checked} objects seen by two photos: {truth}");
+    assert!(
+        checked >= 2,
+        "only {checked} objects seen by two photos: {truth}"
+    );
 }

@@ -121,6 +121,10 @@ pub struct ChangeConfig {
     pub min_area_m2: f64,
     /// Least pixel count of a region.
     pub min_pixels: usize,
+    /// A region must extend at least this far in two of its three extents (vertical extent,
+    /// footprint width, footprint length), metres: a strip along a roof edge (a parapet, an
+    /// eave the model rounded off) is long but neither high nor wide.
+    pub min_extent_m: f64,
 }
 
 impl Default for ChangeConfig {
@@ -134,6 +138,7 @@ impl Default for ChangeConfig {
             opening_radius_px: 1,
             min_area_m2: 4.0,
             min_pixels: 25,
+            min_extent_m: 2.0,
         }
     }
 }
@@ -167,7 +172,11 @@ impl ChangeConfig {
                 self.threshold_sigmas, self.min_difference_m
             ));
         }
-        if !(self.min_area_m2 >= 0.0) || self.opening_radius_px > 10 {
+        if self.min_area_m2.is_nan()
+            || self.min_area_m2 < 0.0
+            || self.min_extent_m.is_nan()
+            || self.opening_radius_px > 10
+        {
             return bad(format!(
                 "min_area_m2 {} must be ≥ 0 and opening_radius_px {} ≤ 10",
                 self.min_area_m2, self.opening_radius_px
@@ -198,6 +207,12 @@ pub struct ChangeRegion {
     /// Vertical extent: the changed surface's top above the lowest surface at its pixels
     /// (the ground in front of which it stands or through which it is seen), metres.
     pub height_m: f64,
+    /// Extent of the changed surface itself in z (2nd to 98th percentile), metres.
+    pub vertical_extent_m: f64,
+    /// Least width of [`Self::footprint_m`] (over its edge directions), metres.
+    pub footprint_width_m: f64,
+    /// Extent of [`Self::footprint_m`] across that least width, metres.
+    pub footprint_length_m: f64,
     /// Median |photo depth − model depth| over the region, metres.
     pub depth_difference_m: f64,
     /// Mean of the changed surface's points (the photo's for `added`, the model's for
@@ -441,7 +456,19 @@ pub fn extract_regions(
             pixel_area,
             config,
         );
-        if members.len() < config.min_pixels || region.surface_area_m2 < config.min_area_m2 {
+        let extents = [
+            region.vertical_extent_m,
+            region.footprint_width_m,
+            region.footprint_length_m,
+        ];
+        let large_extents = extents
+            .iter()
+            .filter(|e| **e >= config.min_extent_m)
+            .count();
+        if members.len() < config.min_pixels
+            || region.surface_area_m2 < config.min_area_m2
+            || large_extents < 2
+        {
             for &index in &members {
                 classes.data_mut()[index] = ChangeClass::Unchanged;
             }
@@ -474,7 +501,10 @@ fn trim_outliers(points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
     let distance = |p: &[f64; 2]| ((p[0] - centre[0]).powi(2) + (p[1] - centre[1]).powi(2)).sqrt();
     let mut distances: Vec<f64> = points.iter().map(distance).collect();
     let limit = 1.5 * quantile(&mut distances, 0.9) + 0.5;
-    points.into_iter().filter(|p| distance(p) <= limit).collect()
+    points
+        .into_iter()
+        .filter(|p| distance(p) <= limit)
+        .collect()
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -531,7 +561,9 @@ fn measure_region(
     let n = members.len().max(1) as f64;
     let footprint = polygon::convex_hull(&trim_outliers(xy));
     let top = quantile(&mut changed_z, 0.98);
+    let bottom = quantile(&mut changed_z, 0.02);
     let base = quantile(&mut all_z, 0.02);
+    let (footprint_width_m, footprint_length_m) = polygon::width_and_length(&footprint);
     let centroid = centroid / n;
     ChangeRegion {
         kind,
@@ -539,6 +571,9 @@ fn measure_region(
         surface_area_m2: surface_area,
         footprint_area_m2: polygon::polygon_area(&footprint),
         height_m: (top - base).max(0.0),
+        vertical_extent_m: (top - bottom).max(0.0),
+        footprint_width_m,
+        footprint_length_m,
         depth_difference_m: quantile(&mut differences, 0.5),
         centroid_m: [centroid.x, centroid.y, centroid.z],
         footprint_m: footprint,
@@ -745,10 +780,7 @@ mod tests {
         let shifted = |quad: [[f64; 3]; 4]| quad.map(|p| [p[0] + offset.x, p[1] + offset.y, p[2]]);
         let model = mesh_of(&[ground([0.0, 0.0]), roof(-4.0, -3.0, 5.0)].map(shifted));
         let world = mesh_of(&[ground([0.0, 0.0])].map(shifted));
-        let pose = pose.compose(&Rigid3::new(
-            nalgebra::UnitQuaternion::identity(),
-            -offset,
-        ));
+        let pose = pose.compose(&Rigid3::new(nalgebra::UnitQuaternion::identity(), -offset));
         let photo_depth = depth_of(&world, &intrinsics, &pose);
         let mut workspace = ChangeWorkspace::new();
         let mut classes = Image::default();
@@ -799,18 +831,16 @@ mod tests {
         assert_eq!(changes.counts.added + changes.counts.removed, 0);
         assert!(changes.counts.unknown >= 200 * 200 / 7);
         let wrong = Image::filled(10, 10, 1.0f32);
-        assert!(matches!(
-            detect_changes(
-                &model,
-                &intrinsics,
-                &pose,
-                wrong.view(),
-                &ChangeConfig::default(),
-                &mut workspace,
-                &mut classes,
-            ),
-            Ok(_)
-        ));
+        assert!(detect_changes(
+            &model,
+            &intrinsics,
+            &pose,
+            wrong.view(),
+            &ChangeConfig::default(),
+            &mut workspace,
+            &mut classes,
+        )
+        .is_ok());
         let model_depth = Image::filled(20, 20, 1.0f32);
         assert!(matches!(
             classify_pixels(

@@ -67,6 +67,47 @@ pub fn convex_contains(polygon: &[[f64; 2]], p: [f64; 2]) -> bool {
     })
 }
 
+/// Least width of a convex polygon (over its edge directions) and its extent across that
+/// direction, metres; (0, longest span) for fewer than three points.
+pub fn width_and_length(polygon: &[[f64; 2]]) -> (f64, f64) {
+    let n = polygon.len();
+    if n < 3 {
+        let span = if n == 2 {
+            ((polygon[0][0] - polygon[1][0]).powi(2) + (polygon[0][1] - polygon[1][1]).powi(2))
+                .sqrt()
+        } else {
+            0.0
+        };
+        return (0.0, span);
+    }
+    let mut best = (f64::INFINITY, 0.0);
+    for i in 0..n {
+        let (a, b) = (polygon[i], polygon[(i + 1) % n]);
+        let length = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
+        if length <= 0.0 {
+            continue;
+        }
+        let (ux, uy) = ((b[0] - a[0]) / length, (b[1] - a[1]) / length);
+        let (mut across_max, mut along_min, mut along_max) =
+            (0.0f64, f64::INFINITY, f64::NEG_INFINITY);
+        for p in polygon {
+            let (dx, dy) = (p[0] - a[0], p[1] - a[1]);
+            across_max = across_max.max((dx * uy - dy * ux).abs());
+            let along = dx * ux + dy * uy;
+            along_min = along_min.min(along);
+            along_max = along_max.max(along);
+        }
+        if across_max < best.0 {
+            best = (across_max, along_max - along_min);
+        }
+    }
+    if best.0.is_finite() {
+        best
+    } else {
+        (0.0, 0.0)
+    }
+}
+
 fn point_segment_distance(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
     let ab = [b[0] - a[0], b[1] - a[1]];
     let ap = [p[0] - a[0], p[1] - a[1]];
@@ -134,6 +175,9 @@ mod tests {
         assert_eq!(hull.len(), 4);
         assert!((polygon_area(&hull) - 4.0).abs() < 1e-12);
         assert!(convex_contains(&hull, [1.5, 1.5]));
+        let strip = convex_hull(&[[0.0, 0.0], [10.0, 0.0], [10.0, 0.5], [0.0, 0.5]]);
+        let (width, length) = width_and_length(&strip);
+        assert!((width - 0.5).abs() < 1e-12 && (length - 10.0).abs() < 1e-12);
         assert!(!convex_contains(&hull, [2.5, 1.5]));
         let shifted: Vec<[f64; 2]> = hull.iter().map(|p| [p[0] + 5.0, p[1]]).collect();
         assert!((convex_distance(&hull, &shifted) - 3.0).abs() < 1e-12);

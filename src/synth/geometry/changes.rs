@@ -323,7 +323,9 @@ mod tests {
         let placed = add_change_objects(&mut scene, &plan, &[], &mut rng);
         assert_eq!(placed.len(), 3, "{placed:?}");
         for change in &placed {
-            assert!(change.footprint.half_x_m * 2.0 >= 3.0 && change.footprint.half_y_m * 2.0 >= 3.0);
+            assert!(
+                change.footprint.half_x_m * 2.0 >= 3.0 && change.footprint.half_y_m * 2.0 >= 3.0
+            );
             assert!(!change.solid_indices.is_empty());
             let faces = scene
                 .tags
