@@ -233,19 +233,45 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         text,
         "\nconfirmed detections matched to no true object (clutter not in the model, model errors, or a second object merged into one detection):\n"
     )?;
+    let on_omission = |detection: &FusedChange| {
+        detection.kind == ChangeKind::Added
+            && truth.model_omissions.iter().any(|o| {
+                convex_distance(&detection.footprint_m, &o.footprint_m) <= MATCH_DISTANCE_M
+                    && detection.centroid_m[2] >= o.z_min_m - 1.0
+                    && detection.centroid_m[2] <= o.z_max_m + 1.0
+            })
+    };
     for (_, detection) in confirmed.iter().enumerate().filter(|(k, _)| !used[*k]) {
         writeln!(
             text,
-            "- {} {:.1} m² footprint, {:.1} m high at ({:.1}, {:.1}, {:.1}), {} frames",
+            "- {} {:.1} m² footprint, {:.1} m high at ({:.1}, {:.1}, {:.1}), {} frames{}",
             detection.kind.name(),
             detection.footprint_area_m2,
             detection.height_m,
             detection.centroid_m[0],
             detection.centroid_m[1],
             detection.centroid_m[2],
-            detection.frames.len()
+            detection.frames.len(),
+            if on_omission(detection) {
+                " (on a building part the model omits by design)"
+            } else {
+                ""
+            }
         )?;
     }
+    let false_on_omissions = confirmed
+        .iter()
+        .enumerate()
+        .filter(|(k, d)| !used[*k] && on_omission(d))
+        .count();
+    let precision_without_omissions =
+        true_detections as f64 / (confirmed.len() - false_on_omissions).max(1) as f64;
+    writeln!(
+        text,
+        "\nprecision without the {false_on_omissions} detections on parts the model omits by design: {true_detections}/{} = {:.1} %",
+        confirmed.len() - false_on_omissions,
+        100.0 * precision_without_omissions
+    )?;
     print!("{text}");
     std::fs::write(args.out.join("changes_eval.md"), &text)
         .with_context(|| format!("cannot write {}", args.out.display()))?;
@@ -261,6 +287,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             "counted_true": counted.len(), "found": found, "recall": recall,
             "confirmed": confirmed.len(), "true_detections": true_detections, "precision": precision,
             "unconfirmed": report.objects.len() - confirmed.len(),
+            "false_on_model_omissions": false_on_omissions,
+            "precision_without_model_omissions": precision_without_omissions,
         },
     });
     std::fs::write(

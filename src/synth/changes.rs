@@ -70,16 +70,49 @@ pub struct TrueChange {
     pub pixels_per_image: BTreeMap<String, usize>,
 }
 
+/// A building part in the photos that the degraded model leaves out by design (a "Detail":
+/// rooftop stair house, dormer, porch); not a change, but a real difference a change map may
+/// show. `eval --changes` names detections on them apart from the other false ones.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelOmission {
+    /// Axis-aligned bounds in x, y as a counter-clockwise rectangle, metres.
+    pub footprint_m: Vec<[f64; 2]>,
+    pub z_min_m: f64,
+    pub z_max_m: f64,
+}
+
 /// The content of `changes.json`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangesFile {
     /// How the masks encode classes (grey level per class).
     pub mask_levels: BTreeMap<String, u8>,
     pub objects: Vec<TrueChange>,
+    /// Detail parts of at least 1 × 1 m that the model omits (not changes).
+    #[serde(default)]
+    pub model_omissions: Vec<ModelOmission>,
 }
 
 impl ChangesFile {
-    pub fn new(placed: &[PlacedChange]) -> Self {
+    pub fn new(scene: &Scene, placed: &[PlacedChange]) -> Self {
+        let model_omissions = scene
+            .detail_solids
+            .iter()
+            .map(|solid| solid.bounds_m())
+            .filter(|(min, max)| max.x - min.x >= 1.0 && max.y - min.y >= 1.0)
+            .map(|(min, max)| {
+                let (x0, y0, x1, y1) = (
+                    f64::from(min.x),
+                    f64::from(min.y),
+                    f64::from(max.x),
+                    f64::from(max.y),
+                );
+                ModelOmission {
+                    footprint_m: vec![[x0, y0], [x1, y0], [x1, y1], [x0, y1]],
+                    z_min_m: f64::from(min.z),
+                    z_max_m: f64::from(max.z),
+                }
+            })
+            .collect();
         let mask_levels = [
             ChangeClass::Unknown,
             ChangeClass::Unchanged,
@@ -127,6 +160,7 @@ impl ChangesFile {
         Self {
             mask_levels,
             objects,
+            model_omissions,
         }
     }
 }

@@ -444,7 +444,7 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
             std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
             Some((
                 changes::TruthRenderer::new(worlds, &placed_changes)?,
-                changes::ChangesFile::new(&placed_changes),
+                changes::ChangesFile::new(&scene, &placed_changes),
             ))
         }
         None => None,
