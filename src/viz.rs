@@ -118,6 +118,41 @@ pub fn normalize_for_display(values: ImageView<'_, f32>) -> Image<f32> {
     scaled
 }
 
+/// Colour of added pixels in change overlays.
+pub const ADDED_RGB: [u8; 3] = [235, 40, 40];
+/// Colour of removed pixels in change overlays.
+pub const REMOVED_RGB: [u8; 3] = [40, 120, 255];
+
+/// Change classes coloured over a grey photo (0..1, the classes' size): added red, removed blue,
+/// unknown slightly darkened, unchanged as it is. `alpha` is the colours' opacity (0..1).
+pub fn overlay_changes(
+    photo_grey: ImageView<'_, f32>,
+    classes: ImageView<'_, crate::core::change::ChangeClass>,
+    alpha: f32,
+) -> Result<Image<[u8; 3]>, ImageError> {
+    use crate::core::change::ChangeClass;
+    photo_grey.check_size("the photo", classes.width_px(), classes.height_px())?;
+    let alpha = alpha.clamp(0.0, 1.0);
+    let pixels = photo_grey
+        .data()
+        .iter()
+        .zip(classes.data())
+        .map(|(grey, class)| {
+            let g = (grey.clamp(0.0, 1.0) * 255.0).round();
+            let blend = |colour: [u8; 3]| -> [u8; 3] {
+                std::array::from_fn(|c| (g * (1.0 - alpha) + f32::from(colour[c]) * alpha) as u8)
+            };
+            match class {
+                ChangeClass::Added => blend(ADDED_RGB),
+                ChangeClass::Removed => blend(REMOVED_RGB),
+                ChangeClass::Unknown => [(g * 0.7) as u8; 3],
+                ChangeClass::Unchanged => [g as u8; 3],
+            }
+        })
+        .collect();
+    Image::new(photo_grey.width_px(), photo_grey.height_px(), pixels)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

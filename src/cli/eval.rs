@@ -63,6 +63,14 @@ pub struct EvalArgs {
     /// one at a time, each solved twice).
     #[arg(long)]
     pub diagnose: bool,
+    /// Evaluate change detection instead (a scene from `synth --changes`): pixel and object
+    /// precision/recall against changes_gt/ and changes.json (eval_changes.rs).
+    #[arg(long)]
+    pub changes: bool,
+    /// With --changes: the poses to detect under (a COLMAP images file or model folder, e.g.
+    /// registered poses); the ground truth gt/ when not given.
+    #[arg(long)]
+    pub changes_poses: Option<PathBuf>,
 }
 
 /// What registers a frame in an evaluation run.
@@ -90,6 +98,9 @@ pub enum QueryArg {
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    if args.changes {
+        return super::eval_changes::run(args);
+    }
     let mesh = read_mesh(&args.scene.join("model.ply"))?;
     let gt_cameras = read_cameras_txt(&args.scene.join("gt/cameras.txt"))?;
     let gt_images = read_images_txt(&args.scene.join("gt/images.txt"))?;

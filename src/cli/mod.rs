@@ -2,8 +2,10 @@
 //! errors are `anyhow` here (and only here) so they can carry the file and what to do.
 
 mod calibrate;
+mod changes;
 mod demo;
 mod eval;
+mod eval_changes;
 mod flow;
 mod fuzz;
 mod inputs;
@@ -40,6 +42,8 @@ pub enum Command {
     Eval(eval::EvalArgs),
     /// Fit the confidence model and its accept threshold on `eval` results with ground truth.
     Calibrate(calibrate::CalibrateArgs),
+    /// Change detection on registered photos: masks, overlays, changes.geojson, report.json.
+    Changes(changes::ChangesArgs),
     /// Dense SIFT flow between two images, written as Middlebury .flo.
     Flow(flow::FlowArgs),
     /// Write an honest synthetic test scene (photos, degraded model, depth, ground truth, initial poses).
@@ -98,6 +102,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Register(args) => register::run(&args),
         Command::Eval(args) => eval::run(&args),
         Command::Calibrate(args) => calibrate::run(&args),
+        Command::Changes(args) => changes::run(&args),
         Command::Flow(args) => flow::run(&args),
         Command::Synth(args) => synth::run(&args),
         Command::Render(args) => render::run(&args),

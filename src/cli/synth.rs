@@ -27,6 +27,11 @@ pub struct SynthArgs {
     /// Mean initial-pose errors to calibrate, in pixels, comma separated.
     #[arg(long, value_delimiter = ',', default_values_t = [30.0, 57.0, 80.0, 104.0])]
     pub levels: Vec<f64>,
+    /// Make the model and the photographed world differ by known objects (new buildings and
+    /// extensions in the photos only, demolished buildings in the model only) and write the true
+    /// change masks (changes_gt/*.png) and objects (changes.json).
+    #[arg(long)]
+    pub changes: bool,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -47,6 +52,7 @@ impl SynthArgs {
                 SceneArg::Block => SceneKind::Block,
             },
             initial_levels_px: self.levels.clone(),
+            changes: self.changes,
             ..SynthConfig::default()
         }
     }

@@ -3,6 +3,7 @@
 //! randomness is passed in; hot paths write into caller-provided buffers.
 
 pub mod camera;
+pub mod change;
 pub mod confidence;
 pub mod dense_sift;
 pub mod edge_align;

@@ -6,8 +6,10 @@
 //!
 //! Entry point: [`generate_scene`] with a [`SynthConfig`]; it writes
 //! `model.ply`, `model_true.ply`, `images/*.jpg`, `depth/*.pfm`, `gt/{cameras,images,points3D}.txt`,
-//! `initial/<level>/{cameras,images,points3D}.txt` and `scene.json`.
+//! `initial/<level>/{cameras,images,points3D}.txt` and `scene.json`; with `changes`, also the
+//! change ground truth of `changes.rs` (`changes_gt/*.png`, `changes.json`).
 
+pub mod changes;
 pub mod degrade;
 pub mod geometry;
 pub mod initial;
@@ -100,6 +102,10 @@ pub struct SynthConfig {
     pub model_hole_radius_m: f32,
     /// Ground kept in the model around the buildings, metres.
     pub model_ground_margin_m: f32,
+    /// Whether the model and the photographed world differ by known objects (new buildings and
+    /// extensions in the photos only, demolished buildings in the model only), with the true
+    /// change masks and objects written (`changes.rs`).
+    pub changes: bool,
 }
 
 impl Default for SynthConfig {
@@ -135,6 +141,7 @@ impl Default for SynthConfig {
             model_hole_count: 6,
             model_hole_radius_m: 0.9,
             model_ground_margin_m: 6.0,
+            changes: false,
         }
     }
 }
@@ -376,16 +383,34 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         })?;
         views.push(view);
     }
+    let eyes: Vec<Vec3> = views.iter().map(|v| v.eye_m).collect();
+    let placed_changes = if config.changes {
+        geometry::add_change_objects(
+            &mut scene,
+            &changes::plan_for(config.scene),
+            &eyes,
+            &mut stream_rng(6),
+        )
+    } else {
+        Vec::new()
+    };
     if config.clutter {
-        let eyes: Vec<Vec3> = views.iter().map(|v| v.eye_m).collect();
         geometry::add_clutter(&mut scene, &mut stream_rng(3), &eyes, 3.0);
     }
+    // With changes, the photos and the model see different worlds.
+    let worlds = config
+        .changes
+        .then(|| changes::split_worlds(&scene, &placed_changes));
+    let (photo_scene, model_scene) = match &worlds {
+        Some(worlds) => (&worlds.photo, &worlds.model),
+        None => (&scene, &scene),
+    };
     let scene_s = started.elapsed().as_secs_f64();
 
     // 2. The degraded model and the true reference model.
     let model_started = Instant::now();
-    let (degraded, model) = degraded_model(&scene, config, &mut stream_rng(4))?;
-    let true_model = scene.to_mesh(|t| {
+    let (degraded, model) = degraded_model(model_scene, config, &mut stream_rng(4))?;
+    let true_model = model_scene.to_mesh(|t| {
         matches!(
             t.part,
             PartKind::Building | PartKind::Detail | PartKind::NearGround
@@ -393,7 +418,7 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
     })?;
     let model_mean_deviation_m = f64::from(degrade::mean_nearest_distance_m(
         &degraded.positions_m,
-        &sample_surface(&scene, 0.1),
+        &sample_surface(model_scene, 0.1),
         1.0,
     ));
     write_mesh(&out_dir.join("model.ply"), &model)?;
@@ -412,7 +437,18 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         exposure_jitter: config.exposure_jitter,
         seed: config.seed,
     };
-    let mut renderer = PhotoRenderer::new(&scene, photo_params)?;
+    let mut renderer = PhotoRenderer::new(photo_scene, photo_params)?;
+    let mut truth = match &worlds {
+        Some(worlds) => {
+            let dir = out_dir.join(changes::MASK_DIR);
+            std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
+            Some((
+                changes::TruthRenderer::new(worlds, &placed_changes)?,
+                changes::ChangesFile::new(&scene, &placed_changes),
+            ))
+        }
+        None => None,
+    };
     let shadow_map_s = shadow_started.elapsed().as_secs_f64();
     let photos_started = Instant::now();
     let depth_params = DepthParams {
@@ -463,6 +499,19 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         let depth_valid_fraction =
             depth.data().iter().filter(|d| **d > 0.0).count() as f64 / (width * height) as f64;
         crate::io::pfm::write_pfm(&depth_path, depth.view())?;
+        if let Some((renderer, file)) = &mut truth {
+            let (mask, counts) =
+                renderer.mask(&camera.intrinsics, width, height, &view.cam_from_world);
+            let mask_path = out_dir
+                .join(changes::MASK_DIR)
+                .join(Path::new(&view.name).with_extension("png"));
+            write_grey_png(&mask_path, &mask)?;
+            for object in &mut file.objects {
+                if let Some(&pixels) = counts.get(&object.id) {
+                    object.pixels_per_image.insert(view.name.clone(), pixels);
+                }
+            }
+        }
         let centre = view.cam_from_world.camera_center();
         images.push(ImageSummary {
             name: view.name.clone(),
@@ -531,6 +580,14 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
             total_s: started.elapsed().as_secs_f64(),
         },
     };
+    if let Some((_, file)) = &truth {
+        let path = out_dir.join(changes::OBJECTS_FILE);
+        let json = serde_json::to_string_pretty(file).map_err(|e| SynthError::Encode {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
+        std::fs::write(&path, json).map_err(io_error(&path))?;
+    }
     let json_path = out_dir.join("scene.json");
     let json = serde_json::to_string_pretty(&summary).map_err(|e| SynthError::Encode {
         path: json_path.clone(),
@@ -600,6 +657,21 @@ fn write_colmap(
     colmap::write_images_txt(&dir.join(colmap::IMAGES_FILE), &images)?;
     colmap::write_empty_points3d_txt(&dir.join(colmap::POINTS3D_FILE))?;
     Ok(())
+}
+
+/// Writes an 8-bit grey image as a PNG.
+fn write_grey_png(path: &Path, image: &Image<u8>) -> Result<(), SynthError> {
+    image::save_buffer(
+        path,
+        image.data(),
+        image.width_px() as u32,
+        image.height_px() as u32,
+        image::ExtendedColorType::L8,
+    )
+    .map_err(|e| SynthError::Encode {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })
 }
 
 /// Writes an 8-bit sRGB photo as a JPEG.

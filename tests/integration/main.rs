@@ -3,6 +3,7 @@
 
 mod bad_environment;
 mod bad_input;
+mod changes_cli;
 mod cli_pictures;
 mod colmap_cli;
 mod flow_cli;

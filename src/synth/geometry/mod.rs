@@ -8,6 +8,7 @@
 //! which `degrade.rs` derives the Poisson-like model.
 
 mod buildings;
+mod changes;
 mod clutter;
 mod primitives;
 
@@ -16,6 +17,7 @@ use glam::{Vec2, Vec3};
 use super::texture::{GroundLayout, Material, Panel};
 use crate::core::mesh::{Mesh, MeshError};
 pub use buildings::{build_block, build_house};
+pub use changes::{add_change_objects, ChangePlan, ChangeWhat, PlacedChange};
 pub use clutter::add_clutter;
 
 /// Which part of the scene a face belongs to; decides what the degraded model keeps.

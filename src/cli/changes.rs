@@ -1,0 +1,323 @@
+//! `asgreg changes`: change detection on registered photos against the model (`core::change`):
+//! per image a mask PNG (grey levels of `ChangeClass::mask_value`) and an overlay PNG (added
+//! red, removed blue over the photo), `changes.geojson` (fused footprints in the model's
+//! georeferenced frame, with kind, area, height, frames, confirmed) and `report.json` (per-frame
+//! summary, fused objects, settings, time per frame). `eval --changes` runs the same function.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use asgreg::core::change::fusion::{fuse_regions, FusedChange, FusionConfig};
+use asgreg::core::change::{
+    classes_to_mask, detect_changes, ChangeClass, ChangeConfig, ChangeRegion, ChangeWorkspace,
+    ClassCounts,
+};
+use asgreg::core::image::Image;
+use asgreg::frame_files::{depth_path_for, FrameLoader};
+use asgreg::io::images::{save_gray_png, save_rgb_png};
+use serde::Serialize;
+
+use super::inputs::load_posed_inputs;
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct ChangesArgs {
+    /// The model (PLY or OBJ; georeferenced coordinates are kept in f64).
+    #[arg(long)]
+    pub mesh: PathBuf,
+    /// Folder of the photos (names as in the poses).
+    #[arg(long)]
+    pub images: PathBuf,
+    /// COLMAP cameras (cameras.txt/.bin or a model folder).
+    #[arg(long)]
+    pub cameras: PathBuf,
+    /// COLMAP poses of the photos, registered (images.txt/.bin or a model folder).
+    #[arg(long)]
+    pub poses: PathBuf,
+    /// Folder of depth maps `<image stem>.pfm` (MVS, metres along the optical axis, holes 0).
+    /// Required for now: depth computed in the pipeline from neighbouring frames is not built.
+    #[arg(long)]
+    pub depth: Option<PathBuf>,
+    /// Output folder (created): masks/, overlays/, changes.geojson, report.json.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Least surface area of a region, m².
+    #[arg(long, default_value_t = ChangeConfig::default().min_area_m2)]
+    pub min_area_m2: f64,
+    /// A region must extend at least this far in two of: vertical extent, footprint width,
+    /// footprint length (m).
+    #[arg(long, default_value_t = ChangeConfig::default().min_extent_m)]
+    pub min_extent_m: f64,
+    /// Threshold in standard deviations of the depth-difference noise model.
+    #[arg(long, default_value_t = ChangeConfig::default().threshold_sigmas)]
+    pub threshold_sigmas: f32,
+    /// Relative depth error of the depth maps (σ_rel).
+    #[arg(long, default_value_t = ChangeConfig::default().relative_sigma)]
+    pub relative_sigma: f32,
+    /// The model's deviation from the world, metres (σ_model).
+    #[arg(long, default_value_t = ChangeConfig::default().model_sigma_m)]
+    pub model_sigma_m: f32,
+    /// Footprints closer than this are one object, metres.
+    #[arg(long, default_value_t = FusionConfig::default().merge_distance_m)]
+    pub merge_distance_m: f64,
+    /// Frames needed to confirm an object.
+    #[arg(long, default_value_t = FusionConfig::default().min_frames)]
+    pub min_frames: usize,
+    /// Use only the first N images of the poses.
+    #[arg(long)]
+    pub limit: Option<usize>,
+}
+
+impl ChangesArgs {
+    pub fn change_config(&self) -> ChangeConfig {
+        ChangeConfig {
+            min_area_m2: self.min_area_m2,
+            min_extent_m: self.min_extent_m,
+            threshold_sigmas: self.threshold_sigmas,
+            relative_sigma: self.relative_sigma,
+            model_sigma_m: self.model_sigma_m,
+            ..ChangeConfig::default()
+        }
+    }
+
+    pub fn fusion_config(&self) -> FusionConfig {
+        FusionConfig {
+            merge_distance_m: self.merge_distance_m,
+            min_frames: self.min_frames,
+        }
+    }
+}
+
+/// One frame's summary in report.json.
+#[derive(Clone, Debug, Serialize)]
+pub struct FrameChangeReport {
+    pub name: String,
+    /// None when the frame has a result; else why there is none.
+    pub failure: Option<String>,
+    pub counts: ClassCounts,
+    pub regions: Vec<ChangeRegion>,
+    /// Render + compare + regions, milliseconds.
+    pub detect_ms: f64,
+}
+
+/// What `changes` found.
+#[derive(Clone, Debug, Serialize)]
+pub struct ChangesReport {
+    pub config: ChangeConfig,
+    pub fusion: FusionConfig,
+    pub frames: Vec<FrameChangeReport>,
+    /// Fused objects; `frames` index into [`Self::frames`].
+    pub objects: Vec<FusedChange>,
+    pub mean_detect_ms: f64,
+}
+
+/// The mask file of an image in `out`.
+pub fn mask_path(out: &Path, image_name: &str) -> PathBuf {
+    out.join("masks")
+        .join(Path::new(image_name).with_extension("png"))
+}
+
+/// Runs change detection over every posed image and writes the outputs into `args.out`.
+pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
+    let Some(depth_dir) = &args.depth else {
+        bail!("--depth is required: give a folder of depth maps <image stem>.pfm (e.g. a synth scene's depth/); depth from neighbouring frames is not built yet");
+    };
+    let config = args.change_config();
+    config
+        .validate()
+        .context("check --min-area-m2, --threshold-sigmas, --relative-sigma, --model-sigma-m")?;
+    let fusion = args.fusion_config();
+    let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
+    for dir in ["masks", "overlays"] {
+        let dir = args.out.join(dir);
+        std::fs::create_dir_all(&dir)
+            .with_context(|| format!("cannot create the output folder {}", dir.display()))?;
+    }
+    let loader = FrameLoader::new(None);
+    let mut workspace = ChangeWorkspace::new();
+    let mut classes: Image<ChangeClass> = Image::default();
+    let mut mask = Image::default();
+    let mut frames = Vec::new();
+    let limit = args.limit.unwrap_or(usize::MAX);
+    for image in inputs.images.iter().take(limit) {
+        let failed = |why: String| FrameChangeReport {
+            name: image.name.clone(),
+            failure: Some(why),
+            counts: ClassCounts::default(),
+            regions: Vec::new(),
+            detect_ms: 0.0,
+        };
+        let Some(camera) = inputs.cameras.get(&image.camera_id) else {
+            frames.push(failed(format!(
+                "camera {} is not in {}",
+                image.camera_id,
+                args.cameras.display()
+            )));
+            continue;
+        };
+        let image_path = args.images.join(&image.name);
+        let depth_path = depth_path_for(depth_dir, &image.name);
+        let files = match loader.load(
+            &image_path,
+            image.camera_id,
+            camera,
+            Some(depth_path.as_path()),
+        ) {
+            Ok(files) => files,
+            Err(error) => {
+                tracing::warn!("{}: no change result: {error}", image.name);
+                frames.push(failed(error.to_string()));
+                continue;
+            }
+        };
+        let Some(depth) = &files.depth_m else {
+            frames.push(failed(format!("no depth map at {}", depth_path.display())));
+            continue;
+        };
+        let started = Instant::now();
+        let result = detect_changes(
+            &inputs.mesh,
+            &files.camera.intrinsics,
+            &image.cam_from_world,
+            depth.view(),
+            &config,
+            &mut workspace,
+            &mut classes,
+        );
+        let detect_ms = started.elapsed().as_secs_f64() * 1e3;
+        let changes = match result {
+            Ok(changes) => changes,
+            Err(error) => {
+                frames.push(failed(error.to_string()));
+                continue;
+            }
+        };
+        classes_to_mask(classes.view(), &mut mask);
+        let mask_grey = mask.map(|v| f32::from(*v) / 255.0);
+        let path = mask_path(&args.out, &image.name);
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent)
+                .with_context(|| format!("cannot create {}", parent.display()))?;
+        }
+        save_gray_png(&path, mask_grey.view())?;
+        let overlay = asgreg::viz::overlay_changes(files.photo.view(), classes.view(), 0.55)
+            .with_context(|| format!("{}: overlay", image.name))?;
+        let overlay_path = args
+            .out
+            .join("overlays")
+            .join(Path::new(&image.name).with_extension("png"));
+        if let Some(parent) = overlay_path.parent() {
+            std::fs::create_dir_all(parent)
+                .with_context(|| format!("cannot create {}", parent.display()))?;
+        }
+        save_rgb_png(&overlay_path, overlay.view())?;
+        tracing::info!(
+            "{}: {} regions ({} added, {} removed px) in {detect_ms:.1} ms",
+            image.name,
+            changes.regions.len(),
+            changes.counts.added,
+            changes.counts.removed
+        );
+        frames.push(FrameChangeReport {
+            name: image.name.clone(),
+            failure: None,
+            counts: changes.counts,
+            regions: changes.regions,
+            detect_ms,
+        });
+    }
+    let regions: Vec<(usize, &ChangeRegion)> = frames
+        .iter()
+        .enumerate()
+        .flat_map(|(index, frame)| frame.regions.iter().map(move |r| (index, r)))
+        .collect();
+    let objects = fuse_regions(&regions, &fusion);
+    let timed: Vec<f64> = frames
+        .iter()
+        .filter(|f| f.failure.is_none())
+        .map(|f| f.detect_ms)
+        .collect();
+    let report = ChangesReport {
+        config,
+        fusion,
+        mean_detect_ms: timed.iter().sum::<f64>() / timed.len().max(1) as f64,
+        frames,
+        objects,
+    };
+    let geojson = geojson(&report);
+    let geojson_path = args.out.join("changes.geojson");
+    std::fs::write(&geojson_path, serde_json::to_string_pretty(&geojson)?)
+        .with_context(|| format!("cannot write {}", geojson_path.display()))?;
+    let report_path = args.out.join("report.json");
+    std::fs::write(&report_path, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("cannot write {}", report_path.display()))?;
+    Ok(report)
+}
+
+/// The fused objects as a GeoJSON FeatureCollection (coordinates: the model's frame).
+fn geojson(report: &ChangesReport) -> serde_json::Value {
+    let features: Vec<serde_json::Value> = report
+        .objects
+        .iter()
+        .enumerate()
+        .map(|(id, object)| {
+            let mut ring: Vec<[f64; 2]> = object.footprint_m.clone();
+            if let Some(first) = ring.first().copied() {
+                ring.push(first);
+            }
+            let frames: Vec<&str> = object
+                .frames
+                .iter()
+                .filter_map(|&f| report.frames.get(f).map(|r| r.name.as_str()))
+                .collect();
+            serde_json::json!({
+                "type": "Feature",
+                "id": id,
+                "geometry": { "type": "Polygon", "coordinates": [ring] },
+                "properties": {
+                    "kind": object.kind.name(),
+                    "area_m2": object.footprint_area_m2,
+                    "height_m": object.height_m,
+                    "centroid_m": object.centroid_m,
+                    "frames": frames,
+                    "frame_count": object.frames.len(),
+                    "confirmed": object.confirmed,
+                    "confidence": object.confidence,
+                }
+            })
+        })
+        .collect();
+    serde_json::json!({ "type": "FeatureCollection", "features": features })
+}
+
+pub fn run(args: &ChangesArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let report = detect_all(args)?;
+    let failed = report.frames.iter().filter(|f| f.failure.is_some()).count();
+    println!(
+        "{} frames ({} without a result), {:.1} ms per frame for the change map; {} objects ({} confirmed) in {:.1} s",
+        report.frames.len(),
+        failed,
+        report.mean_detect_ms,
+        report.objects.len(),
+        report.objects.iter().filter(|o| o.confirmed).count(),
+        started.elapsed().as_secs_f64()
+    );
+    for object in report.objects.iter().filter(|o| o.confirmed) {
+        println!(
+            "  {:<7} {:>7.1} m² footprint, {:>5.1} m high, at ({:.1}, {:.1}), {} frames, confidence {:.2}",
+            object.kind.name(),
+            object.footprint_area_m2,
+            object.height_m,
+            object.centroid_m[0],
+            object.centroid_m[1],
+            object.frames.len(),
+            object.confidence
+        );
+    }
+    println!(
+        "wrote {}/masks, overlays, changes.geojson, report.json",
+        args.out.display()
+    );
+    Ok(())
+}

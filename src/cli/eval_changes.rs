@@ -1,0 +1,300 @@
+//! `asgreg eval --changes`: change detection measured on a `synth --changes` scene. Runs
+//! `asgreg changes` (the same function) with the scene's depth maps under the ground-truth poses
+//! (or `--changes-poses`), then compares its masks with `changes_gt/` (pixel precision, recall,
+//! IoU per kind) and its fused objects with `changes.json` (object recall over the true objects
+//! of at least 3 × 3 m seen by at least 2 frames, precision over the confirmed detections; every
+//! unmatched detection is listed: clutter that is not in the model shows there, not hidden).
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+use anyhow::Context;
+use asgreg::core::change::fusion::FusedChange;
+use asgreg::core::change::polygon::convex_distance;
+use asgreg::core::change::{ChangeClass, ChangeKind};
+use asgreg::synth::changes::{ChangesFile, TrueChange, MASK_DIR, OBJECTS_FILE};
+use serde::Serialize;
+
+use super::changes::{detect_all, mask_path, ChangesArgs};
+use super::eval::EvalArgs;
+
+/// A detection matches a true object of its kind when their footprints are this close, m.
+const MATCH_DISTANCE_M: f64 = 1.0;
+/// A true object counts as seen by a frame with at least this many true-mask pixels.
+const SEEN_MIN_PIXELS: usize = 25;
+/// Frames that must see a true object for it to count in the recall.
+const SEEN_MIN_FRAMES: usize = 2;
+/// Least footprint side of a counted true object, m (3 × 3 m).
+const MIN_SIDE_M: f64 = 3.0;
+
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+struct PixelScores {
+    true_positive: u64,
+    false_positive: u64,
+    false_negative: u64,
+}
+
+impl PixelScores {
+    fn precision(&self) -> f64 {
+        self.true_positive as f64 / (self.true_positive + self.false_positive).max(1) as f64
+    }
+    fn recall(&self) -> f64 {
+        self.true_positive as f64 / (self.true_positive + self.false_negative).max(1) as f64
+    }
+    fn iou(&self) -> f64 {
+        self.true_positive as f64
+            / (self.true_positive + self.false_positive + self.false_negative).max(1) as f64
+    }
+}
+
+fn min_side_m(object: &TrueChange) -> f64 {
+    let n = object.footprint_m.len();
+    (0..n)
+        .map(|i| {
+            let (a, b) = (object.footprint_m[i], object.footprint_m[(i + 1) % n]);
+            ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+fn matches(detection: &FusedChange, truth: &TrueChange) -> bool {
+    detection.kind == truth.kind
+        && convex_distance(&detection.footprint_m, &truth.footprint_m) <= MATCH_DISTANCE_M
+}
+
+pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    let scene = &args.scene;
+    let objects_path = scene.join(OBJECTS_FILE);
+    let truth: ChangesFile =
+        serde_json::from_str(&std::fs::read_to_string(&objects_path).with_context(|| {
+            format!(
+                "cannot read {}: make the scene with `asgreg synth --changes`",
+                objects_path.display()
+            )
+        })?)
+        .with_context(|| format!("{} is not a changes file", objects_path.display()))?;
+    let poses = args
+        .changes_poses
+        .clone()
+        .unwrap_or_else(|| scene.join("gt/images.txt"));
+    let detect_args = ChangesArgs {
+        mesh: scene.join("model.ply"),
+        images: scene.join("images"),
+        cameras: scene.join("gt/cameras.txt"),
+        poses: poses.clone(),
+        depth: Some(scene.join("depth")),
+        out: args.out.join("changes"),
+        min_area_m2: asgreg::core::change::ChangeConfig::default().min_area_m2,
+        min_extent_m: asgreg::core::change::ChangeConfig::default().min_extent_m,
+        threshold_sigmas: asgreg::core::change::ChangeConfig::default().threshold_sigmas,
+        relative_sigma: asgreg::core::change::ChangeConfig::default().relative_sigma,
+        model_sigma_m: asgreg::core::change::ChangeConfig::default().model_sigma_m,
+        merge_distance_m: asgreg::core::change::fusion::FusionConfig::default().merge_distance_m,
+        min_frames: asgreg::core::change::fusion::FusionConfig::default().min_frames,
+        limit: args.limit,
+    };
+    let report = detect_all(&detect_args)?;
+
+    // Pixels.
+    let mut pixels: BTreeMap<ChangeKind, PixelScores> = BTreeMap::new();
+    let mut frames_with_result = Vec::new();
+    for frame in report.frames.iter().filter(|f| f.failure.is_none()) {
+        let truth_path = scene
+            .join(MASK_DIR)
+            .join(Path::new(&frame.name).with_extension("png"));
+        let truth_mask = image::open(&truth_path)
+            .with_context(|| format!("cannot read the true mask {}", truth_path.display()))?
+            .to_luma8();
+        let detected_path = mask_path(&detect_args.out, &frame.name);
+        let detected = image::open(&detected_path)
+            .with_context(|| format!("cannot read {}", detected_path.display()))?
+            .to_luma8();
+        anyhow::ensure!(
+            truth_mask.dimensions() == detected.dimensions(),
+            "{}: true mask {:?} and detection {:?} differ in size",
+            frame.name,
+            truth_mask.dimensions(),
+            detected.dimensions()
+        );
+        for (t, d) in truth_mask.as_raw().iter().zip(detected.as_raw()) {
+            let (t, d) = (
+                ChangeClass::from_mask_value(*t),
+                ChangeClass::from_mask_value(*d),
+            );
+            for kind in [ChangeKind::Added, ChangeKind::Removed] {
+                let scores = pixels.entry(kind).or_default();
+                match (t == kind.class(), d == kind.class()) {
+                    (true, true) => scores.true_positive += 1,
+                    (false, true) => scores.false_positive += 1,
+                    (true, false) => scores.false_negative += 1,
+                    (false, false) => {}
+                }
+            }
+        }
+        frames_with_result.push(frame.name.clone());
+    }
+
+    // Objects.
+    let seen_frames = |object: &TrueChange| {
+        object
+            .pixels_per_image
+            .iter()
+            .filter(|(name, &count)| count >= SEEN_MIN_PIXELS && frames_with_result.contains(name))
+            .count()
+    };
+    let counted: Vec<&TrueChange> = truth
+        .objects
+        .iter()
+        .filter(|o| min_side_m(o) >= MIN_SIDE_M - 1e-6 && seen_frames(o) >= SEEN_MIN_FRAMES)
+        .collect();
+    let confirmed: Vec<&FusedChange> = report.objects.iter().filter(|o| o.confirmed).collect();
+    // One-to-one: each true object takes the nearest unused confirmed detection that matches
+    // it (a detection that merged two objects finds one of them).
+    let mut used = vec![false; confirmed.len()];
+    let mut found_ids = Vec::new();
+    for object in &truth.objects {
+        let best = confirmed
+            .iter()
+            .enumerate()
+            .filter(|(k, d)| !used[*k] && matches(d, object))
+            .min_by(|a, b| {
+                convex_distance(&a.1.footprint_m, &object.footprint_m)
+                    .total_cmp(&convex_distance(&b.1.footprint_m, &object.footprint_m))
+            })
+            .map(|(k, _)| k);
+        if let Some(k) = best {
+            used[k] = true;
+            found_ids.push(object.id);
+        }
+    }
+    let found = counted.iter().filter(|t| found_ids.contains(&t.id)).count();
+    let true_detections = used.iter().filter(|u| **u).count();
+    let recall = found as f64 / counted.len().max(1) as f64;
+    let precision = true_detections as f64 / confirmed.len().max(1) as f64;
+
+    let mut text = String::new();
+    writeln!(
+        text,
+        "# asgreg eval --changes\n\nscene {}, poses {}, {} frames with a change map ({} without), {:.1} ms per frame\n",
+        scene.display(),
+        poses.display(),
+        frames_with_result.len(),
+        report.frames.len() - frames_with_result.len(),
+        report.mean_detect_ms
+    )?;
+    writeln!(text, "| pixels | precision | recall | IoU | TP | FP | FN |")?;
+    writeln!(text, "|---|---|---|---|---|---|---|")?;
+    for (kind, s) in &pixels {
+        writeln!(
+            text,
+            "| {} | {:.3} | {:.3} | {:.3} | {} | {} | {} |",
+            kind.name(),
+            s.precision(),
+            s.recall(),
+            s.iou(),
+            s.true_positive,
+            s.false_positive,
+            s.false_negative
+        )?;
+    }
+    writeln!(
+        text,
+        "\nobjects: recall {found}/{} = {:.1} % (true objects ≥ 3 × 3 m seen by ≥ {SEEN_MIN_FRAMES} frames), precision {true_detections}/{} = {:.1} % (confirmed detections), {} unconfirmed detections\n",
+        counted.len(),
+        100.0 * recall,
+        confirmed.len(),
+        100.0 * precision,
+        report.objects.len() - confirmed.len()
+    )?;
+    writeln!(
+        text,
+        "| true object | kind | area m² | height m | frames seen | found |"
+    )?;
+    writeln!(text, "|---|---|---|---|---|---|")?;
+    for object in &truth.objects {
+        writeln!(
+            text,
+            "| {} {:?} | {} | {:.1} | {:.1} | {} | {} |",
+            object.id,
+            object.what,
+            object.kind.name(),
+            object.footprint_area_m2,
+            object.height_m,
+            seen_frames(object),
+            if found_ids.contains(&object.id) {
+                "yes"
+            } else {
+                "no"
+            }
+        )?;
+    }
+    writeln!(
+        text,
+        "\nconfirmed detections matched to no true object (clutter not in the model, model errors, or a second object merged into one detection):\n"
+    )?;
+    let on_omission = |detection: &FusedChange| {
+        detection.kind == ChangeKind::Added
+            && truth.model_omissions.iter().any(|o| {
+                convex_distance(&detection.footprint_m, &o.footprint_m) <= MATCH_DISTANCE_M
+                    && detection.centroid_m[2] >= o.z_min_m - 1.0
+                    && detection.centroid_m[2] <= o.z_max_m + 1.0
+            })
+    };
+    for (_, detection) in confirmed.iter().enumerate().filter(|(k, _)| !used[*k]) {
+        writeln!(
+            text,
+            "- {} {:.1} m² footprint, {:.1} m high at ({:.1}, {:.1}, {:.1}), {} frames{}",
+            detection.kind.name(),
+            detection.footprint_area_m2,
+            detection.height_m,
+            detection.centroid_m[0],
+            detection.centroid_m[1],
+            detection.centroid_m[2],
+            detection.frames.len(),
+            if on_omission(detection) {
+                " (on a building part the model omits by design)"
+            } else {
+                ""
+            }
+        )?;
+    }
+    let false_on_omissions = confirmed
+        .iter()
+        .enumerate()
+        .filter(|(k, d)| !used[*k] && on_omission(d))
+        .count();
+    let precision_without_omissions =
+        true_detections as f64 / (confirmed.len() - false_on_omissions).max(1) as f64;
+    writeln!(
+        text,
+        "\nprecision without the {false_on_omissions} detections on parts the model omits by design: {true_detections}/{} = {:.1} %",
+        confirmed.len() - false_on_omissions,
+        100.0 * precision_without_omissions
+    )?;
+    print!("{text}");
+    std::fs::write(args.out.join("changes_eval.md"), &text)
+        .with_context(|| format!("cannot write {}", args.out.display()))?;
+    let json = serde_json::json!({
+        "scene": scene,
+        "poses": poses,
+        "frames": frames_with_result.len(),
+        "mean_detect_ms": report.mean_detect_ms,
+        "pixels": pixels.iter().map(|(k, s)| (k.name(), serde_json::json!({
+            "precision": s.precision(), "recall": s.recall(), "iou": s.iou(), "counts": s,
+        }))).collect::<BTreeMap<_, _>>(),
+        "objects": {
+            "counted_true": counted.len(), "found": found, "recall": recall,
+            "confirmed": confirmed.len(), "true_detections": true_detections, "precision": precision,
+            "unconfirmed": report.objects.len() - confirmed.len(),
+            "false_on_model_omissions": false_on_omissions,
+            "precision_without_model_omissions": precision_without_omissions,
+        },
+    });
+    std::fs::write(
+        args.out.join("changes_eval.json"),
+        serde_json::to_string_pretty(&json)?,
+    )
+    .with_context(|| format!("cannot write {}", args.out.display()))?;
+    Ok(())
+}

@@ -1,0 +1,869 @@
+//! Change detection: what differs between a registered photo and the model. Per frame, under
+//! its pose, the model's rendered depth is compared with the photo's depth (a given MVS depth
+//! map, or one computed from neighbouring frames) pixel by pixel:
+//! `added` (the photo sees a surface in front of the model: a new building, an extension),
+//! `removed` (the photo sees through where the model has a surface: demolished), `unchanged`,
+//! `unknown` (no photo depth, or no model surface on the ray). Changed pixels are grouped into
+//! regions (connected components above a least area in m²) with their footprint in the model's
+//! georeferenced frame; [`fusion`] merges the regions of many frames into objects.
+//!
+//! Noise model (what the threshold grows with): the depth difference of an unchanged surface has
+//! a standard deviation `σ(d) = σ_model + σ_rel·d + σ_quad·d²` at depth `d`: the model's own
+//! deviation from the world (smoothing, noise, warp), a relative depth error (MVS on a fixed
+//! pixel grid: the error of a matched pixel scales with the depth), and the stereo term (depth
+//! from disparity: `σ_d = d²·σ_disparity / (f·B)`), zero for a given MVS depth map and set by a
+//! depth computed from a baseline. A pixel changes when `|Δ| > max(k·σ(d), Δ_min)`.
+//!
+//! Pure functions; [`ChangeWorkspace`] keeps the rasteriser, its buffers and the labels, so a
+//! stream of frames allocates nothing per frame beyond the regions it returns.
+
+pub mod fusion;
+pub mod polygon;
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use super::camera::{pixel_center, PinholeIntrinsics};
+use super::image::{Image, ImageView};
+use super::mesh::Mesh;
+use super::raster::{Rasterizer, RenderBuffers, RenderOptions};
+use super::rigid::Rigid3;
+
+/// The class of one pixel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+#[repr(u8)]
+pub enum ChangeClass {
+    /// No photo depth, or no model surface on the ray: nothing can be said.
+    Unknown = 0,
+    Unchanged = 1,
+    /// The photo sees something in front of the model.
+    Added = 2,
+    /// The photo sees through the model's surface.
+    Removed = 3,
+}
+
+impl ChangeClass {
+    /// The grey level of the class in mask images (one encoding for truth and detection masks).
+    pub fn mask_value(self) -> u8 {
+        match self {
+            ChangeClass::Unknown => 0,
+            ChangeClass::Unchanged => 80,
+            ChangeClass::Removed => 160,
+            ChangeClass::Added => 255,
+        }
+    }
+
+    /// The class of a mask grey level (nearest of the four levels).
+    pub fn from_mask_value(value: u8) -> Self {
+        [
+            ChangeClass::Unknown,
+            ChangeClass::Unchanged,
+            ChangeClass::Removed,
+            ChangeClass::Added,
+        ]
+        .into_iter()
+        .min_by_key(|c| (i16::from(c.mask_value()) - i16::from(value)).abs())
+        .unwrap_or(ChangeClass::Unknown)
+    }
+
+    fn from_u8(value: u8) -> Self {
+        match value {
+            1 => ChangeClass::Unchanged,
+            2 => ChangeClass::Added,
+            3 => ChangeClass::Removed,
+            _ => ChangeClass::Unknown,
+        }
+    }
+}
+
+/// The kind of a changed region or object.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ChangeKind {
+    Added,
+    Removed,
+}
+
+impl ChangeKind {
+    pub fn class(self) -> ChangeClass {
+        match self {
+            ChangeKind::Added => ChangeClass::Added,
+            ChangeKind::Removed => ChangeClass::Removed,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ChangeKind::Added => "added",
+            ChangeKind::Removed => "removed",
+        }
+    }
+}
+
+/// How changes are decided; `Default` suits a given MVS depth map (see the module's noise model).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ChangeConfig {
+    /// The model's own deviation from the world, metres (σ_model).
+    pub model_sigma_m: f32,
+    /// Relative depth error of the photo's depth (σ_rel).
+    pub relative_sigma: f32,
+    /// Stereo term σ_quad, per metre (σ_disparity / (f·B)); 0 for a given MVS depth.
+    pub quadratic_sigma_per_m: f32,
+    /// Threshold in standard deviations (k).
+    pub threshold_sigmas: f32,
+    /// Depth differences below this are never a change, metres (Δ_min).
+    pub min_difference_m: f32,
+    /// Morphological opening of each changed class (removes thin bands along depth edges), px.
+    pub opening_radius_px: usize,
+    /// Least surface area of a region as seen from the camera, m².
+    pub min_area_m2: f64,
+    /// Least pixel count of a region.
+    pub min_pixels: usize,
+    /// A region must extend at least this far in two of its three extents (vertical extent,
+    /// footprint width, footprint length), metres: a strip along a roof edge (a parapet, an
+    /// eave the model rounded off) is long but neither high nor wide.
+    pub min_extent_m: f64,
+}
+
+impl Default for ChangeConfig {
+    fn default() -> Self {
+        Self {
+            model_sigma_m: 0.1,
+            relative_sigma: 0.01,
+            quadratic_sigma_per_m: 0.0,
+            threshold_sigmas: 3.0,
+            min_difference_m: 0.5,
+            opening_radius_px: 1,
+            min_area_m2: 4.0,
+            min_pixels: 25,
+            min_extent_m: 2.0,
+        }
+    }
+}
+
+/// Errors of change detection.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ChangeError {
+    #[error("photo depth is {photo_width_px}×{photo_height_px} px but the model rendering is {model_width_px}×{model_height_px} px; give a depth map of the camera's size")]
+    SizeMismatch {
+        photo_width_px: usize,
+        photo_height_px: usize,
+        model_width_px: usize,
+        model_height_px: usize,
+    },
+    #[error("invalid change config: {0}")]
+    InvalidConfig(String),
+}
+
+impl ChangeConfig {
+    pub fn validate(&self) -> Result<(), ChangeError> {
+        let bad = |what: String| Err(ChangeError::InvalidConfig(what));
+        if !(self.model_sigma_m >= 0.0
+            && self.relative_sigma >= 0.0
+            && self.quadratic_sigma_per_m >= 0.0)
+        {
+            return bad("sigmas must be finite and ≥ 0".into());
+        }
+        if !(self.threshold_sigmas > 0.0 && self.min_difference_m >= 0.0) {
+            return bad(format!(
+                "threshold_sigmas {} must be > 0 and min_difference_m {} ≥ 0",
+                self.threshold_sigmas, self.min_difference_m
+            ));
+        }
+        if self.min_area_m2.is_nan()
+            || self.min_area_m2 < 0.0
+            || self.min_extent_m.is_nan()
+            || self.opening_radius_px > 10
+        {
+            return bad(format!(
+                "min_area_m2 {} must be ≥ 0 and opening_radius_px {} ≤ 10",
+                self.min_area_m2, self.opening_radius_px
+            ));
+        }
+        Ok(())
+    }
+
+    /// The depth difference above which a pixel at depth `depth_m` changes, metres.
+    pub fn threshold_m(&self, depth_m: f32) -> f32 {
+        let sigma = self.model_sigma_m
+            + self.relative_sigma * depth_m
+            + self.quadratic_sigma_per_m * depth_m * depth_m;
+        (self.threshold_sigmas * sigma).max(self.min_difference_m)
+    }
+}
+
+/// One changed region of one frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChangeRegion {
+    pub kind: ChangeKind,
+    pub pixel_count: usize,
+    /// Area of the changed surface as the camera sees it (sum of the pixels' footprints
+    /// `d² / (fx·fy)`), m².
+    pub surface_area_m2: f64,
+    /// Area of [`Self::footprint_m`], m².
+    pub footprint_area_m2: f64,
+    /// Vertical extent: the changed surface's top above the lowest surface at its pixels
+    /// (the ground in front of which it stands or through which it is seen), metres.
+    pub height_m: f64,
+    /// Extent of the changed surface itself in z (2nd to 98th percentile), metres.
+    pub vertical_extent_m: f64,
+    /// Least width of [`Self::footprint_m`] (over its edge directions), metres.
+    pub footprint_width_m: f64,
+    /// Extent of [`Self::footprint_m`] across that least width, metres.
+    pub footprint_length_m: f64,
+    /// Median |photo depth − model depth| over the region, metres.
+    pub depth_difference_m: f64,
+    /// Mean of the changed surface's points (the photo's for `added`, the model's for
+    /// `removed`), model frame with the georeferenced offset, metres.
+    pub centroid_m: [f64; 3],
+    /// Convex hull of the changed surface's points in x, y, counter-clockwise, metres.
+    pub footprint_m: Vec<[f64; 2]>,
+    /// 0..1: how far the differences exceed their thresholds (mean of min(1, |Δ|/τ − 1)).
+    pub confidence: f64,
+    /// Pixel bounding box: first column, first row, last column, last row.
+    pub bbox_px: [usize; 4],
+}
+
+/// Pixel counts of one frame's classes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ClassCounts {
+    pub unknown: usize,
+    pub unchanged: usize,
+    pub added: usize,
+    pub removed: usize,
+}
+
+/// One frame's result.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FrameChanges {
+    pub counts: ClassCounts,
+    pub regions: Vec<ChangeRegion>,
+}
+
+/// Reusable buffers of change detection.
+#[derive(Default)]
+pub struct ChangeWorkspace {
+    rasterizer: Rasterizer,
+    model: RenderBuffers,
+    scratch: Vec<u8>,
+    labels: Vec<u32>,
+    stack: Vec<usize>,
+}
+
+impl ChangeWorkspace {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The model rendering of the last [`detect_changes`] call (depth, face index).
+    pub fn model_rendering(&self) -> &RenderBuffers {
+        &self.model
+    }
+}
+
+/// Per pixel class of `photo_depth_m` against `model_depth_m` (both metres along the optical
+/// axis, 0 = none), written into `classes` (resized), then each changed class opened by
+/// `config.opening_radius_px` (pixels it drops become `unchanged`).
+pub fn classify_pixels(
+    photo_depth_m: ImageView<'_, f32>,
+    model_depth_m: ImageView<'_, f32>,
+    config: &ChangeConfig,
+    classes: &mut Image<ChangeClass>,
+    scratch: &mut Vec<u8>,
+) -> Result<(), ChangeError> {
+    let (w, h) = model_depth_m.size();
+    if photo_depth_m.size() != (w, h) {
+        return Err(ChangeError::SizeMismatch {
+            photo_width_px: photo_depth_m.width_px(),
+            photo_height_px: photo_depth_m.height_px(),
+            model_width_px: w,
+            model_height_px: h,
+        });
+    }
+    classes.reset(w, h, ChangeClass::Unknown);
+    for ((class, &dp), &dm) in classes
+        .data_mut()
+        .iter_mut()
+        .zip(photo_depth_m.data())
+        .zip(model_depth_m.data())
+    {
+        *class = pixel_class(dp, dm, config);
+    }
+    if config.opening_radius_px > 0 {
+        for kind in [ChangeClass::Added, ChangeClass::Removed] {
+            open_class(classes, kind, config.opening_radius_px, scratch);
+        }
+    }
+    Ok(())
+}
+
+fn pixel_class(photo_m: f32, model_m: f32, config: &ChangeConfig) -> ChangeClass {
+    if !(photo_m.is_finite() && photo_m > 0.0 && model_m.is_finite() && model_m > 0.0) {
+        return ChangeClass::Unknown;
+    }
+    let difference = photo_m - model_m;
+    let threshold = config.threshold_m(photo_m.min(model_m));
+    if difference < -threshold {
+        ChangeClass::Added
+    } else if difference > threshold {
+        ChangeClass::Removed
+    } else {
+        ChangeClass::Unchanged
+    }
+}
+
+/// Opening (erosion then dilation, square of side 2r+1) of one class; pixels of the class that
+/// do not survive become `unchanged`.
+fn open_class(
+    classes: &mut Image<ChangeClass>,
+    class: ChangeClass,
+    radius: usize,
+    scratch: &mut Vec<u8>,
+) {
+    let (w, h) = classes.size();
+    let r = radius as i64;
+    let member: Vec<bool> = classes.data().iter().map(|c| *c == class).collect();
+    // Erosion: all of the square in the class (outside the image counts as not).
+    scratch.clear();
+    scratch.resize(w * h, 0);
+    for row in 0..h {
+        for col in 0..w {
+            if !member[row * w + col] {
+                continue;
+            }
+            let inside = (-r..=r).all(|dr| {
+                (-r..=r).all(|dc| {
+                    let (rr, cc) = (row as i64 + dr, col as i64 + dc);
+                    rr >= 0
+                        && cc >= 0
+                        && rr < h as i64
+                        && cc < w as i64
+                        && member[rr as usize * w + cc as usize]
+                })
+            });
+            if inside {
+                scratch[row * w + col] = 1;
+            }
+        }
+    }
+    // Dilation of the eroded set, kept within the class.
+    let data = classes.data_mut();
+    for row in 0..h {
+        for col in 0..w {
+            let index = row * w + col;
+            if !member[index] {
+                continue;
+            }
+            let kept = (-r..=r).any(|dr| {
+                (-r..=r).any(|dc| {
+                    let (rr, cc) = (row as i64 + dr, col as i64 + dc);
+                    rr >= 0
+                        && cc >= 0
+                        && rr < h as i64
+                        && cc < w as i64
+                        && scratch[rr as usize * w + cc as usize] == 1
+                })
+            });
+            if !kept {
+                data[index] = ChangeClass::Unchanged;
+            }
+        }
+    }
+}
+
+/// Neighbouring pixels of one region differ in depth by at most this fraction of the depth…
+const CONTINUITY_RELATIVE: f32 = 0.04;
+/// …plus this, metres.
+const CONTINUITY_M: f32 = 0.3;
+
+/// The frame's changed regions: 8-connected components (continuous in depth) of each changed
+/// class with at least
+/// `config.min_pixels` pixels and `config.min_area_m2` of surface, measured in the model's
+/// frame through `cam_from_world` (world = the model's georeferenced frame). Pixels of regions
+/// that are too small become `unchanged` in `classes`.
+#[allow(clippy::too_many_arguments)]
+pub fn extract_regions(
+    classes: &mut Image<ChangeClass>,
+    photo_depth_m: ImageView<'_, f32>,
+    model_depth_m: ImageView<'_, f32>,
+    intrinsics: &PinholeIntrinsics,
+    cam_from_world: &Rigid3,
+    config: &ChangeConfig,
+    labels: &mut Vec<u32>,
+    stack: &mut Vec<usize>,
+) -> Vec<ChangeRegion> {
+    let (w, h) = classes.size();
+    labels.clear();
+    labels.resize(w * h, u32::MAX);
+    let world_from_cam = cam_from_world.inverse();
+    let pixel_area = 1.0 / (intrinsics.fx_px * intrinsics.fy_px).abs().max(1e-12);
+    let mut regions = Vec::new();
+    let mut members: Vec<usize> = Vec::new();
+    let mut next_label = 0u32;
+    for seed in 0..w * h {
+        let class = classes.data()[seed];
+        let kind = match class {
+            ChangeClass::Added => ChangeKind::Added,
+            ChangeClass::Removed => ChangeKind::Removed,
+            _ => continue,
+        };
+        if labels[seed] != u32::MAX {
+            continue;
+        }
+        // Flood fill (8-connected, and continuous in depth: two objects that touch in the
+        // image but stand metres apart are two regions).
+        let changed_depth = |index: usize| match kind {
+            ChangeKind::Added => photo_depth_m.data()[index],
+            ChangeKind::Removed => model_depth_m.data()[index],
+        };
+        members.clear();
+        stack.clear();
+        stack.push(seed);
+        labels[seed] = next_label;
+        while let Some(index) = stack.pop() {
+            members.push(index);
+            let (row, col) = ((index / w) as i64, (index % w) as i64);
+            for dr in -1..=1i64 {
+                for dc in -1..=1i64 {
+                    let (rr, cc) = (row + dr, col + dc);
+                    if rr < 0 || cc < 0 || rr >= h as i64 || cc >= w as i64 {
+                        continue;
+                    }
+                    let neighbour = rr as usize * w + cc as usize;
+                    let (a, b) = (changed_depth(index), changed_depth(neighbour));
+                    let continuous = (a - b).abs() <= CONTINUITY_RELATIVE * a.min(b) + CONTINUITY_M;
+                    if labels[neighbour] == u32::MAX
+                        && classes.data()[neighbour] == class
+                        && continuous
+                    {
+                        labels[neighbour] = next_label;
+                        stack.push(neighbour);
+                    }
+                }
+            }
+        }
+        next_label += 1;
+        let region = measure_region(
+            kind,
+            &members,
+            w,
+            photo_depth_m.data(),
+            model_depth_m.data(),
+            intrinsics,
+            &world_from_cam,
+            pixel_area,
+            config,
+        );
+        let extents = [
+            region.vertical_extent_m,
+            region.footprint_width_m,
+            region.footprint_length_m,
+        ];
+        let large_extents = extents
+            .iter()
+            .filter(|e| **e >= config.min_extent_m)
+            .count();
+        if members.len() < config.min_pixels
+            || region.surface_area_m2 < config.min_area_m2
+            || large_extents < 2
+        {
+            for &index in &members {
+                classes.data_mut()[index] = ChangeClass::Unchanged;
+            }
+            continue;
+        }
+        regions.push(region);
+    }
+    regions
+}
+
+/// Quantile (0..1) of a slice, which it reorders.
+fn quantile(values: &mut [f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return 0.0;
+    }
+    let k = ((values.len() - 1) as f64 * q).round() as usize;
+    let (_, v, _) = values.select_nth_unstable_by(k, f64::total_cmp);
+    *v
+}
+
+/// The points without stragglers (mixed depths at a region's edge land far behind or in
+/// front of it): those farther from the median than 1.5 × the 90th-percentile distance + 0.5 m.
+fn trim_outliers(points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
+    if points.len() < 10 {
+        return points;
+    }
+    let mut xs: Vec<f64> = points.iter().map(|p| p[0]).collect();
+    let mut ys: Vec<f64> = points.iter().map(|p| p[1]).collect();
+    let centre = [quantile(&mut xs, 0.5), quantile(&mut ys, 0.5)];
+    let distance = |p: &[f64; 2]| ((p[0] - centre[0]).powi(2) + (p[1] - centre[1]).powi(2)).sqrt();
+    let mut distances: Vec<f64> = points.iter().map(distance).collect();
+    let limit = 1.5 * quantile(&mut distances, 0.9) + 0.5;
+    points
+        .into_iter()
+        .filter(|p| distance(p) <= limit)
+        .collect()
+}
+
+#[allow(clippy::too_many_arguments)]
+fn measure_region(
+    kind: ChangeKind,
+    members: &[usize],
+    width: usize,
+    photo: &[f32],
+    model: &[f32],
+    intrinsics: &PinholeIntrinsics,
+    world_from_cam: &Rigid3,
+    pixel_area: f64,
+    config: &ChangeConfig,
+) -> ChangeRegion {
+    let mut surface_area = 0.0;
+    let mut centroid = Vector3::zeros();
+    let mut changed_z = Vec::with_capacity(members.len());
+    let mut all_z = Vec::with_capacity(2 * members.len());
+    let mut xy = Vec::with_capacity(members.len());
+    let mut differences = Vec::with_capacity(members.len());
+    let mut confidence = 0.0;
+    let mut bbox = [usize::MAX, usize::MAX, 0, 0];
+    let point = |index: usize, depth: f32| {
+        let n = intrinsics.pixel_to_normalized(pixel_center(index % width, index / width));
+        let d = f64::from(depth);
+        world_from_cam.transform_point(&Vector3::new(n.x * d, n.y * d, d))
+    };
+    for &index in members {
+        let (dp, dm) = (photo[index], model[index]);
+        let (changed, other) = match kind {
+            ChangeKind::Added => (dp, dm),
+            ChangeKind::Removed => (dm, dp),
+        };
+        let p = point(index, changed);
+        let q = point(index, other);
+        surface_area += f64::from(changed) * f64::from(changed) * pixel_area;
+        centroid += p;
+        changed_z.push(p.z);
+        all_z.push(p.z);
+        all_z.push(q.z);
+        xy.push([p.x, p.y]);
+        let difference = f64::from((dp - dm).abs());
+        differences.push(difference);
+        let threshold = f64::from(config.threshold_m(dp.min(dm)));
+        confidence += (difference / threshold - 1.0).clamp(0.0, 1.0);
+        let (col, row) = (index % width, index / width);
+        bbox = [
+            bbox[0].min(col),
+            bbox[1].min(row),
+            bbox[2].max(col),
+            bbox[3].max(row),
+        ];
+    }
+    let n = members.len().max(1) as f64;
+    let footprint = polygon::convex_hull(&trim_outliers(xy));
+    let top = quantile(&mut changed_z, 0.98);
+    let bottom = quantile(&mut changed_z, 0.02);
+    let base = quantile(&mut all_z, 0.02);
+    let (footprint_width_m, footprint_length_m) = polygon::width_and_length(&footprint);
+    let centroid = centroid / n;
+    ChangeRegion {
+        kind,
+        pixel_count: members.len(),
+        surface_area_m2: surface_area,
+        footprint_area_m2: polygon::polygon_area(&footprint),
+        height_m: (top - base).max(0.0),
+        vertical_extent_m: (top - bottom).max(0.0),
+        footprint_width_m,
+        footprint_length_m,
+        depth_difference_m: quantile(&mut differences, 0.5),
+        centroid_m: [centroid.x, centroid.y, centroid.z],
+        footprint_m: footprint,
+        confidence: confidence / n,
+        bbox_px: bbox,
+    }
+}
+
+/// One frame's changes: the model rendered under `cam_from_world` (world = the mesh's
+/// georeferenced frame) through `intrinsics` at the photo depth's size, compared with
+/// `photo_depth_m`; per-pixel classes in `classes`, regions in the result.
+pub fn detect_changes(
+    mesh: &Mesh,
+    intrinsics: &PinholeIntrinsics,
+    cam_from_world: &Rigid3,
+    photo_depth_m: ImageView<'_, f32>,
+    config: &ChangeConfig,
+    workspace: &mut ChangeWorkspace,
+    classes: &mut Image<ChangeClass>,
+) -> Result<FrameChanges, ChangeError> {
+    config.validate()?;
+    let (w, h) = photo_depth_m.size();
+    workspace.model.resize(w, h);
+    workspace.rasterizer.render(
+        mesh,
+        intrinsics,
+        cam_from_world,
+        &RenderOptions::default(),
+        &mut workspace.model,
+    );
+    let model_depth = workspace.model.depth_m().view();
+    classify_pixels(
+        photo_depth_m,
+        model_depth,
+        config,
+        classes,
+        &mut workspace.scratch,
+    )?;
+    let regions = extract_regions(
+        classes,
+        photo_depth_m,
+        model_depth,
+        intrinsics,
+        cam_from_world,
+        config,
+        &mut workspace.labels,
+        &mut workspace.stack,
+    );
+    Ok(FrameChanges {
+        counts: class_counts(classes.view()),
+        regions,
+    })
+}
+
+/// Pixel counts of each class.
+pub fn class_counts(classes: ImageView<'_, ChangeClass>) -> ClassCounts {
+    let mut counts = ClassCounts::default();
+    for class in classes.data() {
+        match class {
+            ChangeClass::Unknown => counts.unknown += 1,
+            ChangeClass::Unchanged => counts.unchanged += 1,
+            ChangeClass::Added => counts.added += 1,
+            ChangeClass::Removed => counts.removed += 1,
+        }
+    }
+    counts
+}
+
+/// The classes as mask grey levels ([`ChangeClass::mask_value`]), written into `out`.
+pub fn classes_to_mask(classes: ImageView<'_, ChangeClass>, out: &mut Image<u8>) {
+    let (w, h) = classes.size();
+    out.reset(w, h, 0);
+    for (value, class) in out.data_mut().iter_mut().zip(classes.data()) {
+        *value = class.mask_value();
+    }
+}
+
+/// The classes of a mask image's grey levels.
+pub fn mask_to_classes(mask: ImageView<'_, u8>) -> Image<ChangeClass> {
+    mask.to_image().map(|v| ChangeClass::from_mask_value(*v))
+}
+
+impl From<ChangeClass> for u8 {
+    fn from(class: ChangeClass) -> u8 {
+        class as u8
+    }
+}
+
+impl From<u8> for ChangeClass {
+    fn from(value: u8) -> Self {
+        ChangeClass::from_u8(value)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::camera::PinholeIntrinsics;
+
+    /// A camera 20 m above the ground looking straight down (x right, y down in the image ↔
+    /// world x, −y), 200×200 px, f = 200 px: a pixel is 0.1 m on the ground.
+    fn nadir() -> (PinholeIntrinsics, Rigid3) {
+        let intrinsics = PinholeIntrinsics::centered(200.0, 200, 200);
+        let pose = Rigid3::look_at(
+            &Vector3::new(0.0, 0.0, 20.0),
+            &Vector3::new(0.0, 0.0, 0.0),
+            &Vector3::y(),
+        )
+        .expect("a valid look-at");
+        (intrinsics, pose)
+    }
+
+    /// Quads as two triangles each.
+    fn mesh_of(quads: &[[[f64; 3]; 4]]) -> Mesh {
+        let mut positions = Vec::new();
+        let mut faces = Vec::new();
+        for quad in quads {
+            let base = positions.len() as u32;
+            positions.extend(quad.iter().map(|p| Vector3::new(p[0], p[1], p[2])));
+            faces.push([base, base + 1, base + 2]);
+            faces.push([base, base + 2, base + 3]);
+        }
+        Mesh::from_world(&positions, faces, None).expect("a valid mesh")
+    }
+
+    fn ground(origin: [f64; 2]) -> [[f64; 3]; 4] {
+        let [x, y] = origin;
+        [
+            [x - 50.0, y - 50.0, 0.0],
+            [x + 50.0, y - 50.0, 0.0],
+            [x + 50.0, y + 50.0, 0.0],
+            [x - 50.0, y + 50.0, 0.0],
+        ]
+    }
+
+    /// The top of a box: a 4 × 3 m roof at `height`, centred on (cx, cy).
+    fn roof(cx: f64, cy: f64, height: f64) -> [[f64; 3]; 4] {
+        [
+            [cx - 2.0, cy - 1.5, height],
+            [cx + 2.0, cy - 1.5, height],
+            [cx + 2.0, cy + 1.5, height],
+            [cx - 2.0, cy + 1.5, height],
+        ]
+    }
+
+    fn depth_of(mesh: &Mesh, intrinsics: &PinholeIntrinsics, pose: &Rigid3) -> Image<f32> {
+        let mut buffers = RenderBuffers::new(200, 200);
+        Rasterizer::new().render(
+            mesh,
+            intrinsics,
+            pose,
+            &RenderOptions::default(),
+            &mut buffers,
+        );
+        buffers.depth_m().clone()
+    }
+
+    #[test]
+    fn a_box_in_the_photo_only_is_one_added_region_with_its_area_and_height() {
+        let (intrinsics, pose) = nadir();
+        let model = mesh_of(&[ground([0.0, 0.0])]);
+        let world = mesh_of(&[ground([0.0, 0.0]), roof(3.0, 2.0, 4.0)]);
+        let photo_depth = depth_of(&world, &intrinsics, &pose);
+        let mut workspace = ChangeWorkspace::new();
+        let mut classes = Image::default();
+        let changes = detect_changes(
+            &model,
+            &intrinsics,
+            &pose,
+            photo_depth.view(),
+            &ChangeConfig::default(),
+            &mut workspace,
+            &mut classes,
+        )
+        .expect("sizes match");
+        assert_eq!(changes.regions.len(), 1, "{:?}", changes.regions);
+        let region = &changes.regions[0];
+        assert_eq!(region.kind, ChangeKind::Added);
+        // 4 × 3 m roof, pixel footprints at 16 m: the surface area is 12 m².
+        assert!(
+            (region.surface_area_m2 - 12.0).abs() < 0.6,
+            "{}",
+            region.surface_area_m2
+        );
+        assert!(
+            (region.footprint_area_m2 - 12.0).abs() < 0.8,
+            "{}",
+            region.footprint_area_m2
+        );
+        assert!((region.height_m - 4.0).abs() < 0.2, "{}", region.height_m);
+        assert!((region.centroid_m[0] - 3.0).abs() < 0.1);
+        assert!((region.centroid_m[1] - 2.0).abs() < 0.1);
+        assert!((region.centroid_m[2] - 4.0).abs() < 0.05);
+        assert!(region.confidence > 0.9);
+        assert_eq!(changes.counts.removed, 0);
+        assert!(changes.counts.added > 1000);
+    }
+
+    #[test]
+    fn a_box_in_the_model_only_is_one_removed_region_and_georeferencing_is_kept() {
+        let (intrinsics, pose) = nadir();
+        // A georeferenced scene: everything shifted by (500 000, 5 000 000) m.
+        let offset = Vector3::new(500_000.0, 5_000_000.0, 0.0);
+        let shifted = |quad: [[f64; 3]; 4]| quad.map(|p| [p[0] + offset.x, p[1] + offset.y, p[2]]);
+        let model = mesh_of(&[ground([0.0, 0.0]), roof(-4.0, -3.0, 5.0)].map(shifted));
+        let world = mesh_of(&[ground([0.0, 0.0])].map(shifted));
+        let pose = pose.compose(&Rigid3::new(nalgebra::UnitQuaternion::identity(), -offset));
+        let photo_depth = depth_of(&world, &intrinsics, &pose);
+        let mut workspace = ChangeWorkspace::new();
+        let mut classes = Image::default();
+        let changes = detect_changes(
+            &model,
+            &intrinsics,
+            &pose,
+            photo_depth.view(),
+            &ChangeConfig::default(),
+            &mut workspace,
+            &mut classes,
+        )
+        .expect("sizes match");
+        assert_eq!(changes.regions.len(), 1, "{:?}", changes.regions);
+        let region = &changes.regions[0];
+        assert_eq!(region.kind, ChangeKind::Removed);
+        assert!((region.height_m - 5.0).abs() < 0.2, "{}", region.height_m);
+        assert!((region.centroid_m[0] - (offset.x - 4.0)).abs() < 0.1);
+        assert!((region.centroid_m[1] - (offset.y - 3.0)).abs() < 0.1);
+        assert!((region.surface_area_m2 - 12.0).abs() < 0.6);
+    }
+
+    #[test]
+    fn noise_within_the_threshold_and_holes_are_not_changes() {
+        let (intrinsics, pose) = nadir();
+        let model = mesh_of(&[ground([0.0, 0.0])]);
+        let mut photo_depth = depth_of(&model, &intrinsics, &pose);
+        for (index, d) in photo_depth.data_mut().iter_mut().enumerate() {
+            // ±1.5 % of 20 m = 0.3 m, below 3 × (0.1 + 0.01 · 20) = 0.9 m.
+            *d *= if index % 2 == 0 { 1.015 } else { 0.985 };
+            if index % 7 == 0 {
+                *d = 0.0;
+            }
+        }
+        let mut workspace = ChangeWorkspace::new();
+        let mut classes = Image::default();
+        let changes = detect_changes(
+            &model,
+            &intrinsics,
+            &pose,
+            photo_depth.view(),
+            &ChangeConfig::default(),
+            &mut workspace,
+            &mut classes,
+        )
+        .expect("sizes match");
+        assert!(changes.regions.is_empty());
+        assert_eq!(changes.counts.added + changes.counts.removed, 0);
+        assert!(changes.counts.unknown >= 200 * 200 / 7);
+        let wrong = Image::filled(10, 10, 1.0f32);
+        assert!(detect_changes(
+            &model,
+            &intrinsics,
+            &pose,
+            wrong.view(),
+            &ChangeConfig::default(),
+            &mut workspace,
+            &mut classes,
+        )
+        .is_ok());
+        let model_depth = Image::filled(20, 20, 1.0f32);
+        assert!(matches!(
+            classify_pixels(
+                wrong.view(),
+                model_depth.view(),
+                &ChangeConfig::default(),
+                &mut classes,
+                &mut Vec::new()
+            ),
+            Err(ChangeError::SizeMismatch { .. })
+        ));
+    }
+
+    #[test]
+    fn mask_levels_round_trip() {
+        for class in [
+            ChangeClass::Unknown,
+            ChangeClass::Unchanged,
+            ChangeClass::Added,
+            ChangeClass::Removed,
+        ] {
+            assert_eq!(ChangeClass::from_mask_value(class.mask_value()), class);
+            assert_eq!(ChangeClass::from(u8::from(class)), class);
+        }
+    }
+}

@@ -1,0 +1,103 @@
+//! `asgreg synth --changes` then `asgreg changes` on a tiny house scene: the change map finds the
+//! objects the scene was built with (changes.json), as confirmed objects of the right kind in
+//! changes.geojson, and writes a mask and an overlay per photo.
+
+use crate::util::*;
+
+#[test]
+fn changes_finds_the_new_and_the_demolished_buildings_of_a_synth_changes_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let output = asgreg(&[
+        "synth",
+        "--out",
+        path_str(&scene),
+        "--width",
+        "240",
+        "--height",
+        "132",
+        "--images",
+        "9",
+        "--levels",
+        "30",
+        "--seed",
+        "2",
+        "--changes",
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let truth: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(scene.join("changes.json")).unwrap())
+            .unwrap();
+    let objects = truth["objects"].as_array().unwrap();
+    assert_eq!(objects.len(), 3, "{truth}");
+
+    let out = dir.path().join("changes");
+    let output = asgreg(&[
+        "changes",
+        "--mesh",
+        path_str(&scene.join("model.ply")),
+        "--images",
+        path_str(&scene.join("images")),
+        "--cameras",
+        path_str(&scene.join("gt/cameras.txt")),
+        "--poses",
+        path_str(&scene.join("gt/images.txt")),
+        "--depth",
+        path_str(&scene.join("depth")),
+        "--out",
+        path_str(&out),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    assert!(stdout(&output).contains("confirmed"), "{}", stdout(&output));
+    for k in 0..9 {
+        assert!(out.join(format!("masks/view_{k:03}.png")).is_file());
+        assert!(out.join(format!("overlays/view_{k:03}.png")).is_file());
+    }
+    let geojson: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("changes.geojson")).unwrap())
+            .unwrap();
+    assert_eq!(geojson["type"], "FeatureCollection");
+    let features = geojson["features"].as_array().unwrap();
+    // Every true object seen by two or more photos is a confirmed feature of its kind whose
+    // footprint contains (or lies within 1 m of) the true footprint's centre.
+    let mut checked = 0;
+    for object in objects {
+        let seen = object["pixels_per_image"]
+            .as_object()
+            .unwrap()
+            .values()
+            .filter(|v| v.as_u64().unwrap() >= 25)
+            .count();
+        if seen < 2 {
+            continue;
+        }
+        checked += 1;
+        let kind = object["kind"].as_str().unwrap();
+        let corners = object["footprint_m"].as_array().unwrap();
+        let centre = corners.iter().fold([0.0, 0.0], |acc, c| {
+            [
+                acc[0] + c[0].as_f64().unwrap() / corners.len() as f64,
+                acc[1] + c[1].as_f64().unwrap() / corners.len() as f64,
+            ]
+        });
+        let found = features.iter().any(|f| {
+            let ring = f["geometry"]["coordinates"][0].as_array().unwrap();
+            let (mut min, mut max) = ([f64::MAX; 2], [f64::MIN; 2]);
+            for p in ring {
+                for axis in 0..2 {
+                    let v = p[axis].as_f64().unwrap();
+                    min[axis] = min[axis].min(v);
+                    max[axis] = max[axis].max(v);
+                }
+            }
+            f["properties"]["kind"] == kind
+                && f["properties"]["confirmed"] == true
+                && (0..2).all(|a| centre[a] >= min[a] - 1.5 && centre[a] <= max[a] + 1.5)
+        });
+        assert!(found, "{object} not among {geojson}");
+    }
+    assert!(
+        checked >= 2,
+        "only {checked} objects seen by two photos: {truth}"
+    );
+}
