@@ -6,7 +6,7 @@
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
-use super::kernels::{l1_row_avx2, l1_row_sse2};
+use super::kernels::{l1_row_avx2, l1_row_sse2, l1_window_avx2};
 use super::kernels::{l1_row_portable, resolve_kernel};
 use super::layout::{CostVolume, Layout};
 use super::simd::LANES;
@@ -38,6 +38,7 @@ fn fill_pixel(
     y: usize,
     costs: &mut [u16],
     distances: impl Fn(&[u8], &[u8], &mut [u16]),
+    window_distances: Option<WindowKernel>,
 ) {
     let labels = 2 * context.radius + 1;
     let width = context.source.width_px;
@@ -53,6 +54,36 @@ fn fill_pixel(
     let descriptor = context.source.descriptor(pixel);
     let start_x = x as isize + context.offsets[0][pixel] as isize - context.radius as isize;
     let start_y = y as isize + context.offsets[1][pixel] as isize - context.radius as isize;
+    if let Some(window_distances) = window_distances {
+        let inside = start_x >= 0
+            && start_y >= 0
+            && start_x + labels as isize <= target_width
+            && start_y + labels as isize <= target_height;
+        if inside {
+            let row_len = target_width as usize * DESCRIPTOR_LEN;
+            let first = start_y as usize * row_len + start_x as usize * DESCRIPTOR_LEN;
+            window_distances(
+                descriptor,
+                &context.target.descriptors,
+                first,
+                row_len,
+                labels,
+                costs,
+            );
+            if let Some(mask) = context.target_mask {
+                let first_target = start_y as usize * target_width as usize + start_x as usize;
+                for (label_v, cost_row) in costs.chunks_exact_mut(labels).enumerate() {
+                    let row = &mask[first_target + label_v * target_width as usize..][..labels];
+                    for (cost, &valid) in cost_row.iter_mut().zip(row) {
+                        if !valid {
+                            *cost = OUTSIDE_COST;
+                        }
+                    }
+                }
+            }
+            return;
+        }
+    }
     // Candidates inside the target: label_u in first..last.
     let first = (-start_x).clamp(0, labels as isize) as usize;
     let last = (target_width - start_x).clamp(first as isize, labels as isize) as usize;
@@ -89,6 +120,7 @@ fn fill_block(
     block: usize,
     out: &mut [super::simd::Lanes],
     distances: impl Fn(&[u8], &[u8], &mut [u16]) + Copy,
+    window_distances: Option<WindowKernel>,
 ) -> Box<[u32; COST_HISTOGRAM_BINS]> {
     let labels = 2 * context.radius + 1;
     let window = labels * labels;
@@ -98,7 +130,7 @@ fn fill_block(
     for lane in 0..LANES.min(layout.height - block * LANES) {
         let y = block * LANES + lane;
         for x in 0..layout.width {
-            fill_pixel(context, x, y, costs, distances);
+            fill_pixel(context, x, y, costs, distances, window_distances);
             let position = x + lane;
             for (vector, &cost) in out[position * window..(position + 1) * window]
                 .iter_mut()
@@ -127,10 +159,21 @@ unsafe fn fill_block_avx2(
     out: &mut [super::simd::Lanes],
 ) -> Box<[u32; COST_HISTOGRAM_BINS]> {
     // SAFETY: this function runs only where the CPU has AVX2.
-    fill_block(context, layout, block, out, |source, targets, out| unsafe {
-        l1_row_avx2(source, targets, out)
-    })
+    fill_block(
+        context,
+        layout,
+        block,
+        out,
+        |source, targets, out| unsafe { l1_row_avx2(source, targets, out) },
+        Some(|source: &[u8], targets: &[u8], first, row_len, labels, out: &mut [u16]| unsafe {
+            l1_window_avx2(source, targets, first, row_len, labels, out)
+        }),
+    )
 }
+
+/// A kernel for whole windows inside the target: `(source, targets, first byte, bytes per target
+/// row, labels, out)`.
+type WindowKernel = fn(&[u8], &[u8], usize, usize, usize, &mut [u16]);
 
 /// Fills `volume` (resized to the source's size and `2 · radius + 1` labels per layer) with the
 /// costs of every source pixel against its window around `offsets`; candidates outside the target
@@ -162,7 +205,7 @@ pub(super) fn compute_data_cost(
     };
     let kernel = resolve_kernel(kernel);
     let histogram = volume
-        .costs
+        .costs_mut()
         .par_chunks_mut(layout.positions * window)
         .enumerate()
         .map(|(block, out)| match kernel {
@@ -170,8 +213,8 @@ pub(super) fn compute_data_cost(
             // SAFETY: `resolve_kernel` returns Avx2 only when the CPU has AVX2.
             L1Kernel::Avx2 => unsafe { fill_block_avx2(&context, layout, block, out) },
             #[cfg(target_arch = "x86_64")]
-            L1Kernel::Sse2 => fill_block(&context, layout, block, out, l1_row_sse2),
-            _ => fill_block(&context, layout, block, out, l1_row_portable),
+            L1Kernel::Sse2 => fill_block(&context, layout, block, out, l1_row_sse2, None),
+            _ => fill_block(&context, layout, block, out, l1_row_portable, None),
         })
         .reduce(
             || Box::new([0u32; COST_HISTOGRAM_BINS]),
@@ -194,13 +237,23 @@ pub(super) fn compute_data_cost(
             break;
         }
     }
-    volume.costs.par_chunks_mut(layout.positions * window).for_each(|block| {
+    volume
+        .costs_mut()
+        .par_chunks_mut(layout.positions * window)
+        .for_each(|block| replace_outside(block, default_cost, truncate));
+}
+
+crate::core::dense_sift::multiversioned! {
+    /// Outside candidates (and, with `truncate`, costs above it) cost `default_cost`; branch-free,
+    /// so that it vectorises.
+    fn replace_outside(block: &mut [super::simd::Lanes], default_cost: u16, truncate: bool) {
+        let ceiling = if truncate { default_cost } else { OUTSIDE_COST - 1 };
         for vector in block {
             for cost in &mut vector.0 {
-                if *cost == OUTSIDE_COST || (truncate && *cost > default_cost) {
-                    *cost = default_cost;
-                }
+                let outside = *cost == OUTSIDE_COST;
+                let capped = (*cost).min(ceiling);
+                *cost = if outside { default_cost } else { capped };
             }
         }
-    });
+    }
 }

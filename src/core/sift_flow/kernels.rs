@@ -120,6 +120,81 @@ pub(super) unsafe fn l1_row_avx2(source: &[u8], targets: &[u8], out: &mut [u16])
     }
 }
 
+/// L1 distances of `source` to a whole `labels × labels` window of target descriptors that lies
+/// inside the target: candidate `(label_u, label_v)` is the descriptor at `first + label_v · row_len
+/// + label_u · 128` of `targets`, written to `out[label_v · labels + label_u]`. As
+/// [`l1_row_avx2`], four candidates per horizontal sum, across the window's rows.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+pub(super) unsafe fn l1_window_avx2(
+    source: &[u8],
+    targets: &[u8],
+    first: usize,
+    row_len: usize,
+    labels: usize,
+    out: &mut [u16],
+) {
+    use std::arch::x86_64::*;
+    let count = labels * labels;
+    assert!(source.len() >= DESCRIPTOR_LEN && out.len() >= count && labels > 0);
+    assert!(first + (labels - 1) * (row_len + DESCRIPTOR_LEN) + DESCRIPTOR_LEN <= targets.len());
+    // SAFETY (loads and stores): every candidate lies in `targets` (checked above: the last one
+    // ends there at the latest) and `out` holds `count` values; all accesses are unaligned.
+    let source: [__m256i; 4] = std::array::from_fn(|chunk| unsafe {
+        _mm256_loadu_si256(source.as_ptr().add(32 * chunk) as *const __m256i)
+    });
+    let partial_sums = |target: *const u8| {
+        let sad = |chunk: usize| unsafe {
+            _mm256_sad_epu8(
+                source[chunk],
+                _mm256_loadu_si256(target.add(32 * chunk) as *const __m256i),
+            )
+        };
+        _mm256_add_epi64(
+            _mm256_add_epi64(sad(0), sad(1)),
+            _mm256_add_epi64(sad(2), sad(3)),
+        )
+    };
+    let base = unsafe { targets.as_ptr().add(first) };
+    let (mut label_u, mut label_v) = (0usize, 0usize);
+    let mut next = || {
+        let target = unsafe { base.add(label_v * row_len + label_u * DESCRIPTOR_LEN) };
+        label_u += 1;
+        if label_u == labels {
+            label_u = 0;
+            label_v += 1;
+        }
+        target
+    };
+    let mut candidate = 0;
+    while candidate + 4 <= count {
+        let sums: [__m256i; 4] = std::array::from_fn(|_| partial_sums(next()));
+        let packed = _mm256_or_si256(
+            _mm256_or_si256(sums[0], _mm256_slli_epi64(sums[1], 16)),
+            _mm256_or_si256(_mm256_slli_epi64(sums[2], 32), _mm256_slli_epi64(sums[3], 48)),
+        );
+        let folded = _mm_add_epi16(
+            _mm256_castsi256_si128(packed),
+            _mm256_extracti128_si256(packed, 1),
+        );
+        let folded = _mm_add_epi16(folded, _mm_unpackhi_epi64(folded, folded));
+        unsafe { _mm_storel_epi64(out.as_mut_ptr().add(candidate) as *mut __m128i, folded) };
+        candidate += 4;
+    }
+    for distance in &mut out[candidate..count] {
+        let sums = partial_sums(next());
+        let folded = _mm_add_epi64(
+            _mm256_castsi256_si128(sums),
+            _mm256_extracti128_si256(sums, 1),
+        );
+        *distance = (_mm_cvtsi128_si64(folded) + _mm_cvtsi128_si64(_mm_unpackhi_epi64(folded, folded)))
+            as u16;
+    }
+}
+
 /// The L1 distance of two descriptors with the chosen kernel (for tests and benchmarks; the data
 /// term dispatches once per row, not per pair).
 pub fn descriptor_l1_distance(a: &[u8], b: &[u8], kernel: L1Kernel) -> u32 {
@@ -183,6 +258,23 @@ mod tests {
                     // SAFETY: the CPU has AVX2.
                     unsafe { l1_row_avx2(&source, &targets, &mut avx2) };
                     assert_eq!(avx2, portable, "{count}");
+                }
+            }
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // A 3x3 window in an image 4 descriptors wide, starting at its second column.
+            let image: Vec<u8> = (0..128 * 4 * 3).map(|index| (index * 29 % 253) as u8).collect();
+            let mut window = [0u16; 9];
+            // SAFETY: the CPU has AVX2.
+            unsafe { l1_window_avx2(&source, &image, 128, 4 * 128, 3, &mut window) };
+            for label_v in 0..3 {
+                for label_u in 0..3 {
+                    let at = 128 + label_v * 4 * 128 + label_u * 128;
+                    assert_eq!(
+                        window[label_v * 3 + label_u] as u32,
+                        l1_distance_portable(&source, &image[at..at + 128])
+                    );
                 }
             }
         }
