@@ -11,7 +11,7 @@
 //! finer grid.
 
 use super::config::MAX_LABELS;
-use super::layout::{CostVolume, Layout};
+use super::layout::{grown, CostVolume, Layout};
 #[cfg(target_arch = "x86_64")]
 use super::simd::Avx2;
 use super::simd::{Lanes, Portable, Simd, LANES};
@@ -69,9 +69,15 @@ pub(super) struct LevelProblem<'a> {
     /// Row-major, the volume's size.
     pub(super) offsets: [&'a [i32]; 2],
     pub(super) data: &'a CostVolume,
+    /// Horizontal bands of rows (`⌈height / bands⌉` rows each, at least 2) that every sweep treats
+    /// as separate images; the messages across a band's seam are sent after the sweep, from the
+    /// state it left (the schedule of the reference's parallel sweeps, here run one after the
+    /// other). 1: one band.
+    pub(super) bands: usize,
 }
 
-/// Messages and offsets of one grid, in the layout.
+/// Messages and offsets of one grid, in the layout. The message buffers only grow (see
+/// [`grown`]): their first `layout.vectors() · …` vectors are this grid's.
 #[derive(Debug, Default)]
 pub(super) struct GridState {
     layout: Layout,
@@ -105,11 +111,13 @@ struct GridParams {
     gamma_q15: u16,
     /// Steps after which a shifted message is flat (`labels + ⌈d/α⌉`).
     max_shift: usize,
+    /// Rows per band (see [`LevelProblem::bands`]); at least the grid's height for one band.
+    band_rows: usize,
 }
 
 impl GridParams {
     /// The parameters of a grid `depth` multigrid levels below the problem's (energy `1/4^depth`).
-    fn new(problem: &LevelProblem, depth: u32) -> Self {
+    fn new(problem: &LevelProblem, depth: u32, height: usize) -> Self {
         let scale = 4f32.powi(depth as i32);
         let to_cost = |value: f32| (value / scale).round().clamp(0.0, u16::MAX as f32) as u16;
         let alpha = to_cost(problem.smoothness_weight);
@@ -128,6 +136,7 @@ impl GridParams {
             truncation,
             gamma_q15: (gamma * 2048.0).round().clamp(0.0, i16::MAX as f32) as u16,
             max_shift,
+            band_rows: height.div_ceil(problem.bands.max(1)).max(2),
         }
     }
 }
@@ -179,11 +188,11 @@ fn solve_grid(
     state.layout = layout;
     for plane in 0..2 {
         layout.skew(offsets[plane], |offset| offset as i16 as u16, &mut state.offsets[plane]);
-        state.spatial[plane].resize(layout.vectors() * 4 * labels, Lanes::default());
-        state.dual[plane].resize(layout.vectors() * labels, Lanes::default());
-        state.halo[plane].resize(layout.positions * labels, Lanes::default());
+        grown(&mut state.spatial[plane], layout.vectors() * 4 * labels);
+        grown(&mut state.dual[plane], layout.vectors() * labels);
+        grown(&mut state.halo[plane], layout.positions * labels);
     }
-    let params = GridParams::new(problem, depth);
+    let params = GridParams::new(problem, depth, layout.height);
     let (width, height) = (layout.width, layout.height);
     let coarse = match grids.split_first_mut() {
         Some((coarse, coarser_grids)) if width > 1 && height > 1 => {
@@ -251,7 +260,7 @@ pub(super) fn choose_labels(
     labels_out: &mut [Vec<u8>; 2],
     beliefs_out: Option<&mut [Vec<f32>; 2]>,
 ) {
-    let params = GridParams::new(problem, 0);
+    let params = GridParams::new(problem, 0, problem.data.layout.height);
     run_kernel(
         isa,
         problem.labels,
@@ -340,6 +349,7 @@ fn run_kernel_fixed<S: Simd, const N: usize>(s: S, kernel: Kernel) {
                 } else {
                     sweep_backward::<S, N>(s, &params, data, plane, update_dual, state);
                 }
+                send_across_seams(&params, plane, forward, state);
             }
         }
         Kernel::Choose {
@@ -368,9 +378,11 @@ fn coarse_data<S: Simd>(s: S, fine: &CostVolume, coarse: &mut CostVolume) {
     let window = fine.labels * fine.labels;
     let (fine_layout, coarse_layout) = (fine.layout, coarse.layout);
     let zero = s.splat(0);
+    let fine_costs = fine.costs();
+    let coarse_costs = coarse.costs_mut();
     let fine_vector = |block: usize, position: isize, entry: usize| {
         if block < fine_layout.blocks && (0..fine_layout.positions as isize).contains(&position) {
-            s.load(&fine.costs[(block * fine_layout.positions + position as usize) * window + entry])
+            s.load(&fine_costs[(block * fine_layout.positions + position as usize) * window + entry])
         } else {
             zero
         }
@@ -387,7 +399,7 @@ fn coarse_data<S: Simd>(s: S, fine: &CostVolume, coarse: &mut CostVolume) {
                         *vector = fine_vector(2 * block + half, first + step as isize, entry);
                     }
                 }
-                s.store(&mut coarse.costs[out + entry], s.quarter_block_sums(halves));
+                s.store(&mut coarse_costs[out + entry], s.quarter_block_sums(halves));
             }
         }
     }
@@ -465,12 +477,16 @@ fn start_from_data<S: Simd, const N: usize>(
 ) {
     let labels = label_count::<N>(params.labels);
     let window = labels * labels;
-    state.spatial.iter_mut().for_each(|messages| messages.fill(Lanes::default()));
+    let spatial_len = state.layout.vectors() * 4 * labels;
+    state
+        .spatial
+        .iter_mut()
+        .for_each(|messages| messages[..spatial_len].fill(Lanes::default()));
     let [to_u, to_v] = &mut state.dual;
     for vector in 0..state.layout.vectors() {
         let range_u = range_terms::<S, N>(s, params, labels, s.load(&state.offsets[0][vector]));
         let range_v = range_terms::<S, N>(s, params, labels, s.load(&state.offsets[1][vector]));
-        let costs = &data.costs[vector * window..(vector + 1) * window];
+        let costs = &data.costs()[vector * window..(vector + 1) * window];
         let mut message_u = [s.splat(u16::MAX); N];
         let mut message_v = [s.splat(u16::MAX); N];
         for label_v in 0..labels {
@@ -565,6 +581,20 @@ fn truncated_l1_message<S: Simd, const N: usize>(
 }
 
 /// The lanes of block `block` at position `position` that are pixels.
+/// The lanes of block `block` whose row `r` has `(r + row_offset) mod band_rows = 0` and
+/// `0 < r + row_offset < height`: rows that start a band (`row_offset = 0`) or end one (1).
+#[inline(always)]
+fn seam_lanes<S: Simd>(s: S, params: &GridParams, layout: Layout, block: usize, row_offset: usize) -> S::V {
+    let mut mask = Lanes::default();
+    for (lane, value) in mask.0.iter_mut().enumerate() {
+        let row = block * LANES + lane + row_offset;
+        if row > 0 && row < layout.height && row % params.band_rows == 0 {
+            *value = u16::MAX;
+        }
+    }
+    s.load(&mask)
+}
+
 #[inline(always)]
 fn valid_lanes<S: Simd>(s: S, layout: Layout, block: usize, position: usize) -> S::V {
     let lane_index = s.load(&LANE_INDEX);
@@ -634,6 +664,7 @@ fn sweep_forward<S: Simd, const N: usize>(
     };
     let spatial = &mut state.spatial[plane];
     let [halo_even, halo_odd] = &mut state.halo;
+    let all_costs = data.costs();
     for block in 0..layout.blocks {
         // The block above wrote its messages into the lanes of this block's first row.
         let (halo_in, halo_out) = if block % 2 == 0 {
@@ -643,6 +674,9 @@ fn sweep_forward<S: Simd, const N: usize>(
         };
         let mut from_left = [zero; N];
         let mut sent_down = [zero; N];
+        // First rows of bands keep their message from above until the seams are sent.
+        let band_starts = seam_lanes(s, params, layout, block, 0);
+        let banded = s.any(band_starts);
         for position in 0..positions {
             let vector = block * positions + position;
             let offset = s.load(&offsets[vector]);
@@ -662,6 +696,10 @@ fn sweep_forward<S: Simd, const N: usize>(
                     zero
                 };
                 from_above[label] = s.lanes_up(sent_down[label], fill);
+                if banded {
+                    let kept = s.load(&cell[FROM_ABOVE * labels + label]);
+                    from_above[label] = s.select(band_starts, kept, from_above[label]);
+                }
                 from_right[label] = s.load(&cell[FROM_RIGHT * labels + label]);
                 from_below[label] = s.load(&cell[FROM_BELOW * labels + label]);
                 s.store(&mut cell[FROM_LEFT * labels + label], from_left[label]);
@@ -710,7 +748,7 @@ fn sweep_forward<S: Simd, const N: usize>(
                     s,
                     labels,
                     plane,
-                    &data.costs[vector * window..(vector + 1) * window],
+                    &all_costs[vector * window..(vector + 1) * window],
                     outgoing,
                     &mut dual_other[vector * labels..(vector + 1) * labels],
                 );
@@ -744,6 +782,7 @@ fn sweep_backward<S: Simd, const N: usize>(
     };
     let spatial = &mut state.spatial[plane];
     let [halo_even, halo_odd] = &mut state.halo;
+    let all_costs = data.costs();
     for block in (0..layout.blocks).rev() {
         // The block below wrote its messages into the lanes of this block's last row.
         let (halo_in, halo_out) = if block % 2 == 0 {
@@ -753,6 +792,9 @@ fn sweep_backward<S: Simd, const N: usize>(
         };
         let mut from_right = [zero; N];
         let mut sent_up = [zero; N];
+        // Last rows of bands keep their message from below until the seams are sent.
+        let band_ends = seam_lanes(s, params, layout, block, 1);
+        let banded = s.any(band_ends);
         for position in (0..positions).rev() {
             let vector = block * positions + position;
             let offset = s.load(&offsets[vector]);
@@ -772,6 +814,10 @@ fn sweep_backward<S: Simd, const N: usize>(
                     zero
                 };
                 from_below[label] = s.lanes_down(sent_up[label], fill);
+                if banded {
+                    let kept = s.load(&cell[FROM_BELOW * labels + label]);
+                    from_below[label] = s.select(band_ends, kept, from_below[label]);
+                }
                 from_left[label] = s.load(&cell[FROM_LEFT * labels + label]);
                 from_above[label] = s.load(&cell[FROM_ABOVE * labels + label]);
                 s.store(&mut cell[FROM_RIGHT * labels + label], from_right[label]);
@@ -827,13 +873,97 @@ fn sweep_backward<S: Simd, const N: usize>(
                     s,
                     labels,
                     plane,
-                    &data.costs[vector * window..(vector + 1) * window],
+                    &all_costs[vector * window..(vector + 1) * window],
                     outgoing,
                     &mut dual_other[vector * labels..(vector + 1) * labels],
                 );
             }
         }
     }
+}
+
+/// The messages a banded sweep left out: from every pixel of the last row of each band down
+/// (forward) or of the first row of the next band up (backward), from the state after the sweep.
+/// Plain Rust on one row at a time (the same for every instruction set).
+fn send_across_seams(params: &GridParams, plane: usize, forward: bool, state: &mut GridState) {
+    let layout = state.layout;
+    let labels = params.labels;
+    let mut seam = params.band_rows;
+    while seam < layout.height {
+        let (sender_row, receiver_row) = if forward {
+            (seam - 1, seam)
+        } else {
+            (seam, seam - 1)
+        };
+        let (slot_at_receiver, excluded_slot) = if forward {
+            (FROM_ABOVE, FROM_BELOW)
+        } else {
+            (FROM_BELOW, FROM_ABOVE)
+        };
+        let mut h = [0u16; MAX_LABELS];
+        for x in 0..layout.width {
+            let (sender, sender_lane) = layout.locate(x, sender_row);
+            let (receiver, receiver_lane) = layout.locate(x, receiver_row);
+            let offset = state.offsets[plane][sender].0[sender_lane] as i16 as i32;
+            let receiver_offset = state.offsets[plane][receiver].0[receiver_lane] as i16 as i32;
+            for (label, value) in h[..labels].iter_mut().enumerate() {
+                let mut sum = range_term(params, offset + label as i32 - params.radius as i32)
+                    .saturating_add(state.dual[plane][sender * labels + label].0[sender_lane]);
+                for slot in (0..4).filter(|&slot| slot != excluded_slot) {
+                    sum = sum.saturating_add(
+                        state.spatial[plane][(sender * 4 + slot) * labels + label].0[sender_lane],
+                    );
+                }
+                *value = sum;
+            }
+            let message = scalar_message(params, &mut h[..labels], receiver_offset - offset);
+            for (label, &value) in message[..labels].iter().enumerate() {
+                state.spatial[plane][(receiver * 4 + slot_at_receiver) * labels + label].0
+                    [receiver_lane] = value;
+            }
+        }
+        seam += params.band_rows;
+    }
+}
+
+/// The range term `round(γ|flow|)` of one label, as [`range_terms`] computes it per lane.
+fn range_term(params: &GridParams, flow: i32) -> u16 {
+    let magnitude = (flow.unsigned_abs().min(MAX_RANGE_FLOW as u32) * 16) as i32;
+    ((magnitude * params.gamma_q15 as i32 + (1 << 14)) >> 15) as u16
+}
+
+/// [`truncated_l1_message`] for one pixel (`h` is overwritten by its distance transform).
+fn scalar_message(params: &GridParams, h: &mut [u16], shift: i32) -> [u16; MAX_LABELS] {
+    let labels = h.len();
+    let minimum = *h.iter().min().expect("labels");
+    for label in 1..labels {
+        h[label] = h[label].min(h[label - 1].saturating_add(params.alpha));
+    }
+    for label in (0..labels - 1).rev() {
+        h[label] = h[label].min(h[label + 1].saturating_add(params.alpha));
+    }
+    let ceiling = minimum.saturating_add(params.truncation);
+    let mut message = [0u16; MAX_LABELS];
+    for (label, value) in message[..labels].iter_mut().enumerate() {
+        let source = label as i32 + shift;
+        let transformed = if shift.unsigned_abs() as usize > params.max_shift {
+            u16::MAX
+        } else if source < 0 {
+            (0..-source).fold(h[0], |value, _| value.saturating_add(params.alpha))
+        } else if source >= labels as i32 {
+            (0..source - labels as i32 + 1).fold(h[labels - 1], |value, _| {
+                value.saturating_add(params.alpha)
+            })
+        } else {
+            h[source as usize]
+        };
+        *value = transformed.min(ceiling);
+    }
+    let least = *message[..labels].iter().min().expect("labels");
+    for value in &mut message[..labels] {
+        *value -= least;
+    }
+    message
 }
 
 /// Belief of each layer (range term + inter-layer message + the four spatial messages), its first
@@ -904,6 +1034,301 @@ fn choose<S: Simd, const N: usize>(
 mod tests {
     use super::*;
 
+    fn reference_message(params: &GridParams, h: &[u16], shift: i32) -> Vec<u16> {
+        let mut h = h.to_vec();
+        scalar_message(params, &mut h, shift)[..params.labels].to_vec()
+    }
+
+    /// Belief propagation on one grid pixel by pixel in raster order, as the reference's code is
+    /// written, with the kernels' integer arithmetic: the labels it chooses.
+    fn reference_solve(
+        params: &GridParams,
+        width: usize,
+        height: usize,
+        offsets: [&[i32]; 2],
+        costs: &[u16],
+        iterations: usize,
+    ) -> [Vec<u8>; 2] {
+        let labels = params.labels;
+        let window = labels * labels;
+        let pixels = width * height;
+        let range = |plane: usize, pixel: usize, label: usize| {
+            range_term(params, offsets[plane][pixel] + label as i32 - params.radius as i32)
+        };
+        let mut spatial = [vec![0u16; pixels * 4 * labels], vec![0u16; pixels * 4 * labels]];
+        let mut dual = [vec![0u16; pixels * labels], vec![0u16; pixels * labels]];
+        for pixel in 0..pixels {
+            let cost = |u: usize, v: usize| costs[pixel * window + v * labels + u];
+            let to_u: Vec<u16> = (0..labels)
+                .map(|u| (0..labels).map(|v| cost(u, v).saturating_add(range(1, pixel, v))).min().unwrap())
+                .collect();
+            let to_v: Vec<u16> = (0..labels)
+                .map(|v| (0..labels).map(|u| cost(u, v).saturating_add(range(0, pixel, u))).min().unwrap())
+                .collect();
+            for (plane, message) in [to_u, to_v].into_iter().enumerate() {
+                let least = *message.iter().min().unwrap();
+                for (label, value) in message.iter().enumerate() {
+                    dual[plane][pixel * labels + label] = value - least;
+                }
+            }
+        }
+        for iteration in 0..iterations {
+            let plane = iteration % 2;
+            let forward = iteration % 4 < 2;
+            let update_dual = iteration % 8 < 4;
+            for step in 0..pixels {
+                let pixel = if forward { step } else { pixels - 1 - step };
+                let (x, y) = (pixel % width, pixel / width);
+                let incoming = |slot: usize, label: usize, spatial: &[u16]| spatial[(pixel * 4 + slot) * labels + label];
+                let base: Vec<u16> = (0..labels)
+                    .map(|label| {
+                        (0..4).fold(
+                            range(plane, pixel, label).saturating_add(dual[plane][pixel * labels + label]),
+                            |sum, slot| sum.saturating_add(incoming(slot, label, &spatial[plane])),
+                        )
+                    })
+                    .collect();
+                let neighbours = if forward {
+                    [
+                        (x + 1 < width, pixel + 1, FROM_LEFT, FROM_RIGHT),
+                        (y + 1 < height, pixel + width, FROM_ABOVE, FROM_BELOW),
+                    ]
+                } else {
+                    [
+                        (x > 0, pixel.wrapping_sub(1), FROM_RIGHT, FROM_LEFT),
+                        (y > 0, pixel.wrapping_sub(width), FROM_BELOW, FROM_ABOVE),
+                    ]
+                };
+                for (exists, neighbour, slot_at_neighbour, excluded) in neighbours {
+                    // No message crosses a band's seam during the sweep.
+                    let crosses_seam = neighbour / width != y
+                        && (y.max(neighbour / width)) % params.band_rows == 0;
+                    if !exists || crosses_seam {
+                        continue;
+                    }
+                    let h: Vec<u16> = (0..labels)
+                        .map(|label| base[label].saturating_sub(incoming(excluded, label, &spatial[plane])))
+                        .collect();
+                    let shift = offsets[plane][neighbour] - offsets[plane][pixel];
+                    let message = reference_message(params, &h, shift);
+                    spatial[plane][(neighbour * 4 + slot_at_neighbour) * labels..][..labels]
+                        .copy_from_slice(&message);
+                }
+                if update_dual {
+                    let outgoing: Vec<u16> = (0..labels)
+                        .map(|label| base[label].saturating_sub(dual[plane][pixel * labels + label]))
+                        .collect();
+                    let cost = |u: usize, v: usize| costs[pixel * window + v * labels + u];
+                    let message: Vec<u16> = (0..labels)
+                        .map(|other| {
+                            (0..labels)
+                                .map(|this| {
+                                    let (u, v) = if plane == 0 { (this, other) } else { (other, this) };
+                                    cost(u, v).saturating_add(outgoing[this])
+                                })
+                                .min()
+                                .unwrap()
+                        })
+                        .collect();
+                    let least = *message.iter().min().unwrap();
+                    for (label, value) in message.iter().enumerate() {
+                        dual[1 - plane][pixel * labels + label] = value - least;
+                    }
+                }
+            }
+            // The seams, from the state the sweep left.
+            let mut seam = params.band_rows;
+            while seam < height {
+                let (sender_row, receiver_row, slot_at_receiver, excluded) = if forward {
+                    (seam - 1, seam, FROM_ABOVE, FROM_BELOW)
+                } else {
+                    (seam, seam - 1, FROM_BELOW, FROM_ABOVE)
+                };
+                for x in 0..width {
+                    let (pixel, receiver) = (sender_row * width + x, receiver_row * width + x);
+                    let h: Vec<u16> = (0..labels)
+                        .map(|label| {
+                            (0..4).filter(|&slot| slot != excluded).fold(
+                                range(plane, pixel, label).saturating_add(dual[plane][pixel * labels + label]),
+                                |sum, slot| sum.saturating_add(spatial[plane][(pixel * 4 + slot) * labels + label]),
+                            )
+                        })
+                        .collect();
+                    let shift = offsets[plane][receiver] - offsets[plane][pixel];
+                    let message = reference_message(params, &h, shift);
+                    spatial[plane][(receiver * 4 + slot_at_receiver) * labels..][..labels]
+                        .copy_from_slice(&message);
+                }
+                seam += params.band_rows;
+            }
+        }
+        std::array::from_fn(|plane| {
+            (0..pixels)
+                .map(|pixel| {
+                    let belief = |label: usize| {
+                        (0..4).fold(
+                            range(plane, pixel, label).saturating_add(dual[plane][pixel * labels + label]),
+                            |sum, slot| sum.saturating_add(spatial[plane][(pixel * 4 + slot) * labels + label]),
+                        )
+                    };
+                    (0..labels).min_by_key(|&label| (belief(label), label)).unwrap() as u8
+                })
+                .collect()
+        })
+    }
+
+    /// A small problem with costs that favour a smooth flow, noise, and offsets that jump.
+    fn test_problem(width: usize, height: usize, labels: usize) -> ([Vec<i32>; 2], CostVolume, Vec<u16>) {
+        let hash = |a: usize, b: usize| ((a * 2_654_435_761 + b * 40_503) >> 7) % 1000;
+        let offsets: [Vec<i32>; 2] = std::array::from_fn(|plane| {
+            (0..width * height)
+                .map(|pixel| {
+                    let (x, y) = (pixel % width, pixel / width);
+                    (x / 5 + plane * y / 7) as i32 - 3 + (hash(pixel, plane) % 10 == 0) as i32 * 4
+                })
+                .collect()
+        });
+        let window = labels * labels;
+        let costs: Vec<u16> = (0..width * height * window)
+            .map(|index| {
+                let (pixel, entry) = (index / window, index % window);
+                let (u, v) = (entry % labels, entry / labels);
+                let (x, y) = (pixel % width, pixel / width);
+                let ideal = ((x + y) % labels, (x * 3 / 4) % labels);
+                let distance = u.abs_diff(ideal.0) + v.abs_diff(ideal.1);
+                (distance * 700 + hash(index, 1)) as u16
+            })
+            .collect();
+        let layout = Layout::new(width, height);
+        let mut volume = CostVolume::default();
+        volume.reset(layout, labels);
+        let all = volume.costs_mut();
+        layout.for_each_pixel(|x, y, vector, lane| {
+            for entry in 0..window {
+                all[vector * window + entry].0[lane] = costs[(y * width + x) * window + entry];
+            }
+        });
+        (offsets, volume, costs)
+    }
+
+    #[test]
+    fn wavefront_sweeps_equal_raster_order() {
+        for (width, height, labels, specialised, bands) in [
+            (37, 21, 5, true, 1),
+            (37, 21, 5, true, 2),
+            (9, 16, 7, true, 3),
+            (20, 35, 3, false, 2),
+            (5, 40, 5, true, 5),
+            (11, 64, 5, true, 2),
+        ] {
+            let (offsets, volume, costs) = test_problem(width, height, labels);
+            let problem = LevelProblem {
+                radius: labels / 2,
+                labels,
+                flow_magnitude_weight: 9.5,
+                smoothness_weight: 300.0,
+                smoothness_truncation: 2000.0,
+                offsets: [&offsets[0], &offsets[1]],
+                data: &volume,
+                bands,
+            };
+            let params = GridParams::new(&problem, 0, height);
+            let expected = reference_solve(&params, width, height, problem.offsets, &costs, 10);
+            for isa in [Isa::detect(), Isa::Portable] {
+                let mut state = GridState::default();
+                solve_with_multigrid(isa, &problem, 10, 4, specialised, &mut [], &mut state);
+                let mut labels_out = [Vec::new(), Vec::new()];
+                choose_labels(isa, &problem, specialised, &state, &mut labels_out, None);
+                assert_eq!(
+                    labels_out, expected,
+                    "{width}x{height}, {labels} labels, {bands} bands, {isa:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn multigrid_grids_sum_blocks_and_start_from_them() {
+        let (width, height, labels) = (23, 37, 3);
+        let (offsets, fine, costs) = test_problem(width, height, labels);
+        let window = labels * labels;
+        let coarse_layout = Layout::new(width.div_ceil(2), height.div_ceil(2));
+        let mut coarse = CostVolume::default();
+        coarse.reset(coarse_layout, labels);
+        let mut coarse_state = GridState {
+            layout: coarse_layout,
+            ..Default::default()
+        };
+        for plane in 0..2 {
+            grown(&mut coarse_state.spatial[plane], coarse_layout.vectors() * 4 * labels);
+            grown(&mut coarse_state.dual[plane], coarse_layout.vectors() * labels);
+        }
+        // Coarse messages that name their pixel, slot and label.
+        let code = |x: usize, y: usize, entry: usize| (x * 7 + y * 131 + entry * 3) as u16;
+        coarse_layout.for_each_pixel(|x, y, vector, lane| {
+            for plane in 0..2 {
+                for entry in 0..4 * labels {
+                    coarse_state.spatial[plane][vector * 4 * labels + entry].0[lane] = code(x, y, entry);
+                }
+                for entry in 0..labels {
+                    coarse_state.dual[plane][vector * labels + entry].0[lane] = code(x, y, entry + 50);
+                }
+            }
+        });
+        let mut state = GridState {
+            layout: fine.layout,
+            ..Default::default()
+        };
+        for plane in 0..2 {
+            grown(&mut state.spatial[plane], fine.layout.vectors() * 4 * labels);
+            grown(&mut state.dual[plane], fine.layout.vectors() * labels);
+        }
+        for isa in [Isa::detect(), Isa::Portable] {
+            run_kernel(isa, labels, true, Kernel::CoarseData(&fine, &mut coarse));
+            for coarse_y in 0..coarse_layout.height {
+                for coarse_x in 0..coarse_layout.width {
+                    for entry in 0..window {
+                        let mut sum = 0u32;
+                        for y in 2 * coarse_y..(2 * coarse_y + 2).min(height) {
+                            for x in 2 * coarse_x..(2 * coarse_x + 2).min(width) {
+                                sum += costs[(y * width + x) * window + entry] as u32;
+                            }
+                        }
+                        let (u, v) = (entry % labels, entry / labels);
+                        assert_eq!(
+                            coarse.cost(coarse_x, coarse_y, u, v) as u32,
+                            (sum + 2) / 4,
+                            "({coarse_x}, {coarse_y}) {entry}"
+                        );
+                    }
+                }
+            }
+            match isa {
+                #[cfg(target_arch = "x86_64")]
+                Isa::Avx2(avx2) => start_from_coarse(avx2, labels, &coarse_state, &mut state),
+                Isa::Portable => start_from_coarse(Portable, labels, &coarse_state, &mut state),
+            }
+            fine.layout.for_each_pixel(|x, y, vector, lane| {
+                for plane in 0..2 {
+                    for entry in 0..4 * labels {
+                        assert_eq!(
+                            state.spatial[plane][vector * 4 * labels + entry].0[lane],
+                            4 * code(x / 2, y / 2, entry),
+                            "({x}, {y}) {entry}"
+                        );
+                    }
+                    for entry in 0..labels {
+                        assert_eq!(
+                            state.dual[plane][vector * labels + entry].0[lane],
+                            4 * code(x / 2, y / 2, entry + 50)
+                        );
+                    }
+                }
+            });
+        }
+        let _ = offsets;
+    }
+
     #[test]
     fn distance_transform_matches_brute_force() {
         let (alpha, truncation) = (3u16, 7u16);
@@ -915,6 +1340,7 @@ mod tests {
             truncation,
             gamma_q15: 0,
             max_shift: 5 + 3,
+            band_rows: 100,
         };
         let s = Portable;
         // One lane per shift, -7..=7 (past max_shift too), plus a lane of saturated costs.
@@ -953,5 +1379,12 @@ mod tests {
             }
         }
         assert!(message.iter().all(|value| value.0[15] == 0));
+        for (lane, &shift) in shifts.iter().enumerate() {
+            let mut h: Vec<u16> = (0..5).map(|label| if lane == 15 { u16::MAX } else { costs[label] }).collect();
+            let scalar = scalar_message(&params, &mut h, shift as i32);
+            for label in 0..5 {
+                assert_eq!(scalar[label], message[label].0[lane], "shift {shift}");
+            }
+        }
     }
 }

@@ -66,13 +66,23 @@ impl Layout {
     }
 }
 
+/// Grows `buffer` to at least `len` values (never shrinks it, so that buffers reused for grids of
+/// different sizes are zero-filled only once) and returns its first `len`.
+pub(super) fn grown(buffer: &mut Vec<Lanes>, len: usize) -> &mut [Lanes] {
+    if buffer.len() < len {
+        buffer.resize(len, Lanes::default());
+    }
+    &mut buffer[..len]
+}
+
 /// Matching costs in the layout: `labels²` vectors per position, index `label_v · labels +
 /// label_u` within a position; padding lanes hold 0.
 #[derive(Debug, Default)]
 pub(super) struct CostVolume {
     pub(super) layout: Layout,
     pub(super) labels: usize,
-    pub(super) costs: Vec<Lanes>,
+    /// At least `layout.vectors() · labels²` (see [`CostVolume::costs`]).
+    storage: Vec<Lanes>,
 }
 
 impl CostVolume {
@@ -82,27 +92,38 @@ impl CostVolume {
         self.layout = layout;
         self.labels = labels;
         let window = labels * labels;
-        self.costs.resize(layout.vectors() * window, Lanes::default());
+        let costs = grown(&mut self.storage, layout.vectors() * window);
         // Padding: the first and last 15 positions of every block, and whole blocks' lanes past
         // the bottom (zeroed as whole blocks; the pixels are written afterwards).
-        for block in self.costs.chunks_exact_mut(layout.positions * window) {
+        for block in costs.chunks_exact_mut(layout.positions * window) {
             let padding = (LANES - 1).min(layout.positions) * window;
             block[..padding].fill(Lanes::default());
             let tail = block.len() - padding;
             block[tail..].fill(Lanes::default());
         }
         if layout.height % LANES != 0 {
-            if let Some(last) = self.costs.chunks_exact_mut(layout.positions * window).last() {
+            if let Some(last) = costs.chunks_exact_mut(layout.positions * window).last() {
                 last.fill(Lanes::default());
             }
         }
     }
 
-    /// The cost of pixel `(x, y)` at labels `(label_u, label_v)`.
+    /// The costs, `labels²` vectors per position.
     #[inline(always)]
+    pub(super) fn costs(&self) -> &[Lanes] {
+        &self.storage[..self.layout.vectors() * self.labels * self.labels]
+    }
+
+    /// The cost of pixel `(x, y)` at labels `(label_u, label_v)`.
+    #[cfg(test)]
     pub(super) fn cost(&self, x: usize, y: usize, label_u: usize, label_v: usize) -> u16 {
         let (vector, lane) = self.layout.locate(x, y);
-        self.costs[vector * self.labels * self.labels + label_v * self.labels + label_u].0[lane]
+        self.costs()[vector * self.labels * self.labels + label_v * self.labels + label_u].0[lane]
+    }
+
+    pub(super) fn costs_mut(&mut self) -> &mut [Lanes] {
+        let len = self.layout.vectors() * self.labels * self.labels;
+        &mut self.storage[..len]
     }
 }
 

@@ -309,6 +309,7 @@ pub fn compute_sift_flow_on_pyramids(
             smoothness_truncation: config.smoothness_truncation,
             offsets: [&ws.offsets[0], &ws.offsets[1]],
             data: &ws.data_cost,
+            bands: config.bp_bands,
         };
         let iterations = if level == top_level {
             config.top_iterations
@@ -360,7 +361,6 @@ pub fn compute_sift_flow_on_pyramids(
     // Finest level: integer flow, costs, optional sub-pixel refinement.
     let width = source.width_px;
     let height = source.height_px;
-    let pixel_count = width * height;
     let radius = config.level_radius(0, top_level);
     let labels = 2 * radius + 1;
     flow.reset(width, height);
@@ -368,37 +368,42 @@ pub fn compute_sift_flow_on_pyramids(
     let (flow_u, flow_v) = flow.planes_mut();
     let matching_cost = matching_cost.data_mut();
     let source_mask = &ws.source_masks[0];
-    for pixel in 0..pixel_count {
-        let label_u = ws.labels[0][pixel] as usize;
-        let label_v = ws.labels[1][pixel] as usize;
-        let (x, y) = (pixel % width, pixel / width);
-        let cost = |label_u: usize, label_v: usize| ws.data_cost.cost(x, y, label_u, label_v) as f32;
-        let participates = source_mask.is_empty() || source_mask[pixel];
-        if participates {
-            matching_cost[pixel] = cost(label_u, label_v);
+    let window = labels * labels;
+    for y in 0..height {
+        let (first_vector, lane) = ws.data_cost.layout.locate(0, y);
+        for x in 0..width {
+            let pixel = y * width + x;
+            let label_u = ws.labels[0][pixel] as usize;
+            let label_v = ws.labels[1][pixel] as usize;
+            let costs = &ws.data_cost.costs()[(first_vector + x) * window..(first_vector + x + 1) * window];
+            let cost = |label_u: usize, label_v: usize| costs[label_v * labels + label_u].0[lane] as f32;
+            let participates = source_mask.is_empty() || source_mask[pixel];
+            if participates {
+                matching_cost[pixel] = cost(label_u, label_v);
+            }
+            let (delta_u, delta_v) = match config.subpixel {
+                SubpixelRefinement::None => (0.0, 0.0),
+                SubpixelRefinement::DataCostParabola if participates => {
+                    let along_u = |label: usize| cost(label, label_v);
+                    let along_v = |label: usize| cost(label_u, label);
+                    (
+                        parabola_vertex(along_u, label_u, labels),
+                        parabola_vertex(along_v, label_v, labels),
+                    )
+                }
+                SubpixelRefinement::DataCostParabola => (0.0, 0.0),
+                SubpixelRefinement::BeliefParabola => {
+                    let belief_u = &ws.beliefs[0][pixel * labels..(pixel + 1) * labels];
+                    let belief_v = &ws.beliefs[1][pixel * labels..(pixel + 1) * labels];
+                    (
+                        parabola_vertex(|label| belief_u[label], label_u, labels),
+                        parabola_vertex(|label| belief_v[label], label_v, labels),
+                    )
+                }
+            };
+            flow_u[pixel] = ws.flow[0][pixel] as f32 + delta_u;
+            flow_v[pixel] = ws.flow[1][pixel] as f32 + delta_v;
         }
-        let (delta_u, delta_v) = match config.subpixel {
-            SubpixelRefinement::None => (0.0, 0.0),
-            SubpixelRefinement::DataCostParabola if participates => {
-                let along_u = |label: usize| cost(label, label_v);
-                let along_v = |label: usize| cost(label_u, label);
-                (
-                    parabola_vertex(along_u, label_u, labels),
-                    parabola_vertex(along_v, label_v, labels),
-                )
-            }
-            SubpixelRefinement::DataCostParabola => (0.0, 0.0),
-            SubpixelRefinement::BeliefParabola => {
-                let belief_u = &ws.beliefs[0][pixel * labels..(pixel + 1) * labels];
-                let belief_v = &ws.beliefs[1][pixel * labels..(pixel + 1) * labels];
-                (
-                    parabola_vertex(|label| belief_u[label], label_u, labels),
-                    parabola_vertex(|label| belief_v[label], label_v, labels),
-                )
-            }
-        };
-        flow_u[pixel] = ws.flow[0][pixel] as f32 + delta_u;
-        flow_v[pixel] = ws.flow[1][pixel] as f32 + delta_v;
     }
     timings.total = started.elapsed();
     Ok(timings)

@@ -165,7 +165,9 @@ pub(super) fn build_mask_pyramid(
     }
 }
 
-/// Bilinear 2× upsampling of an integer flow, doubled and rounded: the offsets of the finer level.
+/// Bilinear 2× upsampling of an integer flow, doubled and rounded (halves away from zero): the
+/// offsets of the finer level. Fine pixel `x` samples the coarse grid at `x/2 − 1/4` (clamped), so
+/// every weight is a multiple of 1/4 and the arithmetic is exact in integers.
 pub(super) fn upsample_flow(
     coarse: &[i32],
     coarse_width: usize,
@@ -174,20 +176,33 @@ pub(super) fn upsample_flow(
     height: usize,
     fine: &mut [i32],
 ) {
-    for y in 0..height {
-        let coarse_y = ((y as f32 + 0.5) * 0.5 - 0.5).clamp(0.0, (coarse_height - 1) as f32);
-        let y0 = coarse_y.floor() as usize;
-        let y1 = (y0 + 1).min(coarse_height - 1);
-        let fy = coarse_y - y0 as f32;
-        for x in 0..width {
-            let coarse_x = ((x as f32 + 0.5) * 0.5 - 0.5).clamp(0.0, (coarse_width - 1) as f32);
-            let x0 = coarse_x.floor() as usize;
-            let x1 = (x0 + 1).min(coarse_width - 1);
-            let fx = coarse_x - x0 as f32;
-            let at = |xx: usize, yy: usize| coarse[yy * coarse_width + xx] as f32;
-            let value = (at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx) * (1.0 - fy)
-                + (at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx) * fy;
-            fine[y * width + x] = (2.0 * value).round() as i32;
+    // (first sample, second sample, weight of the second in quarters).
+    let taps = |fine: usize, coarse_len: usize| {
+        let half = fine / 2;
+        let (first, weight) = match (fine % 2, half) {
+            (0, 0) => (0, 0),
+            (0, _) => (half - 1, 3),
+            _ => (half, 1),
+        };
+        let first = first.min(coarse_len - 1);
+        (first, (first + 1).min(coarse_len - 1), weight)
+    };
+    for (y, fine_row) in fine.chunks_exact_mut(width).take(height).enumerate() {
+        let (y0, y1, wy) = taps(y, coarse_height);
+        let (row0, row1) = (
+            &coarse[y0 * coarse_width..(y0 + 1) * coarse_width],
+            &coarse[y1 * coarse_width..(y1 + 1) * coarse_width],
+        );
+        for (x, value) in fine_row.iter_mut().enumerate() {
+            let (x0, x1, wx) = taps(x, coarse_width);
+            let along = |row: &[i32]| row[x0] * (4 - wx) + row[x1] * wx;
+            // 16 · the bilinear value; the doubled value is sixteenths / 8.
+            let sixteenths = along(row0) * (4 - wy) + along(row1) * wy;
+            *value = if sixteenths >= 0 {
+                (sixteenths + 4) / 8
+            } else {
+                -((4 - sixteenths) / 8)
+            };
         }
     }
 }
@@ -229,6 +244,34 @@ mod tests {
             }
         }
         out
+    }
+
+    #[test]
+    fn integer_upsampling_equals_the_bilinear_definition() {
+        for (coarse_width, coarse_height, width, height) in [(5, 4, 9, 8), (5, 4, 10, 7), (1, 1, 2, 1)] {
+            let coarse: Vec<i32> = (0..coarse_width * coarse_height)
+                .map(|index| ((index * 2_654_435_761usize) >> 20) as i32 % 41 - 20)
+                .collect();
+            let mut fine = vec![0; width * height];
+            upsample_flow(&coarse, coarse_width, coarse_height, width, height, &mut fine);
+            for y in 0..height {
+                let coarse_y = ((y as f32 + 0.5) * 0.5 - 0.5).clamp(0.0, (coarse_height - 1) as f32);
+                let y0 = coarse_y.floor() as usize;
+                let y1 = (y0 + 1).min(coarse_height - 1);
+                let fy = coarse_y - y0 as f32;
+                for x in 0..width {
+                    let coarse_x =
+                        ((x as f32 + 0.5) * 0.5 - 0.5).clamp(0.0, (coarse_width - 1) as f32);
+                    let x0 = coarse_x.floor() as usize;
+                    let x1 = (x0 + 1).min(coarse_width - 1);
+                    let fx = coarse_x - x0 as f32;
+                    let at = |xx: usize, yy: usize| coarse[yy * coarse_width + xx] as f32;
+                    let value = (at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx) * (1.0 - fy)
+                        + (at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx) * fy;
+                    assert_eq!(fine[y * width + x], (2.0 * value).round() as i32, "({x}, {y})");
+                }
+            }
+        }
     }
 
     #[test]
