@@ -13,9 +13,14 @@ use super::simd::LANES;
 use super::L1Kernel;
 use crate::core::dense_sift::{DenseSiftImage, DESCRIPTOR_LEN};
 
-/// The bin width of the matching-cost histogram used for the median (cost units).
+/// The bin width of the matching-cost histogram used for the median (cost units), and the
+/// reference's bin count (the last bin takes every larger cost; no cost reaches it: 128 · 255 / 32
+/// = 1020).
 const COST_HISTOGRAM_BIN: u16 = 32;
 const COST_HISTOGRAM_BINS: usize = 1100;
+/// Bins of the histogram as counted: one per value of `cost / 32`, so that counting needs no
+/// branch; [`OUTSIDE_COST`] falls in the last, which is not counted.
+const COUNTED_BINS: usize = (u16::MAX / COST_HISTOGRAM_BIN) as usize + 1;
 
 /// Marks a candidate outside the target (or on an invalid target pixel) until the median is known
 /// (real costs are at most 128 · 255).
@@ -121,10 +126,10 @@ fn fill_block(
     out: &mut [super::simd::Lanes],
     distances: impl Fn(&[u8], &[u8], &mut [u16]) + Copy,
     window_distances: Option<WindowKernel>,
-) -> Box<[u32; COST_HISTOGRAM_BINS]> {
+) -> Box<[u32; COUNTED_BINS]> {
     let labels = 2 * context.radius + 1;
     let window = labels * labels;
-    let mut histogram = Box::new([0u32; COST_HISTOGRAM_BINS]);
+    let mut histogram = Box::new([0u32; COUNTED_BINS]);
     let mut costs = [0u16; super::config::MAX_LABELS * super::config::MAX_LABELS];
     let costs = &mut costs[..window];
     for lane in 0..LANES.min(layout.height - block * LANES) {
@@ -141,9 +146,7 @@ fn fill_block(
             // The reference's median samples every third cost of the row-major volume.
             let first = (y * layout.width + x) * window;
             for &cost in costs.iter().skip((3 - first % 3) % 3).step_by(3) {
-                if cost != OUTSIDE_COST {
-                    histogram[((cost / COST_HISTOGRAM_BIN) as usize).min(COST_HISTOGRAM_BINS - 1)] += 1;
-                }
+                histogram[(cost / COST_HISTOGRAM_BIN) as usize] += 1;
             }
         }
     }
@@ -157,7 +160,7 @@ unsafe fn fill_block_avx2(
     layout: Layout,
     block: usize,
     out: &mut [super::simd::Lanes],
-) -> Box<[u32; COST_HISTOGRAM_BINS]> {
+) -> Box<[u32; COUNTED_BINS]> {
     // SAFETY: this function runs only where the CPU has AVX2.
     fill_block(
         context,
@@ -217,7 +220,7 @@ pub(super) fn compute_data_cost(
             _ => fill_block(&context, layout, block, out, l1_row_portable, None),
         })
         .reduce(
-            || Box::new([0u32; COST_HISTOGRAM_BINS]),
+            || Box::new([0u32; COUNTED_BINS]),
             |mut total, part| {
                 for (sum, count) in total.iter_mut().zip(part.iter()) {
                     *sum += count;
@@ -227,10 +230,14 @@ pub(super) fn compute_data_cost(
         );
 
     // The reference's default score: the median of all inside costs.
-    let total: u64 = histogram.iter().map(|&count| count as u64).sum();
+    let mut bins = [0u32; COST_HISTOGRAM_BINS];
+    for (bin, &count) in histogram[..COUNTED_BINS - 1].iter().enumerate() {
+        bins[bin.min(COST_HISTOGRAM_BINS - 1)] += count;
+    }
+    let total: u64 = bins.iter().map(|&count| count as u64).sum();
     let mut default_cost = 0u16;
     let mut cumulative = 0u64;
-    for (bin, &count) in histogram.iter().enumerate() {
+    for (bin, &count) in bins.iter().enumerate() {
         cumulative += count as u64;
         if 2 * cumulative >= total {
             default_cost = bin.max(1) as u16 * COST_HISTOGRAM_BIN;

@@ -159,15 +159,21 @@ pub(super) unsafe fn l1_window_avx2(
         )
     };
     let base = unsafe { targets.as_ptr().add(first) };
-    let (mut label_u, mut label_v) = (0usize, 0usize);
+    let mut label_u = 0usize;
+    // Candidates in order, row by row: the next one is one descriptor further, or the start of
+    // the next row.
+    let row_step = row_len - (labels - 1) * DESCRIPTOR_LEN;
+    let mut target = base;
     let mut next = || {
-        let target = unsafe { base.add(label_v * row_len + label_u * DESCRIPTOR_LEN) };
+        let current = target;
         label_u += 1;
         if label_u == labels {
             label_u = 0;
-            label_v += 1;
+            target = target.wrapping_add(row_step);
+        } else {
+            target = target.wrapping_add(DESCRIPTOR_LEN);
         }
-        target
+        current
     };
     let mut candidate = 0;
     while candidate + 4 <= count {
