@@ -166,7 +166,8 @@ fn stages_report(pairs: &[Pair]) {
     let config = match std::env::var("FLOW_BENCH_CONFIG") {
         Ok(json) => {
             let mut value = serde_json::to_value(SiftFlowConfig::fast()).expect("config");
-            let changes: serde_json::Value = serde_json::from_str(&json).expect("FLOW_BENCH_CONFIG");
+            let changes: serde_json::Value =
+                serde_json::from_str(&json).expect("FLOW_BENCH_CONFIG");
             for (key, field) in changes.as_object().expect("a JSON object") {
                 value[key] = field.clone();
             }

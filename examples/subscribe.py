@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Print asgreg's pose results as they arrive, from any host that reaches the zenoh router.
 
-asgreg publishes every frame's result as JSON on ``asgreg/v2/<pipeline>/results/json``
+asgreg publishes every frame's result as JSON on ``asgreg/v3/<pipeline>/results/json``
 (src/transport/keys.rs; fields: src/msg/json.rs). This script joins the ground station's router as
 a zenoh client with scouting off (no multicast, no gossip) and prints one line per result.
 
@@ -49,7 +49,7 @@ def main():
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("scouting/gossip/enabled", "false")
 
-    key = f"asgreg/v2/{args.pipeline}/results/json"
+    key = f"asgreg/v3/{args.pipeline}/results/json"
     try:
         session = zenoh.open(config)
     except Exception as error:  # zenoh raises ZError

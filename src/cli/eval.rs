@@ -408,18 +408,23 @@ true pose puts the query pixel's model point, rendering px; near edge: lifted wi
 discontinuity. Medians per view, averaged. Solver: δ of the refined poses (mean over views), and of an \
 oracle pose solved from only the pairs within {ORACLE_MAX_ERROR_PX} px. Choice: δ of the output against the \
 best hypothesis. At truth: a view rendered at the true pose, its flow-error median and the δ of \
-the pose solved from it (the floor for a refinement that re-renders at its current pose).\n"
+the pose solved from it (the floor for a refinement that re-renders at its current pose). Refinement: \
+δ of the verified pose, of where the edge alignment ended (kept or not; the share kept), of the output, \
+and of the alignment started at the true pose (its own bias).\n"
     );
     let _ = writeln!(
         out,
-        "| level | method | frames | corr. median | near edge (share) | away from edge | flow median | ≤1 / ≤2 / ≤5 px | hypotheses δ | oracle δ | best δ | output δ | at truth: flow median, δ |"
+        "| level | method | frames | corr. median | near edge (share) | away from edge | flow median | ≤1 / ≤2 / ≤5 px | hypotheses δ | oracle δ | best δ | output δ | at truth: flow median, δ | verified δ | aligned δ (kept) | aligned from truth δ |"
     );
-    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(
+        out,
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
     for ((level, method), frames) in diagnoses {
         let s = DiagnosisSummary::of(frames.iter().map(|(_, d)| d));
         let _ = writeln!(
             out,
-            "| {level} | {method} | {} | {} | {} ({:.0} %) | {} | {} | {:.0} / {:.0} / {:.0} % | {} | {} | {} | {} | {}, {} |",
+            "| {level} | {method} | {} | {} | {} ({:.0} %) | {} | {} | {:.0} / {:.0} / {:.0} % | {} | {} | {} | {} | {}, {} | {} | {} ({:.0} %) | {} |",
             s.frames,
             px(s.correspondence_median_px),
             px(s.near_edge_median_px),
@@ -435,20 +440,27 @@ the pose solved from it (the floor for a refinement that re-renders at its curre
             px(s.chosen_delta_px),
             px(s.at_truth_flow_median_px),
             px(s.at_truth_delta_px),
+            px(s.verified_delta_px),
+            px(s.aligned_delta_px),
+            100.0 * s.refinement_kept_share,
+            px(s.aligned_from_truth_delta_px),
         );
     }
     let _ = writeln!(out, "\n## Frames\n");
     let _ = writeln!(
         out,
-        "| level | method | frame | verdict | corr. median | flow median | ≤2 px | hypotheses δ | oracle δ | best δ | output δ |"
+        "| level | method | frame | verdict | corr. median | flow median | ≤2 px | hypotheses δ | oracle δ | best δ | verified δ | aligned δ | kept | output δ | edge support before → after |"
     );
-    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(
+        out,
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
     for ((level, method), frames) in diagnoses {
         for (name, diagnosis) in frames {
             let s = DiagnosisSummary::of(std::slice::from_ref(diagnosis));
             let _ = writeln!(
                 out,
-                "| {level} | {method} | {name} | {} | {} | {} | {:.0} % | {} | {} | {} | {} |",
+                "| {level} | {method} | {name} | {} | {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} |",
                 if diagnosis.verdict.accepted() {
                     "accepted"
                 } else {
@@ -460,7 +472,22 @@ the pose solved from it (the floor for a refinement that re-renders at its curre
                 px(s.hypothesis_delta_px),
                 px(s.oracle_delta_px),
                 px(s.best_delta_px),
+                px(s.verified_delta_px),
+                px(s.aligned_delta_px),
+                match &diagnosis.refinement {
+                    Ok(r) if r.kept => "yes",
+                    Ok(_) => "no",
+                    Err(_) => "–",
+                },
                 px(s.chosen_delta_px),
+                match &diagnosis.refinement {
+                    Ok(r) => format!(
+                        "{:.0} % → {:.0} %",
+                        100.0 * r.verified.support_fraction(),
+                        100.0 * r.aligned.support_fraction()
+                    ),
+                    Err(why) => why.clone(),
+                },
             );
         }
     }

@@ -6,7 +6,6 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use anyhow::{bail, Context};
@@ -296,12 +295,13 @@ pub fn stage(args: &StageArgs) -> anyhow::Result<()> {
     let config = PipelineConfig::read(&args.config)?;
     let _span = tracing::info_span!("stage", name = ?args.stage, worker = args.worker).entered();
     let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
-    let stop = AtomicBool::new(false);
+    // SIGTERM/SIGINT stop the stage cleanly (the launcher sends SIGTERM to stop it).
+    let stop = nodes::termination_flag()?;
     let context = NodeContext {
         transport: transport.as_ref(),
         config: &config,
         worker_index: args.worker,
-        stop: &stop,
+        stop,
     };
     let needs_mesh = matches!(
         args.stage,

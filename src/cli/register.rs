@@ -1,15 +1,19 @@
 //! `asgreg register`: refines the initial poses of a folder of photos against a mesh and writes
 //! the accepted poses (COLMAP text and binary, omega-phi-kappa CSV), a per-frame report and
-//! before/after overlays.
+//! before/after overlays. Photos are registered with their working camera (undistorted, at the
+//! working width: `frame_files`) and the poses are written for their own camera.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
+use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
+use asgreg::core::edge_align::EdgeAlignConfig;
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig};
+use asgreg::core::image::Image;
+use asgreg::core::undistort::WorkingCamera;
 use asgreg::core::verify::VerifyConfig;
-use asgreg::frame_files::depth_path_for;
+use asgreg::frame_files::{depth_path_for, FrameLoader, DEFAULT_WORKING_WIDTH_PX};
 use asgreg::io::colmap::{ColmapModel, ImagePose};
 use asgreg::io::colmap_model::write_model_dir;
 use asgreg::io::images::{load_rgb, save_rgb_png};
@@ -48,6 +52,13 @@ pub struct RegisterArgs {
     pub seed: u64,
     #[command(flatten)]
     pub coarse: CoarseArgs,
+    /// Width (px) at which photos are registered: wider ones are averaged down to it (height in
+    /// proportion) and the poses are written for the photo's own camera; 0 registers every
+    /// photo at its own size. The default is the paper's 505 px width. Photos whose camera has
+    /// lens distortion (SIMPLE_RADIAL, RADIAL, OPENCV) are also undistorted to a PINHOLE camera
+    /// the way COLMAP's image_undistorter does it; the output keeps their camera.
+    #[arg(long, default_value_t = DEFAULT_WORKING_WIDTH_PX, value_name = "PX")]
+    pub working_width: u32,
     /// Register only the first N frames of the poses file.
     #[arg(long)]
     pub limit: Option<usize>,
@@ -77,6 +88,12 @@ pub struct CoarseArgs {
     /// lifted (0: every match is).
     #[arg(long, default_value_t = RegistrationConfig::default().lift_edge_margin_px)]
     pub lift_edge_margin_px: usize,
+    /// Skip the final refinement (alignment of the chosen pose with the photo's edges).
+    #[arg(long)]
+    pub no_edge_align: bool,
+    /// Final refinement: search half-length of its first level, px (levels halve it down to 2).
+    #[arg(long, default_value_t = RegistrationConfig::default().edge_align.initial_search_radius_px)]
+    pub edge_search_px: f64,
 }
 
 impl Default for CoarseArgs {
@@ -88,6 +105,8 @@ impl Default for CoarseArgs {
             coarse_translation_fraction: defaults.coarse_translation_sigma_fraction,
             max_convergence_ratio: defaults.verify.max_convergence_ratio,
             lift_edge_margin_px: defaults.lift_edge_margin_px,
+            no_edge_align: false,
+            edge_search_px: defaults.edge_align.initial_search_radius_px,
         }
     }
 }
@@ -122,6 +141,11 @@ pub fn registration_config(with_depth: bool, coarse: &CoarseArgs) -> Registratio
         verify: VerifyConfig {
             max_convergence_ratio: coarse.max_convergence_ratio,
             ..VerifyConfig::default()
+        },
+        edge_align: EdgeAlignConfig {
+            enabled: !coarse.no_edge_align,
+            initial_search_radius_px: coarse.edge_search_px,
+            ..EdgeAlignConfig::default()
         },
         ..RegistrationConfig::default()
     }
@@ -171,10 +195,11 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating the output folder {}", args.out.display()))?;
 
+    let loader = FrameLoader::new((args.working_width > 0).then_some(args.working_width));
     let bar = progress_bar(frames.len(), "registering");
     let mut reports = Vec::with_capacity(frames.len());
     for frame in &frames {
-        let report = register_batch_frame(&inputs.mesh, frame, &config, args.seed);
+        let report = register_batch_frame_with(&inputs.mesh, frame, &loader, &config, args.seed);
         bar.println(format!(
             "{}: {}",
             report.name,
@@ -196,7 +221,7 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
 
-    write_outputs(args, &inputs.mesh, &frames, &reports, &config)?;
+    write_outputs(args, &inputs.mesh, &frames, &reports, &config, &loader)?;
     let accepted = reports.iter().filter(|r| r.accepted).count();
     println!(
         "registered {accepted} of {} frames; poses in {}, report in {}",
@@ -213,6 +238,7 @@ fn write_outputs(
     frames: &[BatchFrame],
     reports: &[FrameReport],
     config: &RegistrationConfig,
+    loader: &FrameLoader,
 ) -> anyhow::Result<()> {
     let mut cameras = BTreeMap::new();
     let mut poses = Vec::new();
@@ -250,6 +276,7 @@ fn write_outputs(
     let json = serde_json::json!({
         "config": config,
         "intrinsics": args.intrinsics.mode(),
+        "working_width_px": (args.working_width > 0).then_some(args.working_width),
         "frames": reports,
     });
     std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
@@ -260,7 +287,7 @@ fn write_outputs(
         std::fs::create_dir_all(&overlay_dir)
             .with_context(|| format!("creating {}", overlay_dir.display()))?;
         for (frame, report) in frames.iter().zip(reports) {
-            if let Err(error) = write_overlays(mesh, frame, report, &overlay_dir) {
+            if let Err(error) = write_overlays(mesh, frame, report, loader, &overlay_dir) {
                 tracing::warn!("{}: no overlay: {error:#}", frame.name);
             }
         }
@@ -268,20 +295,25 @@ fn write_outputs(
     Ok(())
 }
 
+/// The frame's photo with the model drawn over it at the initial and (when accepted) the
+/// registered pose, as registration saw it: with the working camera (undistorted, at the working
+/// width), so that a lens's distortion does not show as misalignment.
 fn write_overlays(
     mesh: &asgreg::core::mesh::Mesh,
     frame: &BatchFrame,
     report: &FrameReport,
+    loader: &FrameLoader,
     overlay_dir: &Path,
 ) -> anyhow::Result<()> {
-    let rgb = load_rgb(&frame.image_path)?;
+    let working = loader.working_camera(&frame.image_path, frame.camera_id, &frame.camera)?;
+    let rgb = working_rgb(&working, &load_rgb(&frame.image_path)?)?;
     let stem = Path::new(&frame.name)
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| frame.name.clone());
-    let mut views = vec![("before", frame.camera, frame.initial_cam_from_world)];
+    let mut views = vec![("before", working.working, frame.initial_cam_from_world)];
     if let (Some(camera), Some(pose)) = (report.camera, report.cam_from_world) {
-        views.push(("after", camera, pose));
+        views.push(("after", working.working_camera_for(&camera), pose));
     }
     for (label, camera, pose) in views {
         let render = render_view(
@@ -297,4 +329,23 @@ fn write_overlays(
         )?;
     }
     Ok(())
+}
+
+/// A colour photo as the working camera sees it (each channel resampled like the grey photo).
+fn working_rgb(working: &WorkingCamera, rgb: &Image<[u8; 3]>) -> anyhow::Result<Image<[u8; 3]>> {
+    if working.is_identity() {
+        return Ok(rgb.clone());
+    }
+    let mut channels = Vec::with_capacity(3);
+    for channel in 0..3 {
+        let plane = rgb.map(|pixel| f32::from(pixel[channel]) / 255.0);
+        channels.push(working.photo(plane.view())?);
+    }
+    let (width_px, height_px) = channels[0].size();
+    Ok(Image::from_fn(width_px, height_px, |col, row| {
+        std::array::from_fn(|channel| {
+            let value = channels[channel].get(col, row).copied().unwrap_or(0.0);
+            (value.clamp(0.0, 1.0) * 255.0).round() as u8
+        })
+    }))
 }

@@ -276,7 +276,8 @@ pub fn compute_dense_sift(
     let pooling_weight_sum: f32 = pooling_taps.iter().sum();
     let pooling = nonzero_taps(&pooling_taps, cell);
     let band_row_len = width_px * ORIENTATION_BINS;
-    ws.bands_pooled_rows.resize(pixel_count * ORIENTATION_BINS, 0.0);
+    ws.bands_pooled_rows
+        .resize(pixel_count * ORIENTATION_BINS, 0.0);
     ws.magnitude_pooled_rows.resize(pixel_count, 0.0);
     let filter = config.gradient_filter;
     ws.bands_pooled_rows
@@ -298,13 +299,7 @@ pub fn compute_dense_sift(
             {
                 let y = task * BAND_ROWS_PER_TASK + row_in_task;
                 gradient_row(
-                    source,
-                    width_px,
-                    height_px,
-                    y,
-                    filter,
-                    gradient_x,
-                    gradient_y,
+                    source, width_px, height_px, y, filter, gradient_x, gradient_y,
                 );
                 orientation_band_row(
                     gradient_x,
@@ -622,9 +617,9 @@ multiversioned! {
             let magnitude = (gx * gx + gy * gy).sqrt();
             let inverse = if magnitude > 0.0 { 1.0 / magnitude } else { 0.0 };
             let mut base = [0.0f32; ORIENTATION_BINS];
-            for bin in 0..ORIENTATION_BINS {
+            for (bin, value) in base.iter_mut().enumerate() {
                 let cosine = (gx * directions.cos[bin] + gy * directions.sin[bin]) * inverse;
-                base[bin] = if cosine > 0.0 { cosine } else { 0.0 };
+                *value = if cosine > 0.0 { cosine } else { 0.0 };
             }
             // compiler-builtins' `__powisf2` (what `powi` with a run-time exponent calls).
             let mut power = [1.0f32; ORIENTATION_BINS];
@@ -856,18 +851,21 @@ mod tests {
             &gaussian_taps(config.presmoothing_sigma_px, 3),
             3,
         );
-        let at = |x: isize, y: isize| {
-            smoothed[clamp_index(y, height) * width + clamp_index(x, width)]
-        };
+        let at =
+            |x: isize, y: isize| smoothed[clamp_index(y, height) * width + clamp_index(x, width)];
         let mut bands = vec![0.0f32; width * height * 9];
         for y in 0..height as isize {
             for x in 0..width as isize {
-                let gx = (at(x - 2, y) - 8.0 * at(x - 1, y) + 8.0 * at(x + 1, y) - at(x + 2, y))
-                    / 12.0;
-                let gy = (at(x, y - 2) - 8.0 * at(x, y - 1) + 8.0 * at(x, y + 1) - at(x, y + 2))
-                    / 12.0;
+                let gx =
+                    (at(x - 2, y) - 8.0 * at(x - 1, y) + 8.0 * at(x + 1, y) - at(x + 2, y)) / 12.0;
+                let gy =
+                    (at(x, y - 2) - 8.0 * at(x, y - 1) + 8.0 * at(x, y + 1) - at(x, y + 2)) / 12.0;
                 let magnitude = (gx * gx + gy * gy).sqrt();
-                let inverse = if magnitude > 0.0 { 1.0 / magnitude } else { 0.0 };
+                let inverse = if magnitude > 0.0 {
+                    1.0 / magnitude
+                } else {
+                    0.0
+                };
                 let pixel = (y as usize * width + x as usize) * 9;
                 for bin in 0..8 {
                     let angle = std::f32::consts::TAU * bin as f32 / 8.0;

@@ -4,6 +4,7 @@
 
 pub mod camera;
 pub mod dense_sift;
+pub mod edge_align;
 pub mod flow_consistency;
 pub mod frame;
 pub mod image;
@@ -14,4 +15,5 @@ pub mod reprojection;
 pub mod rigid;
 pub mod shading;
 pub mod sift_flow;
+pub mod undistort;
 pub mod verify;

@@ -227,6 +227,14 @@ impl Verdict {
         }
     }
 
+    /// [`Verdict::chosen`], to change (the final refinement moves the chosen pose).
+    pub fn chosen_mut(&mut self) -> Option<&mut PoseHypothesis> {
+        match &mut self.decision {
+            Ok(hypothesis) => Some(hypothesis),
+            Err(rejection) => rejection.candidate.as_mut(),
+        }
+    }
+
     /// The output pose; `None` when rejected.
     pub fn accepted_pose(&self) -> Option<&PoseHypothesis> {
         self.decision.as_ref().ok()

@@ -1,5 +1,5 @@
 //! PoseResults as JSON for subscribers that do not speak bincode (Python, C, a web page); the
-//! shape is `schemas/v2/pose_result.schema.json`.
+//! shape is `schemas/v3/pose_result.schema.json`.
 
 use serde::Serialize;
 

@@ -1,5 +1,5 @@
 //! The wire types of the bus and the one place that encodes and decodes them (docs/design.md §5).
-//! `schemas/v2/` describes the same layout for subscribers in other languages.
+//! `schemas/v3/` describes the same layout for subscribers in other languages.
 //!
 //! Layout of every message (all integers little-endian):
 //! ```text
@@ -32,5 +32,5 @@ pub use json::pose_result_json;
 pub use types::*;
 pub use wire::{decode, encode, DecodeError, EncodeError, Encoded, HEADER_BYTES, MAGIC};
 
-/// The schema version in every header; bump it (and add `schemas/v2/`) on any layout change.
-pub const SCHEMA_VERSION: u16 = 2;
+/// The schema version in every header; bump it (and add `schemas/v3/`) on any layout change.
+pub const SCHEMA_VERSION: u16 = 3;

@@ -114,7 +114,14 @@ fn every_kind() -> Vec<Body<'static>> {
             confidence: 0.8,
             camera: Some(CameraNumbers::from(&info().camera)),
             cam_from_world: Some(PoseNumbers::from(&info().initial_cam_from_world)),
-            evidence: Evidence::default(),
+            evidence: Evidence {
+                refinement: Some(RefinementNumbers {
+                    verified_edge_support: 0.3,
+                    aligned_edge_support: 0.5,
+                    kept: true,
+                }),
+                ..Evidence::default()
+            },
             times: StageTimesMs::default(),
             flow_workers: vec![0, 1, 0],
         }),
@@ -135,6 +142,10 @@ fn every_kind() -> Vec<Body<'static>> {
         Body::StreamEnd(StreamEnd {
             frame_count: 48,
             finished_frames: Vec::new(),
+        }),
+        Body::FrameQuery(FrameQuery {
+            info: info(),
+            query: Cow::Owned(image.clone()),
         }),
     ]
 }
@@ -195,7 +206,7 @@ fn golden_bytes_of_every_kind() {
             path.display()
         );
     }
-    let every_kind: Vec<u16> = (1..=9).collect();
+    let every_kind: Vec<u16> = (1..=10).collect();
     assert_eq!(
         kinds_seen.into_iter().collect::<Vec<_>>(),
         every_kind,
@@ -342,7 +353,7 @@ fn pose_result_json_carries_header_and_result() {
 #[test]
 fn pose_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v2/pose_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v3/pose_result.schema.json")).unwrap();
     let keys = |value: &serde_json::Value| -> Vec<String> {
         let mut keys: Vec<String> = value.as_object().unwrap().keys().cloned().collect();
         keys.sort();

@@ -42,6 +42,7 @@ pub enum MessageKind {
     Credit = 7,
     Metrics = 8,
     StreamEnd = 9,
+    FrameQuery = 10,
 }
 
 impl MessageKind {
@@ -56,6 +57,7 @@ impl MessageKind {
             7 => Self::Credit,
             8 => Self::Metrics,
             9 => Self::StreamEnd,
+            10 => Self::FrameQuery,
             _ => return None,
         })
     }
@@ -80,6 +82,7 @@ pub enum Body<'a> {
     Credit(Credit),
     Metrics(StageMetrics),
     StreamEnd(StreamEnd),
+    FrameQuery(FrameQuery<'a>),
 }
 
 impl Body<'_> {
@@ -94,6 +97,7 @@ impl Body<'_> {
             Body::Credit(_) => MessageKind::Credit,
             Body::Metrics(_) => MessageKind::Metrics,
             Body::StreamEnd(_) => MessageKind::StreamEnd,
+            Body::FrameQuery(_) => MessageKind::FrameQuery,
         }
     }
 }
@@ -152,6 +156,22 @@ impl Frame<'_> {
             return Ok(None);
         }
         self.info.image(&self.depth_m).map(Some)
+    }
+}
+
+/// A frame's query gradient image (render → verify): what the final refinement aligns the chosen
+/// pose with.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameQuery<'a> {
+    pub info: FrameInfo,
+    /// The photo's gradient image (query), 0..1, `camera.width_px × camera.height_px`.
+    pub query: Blob<'a, f32>,
+}
+
+impl FrameQuery<'_> {
+    /// The query as an image of the camera's size.
+    pub fn query_image(&self) -> Result<ImageView<'_, f32>, ImageError> {
+        self.info.image(&self.query)
     }
 }
 
@@ -351,6 +371,29 @@ pub struct Evidence {
     pub inlier_rms_px: Option<f64>,
     pub mean_delta_to_chosen_px: f64,
     pub convergence_ratio: Option<f64>,
+    /// The final refinement of the chosen pose; `None` when there was none (no pose, disabled).
+    pub refinement: Option<RefinementNumbers>,
+}
+
+/// What the final refinement (edge alignment) found.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct RefinementNumbers {
+    /// Share of the model's edge samples a photo edge supports within a pixel, at the verified
+    /// pose and at the aligned one (0..1).
+    pub verified_edge_support: f64,
+    pub aligned_edge_support: f64,
+    /// Whether the aligned pose is the output (its support is higher).
+    pub kept: bool,
+}
+
+impl From<&crate::core::frame::PoseRefinement> for RefinementNumbers {
+    fn from(refinement: &crate::core::frame::PoseRefinement) -> Self {
+        Self {
+            verified_edge_support: refinement.verified.support_fraction(),
+            aligned_edge_support: refinement.aligned.support_fraction(),
+            kept: refinement.kept,
+        }
+    }
 }
 
 /// Time spent per stage on a frame, ms; `latency_ms` is capture → result.
@@ -360,12 +403,13 @@ pub struct StageTimesMs {
     /// Sum over the frame's coarse poses (they may run on several workers at once).
     pub flow_ms: f64,
     pub pose_ms: f64,
+    /// Verification and the final refinement.
     pub verify_ms: f64,
     pub latency_ms: f64,
 }
 
 /// The one result of a frame (verify → subscribers); also published as JSON
-/// (`schemas/v2/pose_result.schema.json`).
+/// (`schemas/v3/pose_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseResult {
     pub frame_id: u64,

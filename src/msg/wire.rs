@@ -144,6 +144,10 @@ pub fn encode<'m>(message: &'m Envelope<'_>) -> Result<Encoded<'m>, EncodeError>
         Body::Credit(body) => (meta_bytes(kind, body)?, Vec::new()),
         Body::Metrics(body) => (meta_bytes(kind, body)?, Vec::new()),
         Body::StreamEnd(body) => (meta_bytes(kind, body)?, Vec::new()),
+        Body::FrameQuery(body) => (
+            meta_bytes(kind, &body.info)?,
+            vec![bytemuck::cast_slice(&body.query)],
+        ),
     };
     let header = &message.header;
     let mut fixed = [0u8; HEADER_BYTES];
@@ -388,6 +392,15 @@ pub fn decode(bytes: &[u8]) -> Result<Envelope<'_>, DecodeError> {
         MessageKind::StreamEnd => {
             reader.expect_arrays(0)?;
             Body::StreamEnd(reader.meta()?)
+        }
+        MessageKind::FrameQuery => {
+            reader.expect_arrays(1)?;
+            let info: FrameInfo = reader.meta()?;
+            let len = reader.image_len(&info)?;
+            Body::FrameQuery(FrameQuery {
+                query: reader.array(0, "query", Some(len))?,
+                info,
+            })
         }
     };
     Ok(Envelope { header, body })

@@ -1,5 +1,5 @@
 //! The end of a pipeline as its operator sees it: a results subscriber that checks every frame
-//! gets exactly one PoseResult, and the summary (frames/s, latency percentiles, per-stage
+//! gets exactly one PoseResult (and hands on only the first of each frame), and the summary (frames/s, latency percentiles, per-stage
 //! compute, transport bytes and time, drops, rejections, redone jobs, the work split).
 
 use std::collections::BTreeMap;
@@ -15,8 +15,10 @@ use super::bus::{BusError, Inbox};
 /// Results as they arrived, checked for exactly-once delivery.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct Collected {
+    /// The first result of each frame, in arrival order.
     pub results: Vec<PoseResult>,
-    /// Frames that received more than one result (must stay empty).
+    /// Frames that received more than one result (must stay empty); the repeats are not in
+    /// `results`.
     pub duplicates: Vec<u64>,
     /// Frame count announced by the end of the stream.
     pub frame_count: Option<u64>,
@@ -110,12 +112,20 @@ impl Collector {
                 Duration::from_millis(50),
                 &mut scratch,
                 &mut |message, _| match message.body {
+                    // Idempotent by frame id: a second result for a frame is counted (the
+                    // exactly-once check) but neither handed on nor kept.
                     Body::PoseResult(result) => {
-                        on_result(&message.header, &result);
-                        if !seen.insert(result.frame_id) {
+                        if seen.insert(result.frame_id) {
+                            on_result(&message.header, &result);
+                            collected.results.push(result);
+                        } else {
+                            tracing::warn!(
+                                "frame {} '{}': a second result arrived; ignored",
+                                result.frame_id,
+                                result.name
+                            );
                             collected.duplicates.push(result.frame_id);
                         }
-                        collected.results.push(result);
                     }
                     Body::StreamEnd(end) => collected.frame_count = Some(end.frame_count),
                     _ => {}

@@ -31,6 +31,11 @@ pub struct PipelineConfig {
     pub timeouts: Timeouts,
     pub launch: LaunchSettings,
     pub registration: RegistrationConfig,
+    /// Folder of the run's durable state: the results journal (`<pipeline>.results-journal`,
+    /// the frames whose result is published), which a restarted ingest resumes from and a
+    /// restarted verify reads so it publishes no result twice. Ingest and verify must see the
+    /// same folder (same host). Unset: `asgreg-state` in the system's temporary folder.
+    pub state_dir: Option<PathBuf>,
 }
 
 impl Default for PipelineConfig {
@@ -47,6 +52,7 @@ impl Default for PipelineConfig {
             timeouts: Timeouts::default(),
             launch: LaunchSettings::default(),
             registration: RegistrationConfig::default(),
+            state_dir: None,
         }
     }
 }
@@ -139,8 +145,16 @@ pub struct LaunchSettings {
     /// With the zenoh backend: endpoints the launcher's own zenoh router listens on (stages and
     /// remote workers connect to it). Empty: no router (one runs elsewhere).
     pub zenoh_router_listen: Vec<String>,
-    /// Restarts allowed per stage worker before the launcher gives up on the run.
+    /// Restart intensity, as Erlang's and systemd's supervisors have it: a stage worker that
+    /// dies more than `max_restarts` times within `restart_window_s` makes the launcher give up
+    /// on the run (it crashes faster than it can work); slower crashes are restarted forever.
+    /// 0: never restart.
     pub max_restarts: u32,
+    /// The sliding window of `max_restarts`, s.
+    pub restart_window_s: f64,
+    /// How long a stage has to stop after SIGTERM (finish or hand back its job, flush, close
+    /// its shared memory) before the launcher sends SIGKILL, s.
+    pub stop_grace_s: f64,
     /// Longest run, s; frames without a result by then are reported missing.
     pub deadline_s: f64,
 }
@@ -150,6 +164,8 @@ impl Default for LaunchSettings {
         Self {
             zenoh_router_listen: Vec::new(),
             max_restarts: 5,
+            restart_window_s: 60.0,
+            stop_grace_s: 10.0,
             deadline_s: 3600.0,
         }
     }
@@ -218,6 +234,9 @@ impl PipelineConfig {
         if let Some(depth) = &mut self.source.depth {
             resolve(depth);
         }
+        if let Some(state_dir) = &mut self.state_dir {
+            resolve(state_dir);
+        }
     }
 
     pub fn validate(&self, path: &Path) -> Result<(), ConfigError> {
@@ -277,6 +296,9 @@ impl PipelineConfig {
             ("timeouts.frame_timeout_s", self.timeouts.frame_timeout_s),
             ("timeouts.worker_silence_s", self.timeouts.worker_silence_s),
             ("timeouts.startup_s", self.timeouts.startup_s),
+            ("launch.restart_window_s", self.launch.restart_window_s),
+            ("launch.stop_grace_s", self.launch.stop_grace_s),
+            ("launch.deadline_s", self.launch.deadline_s),
         ] {
             if !(value.is_finite() && value > 0.0) {
                 return Err(invalid(

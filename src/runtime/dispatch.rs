@@ -308,6 +308,16 @@ impl WorkerPort {
         self.send_credit()
     }
 
+    /// A worker that stops (SIGTERM) hands back the jobs it was given and has not finished: it
+    /// reports its finished ones and announces a new incarnation with no free slot, which the
+    /// dispatcher treats like a restart (the unfinished jobs are redone elsewhere at once) and
+    /// sends it nothing more.
+    pub fn leave(&mut self) -> Result<(), BusError> {
+        self.incarnation = self.incarnation.wrapping_add(1);
+        self.slots = 0;
+        self.send_credit()
+    }
+
     /// Waits up to `timeout` for a job (sending heartbeat credits meanwhile).
     pub fn receive(
         &mut self,
@@ -444,5 +454,26 @@ mod tests {
         assert_eq!(next_job(&mut other, &mut dispatcher), 7);
         assert!(started.elapsed() >= Duration::from_millis(250));
         assert_eq!(dispatcher.metrics.redispatched, 1);
+    }
+
+    #[test]
+    fn a_leaving_worker_hands_back_its_jobs_at_once() {
+        let transport = CrossbeamTransport::new(config("leave"));
+        // A silence limit far beyond the test: only the hand-back can move the job.
+        let mut dispatcher =
+            Dispatcher::open(&transport, "link", 10, Duration::from_secs(600)).unwrap();
+        let mut leaving = WorkerPort::open(&transport, "link", 0, 1, "test").unwrap();
+        let (key, bytes) = job(3);
+        dispatcher.push(key, bytes);
+        assert_eq!(next_job(&mut leaving, &mut dispatcher), 3);
+        leaving.leave().unwrap();
+        let mut other = WorkerPort::open(&transport, "link", 1, 1, "test").unwrap();
+        assert_eq!(next_job(&mut other, &mut dispatcher), 3);
+        assert_eq!(dispatcher.metrics.redispatched, 1);
+        // The leaver gets nothing more.
+        let (key, bytes) = job(4);
+        dispatcher.push(key, bytes);
+        dispatcher.pump(Duration::from_millis(20)).unwrap();
+        assert_eq!(dispatcher.queued(), 1, "a job went to the worker that left");
     }
 }

@@ -2,8 +2,11 @@
 //! (`asgreg stage <name> --config F --worker K`) over iceoryx2 or zenoh, restarts a stage that
 //! dies (its unfinished jobs are redone by the dispatcher that gave them out), collects the
 //! results, and stops the stages when every frame has its result. Stale iceoryx2 resources of
-//! killed processes are cleaned before anything starts.
+//! killed processes are cleaned before anything starts. A stage is restarted as long as it does
+//! not crash more than `launch.max_restarts` times within `launch.restart_window_s`
+//! ([`RestartIntensity`]).
 
+use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
@@ -15,12 +18,57 @@ use super::collect::{Collected, Collector};
 use super::config::PipelineConfig;
 use super::RuntimeError;
 
+/// The restart intensity of one stage worker (Erlang's MaxR in MaxT, systemd's
+/// StartLimitBurst in StartLimitIntervalSec): at most `max_restarts` restarts within any
+/// `window`. A worker that crashes once an hour is restarted for ever; one that crashes faster
+/// than it can work makes the supervisor give up. Times are given, so it is tested without
+/// waiting.
+#[derive(Clone, Debug)]
+pub struct RestartIntensity {
+    max_restarts: u32,
+    window: Duration,
+    /// When the restarts within the window happened, oldest first.
+    recent: VecDeque<Instant>,
+    /// Every restart of the run (for the log).
+    pub total: u64,
+}
+
+impl RestartIntensity {
+    pub fn new(max_restarts: u32, window: Duration) -> Self {
+        Self {
+            max_restarts,
+            window,
+            recent: VecDeque::new(),
+            total: 0,
+        }
+    }
+
+    /// A crash at `now`: `Ok(n)` when it may be restarted (the n-th restart within the
+    /// window, counted), `Err(n)` when `n` restarts within the window are already spent.
+    pub fn on_crash(&mut self, now: Instant) -> Result<u32, u32> {
+        while self
+            .recent
+            .front()
+            .is_some_and(|&at| now.saturating_duration_since(at) >= self.window)
+        {
+            self.recent.pop_front();
+        }
+        let in_window = self.recent.len() as u32;
+        if in_window >= self.max_restarts {
+            return Err(in_window);
+        }
+        self.recent.push_back(now);
+        self.total += 1;
+        Ok(in_window + 1)
+    }
+}
+
 /// One stage worker process under supervision.
 struct Supervised {
     stage: &'static str,
     worker: u32,
     child: Child,
-    restarts: u32,
+    restarts: RestartIntensity,
     /// Ended on its own with success (ingest, at the end of its source).
     done: bool,
 }
@@ -73,7 +121,11 @@ pub fn launch(
     on_started: &mut dyn FnMut(&str, u32, u32),
     on_result: &mut dyn FnMut(&Header, &PoseResult),
 ) -> Result<Collected, RuntimeError> {
+    // A new run: the results journal starts empty (restarted stages resume from it).
+    let journal_path = super::journal::path(config);
+    super::journal::reset(&journal_path)?;
     let mut collector = Collector::open(transport)?;
+    let window = Duration::from_secs_f64(config.launch.restart_window_s);
     let mut processes: Vec<Supervised> = Vec::new();
     for (stage, worker) in local_stages(config) {
         let child = command.spawn(stage, worker)?;
@@ -83,7 +135,7 @@ pub fn launch(
             stage,
             worker,
             child,
-            restarts: 0,
+            restarts: RestartIntensity::new(config.launch.max_restarts, window),
             done: false,
         });
     }
@@ -104,21 +156,24 @@ pub fn launch(
                 process.done = true;
                 continue;
             }
-            if process.restarts >= config.launch.max_restarts {
-                failure = Some(RuntimeError::Launch(format!(
-                    "stage {} worker {} died {} times (last: {status}); giving up — see its log above",
-                    process.stage, process.worker, process.restarts + 1
-                )));
-                return false;
-            }
-            process.restarts += 1;
+            let in_window = match process.restarts.on_crash(Instant::now()) {
+                Ok(in_window) => in_window,
+                Err(in_window) => {
+                    failure = Some(RuntimeError::Launch(format!(
+                        "stage {} worker {} died again ({status}) after {in_window} restarts within {:.0} s (launch.max_restarts, launch.restart_window_s); giving up — see its log above",
+                        process.stage, process.worker, config.launch.restart_window_s
+                    )));
+                    return false;
+                }
+            };
             tracing::warn!(
-                "stage {} worker {} exited ({status}) after {:.1} s; restarting (restart {} of at most {})",
+                "stage {} worker {} exited ({status}) after {:.1} s; restarting (restart {} of the run, {in_window} of at most {} within {:.0} s)",
                 process.stage,
                 process.worker,
                 started.elapsed().as_secs_f64(),
-                process.restarts,
-                config.launch.max_restarts
+                process.restarts.total,
+                config.launch.max_restarts,
+                config.launch.restart_window_s
             );
             match command.spawn(process.stage, process.worker) {
                 Ok(child) => {
@@ -134,22 +189,164 @@ pub fn launch(
         true
     });
     // Give the stages a moment to send their final metrics, then stop them.
-    let mut collected = outcome?;
-    std::thread::sleep(Duration::from_millis(1200));
-    collector.drain_metrics(&mut collected)?;
-    for process in &mut processes {
-        if !process.done {
-            let _ = process.child.kill();
-        }
-        let _ = process.child.wait();
+    if outcome.is_ok() {
+        std::thread::sleep(Duration::from_millis(1200));
     }
+    let grace = Duration::from_secs_f64(config.launch.stop_grace_s);
+    let mut children: Vec<(String, &mut Child)> = processes
+        .iter_mut()
+        .map(|p| (format!("{} worker {}", p.stage, p.worker), &mut p.child))
+        .collect();
+    stop_gracefully(&mut children, grace);
+    let mut collected = outcome?;
+    collector.drain_metrics(&mut collected)?;
     if let Some(error) = failure {
         return Err(error);
     }
+    if collected.frame_count.is_some() && collected.missing().is_empty() {
+        // Complete: nothing to resume.
+        super::journal::reset(&journal_path)?;
+    }
     Ok(collected)
+}
+
+/// Stops processes the way an operator's `systemctl stop` does: SIGTERM to each (a stage then
+/// finishes or hands back its job, flushes and closes its shared memory), SIGKILL to those still
+/// running after `grace`. Returns the names of the processes that had to be killed.
+pub fn stop_gracefully(children: &mut [(String, &mut Child)], grace: Duration) -> Vec<String> {
+    for (name, child) in children.iter_mut() {
+        if matches!(child.try_wait(), Ok(None)) {
+            if let Err(error) = terminate(child) {
+                tracing::warn!(
+                    "cannot send SIGTERM to {name} (pid {}): {error}",
+                    child.id()
+                );
+            }
+        }
+    }
+    let started = Instant::now();
+    let mut killed = Vec::new();
+    for (name, child) in children.iter_mut() {
+        loop {
+            match child.try_wait() {
+                Ok(Some(status)) => {
+                    tracing::debug!("{name} stopped ({status})");
+                    break;
+                }
+                Ok(None) if started.elapsed() < grace => {
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+                _ => {
+                    tracing::warn!(
+                        "{name} (pid {}) did not stop within {:.1} s of SIGTERM (launch.stop_grace_s); sending SIGKILL",
+                        child.id(),
+                        grace.as_secs_f64()
+                    );
+                    let _ = child.kill();
+                    let _ = child.wait();
+                    killed.push(name.clone());
+                    break;
+                }
+            }
+        }
+    }
+    killed
+}
+
+/// Sends SIGTERM to a child process.
+fn terminate(child: &Child) -> std::io::Result<()> {
+    #[cfg(unix)]
+    {
+        let pid = libc::pid_t::try_from(child.id())
+            .map_err(|_| std::io::Error::other("pid out of range"))?;
+        // SAFETY: kill(2) with a pid of our own child, which has not been reaped yet (try_wait
+        // said it is running), so the pid cannot name another process.
+        if unsafe { libc::kill(pid, libc::SIGTERM) } != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        Ok(())
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = child;
+        Err(std::io::Error::other("SIGTERM needs a unix system"))
+    }
 }
 
 /// The config file path as given, made absolute (stage processes may run elsewhere).
 pub fn absolute(path: &Path) -> PathBuf {
     std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn restart_intensity_counts_restarts_within_the_window_only() {
+        let start = Instant::now();
+        let at = |s: u64| start + Duration::from_secs(s);
+        let mut intensity = RestartIntensity::new(3, Duration::from_secs(10));
+        // Three quick crashes are restarted, the fourth within 10 s is refused.
+        assert_eq!(intensity.on_crash(at(0)), Ok(1));
+        assert_eq!(intensity.on_crash(at(1)), Ok(2));
+        assert_eq!(intensity.on_crash(at(2)), Ok(3));
+        assert_eq!(intensity.on_crash(at(9)), Err(3));
+        // Once the first has left the window there is room for one more.
+        assert_eq!(intensity.on_crash(at(10)), Ok(3));
+        assert_eq!(intensity.on_crash(at(10)), Err(3));
+        assert_eq!(intensity.total, 4);
+    }
+
+    #[test]
+    fn crashes_slower_than_the_window_are_restarted_for_ever() {
+        let start = Instant::now();
+        let mut intensity = RestartIntensity::new(2, Duration::from_secs(60));
+        // A crash every 9 s would exhaust a lifetime cap of 2 at once; at 40 s apart never
+        // more than 2 fall in one minute.
+        for k in 0..100u64 {
+            let now = start + Duration::from_secs(40 * k);
+            assert!(intensity.on_crash(now).is_ok(), "crash {k} refused");
+        }
+        assert_eq!(intensity.total, 100);
+        // A lifetime's worth faster than the window is refused.
+        let mut fast = RestartIntensity::new(2, Duration::from_secs(60));
+        let results: Vec<_> = (0..4u64)
+            .map(|k| fast.on_crash(start + Duration::from_secs(9 * k)))
+            .collect();
+        assert_eq!(results, vec![Ok(1), Ok(2), Err(2), Err(2)]);
+    }
+
+    #[test]
+    fn stopping_sends_sigterm_first_and_sigkill_after_the_grace_period() {
+        // A process that exits on SIGTERM stops within the grace; one that ignores it is killed.
+        let polite = Command::new("sleep").arg("30").spawn().unwrap();
+        let mut stubborn = Command::new("sleep");
+        stubborn.arg("30");
+        // SAFETY: only `signal` (async-signal-safe) between fork and exec; an ignored signal
+        // stays ignored across exec, so the child ignores SIGTERM from its first instruction.
+        unsafe {
+            std::os::unix::process::CommandExt::pre_exec(&mut stubborn, || {
+                libc::signal(libc::SIGTERM, libc::SIG_IGN);
+                Ok(())
+            });
+        }
+        let (mut polite, mut stubborn) = (polite, stubborn.spawn().unwrap());
+        let mut children = vec![
+            ("polite".to_string(), &mut polite),
+            ("stubborn".to_string(), &mut stubborn),
+        ];
+        let killed = stop_gracefully(&mut children, Duration::from_millis(500));
+        assert_eq!(killed, vec!["stubborn".to_string()]);
+        use std::os::unix::process::ExitStatusExt;
+        assert_eq!(polite.wait().unwrap().signal(), Some(libc::SIGTERM));
+        assert_eq!(stubborn.wait().unwrap().signal(), Some(libc::SIGKILL));
+    }
+
+    #[test]
+    fn zero_restarts_means_never_restart() {
+        let mut intensity = RestartIntensity::new(0, Duration::from_secs(60));
+        assert_eq!(intensity.on_crash(Instant::now()), Err(0));
+        assert_eq!(intensity.total, 0);
+    }
 }

@@ -1,11 +1,13 @@
 //! Wiring from a configuration (docs/design.md §5): the stage loops (`nodes`), work sharing with redo
 //! (`dispatch`), the bus wrappers (`bus`), the results collector and summary (`collect`), the
-//! one-process runner (`run_in_process`) and the process supervisor (`launch`).
+//! one-process runner (`run_in_process`), the process supervisor (`launch`) and the results
+//! journal that makes "has a result" survive a crash (`journal`).
 
 pub mod bus;
 pub mod collect;
 pub mod config;
 pub mod dispatch;
+pub mod journal;
 pub mod launch;
 pub mod nodes;
 
@@ -39,11 +41,40 @@ pub enum RuntimeError {
     Panicked { stage: &'static str, worker: u32 },
     #[error("{0}")]
     Launch(String),
+    #[error(transparent)]
+    Journal(#[from] journal::JournalError),
 }
 
 /// Runs the whole pipeline as threads of this process on `transport` (crossbeam for the
 /// embedded default; any backend works) until every frame has its result.
 pub fn run_in_process(
+    config: &PipelineConfig,
+    transport: &dyn Transport,
+    mesh: &Mesh,
+    deadline: Duration,
+    on_result: &mut dyn FnMut(&Header, &PoseResult),
+) -> Result<Collected, RuntimeError> {
+    // Threads do not restart, so nothing resumes: the run keeps its results journal in a folder
+    // of its own (never shared with another run of the same pipeline name), removed at the end.
+    let mut config = config.clone();
+    let state_dir = std::env::temp_dir().join(format!(
+        "asgreg-run-{}-{}",
+        std::process::id(),
+        bus::unix_time_ns()
+    ));
+    config.state_dir = Some(state_dir.clone());
+    let collected = run_stage_threads(&config, transport, mesh, deadline, on_result);
+    if let Err(error) = std::fs::remove_dir_all(&state_dir) {
+        if error.kind() != std::io::ErrorKind::NotFound {
+            tracing::warn!("{}: cannot remove: {error}", state_dir.display());
+        }
+    }
+    collected
+}
+
+/// Every stage as a thread, continuing the results journal as it is (the frames it lists are
+/// neither sent nor published again, as after a restart of ingest and verify).
+fn run_stage_threads(
     config: &PipelineConfig,
     transport: &dyn Transport,
     mesh: &Mesh,
@@ -99,6 +130,9 @@ pub fn run_in_process(
         for (name, worker, handle) in handles {
             match handle.join() {
                 Ok(Ok(metrics)) => finals.push(metrics),
+                // Ingest stopped with the others before its stream was complete (deadline or
+                // a stage error): the collected results say what is missing.
+                Ok(Err(NodeError::Stopped { .. })) => {}
                 Ok(Err(error)) => {
                     first_error.get_or_insert(RuntimeError::Stage {
                         stage: name,

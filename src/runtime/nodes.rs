@@ -1,6 +1,9 @@
 //! The loop of each stage: receive, call the stage adapter, send. The same functions run as
 //! threads (`asgreg run`) or as processes (`asgreg stage`, `asgreg launch`); `main` only wires.
 //! Every loop checks the stop flag, reports metrics once a second, and returns its metrics.
+//! A stage process's stop flag is set by SIGTERM or SIGINT ([`termination_flag`]): the loop
+//! finishes the message in hand, sends what it produced, hands back the jobs it was given and
+//! not finished (flow, render), and returns, so its bus ports close cleanly.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -18,6 +21,7 @@ use crate::transport::{keys, Transport};
 use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
 use super::config::{BackpressurePolicy, PipelineConfig};
 use super::dispatch::{Dispatcher, WorkerPort};
+use super::journal::{self, JournalError, ResultsJournal};
 
 /// How long a loop waits for a message before checking the stop flag.
 const POLL: Duration = Duration::from_millis(20);
@@ -30,6 +34,37 @@ pub enum NodeError {
     Bus(#[from] BusError),
     #[error(transparent)]
     Source(#[from] SourceError),
+    #[error("cannot install the SIGTERM/SIGINT handler of the stage: {0}")]
+    Signal(std::io::Error),
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+    #[error("{stage}: stopped by a signal before the end of the stream: {detail}")]
+    Stopped { stage: &'static str, detail: String },
+}
+
+/// Set by SIGTERM or SIGINT in a stage process.
+static TERMINATION_REQUESTED: AtomicBool = AtomicBool::new(false);
+
+#[cfg(unix)]
+extern "C" fn on_termination_signal(_signal: libc::c_int) {
+    // A store to a lock-free atomic is async-signal-safe.
+    TERMINATION_REQUESTED.store(true, Ordering::Relaxed);
+}
+
+/// The stop flag of a stage process: SIGTERM or SIGINT sets it and the stage stops cleanly at
+/// its next poll (within a message's compute time) instead of dying with its shared memory open.
+/// The launcher sends SIGTERM first and SIGKILL only after `launch.stop_grace_s`.
+pub fn termination_flag() -> Result<&'static AtomicBool, NodeError> {
+    #[cfg(unix)]
+    for signal in [libc::SIGTERM, libc::SIGINT] {
+        let handler = on_termination_signal as extern "C" fn(libc::c_int);
+        // SAFETY: the handler only stores to an atomic; `signal` installs it process-wide.
+        let previous = unsafe { libc::signal(signal, handler as libc::sighandler_t) };
+        if previous == libc::SIG_ERR {
+            return Err(NodeError::Signal(std::io::Error::last_os_error()));
+        }
+    }
+    Ok(&TERMINATION_REQUESTED)
 }
 
 /// What every stage loop gets.
@@ -109,21 +144,51 @@ struct Recovery {
     kept: std::collections::BTreeMap<u64, Kept>,
     finished: std::collections::BTreeSet<u64>,
     incarnations: HashMap<(String, u32), u64>,
+    /// The results journal (path, header) and when it was last read: it also lists results
+    /// published while this process was not there to receive them.
+    journal: (std::path::PathBuf, String),
+    journal_read: Instant,
+    /// Frames in the source: ids at or above it in a journal are not this run's.
+    frame_count: u64,
 }
 
 impl Recovery {
-    fn open(transport: &dyn Transport) -> Result<Self, BusError> {
-        Ok(Self {
+    /// Subscribes to results first, then reads the journal, so a result is either in the
+    /// journal or arrives on the bus.
+    fn open(
+        transport: &dyn Transport,
+        config: &PipelineConfig,
+        frame_count: u64,
+    ) -> Result<Self, NodeError> {
+        let mut recovery = Self {
             results: Inbox::open(transport, keys::RESULTS, "ingest")?,
             metrics: Inbox::open(transport, keys::METRICS, "ingest")?,
             kept: std::collections::BTreeMap::new(),
             finished: std::collections::BTreeSet::new(),
             incarnations: HashMap::new(),
-        })
+            journal: (journal::path(config), journal::header(config)),
+            journal_read: Instant::now(),
+            frame_count,
+        };
+        recovery.read_journal()?;
+        Ok(recovery)
+    }
+
+    fn read_journal(&mut self) -> Result<(), JournalError> {
+        let published = journal::read_published(&self.journal.0, &self.journal.1)?;
+        self.journal_read = Instant::now();
+        for frame_id in published.range(..self.frame_count) {
+            self.kept.remove(frame_id);
+            self.finished.insert(*frame_id);
+        }
+        Ok(())
     }
 
     /// Takes the results and metrics that arrived; true when pose or verify restarted.
-    fn poll(&mut self) -> Result<bool, BusError> {
+    fn poll(&mut self) -> Result<bool, NodeError> {
+        if self.journal_read.elapsed() >= Duration::from_secs(1) {
+            self.read_journal()?;
+        }
         let mut scratch = StageMetrics::default();
         let (kept, finished) = (&mut self.kept, &mut self.finished);
         while self
@@ -166,7 +231,7 @@ impl Recovery {
         verify: &mut Outbox,
         stream_end: Option<u64>,
         metrics: &mut StageMetrics,
-    ) -> Result<(), BusError> {
+    ) -> Result<(), NodeError> {
         if self.poll()? {
             self.redo(dispatcher, verify, stream_end, metrics)?;
         }
@@ -238,6 +303,18 @@ fn unexpected(stage: &str, kind: crate::msg::MessageKind, frame_id: u64) {
     tracing::error!("{stage}: ignored an unexpected {kind:?} message (frame {frame_id})");
 }
 
+/// Ingest stopped (SIGTERM) before every frame had its result: an error, so that the
+/// supervisor restarts it (a clean exit of ingest means the stream is complete).
+fn stopped_early(recovery: &Recovery, frame_count: u64) -> NodeError {
+    NodeError::Stopped {
+        stage: "ingest",
+        detail: format!(
+            "{} of {frame_count} frames have their result; a restart resumes from the results journal",
+            recovery.finished.len()
+        ),
+    }
+}
+
 /// Stage "ingest": reads the source, dispatches frames to render workers by the backpressure
 /// policy, sends failures and the end of the stream to verify, and stays until every frame has
 /// its result: it redoes the frames of a render worker that died (dispatcher) and, when pose or
@@ -255,15 +332,25 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     )?;
     let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
     verify.wait_for_reader("verify", ctx.startup())?;
-    let mut recovery = Recovery::open(ctx.transport)?;
+    let frame_count = source.len() as u64;
+    let mut recovery = Recovery::open(ctx.transport, config, frame_count)?;
+    if !recovery.finished.is_empty() {
+        // A restart: resume instead of replaying what already has its result.
+        tracing::info!(
+            "ingest: resuming: {} of {frame_count} frames already have their published result ({}); sending the other {}",
+            recovery.finished.len(),
+            recovery.journal.0.display(),
+            frame_count - recovery.finished.len() as u64
+        );
+    }
     let period =
         (config.source.rate_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / config.source.rate_hz));
     let mut next_emit = Instant::now();
     let mut names: HashMap<u64, (String, u64)> = HashMap::new();
-    let frame_count = source.len() as u64;
-    while let Some((frame_id, frame)) = source.next_frame() {
+    while let Some((frame_id, frame)) = source.next_frame_except(&recovery.finished) {
         if ctx.stopped() {
-            return Ok(metrics);
+            reporter.tick(&metrics, true);
+            return Err(stopped_early(&recovery, frame_count));
         }
         recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
         if let Some(period) = period {
@@ -302,6 +389,10 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                 while !dispatcher.has_room() {
                     match config.backpressure.policy {
                         BackpressurePolicy::Block => {
+                            if ctx.stopped() {
+                                reporter.tick(&metrics, true);
+                                return Err(stopped_early(&recovery, frame_count));
+                            }
                             dispatcher.pump(POLL)?;
                             recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
                         }
@@ -354,8 +445,12 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     // Until every frame has its result: redo what a crashed stage took with it.
     loop {
         let complete = dispatcher.is_idle() && recovery.finished.len() as u64 >= frame_count;
-        if complete || ctx.stopped() {
+        if complete {
             break;
+        }
+        if ctx.stopped() {
+            reporter.tick(&metrics, true);
+            return Err(stopped_early(&recovery, frame_count));
         }
         dispatcher.pump(POLL)?;
         recovery.service(
@@ -431,23 +526,44 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             // counts as transport time, like every Outbox send.
             let mut encoded: Result<(), BusError> = Ok(());
             let mut encode_ms = 0.0;
-            let outcome = stage.process(&frame, &mut |job| {
-                let encode_started = Instant::now();
-                let key = JobKey {
-                    frame_id,
-                    coarse_index: job.meta.coarse_index,
-                };
-                match encode_to_vec(frame_id, capture, Body::FlowJob(job)) {
-                    Ok(bytes) => dispatcher.push(key, bytes),
-                    Err(error) => {
-                        if encoded.is_ok() {
-                            encoded = Err(error);
+            // The query goes to verify (its send time is counted by the Outbox).
+            let mut query_sent: Result<(), BusError> = Ok(());
+            let mut query_ms = 0.0;
+            let outcome = stage.process(
+                &frame,
+                &mut |query| {
+                    let send_started = Instant::now();
+                    query_sent = verify
+                        .send(frame_id, capture, Body::FrameQuery(query), metrics)
+                        .map(|_| ());
+                    query_ms += send_started.elapsed().as_secs_f64() * 1e3;
+                },
+                &mut |job| {
+                    let encode_started = Instant::now();
+                    let key = JobKey {
+                        frame_id,
+                        coarse_index: job.meta.coarse_index,
+                    };
+                    match encode_to_vec(frame_id, capture, Body::FlowJob(job)) {
+                        Ok(bytes) => dispatcher.push(key, bytes),
+                        Err(error) => {
+                            if encoded.is_ok() {
+                                encoded = Err(error);
+                            }
                         }
                     }
+                    encode_ms += encode_started.elapsed().as_secs_f64() * 1e3;
+                },
+            );
+            if let Err(error) = query_sent {
+                if encoded.is_ok() {
+                    encoded = Err(error);
                 }
-                encode_ms += encode_started.elapsed().as_secs_f64() * 1e3;
-            });
-            record_compute_ms(metrics, started.elapsed().as_secs_f64() * 1e3 - encode_ms);
+            }
+            record_compute_ms(
+                metrics,
+                started.elapsed().as_secs_f64() * 1e3 - encode_ms - query_ms,
+            );
             metrics.send_ms += encode_ms;
             let key = JobKey {
                 frame_id,
@@ -473,6 +589,10 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         metrics.max_queue_depth = metrics.max_queue_depth.max(dispatcher.queued() as u64);
         metrics.redispatched = dispatcher.metrics.redispatched;
         reporter.tick(&metrics, false);
+    }
+    // Frames not yet handed out to flow go back to ingest, which gives them to another start.
+    if let Err(error) = port.leave() {
+        tracing::debug!("jobs not handed back (their producer is gone too): {error}");
     }
     metrics.messages_out += dispatcher.metrics.messages_out;
     metrics.bytes_out += dispatcher.metrics.bytes_out;
@@ -525,6 +645,10 @@ pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeErro
             port.finished(finished?)?;
         }
         reporter.tick(&metrics, false);
+    }
+    // Jobs given to this worker after its last one are redone elsewhere at once.
+    if let Err(error) = port.leave() {
+        tracing::debug!("jobs not handed back (their producer is gone too): {error}");
     }
     reporter.tick(&metrics, true);
     Ok(metrics)
@@ -581,6 +705,17 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     );
     let mut capture_times: HashMap<u64, u64> = HashMap::new();
     let mut stream_ended = false;
+    // Results published before a restart of this stage are not published again.
+    let (mut journal, mut published) =
+        ResultsJournal::open(&journal::path(config), &journal::header(config))?;
+    if !published.is_empty() {
+        tracing::info!(
+            "verify: {} frames already have their published result ({}); they are not published again",
+            published.len(),
+            journal.path().display()
+        );
+    }
+    let mut journal_failed = false;
     while !ctx.stopped() {
         let mut produced = Vec::new();
         inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
@@ -599,6 +734,12 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                         .or_insert(message.header.capture_time_ns);
                     produced.extend(stage.on_failure(frame_id, &failure));
                 }
+                Body::FrameQuery(query) => {
+                    capture_times
+                        .entry(frame_id)
+                        .or_insert(message.header.capture_time_ns);
+                    produced.extend(stage.on_query(frame_id, &query));
+                }
                 Body::StreamEnd(end) => stage.on_stream_end(end.frame_count, &end.finished_frames),
                 other => unexpected("verify", other.kind(), frame_id),
             }
@@ -607,6 +748,14 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         produced.extend(stage.expire(Instant::now()));
         for mut result in produced {
             let capture = capture_times.remove(&result.frame_id).unwrap_or(0);
+            if published.contains(&result.frame_id) {
+                tracing::info!(
+                    "verify: frame {} already has its published result (before a restart); not publishing it again",
+                    result.frame_id
+                );
+                stage.late_messages += 1;
+                continue;
+            }
             if capture > 0 {
                 result.times.latency_ms = unix_time_ns().saturating_sub(capture) as f64 / 1e6;
             }
@@ -617,6 +766,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 sent_time_ns: unix_time_ns(),
             };
             let json = pose_result_json(&header, &result);
+            let frame_id = result.frame_id;
             results.send(
                 result.frame_id,
                 capture,
@@ -624,6 +774,15 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 &mut metrics,
             )?;
             results_json.send_raw(json.as_bytes())?;
+            published.insert(frame_id);
+            // The result is out; the journal only helps a restart, so a failure to write it
+            // is reported once and the stage goes on.
+            if let Err(error) = journal.append(frame_id) {
+                if !journal_failed {
+                    tracing::error!("verify: {error}; a restart may publish results again");
+                    journal_failed = true;
+                }
+            }
         }
         if !stream_ended {
             if let Some(frame_count) = stage.stream_complete() {

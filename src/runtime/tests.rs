@@ -230,7 +230,7 @@ fn flow_workers_describe_each_query_once_with_the_same_correspondences() {
     let frame = frame.unwrap();
     let mut jobs: Vec<FlowJob<'static>> = Vec::new();
     RenderStage::new(&mesh, config.registration.clone())
-        .process(&frame, &mut |job| {
+        .process(&frame, &mut |_| {}, &mut |job| {
             jobs.push(FlowJob {
                 meta: job.meta.clone(),
                 query: Cow::Owned(job.query.to_vec()),
@@ -292,5 +292,149 @@ fn the_source_reads_text_files_and_binary_model_folders_alike() {
         );
         assert!(a.rotation_angle_to_rad(&b) < 1e-12);
         assert!((a.translation - b.translation).norm() < 1e-12);
+    }
+}
+
+/// A restarted ingest passes over the frames that already have their result, without reading
+/// them, and emits the others under their own ids.
+#[test]
+fn the_source_resumes_past_the_frames_that_have_their_result() {
+    use crate::stage::ingest::FolderSource;
+
+    let dir = tempfile::tempdir().unwrap();
+    let config = tiny_scene(dir.path());
+    let mut source = FolderSource::open(&config.source).unwrap();
+    let done: std::collections::BTreeSet<u64> = [0, 2, 3].into();
+    let (frame_id, frame) = source.next_frame_except(&done).unwrap();
+    assert_eq!(frame_id, 1);
+    assert!(frame.is_ok());
+    assert!(source.next_frame_except(&done).is_none());
+    let mut all = FolderSource::open(&config.source).unwrap();
+    let ids: Vec<u64> = std::iter::from_fn(|| all.next_frame_except(&Default::default()))
+        .map(|(id, _)| id)
+        .collect();
+    assert_eq!(ids, vec![0, 1, 2, 3]);
+}
+
+/// The collector is idempotent by frame id: a repeated result is counted as a duplicate but
+/// neither handed on nor kept.
+#[test]
+fn the_collector_hands_on_one_result_per_frame() {
+    use crate::msg::{Body, Evidence, PoseResult, StageTimesMs, StreamEnd};
+
+    let transport = CrossbeamTransport::new(crate::transport::conformance::config("collector"));
+    let mut collector = collect::Collector::open(&transport).unwrap();
+    let mut results = bus::Outbox::open(&transport, keys::RESULTS).unwrap();
+    let result = |frame_id: u64, reason: &str| PoseResult {
+        frame_id,
+        name: format!("f{frame_id}.jpg"),
+        accepted: false,
+        failure: Some(reason.to_string()),
+        confidence: 0.0,
+        camera: None,
+        cam_from_world: None,
+        evidence: Evidence::default(),
+        times: StageTimesMs::default(),
+        flow_workers: Vec::new(),
+    };
+    let mut metrics = crate::msg::StageMetrics::default();
+    for (frame_id, reason) in [(0, "first"), (1, "first"), (0, "again")] {
+        results
+            .send(
+                frame_id,
+                0,
+                Body::PoseResult(result(frame_id, reason)),
+                &mut metrics,
+            )
+            .unwrap();
+    }
+    let end = StreamEnd {
+        frame_count: 2,
+        finished_frames: Vec::new(),
+    };
+    results
+        .send(0, 0, Body::StreamEnd(end), &mut metrics)
+        .unwrap();
+    let mut handed_on = Vec::new();
+    let collected = collector
+        .collect(
+            Duration::from_secs(30),
+            &mut |_, r| handed_on.push((r.frame_id, r.failure.clone().unwrap_or_default())),
+            &mut || true,
+        )
+        .unwrap();
+    assert_eq!(
+        handed_on,
+        vec![(0, "first".to_string()), (1, "first".to_string())]
+    );
+    assert_eq!(collected.results.len(), 2);
+    assert_eq!(collected.duplicates, vec![0]);
+    assert!(collected.missing().is_empty());
+    assert!(collect::summary(&collected, "crossbeam").contains("duplicated [0]"));
+}
+
+/// Ingest and verify started again over a journal that lists frames 0 and 2 (as after both
+/// crashed): ingest sends only frames 1 and 3, verify publishes only theirs, and the stream ends
+/// with every frame accounted for.
+#[test]
+fn restarted_ingest_and_verify_resume_from_the_results_journal() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    config.state_dir = Some(dir.path().join("state"));
+    let path = journal::path(&config);
+    let (mut written, _) = journal::ResultsJournal::open(&path, &journal::header(&config)).unwrap();
+    written.append(0).unwrap();
+    written.append(2).unwrap();
+    drop(written);
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let transport = CrossbeamTransport::new(config.transport.clone());
+    let collected = run_stage_threads(
+        &config,
+        &transport,
+        &mesh,
+        Duration::from_secs(300),
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert_eq!(collected.frame_count, Some(4));
+    let ids: Vec<u64> = collected.by_frame().iter().map(|r| r.frame_id).collect();
+    assert_eq!(
+        ids,
+        vec![1, 3],
+        "only the frames without a result are redone"
+    );
+    assert!(collected.duplicates.is_empty());
+    let render = &collected.metrics[&("render".to_string(), 0)];
+    assert_eq!(
+        render.messages_in, 2,
+        "ingest sent frames that had a result"
+    );
+    let journaled = journal::read_published(&path, &journal::header(&config)).unwrap();
+    assert_eq!(journaled, [0, 1, 2, 3].into());
+}
+
+/// Ingest stopped by a signal before its stream is complete ends with an error (the supervisor
+/// restarts it, and the restart resumes); a clean exit of ingest means the stream is complete.
+#[test]
+fn ingest_stopped_before_the_end_of_its_stream_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    config.state_dir = Some(dir.path().join("state"));
+    let transport = CrossbeamTransport::new(config.transport.clone());
+    // Verify's input, so that ingest finds its reader.
+    let _verify_in = bus::Inbox::open(&transport, keys::VERIFY_IN, "test").unwrap();
+    let stop = AtomicBool::new(true);
+    let context = nodes::NodeContext {
+        transport: &transport,
+        config: &config,
+        worker_index: 0,
+        stop: &stop,
+    };
+    match nodes::run_ingest(&context) {
+        Err(NodeError::Stopped { stage, detail }) => {
+            assert_eq!(stage, "ingest");
+            assert!(detail.contains("0 of 4 frames"), "{detail}");
+        }
+        other => panic!("ingest stopped early returned {other:?}"),
     }
 }

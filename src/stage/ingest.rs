@@ -1,6 +1,7 @@
 //! Stage "ingest": turns a folder of photos with COLMAP poses into Frame messages, one per image
 //! listed in images.txt, in that order. A frame whose inputs are unusable becomes a FrameFailed
-//! naming the file, so that it still gets its one result.
+//! naming the file, so that it still gets its one result. A restarted ingest passes over the
+//! frames that already have theirs (`next_frame_except`).
 
 use std::borrow::Cow;
 use std::collections::BTreeMap;
@@ -10,7 +11,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
 use crate::core::image::Image;
-use crate::frame_files::{depth_path_for, frame_seed, load_frame_files};
+use crate::frame_files::{depth_path_for, frame_seed, FrameLoader};
 use crate::io::colmap::ImagePose;
 use crate::io::colmap_model::{read_cameras_at, read_images_at, ModelError};
 use crate::msg::{Frame, FrameFailed, FrameInfo};
@@ -85,6 +86,8 @@ pub struct FolderSource {
     cameras: BTreeMap<u32, Camera>,
     images: Vec<ImagePose>,
     next: usize,
+    /// Brings photos to the working camera (default working width), each camera's plan once.
+    loader: FrameLoader,
 }
 
 impl FolderSource {
@@ -114,6 +117,7 @@ impl FolderSource {
             cameras,
             images,
             next: 0,
+            loader: FrameLoader::default(),
         })
     }
 
@@ -132,6 +136,18 @@ impl FolderSource {
         let frame_id = self.next as u64;
         self.next += 1;
         Some((frame_id, self.load(&image)))
+    }
+
+    /// The next frame whose id is not in `done` (frames that already have their result: a
+    /// restarted ingest resumes instead of replaying); the frames passed over are not read.
+    pub fn next_frame_except(
+        &mut self,
+        done: &std::collections::BTreeSet<u64>,
+    ) -> Option<(u64, Result<Frame<'static>, FrameFailed>)> {
+        while self.next < self.images.len() && done.contains(&(self.next as u64)) {
+            self.next += 1;
+        }
+        self.next_frame()
     }
 
     fn load(&self, image: &ImagePose) -> Result<Frame<'static>, FrameFailed> {
@@ -157,18 +173,21 @@ impl FolderSource {
             .depth
             .as_ref()
             .map(|dir| depth_path_for(dir, &image.name));
-        let files = load_frame_files(
-            &self.config.images.join(&image.name),
-            image.camera_id,
-            &camera,
-            depth_path.as_deref(),
-        )
-        .map_err(|e| failed(e.to_string()))?;
+        let files = self
+            .loader
+            .load(
+                &self.config.images.join(&image.name),
+                image.camera_id,
+                &camera,
+                depth_path.as_deref(),
+            )
+            .map_err(|e| failed(e.to_string()))?;
         Ok(Frame {
             info: FrameInfo {
                 name: image.name.clone(),
                 camera_id: image.camera_id,
-                camera,
+                // The working camera (undistorted, at the working width): the photo's.
+                camera: files.camera,
                 intrinsics_known: self.config.intrinsics_known,
                 initial_cam_from_world: image.cam_from_world,
                 seed: frame_seed(self.config.seed, image.image_id),

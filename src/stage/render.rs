@@ -1,6 +1,7 @@
-//! Stage "render": a Frame becomes one FlowJob per coarse pose (the query gradient and the ASG
-//! rendering, depth and face index of the view), by the frame sequence's own query, plan and
-//! render steps (`core::frame`).
+//! Stage "render": a Frame becomes its FrameQuery (the query gradient, for verify's final
+//! refinement) and one FlowJob per coarse pose (the query gradient and the ASG rendering, depth
+//! and face index of the view), by the frame sequence's own query, plan and render steps
+//! (`core::frame`).
 
 use std::borrow::Cow;
 use std::time::Instant;
@@ -10,7 +11,7 @@ use crate::core::frame::{
 };
 use crate::core::mesh::Mesh;
 use crate::core::raster::Rasterizer;
-use crate::msg::{FlowJob, FlowJobMeta, Frame, FrameFailed};
+use crate::msg::{FlowJob, FlowJobMeta, Frame, FrameFailed, FrameQuery};
 
 use super::elapsed_ms;
 
@@ -31,13 +32,15 @@ impl<'m> RenderStage<'m> {
         }
     }
 
-    /// Renders the frame's coarse views and hands each flow job, in coarse-pose order, to
-    /// `emit`; the job borrows the stage's buffers (the caller encodes it straight away, so no
-    /// image is copied twice). Returns the number of jobs, or why the frame cannot be registered.
-    /// A job's `render_ms` is the frame's render time up to and including that view.
+    /// Hands the frame's query to `emit_query`, then renders the frame's coarse views and hands
+    /// each flow job, in coarse-pose order, to `emit`; both borrow the stage's buffers (the
+    /// caller encodes them straight away, so no image is copied twice). Returns the number of
+    /// jobs, or why the frame cannot be registered. A job's `render_ms` is the frame's render
+    /// time up to and including that view.
     pub fn process(
         &mut self,
         frame: &Frame,
+        emit_query: &mut dyn FnMut(FrameQuery<'_>),
         emit: &mut dyn FnMut(FlowJob<'_>),
     ) -> Result<usize, FrameFailed> {
         let started = Instant::now();
@@ -58,6 +61,10 @@ impl<'m> RenderStage<'m> {
             seed: info.seed,
         };
         let query = query_gradient(&input, &self.config).map_err(|e| failed(e.to_string()))?;
+        emit_query(FrameQuery {
+            info: info.clone(),
+            query: Cow::Borrowed(query.data()),
+        });
         render_views(
             self.mesh,
             &info.camera,

@@ -1,16 +1,20 @@
 //! Stage "verify": gathers a frame's hypotheses (from whichever pose/flow workers made them,
-//! duplicates from redone jobs ignored), runs the plausibility check and emits the frame's one
-//! PoseResult. A frame that a stage gave up on, or that never completes within the timeout,
+//! duplicates from redone jobs ignored) and its query (from render), runs the plausibility check
+//! and the final refinement and emits the frame's one PoseResult. A frame that a stage gave up on, or that never completes within the timeout,
 //! also gets exactly one (failed) result with the reason.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
 
 use crate::core::camera::Camera;
-use crate::core::frame::{decide_frame, CoarseOutcome, RegistrationConfig};
+use crate::core::frame::{
+    decide_frame, CoarseOutcome, Decision, IntrinsicsMode, RefineWorkspace, RegistrationConfig,
+};
+use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::msg::{
-    CameraNumbers, Evidence, FrameFailed, Hypothesis, PoseNumbers, PoseResult, StageTimesMs,
+    CameraNumbers, Evidence, FrameFailed, FrameInfo, FrameQuery, Hypothesis, PoseNumbers,
+    PoseResult, RefinementNumbers, StageTimesMs,
 };
 
 use super::elapsed_ms;
@@ -18,9 +22,32 @@ use super::elapsed_ms;
 struct PendingFrame {
     name: String,
     camera: Camera,
-    coarse_count: u32,
+    intrinsics: IntrinsicsMode,
+    /// Known from the first hypothesis.
+    coarse_count: Option<u32>,
     hypotheses: BTreeMap<u32, Hypothesis>,
+    /// The frame's query gradient image (render sends it before the flow jobs).
+    query: Option<Image<f32>>,
     first_seen: Instant,
+}
+
+impl PendingFrame {
+    fn new(info: &FrameInfo) -> Self {
+        Self {
+            name: info.name.clone(),
+            camera: info.camera,
+            intrinsics: IntrinsicsMode::from_known(info.intrinsics_known),
+            coarse_count: None,
+            hypotheses: BTreeMap::new(),
+            query: None,
+            first_seen: Instant::now(),
+        }
+    }
+
+    fn has_every_hypothesis(&self) -> bool {
+        self.coarse_count
+            .is_some_and(|count| self.hypotheses.len() >= count as usize)
+    }
 }
 
 pub struct VerifyStage<'m> {
@@ -28,6 +55,7 @@ pub struct VerifyStage<'m> {
     config: RegistrationConfig,
     frame_timeout: Duration,
     pending: BTreeMap<u64, PendingFrame>,
+    refine_workspace: RefineWorkspace,
     /// Every frame id below this has its result.
     finished_below: u64,
     /// Frame ids at or above `finished_below` that have their result.
@@ -44,6 +72,7 @@ impl<'m> VerifyStage<'m> {
             config,
             frame_timeout,
             pending: BTreeMap::new(),
+            refine_workspace: RefineWorkspace::default(),
             finished_below: 0,
             finished_above: BTreeSet::new(),
             stream_frame_count: None,
@@ -68,7 +97,7 @@ impl<'m> VerifyStage<'m> {
         self.pending.len()
     }
 
-    /// One coarse pose's hypothesis; returns the frame's result when it was the last one missing.
+    /// One coarse pose's hypothesis; returns the frame's result when it was the last thing missing.
     pub fn on_hypothesis(&mut self, frame_id: u64, hypothesis: Hypothesis) -> Option<PoseResult> {
         if self.is_finished(frame_id) {
             self.late_messages += 1;
@@ -78,13 +107,8 @@ impl<'m> VerifyStage<'m> {
         let pending = self
             .pending
             .entry(frame_id)
-            .or_insert_with(|| PendingFrame {
-                name: hypothesis.info.name.clone(),
-                camera: hypothesis.info.camera,
-                coarse_count: hypothesis.coarse_count,
-                hypotheses: BTreeMap::new(),
-                first_seen: Instant::now(),
-            });
+            .or_insert_with(|| PendingFrame::new(&hypothesis.info));
+        pending.coarse_count = Some(hypothesis.coarse_count);
         if pending
             .hypotheses
             .insert(coarse_index, hypothesis)
@@ -92,7 +116,38 @@ impl<'m> VerifyStage<'m> {
         {
             self.late_messages += 1;
         }
-        if pending.hypotheses.len() < pending.coarse_count as usize {
+        self.decide_if_complete(frame_id)
+    }
+
+    /// The frame's query; returns the frame's result when it was the last thing missing.
+    pub fn on_query(&mut self, frame_id: u64, query: &FrameQuery) -> Option<PoseResult> {
+        if self.is_finished(frame_id) {
+            self.late_messages += 1;
+            return None;
+        }
+        let image = match query.query_image() {
+            Ok(image) => image.to_image(),
+            Err(error) => {
+                tracing::warn!(
+                    "frame {frame_id} '{}': query image unusable ({error}); the frame is decided without the final refinement",
+                    query.info.name
+                );
+                return None;
+            }
+        };
+        let pending = self
+            .pending
+            .entry(frame_id)
+            .or_insert_with(|| PendingFrame::new(&query.info));
+        if pending.query.replace(image).is_some() {
+            self.late_messages += 1;
+        }
+        self.decide_if_complete(frame_id)
+    }
+
+    fn decide_if_complete(&mut self, frame_id: u64) -> Option<PoseResult> {
+        let pending = self.pending.get(&frame_id)?;
+        if !(pending.has_every_hypothesis() && pending.query.is_some()) {
             return None;
         }
         let pending = self.pending.remove(&frame_id)?;
@@ -136,23 +191,33 @@ impl<'m> VerifyStage<'m> {
             .collect();
         let mut results = Vec::new();
         for frame_id in expired {
-            if let Some(frame) = self.pending.remove(&frame_id) {
-                let missing: Vec<String> = (0..frame.coarse_count)
+            let Some(frame) = self.pending.remove(&frame_id) else {
+                continue;
+            };
+            if frame.has_every_hypothesis() {
+                // Only the query is missing: decided without the final refinement.
+                results.push(self.decide(frame_id, frame));
+            } else {
+                let coarse_count = frame.coarse_count.unwrap_or(0);
+                let missing: Vec<String> = (0..coarse_count)
                     .filter(|i| !frame.hypotheses.contains_key(i))
                     .map(|i| i.to_string())
                     .collect();
+                let waited_for = if frame.coarse_count.is_some() {
+                    format!("coarse poses {} of {coarse_count}", missing.join(", "))
+                } else {
+                    "every coarse pose".to_string()
+                };
                 results.push(failed_result(
                     frame_id,
                     &frame.name,
                     format!(
-                        "verify: timed out after {:.0} s waiting for coarse poses {} of {} (a stage lost them; see its log)",
+                        "verify: timed out after {:.0} s waiting for {waited_for} (a stage lost them; see its log)",
                         self.frame_timeout.as_secs_f64(),
-                        missing.join(", "),
-                        frame.coarse_count
                     ),
                 ));
-                self.mark_finished(frame_id);
             }
+            self.mark_finished(frame_id);
         }
         results
     }
@@ -163,14 +228,31 @@ impl<'m> VerifyStage<'m> {
             .filter(|&count| self.finished_below >= count && self.pending.is_empty())
     }
 
-    fn decide(&self, frame_id: u64, frame: PendingFrame) -> PoseResult {
+    fn decide(&mut self, frame_id: u64, frame: PendingFrame) -> PoseResult {
         let started = Instant::now();
         let outcomes: Vec<CoarseOutcome> = frame
             .hypotheses
             .values()
             .map(|h| h.outcome.clone())
             .collect();
-        let verdict = decide_frame(self.mesh, &frame.camera, &outcomes, &self.config);
+        let Decision {
+            verdict,
+            refinement,
+        } = decide_frame(
+            self.mesh,
+            &frame.camera,
+            &outcomes,
+            frame.query.as_ref().map(|query| query.view()),
+            frame.intrinsics,
+            &self.config,
+            &mut self.refine_workspace,
+        );
+        if let Err(why) = &refinement {
+            tracing::debug!(
+                "frame {frame_id} '{}': no final refinement: {why}",
+                frame.name
+            );
+        }
         let chosen = verdict.chosen();
         let accepted = verdict.accepted_pose();
         let mut times = StageTimesMs::default();
@@ -199,6 +281,7 @@ impl<'m> VerifyStage<'m> {
                 inlier_rms_px: chosen.map(|h| h.inlier_rms_px),
                 mean_delta_to_chosen_px: verdict.mean_delta_to_chosen_px,
                 convergence_ratio: verdict.convergence_ratio,
+                refinement: refinement.as_ref().ok().map(RefinementNumbers::from),
             },
             times,
             flow_workers: frame.hypotheses.values().map(|h| h.flow_worker).collect(),

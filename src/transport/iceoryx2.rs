@@ -4,7 +4,7 @@
 //! memory).
 //!
 //! Each topic is three iceoryx2 services named after its key (`keys::key`,
-//! `asgreg/v2/<pipeline>/<topic>`): the publish-subscribe service that carries the messages
+//! `asgreg/v3/<pipeline>/<topic>`): the publish-subscribe service that carries the messages
 //! (payload `[u64]`, user header [`MessageBytes`] with the message's length in bytes), an event
 //! service of the same name (the messaging pattern is part of a service's identity, so they do
 //! not collide) and a small publish-subscribe service `<key>!attached` for the attach handshake
@@ -651,11 +651,18 @@ impl Iceoryx2Subscriber {
         let mut on_event = |activation: EventActivation| {
             asked_to_acknowledge |= activation.id == ACK_REQUEST_EVENT
         };
-        match timeout {
+        let waited = match timeout {
             Some(timeout) => self.listener.timed_wait(&mut on_event, timeout),
             None => self.listener.try_wait(&mut on_event),
+        };
+        match waited {
+            // A signal (SIGTERM stopping a stage) cut the wait short: a wake-up, not an error;
+            // the stage's loop sees its stop flag next.
+            Ok(_) | Err(::iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => {}
+            Err(error) => {
+                return Err(self.receive_error(format!("waiting for a message: {error}")));
+            }
         }
-        .map_err(|error| self.receive_error(format!("waiting for a message: {error}")))?;
         self.last_event_check = Instant::now();
         if asked_to_acknowledge {
             self.acknowledged.clear();

@@ -1,17 +1,17 @@
 //! Every topic name and every zenoh key expression of the bus, in one place and versioned
-//! (`asgreg/v2/...`): a subscriber in any language builds its keys from this file's rules.
+//! (`asgreg/v3/...`): a subscriber in any language builds its keys from this file's rules.
 //!
 //! A topic is a `/`-separated name relative to a pipeline (`results`, `flow/jobs/3`); its key is
-//! `asgreg/v2/<pipeline>/<topic>`. iceoryx2 service names are the same string.
+//! `asgreg/v3/<pipeline>/<topic>`. iceoryx2 service names are the same string.
 
 /// The version segment of every key; it changes with `msg::SCHEMA_VERSION`.
-pub const KEY_VERSION: &str = "v2";
+pub const KEY_VERSION: &str = "v3";
 /// The first segment of every key.
 pub const KEY_ROOT: &str = "asgreg";
 
 /// Final results, one `PoseResult` per frame (bincode).
 pub const RESULTS: &str = "results";
-/// The same results as JSON (`schemas/v2/pose_result.schema.json`) for non-Rust subscribers.
+/// The same results as JSON (`schemas/v3/pose_result.schema.json`) for non-Rust subscribers.
 pub const RESULTS_JSON: &str = "results/json";
 /// Correspondences from flow workers to the pose stage.
 pub const CORRESPONDENCES: &str = "pose/in";
@@ -35,7 +35,7 @@ pub fn credits(link: &str) -> String {
     format!("{link}/credits")
 }
 
-/// The full key of a topic in a pipeline: `asgreg/v2/<pipeline>/<topic>`.
+/// The full key of a topic in a pipeline: `asgreg/v3/<pipeline>/<topic>`.
 pub fn key(pipeline: &str, topic: &str) -> String {
     format!("{KEY_ROOT}/{KEY_VERSION}/{pipeline}/{topic}")
 }
@@ -51,9 +51,9 @@ mod tests {
 
     #[test]
     fn keys_are_versioned_and_scoped_by_pipeline() {
-        assert_eq!(key("gs1", RESULTS), "asgreg/v2/gs1/results");
-        assert_eq!(key("gs1", &jobs("flow", 3)), "asgreg/v2/gs1/flow/jobs/3");
-        assert_eq!(key("gs1", &credits("flow")), "asgreg/v2/gs1/flow/credits");
-        assert_eq!(pipeline_wildcard("gs1"), "asgreg/v2/gs1/**");
+        assert_eq!(key("gs1", RESULTS), "asgreg/v3/gs1/results");
+        assert_eq!(key("gs1", &jobs("flow", 3)), "asgreg/v3/gs1/flow/jobs/3");
+        assert_eq!(key("gs1", &credits("flow")), "asgreg/v3/gs1/flow/credits");
+        assert_eq!(pipeline_wildcard("gs1"), "asgreg/v3/gs1/**");
     }
 }

@@ -1,7 +1,8 @@
 //! The streaming pipeline as processes: the same synthetic frames through `asgreg run` (one
 //! process, crossbeam), `asgreg launch` (one process per stage over iceoryx2) and with the flow
-//! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker, render and
-//! verify mid-stream loses no frame; a stage process rejects a message with a wrong schema version and lives on.
+//! worker attached over zenoh give identical PoseResults; SIGKILLing a flow worker, render,
+//! verify and ingest mid-stream gives every frame exactly one result; a stage process rejects a message with a wrong schema version
+//! and lives on, and stops cleanly on SIGTERM with a plain (colourless) log.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -132,6 +133,11 @@ fn run_launch_and_a_zenoh_flow_worker_give_identical_results() {
         .unwrap();
     let (ok, stdout, stderr) = finish(child, Duration::from_secs(240));
     assert!(ok, "launch over iceoryx2 failed:\n{stdout}\n{stderr}");
+    // At the end every stage stops on SIGTERM, within the grace period.
+    assert!(
+        !stderr.contains("did not stop within"),
+        "a stage needed SIGKILL:\n{stderr}"
+    );
     assert!(
         stdout.contains("exactly one result per frame: yes"),
         "{stdout}"
@@ -175,6 +181,10 @@ fn run_launch_and_a_zenoh_flow_worker_give_identical_results() {
         reference,
         "zenoh run differs from the one-process run"
     );
+    assert!(
+        !stderr.contains("did not stop within"),
+        "a stage needed SIGKILL over zenoh:\n{stderr}"
+    );
 }
 
 /// What the launcher printed that the kill test waits for.
@@ -185,7 +195,7 @@ enum Event {
 }
 
 #[test]
-fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
+fn sigkill_of_flow_render_verify_and_ingest_mid_stream_gives_one_result_per_frame() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene(dir.path(), 10);
     let body = common(&unique("kill"), 2, "")
@@ -204,7 +214,7 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
         let mut text = String::new();
         for line in BufReader::new(stderr).lines() {
             let line = line.unwrap();
-            for stage in ["flow", "render", "verify"] {
+            for stage in ["flow", "render", "verify", "ingest"] {
                 if let Some(pid) = line.strip_prefix(&format!("launch: {stage} worker 0 pid ")) {
                     let pid = pid.trim().parse::<u32>().unwrap();
                     let _ = pid_events.send(Event::Started { stage, pid });
@@ -228,8 +238,9 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
         }
         text
     });
-    // Kill flow worker 0, then render, then verify, once the first result is out: 10 frames at 2 frames/s,
-    // so most of the stream is still to come.
+    // Kill flow worker 0, then render, then verify, then ingest, once the first result is out: 10
+    // frames at 2 frames/s, so most of the stream is still to come. The restarted ingest resumes
+    // from the results journal instead of replaying the source.
     let mut started = Vec::new();
     loop {
         match received.recv_timeout(Duration::from_secs(120)) {
@@ -254,6 +265,8 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
     kill("render", &started);
     std::thread::sleep(Duration::from_millis(700));
     kill("verify", &started);
+    std::thread::sleep(Duration::from_millis(700));
+    kill("ingest", &started);
     let status = launcher.wait().unwrap();
     let log = log.join().unwrap();
     let stdout = printed.join().unwrap();
@@ -266,7 +279,7 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
             started.push((stage, pid));
         }
     }
-    for stage in ["flow", "render", "verify"] {
+    for stage in ["flow", "render", "verify", "ingest"] {
         let starts = started.iter().filter(|(s, _)| *s == stage).count();
         assert!(
             starts >= 2,
@@ -274,6 +287,10 @@ fn sigkill_of_flow_render_and_verify_mid_stream_loses_no_frame() {
         );
     }
     assert!(log.contains("restarting"), "{log}");
+    assert!(
+        log.contains("ingest: resuming"),
+        "the restarted ingest did not resume from the journal:\n{log}"
+    );
     assert!(
         stdout.contains("exactly one result per frame: yes"),
         "{stdout}"
@@ -332,9 +349,21 @@ fn a_stage_process_rejects_a_wrong_schema_version_and_keeps_running() {
         verify.try_wait().unwrap().is_none(),
         "the verify stage died on a bad message"
     );
-    let _ = verify.kill();
-    let output = verify.wait_with_output().unwrap();
-    let log = String::from_utf8_lossy(&output.stderr);
+    // SIGTERM stops it cleanly: it leaves its loop, reports, closes its ports and exits 0.
+    let terminated = Command::new("kill")
+        .args(["-TERM", &verify.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(terminated.success());
+    let (stopped, stdout, log) = finish(verify, Duration::from_secs(20));
+    assert!(
+        stopped,
+        "the verify stage did not exit cleanly on SIGTERM:\n{stdout}\n{log}"
+    );
+    assert!(
+        log.contains("done: "),
+        "no final report after SIGTERM:\n{log}"
+    );
     assert!(
         log.contains("schema version 9") && log.contains("rejected"),
         "no clear log line for the wrong schema version:\n{log}"
@@ -342,6 +371,11 @@ fn a_stage_process_rejects_a_wrong_schema_version_and_keeps_running() {
     assert!(
         log.contains("shorter than") || log.contains("not an asgreg message"),
         "{log}"
+    );
+    // stderr is a pipe here, not a terminal: plain text, no colour codes.
+    assert!(
+        !log.contains('\u{1b}'),
+        "terminal escape codes in a log that is not a terminal:\n{log:?}"
     );
 }
 

@@ -4,6 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::core::edge_align::EdgeAlignConfig;
 use crate::core::flow_consistency::MatchConfig;
 use crate::core::pose::estimate::PoseEstimationConfig;
 use crate::core::raster::RenderOptions;
@@ -78,6 +79,8 @@ pub struct RegistrationConfig {
     pub min_correspondences_per_pose: usize,
     pub pose: PoseEstimationConfig,
     pub verify: VerifyConfig,
+    /// The final refinement of the chosen pose against the photo's edges (step "refine").
+    pub edge_align: EdgeAlignConfig,
 }
 
 impl Default for RegistrationConfig {
@@ -101,6 +104,7 @@ impl Default for RegistrationConfig {
             min_correspondences_per_pose: 30,
             pose: PoseEstimationConfig::default(),
             verify: VerifyConfig::default(),
+            edge_align: EdgeAlignConfig::default(),
         }
     }
 }
@@ -193,6 +197,12 @@ impl RegistrationConfig {
             .validate()
             .map_err(|e| RegistrationError::InvalidConfig {
                 field: "verify",
+                why: e.to_string(),
+            })?;
+        self.edge_align
+            .validate()
+            .map_err(|e| RegistrationError::InvalidConfig {
+                field: "edge_align",
                 why: e.to_string(),
             })?;
         Ok(())

@@ -7,7 +7,7 @@
 //! | features | once per frame | [`correspond::query_features`] | flow (cached per frame) |
 //! | match + lift | per coarse view | [`correspond::correspond_view`] | flow (N workers) |
 //! | solve | per coarse view | [`solve::solve_view`] | pose |
-//! | verify | once per frame, over all views | [`decide::decide_frame`] | verify |
+//! | verify + refine | once per frame, over all views | [`decide::decide_frame`] (plausibility check, then [`refine::refine_verdict`]) | verify |
 //!
 //! [`register_frame`] (one process), the stage adapters (`stage::*`) and batch registration all
 //! call these functions and nothing else; none re-derives a step. A new step is one function
@@ -23,6 +23,7 @@ pub mod config;
 pub mod correspond;
 pub mod decide;
 pub mod query;
+pub mod refine;
 pub mod solve;
 pub mod views;
 
@@ -36,8 +37,9 @@ use serde::{Deserialize, Serialize};
 
 pub use config::{IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError};
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
-pub use decide::decide_frame;
+pub use decide::{decide_frame, Decision};
 pub use query::{query_gradient, smooth_depth};
+pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
 pub use solve::solve_view;
 pub use views::{coarse_poses, median_scene_depth_m, render_coarse_view, render_views};
 
@@ -107,6 +109,7 @@ pub struct StageTimings {
     pub render_ms: f64,
     pub flow_ms: f64,
     pub pose_ms: f64,
+    /// Verification and the final refinement.
     pub verify_ms: f64,
     pub total_ms: f64,
 }
@@ -116,6 +119,9 @@ pub struct StageTimings {
 pub struct FrameResult {
     pub verdict: Verdict,
     pub coarse: Vec<CoarseOutcome>,
+    /// The final refinement of the chosen pose (already applied to the verdict when kept), or why
+    /// there was none.
+    pub refinement: Result<PoseRefinement, String>,
     pub timings: StageTimings,
 }
 
@@ -200,12 +206,24 @@ pub fn register_query(
     timings.pose_ms = elapsed_ms(stage);
 
     let stage = Instant::now();
-    let verdict = decide_frame(mesh, camera, &outcomes, config);
+    let Decision {
+        verdict,
+        refinement,
+    } = decide_frame(
+        mesh,
+        camera,
+        &outcomes,
+        Some(query),
+        intrinsics,
+        config,
+        &mut RefineWorkspace::default(),
+    );
     timings.verify_ms = elapsed_ms(stage);
     timings.total_ms = elapsed_ms(started);
     Ok(FrameResult {
         verdict,
         coarse: outcomes,
+        refinement,
         timings,
     })
 }

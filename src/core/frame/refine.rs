@@ -1,0 +1,341 @@
+//! Step "refine": the chosen pose aligned with the photo's edges ([`crate::core::edge_align`]),
+//! kept only when its own evidence (the share of model edges a photo ridge supports) is better
+//! than the verified pose's; both are reported. Runs after verification, on the output pose of
+//! an accepted frame and on the would-be pose of a rejected one.
+
+use serde::{Deserialize, Serialize};
+
+use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
+use crate::core::camera::Camera;
+use crate::core::edge_align::{
+    align_level, blurred_query, edge_evidence, model_edge_samples, AlignedParameters, EdgeEvidence,
+    EdgeSample, LevelSummary,
+};
+use crate::core::image::{Image, ImageView};
+use crate::core::mesh::Mesh;
+use crate::core::raster::Rasterizer;
+use crate::core::rigid::Rigid3;
+use crate::core::verify::Verdict;
+
+/// What the refinement did to a frame's chosen pose.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseRefinement {
+    /// The camera and pose verification chose.
+    pub verified_camera: Camera,
+    pub verified_cam_from_world: Rigid3,
+    /// Where the edge alignment ended, and its camera (the focal length is aligned too when the
+    /// intrinsics are unknown).
+    pub aligned_cam_from_world: Rigid3,
+    pub aligned_camera: Camera,
+    /// Evidence of the verified pose.
+    pub verified: EdgeEvidence,
+    /// Evidence of the aligned pose.
+    pub aligned: EdgeEvidence,
+    /// Whether the aligned pose replaced the verified one (its evidence is better).
+    pub kept: bool,
+    pub levels: Vec<LevelSummary>,
+}
+
+/// Buffers of the refinement, reused across frames.
+#[derive(Default)]
+pub struct RefineWorkspace {
+    rasterizer: Rasterizer,
+    view: CoarseView,
+    samples: Vec<EdgeSample>,
+    blurred: Image<f32>,
+}
+
+/// Refines the verdict's chosen pose against `query` (the frame's query gradient image, 0..1) and
+/// writes the aligned pose into the verdict when it is kept. `Err` says why nothing was tried.
+pub fn refine_verdict(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    intrinsics: IntrinsicsMode,
+    verdict: &mut Verdict,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Result<PoseRefinement, String> {
+    let align = &config.edge_align;
+    if !align.enabled {
+        return Err("edge alignment is disabled (edge_align.enabled)".into());
+    }
+    let Some(chosen) = verdict.chosen_mut() else {
+        return Err("verification chose no pose".into());
+    };
+    let parameters = match intrinsics {
+        IntrinsicsMode::Known => AlignedParameters::Pose,
+        IntrinsicsMode::Unknown => AlignedParameters::PoseAndFocal,
+    };
+    let refinement = refine_pose(
+        mesh,
+        &chosen.camera,
+        query,
+        &chosen.cam_from_world,
+        parameters,
+        config,
+        workspace,
+    )?;
+    if refinement.kept {
+        chosen.cam_from_world = refinement.aligned_cam_from_world;
+        chosen.camera = refinement.aligned_camera;
+    }
+    Ok(refinement)
+}
+
+/// Aligns `camera` at `start` with the photo's edges, coarse to fine, re-rendering at each level.
+pub fn refine_pose(
+    mesh: &Mesh,
+    camera: &Camera,
+    query: ImageView<'_, f32>,
+    start: &Rigid3,
+    parameters: AlignedParameters,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Result<PoseRefinement, String> {
+    let align = &config.edge_align;
+    let (width_px, height_px) = (camera.width_px as usize, camera.height_px as usize);
+    if query.size() != (width_px, height_px) {
+        return Err(format!(
+            "the query is {}x{} px, the camera {width_px}x{height_px} px",
+            query.width_px(),
+            query.height_px()
+        ));
+    }
+    let RefineWorkspace {
+        rasterizer,
+        view,
+        samples,
+        blurred,
+    } = workspace;
+    let mut sample_at = |camera: &Camera, pose: &Rigid3, samples: &mut Vec<EdgeSample>| {
+        render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
+        model_edge_samples(
+            view.asg.view(),
+            view.render.depth_m().view(),
+            camera,
+            pose,
+            align,
+            samples,
+        );
+    };
+    sample_at(camera, start, samples);
+    let verified = edge_evidence(samples, &query, camera, start, align);
+    if samples.len() < align.min_samples {
+        return Err(format!(
+            "the model shows only {} edge samples at the chosen pose (at least {} needed)",
+            samples.len(),
+            align.min_samples
+        ));
+    }
+    let mut pose = *start;
+    let mut aligned_camera = *camera;
+    let mut levels = Vec::new();
+    for (level, radius_px) in align.level_radii_px().into_iter().enumerate() {
+        if level > 0 {
+            sample_at(&aligned_camera, &pose, samples);
+        }
+        blurred_query(query, radius_px, blurred);
+        let (next_camera, next_pose, summary) = align_level(
+            samples,
+            &blurred.view(),
+            &aligned_camera,
+            &pose,
+            parameters,
+            radius_px,
+            align,
+        );
+        (aligned_camera, pose) = (next_camera, next_pose);
+        levels.push(summary);
+    }
+    sample_at(&aligned_camera, &pose, samples);
+    let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
+    Ok(PoseRefinement {
+        verified_camera: *camera,
+        verified_cam_from_world: *start,
+        aligned_cam_from_world: pose,
+        aligned_camera,
+        verified,
+        aligned,
+        kept: aligned.support_fraction() > verified.support_fraction(),
+        levels,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    use super::*;
+    use crate::core::frame::tests::house_and_poses;
+    use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
+
+    /// Known pose, ideal query (the model's own ASG at the truth): the alignment must bring a pose
+    /// a few pixels off back to the truth, keep it, and leave the truth where it is.
+    #[test]
+    fn edge_alignment_recovers_the_true_pose_on_an_ideal_query() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let mut workspace = RefineWorkspace::default();
+        let mut truth_view = CoarseView::default();
+        render_coarse_view(
+            &mesh,
+            &camera,
+            0,
+            &truth,
+            &config,
+            &mut workspace.rasterizer,
+            &mut truth_view,
+        );
+        let start = Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006)) * truth.rotation,
+            truth.translation + Vector3::new(0.16, -0.1, 0.12),
+        );
+        let mut reprojection = ReprojectionWorkspace::new();
+        let mut delta = |pose: &Rigid3| {
+            mutual_reprojection_error_px(&mesh, &camera, pose, &camera, &truth, &mut reprojection)
+                .unwrap()
+        };
+        let start_delta_px = delta(&start);
+        let refinement = refine_pose(
+            &mesh,
+            &camera,
+            truth_view.asg.view(),
+            &start,
+            AlignedParameters::Pose,
+            &config,
+            &mut workspace,
+        )
+        .unwrap();
+        let aligned_delta_px = delta(&refinement.aligned_cam_from_world);
+        println!(
+            "ideal query: δ {start_delta_px:.2} px → {aligned_delta_px:.3} px; support {:.2} → {:.2}",
+            refinement.verified.support_fraction(),
+            refinement.aligned.support_fraction()
+        );
+        assert!(
+            start_delta_px > 3.0,
+            "the start must be off: {start_delta_px}"
+        );
+        assert!(aligned_delta_px < 0.3, "{aligned_delta_px}");
+        assert!(refinement.kept);
+        assert!(
+            refinement.aligned.support_fraction() > 0.8,
+            "{refinement:?}"
+        );
+
+        let from_truth = refine_pose(
+            &mesh,
+            &camera,
+            truth_view.asg.view(),
+            &truth,
+            AlignedParameters::Pose,
+            &config,
+            &mut workspace,
+        )
+        .unwrap();
+        let stays_px = delta(&from_truth.aligned_cam_from_world);
+        assert!(stays_px < 0.2, "{stays_px}");
+    }
+
+    /// Unknown intrinsics: a focal length 3 % off (as a DLT may leave it) is aligned with the pose.
+    #[test]
+    fn edge_alignment_recovers_the_focal_length_with_the_pose() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let mut workspace = RefineWorkspace::default();
+        let mut truth_view = CoarseView::default();
+        render_coarse_view(
+            &mesh,
+            &camera,
+            0,
+            &truth,
+            &config,
+            &mut workspace.rasterizer,
+            &mut truth_view,
+        );
+        let mut wrong_focal = camera;
+        wrong_focal.intrinsics.fx_px *= 1.03;
+        wrong_focal.intrinsics.fy_px *= 1.03;
+        let start = Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.004, -0.006, 0.003)) * truth.rotation,
+            truth.translation + Vector3::new(0.08, -0.05, 0.06),
+        );
+        let mut reprojection = ReprojectionWorkspace::new();
+        let mut delta = |camera_used: &Camera, pose: &Rigid3| {
+            mutual_reprojection_error_px(
+                &mesh,
+                camera_used,
+                pose,
+                &camera,
+                &truth,
+                &mut reprojection,
+            )
+            .unwrap()
+        };
+        let start_delta_px = delta(&wrong_focal, &start);
+        let refinement = refine_pose(
+            &mesh,
+            &wrong_focal,
+            truth_view.asg.view(),
+            &start,
+            AlignedParameters::PoseAndFocal,
+            &config,
+            &mut workspace,
+        )
+        .unwrap();
+        let aligned_delta_px = delta(
+            &refinement.aligned_camera,
+            &refinement.aligned_cam_from_world,
+        );
+        let focal_error =
+            refinement.aligned_camera.intrinsics.fx_px / camera.intrinsics.fx_px - 1.0;
+        println!(
+            "ideal query, focal +3 %: δ {start_delta_px:.2} px → {aligned_delta_px:.3} px, focal error {:.2} %",
+            100.0 * focal_error
+        );
+        assert!(start_delta_px > 3.0, "{start_delta_px}");
+        assert!(aligned_delta_px < 0.5, "{aligned_delta_px}");
+        assert!(focal_error.abs() < 0.01, "{focal_error}");
+        assert!(refinement.kept);
+    }
+
+    #[test]
+    fn disabled_or_poseless_refinement_says_why() {
+        let (mesh, camera, _, _) = house_and_poses();
+        let query = Image::filled(camera.width_px as usize, camera.height_px as usize, 0.0f32);
+        let config = RegistrationConfig {
+            edge_align: crate::core::edge_align::EdgeAlignConfig {
+                enabled: false,
+                ..Default::default()
+            },
+            ..RegistrationConfig::default()
+        };
+        let mut verdict = crate::core::verify::verify_hypotheses(
+            &mesh,
+            &[],
+            Some(&camera),
+            &config.verify,
+            &mut crate::core::reprojection::ReprojectionWorkspace::new(),
+        );
+        let why = refine_verdict(
+            &mesh,
+            query.view(),
+            IntrinsicsMode::Known,
+            &mut verdict,
+            &config,
+            &mut RefineWorkspace::default(),
+        )
+        .unwrap_err();
+        assert!(why.contains("disabled"), "{why}");
+        let why = refine_verdict(
+            &mesh,
+            query.view(),
+            IntrinsicsMode::Known,
+            &mut verdict,
+            &RegistrationConfig::default(),
+            &mut RefineWorkspace::default(),
+        )
+        .unwrap_err();
+        assert!(why.contains("no pose"), "{why}");
+    }
+}
