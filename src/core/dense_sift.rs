@@ -714,7 +714,9 @@ fn descriptor_row_kernel(
     descriptors: &mut [u8],
 ) {
     let width = descriptors.len() / DESCRIPTOR_LEN;
-    assert!(band_rows.iter().all(|row| row.len() == width * ORIENTATION_BINS));
+    assert!(band_rows
+        .iter()
+        .all(|row| row.len() == width * ORIENTATION_BINS));
     assert!(sample_square_rows.iter().all(|row| row.len() == width));
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {

@@ -186,8 +186,12 @@ fn solve_grid(
     let layout = data.layout;
     let labels = problem.labels;
     state.layout = layout;
-    for plane in 0..2 {
-        layout.skew(offsets[plane], |offset| offset as i16 as u16, &mut state.offsets[plane]);
+    for (plane, plane_offsets) in offsets.iter().enumerate() {
+        layout.skew(
+            plane_offsets,
+            |offset| offset as i16 as u16,
+            &mut state.offsets[plane],
+        );
         grown(&mut state.spatial[plane], layout.vectors() * 4 * labels);
         grown(&mut state.dual[plane], layout.vectors() * labels);
         grown(&mut state.halo[plane], layout.positions * labels);
@@ -197,11 +201,16 @@ fn solve_grid(
     let coarse = match grids.split_first_mut() {
         Some((coarse, coarser_grids)) if width > 1 && height > 1 => {
             let coarse_layout = Layout::new(width.div_ceil(2), height.div_ceil(2));
-            for plane in 0..2 {
-                average_offsets(offsets[plane], layout, coarse_layout, &mut coarse.offsets[plane]);
+            for (fine, out) in offsets.iter().zip(&mut coarse.offsets) {
+                average_offsets(fine, layout, coarse_layout, out);
             }
             coarse.data.reset(coarse_layout, labels);
-            run_kernel(isa, labels, specialised, Kernel::CoarseData(data, &mut coarse.data));
+            run_kernel(
+                isa,
+                labels,
+                specialised,
+                Kernel::CoarseData(data, &mut coarse.data),
+            );
             solve_grid(
                 isa,
                 problem,
@@ -382,7 +391,9 @@ fn coarse_data<S: Simd>(s: S, fine: &CostVolume, coarse: &mut CostVolume) {
     let coarse_costs = coarse.costs_mut();
     let fine_vector = |block: usize, position: isize, entry: usize| {
         if block < fine_layout.blocks && (0..fine_layout.positions as isize).contains(&position) {
-            s.load(&fine_costs[(block * fine_layout.positions + position as usize) * window + entry])
+            s.load(
+                &fine_costs[(block * fine_layout.positions + position as usize) * window + entry],
+            )
         } else {
             zero
         }
@@ -416,7 +427,11 @@ fn start_from_coarse<S: Simd>(s: S, labels: usize, coarse: &GridState, state: &m
     };
     for plane in 0..2 {
         for (per_position, coarse_messages, messages) in [
-            (4 * labels, &coarse.spatial[plane], &mut state.spatial[plane]),
+            (
+                4 * labels,
+                &coarse.spatial[plane],
+                &mut state.spatial[plane],
+            ),
             (labels, &coarse.dual[plane], &mut state.dual[plane]),
         ] {
             for block in 0..layout.blocks {
@@ -457,7 +472,10 @@ fn range_terms<S: Simd, const N: usize>(
     let largest = s.splat(MAX_RANGE_FLOW);
     let mut terms = [s.splat(0); N];
     for (label, term) in terms.iter_mut().enumerate().take(labels) {
-        let flow = s.add_i16(offsets, s.splat((label as i32 - params.radius as i32) as i16 as u16));
+        let flow = s.add_i16(
+            offsets,
+            s.splat((label as i32 - params.radius as i32) as i16 as u16),
+        );
         let magnitude = s.min(s.abs_i16(flow), largest);
         *term = s.mul_round_q15(s.times_16(magnitude), gamma);
     }
@@ -584,7 +602,13 @@ fn truncated_l1_message<S: Simd, const N: usize>(
 /// The lanes of block `block` whose row `r` has `(r + row_offset) mod band_rows = 0` and
 /// `0 < r + row_offset < height`: rows that start a band (`row_offset = 0`) or end one (1).
 #[inline(always)]
-fn seam_lanes<S: Simd>(s: S, params: &GridParams, layout: Layout, block: usize, row_offset: usize) -> S::V {
+fn seam_lanes<S: Simd>(
+    s: S,
+    params: &GridParams,
+    layout: Layout,
+    block: usize,
+    row_offset: usize,
+) -> S::V {
     let mut mask = Lanes::default();
     for (lane, value) in mask.0.iter_mut().enumerate() {
         let row = block * LANES + lane + row_offset;
@@ -705,7 +729,10 @@ fn sweep_forward<S: Simd, const N: usize>(
                 s.store(&mut cell[FROM_LEFT * labels + label], from_left[label]);
                 s.store(&mut cell[FROM_ABOVE * labels + label], from_above[label]);
                 base[label] = s.adds(
-                    s.adds(s.adds(base[label], dual_in[label]), s.adds(from_left[label], from_above[label])),
+                    s.adds(
+                        s.adds(base[label], dual_in[label]),
+                        s.adds(from_left[label], from_above[label]),
+                    ),
                     s.adds(from_right[label], from_below[label]),
                 );
             }
@@ -823,7 +850,10 @@ fn sweep_backward<S: Simd, const N: usize>(
                 s.store(&mut cell[FROM_RIGHT * labels + label], from_right[label]);
                 s.store(&mut cell[FROM_BELOW * labels + label], from_below[label]);
                 base[label] = s.adds(
-                    s.adds(s.adds(base[label], dual_in[label]), s.adds(from_left[label], from_above[label])),
+                    s.adds(
+                        s.adds(base[label], dual_in[label]),
+                        s.adds(from_left[label], from_above[label]),
+                    ),
                     s.adds(from_right[label], from_below[label]),
                 );
             }
@@ -951,9 +981,8 @@ fn scalar_message(params: &GridParams, h: &mut [u16], shift: i32) -> [u16; MAX_L
         } else if source < 0 {
             (0..-source).fold(h[0], |value, _| value.saturating_add(params.alpha))
         } else if source >= labels as i32 {
-            (0..source - labels as i32 + 1).fold(h[labels - 1], |value, _| {
-                value.saturating_add(params.alpha)
-            })
+            (0..source - labels as i32 + 1)
+                .fold(h[labels - 1], |value, _| value.saturating_add(params.alpha))
         } else {
             h[source as usize]
         };
@@ -992,12 +1021,16 @@ fn choose<S: Simd, const N: usize>(
             None => Vec::new(),
         };
         for (vector, chosen) in chosen.iter_mut().enumerate() {
-            let base = range_terms::<S, N>(s, params, labels, s.load(&state.offsets[plane][vector]));
+            let base =
+                range_terms::<S, N>(s, params, labels, s.load(&state.offsets[plane][vector]));
             let cell = &state.spatial[plane][vector * 4 * labels..(vector + 1) * 4 * labels];
             let mut best = s.splat(u16::MAX);
             let mut best_label = s.splat(0);
             for label in 0..labels {
-                let mut belief = s.adds(base[label], s.load(&state.dual[plane][vector * labels + label]));
+                let mut belief = s.adds(
+                    base[label],
+                    s.load(&state.dual[plane][vector * labels + label]),
+                );
                 for slot in 0..4 {
                     belief = s.adds(belief, s.load(&cell[slot * labels + label]));
                 }
@@ -1023,7 +1056,8 @@ fn choose<S: Simd, const N: usize>(
             layout.for_each_pixel(|x, y, vector, lane| {
                 let pixel = y * layout.width + x;
                 for label in 0..labels {
-                    out[pixel * labels + label] = belief_lanes[vector * labels + label].0[lane] as f32;
+                    out[pixel * labels + label] =
+                        belief_lanes[vector * labels + label].0[lane] as f32;
                 }
             });
         }
@@ -1053,17 +1087,33 @@ mod tests {
         let window = labels * labels;
         let pixels = width * height;
         let range = |plane: usize, pixel: usize, label: usize| {
-            range_term(params, offsets[plane][pixel] + label as i32 - params.radius as i32)
+            range_term(
+                params,
+                offsets[plane][pixel] + label as i32 - params.radius as i32,
+            )
         };
-        let mut spatial = [vec![0u16; pixels * 4 * labels], vec![0u16; pixels * 4 * labels]];
+        let mut spatial = [
+            vec![0u16; pixels * 4 * labels],
+            vec![0u16; pixels * 4 * labels],
+        ];
         let mut dual = [vec![0u16; pixels * labels], vec![0u16; pixels * labels]];
         for pixel in 0..pixels {
             let cost = |u: usize, v: usize| costs[pixel * window + v * labels + u];
             let to_u: Vec<u16> = (0..labels)
-                .map(|u| (0..labels).map(|v| cost(u, v).saturating_add(range(1, pixel, v))).min().unwrap())
+                .map(|u| {
+                    (0..labels)
+                        .map(|v| cost(u, v).saturating_add(range(1, pixel, v)))
+                        .min()
+                        .unwrap()
+                })
                 .collect();
             let to_v: Vec<u16> = (0..labels)
-                .map(|v| (0..labels).map(|u| cost(u, v).saturating_add(range(0, pixel, u))).min().unwrap())
+                .map(|v| {
+                    (0..labels)
+                        .map(|u| cost(u, v).saturating_add(range(0, pixel, u)))
+                        .min()
+                        .unwrap()
+                })
                 .collect();
             for (plane, message) in [to_u, to_v].into_iter().enumerate() {
                 let least = *message.iter().min().unwrap();
@@ -1079,11 +1129,14 @@ mod tests {
             for step in 0..pixels {
                 let pixel = if forward { step } else { pixels - 1 - step };
                 let (x, y) = (pixel % width, pixel / width);
-                let incoming = |slot: usize, label: usize, spatial: &[u16]| spatial[(pixel * 4 + slot) * labels + label];
+                let incoming = |slot: usize, label: usize, spatial: &[u16]| {
+                    spatial[(pixel * 4 + slot) * labels + label]
+                };
                 let base: Vec<u16> = (0..labels)
                     .map(|label| {
                         (0..4).fold(
-                            range(plane, pixel, label).saturating_add(dual[plane][pixel * labels + label]),
+                            range(plane, pixel, label)
+                                .saturating_add(dual[plane][pixel * labels + label]),
                             |sum, slot| sum.saturating_add(incoming(slot, label, &spatial[plane])),
                         )
                     })
@@ -1107,7 +1160,9 @@ mod tests {
                         continue;
                     }
                     let h: Vec<u16> = (0..labels)
-                        .map(|label| base[label].saturating_sub(incoming(excluded, label, &spatial[plane])))
+                        .map(|label| {
+                            base[label].saturating_sub(incoming(excluded, label, &spatial[plane]))
+                        })
                         .collect();
                     let shift = offsets[plane][neighbour] - offsets[plane][pixel];
                     let message = reference_message(params, &h, shift);
@@ -1116,14 +1171,20 @@ mod tests {
                 }
                 if update_dual {
                     let outgoing: Vec<u16> = (0..labels)
-                        .map(|label| base[label].saturating_sub(dual[plane][pixel * labels + label]))
+                        .map(|label| {
+                            base[label].saturating_sub(dual[plane][pixel * labels + label])
+                        })
                         .collect();
                     let cost = |u: usize, v: usize| costs[pixel * window + v * labels + u];
                     let message: Vec<u16> = (0..labels)
                         .map(|other| {
                             (0..labels)
                                 .map(|this| {
-                                    let (u, v) = if plane == 0 { (this, other) } else { (other, this) };
+                                    let (u, v) = if plane == 0 {
+                                        (this, other)
+                                    } else {
+                                        (other, this)
+                                    };
                                     cost(u, v).saturating_add(outgoing[this])
                                 })
                                 .min()
@@ -1149,8 +1210,13 @@ mod tests {
                     let h: Vec<u16> = (0..labels)
                         .map(|label| {
                             (0..4).filter(|&slot| slot != excluded).fold(
-                                range(plane, pixel, label).saturating_add(dual[plane][pixel * labels + label]),
-                                |sum, slot| sum.saturating_add(spatial[plane][(pixel * 4 + slot) * labels + label]),
+                                range(plane, pixel, label)
+                                    .saturating_add(dual[plane][pixel * labels + label]),
+                                |sum, slot| {
+                                    sum.saturating_add(
+                                        spatial[plane][(pixel * 4 + slot) * labels + label],
+                                    )
+                                },
                             )
                         })
                         .collect();
@@ -1167,18 +1233,29 @@ mod tests {
                 .map(|pixel| {
                     let belief = |label: usize| {
                         (0..4).fold(
-                            range(plane, pixel, label).saturating_add(dual[plane][pixel * labels + label]),
-                            |sum, slot| sum.saturating_add(spatial[plane][(pixel * 4 + slot) * labels + label]),
+                            range(plane, pixel, label)
+                                .saturating_add(dual[plane][pixel * labels + label]),
+                            |sum, slot| {
+                                sum.saturating_add(
+                                    spatial[plane][(pixel * 4 + slot) * labels + label],
+                                )
+                            },
                         )
                     };
-                    (0..labels).min_by_key(|&label| (belief(label), label)).unwrap() as u8
+                    (0..labels)
+                        .min_by_key(|&label| (belief(label), label))
+                        .unwrap() as u8
                 })
                 .collect()
         })
     }
 
     /// A small problem with costs that favour a smooth flow, noise, and offsets that jump.
-    fn test_problem(width: usize, height: usize, labels: usize) -> ([Vec<i32>; 2], CostVolume, Vec<u16>) {
+    fn test_problem(
+        width: usize,
+        height: usize,
+        labels: usize,
+    ) -> ([Vec<i32>; 2], CostVolume, Vec<u16>) {
         let hash = |a: usize, b: usize| ((a * 2_654_435_761 + b * 40_503) >> 7) % 1000;
         let offsets: [Vec<i32>; 2] = std::array::from_fn(|plane| {
             (0..width * height)
@@ -1260,18 +1337,26 @@ mod tests {
             ..Default::default()
         };
         for plane in 0..2 {
-            grown(&mut coarse_state.spatial[plane], coarse_layout.vectors() * 4 * labels);
-            grown(&mut coarse_state.dual[plane], coarse_layout.vectors() * labels);
+            grown(
+                &mut coarse_state.spatial[plane],
+                coarse_layout.vectors() * 4 * labels,
+            );
+            grown(
+                &mut coarse_state.dual[plane],
+                coarse_layout.vectors() * labels,
+            );
         }
         // Coarse messages that name their pixel, slot and label.
         let code = |x: usize, y: usize, entry: usize| (x * 7 + y * 131 + entry * 3) as u16;
         coarse_layout.for_each_pixel(|x, y, vector, lane| {
             for plane in 0..2 {
                 for entry in 0..4 * labels {
-                    coarse_state.spatial[plane][vector * 4 * labels + entry].0[lane] = code(x, y, entry);
+                    coarse_state.spatial[plane][vector * 4 * labels + entry].0[lane] =
+                        code(x, y, entry);
                 }
                 for entry in 0..labels {
-                    coarse_state.dual[plane][vector * labels + entry].0[lane] = code(x, y, entry + 50);
+                    coarse_state.dual[plane][vector * labels + entry].0[lane] =
+                        code(x, y, entry + 50);
                 }
             }
         });
@@ -1280,7 +1365,10 @@ mod tests {
             ..Default::default()
         };
         for plane in 0..2 {
-            grown(&mut state.spatial[plane], fine.layout.vectors() * 4 * labels);
+            grown(
+                &mut state.spatial[plane],
+                fine.layout.vectors() * 4 * labels,
+            );
             grown(&mut state.dual[plane], fine.layout.vectors() * labels);
         }
         for isa in [Isa::detect(), Isa::Portable] {
@@ -1346,7 +1434,13 @@ mod tests {
         // One lane per shift, -7..=7 (past max_shift too), plus a lane of saturated costs.
         let shifts: [i16; LANES] = std::array::from_fn(|lane| lane as i16 - 7);
         let h: [Lanes; 5] = std::array::from_fn(|label| {
-            Lanes(std::array::from_fn(|lane| if lane == 15 { u16::MAX } else { costs[label] }))
+            Lanes(std::array::from_fn(|lane| {
+                if lane == 15 {
+                    u16::MAX
+                } else {
+                    costs[label]
+                }
+            }))
         });
         let message = truncated_l1_message::<Portable, 5>(
             s,
@@ -1362,7 +1456,8 @@ mod tests {
                         .iter()
                         .enumerate()
                         .map(|(sender, &cost)| {
-                            let difference = (receiver as i32 + shift as i32 - sender as i32).unsigned_abs();
+                            let difference =
+                                (receiver + shift as i32 - sender as i32).unsigned_abs();
                             cost as u32 + (alpha as u32 * difference).min(truncation as u32)
                         })
                         .min()
@@ -1380,7 +1475,9 @@ mod tests {
         }
         assert!(message.iter().all(|value| value.0[15] == 0));
         for (lane, &shift) in shifts.iter().enumerate() {
-            let mut h: Vec<u16> = (0..5).map(|label| if lane == 15 { u16::MAX } else { costs[label] }).collect();
+            let mut h: Vec<u16> = (0..5)
+                .map(|label| if lane == 15 { u16::MAX } else { costs[label] })
+                .collect();
             let scalar = scalar_message(&params, &mut h, shift as i32);
             for label in 0..5 {
                 assert_eq!(scalar[label], message[label].0[lane], "shift {shift}");

@@ -100,7 +100,8 @@ fn fill_pixel(
         }
         cost_row[..first].fill(OUTSIDE_COST);
         cost_row[last..].fill(OUTSIDE_COST);
-        let first_target = target_y as usize * target_width as usize + (start_x + first as isize) as usize;
+        let first_target =
+            target_y as usize * target_width as usize + (start_x + first as isize) as usize;
         distances(
             descriptor,
             &context.target.descriptors
@@ -168,9 +169,11 @@ unsafe fn fill_block_avx2(
         block,
         out,
         |source, targets, out| unsafe { l1_row_avx2(source, targets, out) },
-        Some(|source: &[u8], targets: &[u8], first, row_len, labels, out: &mut [u16]| unsafe {
-            l1_window_avx2(source, targets, first, row_len, labels, out)
-        }),
+        Some(
+            |source: &[u8], targets: &[u8], first, row_len, labels, out: &mut [u16]| unsafe {
+                l1_window_avx2(source, targets, first, row_len, labels, out)
+            },
+        ),
     )
 }
 

@@ -99,7 +99,10 @@ pub(super) unsafe fn l1_row_avx2(source: &[u8], targets: &[u8], out: &mut [u16])
         let sums: [__m256i; 4] = std::array::from_fn(|index| partial_sums(candidate + index));
         let packed = _mm256_or_si256(
             _mm256_or_si256(sums[0], _mm256_slli_epi64(sums[1], 16)),
-            _mm256_or_si256(_mm256_slli_epi64(sums[2], 32), _mm256_slli_epi64(sums[3], 48)),
+            _mm256_or_si256(
+                _mm256_slli_epi64(sums[2], 32),
+                _mm256_slli_epi64(sums[3], 48),
+            ),
         );
         let folded = _mm_add_epi16(
             _mm256_castsi256_si128(packed),
@@ -115,8 +118,8 @@ pub(super) unsafe fn l1_row_avx2(source: &[u8], targets: &[u8], out: &mut [u16])
             _mm256_castsi256_si128(sums),
             _mm256_extracti128_si256(sums, 1),
         );
-        *distance = (_mm_cvtsi128_si64(folded) + _mm_cvtsi128_si64(_mm_unpackhi_epi64(folded, folded)))
-            as u16;
+        *distance = (_mm_cvtsi128_si64(folded)
+            + _mm_cvtsi128_si64(_mm_unpackhi_epi64(folded, folded))) as u16;
     }
 }
 
@@ -180,7 +183,10 @@ pub(super) unsafe fn l1_window_avx2(
         let sums: [__m256i; 4] = std::array::from_fn(|_| partial_sums(next()));
         let packed = _mm256_or_si256(
             _mm256_or_si256(sums[0], _mm256_slli_epi64(sums[1], 16)),
-            _mm256_or_si256(_mm256_slli_epi64(sums[2], 32), _mm256_slli_epi64(sums[3], 48)),
+            _mm256_or_si256(
+                _mm256_slli_epi64(sums[2], 32),
+                _mm256_slli_epi64(sums[3], 48),
+            ),
         );
         let folded = _mm_add_epi16(
             _mm256_castsi256_si128(packed),
@@ -196,8 +202,8 @@ pub(super) unsafe fn l1_window_avx2(
             _mm256_castsi256_si128(sums),
             _mm256_extracti128_si256(sums, 1),
         );
-        *distance = (_mm_cvtsi128_si64(folded) + _mm_cvtsi128_si64(_mm_unpackhi_epi64(folded, folded)))
-            as u16;
+        *distance = (_mm_cvtsi128_si64(folded)
+            + _mm_cvtsi128_si64(_mm_unpackhi_epi64(folded, folded))) as u16;
     }
 }
 
@@ -270,7 +276,9 @@ mod tests {
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // A 3x3 window in an image 4 descriptors wide, starting at its second column.
-            let image: Vec<u8> = (0..128 * 4 * 3).map(|index| (index * 29 % 253) as u8).collect();
+            let image: Vec<u8> = (0..128 * 4 * 3)
+                .map(|index| (index * 29 % 253) as u8)
+                .collect();
             let mut window = [0u16; 9];
             // SAFETY: the CPU has AVX2.
             unsafe { l1_window_avx2(&source, &image, 128, 4 * 128, 3, &mut window) };

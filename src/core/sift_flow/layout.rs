@@ -42,7 +42,12 @@ impl Layout {
     }
 
     /// Writes a row-major image into the layout (`to_lanes(value)` per pixel), padding zero.
-    pub(super) fn skew<T: Copy>(&self, rows: &[T], to_lane: impl Fn(T) -> u16, out: &mut Vec<Lanes>) {
+    pub(super) fn skew<T: Copy>(
+        &self,
+        rows: &[T],
+        to_lane: impl Fn(T) -> u16,
+        out: &mut Vec<Lanes>,
+    ) {
         debug_assert_eq!(rows.len(), self.width * self.height);
         out.clear();
         out.resize(self.vectors(), Lanes::default());
@@ -147,7 +152,10 @@ mod tests {
         layout.for_each_pixel(|x, y, vector, lane| {
             assert_eq!(skewed[vector].0[lane], (y * 7 + x) as u16 + 1)
         });
-        let written: usize = skewed.iter().map(|lanes| lanes.0.iter().filter(|&&v| v != 0).count()).sum();
+        let written: usize = skewed
+            .iter()
+            .map(|lanes| lanes.0.iter().filter(|&&v| v != 0).count())
+            .sum();
         assert_eq!(written, 7 * 19);
     }
 }

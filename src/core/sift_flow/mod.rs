@@ -375,8 +375,10 @@ pub fn compute_sift_flow_on_pyramids(
             let pixel = y * width + x;
             let label_u = ws.labels[0][pixel] as usize;
             let label_v = ws.labels[1][pixel] as usize;
-            let costs = &ws.data_cost.costs()[(first_vector + x) * window..(first_vector + x + 1) * window];
-            let cost = |label_u: usize, label_v: usize| costs[label_v * labels + label_u].0[lane] as f32;
+            let costs =
+                &ws.data_cost.costs()[(first_vector + x) * window..(first_vector + x + 1) * window];
+            let cost =
+                |label_u: usize, label_v: usize| costs[label_v * labels + label_u].0[lane] as f32;
             let participates = source_mask.is_empty() || source_mask[pixel];
             if participates {
                 matching_cost[pixel] = cost(label_u, label_v);
@@ -442,7 +444,10 @@ mod tests {
     /// A crop of the repository's real pair (odd sizes: partial blocks of rows, padding).
     fn crop_pair(width: usize, height: usize) -> (DenseSiftImage, DenseSiftImage) {
         use test_support::{load_pair, sift_of};
-        let pair = load_pair(&crate::test_data::repo_data("flow-pairs"), "dji0024_505x275");
+        let pair = load_pair(
+            &crate::test_data::repo_data("flow-pairs"),
+            "dji0024_505x275",
+        );
         let crop = |image: &Image<f32>| {
             Image::from_fn(width, height, |x, y| image.data()[(y + 30) * 505 + x + 60])
         };
@@ -462,7 +467,9 @@ mod tests {
         bp::FORCE_PORTABLE.with(|force| force.set(portable));
         let mut flow = FlowField::default();
         let mut cost = Image::default();
-        let mask = Image::from_fn(first.width_px, first.height_px, |x, y| (x * 7 + y * 3) % 11 != 0);
+        let mask = Image::from_fn(first.width_px, first.height_px, |x, y| {
+            (x * 7 + y * 3) % 11 != 0
+        });
         compute_sift_flow(
             first,
             Some(mask.view()),
@@ -498,9 +505,18 @@ mod tests {
                 l1_kernel: L1Kernel::Portable,
                 ..config.clone()
             };
-            assert!(flow_of(&first, &second, &generic, false) == reference, "generic");
-            assert!(flow_of(&first, &second, &config, true) == reference, "portable");
-            assert!(flow_of(&first, &second, &generic, true) == reference, "portable generic");
+            assert!(
+                flow_of(&first, &second, &generic, false) == reference,
+                "generic"
+            );
+            assert!(
+                flow_of(&first, &second, &config, true) == reference,
+                "portable"
+            );
+            assert!(
+                flow_of(&first, &second, &generic, true) == reference,
+                "portable generic"
+            );
         }
     }
 

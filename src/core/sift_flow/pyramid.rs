@@ -173,15 +173,23 @@ unsafe fn blur_rows_avx2(rows: [&[u8]; 6], taps: [i16; 6], out: &mut [i16]) {
     let half = _mm256_set1_epi32(1 << 7);
     for chunk in 0..out.len() / 16 {
         let words: [__m256i; 6] = std::array::from_fn(|tap| unsafe {
-            _mm256_cvtepu8_epi16(_mm_loadu_si128(rows[tap].as_ptr().add(16 * chunk) as *const __m128i))
+            _mm256_cvtepu8_epi16(_mm_loadu_si128(
+                rows[tap].as_ptr().add(16 * chunk) as *const __m128i
+            ))
         });
         // Elements 0–3 and 8–11 (low), 4–7 and 12–15 (high), as 32-bit sums.
         let mut low = half;
         let mut high = half;
         for pair in 0..3 {
             let (a, b) = (words[2 * pair], words[2 * pair + 1]);
-            low = _mm256_add_epi32(low, _mm256_madd_epi16(_mm256_unpacklo_epi16(a, b), pairs[pair]));
-            high = _mm256_add_epi32(high, _mm256_madd_epi16(_mm256_unpackhi_epi16(a, b), pairs[pair]));
+            low = _mm256_add_epi32(
+                low,
+                _mm256_madd_epi16(_mm256_unpacklo_epi16(a, b), pairs[pair]),
+            );
+            high = _mm256_add_epi32(
+                high,
+                _mm256_madd_epi16(_mm256_unpackhi_epi16(a, b), pairs[pair]),
+            );
         }
         // packs puts the halves back in order: 0–3, 4–7 | 8–11, 12–15.
         let packed = _mm256_packs_epi32(_mm256_srai_epi32(low, 8), _mm256_srai_epi32(high, 8));
@@ -207,8 +215,14 @@ unsafe fn blur_and_halve_pixel_avx2(columns: [&[i16]; 6], taps: [i16; 6], bytes:
         let mut high = half;
         for pair in 0..3 {
             let (a, b) = (words[2 * pair], words[2 * pair + 1]);
-            low = _mm256_add_epi32(low, _mm256_madd_epi16(_mm256_unpacklo_epi16(a, b), pairs[pair]));
-            high = _mm256_add_epi32(high, _mm256_madd_epi16(_mm256_unpackhi_epi16(a, b), pairs[pair]));
+            low = _mm256_add_epi32(
+                low,
+                _mm256_madd_epi16(_mm256_unpacklo_epi16(a, b), pairs[pair]),
+            );
+            high = _mm256_add_epi32(
+                high,
+                _mm256_madd_epi16(_mm256_unpackhi_epi16(a, b), pairs[pair]),
+            );
         }
         _mm256_packs_epi32(_mm256_srai_epi32(low, 22), _mm256_srai_epi32(high, 22))
     };
@@ -368,14 +382,24 @@ mod tests {
 
     #[test]
     fn integer_upsampling_equals_the_bilinear_definition() {
-        for (coarse_width, coarse_height, width, height) in [(5, 4, 9, 8), (5, 4, 10, 7), (1, 1, 2, 1)] {
+        for (coarse_width, coarse_height, width, height) in
+            [(5, 4, 9, 8), (5, 4, 10, 7), (1, 1, 2, 1)]
+        {
             let coarse: Vec<i32> = (0..coarse_width * coarse_height)
                 .map(|index| ((index * 2_654_435_761usize) >> 20) as i32 % 41 - 20)
                 .collect();
             let mut fine = vec![0; width * height];
-            upsample_flow(&coarse, coarse_width, coarse_height, width, height, &mut fine);
+            upsample_flow(
+                &coarse,
+                coarse_width,
+                coarse_height,
+                width,
+                height,
+                &mut fine,
+            );
             for y in 0..height {
-                let coarse_y = ((y as f32 + 0.5) * 0.5 - 0.5).clamp(0.0, (coarse_height - 1) as f32);
+                let coarse_y =
+                    ((y as f32 + 0.5) * 0.5 - 0.5).clamp(0.0, (coarse_height - 1) as f32);
                 let y0 = coarse_y.floor() as usize;
                 let y1 = (y0 + 1).min(coarse_height - 1);
                 let fy = coarse_y - y0 as f32;
@@ -388,7 +412,11 @@ mod tests {
                     let at = |xx: usize, yy: usize| coarse[yy * coarse_width + xx] as f32;
                     let value = (at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx) * (1.0 - fy)
                         + (at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx) * fy;
-                    assert_eq!(fine[y * width + x], (2.0 * value).round() as i32, "({x}, {y})");
+                    assert_eq!(
+                        fine[y * width + x],
+                        (2.0 * value).round() as i32,
+                        "({x}, {y})"
+                    );
                 }
             }
         }
@@ -404,7 +432,8 @@ mod tests {
                 // Smooth in x and y with some noise, the full byte range.
                 let (pixel, element) = (index / DESCRIPTOR_LEN, index % DESCRIPTOR_LEN);
                 let (x, y) = (pixel % width, pixel / width);
-                let wave = ((x as f32 * 0.3 + element as f32).sin() * (y as f32 * 0.2).cos() + 1.0) * 120.0;
+                let wave = ((x as f32 * 0.3 + element as f32).sin() * (y as f32 * 0.2).cos() + 1.0)
+                    * 120.0;
                 *byte = (wave as usize + (index.wrapping_mul(2_654_435_761) >> 28)).min(255) as u8;
             }
             let config = SiftFlowConfig::default();
@@ -421,7 +450,10 @@ mod tests {
                 );
                 let float = float_downsample(finer, &taps);
                 for (&got, &want) in coarser.descriptors.iter().zip(&float) {
-                    assert!(got.abs_diff(want) <= 1, "{width}x{height} level {level}: {got} vs {want}");
+                    assert!(
+                        got.abs_diff(want) <= 1,
+                        "{width}x{height} level {level}: {got} vs {want}"
+                    );
                     differing += (got != want) as usize;
                 }
                 total += float.len();

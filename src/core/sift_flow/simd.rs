@@ -149,7 +149,6 @@ impl Simd for Portable {
         Self::zip(a, b, |a, b| Self::mask(a < b))
     }
 
-
     #[inline(always)]
     fn abs_i16(self, a: Lanes) -> Lanes {
         Self::map(a, |a| (a as i16).unsigned_abs())
@@ -314,7 +313,6 @@ mod avx2 {
             }
         }
 
-
         #[inline(always)]
         fn abs_i16(self, a: __m256i) -> __m256i {
             unsafe { _mm256_abs_epi16(a) }
@@ -375,7 +373,10 @@ mod avx2 {
                             _mm256_and_si256(first, low_words),
                             _mm256_and_si256(middle, low_words),
                         ),
-                        _mm256_add_epi32(_mm256_srli_epi32(middle, 16), _mm256_srli_epi32(last, 16)),
+                        _mm256_add_epi32(
+                            _mm256_srli_epi32(middle, 16),
+                            _mm256_srli_epi32(last, 16),
+                        ),
                     );
                     _mm256_srli_epi32(_mm256_add_epi32(sum, _mm256_set1_epi32(2)), 2)
                 };
@@ -393,7 +394,9 @@ mod tests {
 
     fn sample(seed: u32) -> Lanes {
         Lanes(std::array::from_fn(|lane| {
-            let value = (lane as u32 + 1).wrapping_mul(2_654_435_761).wrapping_add(seed.wrapping_mul(40_503));
+            let value = (lane as u32 + 1)
+                .wrapping_mul(2_654_435_761)
+                .wrapping_add(seed.wrapping_mul(40_503));
             match lane % 4 {
                 0 => (value >> 16) as u16,
                 1 => (value >> 20) as u16,
@@ -428,12 +431,18 @@ mod tests {
             assert_eq!(out(avx2.or(va, vb)), portable.or(a, b));
             let mask = portable.less_u16(a, b);
             assert_eq!(out(avx2.less_u16(va, vb)), mask);
-            assert_eq!(out(avx2.select(avx2.load(&mask), vb, vc)), portable.select(mask, b, c));
+            assert_eq!(
+                out(avx2.select(avx2.load(&mask), vb, vc)),
+                portable.select(mask, b, c)
+            );
             assert_eq!(out(avx2.add_i16(va, vb)), portable.add_i16(a, b));
             assert_eq!(out(avx2.sub_i16(va, vb)), portable.sub_i16(a, b));
             assert_eq!(out(avx2.greater_i16(va, vb)), portable.greater_i16(a, b));
             assert_eq!(out(avx2.abs_i16(va)), portable.abs_i16(a));
-            assert_eq!(out(avx2.mul_round_q15(vsmall, vb)), portable.mul_round_q15(small, b));
+            assert_eq!(
+                out(avx2.mul_round_q15(vsmall, vb)),
+                portable.mul_round_q15(small, b)
+            );
             assert_eq!(out(avx2.times_16(va)), portable.times_16(a));
             assert_eq!(avx2.any(va), portable.any(a));
             assert!(!avx2.any(avx2.splat(0)));
