@@ -12,7 +12,7 @@
 //! first run with fresh buffers (as a process that flows once pays, page faults included) and the
 //! minimum of `FLOW_BENCH_REPEATS` (default 15) runs with reused buffers, in process CPU time
 //! (dense SIFT, whole flow) and wall time (the flow's own per-stage timings); with the EPE.
-//! `FLOW_BENCH_CONFIG='{"bp_bands": 1}'` replaces fields of the preset.
+//! `FLOW_BENCH_CONFIG='{"iterations": 8}'` replaces fields of the preset.
 
 use std::hint::black_box;
 use std::path::Path;
@@ -162,7 +162,7 @@ fn stages_report(pairs: &[Pair]) {
         .ok()
         .and_then(|value| value.parse().ok())
         .unwrap_or(15);
-    // `FLOW_BENCH_CONFIG='{"bp_bands": 1}'`: fields that replace the fast preset's.
+    // `FLOW_BENCH_CONFIG='{"iterations": 8}'`: fields that replace the fast preset's.
     let config = match std::env::var("FLOW_BENCH_CONFIG") {
         Ok(json) => {
             let mut value = serde_json::to_value(SiftFlowConfig::fast()).expect("config");
@@ -263,21 +263,7 @@ fn time<T>(mut run: impl FnMut() -> T) -> (Duration, T) {
 fn quick_report(pairs: &[Pair]) {
     let presets = [
         ("default", SiftFlowConfig::default()),
-        (
-            "default 2 bands",
-            SiftFlowConfig {
-                bp_bands: 2,
-                ..Default::default()
-            },
-        ),
-        ("fast (2 bands)", SiftFlowConfig::fast()),
-        (
-            "fast 1 band",
-            SiftFlowConfig {
-                bp_bands: 1,
-                ..SiftFlowConfig::fast()
-            },
-        ),
+        ("fast", SiftFlowConfig::fast()),
     ];
     for pair in pairs {
         for threads in [1, 2] {
@@ -548,14 +534,7 @@ fn criterion_benches(criterion: &mut Criterion, pairs: &[Pair]) {
         let second = sift(pair.second.view());
         let variants = [
             ("default", SiftFlowConfig::default()),
-            (
-                "default_2bands",
-                SiftFlowConfig {
-                    bp_bands: 2,
-                    ..Default::default()
-                },
-            ),
-            ("fast_2bands", SiftFlowConfig::fast()),
+            ("fast", SiftFlowConfig::fast()),
         ];
         for (variant, config) in &variants {
             for threads in [1, 2] {

@@ -203,6 +203,10 @@ pub struct DenseSiftWorkspace {
     /// Both passes of the pooling: 8 energies per pixel, and the magnitude.
     bands_pooled: Vec<f32>,
     magnitude_pooled: Vec<f32>,
+    /// Per pooled pixel, the sum of its 8 squared energies.
+    squares: Vec<f32>,
+    /// Per pixel, the sum of `squares` over its 4 sample columns.
+    sample_squares: Vec<f32>,
 }
 
 /// Rows per parallel task of the band step (its per-task scratch is a few rows long).
@@ -330,9 +334,23 @@ pub fn compute_dense_sift(
         &mut ws.magnitude_pooled,
     );
 
-    // 4–5. Sampling of the 4×4 cells and normalisation.
+    // 4. Per pooled pixel the sum of its 8 squared energies, then per pixel the sums of those over
+    //    its 4 sample columns: the norm of a descriptor is the sum of 4 such values.
+    ws.squares.resize(pixel_count, 0.0);
+    ws.sample_squares.resize(pixel_count, 0.0);
+    ws.squares
+        .par_chunks_mut(width_px)
+        .zip(ws.sample_squares.par_chunks_mut(width_px))
+        .zip(ws.bands_pooled.par_chunks(band_row_len))
+        .for_each(|((squares, sample_squares), bands)| {
+            squares_row(bands, squares);
+            sample_sums_row(squares, cell, sample_squares);
+        });
+
+    // 5. Sampling of the 4×4 cells and normalisation.
     out.resize(width_px, height_px, true);
-    let (bands, magnitudes) = (&ws.bands_pooled, &ws.magnitude_pooled);
+    let (bands, magnitudes, sample_squares) =
+        (&ws.bands_pooled, &ws.magnitude_pooled, &ws.sample_squares);
     let normalisation = Normalisation {
         floor: config.normalisation_floor,
         support_scale: 1.0 / (16.0 * pooling_weight_sum * pooling_weight_sum),
@@ -344,13 +362,18 @@ pub fn compute_dense_sift(
         .for_each(|(y, (descriptor_row, support_row))| {
             let sample_rows: [usize; 4] = CELL_OFFSETS
                 .map(|offset| clamp_index(y as isize + offset * cell as isize, height_px));
-            descriptor_row_kernel(
-                sample_rows.map(|row| &bands[row * band_row_len..(row + 1) * band_row_len]),
+            support_sums_row(
                 sample_rows.map(|row| &magnitudes[row * width_px..(row + 1) * width_px]),
                 cell,
-                normalisation,
-                descriptor_row,
+                normalisation.support_scale,
                 support_row,
+            );
+            descriptor_row_kernel(
+                sample_rows.map(|row| &bands[row * band_row_len..(row + 1) * band_row_len]),
+                sample_rows.map(|row| &sample_squares[row * width_px..(row + 1) * width_px]),
+                cell,
+                normalisation.floor,
+                descriptor_row,
             );
         });
     Ok(())
@@ -623,157 +646,152 @@ multiversioned! {
     }
 }
 
+multiversioned! {
+    /// `Σ_b v_b²` of each pixel's 8 pooled energies, as `((v0² + v1²) + (v2² + v3²)) + ((v4² +
+    /// v5²) + (v6² + v7²))`.
+    fn squares_row(bands: &[f32], squares: &mut [f32]) {
+        for (square, values) in squares.iter_mut().zip(bands.chunks_exact(ORIENTATION_BINS)) {
+            let v: [f32; ORIENTATION_BINS] = values.try_into().expect("8 bins");
+            *square = ((v[0] * v[0] + v[1] * v[1]) + (v[2] * v[2] + v[3] * v[3]))
+                + ((v[4] * v[4] + v[5] * v[5]) + (v[6] * v[6] + v[7] * v[7]));
+        }
+    }
+}
+
+multiversioned! {
+    /// `out[x] = ((v[x − c] + v[x]) + v[x + c]) + v[x + 2c]` (clamped): a row's values summed over
+    /// each pixel's 4 sample columns.
+    fn sample_sums_row(values: &[f32], cell: usize, out: &mut [f32]) {
+        let width = values.len();
+        let interior = cell..width.saturating_sub(2 * cell).max(cell);
+        for (x, value) in out.iter_mut().enumerate().take(interior.end).skip(interior.start) {
+            *value = ((values[x - cell] + values[x]) + values[x + cell]) + values[x + 2 * cell];
+        }
+        for x in (0..width).filter(|x| !interior.contains(x)) {
+            let at = |offset: isize| values[clamp_index(x as isize + offset * cell as isize, width)];
+            out[x] = ((at(-1) + at(0)) + at(1)) + at(2);
+        }
+    }
+}
+
+multiversioned! {
+    /// The support of each pixel of a row: the 16 pooled magnitudes of its cells summed in order
+    /// (rows outer, columns inner, from 0), times `scale`.
+    fn support_sums_row(rows: [&[f32]; 4], cell: usize, scale: f32, out: &mut [f32]) {
+        let width = out.len();
+        let interior = cell..width.saturating_sub(2 * cell).max(cell);
+        for (x, value) in out.iter_mut().enumerate().take(interior.end).skip(interior.start) {
+            let mut sum = 0.0f32;
+            for row in &rows {
+                sum += row[x - cell];
+                sum += row[x];
+                sum += row[x + cell];
+                sum += row[x + 2 * cell];
+            }
+            *value = sum * scale;
+        }
+        for x in (0..width).filter(|x| !interior.contains(x)) {
+            let mut sum = 0.0f32;
+            for row in &rows {
+                for offset in CELL_OFFSETS {
+                    sum += row[clamp_index(x as isize + offset * cell as isize, width)];
+                }
+            }
+            out[x] = sum * scale;
+        }
+    }
+}
+
 /// One row of descriptors from the pooled energies of its 4 sample rows (pixel-major, 8 per pixel)
-/// and the pooled magnitudes of the same rows: explicit AVX2 where the CPU has it (the compiler
-/// turns the saturating float-to-byte conversion into scalar code), the same arithmetic in plain
-/// Rust elsewhere.
+/// and their per-pixel sums of squares over the sample columns: explicit AVX2 where the CPU has it
+/// (the compiler turns the float-to-byte conversion into scalar code), the same arithmetic in
+/// plain Rust elsewhere.
 fn descriptor_row_kernel(
     band_rows: [&[f32]; 4],
-    magnitude_rows: [&[f32]; 4],
+    sample_square_rows: [&[f32]; 4],
     cell: usize,
-    normalisation: Normalisation,
+    floor: f32,
     descriptors: &mut [u8],
-    support: &mut [f32],
 ) {
-    let width = support.len();
-    assert!(descriptors.len() == width * DESCRIPTOR_LEN);
+    let width = descriptors.len() / DESCRIPTOR_LEN;
     assert!(band_rows
         .iter()
         .all(|row| row.len() == width * ORIENTATION_BINS));
-    assert!(magnitude_rows.iter().all(|row| row.len() == width));
+    assert!(sample_square_rows.iter().all(|row| row.len() == width));
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2 (checked just above); the slice lengths are checked above.
-        unsafe {
-            descriptor_row_avx2(
-                band_rows,
-                magnitude_rows,
-                cell,
-                normalisation,
-                descriptors,
-                support,
-            )
-        };
+        unsafe { descriptor_row_avx2(band_rows, sample_square_rows, cell, floor, descriptors) };
         return;
     }
-    descriptor_row_portable(
-        band_rows,
-        magnitude_rows,
-        cell,
-        normalisation,
-        descriptors,
-        support,
-    );
+    descriptor_row_portable(band_rows, sample_square_rows, cell, floor, descriptors);
 }
 
-/// The 4 sample columns of pixel `x`'s cells and its support (the sum of the 16 pooled magnitudes,
-/// rows outer, columns inner).
+/// `255 / (‖v‖ + floor)` of pixel `x`, from its sample rows' sums of squares (added in row order).
 #[inline(always)]
-fn cell_columns_and_support(
-    x: usize,
-    width: usize,
-    cell: usize,
-    magnitude_rows: &[&[f32]; 4],
-) -> ([usize; 4], f32) {
-    let sample_columns: [usize; 4] =
-        CELL_OFFSETS.map(|offset| clamp_index(x as isize + offset * cell as isize, width));
-    let mut support = 0.0f32;
-    for magnitudes in magnitude_rows {
-        for &sample_x in &sample_columns {
-            support += magnitudes[sample_x];
-        }
-    }
-    (sample_columns, support)
+fn descriptor_scale(sample_square_rows: &[&[f32]; 4], x: usize, floor: f32) -> f32 {
+    let [a, b, c, d] = sample_square_rows;
+    255.0 / ((((a[x] + b[x]) + c[x]) + d[x]).sqrt() + floor)
 }
 
-/// The descriptor kernel in plain Rust: squares summed in 8 partial sums (one per bin, cells in
-/// order), combined as `((s0 + s4) + (s2 + s6)) + ((s1 + s5) + (s3 + s7))`, as the AVX2 kernel does.
+/// The 4 sample columns of pixel `x`'s cells.
+#[inline(always)]
+fn sample_columns(x: usize, width: usize, cell: usize) -> [usize; 4] {
+    CELL_OFFSETS.map(|offset| clamp_index(x as isize + offset * cell as isize, width))
+}
+
+/// The descriptor kernel in plain Rust. `v · scale < 255` for every energy `v` (each is at most the
+/// norm), so the conversion needs no clamping.
 fn descriptor_row_portable(
     band_rows: [&[f32]; 4],
-    magnitude_rows: [&[f32]; 4],
+    sample_square_rows: [&[f32]; 4],
     cell: usize,
-    normalisation: Normalisation,
+    floor: f32,
     descriptors: &mut [u8],
-    support: &mut [f32],
 ) {
-    let width = support.len();
-    for (x, (descriptor, support_out)) in descriptors
-        .chunks_exact_mut(DESCRIPTOR_LEN)
-        .zip(support.iter_mut())
-        .enumerate()
-    {
-        let (sample_columns, support_sum) =
-            cell_columns_and_support(x, width, cell, &magnitude_rows);
-        let mut cells = [[0.0f32; ORIENTATION_BINS]; 16];
-        let mut squares = [0.0f32; ORIENTATION_BINS];
-        for (cell_row, bands) in band_rows.iter().enumerate() {
-            for (cell_column, &sample_x) in sample_columns.iter().enumerate() {
+    let width = descriptors.len() / DESCRIPTOR_LEN;
+    for (x, descriptor) in descriptors.chunks_exact_mut(DESCRIPTOR_LEN).enumerate() {
+        let scale = descriptor_scale(&sample_square_rows, x, floor);
+        let columns = sample_columns(x, width, cell);
+        let mut bytes = descriptor.chunks_exact_mut(ORIENTATION_BINS);
+        for bands in &band_rows {
+            for &sample_x in &columns {
                 let values = &bands[sample_x * ORIENTATION_BINS..(sample_x + 1) * ORIENTATION_BINS];
-                for (bin, &value) in values.iter().enumerate() {
-                    squares[bin] += value * value;
-                    cells[cell_row * 4 + cell_column][bin] = value;
+                for (byte, &value) in bytes.next().expect("16 cells").iter_mut().zip(values) {
+                    *byte = (value * scale) as u8;
                 }
             }
         }
-        let scale = 255.0 / (descriptor_norm(squares) + normalisation.floor);
-        for (bytes, values) in descriptor.chunks_exact_mut(ORIENTATION_BINS).zip(&cells) {
-            for (byte, &value) in bytes.iter_mut().zip(values) {
-                let scaled = value * scale;
-                *byte = (if scaled < 255.0 { scaled } else { 255.0 }) as u8;
-            }
-        }
-        *support_out = support_sum * normalisation.support_scale;
     }
-}
-
-#[inline(always)]
-fn descriptor_norm(squares: [f32; ORIENTATION_BINS]) -> f32 {
-    (((squares[0] + squares[4]) + (squares[2] + squares[6]))
-        + ((squares[1] + squares[5]) + (squares[3] + squares[7])))
-        .sqrt()
 }
 
 /// [`descriptor_row_portable`] in AVX2: one register per cell, four cells packed into 32 bytes.
 ///
 /// # Safety
-/// The CPU must have AVX2; `descriptors` holds `128 · width` bytes and every band row `8 · width`
-/// values, `width = support.len()` (as [`descriptor_row_kernel`] checks).
+/// The CPU must have AVX2; every band row holds `8 · width` values and every sample-squares row
+/// `width`, `width = descriptors.len() / 128` (as [`descriptor_row_kernel`] checks).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn descriptor_row_avx2(
     band_rows: [&[f32]; 4],
-    magnitude_rows: [&[f32]; 4],
+    sample_square_rows: [&[f32]; 4],
     cell: usize,
-    normalisation: Normalisation,
+    floor: f32,
     descriptors: &mut [u8],
-    support: &mut [f32],
 ) {
     use std::arch::x86_64::*;
-    let width = support.len();
-    let ceiling = _mm256_set1_ps(255.0);
+    let width = descriptors.len() / DESCRIPTOR_LEN;
     // packs/packus leave 32-bit groups in the order a0 b0 c0 d0 | a1 b1 c1 d1.
     let unshuffle = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
-    for (x, support_x) in support.iter_mut().enumerate() {
-        let (sample_columns, support_sum) =
-            cell_columns_and_support(x, width, cell, &magnitude_rows);
-        let mut cells = [_mm256_setzero_ps(); 16];
-        let mut squares = _mm256_setzero_ps();
-        for (cell_row, bands) in band_rows.iter().enumerate() {
-            for (cell_column, &sample_x) in sample_columns.iter().enumerate() {
-                // SAFETY: sample_x < width and the row holds 8 · width values.
-                let value = _mm256_loadu_ps(bands.as_ptr().add(sample_x * ORIENTATION_BINS));
-                squares = _mm256_add_ps(squares, _mm256_mul_ps(value, value));
-                cells[cell_row * 4 + cell_column] = value;
-            }
-        }
-        let mut partial = [0.0f32; ORIENTATION_BINS];
-        _mm256_storeu_ps(partial.as_mut_ptr(), squares);
-        let scale = _mm256_set1_ps(255.0 / (descriptor_norm(partial) + normalisation.floor));
+    for x in 0..width {
+        let scale = _mm256_set1_ps(descriptor_scale(&sample_square_rows, x, floor));
+        let columns = sample_columns(x, width, cell);
         let out = descriptors.as_mut_ptr().add(x * DESCRIPTOR_LEN);
-        for quad in 0..4 {
-            let bytes: [__m256i; 4] = std::array::from_fn(|index| {
-                let scaled = _mm256_mul_ps(cells[quad * 4 + index], scale);
-                _mm256_cvttps_epi32(_mm256_min_ps(scaled, ceiling))
+        for (quad, bands) in band_rows.iter().enumerate() {
+            // SAFETY: every column is below `width` and the row holds 8 · width values.
+            let bytes: [__m256i; 4] = std::array::from_fn(|index| unsafe {
+                let value = _mm256_loadu_ps(bands.as_ptr().add(columns[index] * ORIENTATION_BINS));
+                _mm256_cvttps_epi32(_mm256_mul_ps(value, scale))
             });
             let low = _mm256_packs_epi32(bytes[0], bytes[1]);
             let high = _mm256_packs_epi32(bytes[2], bytes[3]);
@@ -781,7 +799,6 @@ unsafe fn descriptor_row_avx2(
             // SAFETY: the row holds 128 · width bytes; this writes bytes 32·quad.. of pixel x.
             _mm256_storeu_si256(out.add(quad * 32) as *mut __m256i, packed);
         }
-        *support_x = support_sum * normalisation.support_scale;
     }
 }
 
@@ -944,29 +961,21 @@ mod tests {
             // The plain-Rust descriptor kernel gives the bytes of the dispatched (AVX2) one.
             let (width, height) = image.size();
             let cell = config.cell_size_px;
-            let weight_sum = 0.25 + cell as f32;
-            let normalisation = Normalisation {
-                floor: config.normalisation_floor,
-                support_scale: 1.0 / (16.0 * weight_sum * weight_sum),
-            };
             for y in 0..height {
                 let rows = CELL_OFFSETS
                     .map(|offset| clamp_index(y as isize + offset * cell as isize, height));
                 let mut descriptors = vec![0u8; width * DESCRIPTOR_LEN];
-                let mut support = vec![0.0f32; width];
                 descriptor_row_portable(
                     rows.map(|row| &workspace.bands_pooled[row * width * 8..(row + 1) * width * 8]),
-                    rows.map(|row| &workspace.magnitude_pooled[row * width..(row + 1) * width]),
+                    rows.map(|row| &workspace.sample_squares[row * width..(row + 1) * width]),
                     cell,
-                    normalisation,
+                    config.normalisation_floor,
                     &mut descriptors,
-                    &mut support,
                 );
                 assert!(
                     descriptors == got.descriptors[y * width * 128..(y + 1) * width * 128],
                     "row {y}"
                 );
-                assert!(support == got.support_gradient.data()[y * width..(y + 1) * width]);
             }
         }
     }

@@ -1,20 +1,30 @@
 //! The data term of SIFT flow: the matching cost of every source pixel against every candidate in
-//! its search window, with the reference's median cost for candidates outside the target.
+//! its search window, with the reference's median cost for candidates outside the target. Costs are
+//! whole numbers (sums of absolute byte differences, at most 128 · 255), kept as `u16` in the
+//! belief propagation's layout.
 
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
-use super::kernels::{l1_distance_avx2, l1_distance_sse2};
-use super::kernels::{l1_distance_portable, resolve_kernel};
+use super::kernels::{l1_row_avx2, l1_row_sse2, l1_window_avx2};
+use super::kernels::{l1_row_portable, resolve_kernel};
+use super::layout::{CostVolume, Layout};
+use super::simd::LANES;
 use super::L1Kernel;
-use crate::core::dense_sift::DenseSiftImage;
+use crate::core::dense_sift::{DenseSiftImage, DESCRIPTOR_LEN};
 
-/// The bin width of the matching-cost histogram used for the median (cost units).
-const COST_HISTOGRAM_BIN: f32 = 32.0;
+/// The bin width of the matching-cost histogram used for the median (cost units), and the
+/// reference's bin count (the last bin takes every larger cost; no cost reaches it: 128 · 255 / 32
+/// = 1020).
+const COST_HISTOGRAM_BIN: u16 = 32;
 const COST_HISTOGRAM_BINS: usize = 1100;
+/// Bins of the histogram as counted: one per value of `cost / 32`, so that counting needs no
+/// branch; [`OUTSIDE_COST`] falls in the last, which is not counted.
+const COUNTED_BINS: usize = (u16::MAX / COST_HISTOGRAM_BIN) as usize + 1;
 
-/// Marks a candidate outside the target (or on an invalid target pixel) until the median is known.
-const OUTSIDE_COST: f32 = f32::INFINITY;
+/// Marks a candidate outside the target (or on an invalid target pixel) until the median is known
+/// (real costs are at most 128 · 255).
+const OUTSIDE_COST: u16 = u16::MAX;
 
 struct DataRowContext<'a> {
     source: &'a DenseSiftImage,
@@ -25,60 +35,156 @@ struct DataRowContext<'a> {
     radius: usize,
 }
 
+/// The costs of pixel `(x, y)`, index `label_v · labels + label_u`.
 #[inline(always)]
-fn fill_data_row(
+fn fill_pixel(
     context: &DataRowContext,
+    x: usize,
     y: usize,
-    row: &mut [f32],
-    distance: impl Fn(&[u8], &[u8]) -> u32,
+    costs: &mut [u16],
+    distances: impl Fn(&[u8], &[u8], &mut [u16]),
+    window_distances: Option<WindowKernel>,
 ) {
     let labels = 2 * context.radius + 1;
-    let window = labels * labels;
     let width = context.source.width_px;
+    let pixel = y * width + x;
+    if context.source_mask.is_some_and(|mask| !mask[pixel]) {
+        costs.fill(0);
+        return;
+    }
     let (target_width, target_height) = (
-        context.target.width_px as i32,
-        context.target.height_px as i32,
+        context.target.width_px as isize,
+        context.target.height_px as isize,
     );
-    for x in 0..width {
-        let pixel = y * width + x;
-        let costs = &mut row[x * window..(x + 1) * window];
-        if context.source_mask.is_some_and(|mask| !mask[pixel]) {
-            costs.fill(0.0);
+    let descriptor = context.source.descriptor(pixel);
+    let start_x = x as isize + context.offsets[0][pixel] as isize - context.radius as isize;
+    let start_y = y as isize + context.offsets[1][pixel] as isize - context.radius as isize;
+    if let Some(window_distances) = window_distances {
+        let inside = start_x >= 0
+            && start_y >= 0
+            && start_x + labels as isize <= target_width
+            && start_y + labels as isize <= target_height;
+        if inside {
+            let row_len = target_width as usize * DESCRIPTOR_LEN;
+            let first = start_y as usize * row_len + start_x as usize * DESCRIPTOR_LEN;
+            window_distances(
+                descriptor,
+                &context.target.descriptors,
+                first,
+                row_len,
+                labels,
+                costs,
+            );
+            if let Some(mask) = context.target_mask {
+                let first_target = start_y as usize * target_width as usize + start_x as usize;
+                for (label_v, cost_row) in costs.chunks_exact_mut(labels).enumerate() {
+                    let row = &mask[first_target + label_v * target_width as usize..][..labels];
+                    for (cost, &valid) in cost_row.iter_mut().zip(row) {
+                        if !valid {
+                            *cost = OUTSIDE_COST;
+                        }
+                    }
+                }
+            }
+            return;
+        }
+    }
+    // Candidates inside the target: label_u in first..last.
+    let first = (-start_x).clamp(0, labels as isize) as usize;
+    let last = (target_width - start_x).clamp(first as isize, labels as isize) as usize;
+    for (label_v, cost_row) in costs.chunks_exact_mut(labels).enumerate() {
+        let target_y = start_y + label_v as isize;
+        if target_y < 0 || target_y >= target_height || first == last {
+            cost_row.fill(OUTSIDE_COST);
             continue;
         }
-        let descriptor = context.source.descriptor(pixel);
-        let start_x = x as i32 + context.offsets[0][pixel] - context.radius as i32;
-        let start_y = y as i32 + context.offsets[1][pixel] - context.radius as i32;
-        for label_v in 0..labels {
-            let target_y = start_y + label_v as i32;
-            let cost_row = &mut costs[label_v * labels..(label_v + 1) * labels];
-            if target_y < 0 || target_y >= target_height {
-                cost_row.fill(OUTSIDE_COST);
-                continue;
-            }
-            for (label_u, cost) in cost_row.iter_mut().enumerate() {
-                let target_x = start_x + label_u as i32;
-                if target_x < 0 || target_x >= target_width {
+        cost_row[..first].fill(OUTSIDE_COST);
+        cost_row[last..].fill(OUTSIDE_COST);
+        let first_target =
+            target_y as usize * target_width as usize + (start_x + first as isize) as usize;
+        distances(
+            descriptor,
+            &context.target.descriptors
+                [first_target * DESCRIPTOR_LEN..(first_target + last - first) * DESCRIPTOR_LEN],
+            &mut cost_row[first..last],
+        );
+        if let Some(mask) = context.target_mask {
+            for (target, cost) in (first_target..).zip(&mut cost_row[first..last]) {
+                if !mask[target] {
                     *cost = OUTSIDE_COST;
-                    continue;
                 }
-                let target_pixel = (target_y * target_width + target_x) as usize;
-                if context.target_mask.is_some_and(|mask| !mask[target_pixel]) {
-                    *cost = OUTSIDE_COST;
-                    continue;
-                }
-                *cost = distance(descriptor, context.target.descriptor(target_pixel)) as f32;
             }
         }
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn fill_data_row_avx2(context: &DataRowContext, y: usize, row: &mut [f32]) {
-    fill_data_row(context, y, row, l1_distance_avx2)
+/// One block of 16 rows into its part of the volume; returns the histogram of the sampled costs.
+#[inline(always)]
+fn fill_block(
+    context: &DataRowContext,
+    layout: Layout,
+    block: usize,
+    out: &mut [super::simd::Lanes],
+    distances: impl Fn(&[u8], &[u8], &mut [u16]) + Copy,
+    window_distances: Option<WindowKernel>,
+) -> Box<[u32; COUNTED_BINS]> {
+    let labels = 2 * context.radius + 1;
+    let window = labels * labels;
+    let mut histogram = Box::new([0u32; COUNTED_BINS]);
+    let mut costs = [0u16; super::config::MAX_LABELS * super::config::MAX_LABELS];
+    let costs = &mut costs[..window];
+    for lane in 0..LANES.min(layout.height - block * LANES) {
+        let y = block * LANES + lane;
+        for x in 0..layout.width {
+            fill_pixel(context, x, y, costs, distances, window_distances);
+            let position = x + lane;
+            for (vector, &cost) in out[position * window..(position + 1) * window]
+                .iter_mut()
+                .zip(costs.iter())
+            {
+                vector.0[lane] = cost;
+            }
+            // The reference's median samples every third cost of the row-major volume.
+            let first = (y * layout.width + x) * window;
+            for &cost in costs.iter().skip((3 - first % 3) % 3).step_by(3) {
+                histogram[(cost / COST_HISTOGRAM_BIN) as usize] += 1;
+            }
+        }
+    }
+    histogram
 }
 
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn fill_block_avx2(
+    context: &DataRowContext,
+    layout: Layout,
+    block: usize,
+    out: &mut [super::simd::Lanes],
+) -> Box<[u32; COUNTED_BINS]> {
+    // SAFETY: this function runs only where the CPU has AVX2.
+    fill_block(
+        context,
+        layout,
+        block,
+        out,
+        |source, targets, out| unsafe { l1_row_avx2(source, targets, out) },
+        Some(
+            |source: &[u8], targets: &[u8], first, row_len, labels, out: &mut [u16]| unsafe {
+                l1_window_avx2(source, targets, first, row_len, labels, out)
+            },
+        ),
+    )
+}
+
+/// A kernel for whole windows inside the target: `(source, targets, first byte, bytes per target
+/// row, labels, out)`.
+type WindowKernel = fn(&[u8], &[u8], usize, usize, usize, &mut [u16]);
+
+/// Fills `volume` (resized to the source's size and `2 · radius + 1` labels per layer) with the
+/// costs of every source pixel against its window around `offsets`; candidates outside the target
+/// or on invalid target pixels cost the median of all matching costs (binned as the reference),
+/// and with `truncate` no cost exceeds it. Masked source pixels cost 0 everywhere.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn compute_data_cost(
     source: &DenseSiftImage,
@@ -89,10 +195,12 @@ pub(super) fn compute_data_cost(
     radius: usize,
     truncate: bool,
     kernel: L1Kernel,
-    data_cost: &mut [f32],
+    volume: &mut CostVolume,
 ) {
     let labels = 2 * radius + 1;
-    let row_len = source.width_px * labels * labels;
+    let window = labels * labels;
+    let layout = Layout::new(source.width_px, source.height_px);
+    volume.reset(layout, labels);
     let context = DataRowContext {
         source,
         source_mask,
@@ -102,41 +210,60 @@ pub(super) fn compute_data_cost(
         radius,
     };
     let kernel = resolve_kernel(kernel);
-    data_cost
-        .par_chunks_mut(row_len)
+    let histogram = volume
+        .costs_mut()
+        .par_chunks_mut(layout.positions * window)
         .enumerate()
-        .for_each(|(y, row)| match kernel {
+        .map(|(block, out)| match kernel {
             #[cfg(target_arch = "x86_64")]
             // SAFETY: `resolve_kernel` returns Avx2 only when the CPU has AVX2.
-            L1Kernel::Avx2 => unsafe { fill_data_row_avx2(&context, y, row) },
+            L1Kernel::Avx2 => unsafe { fill_block_avx2(&context, layout, block, out) },
             #[cfg(target_arch = "x86_64")]
-            L1Kernel::Sse2 => fill_data_row(&context, y, row, l1_distance_sse2),
-            _ => fill_data_row(&context, y, row, l1_distance_portable),
-        });
+            L1Kernel::Sse2 => fill_block(&context, layout, block, out, l1_row_sse2, None),
+            _ => fill_block(&context, layout, block, out, l1_row_portable, None),
+        })
+        .reduce(
+            || Box::new([0u32; COUNTED_BINS]),
+            |mut total, part| {
+                for (sum, count) in total.iter_mut().zip(part.iter()) {
+                    *sum += count;
+                }
+                total
+            },
+        );
 
     // The reference's default score: the median of all inside costs.
-    let mut histogram = [0u32; COST_HISTOGRAM_BINS];
-    let mut total = 0u64;
-    for &cost in data_cost.iter().step_by(3) {
-        if cost.is_finite() {
-            histogram[((cost / COST_HISTOGRAM_BIN) as usize).min(COST_HISTOGRAM_BINS - 1)] += 1;
-            total += 1;
-        }
+    let mut bins = [0u32; COST_HISTOGRAM_BINS];
+    for (bin, &count) in histogram[..COUNTED_BINS - 1].iter().enumerate() {
+        bins[bin.min(COST_HISTOGRAM_BINS - 1)] += count;
     }
-    let mut default_cost = 0.0;
+    let total: u64 = bins.iter().map(|&count| count as u64).sum();
+    let mut default_cost = 0u16;
     let mut cumulative = 0u64;
-    for (bin, &count) in histogram.iter().enumerate() {
+    for (bin, &count) in bins.iter().enumerate() {
         cumulative += count as u64;
         if 2 * cumulative >= total {
-            default_cost = (bin.max(1) as f32) * COST_HISTOGRAM_BIN;
+            default_cost = bin.max(1) as u16 * COST_HISTOGRAM_BIN;
             break;
         }
     }
-    data_cost.par_chunks_mut(row_len).for_each(|row| {
-        for cost in row.iter_mut() {
-            if *cost == OUTSIDE_COST || (truncate && *cost > default_cost) {
-                *cost = default_cost;
+    volume
+        .costs_mut()
+        .par_chunks_mut(layout.positions * window)
+        .for_each(|block| replace_outside(block, default_cost, truncate));
+}
+
+crate::core::dense_sift::multiversioned! {
+    /// Outside candidates (and, with `truncate`, costs above it) cost `default_cost`; branch-free,
+    /// so that it vectorises.
+    fn replace_outside(block: &mut [super::simd::Lanes], default_cost: u16, truncate: bool) {
+        let ceiling = if truncate { default_cost } else { OUTSIDE_COST - 1 };
+        for vector in block {
+            for cost in &mut vector.0 {
+                let outside = *cost == OUTSIDE_COST;
+                let capped = (*cost).min(ceiling);
+                *cost = if outside { default_cost } else { capped };
             }
         }
-    });
+    }
 }

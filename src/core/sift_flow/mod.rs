@@ -19,7 +19,9 @@
 //!
 //! Departures from the reference (the coarsest grid's inter-layer messages start at the data
 //! term's marginals; the integer flow is refined below a pixel; beliefs are computed once per
-//! level) and what each bought: docs/measurements.md#coresift_flow.
+//! level) and what each bought: docs/measurements.md#coresift_flow. Costs and messages are 16-bit
+//! integers (the range term rounded to whole cost units, multigrid grids in scaled units: see
+//! `bp`), computed 16 rows at a time in the order of the reference's sweeps.
 //!
 //! Preconditions: dense SIFT images from [`crate::core::dense_sift`]; masks, when given, are
 //! images of the same size. Flow convention: `source(x, y) ≈ target(x + u, y + v)`, 0-based
@@ -29,14 +31,17 @@ mod bp;
 mod config;
 mod data_cost;
 mod kernels;
+mod layout;
 mod pyramid;
+mod simd;
 
 use std::time::{Duration, Instant};
 
-use bp::{compute_beliefs, solve_with_multigrid, LevelProblem, MultigridGrid};
+use bp::{choose_labels, solve_with_multigrid, GridState, Isa, LevelProblem, MultigridGrid};
 pub use config::{L1Kernel, SiftFlowConfig, SubpixelRefinement};
 use data_cost::compute_data_cost;
 pub use kernels::descriptor_l1_distance;
+use layout::CostVolume;
 pub use pyramid::SiftPyramid;
 use pyramid::{build_mask_pyramid, level_mask, upsample_flow};
 
@@ -124,9 +129,11 @@ pub struct SiftFlowWorkspace {
     flow: [Vec<i32>; 2],
     /// Chosen label per layer at the last level solved.
     labels: [Vec<u8>; 2],
-    data_cost: Vec<f32>,
-    spatial_messages: [Vec<f32>; 2],
-    dual_messages: [Vec<f32>; 2],
+    /// Matching costs of the last level solved.
+    data_cost: CostVolume,
+    /// Messages of the last level solved.
+    messages: GridState,
+    /// Beliefs of the finest level (only for [`SubpixelRefinement::BeliefParabola`]).
     beliefs: [Vec<f32>; 2],
     /// Coarser grids of the multigrid belief propagation (reference `nHierarchy`).
     multigrid: Vec<MultigridGrid>,
@@ -226,6 +233,7 @@ pub fn compute_sift_flow_on_pyramids(
     }
     let mut timings = SiftFlowTimings::default();
     let ws = workspace;
+    let isa = Isa::detect();
     let level_count = config.pyramid_levels;
     let top_level = level_count - 1;
 
@@ -279,7 +287,6 @@ pub fn compute_sift_flow_on_pyramids(
 
         let data_started = Instant::now();
         let labels = 2 * radius + 1;
-        ws.data_cost.resize(pixel_count * labels * labels, 0.0);
         compute_data_cost(
             source_level,
             level_mask(&ws.source_masks, level),
@@ -295,15 +302,14 @@ pub fn compute_sift_flow_on_pyramids(
 
         let bp_started = Instant::now();
         let problem = LevelProblem {
-            width,
-            height,
             radius,
             labels,
             flow_magnitude_weight: config.flow_magnitude_weight * (1u32 << level) as f32,
             smoothness_weight: config.smoothness_weight,
             smoothness_truncation: config.smoothness_truncation,
             offsets: [&ws.offsets[0], &ws.offsets[1]],
-            data_cost: &ws.data_cost,
+            data: &ws.data_cost,
+            bands: config.bp_bands,
         };
         let iterations = if level == top_level {
             config.top_iterations
@@ -323,36 +329,31 @@ pub fn compute_sift_flow_on_pyramids(
                 .resize_with(multigrid_depth, MultigridGrid::default);
         }
         solve_with_multigrid(
+            isa,
             &problem,
             iterations,
             config.multigrid_iterations,
             config.specialised_kernels,
-            config.bp_bands,
             &mut ws.multigrid[..multigrid_depth],
-            &mut ws.spatial_messages,
-            &mut ws.dual_messages,
+            &mut ws.messages,
         );
-        compute_beliefs(
+        let want_beliefs = level == 0 && config.subpixel == SubpixelRefinement::BeliefParabola;
+        choose_labels(
+            isa,
             &problem,
-            &ws.spatial_messages,
-            &ws.dual_messages,
-            &mut ws.beliefs,
+            config.specialised_kernels,
+            &ws.messages,
+            &mut ws.labels,
+            want_beliefs.then_some(&mut ws.beliefs),
         );
         for plane in 0..2 {
-            ws.flow[plane].resize(pixel_count, 0);
-            ws.labels[plane].resize(pixel_count, 0);
-            let beliefs = &ws.beliefs[plane];
-            let offsets = &ws.offsets[plane];
-            for (pixel, (flow_value, label_out)) in ws.flow[plane]
-                .iter_mut()
-                .zip(ws.labels[plane].iter_mut())
-                .enumerate()
-            {
-                let belief = &beliefs[pixel * labels..(pixel + 1) * labels];
-                let label = argmin(belief);
-                *label_out = label as u8;
-                *flow_value = offsets[pixel] + label as i32 - radius as i32;
-            }
+            ws.flow[plane].clear();
+            ws.flow[plane].extend(
+                ws.offsets[plane]
+                    .iter()
+                    .zip(&ws.labels[plane])
+                    .map(|(&offset, &label)| offset + label as i32 - radius as i32),
+            );
         }
         timings.belief_propagation += bp_started.elapsed();
     }
@@ -360,7 +361,6 @@ pub fn compute_sift_flow_on_pyramids(
     // Finest level: integer flow, costs, optional sub-pixel refinement.
     let width = source.width_px;
     let height = source.height_px;
-    let pixel_count = width * height;
     let radius = config.level_radius(0, top_level);
     let labels = 2 * radius + 1;
     flow.reset(width, height);
@@ -368,36 +368,44 @@ pub fn compute_sift_flow_on_pyramids(
     let (flow_u, flow_v) = flow.planes_mut();
     let matching_cost = matching_cost.data_mut();
     let source_mask = &ws.source_masks[0];
-    for pixel in 0..pixel_count {
-        let label_u = ws.labels[0][pixel] as usize;
-        let label_v = ws.labels[1][pixel] as usize;
-        let costs = &ws.data_cost[pixel * labels * labels..(pixel + 1) * labels * labels];
-        let participates = source_mask.is_empty() || source_mask[pixel];
-        if participates {
-            matching_cost[pixel] = costs[label_v * labels + label_u];
+    let window = labels * labels;
+    for y in 0..height {
+        let (first_vector, lane) = ws.data_cost.layout.locate(0, y);
+        for x in 0..width {
+            let pixel = y * width + x;
+            let label_u = ws.labels[0][pixel] as usize;
+            let label_v = ws.labels[1][pixel] as usize;
+            let costs =
+                &ws.data_cost.costs()[(first_vector + x) * window..(first_vector + x + 1) * window];
+            let cost =
+                |label_u: usize, label_v: usize| costs[label_v * labels + label_u].0[lane] as f32;
+            let participates = source_mask.is_empty() || source_mask[pixel];
+            if participates {
+                matching_cost[pixel] = cost(label_u, label_v);
+            }
+            let (delta_u, delta_v) = match config.subpixel {
+                SubpixelRefinement::None => (0.0, 0.0),
+                SubpixelRefinement::DataCostParabola if participates => {
+                    let along_u = |label: usize| cost(label, label_v);
+                    let along_v = |label: usize| cost(label_u, label);
+                    (
+                        parabola_vertex(along_u, label_u, labels),
+                        parabola_vertex(along_v, label_v, labels),
+                    )
+                }
+                SubpixelRefinement::DataCostParabola => (0.0, 0.0),
+                SubpixelRefinement::BeliefParabola => {
+                    let belief_u = &ws.beliefs[0][pixel * labels..(pixel + 1) * labels];
+                    let belief_v = &ws.beliefs[1][pixel * labels..(pixel + 1) * labels];
+                    (
+                        parabola_vertex(|label| belief_u[label], label_u, labels),
+                        parabola_vertex(|label| belief_v[label], label_v, labels),
+                    )
+                }
+            };
+            flow_u[pixel] = ws.flow[0][pixel] as f32 + delta_u;
+            flow_v[pixel] = ws.flow[1][pixel] as f32 + delta_v;
         }
-        let (delta_u, delta_v) = match config.subpixel {
-            SubpixelRefinement::None => (0.0, 0.0),
-            SubpixelRefinement::DataCostParabola if participates => {
-                let along_u = |label: usize| costs[label_v * labels + label];
-                let along_v = |label: usize| costs[label * labels + label_u];
-                (
-                    parabola_vertex(along_u, label_u, labels),
-                    parabola_vertex(along_v, label_v, labels),
-                )
-            }
-            SubpixelRefinement::DataCostParabola => (0.0, 0.0),
-            SubpixelRefinement::BeliefParabola => {
-                let belief_u = &ws.beliefs[0][pixel * labels..(pixel + 1) * labels];
-                let belief_v = &ws.beliefs[1][pixel * labels..(pixel + 1) * labels];
-                (
-                    parabola_vertex(|label| belief_u[label], label_u, labels),
-                    parabola_vertex(|label| belief_v[label], label_v, labels),
-                )
-            }
-        };
-        flow_u[pixel] = ws.flow[0][pixel] as f32 + delta_u;
-        flow_v[pixel] = ws.flow[1][pixel] as f32 + delta_v;
     }
     timings.total = started.elapsed();
     Ok(timings)
@@ -429,20 +437,88 @@ fn parabola_vertex(cost: impl Fn(usize) -> f32, label: usize, labels: usize) -> 
     (0.5 * (before - after) / curvature).clamp(-0.5, 0.5)
 }
 
-#[inline]
-fn argmin(values: &[f32]) -> usize {
-    let mut best = 0;
-    for (index, &value) in values.iter().enumerate().skip(1) {
-        if value < values[best] {
-            best = index;
-        }
-    }
-    best
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A crop of the repository's real pair (odd sizes: partial blocks of rows, padding).
+    fn crop_pair(width: usize, height: usize) -> (DenseSiftImage, DenseSiftImage) {
+        use test_support::{load_pair, sift_of};
+        let pair = load_pair(
+            &crate::test_data::repo_data("flow-pairs"),
+            "dji0024_505x275",
+        );
+        let crop = |image: &Image<f32>| {
+            Image::from_fn(width, height, |x, y| image.data()[(y + 30) * 505 + x + 60])
+        };
+        let config = crate::core::dense_sift::DenseSiftConfig::default();
+        (
+            sift_of(crop(&pair.first).view(), &config),
+            sift_of(crop(&pair.second).view(), &config),
+        )
+    }
+
+    fn flow_of(
+        first: &DenseSiftImage,
+        second: &DenseSiftImage,
+        config: &SiftFlowConfig,
+        portable: bool,
+    ) -> (FlowField, Image<f32>) {
+        bp::FORCE_PORTABLE.with(|force| force.set(portable));
+        let mut flow = FlowField::default();
+        let mut cost = Image::default();
+        let mask = Image::from_fn(first.width_px, first.height_px, |x, y| {
+            (x * 7 + y * 3) % 11 != 0
+        });
+        compute_sift_flow(
+            first,
+            Some(mask.view()),
+            second,
+            None,
+            config,
+            &mut SiftFlowWorkspace::default(),
+            &mut flow,
+            &mut cost,
+        )
+        .unwrap();
+        bp::FORCE_PORTABLE.with(|force| force.set(false));
+        (flow, cost)
+    }
+
+    #[test]
+    fn kernels_give_identical_flows() {
+        let (first, second) = crop_pair(83, 41);
+        for config in [
+            SiftFlowConfig::fast(),
+            SiftFlowConfig {
+                subpixel: SubpixelRefinement::BeliefParabola,
+                search_radius_px: 3,
+                top_search_radius_px: 7,
+                pyramid_levels: 3,
+                iterations: 9,
+                ..SiftFlowConfig::fast()
+            },
+        ] {
+            let reference = flow_of(&first, &second, &config, false);
+            let generic = SiftFlowConfig {
+                specialised_kernels: false,
+                l1_kernel: L1Kernel::Portable,
+                ..config.clone()
+            };
+            assert!(
+                flow_of(&first, &second, &generic, false) == reference,
+                "generic"
+            );
+            assert!(
+                flow_of(&first, &second, &config, true) == reference,
+                "portable"
+            );
+            assert!(
+                flow_of(&first, &second, &generic, true) == reference,
+                "portable generic"
+            );
+        }
+    }
 
     #[test]
     fn parabola_vertex_finds_the_minimum() {
