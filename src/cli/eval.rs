@@ -34,9 +34,10 @@ pub struct EvalArgs {
     /// Output folder for results.md, results.json and results.svg.
     #[arg(long)]
     pub out: PathBuf,
-    /// Initial-error levels to run (folders under initial/), px.
-    #[arg(long, value_delimiter = ',', default_values_t = [30, 57, 80, 104])]
-    pub levels: Vec<u32>,
+    /// Initial-error levels to run (folders under initial/): mean δ in px, or `heading` (a
+    /// drone's prior: heading 10–40° or 180° off, GPS-like position; written by `asgreg synth`).
+    #[arg(long, value_delimiter = ',', value_parser = parse_level, default_values_t = [Level::Px(30), Level::Px(57), Level::Px(80), Level::Px(104)])]
+    pub levels: Vec<Level>,
     /// Intrinsics modes to run.
     #[arg(long, value_delimiter = ',', value_enum, default_values_t = [IntrinsicsArg::Known, IntrinsicsArg::Unknown])]
     pub intrinsics: Vec<IntrinsicsArg>,
@@ -60,6 +61,45 @@ pub struct EvalArgs {
     /// one at a time, each solved twice).
     #[arg(long)]
     pub diagnose: bool,
+}
+
+/// One initial-error level: a folder under `initial/`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Level {
+    /// Gaussian noise on all six degrees of freedom with this mean δ, px (the paper's protocol).
+    Px(u32),
+    /// A drone's prior (`initial/heading/`).
+    Heading,
+}
+
+impl std::fmt::Display for Level {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Level::Px(px) => f.pad(&px.to_string()),
+            Level::Heading => f.pad(asgreg::synth::HEADING_LEVEL_DIR),
+        }
+    }
+}
+
+impl serde::Serialize for Level {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Level::Px(px) => serializer.serialize_u32(*px),
+            Level::Heading => serializer.serialize_str(asgreg::synth::HEADING_LEVEL_DIR),
+        }
+    }
+}
+
+fn parse_level(text: &str) -> Result<Level, String> {
+    if text == asgreg::synth::HEADING_LEVEL_DIR {
+        return Ok(Level::Heading);
+    }
+    text.parse::<u32>().map(Level::Px).map_err(|_| {
+        format!(
+            "{text:?} is not a level: a mean δ in whole pixels (30) or {:?}",
+            asgreg::synth::HEADING_LEVEL_DIR
+        )
+    })
 }
 
 /// What registers a frame in an evaluation run.
@@ -125,8 +165,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
 
     let bar = progress_bar(jobs.len(), "evaluating");
     let mut workspace = ReprojectionWorkspace::new();
-    let mut results: BTreeMap<(u32, &'static str), Vec<EvalFrame>> = BTreeMap::new();
-    let mut diagnoses: BTreeMap<(u32, &'static str), Vec<(String, FrameDiagnosis)>> =
+    let mut results: BTreeMap<(Level, &'static str), Vec<EvalFrame>> = BTreeMap::new();
+    let mut diagnoses: BTreeMap<(Level, &'static str), Vec<(String, FrameDiagnosis)>> =
         BTreeMap::new();
     let mut methods_seen: Vec<Method> = Vec::new();
     for (level, method, initial) in jobs {
@@ -300,7 +340,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
 
-    let stats: BTreeMap<(u32, &str), CellStats> = results
+    let stats: BTreeMap<(Level, &str), CellStats> = results
         .iter()
         .map(|(key, frames)| (*key, cell_stats(frames, false_accept_px)))
         .collect();
@@ -397,7 +437,7 @@ fn scene_batch_frame(
 }
 
 /// The diagnosis tables: one row per (level, method), then one line per frame.
-fn diagnosis_markdown(diagnoses: &BTreeMap<(u32, &str), Vec<(String, FrameDiagnosis)>>) -> String {
+fn diagnosis_markdown(diagnoses: &BTreeMap<(Level, &str), Vec<(String, FrameDiagnosis)>>) -> String {
     let px = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.2}"));
     let mut out = String::new();
     let _ = writeln!(
@@ -542,7 +582,7 @@ struct FrameOutcome {
 
 fn results_markdown(
     args: &EvalArgs,
-    stats: &BTreeMap<(u32, &str), CellStats>,
+    stats: &BTreeMap<(Level, &str), CellStats>,
     methods: &[&str],
     false_accept_px: f64,
 ) -> String {
@@ -617,12 +657,19 @@ ICP has no self-check: its 'accepted' is the paper's success criterion δ < 20 p
 /// Two small line charts side by side: mean δ of accepted frames and acceptance, per level.
 fn write_plot(
     path: &Path,
-    stats: &BTreeMap<(u32, &str), CellStats>,
+    stats: &BTreeMap<(Level, &str), CellStats>,
     methods: &[&str],
 ) -> anyhow::Result<()> {
     const COLOURS: [&str; 4] = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"];
+    // The px levels only: the heading level has no place on the δ axis.
     let levels: Vec<u32> = {
-        let mut l: Vec<u32> = stats.keys().map(|(level, _)| *level).collect();
+        let mut l: Vec<u32> = stats
+            .keys()
+            .filter_map(|(level, _)| match level {
+                Level::Px(px) => Some(*px),
+                Level::Heading => None,
+            })
+            .collect();
         l.dedup();
         l
     };
@@ -671,7 +718,7 @@ fn write_plot(
             let points: Vec<String> = levels
                 .iter()
                 .filter_map(|level| {
-                    let s = stats.get(&(*level, *method))?;
+                    let s = stats.get(&(Level::Px(*level), *method))?;
                     let value = if *kind == 0 {
                         s.mean_px?
                     } else {

@@ -151,6 +151,7 @@ fn default_scene_at(scene: &Path, frames: usize) -> anyhow::Result<PathBuf> {
         // (`asgreg synth --scene house`) is harder: see the #4 note in README.
         scene: SceneArg::Block,
         levels: vec![30.0],
+        no_heading_level: true,
     };
     asgreg::synth::generate_scene(&args.config(), &scene)?;
     Ok(scene)

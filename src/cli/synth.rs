@@ -27,6 +27,10 @@ pub struct SynthArgs {
     /// Mean initial-pose errors to calibrate, in pixels, comma separated.
     #[arg(long, value_delimiter = ',', default_values_t = [30.0, 57.0, 80.0, 104.0])]
     pub levels: Vec<f64>,
+    /// Do not write the drone-like `initial/heading/` level (heading 10–40° off, 180° for every
+    /// fourth photo, pitch/roll within 1°, GPS-like centre noise).
+    #[arg(long)]
+    pub no_heading_level: bool,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -47,6 +51,7 @@ impl SynthArgs {
                 SceneArg::Block => SceneKind::Block,
             },
             initial_levels_px: self.levels.clone(),
+            heading_level: !self.no_heading_level,
             ..SynthConfig::default()
         }
     }
@@ -75,6 +80,9 @@ pub fn print_summary(summary: &SceneSummary, out: &std::path::Path, seconds: f64
             level.min_px,
             level.max_px
         );
+    }
+    if let Some([min_px, mean_px, max_px]) = summary.heading_level_px {
+        println!("    heading → {mean_px:>6.1} px, {min_px:.1}..{max_px:.1} px (δ over the frames it can measure)");
     }
 }
 
