@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 use crate::core::edge_align::EdgeAlignConfig;
 use crate::core::flow_consistency::MatchConfig;
 use crate::core::pose::estimate::PoseEstimationConfig;
+use crate::core::pose_search::PoseSearchConfig;
 use crate::core::raster::RenderOptions;
 use crate::core::shading::AsgOptions;
 use crate::core::verify::VerifyConfig;
@@ -81,6 +82,9 @@ pub struct RegistrationConfig {
     pub verify: VerifyConfig,
     /// The final refinement of the chosen pose against the photo's edges (step "refine").
     pub edge_align: EdgeAlignConfig,
+    /// The pose search before the coarse poses (step "search"): its region in degrees, its
+    /// edge map's pyramid level and blur in px, how many beams, when a beam replaces the prior.
+    pub pose_search: PoseSearchConfig,
 }
 
 impl Default for RegistrationConfig {
@@ -105,6 +109,7 @@ impl Default for RegistrationConfig {
             pose: PoseEstimationConfig::default(),
             verify: VerifyConfig::default(),
             edge_align: EdgeAlignConfig::default(),
+            pose_search: PoseSearchConfig::default(),
         }
     }
 }
@@ -134,6 +139,8 @@ pub enum RegistrationError {
     NonFiniteInitialPose,
     #[error("the model is not visible from the initial pose: check the pose convention (cam_from_world) and the mesh's coordinate frame")]
     ModelNotVisible,
+    #[error("the pose search found distinct poses with about the same edge support, so it cannot choose: {0}")]
+    AmbiguousPoseSearch(String),
     #[error("dense matching failed: {0}")]
     Flow(String),
     #[error(transparent)]
@@ -203,6 +210,12 @@ impl RegistrationConfig {
             .validate()
             .map_err(|e| RegistrationError::InvalidConfig {
                 field: "edge_align",
+                why: e.to_string(),
+            })?;
+        self.pose_search
+            .validate()
+            .map_err(|e| RegistrationError::InvalidConfig {
+                field: "pose_search",
                 why: e.to_string(),
             })?;
         Ok(())
