@@ -169,6 +169,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let mut diagnoses: BTreeMap<(Level, &'static str), Vec<(String, FrameDiagnosis)>> =
         BTreeMap::new();
     let mut methods_seen: Vec<Method> = Vec::new();
+    let mut search_ms: BTreeMap<(Level, &'static str), f64> = BTreeMap::new();
     for (level, method, initial) in jobs {
         if !methods_seen.contains(&method) {
             methods_seen.push(method);
@@ -214,6 +215,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             confidence: diagnosis.verdict.confidence,
                             reason: diagnosis.verdict.rejection().map(|r| r.to_string()),
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
+                            search_ms: 0.0,
                         };
                         diagnoses
                             .entry((level, method.name()))
@@ -227,6 +229,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         confidence: 0.0,
                         reason: Some(reason),
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
+                        search_ms: 0.0,
                     },
                 }
             }
@@ -250,6 +253,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     confidence: report.confidence,
                     reason: report.reason,
                     total_ms: report.timings.total_ms,
+                    search_ms: report.timings.search_ms,
                 }
             }
             Method::Icp(variant) => {
@@ -291,6 +295,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                                 format!("δ to ground truth not below {ICP_SUCCESS_THRESHOLD_PX} px")
                             }),
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
+                            search_ms: 0.0,
                         }
                     }
                     Err(reason) => FrameOutcome {
@@ -299,12 +304,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         confidence: 0.0,
                         reason: Some(reason),
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
+                        search_ms: 0.0,
                     },
                 }
             }
         };
         let line = format!(
-            "level {level:>3} {:<18} {}: initial δ {initial_delta_px:6.1} px → {}",
+            "level {level:>3} {:<18} {}: initial δ {initial_delta_px:6.1} px → {} [{:.1} s, search {:.2} s]",
             method.name(),
             initial.name,
             match (outcome.accepted, outcome.final_delta_px) {
@@ -317,8 +323,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     outcome.reason.as_deref().unwrap_or("-")
                 ),
                 _ => format!("failed: {}", outcome.reason.as_deref().unwrap_or("-")),
-            }
+            },
+            outcome.total_ms / 1e3,
+            outcome.search_ms / 1e3
         );
+        *search_ms
+            .entry((level, method.name()))
+            .or_insert(0.0) += outcome.search_ms;
         if bar.is_hidden() {
             println!("{line}");
         } else {
@@ -385,6 +396,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         println!("{text}");
     }
     println!("{table}");
+    for ((level, method), total_search_ms) in &search_ms {
+        if let (Some(frames), true) = (results.get(&(*level, *method)), *total_search_ms > 0.0) {
+            let total_ms: f64 = frames.iter().map(|f| f.total_ms).sum();
+            println!(
+                "pose search, level {level} {method}: {:.2} s/frame of {:.2} s/frame ({:.0} %)",
+                total_search_ms / frames.len().max(1) as f64 / 1e3,
+                total_ms / frames.len().max(1) as f64 / 1e3,
+                100.0 * total_search_ms / total_ms.max(1e-9)
+            );
+        }
+    }
     println!(
         "wrote {}, {} and {}",
         args.out.join("results.md").display(),
@@ -578,6 +600,8 @@ struct FrameOutcome {
     confidence: f64,
     reason: Option<String>,
     total_ms: f64,
+    /// The pose search's share of `total_ms` (0 when it did not run).
+    search_ms: f64,
 }
 
 fn results_markdown(

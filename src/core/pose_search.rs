@@ -34,7 +34,7 @@ pub const ORIENTATION_BINS: usize = 8;
 
 /// Settings of the pose search. Angles in degrees, distances in pixels of the working camera
 /// unless named otherwise. The default region covers the `asgreg synth` levels up to 104 px
-/// (Gaussian on all axes, about 6° per axis) and the `heading` level (heading ±10–40° or 180°,
+/// (Gaussian on all axes: about 10° per axis at f = 360 px) and the `heading` level (heading ±10–40° or 180°,
 /// pitch/roll within 1°, 1–2 m).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -87,9 +87,9 @@ impl Default for PoseSearchConfig {
             yaw_half_range_deg: 45.0,
             include_flipped_heading: true,
             yaw_step_deg: 2.0,
-            pitch_half_range_deg: 15.0,
+            pitch_half_range_deg: 22.5,
             pitch_step_deg: 2.5,
-            roll_half_range_deg: 9.0,
+            roll_half_range_deg: 15.0,
             roll_step_deg: 3.0,
             render_heading_step_deg: 45.0,
             map_level: 2,
