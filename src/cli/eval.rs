@@ -327,9 +327,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             outcome.total_ms / 1e3,
             outcome.search_ms / 1e3
         );
-        *search_ms
-            .entry((level, method.name()))
-            .or_insert(0.0) += outcome.search_ms;
+        *search_ms.entry((level, method.name())).or_insert(0.0) += outcome.search_ms;
         if bar.is_hidden() {
             println!("{line}");
         } else {
@@ -459,7 +457,9 @@ fn scene_batch_frame(
 }
 
 /// The diagnosis tables: one row per (level, method), then one line per frame.
-fn diagnosis_markdown(diagnoses: &BTreeMap<(Level, &str), Vec<(String, FrameDiagnosis)>>) -> String {
+fn diagnosis_markdown(
+    diagnoses: &BTreeMap<(Level, &str), Vec<(String, FrameDiagnosis)>>,
+) -> String {
     let px = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.2}"));
     let mut out = String::new();
     let _ = writeln!(

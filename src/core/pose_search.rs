@@ -245,7 +245,10 @@ impl OrientedEdgeMap {
         let blurred_view = blurred.view();
         // Decimate: a coarse pixel centre (c + 0.5) is the full-resolution position (c + 0.5)·f.
         let coarse = Image::from_fn(width_px, height_px, |col, row| {
-            let at = Vector2::new((col as f64 + 0.5) * factor as f64, (row as f64 + 0.5) * factor as f64);
+            let at = Vector2::new(
+                (col as f64 + 0.5) * factor as f64,
+                (row as f64 + 0.5) * factor as f64,
+            );
             bilinear(&blurred_view, at).unwrap_or(0.0)
         });
         let at = |col: usize, row: usize| f64::from(coarse.data()[row * width_px + col]);
@@ -321,7 +324,10 @@ impl OrientedEdgeMap {
     pub fn value(&self, position_px: Vector2<f64>, normal_angle_rad: f64) -> f32 {
         let x = position_px.x * self.scale - 0.5;
         let y = position_px.y * self.scale - 0.5;
-        if !(x >= 0.0 && y >= 0.0 && x < (self.width_px - 1) as f64 && y < (self.height_px - 1) as f64)
+        if !(x >= 0.0
+            && y >= 0.0
+            && x < (self.width_px - 1) as f64
+            && y < (self.height_px - 1) as f64)
         {
             return 0.0;
         }
@@ -424,22 +430,27 @@ pub fn score_rotation(
     sum / samples.len() as f64
 }
 
-/// Scores every grid rotation whose heading is nearest to `rendered_yaw_deg` (the heading, relative
-/// to the prior, the samples were rendered at) and appends them to `out`.
+/// Scores the grid rotations with the headings `yaws_deg` (relative to the prior), from the
+/// samples rendered at the heading `rendered_yaw_deg` (the nearest rendering to those headings).
 pub fn score_rotations(
     samples: &[SearchSample],
     map: &OrientedEdgeMap,
     camera: &Camera,
     prior: &Rigid3,
-    rendered_yaw_deg: f64,
-    yaws_deg: &[f64],
+    (rendered_yaw_deg, yaws_deg): (f64, &[f64]),
     config: &PoseSearchConfig,
-    out: &mut Vec<Candidate>,
-) {
+) -> Vec<Candidate> {
+    let mut out = Vec::new();
     let rendered = turned_pose(prior, rendered_yaw_deg, 0.0, 0.0);
-    let rendered_inverse = rendered.rotation.inverse().to_rotation_matrix().into_inner();
-    let pitches = PoseSearchConfig::axis_offsets_deg(config.pitch_half_range_deg, config.pitch_step_deg);
-    let rolls = PoseSearchConfig::axis_offsets_deg(config.roll_half_range_deg, config.roll_step_deg);
+    let rendered_inverse = rendered
+        .rotation
+        .inverse()
+        .to_rotation_matrix()
+        .into_inner();
+    let pitches =
+        PoseSearchConfig::axis_offsets_deg(config.pitch_half_range_deg, config.pitch_step_deg);
+    let rolls =
+        PoseSearchConfig::axis_offsets_deg(config.roll_half_range_deg, config.roll_step_deg);
     for &yaw_deg in yaws_deg {
         for &pitch_deg in &pitches {
             for &roll_deg in &rolls {
@@ -455,6 +466,7 @@ pub fn score_rotations(
             }
         }
     }
+    out
 }
 
 /// The best candidates, each differing from every better one by more than the separation
@@ -507,9 +519,12 @@ mod tests {
 
     #[test]
     fn turned_pose_keeps_the_centre_and_turns_the_heading() {
-        let prior =
-            Rigid3::look_at(&Vector3::new(30.0, 0.0, 20.0), &Vector3::zeros(), &Vector3::z())
-                .unwrap();
+        let prior = Rigid3::look_at(
+            &Vector3::new(30.0, 0.0, 20.0),
+            &Vector3::zeros(),
+            &Vector3::z(),
+        )
+        .unwrap();
         let turned = turned_pose(&prior, 90.0, 0.0, 0.0);
         assert!((turned.camera_center() - prior.camera_center()).norm() < 1e-9);
         let axis = |p: &Rigid3| p.inverse().transform_vector(&Vector3::z());

@@ -512,7 +512,8 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         initial_levels.push(calibration);
     }
     let heading_level_px = if config.heading_level {
-        let poses = initial::heading_poses(&ground_truth, &config.heading_noise, &mut stream_rng(6));
+        let poses =
+            initial::heading_poses(&ground_truth, &config.heading_noise, &mut stream_rng(6));
         let dir = out_dir.join("initial").join(HEADING_LEVEL_DIR);
         std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
         write_colmap(&dir, &camera, &names, &poses)?;

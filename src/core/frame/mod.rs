@@ -42,8 +42,8 @@ pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWork
 pub use decide::{decide_frame, Decision};
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
-pub use solve::solve_view;
 pub use search::{search_pose, Beam, PoseSearchOutcome};
+pub use solve::solve_view;
 pub use views::{
     coarse_poses, median_scene_depth_m, render_coarse_view, render_views, RenderedViews,
 };

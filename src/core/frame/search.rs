@@ -108,16 +108,14 @@ pub fn search_pose(
         if samples.len() < config.edge_align.min_samples {
             continue;
         }
-        score_rotations(
+        candidates.extend(score_rotations(
             &samples,
             &map,
             camera,
             prior,
-            *rendered_yaw_deg,
-            yaws,
+            (*rendered_yaw_deg, yaws),
             search,
-            &mut candidates,
-        );
+        ));
     }
     let grid_beams = select_beams(&candidates, search.beams, search.beam_separation_deg);
 
@@ -145,7 +143,11 @@ pub fn search_pose(
             Ok(r) => {
                 let before = r.verified.support_fraction();
                 if r.kept {
-                    (r.aligned_cam_from_world, r.aligned.support_fraction(), before)
+                    (
+                        r.aligned_cam_from_world,
+                        r.aligned.support_fraction(),
+                        before,
+                    )
                 } else {
                     (*start, before, before)
                 }
@@ -181,14 +183,17 @@ pub fn search_pose(
         .max_by(|a, b| a.1.support.total_cmp(&b.1.support))
         .map_or(0, |(index, _)| index);
     let best = &beams[best_index];
-    let moved =
-        best.support >= prior_support + search.min_support_gain && best.support >= search.min_support;
+    let moved = best.support >= prior_support + search.min_support_gain
+        && best.support >= search.min_support;
     let separation_rad = search.beam_separation_deg.to_radians();
     let rival = beams.iter().enumerate().find(|(index, beam)| {
         *index != best_index
             && beam.support >= search.min_support
             && beam.support >= search.ambiguity_ratio * best.support
-            && beam.cam_from_world.rotation_angle_to_rad(&best.cam_from_world) > separation_rad
+            && beam
+                .cam_from_world
+                .rotation_angle_to_rad(&best.cam_from_world)
+                > separation_rad
     });
     let ambiguous = rival.map(|(_, rival)| {
         format!(
@@ -235,7 +240,15 @@ mod tests {
         let config = RegistrationConfig::default();
         let mut rasterizer = Rasterizer::new();
         let mut truth_view = CoarseView::default();
-        render_coarse_view(&mesh, &camera, 0, &truth, &config, &mut rasterizer, &mut truth_view);
+        render_coarse_view(
+            &mesh,
+            &camera,
+            0,
+            &truth,
+            &config,
+            &mut rasterizer,
+            &mut truth_view,
+        );
         let query = truth_view.asg.clone();
         let mut reprojection = ReprojectionWorkspace::new();
         for heading_error_deg in [30.0, -25.0, 180.0] {
@@ -252,10 +265,7 @@ mod tests {
                 &mut CoarseView::default(),
             )
             .expect("the search is enabled by default");
-            let angle_deg = outcome
-                .centre
-                .rotation_angle_to_rad(&truth)
-                .to_degrees();
+            let angle_deg = outcome.centre.rotation_angle_to_rad(&truth).to_degrees();
             let delta_px = mutual_reprojection_error_px(
                 &mesh,
                 &camera,
