@@ -501,7 +501,8 @@ mod tests {
         assert!((wrap_deg(-180.0) - 180.0).abs() < 1e-9);
         let config = PoseSearchConfig::default();
         let yaws = config.candidate_yaws_deg();
-        assert_eq!(yaws.len(), 2 * 45 + 2);
+        // ±45° in 2° steps: −44..44, around the prior and the flipped heading.
+        assert_eq!(yaws.len(), 2 * 45);
         assert!(yaws.iter().any(|y| (y - 180.0).abs() < 1e-9));
         assert!(yaws.iter().any(|y| y.abs() < 1e-9));
         let full = PoseSearchConfig {

@@ -3,8 +3,9 @@
 //! centre at a few headings; every candidate rotation of the grid is scored on the photo's
 //! oriented edges without a rendering of its own; the best distinct candidates (beams) and the
 //! prior itself are refined by edge alignment ([`super::refine_pose`]) and compared by their edge
-//! support. A beam replaces the prior only when its support clearly beats the prior's; when two
-//! distinct beams are about as good, the frame cannot be registered (never a coin toss).
+//! support. A beam replaces the prior only when its support clearly beats the prior's; when it
+//! would, and another distinct beam is about as good, the frame cannot be registered (never a
+//! coin toss).
 
 use std::time::Instant;
 
@@ -183,11 +184,17 @@ pub fn search_pose(
         .max_by(|a, b| a.1.support.total_cmp(&b.1.support))
         .map_or(0, |(index, _)| index);
     let best = &beams[best_index];
-    let moved = best.support >= prior_support + search.min_support_gain
+    // The beams are refined, so the prior is measured refined too (and as it is, if better).
+    let reference = prior_support.max(prior_refined_support);
+    let moved = best_index != 0
+        && best.support >= reference + search.min_support_gain
         && best.support >= search.min_support;
     let separation_rad = search.beam_separation_deg.to_radians();
+    // Only a move is a choice among beams: when the prior stays, the coarse poses start from it
+    // as without the search, and verification decides.
     let rival = beams.iter().enumerate().find(|(index, beam)| {
-        *index != best_index
+        moved
+            && *index != best_index
             && beam.support >= search.min_support
             && beam.support >= search.ambiguity_ratio * best.support
             && beam
