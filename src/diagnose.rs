@@ -158,6 +158,7 @@ pub fn diagnose_query(
         mesh,
         camera,
         initial_cam_from_world,
+        query,
         config,
         seed,
         &mut rasterizer,

@@ -37,9 +37,10 @@ pub struct EvalArgs {
     /// Output folder for results.md, results.json and results.svg.
     #[arg(long)]
     pub out: PathBuf,
-    /// Initial-error levels to run (folders under initial/), px.
-    #[arg(long, value_delimiter = ',', default_values_t = [30, 57, 80, 104])]
-    pub levels: Vec<u32>,
+    /// Initial-error levels to run (folders under initial/): mean δ in px, or `heading` (a
+    /// drone's prior: heading 10–40° or 180° off, GPS-like position; written by `asgreg synth`).
+    #[arg(long, value_delimiter = ',', value_parser = parse_level, default_values_t = [Level::Px(30), Level::Px(57), Level::Px(80), Level::Px(104)])]
+    pub levels: Vec<Level>,
     /// Intrinsics modes to run.
     #[arg(long, value_delimiter = ',', value_enum, default_values_t = [IntrinsicsArg::Known, IntrinsicsArg::Unknown])]
     pub intrinsics: Vec<IntrinsicsArg>,
@@ -71,6 +72,45 @@ pub struct EvalArgs {
     /// registered poses); the ground truth gt/ when not given.
     #[arg(long)]
     pub changes_poses: Option<PathBuf>,
+}
+
+/// One initial-error level: a folder under `initial/`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Level {
+    /// Gaussian noise on all six degrees of freedom with this mean δ, px (the paper's protocol).
+    Px(u32),
+    /// A drone's prior (`initial/heading/`).
+    Heading,
+}
+
+impl std::fmt::Display for Level {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Level::Px(px) => f.pad(&px.to_string()),
+            Level::Heading => f.pad(asgreg::synth::HEADING_LEVEL_DIR),
+        }
+    }
+}
+
+impl serde::Serialize for Level {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Level::Px(px) => serializer.serialize_u32(*px),
+            Level::Heading => serializer.serialize_str(asgreg::synth::HEADING_LEVEL_DIR),
+        }
+    }
+}
+
+fn parse_level(text: &str) -> Result<Level, String> {
+    if text == asgreg::synth::HEADING_LEVEL_DIR {
+        return Ok(Level::Heading);
+    }
+    text.parse::<u32>().map(Level::Px).map_err(|_| {
+        format!(
+            "{text:?} is not a level: a mean δ in whole pixels (30) or {:?}",
+            asgreg::synth::HEADING_LEVEL_DIR
+        )
+    })
 }
 
 /// What registers a frame in an evaluation run.
@@ -139,10 +179,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
 
     let bar = progress_bar(jobs.len(), "evaluating");
     let mut workspace = ReprojectionWorkspace::new();
-    let mut results: BTreeMap<(u32, &'static str), Vec<EvalFrame>> = BTreeMap::new();
-    let mut diagnoses: BTreeMap<(u32, &'static str), Vec<(String, FrameDiagnosis)>> =
+    let mut results: BTreeMap<(Level, &'static str), Vec<EvalFrame>> = BTreeMap::new();
+    let mut diagnoses: BTreeMap<(Level, &'static str), Vec<(String, FrameDiagnosis)>> =
         BTreeMap::new();
     let mut methods_seen: Vec<Method> = Vec::new();
+    let mut search_ms: BTreeMap<(Level, &'static str), f64> = BTreeMap::new();
     for (level, method, initial) in jobs {
         if !methods_seen.contains(&method) {
             methods_seen.push(method);
@@ -189,6 +230,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             evidence: None,
                             reason: diagnosis.verdict.rejection().map(|r| r.to_string()),
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
+                            search_ms: 0.0,
                         };
                         diagnoses
                             .entry((level, method.name()))
@@ -203,6 +245,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         evidence: None,
                         reason: Some(reason),
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
+                        search_ms: 0.0,
                     },
                 }
             }
@@ -227,6 +270,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     evidence: report.evidence,
                     reason: report.reason,
                     total_ms: report.timings.total_ms,
+                    search_ms: report.timings.search_ms,
                 }
             }
             Method::Icp(variant) => {
@@ -269,6 +313,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                                 format!("δ to ground truth not below {ICP_SUCCESS_THRESHOLD_PX} px")
                             }),
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
+                            search_ms: 0.0,
                         }
                     }
                     Err(reason) => FrameOutcome {
@@ -278,12 +323,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         evidence: None,
                         reason: Some(reason),
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
+                        search_ms: 0.0,
                     },
                 }
             }
         };
         let line = format!(
-            "level {level:>3} {:<18} {}: initial δ {initial_delta_px:6.1} px → {}",
+            "level {level:>3} {:<18} {}: initial δ {initial_delta_px:6.1} px → {} [{:.1} s, search {:.2} s]",
             method.name(),
             initial.name,
             match (outcome.accepted, outcome.final_delta_px) {
@@ -296,8 +342,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     outcome.reason.as_deref().unwrap_or("-")
                 ),
                 _ => format!("failed: {}", outcome.reason.as_deref().unwrap_or("-")),
-            }
+            },
+            outcome.total_ms / 1e3,
+            outcome.search_ms / 1e3
         );
+        *search_ms.entry((level, method.name())).or_insert(0.0) += outcome.search_ms;
         if bar.is_hidden() {
             println!("{line}");
         } else {
@@ -320,7 +369,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
 
-    let stats: BTreeMap<(u32, &str), CellStats> = results
+    let stats: BTreeMap<(Level, &str), CellStats> = results
         .iter()
         .map(|(key, frames)| (*key, cell_stats(frames, false_accept_px)))
         .collect();
@@ -381,6 +430,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         println!("{text}");
     }
     println!("{table}");
+    for ((level, method), total_search_ms) in &search_ms {
+        if let (Some(frames), true) = (results.get(&(*level, *method)), *total_search_ms > 0.0) {
+            let total_ms: f64 = frames.iter().map(|f| f.total_ms).sum();
+            println!(
+                "pose search, level {level} {method}: {:.2} s/frame of {:.2} s/frame ({:.0} %)",
+                total_search_ms / frames.len().max(1) as f64 / 1e3,
+                total_ms / frames.len().max(1) as f64 / 1e3,
+                100.0 * total_search_ms / total_ms.max(1e-9)
+            );
+        }
+    }
     println!(
         "wrote {}, {} and {}",
         args.out.join("results.md").display(),
@@ -433,7 +493,9 @@ fn scene_batch_frame(
 }
 
 /// The diagnosis tables: one row per (level, method), then one line per frame.
-fn diagnosis_markdown(diagnoses: &BTreeMap<(u32, &str), Vec<(String, FrameDiagnosis)>>) -> String {
+fn diagnosis_markdown(
+    diagnoses: &BTreeMap<(Level, &str), Vec<(String, FrameDiagnosis)>>,
+) -> String {
     let px = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.2}"));
     let mut out = String::new();
     let _ = writeln!(
@@ -612,11 +674,13 @@ struct FrameOutcome {
     evidence: Option<FrameEvidence>,
     reason: Option<String>,
     total_ms: f64,
+    /// The pose search's share of `total_ms` (0 when it did not run).
+    search_ms: f64,
 }
 
 fn results_markdown(
     args: &EvalArgs,
-    stats: &BTreeMap<(u32, &str), CellStats>,
+    stats: &BTreeMap<(Level, &str), CellStats>,
     methods: &[&str],
     false_accept_px: f64,
 ) -> String {
@@ -691,12 +755,19 @@ ICP has no self-check: its 'accepted' is the paper's success criterion δ < 20 p
 /// Two small line charts side by side: mean δ of accepted frames and acceptance, per level.
 fn write_plot(
     path: &Path,
-    stats: &BTreeMap<(u32, &str), CellStats>,
+    stats: &BTreeMap<(Level, &str), CellStats>,
     methods: &[&str],
 ) -> anyhow::Result<()> {
     const COLOURS: [&str; 4] = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"];
+    // The px levels only: the heading level has no place on the δ axis.
     let levels: Vec<u32> = {
-        let mut l: Vec<u32> = stats.keys().map(|(level, _)| *level).collect();
+        let mut l: Vec<u32> = stats
+            .keys()
+            .filter_map(|(level, _)| match level {
+                Level::Px(px) => Some(*px),
+                Level::Heading => None,
+            })
+            .collect();
         l.dedup();
         l
     };
@@ -745,7 +816,7 @@ fn write_plot(
             let points: Vec<String> = levels
                 .iter()
                 .filter_map(|level| {
-                    let s = stats.get(&(*level, *method))?;
+                    let s = stats.get(&(Level::Px(*level), *method))?;
                     let value = if *kind == 0 {
                         s.mean_px?
                     } else {

@@ -152,6 +152,7 @@ fn default_scene_at(scene: &Path, frames: usize) -> anyhow::Result<PathBuf> {
         scene: SceneArg::Block,
         levels: vec![30.0],
         changes: false,
+        no_heading_level: true,
     };
     asgreg::synth::generate_scene(&args.config(), &scene)?;
     Ok(scene)

@@ -100,6 +100,10 @@ pub struct CoarseArgs {
     /// Final refinement: search half-length of its first level, px (levels halve it down to 2).
     #[arg(long, default_value_t = RegistrationConfig::default().edge_align.initial_search_radius_px)]
     pub edge_search_px: f64,
+    /// Skip the pose search before the coarse poses (heading, pitch, roll grid scored on the
+    /// photo's oriented edges, beams refined by edge alignment): the paper's method alone.
+    #[arg(long)]
+    pub no_pose_search: bool,
 }
 
 impl Default for CoarseArgs {
@@ -113,6 +117,7 @@ impl Default for CoarseArgs {
             lift_edge_margin_px: defaults.lift_edge_margin_px,
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
+            no_pose_search: false,
         }
     }
 }
@@ -152,6 +157,10 @@ pub fn registration_config(with_depth: bool, coarse: &CoarseArgs) -> Registratio
             enabled: !coarse.no_edge_align,
             initial_search_radius_px: coarse.edge_search_px,
             ..EdgeAlignConfig::default()
+        },
+        pose_search: asgreg::core::pose_search::PoseSearchConfig {
+            enabled: !coarse.no_pose_search,
+            ..Default::default()
         },
         ..RegistrationConfig::default()
     }

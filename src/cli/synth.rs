@@ -32,6 +32,10 @@ pub struct SynthArgs {
     /// change masks (changes_gt/*.png) and objects (changes.json).
     #[arg(long)]
     pub changes: bool,
+    /// Do not write the drone-like `initial/heading/` level (heading 10–40° off, 180° for every
+    /// fourth photo, pitch/roll within 1°, GPS-like centre noise).
+    #[arg(long)]
+    pub no_heading_level: bool,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -53,6 +57,7 @@ impl SynthArgs {
             },
             initial_levels_px: self.levels.clone(),
             changes: self.changes,
+            heading_level: !self.no_heading_level,
             ..SynthConfig::default()
         }
     }
@@ -81,6 +86,9 @@ pub fn print_summary(summary: &SceneSummary, out: &std::path::Path, seconds: f64
             level.min_px,
             level.max_px
         );
+    }
+    if let Some([min_px, mean_px, max_px]) = summary.heading_level_px {
+        println!("    heading → {mean_px:>6.1} px, {min_px:.1}..{max_px:.1} px (δ over the frames it can measure)");
     }
 }
 

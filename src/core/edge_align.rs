@@ -660,7 +660,7 @@ fn parabola_peak(before: f32, centre: f32, after: f32) -> f64 {
 }
 
 /// Bilinear sample at an image position (COLMAP convention); `None` outside the pixel centres.
-fn bilinear(image: &ImageView<'_, f32>, position_px: Vector2<f64>) -> Option<f32> {
+pub fn bilinear(image: &ImageView<'_, f32>, position_px: Vector2<f64>) -> Option<f32> {
     let (width_px, height_px) = image.size();
     let x = position_px.x - 0.5;
     let y = position_px.y - 0.5;

@@ -12,6 +12,7 @@ pub mod frame;
 pub mod image;
 pub mod mesh;
 pub mod pose;
+pub mod pose_search;
 pub mod raster;
 pub mod reprojection;
 pub mod rigid;

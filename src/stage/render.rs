@@ -69,6 +69,7 @@ impl<'m> RenderStage<'m> {
             self.mesh,
             &info.camera,
             &info.initial_cam_from_world,
+            query.view(),
             &self.config,
             info.seed,
             &mut self.rasterizer,
@@ -89,6 +90,7 @@ impl<'m> RenderStage<'m> {
                 })
             },
         )
+        .map(|rendered| rendered.count)
         .map_err(|e| failed(e.to_string()))
     }
 }

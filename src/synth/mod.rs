@@ -58,6 +58,10 @@ pub struct SynthConfig {
     pub initial_tolerance: f64,
     /// Camera-centre noise per radian of rotation noise, metres per radian (1° ↔ 0.17 m at 10).
     pub initial_metres_per_radian: f64,
+    /// Also write the drone-like `initial/heading/` level ([`initial::heading_poses`]).
+    pub heading_level: bool,
+    /// How the `heading` level disturbs the poses.
+    pub heading_noise: initial::HeadingNoise,
     /// Horizontal field of view of the PINHOLE camera, degrees.
     pub horizontal_fov_deg: f64,
     /// Sun elevation above the horizon, degrees.
@@ -119,6 +123,8 @@ impl Default for SynthConfig {
             initial_levels_px: vec![30.0, 57.0, 80.0, 104.0],
             initial_tolerance: 0.01,
             initial_metres_per_radian: 10.0,
+            heading_level: true,
+            heading_noise: initial::HeadingNoise::default(),
             horizontal_fov_deg: 70.0,
             sun_elevation_deg: 40.0,
             sun_azimuth_deg: 215.0,
@@ -303,6 +309,9 @@ pub struct SceneSummary {
     pub model_mean_deviation_m: f64,
     pub images: Vec<ImageSummary>,
     pub initial_levels: Vec<LevelCalibration>,
+    /// The `heading` level's mean δ to the ground truth, px (min, mean, max); absent when not written.
+    #[serde(default)]
+    pub heading_level_px: Option<[f64; 3]>,
     pub timings: Timings,
 }
 
@@ -551,6 +560,33 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         write_colmap(&dir, &camera, &names, &calibration.poses)?;
         initial_levels.push(calibration);
     }
+    let heading_level_px = if config.heading_level {
+        let poses =
+            initial::heading_poses(&ground_truth, &config.heading_noise, &mut stream_rng(6));
+        let dir = out_dir.join("initial").join(HEADING_LEVEL_DIR);
+        std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
+        write_colmap(&dir, &camera, &names, &poses)?;
+        let deltas: Vec<f64> = poses
+            .iter()
+            .zip(&ground_truth)
+            .filter_map(|(pose, gt)| {
+                crate::core::reprojection::mutual_reprojection_error_px(
+                    &model,
+                    &camera,
+                    pose,
+                    &camera,
+                    gt,
+                    &mut workspace,
+                )
+            })
+            .collect();
+        let mean = deltas.iter().sum::<f64>() / deltas.len().max(1) as f64;
+        let min = deltas.iter().copied().fold(f64::INFINITY, f64::min);
+        let max = deltas.iter().copied().fold(0.0, f64::max);
+        Some([min, mean, max])
+    } else {
+        None
+    };
     let initial_s = initial_started.elapsed().as_secs_f64();
 
     let count = |kind: PartKind| scene.tags.iter().filter(|t| t.part == kind).count();
@@ -571,6 +607,7 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         model_mean_deviation_m,
         images,
         initial_levels,
+        heading_level_px,
         timings: Timings {
             scene_s,
             model_s,
@@ -596,6 +633,9 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
     std::fs::write(&json_path, json).map_err(io_error(&json_path))?;
     Ok(summary)
 }
+
+/// The folder of the drone-like initial level under `initial/`.
+pub const HEADING_LEVEL_DIR: &str = "heading";
 
 /// The folder name of an initial level: the level in whole pixels ("30"), or with decimals.
 pub fn level_dir_name(level_px: f64) -> String {

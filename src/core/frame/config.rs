@@ -8,6 +8,7 @@ use crate::core::confidence::ConfidenceConfig;
 use crate::core::edge_align::EdgeAlignConfig;
 use crate::core::flow_consistency::MatchConfig;
 use crate::core::pose::estimate::PoseEstimationConfig;
+use crate::core::pose_search::PoseSearchConfig;
 use crate::core::raster::RenderOptions;
 use crate::core::shading::AsgOptions;
 use crate::core::verify::VerifyConfig;
@@ -84,6 +85,9 @@ pub struct RegistrationConfig {
     pub edge_align: EdgeAlignConfig,
     /// The calibrated confidence and the accept threshold (step "decide").
     pub confidence: ConfidenceConfig,
+    /// The pose search before the coarse poses (step "search"): its region in degrees, its
+    /// edge map's pyramid level and blur in px, how many beams, when a beam replaces the prior.
+    pub pose_search: PoseSearchConfig,
 }
 
 impl Default for RegistrationConfig {
@@ -109,6 +113,7 @@ impl Default for RegistrationConfig {
             verify: VerifyConfig::default(),
             edge_align: EdgeAlignConfig::default(),
             confidence: ConfidenceConfig::default(),
+            pose_search: PoseSearchConfig::default(),
         }
     }
 }
@@ -138,6 +143,8 @@ pub enum RegistrationError {
     NonFiniteInitialPose,
     #[error("the model is not visible from the initial pose: check the pose convention (cam_from_world) and the mesh's coordinate frame")]
     ModelNotVisible,
+    #[error("the pose search found distinct poses with about the same edge support, so it cannot choose: {0}")]
+    AmbiguousPoseSearch(String),
     #[error("dense matching failed: {0}")]
     Flow(String),
     #[error(transparent)]
@@ -213,6 +220,12 @@ impl RegistrationConfig {
             .validate()
             .map_err(|e| RegistrationError::InvalidConfig {
                 field: "confidence",
+                why: e.to_string(),
+            })?;
+        self.pose_search
+            .validate()
+            .map_err(|e| RegistrationError::InvalidConfig {
+                field: "pose_search",
                 why: e.to_string(),
             })?;
         Ok(())

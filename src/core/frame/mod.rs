@@ -3,6 +3,7 @@
 //! | step | runs | function | pipeline stage |
 //! |---|---|---|---|
 //! | query | once per frame | [`query::query_gradient`] | render |
+//! | search | once per frame, before the views | [`search::search_pose`] (inside `render_views`) | render |
 //! | plan + render | once per frame, a view at a time | [`views::render_views`] | render |
 //! | features | once per frame | [`correspond::query_features`] | flow (cached per frame) |
 //! | match + lift | per coarse view | [`correspond::correspond_view`] | flow (N workers) |
@@ -24,6 +25,7 @@ pub mod correspond;
 pub mod decide;
 pub mod query;
 pub mod refine;
+pub mod search;
 pub mod solve;
 pub mod views;
 
@@ -40,8 +42,11 @@ pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWork
 pub use decide::{decide_frame, Decision};
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
+pub use search::{search_pose, Beam, PoseSearchOutcome};
 pub use solve::solve_view;
-pub use views::{coarse_poses, median_scene_depth_m, render_coarse_view, render_views};
+pub use views::{
+    coarse_poses, median_scene_depth_m, render_coarse_view, render_views, RenderedViews,
+};
 
 use super::camera::Camera;
 use super::confidence::FrameEvidence;
@@ -107,6 +112,9 @@ pub struct CoarseOutcome {
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
 pub struct StageTimings {
     pub query_ms: f64,
+    /// The pose search's own time (part of `render_ms`).
+    #[serde(default)]
+    pub search_ms: f64,
     pub render_ms: f64,
     pub flow_ms: f64,
     pub pose_ms: f64,
@@ -179,10 +187,11 @@ pub fn register_query(
 
     let stage = Instant::now();
     let mut views: Vec<CoarseView> = Vec::with_capacity(config.coarse_pose_count);
-    render_views(
+    let rendered = render_views(
         mesh,
         camera,
         initial_cam_from_world,
+        query,
         config,
         seed,
         &mut Rasterizer::new(),
@@ -190,6 +199,7 @@ pub fn register_query(
         &mut |view, _| views.push(std::mem::take(view)),
     )?;
     timings.render_ms = elapsed_ms(stage);
+    timings.search_ms = rendered.search.as_ref().map_or(0.0, |s| s.search_ms);
 
     let stage = Instant::now();
     let features = query_features(query, config)?;

@@ -1,39 +1,69 @@
 //! Steps "plan" and "render": the coarse poses around the initial pose (paper §3.1; their spread
 //! scales with the scene depth seen from the initial pose) and the ASG rendering of each, and
 //! [`render_views`], the order in which a frame's views are made (one process and the render
-//! stage both run it).
+//! stage both run it): step "search" first ([`super::search::search_pose`]), which may move the
+//! centre of the coarse poses away from the initial pose.
 
 use nalgebra::{UnitQuaternion, Vector3};
 use rand_distr::{Distribution, StandardNormal};
 
+use super::search::{search_pose, PoseSearchOutcome};
 use super::{
     frame_rng, CoarseView, RegistrationConfig, RegistrationError, GRADIENT_SCALE_PERCENTILE,
 };
 use crate::core::camera::Camera;
+use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::raster::{Rasterizer, RenderBuffers, NO_FACE};
 use crate::core::rigid::Rigid3;
 use crate::core::shading::{asg_from_normals, scale_to_percentile};
 
-/// Plans and renders a frame's coarse views in coarse-pose order, handing each to `emit` with the
+/// What [`render_views`] made.
+#[derive(Clone, Debug)]
+pub struct RenderedViews {
+    /// The number of views.
+    pub count: usize,
+    /// What the pose search found (`None` when it is disabled).
+    pub search: Option<PoseSearchOutcome>,
+}
+
+/// Searches for the centre of the coarse poses (step "search", on the frame's `query`), then
+/// plans and renders a frame's coarse views in coarse-pose order, handing each to `emit` with the
 /// number of views. `view` is rendered into again for the next one: `emit` reads it, or takes it
 /// (`std::mem::take`) to keep it, and the next view is then rendered into fresh buffers.
-/// The first view is the initial pose itself; its rendering also gives the scene depth that
-/// scales the other coarse poses. Returns the number of views.
+/// The first view is the centre itself (the initial pose unless the search moved it); its
+/// rendering also gives the scene depth that scales the other coarse poses.
 #[allow(clippy::too_many_arguments)]
 pub fn render_views(
     mesh: &Mesh,
     camera: &Camera,
     initial_cam_from_world: &Rigid3,
+    query: ImageView<'_, f32>,
     config: &RegistrationConfig,
     seed: u64,
     rasterizer: &mut Rasterizer,
     view: &mut CoarseView,
     emit: &mut dyn FnMut(&mut CoarseView, usize),
-) -> Result<usize, RegistrationError> {
+) -> Result<RenderedViews, RegistrationError> {
     if !initial_cam_from_world.is_finite() {
         return Err(RegistrationError::NonFiniteInitialPose);
     }
+    let search = search_pose(
+        mesh,
+        camera,
+        initial_cam_from_world,
+        query,
+        config,
+        rasterizer,
+        view,
+    );
+    if let Some(why) = search.as_ref().and_then(|s| s.ambiguous.clone()) {
+        return Err(RegistrationError::AmbiguousPoseSearch(why));
+    }
+    let centre = search
+        .as_ref()
+        .map_or(*initial_cam_from_world, |s| s.centre);
+    let initial_cam_from_world = &centre;
     render_coarse_view(
         mesh,
         camera,
@@ -51,7 +81,10 @@ pub fn render_views(
         render_coarse_view(mesh, camera, coarse_index, pose, config, rasterizer, view);
         emit(view, poses.len());
     }
-    Ok(poses.len())
+    Ok(RenderedViews {
+        count: poses.len(),
+        search,
+    })
 }
 
 /// Median depth of the surface in a rendering, metres; `None` when it shows no surface.

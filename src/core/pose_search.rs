@@ -1,0 +1,554 @@
+//! The pose search before the paper's coarse poses (issue #12; not in the paper). The paper's
+//! method only refines: its coarse poses sit within a degree or two of the prior and SIFT flow
+//! bridges a few tens of pixels, while drones give priors 100+ px off or with the heading 20–40°
+//! or 180° wrong. This module finds the few most plausible poses in a wide region, cheaply, without
+//! a rendering per candidate:
+//! 1. model edge samples ([`crate::core::edge_align::model_edge_samples`]: ASG ridges lifted to 3D
+//!    with their 2D normals) from a rendering at the prior's centre, one per rendered heading;
+//! 2. an orientation-aware edge map of the query ([`OrientedEdgeMap`]): the query blurred and
+//!    decimated to a coarse pyramid level, its ridges (Hessian) split into orientation bins and
+//!    blurred again, so that a model edge scores where a photo ridge of the same direction lies
+//!    nearby;
+//! 3. every candidate rotation of the grid (heading about the world's up axis, densely; pitch and
+//!    roll about the camera's axes, narrowly) scored by projecting the samples' points and their
+//!    tangents and reading the map at their projected direction ([`score_rotations`]);
+//! 4. the top-scoring candidates that differ by more than a separation angle are the beams
+//!    ([`select_beams`]); the frame step refines each against the photo and decides among them.
+//!
+//! Only the rotation is gridded: at the priors' position errors (1–2 m at 30–60 m) a camera
+//! translation moves the image mostly like a small rotation, and the beams' refinement (edge
+//! alignment in 6 DoF) takes up the rest. Preconditions: a pinhole working camera (no distortion);
+//! world up is +z.
+
+use nalgebra::{Matrix3, UnitQuaternion, Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::camera::{Camera, MIN_DEPTH_M};
+use super::dense_sift::{gaussian_taps, separable_filter_clamped};
+use super::edge_align::{bilinear, blurred_query, EdgeSample};
+use super::image::{Image, ImageView};
+use super::rigid::Rigid3;
+
+/// Orientation bins of the edge map over half a turn (a ridge's normal has no sign).
+pub const ORIENTATION_BINS: usize = 8;
+
+/// Settings of the pose search. Angles in degrees, distances in pixels of the working camera
+/// unless named otherwise. The default region covers the `asgreg synth` levels up to 104 px
+/// (Gaussian on all axes: about 10° per axis at f = 360 px) and the `heading` level (heading ±10–40° or 180°,
+/// pitch/roll within 1°, 1–2 m).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PoseSearchConfig {
+    /// Run the search at all (`--no-pose-search` turns it off).
+    pub enabled: bool,
+    /// Headings searched either side of the prior's, degrees.
+    pub yaw_half_range_deg: f64,
+    /// Also search the same range around the prior's heading + 180° (a flipped compass).
+    pub include_flipped_heading: bool,
+    pub yaw_step_deg: f64,
+    /// Pitch (about the camera's x axis) searched either side of the prior's, degrees.
+    pub pitch_half_range_deg: f64,
+    pub pitch_step_deg: f64,
+    /// Roll (about the camera's optical axis) searched either side of the prior's, degrees.
+    pub roll_half_range_deg: f64,
+    pub roll_step_deg: f64,
+    /// The model is rendered at headings this far apart (the parts in view change with the
+    /// heading); each candidate uses the nearest rendering's samples, degrees.
+    pub render_heading_step_deg: f64,
+    /// Pyramid level of the edge map: the query is decimated by 2^level.
+    pub map_level: u32,
+    /// Blur of the query before decimation, σ in full-resolution px.
+    pub map_blur_px: f64,
+    /// Blur of each orientation bin at the coarse level, σ in coarse px (the capture range).
+    pub bin_blur_px: f64,
+    /// At most one model edge sample per square cell of this side, full-resolution px.
+    pub sample_spacing_px: usize,
+    /// Beams kept after the grid (besides the prior, which is always one).
+    pub beams: usize,
+    /// Two beams are distinct when their rotations differ by more than this, degrees.
+    pub beam_separation_deg: f64,
+    /// First search half-length of a beam's edge alignment, px (halved per level down to
+    /// `edge_align.final_search_radius_px`).
+    pub refine_initial_radius_px: f64,
+    /// A beam replaces the prior only when its edge support (share of model edges supported by
+    /// photo ridges, 0..1) beats the prior's by at least this much.
+    pub min_support_gain: f64,
+    /// ... and reaches at least this support (0..1).
+    pub min_support: f64,
+    /// The frame is rejected as ambiguous when a beam distinct from the best one reaches this
+    /// share of the best one's support (dimensionless, 0..1; above 1 never).
+    pub ambiguity_ratio: f64,
+}
+
+impl Default for PoseSearchConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            yaw_half_range_deg: 45.0,
+            include_flipped_heading: true,
+            yaw_step_deg: 2.0,
+            pitch_half_range_deg: 22.5,
+            pitch_step_deg: 2.5,
+            roll_half_range_deg: 15.0,
+            roll_step_deg: 3.0,
+            render_heading_step_deg: 45.0,
+            map_level: 2,
+            map_blur_px: 3.0,
+            bin_blur_px: 1.5,
+            sample_spacing_px: 6,
+            beams: 4,
+            beam_separation_deg: 6.0,
+            refine_initial_radius_px: 16.0,
+            min_support_gain: 0.05,
+            min_support: 0.15,
+            ambiguity_ratio: 0.9,
+        }
+    }
+}
+
+/// Why a setting of [`PoseSearchConfig`] is unusable.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("pose_search.{field}: {why}")]
+pub struct PoseSearchConfigError {
+    pub field: &'static str,
+    pub why: String,
+}
+
+impl PoseSearchConfig {
+    pub fn validate(&self) -> Result<(), PoseSearchConfigError> {
+        let bad = |field: &'static str, why: String| Err(PoseSearchConfigError { field, why });
+        for (field, value) in [
+            ("yaw_half_range_deg", self.yaw_half_range_deg),
+            ("pitch_half_range_deg", self.pitch_half_range_deg),
+            ("roll_half_range_deg", self.roll_half_range_deg),
+            ("min_support_gain", self.min_support_gain),
+            ("min_support", self.min_support),
+            ("ambiguity_ratio", self.ambiguity_ratio),
+            ("beam_separation_deg", self.beam_separation_deg),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return bad(field, format!("{value} is not a non-negative number"));
+            }
+        }
+        for (field, value) in [
+            ("yaw_step_deg", self.yaw_step_deg),
+            ("pitch_step_deg", self.pitch_step_deg),
+            ("roll_step_deg", self.roll_step_deg),
+            ("render_heading_step_deg", self.render_heading_step_deg),
+            ("map_blur_px", self.map_blur_px),
+            ("bin_blur_px", self.bin_blur_px),
+            ("refine_initial_radius_px", self.refine_initial_radius_px),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return bad(field, format!("{value} is not a positive number"));
+            }
+        }
+        if self.yaw_half_range_deg > 180.0 {
+            return bad(
+                "yaw_half_range_deg",
+                format!("{} exceeds 180 (a full turn)", self.yaw_half_range_deg),
+            );
+        }
+        if self.refine_initial_radius_px > 31.0 {
+            return bad(
+                "refine_initial_radius_px",
+                "the ridge search reaches at most 31 px".into(),
+            );
+        }
+        if self.map_level > 4 {
+            return bad("map_level", "at most 4 (a 16× smaller map)".into());
+        }
+        if self.sample_spacing_px == 0 {
+            return bad("sample_spacing_px", "must be at least 1".into());
+        }
+        Ok(())
+    }
+
+    /// The candidate headings relative to the prior's, degrees: the range around the prior and,
+    /// when asked, around the flipped heading (each once, in (−180, 180]).
+    pub fn candidate_yaws_deg(&self) -> Vec<f64> {
+        let steps = (self.yaw_half_range_deg / self.yaw_step_deg).floor() as i64;
+        let mut yaws: Vec<f64> = Vec::new();
+        let centres: &[f64] = if self.include_flipped_heading {
+            &[0.0, 180.0]
+        } else {
+            &[0.0]
+        };
+        for centre in centres {
+            for step in -steps..=steps {
+                let yaw = wrap_deg(centre + step as f64 * self.yaw_step_deg);
+                if !yaws.iter().any(|y| (wrap_deg(y - yaw)).abs() < 1e-9) {
+                    yaws.push(yaw);
+                }
+            }
+        }
+        yaws
+    }
+
+    fn axis_offsets_deg(half_range_deg: f64, step_deg: f64) -> Vec<f64> {
+        let steps = (half_range_deg / step_deg).floor() as i64;
+        (-steps..=steps).map(|s| s as f64 * step_deg).collect()
+    }
+}
+
+/// An angle in (−180, 180] degrees.
+pub fn wrap_deg(angle_deg: f64) -> f64 {
+    let wrapped = (angle_deg + 180.0).rem_euclid(360.0) - 180.0;
+    if wrapped <= -180.0 {
+        wrapped + 360.0
+    } else {
+        wrapped
+    }
+}
+
+/// The prior turned by `yaw_deg` about the world's up axis (+z) through its centre, then by
+/// `pitch_deg` and `roll_deg` about its own x and z axes: `T · R · yaw⁻¹`, centre kept.
+pub fn turned_pose(prior: &Rigid3, yaw_deg: f64, pitch_deg: f64, roll_deg: f64) -> Rigid3 {
+    let yaw = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw_deg.to_radians());
+    let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), pitch_deg.to_radians())
+        * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), roll_deg.to_radians());
+    let rotation = tilt * prior.rotation * yaw.inverse();
+    let centre = prior.camera_center();
+    Rigid3::new(rotation, -(rotation * centre))
+}
+
+/// The query's ridges by orientation at a coarse pyramid level: per coarse pixel,
+/// [`ORIENTATION_BINS`] values (interleaved), each the blurred strength of the ridges whose normal
+/// lies in that bin, on a 0..1 scale.
+#[derive(Clone, Debug, Default)]
+pub struct OrientedEdgeMap {
+    width_px: usize,
+    height_px: usize,
+    /// Coarse px per full-resolution px (1 / 2^level).
+    scale: f64,
+    bins: Vec<f32>,
+}
+
+impl OrientedEdgeMap {
+    /// Builds the map of `query` (0..1) with the settings' blur and level.
+    pub fn build(query: ImageView<'_, f32>, config: &PoseSearchConfig) -> Self {
+        let (full_width_px, full_height_px) = query.size();
+        let factor = 1usize << config.map_level;
+        let width_px = full_width_px / factor;
+        let height_px = full_height_px / factor;
+        let scale = 1.0 / factor as f64;
+        if width_px < 5 || height_px < 5 {
+            return Self {
+                width_px: 0,
+                height_px: 0,
+                scale,
+                bins: Vec::new(),
+            };
+        }
+        let mut blurred = Image::default();
+        blurred_query(query, 4.0 * config.map_blur_px, &mut blurred);
+        let blurred_view = blurred.view();
+        // Decimate: a coarse pixel centre (c + 0.5) is the full-resolution position (c + 0.5)·f.
+        let coarse = Image::from_fn(width_px, height_px, |col, row| {
+            let at = Vector2::new(
+                (col as f64 + 0.5) * factor as f64,
+                (row as f64 + 0.5) * factor as f64,
+            );
+            bilinear(&blurred_view, at).unwrap_or(0.0)
+        });
+        let at = |col: usize, row: usize| f64::from(coarse.data()[row * width_px + col]);
+        let mut bins = vec![0.0f32; width_px * height_px * ORIENTATION_BINS];
+        let mut strengths: Vec<f32> = Vec::new();
+        for row in 1..height_px - 1 {
+            for col in 1..width_px - 1 {
+                let centre = at(col, row);
+                let xx = at(col + 1, row) + at(col - 1, row) - 2.0 * centre;
+                let yy = at(col, row + 1) + at(col, row - 1) - 2.0 * centre;
+                let xy = 0.25
+                    * (at(col + 1, row + 1) - at(col + 1, row - 1) - at(col - 1, row + 1)
+                        + at(col - 1, row - 1));
+                let mean = 0.5 * (xx + yy);
+                let radius = (0.25 * (xx - yy).powi(2) + xy * xy).sqrt();
+                let (across, along) = (mean - radius, mean + radius);
+                // Ridges only: curved across, flatter along.
+                if !(across < 0.0 && across.abs() > along.max(0.0)) {
+                    continue;
+                }
+                let strength = (-across - along.max(0.0)) as f32;
+                // The eigenvector of `across`: the ridge's normal.
+                let direction = if xy.abs() > 1e-12 {
+                    Vector2::new(xy, across - xx)
+                } else if xx <= yy {
+                    Vector2::new(1.0, 0.0)
+                } else {
+                    Vector2::new(0.0, 1.0)
+                };
+                let (lower, upper, weight) = bin_weights(direction.y.atan2(direction.x));
+                let weight = weight as f32;
+                let base = (row * width_px + col) * ORIENTATION_BINS;
+                bins[base + lower] += strength * (1.0 - weight);
+                bins[base + upper] += strength * weight;
+                strengths.push(strength);
+            }
+        }
+        // Scale so that the 95th percentile of the ridge strengths is 1, then clamp.
+        if !strengths.is_empty() {
+            let index = ((strengths.len() - 1) as f64 * 0.95) as usize;
+            let (_, reference, _) = strengths.select_nth_unstable_by(index, f32::total_cmp);
+            let reference = reference.max(1e-9);
+            bins.iter_mut().for_each(|v| *v = (*v / reference).min(1.0));
+        }
+        let sigma = config.bin_blur_px as f32;
+        let radius = (3.0 * sigma).ceil() as usize;
+        let taps = gaussian_taps(sigma, radius);
+        let mut scratch = vec![0.0f32; bins.len()];
+        let mut out = vec![0.0f32; bins.len()];
+        separable_filter_clamped(
+            &bins,
+            width_px,
+            height_px,
+            ORIENTATION_BINS,
+            &taps,
+            radius,
+            &mut scratch,
+            &mut out,
+        );
+        // A ridge blurred by σ keeps 1/(σ√(2π)) of its peak: bring it back near 1.
+        let gain = (sigma * (2.0 * std::f32::consts::PI).sqrt()).max(1.0);
+        out.iter_mut().for_each(|v| *v = (*v * gain).min(1.0));
+        Self {
+            width_px,
+            height_px,
+            scale,
+            bins: out,
+        }
+    }
+
+    /// The map's value at a full-resolution position for an edge whose normal has angle
+    /// `normal_angle_rad`; 0 outside the map.
+    pub fn value(&self, position_px: Vector2<f64>, normal_angle_rad: f64) -> f32 {
+        let x = position_px.x * self.scale - 0.5;
+        let y = position_px.y * self.scale - 0.5;
+        if !(x >= 0.0
+            && y >= 0.0
+            && x < (self.width_px - 1) as f64
+            && y < (self.height_px - 1) as f64)
+        {
+            return 0.0;
+        }
+        let (col, row) = (x as usize, y as usize);
+        let (fx, fy) = ((x - col as f64) as f32, (y - row as f64) as f32);
+        let (lower, upper, weight) = bin_weights(normal_angle_rad);
+        let weight = weight as f32;
+        let at = |c: usize, r: usize| {
+            let base = (r * self.width_px + c) * ORIENTATION_BINS;
+            self.bins[base + lower] * (1.0 - weight) + self.bins[base + upper] * weight
+        };
+        let top = at(col, row) * (1.0 - fx) + at(col + 1, row) * fx;
+        let bottom = at(col, row + 1) * (1.0 - fx) + at(col + 1, row + 1) * fx;
+        top * (1.0 - fy) + bottom * fy
+    }
+}
+
+/// The two orientation bins an angle falls between and the weight of the upper one.
+fn bin_weights(angle_rad: f64) -> (usize, usize, f64) {
+    let half_turn = std::f64::consts::PI;
+    let position = angle_rad.rem_euclid(half_turn) / half_turn * ORIENTATION_BINS as f64;
+    let lower = (position.floor() as usize) % ORIENTATION_BINS;
+    let upper = (lower + 1) % ORIENTATION_BINS;
+    (lower, upper, position - position.floor())
+}
+
+/// A model edge sample prepared for scoring from one rendering: its point and a point one pixel
+/// along the edge, both in that rendering's camera frame.
+#[derive(Clone, Copy, Debug)]
+pub struct SearchSample {
+    pub point_cam: Vector3<f64>,
+    pub along_cam: Vector3<f64>,
+}
+
+/// Prepares the edge samples of the rendering at `rendered_from`.
+pub fn search_samples(
+    samples: &[EdgeSample],
+    camera: &Camera,
+    rendered_from: &Rigid3,
+) -> Vec<SearchSample> {
+    samples
+        .iter()
+        .filter_map(|sample| {
+            let point_cam = rendered_from.transform_point(&sample.world_m);
+            let projected = camera.project(&point_cam)?;
+            let tangent = Vector2::new(-sample.normal.y, sample.normal.x);
+            let ray = camera.unproject(projected + tangent)?;
+            Some(SearchSample {
+                point_cam,
+                along_cam: ray * point_cam.z,
+            })
+        })
+        .collect()
+}
+
+/// One scored candidate of the grid.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Candidate {
+    pub cam_from_world: Rigid3,
+    /// Heading, pitch and roll relative to the prior, degrees.
+    pub yaw_deg: f64,
+    pub pitch_deg: f64,
+    pub roll_deg: f64,
+    /// Mean edge-map value over the rendering's samples (0..1).
+    pub score: f64,
+}
+
+/// The score of the rotation `rotation_from_rendered` (a candidate's camera from the rendering's
+/// camera, same centre): the mean map value at the samples' projections for their projected
+/// directions; samples behind the camera or outside the map count 0.
+pub fn score_rotation(
+    samples: &[SearchSample],
+    map: &OrientedEdgeMap,
+    camera: &Camera,
+    rotation_from_rendered: &Matrix3<f64>,
+) -> f64 {
+    if samples.is_empty() {
+        return 0.0;
+    }
+    let k = &camera.intrinsics;
+    let project = |p: Vector3<f64>| {
+        (p.z > MIN_DEPTH_M).then(|| {
+            let (x, y) = (p.x / p.z, p.y / p.z);
+            Vector2::new(k.fx_px * x + k.skew_px * y + k.cx_px, k.fy_px * y + k.cy_px)
+        })
+    };
+    let mut sum = 0.0f64;
+    for sample in samples {
+        let (Some(at), Some(along)) = (
+            project(rotation_from_rendered * sample.point_cam),
+            project(rotation_from_rendered * sample.along_cam),
+        ) else {
+            continue;
+        };
+        let tangent = along - at;
+        // The normal's angle is the tangent's plus a quarter turn.
+        let normal_angle = tangent.y.atan2(tangent.x) + std::f64::consts::FRAC_PI_2;
+        sum += f64::from(map.value(at, normal_angle));
+    }
+    sum / samples.len() as f64
+}
+
+/// Scores the grid rotations with the headings `yaws_deg` (relative to the prior), from the
+/// samples rendered at the heading `rendered_yaw_deg` (the nearest rendering to those headings).
+pub fn score_rotations(
+    samples: &[SearchSample],
+    map: &OrientedEdgeMap,
+    camera: &Camera,
+    prior: &Rigid3,
+    (rendered_yaw_deg, yaws_deg): (f64, &[f64]),
+    config: &PoseSearchConfig,
+) -> Vec<Candidate> {
+    let mut out = Vec::new();
+    let rendered = turned_pose(prior, rendered_yaw_deg, 0.0, 0.0);
+    let rendered_inverse = rendered
+        .rotation
+        .inverse()
+        .to_rotation_matrix()
+        .into_inner();
+    let pitches =
+        PoseSearchConfig::axis_offsets_deg(config.pitch_half_range_deg, config.pitch_step_deg);
+    let rolls =
+        PoseSearchConfig::axis_offsets_deg(config.roll_half_range_deg, config.roll_step_deg);
+    for &yaw_deg in yaws_deg {
+        for &pitch_deg in &pitches {
+            for &roll_deg in &rolls {
+                let pose = turned_pose(prior, yaw_deg, pitch_deg, roll_deg);
+                let relative = pose.rotation.to_rotation_matrix().into_inner() * rendered_inverse;
+                out.push(Candidate {
+                    cam_from_world: pose,
+                    yaw_deg,
+                    pitch_deg,
+                    roll_deg,
+                    score: score_rotation(samples, map, camera, &relative),
+                });
+            }
+        }
+    }
+    out
+}
+
+/// The best candidates, each differing from every better one by more than the separation
+/// (rotation angle), at most `count`.
+pub fn select_beams(candidates: &[Candidate], count: usize, separation_deg: f64) -> Vec<Candidate> {
+    let mut order: Vec<&Candidate> = candidates.iter().collect();
+    order.sort_by(|a, b| b.score.total_cmp(&a.score));
+    let separation_rad = separation_deg.to_radians();
+    let mut beams: Vec<Candidate> = Vec::with_capacity(count);
+    for candidate in order {
+        if beams.len() >= count {
+            break;
+        }
+        if beams.iter().all(|beam| {
+            beam.cam_from_world
+                .rotation_angle_to_rad(&candidate.cam_from_world)
+                > separation_rad
+        }) {
+            beams.push(*candidate);
+        }
+    }
+    beams
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn angles_wrap_and_yaws_cover_both_headings_once() {
+        assert!((wrap_deg(190.0) + 170.0).abs() < 1e-9);
+        assert!((wrap_deg(-180.0) - 180.0).abs() < 1e-9);
+        let config = PoseSearchConfig::default();
+        let yaws = config.candidate_yaws_deg();
+        // ±45° in 2° steps: −44..44, around the prior and the flipped heading.
+        assert_eq!(yaws.len(), 2 * 45);
+        assert!(yaws.iter().any(|y| (y - 180.0).abs() < 1e-9));
+        assert!(yaws.iter().any(|y| y.abs() < 1e-9));
+        let full = PoseSearchConfig {
+            yaw_half_range_deg: 180.0,
+            ..config
+        };
+        assert_eq!(full.candidate_yaws_deg().len(), 180);
+        assert!(config.validate().is_ok());
+        let bad = PoseSearchConfig {
+            yaw_step_deg: 0.0,
+            ..config
+        };
+        assert!(bad.validate().is_err());
+    }
+
+    #[test]
+    fn turned_pose_keeps_the_centre_and_turns_the_heading() {
+        let prior = Rigid3::look_at(
+            &Vector3::new(30.0, 0.0, 20.0),
+            &Vector3::zeros(),
+            &Vector3::z(),
+        )
+        .unwrap();
+        let turned = turned_pose(&prior, 90.0, 0.0, 0.0);
+        assert!((turned.camera_center() - prior.camera_center()).norm() < 1e-9);
+        let axis = |p: &Rigid3| p.inverse().transform_vector(&Vector3::z());
+        let (a, b) = (axis(&prior), axis(&turned));
+        let turn_deg = wrap_deg((b.y.atan2(b.x) - a.y.atan2(a.x)).to_degrees());
+        assert!((turn_deg - 90.0).abs() < 1e-6, "{turn_deg}");
+        assert!((a.z - b.z).abs() < 1e-9);
+    }
+
+    /// A vertical ridge in the query scores for a vertical model edge on it, not for a horizontal
+    /// one, and less a few coarse pixels away.
+    #[test]
+    fn the_edge_map_is_orientation_aware() {
+        let query = Image::from_fn(200, 120, |col, _| {
+            let d = col as f64 + 0.5 - 100.0;
+            (-(d * d) / 2.0).exp() as f32
+        });
+        let map = OrientedEdgeMap::build(query.view(), &PoseSearchConfig::default());
+        let on = map.value(Vector2::new(100.0, 60.0), 0.0);
+        let across = map.value(Vector2::new(100.0, 60.0), std::f64::consts::FRAC_PI_2);
+        let aside = map.value(Vector2::new(120.0, 60.0), 0.0);
+        assert!(on > 0.5, "{on}");
+        assert!(across < 0.1 * on, "{across} vs {on}");
+        assert!(aside < 0.5 * on, "{aside} vs {on}");
+    }
+}
