@@ -788,6 +788,9 @@ mod tests {
             "initial/20/cameras.txt",
             "initial/20/images.txt",
             "initial/20/points3D.txt",
+            "initial/heading/cameras.txt",
+            "initial/heading/images.txt",
+            "initial/heading/points3D.txt",
         ]
         .iter()
         .map(PathBuf::from)
