@@ -42,11 +42,16 @@ struct ResultsCell {
     frames: Vec<EvalFrame>,
 }
 
-/// A frame with evidence and a pose, labelled.
+/// A frame with evidence and a pose (`frame.evidence` is always `Some`), labelled.
 struct Labelled {
     frame: EvalFrame,
     correct: bool,
-    check_passed: bool,
+}
+
+impl Labelled {
+    fn check_passed(&self) -> bool {
+        self.frame.evidence.is_some_and(|e| e.check_passed)
+    }
 }
 
 fn load(paths: &[PathBuf]) -> anyhow::Result<Vec<Labelled>> {
@@ -83,7 +88,6 @@ fn load(paths: &[PathBuf]) -> anyhow::Result<Vec<Labelled>> {
                 }
                 out.push(Labelled {
                     correct: delta_px <= file.false_accept_threshold_px,
-                    check_passed: evidence.check_passed,
                     frame,
                 });
             }
@@ -230,7 +234,7 @@ fn report(frames: &[&Labelled], model: &LogisticModel, max_rate: f64, title: &st
             .map(|(l, _)| l)
             .collect();
         let wrong = accepted.iter().filter(|l| !l.correct).count();
-        let checked = accepted.iter().filter(|l| l.check_passed).count();
+        let checked = accepted.iter().filter(|l| l.check_passed()).count();
         let correct_deltas: Vec<f64> = accepted
             .iter()
             .filter(|l| l.correct)

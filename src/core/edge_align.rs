@@ -390,14 +390,15 @@ pub struct SupportPeak {
 /// chance supports).
 pub const SUPPORT_PEAK_SHIFTS_PX: [f64; 2] = [3.0, 12.0];
 
-/// The edge support of `samples` (lifted at `cam_from_world`) at the pose and at poses turned
-/// about the camera's x and y axes so that the image moves by each of
+/// The edge support of `samples` (lifted at `cam_from_world`, whose own evidence is `at_pose`)
+/// at poses turned about the camera's x and y axes so that the image moves by each of
 /// [`SUPPORT_PEAK_SHIFTS_PX`] in eight directions (no re-rendering: the samples are kept).
 pub fn support_peak(
     samples: &[EdgeSample],
     query: &ImageView<'_, f32>,
     camera: &Camera,
     cam_from_world: &Rigid3,
+    at_pose: &EdgeEvidence,
     config: &EdgeAlignConfig,
 ) -> SupportPeak {
     let focal_px = 0.5 * (camera.intrinsics.fx_px + camera.intrinsics.fy_px);
@@ -422,7 +423,7 @@ pub fn support_peak(
     };
     let [near_shift_px, far_shift_px] = SUPPORT_PEAK_SHIFTS_PX;
     SupportPeak {
-        at_pose: edge_evidence(samples, query, camera, cam_from_world, config).support_fraction(),
+        at_pose: at_pose.support_fraction(),
         near: ring(near_shift_px),
         far: ring(far_shift_px),
         near_shift_px,

@@ -100,9 +100,7 @@ mod tests {
     use nalgebra::{UnitQuaternion, Vector3};
 
     use super::*;
-    use crate::core::frame::tests::house_and_poses;
-    use crate::core::frame::{render_coarse_view, CoarseView};
-    use crate::core::raster::Rasterizer;
+    use crate::core::frame::tests::{house_and_poses, ideal_query};
     use crate::core::rigid::Rigid3;
 
     /// Fifteen outcomes that all refined to `pose`, from coarse poses spread around it (so the
@@ -142,17 +140,7 @@ mod tests {
     fn an_agreed_pose_the_photo_does_not_confirm_is_rejected() {
         let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
-        let mut view = CoarseView::default();
-        render_coarse_view(
-            &mesh,
-            &camera,
-            0,
-            &truth,
-            &config,
-            &mut Rasterizer::new(),
-            &mut view,
-        );
-        let query = view.asg.view();
+        let query = ideal_query(&mesh, &camera, &truth, &config);
         let mut workspace = RefineWorkspace::default();
         // Turned about the camera's own y axis: the image moves by about 54 px, far beyond the
         // alignment's 8 px reach.
@@ -162,7 +150,7 @@ mod tests {
             &mesh,
             &camera,
             &agreeing_outcomes(&camera, &wrong),
-            Some(query),
+            Some(query.view()),
             IntrinsicsMode::Known,
             &config,
             &mut workspace,
@@ -188,7 +176,7 @@ mod tests {
             &mesh,
             &camera,
             &agreeing_outcomes(&camera, &truth),
-            Some(query),
+            Some(query.view()),
             IntrinsicsMode::Known,
             &config,
             &mut workspace,

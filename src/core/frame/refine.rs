@@ -44,6 +44,8 @@ pub struct RefineWorkspace {
     rasterizer: Rasterizer,
     view: CoarseView,
     samples: Vec<EdgeSample>,
+    /// The samples at the start pose, kept for its support peak when the alignment is not kept.
+    start_samples: Vec<EdgeSample>,
     blurred: Image<f32>,
 }
 
@@ -107,6 +109,7 @@ pub fn refine_pose(
         rasterizer,
         view,
         samples,
+        start_samples,
         blurred,
     } = workspace;
     let mut sample_at = |camera: &Camera, pose: &Rigid3, samples: &mut Vec<EdgeSample>| {
@@ -122,6 +125,7 @@ pub fn refine_pose(
     };
     sample_at(camera, start, samples);
     let verified = edge_evidence(samples, &query, camera, start, align);
+    start_samples.clone_from(samples);
     if samples.len() < align.min_samples {
         return Err(format!(
             "the model shows only {} edge samples at the chosen pose (at least {} needed)",
@@ -153,10 +157,9 @@ pub fn refine_pose(
     let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
     let kept = aligned.support_fraction() > verified.support_fraction();
     let peak = if kept {
-        support_peak(samples, &query, &aligned_camera, &pose, align)
+        support_peak(samples, &query, &aligned_camera, &pose, &aligned, align)
     } else {
-        sample_at(camera, start, samples);
-        support_peak(samples, &query, camera, start, align)
+        support_peak(start_samples, &query, camera, start, &verified, align)
     };
     Ok(PoseRefinement {
         verified_camera: *camera,
@@ -176,7 +179,7 @@ mod tests {
     use nalgebra::{UnitQuaternion, Vector3};
 
     use super::*;
-    use crate::core::frame::tests::house_and_poses;
+    use crate::core::frame::tests::{house_and_poses, ideal_query};
     use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
     /// Known pose, ideal query (the model's own ASG at the truth): the alignment must bring a pose
@@ -186,16 +189,7 @@ mod tests {
         let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
         let mut workspace = RefineWorkspace::default();
-        let mut truth_view = CoarseView::default();
-        render_coarse_view(
-            &mesh,
-            &camera,
-            0,
-            &truth,
-            &config,
-            &mut workspace.rasterizer,
-            &mut truth_view,
-        );
+        let query = ideal_query(&mesh, &camera, &truth, &config);
         let start = Rigid3::new(
             UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006)) * truth.rotation,
             truth.translation + Vector3::new(0.16, -0.1, 0.12),
@@ -209,7 +203,7 @@ mod tests {
         let refinement = refine_pose(
             &mesh,
             &camera,
-            truth_view.asg.view(),
+            query.view(),
             &start,
             AlignedParameters::Pose,
             &config,
@@ -236,7 +230,7 @@ mod tests {
         let from_truth = refine_pose(
             &mesh,
             &camera,
-            truth_view.asg.view(),
+            query.view(),
             &truth,
             AlignedParameters::Pose,
             &config,
@@ -253,16 +247,7 @@ mod tests {
         let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
         let mut workspace = RefineWorkspace::default();
-        let mut truth_view = CoarseView::default();
-        render_coarse_view(
-            &mesh,
-            &camera,
-            0,
-            &truth,
-            &config,
-            &mut workspace.rasterizer,
-            &mut truth_view,
-        );
+        let query = ideal_query(&mesh, &camera, &truth, &config);
         let mut wrong_focal = camera;
         wrong_focal.intrinsics.fx_px *= 1.03;
         wrong_focal.intrinsics.fy_px *= 1.03;
@@ -286,7 +271,7 @@ mod tests {
         let refinement = refine_pose(
             &mesh,
             &wrong_focal,
-            truth_view.asg.view(),
+            query.view(),
             &start,
             AlignedParameters::PoseAndFocal,
             &config,

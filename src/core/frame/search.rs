@@ -235,7 +235,7 @@ mod tests {
     use nalgebra::Vector3;
 
     use super::*;
-    use crate::core::frame::tests::house_and_poses;
+    use crate::core::frame::tests::{house_and_poses, ideal_query};
     use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
     /// Known pose, ideal query (the model's own ASG at the truth): from a prior whose heading is
@@ -246,17 +246,7 @@ mod tests {
         let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
         let mut rasterizer = Rasterizer::new();
-        let mut truth_view = CoarseView::default();
-        render_coarse_view(
-            &mesh,
-            &camera,
-            0,
-            &truth,
-            &config,
-            &mut rasterizer,
-            &mut truth_view,
-        );
-        let query = truth_view.asg.clone();
+        let query = ideal_query(&mesh, &camera, &truth, &config);
         let mut reprojection = ReprojectionWorkspace::new();
         for heading_error_deg in [30.0, -25.0, 180.0] {
             let turned = turned_pose(&truth, heading_error_deg, 0.5, -0.5);

@@ -39,6 +39,26 @@ pub(crate) fn house_and_poses() -> (Mesh, Camera, Rigid3, Rigid3) {
     (house_mesh(), camera, truth, initial)
 }
 
+/// The ideal query of a pose: the model's own ASG rendered there.
+pub(crate) fn ideal_query(
+    mesh: &Mesh,
+    camera: &Camera,
+    pose: &Rigid3,
+    config: &RegistrationConfig,
+) -> Image<f32> {
+    let mut view = CoarseView::default();
+    render_coarse_view(
+        mesh,
+        camera,
+        0,
+        pose,
+        config,
+        &mut Rasterizer::new(),
+        &mut view,
+    );
+    view.asg
+}
+
 #[test]
 fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
     let (mesh, camera, truth, initial) = house_and_poses();
@@ -47,24 +67,13 @@ fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
     let initial_delta =
         mutual_reprojection_error_px(&mesh, &camera, &initial, &camera, &truth, &mut workspace)
             .unwrap();
-    let mut rasterizer = Rasterizer::new();
-    let mut truth_view = CoarseView::default();
-    render_coarse_view(
-        &mesh,
-        &camera,
-        0,
-        &truth,
-        &config,
-        &mut rasterizer,
-        &mut truth_view,
-    );
-    let query = truth_view.asg.view();
+    let query = ideal_query(&mesh, &camera, &truth, &config);
     let result = register_query(
         &mesh,
         &camera,
         IntrinsicsMode::Known,
         &initial,
-        query,
+        query.view(),
         &config,
         7,
     )
@@ -98,7 +107,7 @@ fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
         &camera,
         IntrinsicsMode::Known,
         &initial,
-        query,
+        query.view(),
         &config,
         7,
     )
