@@ -75,9 +75,14 @@ pub struct PoseSearchConfig {
     pub min_support_gain: f64,
     /// ... and reaches at least this support (0..1).
     pub min_support: f64,
-    /// The frame is rejected as ambiguous when a beam distinct from the best one reaches this
-    /// share of the best one's support (dimensionless, 0..1; above 1 never).
+    /// A beam distinct from the best one that reaches this share of the best one's support
+    /// makes the search ambiguous (dimensionless, 0..1; above 1 never): the photo's edges
+    /// alone cannot choose, so each of them (and the prior) becomes the centre of its own coarse
+    /// poses and verification decides among them.
     pub ambiguity_ratio: f64,
+    /// At most this many centres of coarse poses when the search is ambiguous (the best beam,
+    /// the prior, then the rivals by support); each costs a frame's coarse-pose work.
+    pub max_centres: usize,
 }
 
 impl Default for PoseSearchConfig {
@@ -102,6 +107,7 @@ impl Default for PoseSearchConfig {
             min_support_gain: 0.05,
             min_support: 0.15,
             ambiguity_ratio: 0.9,
+            max_centres: 3,
         }
     }
 }
@@ -160,6 +166,9 @@ impl PoseSearchConfig {
         }
         if self.sample_spacing_px == 0 {
             return bad("sample_spacing_px", "must be at least 1".into());
+        }
+        if self.max_centres == 0 {
+            return bad("max_centres", "must be at least 1".into());
         }
         Ok(())
     }

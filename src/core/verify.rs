@@ -159,6 +159,14 @@ pub enum RejectionReason {
         edge_support: f64,
         edge_support_chance: f64,
     },
+    /// The photo confirms two distinct poses, from different centres of the pose search: the
+    /// frame cannot be decided without a better prior (never a coin toss).
+    Ambiguous {
+        confidence: f64,
+        rival_confidence: f64,
+        /// δ between the two poses, px.
+        apart_px: f64,
+    },
 }
 
 impl std::fmt::Display for RejectionReason {
@@ -198,6 +206,14 @@ impl std::fmt::Display for RejectionReason {
                 "the photo does not confirm the agreed pose: confidence {confidence:.2} < {threshold:.2} ({:.0} % of the model's edges on a photo edge, {:.0} % by chance)",
                 100.0 * edge_support,
                 100.0 * edge_support_chance
+            ),
+            RejectionReason::Ambiguous {
+                confidence,
+                rival_confidence,
+                apart_px,
+            } => write!(
+                f,
+                "the photo confirms two distinct poses {apart_px:.0} px apart (confidence {confidence:.2} and {rival_confidence:.2}), from different headings of the pose search: give a better prior (heading) to register this frame"
             ),
         }
     }

@@ -493,7 +493,12 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
     verify.wait_for_reader("verify", ctx.startup())?;
     let mut stage = RenderStage::new(mesh, config.registration.clone());
-    let frame_room = config.registration.coarse_pose_count;
+    // Room for a whole frame's jobs before taking it (soft: a frame may bring more than the queue
+    // holds when the pose search gives it several centres).
+    let frame_room = config
+        .registration
+        .max_coarse_views()
+        .min(config.backpressure.flow_jobs_queued);
     // Frames whose jobs are still (partly) in render's queue.
     let mut handing_out: Vec<u64> = Vec::new();
     while !ctx.stopped() {

@@ -143,8 +143,6 @@ pub enum RegistrationError {
     NonFiniteInitialPose,
     #[error("the model is not visible from the initial pose: check the pose convention (cam_from_world) and the mesh's coordinate frame")]
     ModelNotVisible,
-    #[error("the pose search found distinct poses with about the same edge support, so it cannot choose: {0}")]
-    AmbiguousPoseSearch(String),
     #[error("dense matching failed: {0}")]
     Flow(String),
     #[error(transparent)]
@@ -152,6 +150,16 @@ pub enum RegistrationError {
 }
 
 impl RegistrationConfig {
+    /// The most coarse views a frame can have: `coarse_pose_count` per centre of the pose search.
+    pub fn max_coarse_views(&self) -> usize {
+        let centres = if self.pose_search.enabled {
+            self.pose_search.max_centres
+        } else {
+            1
+        };
+        self.coarse_pose_count * centres
+    }
+
     pub fn validate(&self) -> Result<(), RegistrationError> {
         let bad =
             |field: &'static str, why: String| Err(RegistrationError::InvalidConfig { field, why });

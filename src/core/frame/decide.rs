@@ -8,7 +8,7 @@ use crate::core::camera::Camera;
 use crate::core::confidence::{ConfidenceConfig, FrameEvidence};
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
-use crate::core::reprojection::ReprojectionWorkspace;
+use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::verify::{verify_hypotheses, PoseHypothesis, Rejection, RejectionReason, Verdict};
 
 /// A frame's decision: the verdict (with the refined pose when the refinement kept it) and what
@@ -26,7 +26,36 @@ pub struct Decision {
 /// chosen pose against `query` (the frame's query gradient image; `None` when it is not at hand,
 /// e.g. lost in the pipeline: the verdict is then unrefined). `camera` is the one the coarse
 /// poses were rendered with.
+///
+/// The outcomes come in groups of `config.coarse_pose_count`, one per centre of the pose search
+/// ([`super::render_views`]); each group is decided on its own (the paper's check, the refinement,
+/// the calibrated confidence), and then the groups against each other
+/// ([`choose_among_centres`]).
 pub fn decide_frame(
+    mesh: &Mesh,
+    camera: &Camera,
+    outcomes: &[CoarseOutcome],
+    query: Option<ImageView<'_, f32>>,
+    intrinsics: IntrinsicsMode,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Decision {
+    let mut decide = |group: &[CoarseOutcome]| {
+        decide_centre(mesh, camera, group, query, intrinsics, config, workspace)
+    };
+    if outcomes.len() <= config.coarse_pose_count {
+        return decide(outcomes);
+    }
+    let decisions: Vec<Decision> = outcomes
+        .chunks(config.coarse_pose_count.max(1))
+        .map(&mut decide)
+        .collect();
+    choose_among_centres(mesh, decisions).unwrap_or_else(|| decide(&[]))
+}
+
+/// One centre's decision: the paper's check over its coarse outcomes, the refinement of the
+/// chosen pose and the calibrated confidence.
+fn decide_centre(
     mesh: &Mesh,
     camera: &Camera,
     outcomes: &[CoarseOutcome],
@@ -61,6 +90,51 @@ pub fn decide_frame(
         refinement,
         evidence,
     }
+}
+
+/// Verification across the pose search's hypotheses (issue #12 item 2): among the centres'
+/// decisions the confirmed one with the highest calibrated confidence wins; when another centre
+/// confirms a pose that is not compatible with it (δ at least the compatibility threshold), the
+/// photo supports two distinct poses and the frame is rejected ([`RejectionReason::Ambiguous`])
+/// rather than decided by a coin toss. When no centre is confirmed, the most confident one's
+/// rejection stands. `None` without decisions.
+fn choose_among_centres(mesh: &Mesh, mut decisions: Vec<Decision>) -> Option<Decision> {
+    decisions.sort_by(|a, b| {
+        b.verdict
+            .accepted()
+            .cmp(&a.verdict.accepted())
+            .then(b.verdict.confidence.total_cmp(&a.verdict.confidence))
+    });
+    let mut decisions = decisions.into_iter();
+    let mut chosen = decisions.next()?;
+    let Ok(pose) = chosen.verdict.decision.clone() else {
+        return Some(chosen);
+    };
+    let mut workspace = ReprojectionWorkspace::new();
+    let rival = decisions.filter(|d| d.verdict.accepted()).find_map(|d| {
+        let other = d.verdict.chosen()?;
+        let apart_px = mutual_reprojection_error_px(
+            mesh,
+            &pose.camera,
+            &pose.cam_from_world,
+            &other.camera,
+            &other.cam_from_world,
+            &mut workspace,
+        )
+        .unwrap_or(f64::INFINITY);
+        (apart_px >= chosen.verdict.threshold_px).then_some((d.verdict.confidence, apart_px))
+    });
+    if let Some((rival_confidence, apart_px)) = rival {
+        chosen.verdict.decision = Err(Rejection {
+            reason: RejectionReason::Ambiguous {
+                confidence: chosen.verdict.confidence,
+                rival_confidence,
+                apart_px,
+            },
+            candidate: Some(pose),
+        });
+    }
+    Some(chosen)
 }
 
 /// The accept decision on the calibrated confidence (issue #11 item 4): the verdict's confidence
@@ -183,5 +257,71 @@ mod tests {
         );
         assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
         assert!(decision.verdict.confidence >= config.confidence.accept_above);
+    }
+
+    /// Verification across the pose search's centres: two groups of coarse outcomes, one agreeing
+    /// on a wrong pose and one on the truth. On the truth's own query only the truth is confirmed
+    /// and it wins, whatever the order; on a query showing both poses' edges both are confirmed
+    /// and the frame is rejected as ambiguous, never decided by a coin toss.
+    #[test]
+    fn the_centres_are_decided_by_the_photo_and_two_confirmed_poses_are_ambiguous() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let mut workspace = RefineWorkspace::default();
+        let turn = UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.15, 0.0));
+        let wrong = Rigid3::new(turn * truth.rotation, turn * truth.translation);
+        let grouped = |first: &Rigid3, second: &Rigid3| -> Vec<CoarseOutcome> {
+            let mut outcomes = agreeing_outcomes(&camera, first);
+            outcomes.extend(agreeing_outcomes(&camera, second).into_iter().map(|mut o| {
+                o.coarse_index += config.coarse_pose_count;
+                o
+            }));
+            outcomes
+        };
+        let query = ideal_query(&mesh, &camera, &truth, &config);
+        for (first, second) in [(&wrong, &truth), (&truth, &wrong)] {
+            let decision = decide_frame(
+                &mesh,
+                &camera,
+                &grouped(first, second),
+                Some(query.view()),
+                IntrinsicsMode::Known,
+                &config,
+                &mut workspace,
+            );
+            let chosen = decision
+                .verdict
+                .accepted_pose()
+                .expect("the truth is confirmed");
+            assert!(
+                chosen.cam_from_world.rotation_angle_to_rad(&truth) < 0.01,
+                "{:?}",
+                decision.evidence
+            );
+        }
+
+        let mut both = ideal_query(&mesh, &camera, &truth, &config);
+        let other = ideal_query(&mesh, &camera, &wrong, &config);
+        for (a, b) in both.data_mut().iter_mut().zip(other.data()) {
+            *a = a.max(*b);
+        }
+        let decision = decide_frame(
+            &mesh,
+            &camera,
+            &grouped(&wrong, &truth),
+            Some(both.view()),
+            IntrinsicsMode::Known,
+            &config,
+            &mut workspace,
+        );
+        assert!(
+            matches!(
+                decision.verdict.rejection(),
+                Some(RejectionReason::Ambiguous { .. })
+            ),
+            "{:?} {:?}",
+            decision.verdict.rejection(),
+            decision.evidence
+        );
     }
 }

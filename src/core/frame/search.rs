@@ -4,8 +4,9 @@
 //! oriented edges without a rendering of its own; the best distinct candidates (beams) and the
 //! prior itself are refined by edge alignment ([`super::refine_pose`]) and compared by their edge
 //! support. A beam replaces the prior only when its support clearly beats the prior's; when it
-//! would, and another distinct beam is about as good, the frame cannot be registered (never a
-//! coin toss).
+//! would, and another distinct beam is about as good, the search does not toss a coin: the
+//! best beam, the prior and the rivals each become the centre of their own coarse poses, and
+//! verification with the calibrated confidence decides among them ([`super::decide`]).
 
 use std::time::Instant;
 
@@ -42,15 +43,18 @@ pub struct Beam {
 /// What the search found.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseSearchOutcome {
-    /// The centre of the coarse poses: the prior, or the beam that replaced it.
-    pub centre: Rigid3,
+    /// The centres of the coarse poses, best first: the prior or the beam that replaced it; when
+    /// the search is ambiguous also the prior and the rivals (at most
+    /// [`crate::core::pose_search::PoseSearchConfig::max_centres`]). Each gets its own
+    /// `coarse_pose_count` coarse poses and verification decides among them.
+    pub centres: Vec<Rigid3>,
     /// Whether a beam replaced the prior.
     pub moved: bool,
     /// The prior's own edge support (0..1).
     pub prior_support: f64,
     /// The refined prior first, then the grid's beams, best grid score first.
     pub beams: Vec<Beam>,
-    /// Why the frame is ambiguous, when it is.
+    /// Why the search could not choose on the photo's edges alone, when it could not.
     pub ambiguous: Option<String>,
     /// The search's own wall time, ms.
     pub search_ms: f64,
@@ -192,17 +196,21 @@ pub fn search_pose(
     let separation_rad = search.beam_separation_deg.to_radians();
     // Only a move is a choice among beams: when the prior stays, the coarse poses start from it
     // as without the search, and verification decides.
-    let rival = beams.iter().enumerate().find(|(index, beam)| {
-        moved
-            && *index != best_index
-            && beam.support >= search.min_support
-            && beam.support >= search.ambiguity_ratio * best.support
-            && beam
-                .cam_from_world
-                .rotation_angle_to_rad(&best.cam_from_world)
-                > separation_rad
-    });
-    let ambiguous = rival.map(|(_, rival)| {
+    let mut rivals: Vec<usize> = (0..beams.len())
+        .filter(|&index| {
+            moved
+                && index != best_index
+                && beams[index].support >= search.min_support
+                && beams[index].support >= search.ambiguity_ratio * best.support
+                && beams[index]
+                    .cam_from_world
+                    .rotation_angle_to_rad(&best.cam_from_world)
+                    > separation_rad
+        })
+        .collect();
+    rivals.sort_by(|&a, &b| beams[b].support.total_cmp(&beams[a].support));
+    let ambiguous = rivals.first().map(|&rival| {
+        let rival = &beams[rival];
         format!(
             "edge support {:.2} at heading {:+.0}° pitch {:+.1}° roll {:+.1}° against {:.2} at heading {:+.0}° pitch {:+.1}° roll {:+.1}° ({:.1}° apart)",
             best.support,
@@ -219,9 +227,27 @@ pub fn search_pose(
                 .to_degrees()
         )
     });
-    let centre = if moved { best.cam_from_world } else { *prior };
+    // The centres: the best beam; when a rival is about as good, also the prior (the photo's
+    // edges cannot choose, so the prior's own information counts) and the rivals, each distinct
+    // from those already chosen.
+    let mut centres = vec![if moved { best.cam_from_world } else { *prior }];
+    if ambiguous.is_some() {
+        for candidate in
+            std::iter::once(*prior).chain(rivals.iter().map(|&i| beams[i].cam_from_world))
+        {
+            if centres.len() >= search.max_centres {
+                break;
+            }
+            if centres
+                .iter()
+                .all(|c| c.rotation_angle_to_rad(&candidate) > separation_rad)
+            {
+                centres.push(candidate);
+            }
+        }
+    }
     Some(PoseSearchOutcome {
-        centre,
+        centres,
         moved,
         prior_support,
         beams,
@@ -262,11 +288,12 @@ mod tests {
                 &mut CoarseView::default(),
             )
             .expect("the search is enabled by default");
-            let angle_deg = outcome.centre.rotation_angle_to_rad(&truth).to_degrees();
+            let centre = outcome.centres[0];
+            let angle_deg = centre.rotation_angle_to_rad(&truth).to_degrees();
             let delta_px = mutual_reprojection_error_px(
                 &mesh,
                 &camera,
-                &outcome.centre,
+                &centre,
                 &camera,
                 &truth,
                 &mut reprojection,
@@ -285,6 +312,7 @@ mod tests {
             );
             assert!(outcome.moved, "heading {heading_error_deg}");
             assert!(outcome.ambiguous.is_none(), "{:?}", outcome.ambiguous);
+            assert_eq!(outcome.centres.len(), 1);
             assert!(angle_deg < 2.0, "heading {heading_error_deg}: {angle_deg}°");
             assert!(delta_px < 5.0, "heading {heading_error_deg}: {delta_px} px");
         }

@@ -21,7 +21,7 @@ use crate::core::shading::{asg_from_normals, scale_to_percentile};
 /// What [`render_views`] made.
 #[derive(Clone, Debug)]
 pub struct RenderedViews {
-    /// The number of views.
+    /// The number of views (`config.coarse_pose_count` per centre of the search).
     pub count: usize,
     /// What the pose search found (`None` when it is disabled).
     pub search: Option<PoseSearchOutcome>,
@@ -31,8 +31,10 @@ pub struct RenderedViews {
 /// plans and renders a frame's coarse views in coarse-pose order, handing each to `emit` with the
 /// number of views. `view` is rendered into again for the next one: `emit` reads it, or takes it
 /// (`std::mem::take`) to keep it, and the next view is then rendered into fresh buffers.
-/// The first view is the centre itself (the initial pose unless the search moved it); its
-/// rendering also gives the scene depth that scales the other coarse poses.
+/// The views come in groups of `config.coarse_pose_count`, one group per centre of the search
+/// (one centre unless the search was ambiguous, [`super::decide`] splits them the same way); a
+/// group's first view is its centre itself (the initial pose unless the search moved it). The
+/// first view's rendering also gives the scene depth that scales the coarse poses.
 #[allow(clippy::too_many_arguments)]
 pub fn render_views(
     mesh: &Mesh,
@@ -57,25 +59,26 @@ pub fn render_views(
         rasterizer,
         view,
     );
-    if let Some(why) = search.as_ref().and_then(|s| s.ambiguous.clone()) {
-        return Err(RegistrationError::AmbiguousPoseSearch(why));
-    }
-    let centre = search
+    let centres = search
         .as_ref()
-        .map_or(*initial_cam_from_world, |s| s.centre);
-    let initial_cam_from_world = &centre;
-    render_coarse_view(
-        mesh,
-        camera,
-        0,
-        initial_cam_from_world,
-        config,
-        rasterizer,
-        view,
-    );
+        .map_or_else(|| vec![*initial_cam_from_world], |s| s.centres.clone());
+    // The first centre's rendering gives the scene depth that scales every centre's coarse poses
+    // (the centres share the prior's position up to the beams' refinement).
+    render_coarse_view(mesh, camera, 0, &centres[0], config, rasterizer, view);
     let median_depth_m =
         median_scene_depth_m(&view.render).ok_or(RegistrationError::ModelNotVisible)?;
-    let poses = coarse_poses(initial_cam_from_world, median_depth_m, config, seed);
+    let poses: Vec<Rigid3> = centres
+        .iter()
+        .enumerate()
+        .flat_map(|(index, centre)| {
+            coarse_poses(
+                centre,
+                median_depth_m,
+                config,
+                seed.wrapping_add(index as u64),
+            )
+        })
+        .collect();
     emit(view, poses.len());
     for (coarse_index, pose) in poses.iter().enumerate().skip(1) {
         render_coarse_view(mesh, camera, coarse_index, pose, config, rasterizer, view);
