@@ -159,6 +159,30 @@ impl Collector {
             && started.elapsed() < deadline
             && keep_going()
         {
+            self.results.receive(
+                Duration::from_millis(50),
+                &mut scratch,
+                &mut |message, _| match message.body {
+                    // Idempotent by frame id: a second result for a frame is counted (the
+                    // exactly-once check) but neither handed on nor kept.
+                    Body::PoseResult(result) => {
+                        if seen.insert(result.frame_id) {
+                            on_result(Delivered::Pose(&message.header, &result));
+                            collected.results.push(result);
+                        } else {
+                            tracing::warn!(
+                                "frame {} '{}': a second result arrived; ignored",
+                                result.frame_id,
+                                result.name
+                            );
+                            collected.duplicates.push(result.frame_id);
+                        }
+                    }
+                    Body::StreamEnd(end) => collected.frame_count = Some(end.frame_count),
+                    _ => {}
+                },
+            )?;
+            // After the results: a frame's change result is printed after its pose.
             if let Some(changes) = &mut self.changes {
                 while changes.receive(Duration::ZERO, &mut scratch, &mut |message, _| {
                     match message.body {
@@ -184,29 +208,6 @@ impl Collector {
                     }
                 })? {}
             }
-            self.results.receive(
-                Duration::from_millis(50),
-                &mut scratch,
-                &mut |message, _| match message.body {
-                    // Idempotent by frame id: a second result for a frame is counted (the
-                    // exactly-once check) but neither handed on nor kept.
-                    Body::PoseResult(result) => {
-                        if seen.insert(result.frame_id) {
-                            on_result(Delivered::Pose(&message.header, &result));
-                            collected.results.push(result);
-                        } else {
-                            tracing::warn!(
-                                "frame {} '{}': a second result arrived; ignored",
-                                result.frame_id,
-                                result.name
-                            );
-                            collected.duplicates.push(result.frame_id);
-                        }
-                    }
-                    Body::StreamEnd(end) => collected.frame_count = Some(end.frame_count),
-                    _ => {}
-                },
-            )?;
             self.drain_metrics(&mut collected)?;
         }
         collected.wall_s = started.elapsed().as_secs_f64();
