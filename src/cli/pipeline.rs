@@ -1,8 +1,8 @@
 //! The streaming pipeline's commands: `run` (all stages as threads of this process; with no
 //! config it makes a synthetic scene: the embedded default), `stage` (one stage worker as its own
-//! process), `launch` (the ground-station supervisor), `subscribe` (print PoseResults as they
-//! arrive) and `bench pipeline` (frames/s per flow-worker count). `main` only wires: the loops
-//! are in `asgreg::runtime`.
+//! process), `launch` (the ground-station supervisor), `subscribe` (print PoseResults, change
+//! results and the final change set as they arrive) and `bench pipeline` (frames/s per
+//! flow-worker count). `main` only wires: the loops are in `asgreg::runtime`.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -560,10 +560,8 @@ pub fn router(args: &RouterArgs) -> anyhow::Result<()> {
 pub fn subscribe(args: &SubscribeArgs) -> anyhow::Result<()> {
     let config = PipelineConfig::read(&args.config)?;
     let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
-    let mut collector = asgreg::runtime::collect::Collector::open(
-        transport.as_ref(),
-        config.changes_enabled(),
-    )?;
+    let mut collector =
+        asgreg::runtime::collect::Collector::open(transport.as_ref(), config.changes_enabled())?;
     let seen = std::cell::Cell::new(0usize);
     let count = args.count;
     let collected = collector.collect(

@@ -477,10 +477,8 @@ fn assert_matches_schema(json: &serde_json::Value, schema: &serde_json::Value) {
 
 #[test]
 fn change_result_json_has_exactly_the_schema_properties() {
-    let schema: serde_json::Value = serde_json::from_str(include_str!(
-        "../../schemas/v4/change_result.schema.json"
-    ))
-    .unwrap();
+    let schema: serde_json::Value =
+        serde_json::from_str(include_str!("../../schemas/v4/change_result.schema.json")).unwrap();
     let json: serde_json::Value =
         serde_json::from_str(&change_result_json(&header(), &change_result_example())).unwrap();
     assert_eq!(json["schema_version"], SCHEMA_VERSION);
@@ -507,8 +505,7 @@ fn change_set_json_has_exactly_the_schema_properties() {
             _ => None,
         })
         .expect("every_kind has a ChangeSet");
-    let json: serde_json::Value =
-        serde_json::from_str(&change_set_json(&header(), &set)).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&change_set_json(&header(), &set)).unwrap();
     assert_matches_schema(&json, &schema);
     let properties = &schema["properties"];
     assert_eq!(

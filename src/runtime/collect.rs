@@ -184,8 +184,10 @@ impl Collector {
             )?;
             // After the results: a frame's change result is printed after its pose.
             if let Some(changes) = &mut self.changes {
-                while changes.receive(Duration::ZERO, &mut scratch, &mut |message, _| {
-                    match message.body {
+                while changes.receive(
+                    Duration::ZERO,
+                    &mut scratch,
+                    &mut |message, _| match message.body {
                         Body::ChangeResult(result) => {
                             if seen_changes.insert(result.frame_id) {
                                 on_result(Delivered::Change(&result));
@@ -205,8 +207,8 @@ impl Collector {
                         }
                         Body::StreamEnd(_) => changes_ended = true,
                         _ => {}
-                    }
-                })? {}
+                    },
+                )? {}
             }
             self.drain_metrics(&mut collected)?;
         }

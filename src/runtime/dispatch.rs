@@ -172,10 +172,10 @@ impl<'t> Dispatcher<'t> {
             let level_warn = !lost.is_empty();
             if level_warn {
                 tracing::warn!(
-                "{}: worker {} restarted; redoing its {} unfinished job(s)",
-                self.link,
-                credit.worker_index,
-                lost.len()
+                    "{}: worker {} restarted; redoing its {} unfinished job(s)",
+                    self.link,
+                    credit.worker_index,
+                    lost.len()
                 );
             } else {
                 tracing::debug!(

@@ -818,7 +818,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             // Also for a frame published before a restart: fusion keeps the first change result.
             for work in stage.change_work.drain(..) {
                 let (frame_id, body) = match work {
-                    ChangeWork::Job(frame_id, job) => (frame_id, Body::ChangeJob(job)),
+                    ChangeWork::Job(frame_id, job) => (frame_id, Body::ChangeJob(*job)),
                     ChangeWork::Result(result) => (result.frame_id, Body::ChangeResult(result)),
                 };
                 let capture = change_captures
@@ -831,7 +831,8 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                             frame_id,
                             coarse_index: 0,
                         };
-                        dispatcher.push(key, encode_to_vec(frame_id, capture, Body::ChangeJob(job))?);
+                        dispatcher
+                            .push(key, encode_to_vec(frame_id, capture, Body::ChangeJob(job))?);
                     }
                     body => {
                         fusion.send(frame_id, capture, body, &mut metrics)?;

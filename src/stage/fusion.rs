@@ -69,7 +69,11 @@ impl FusionStage {
             complete: self.is_complete(),
             frame_count: self.frame_count,
             frames_with_result: self.results.len() as u64,
-            frames_with_map: self.results.values().filter(|r| r.failure.is_none()).count() as u64,
+            frames_with_map: self
+                .results
+                .values()
+                .filter(|r| r.failure.is_none())
+                .count() as u64,
             objects: fuse_regions(&regions, &self.config),
             fusion: self.config,
         }

@@ -1,5 +1,5 @@
 //! Stage "render": a Frame becomes its FrameQuery (the query gradient, for verify's final
-//! refinement) and one FlowJob per coarse pose (the query gradient and the ASG rendering, depth
+//! refinement, and with change detection the frame's depth map, which verify hands on) and one FlowJob per coarse pose (the query gradient and the ASG rendering, depth
 //! and face index of the view), by the frame sequence's own query, plan and render steps
 //! (`core::frame`).
 

@@ -24,7 +24,7 @@ use super::elapsed_ms;
 #[derive(Clone, Debug, PartialEq)]
 pub enum ChangeWork {
     /// An accepted frame: its change job (to the change workers).
-    Job(u64, ChangeJob<'static>),
+    Job(u64, Box<ChangeJob<'static>>),
     /// A frame without a pose: its change result, saying why there is no change map.
     Result(ChangeResult),
 }
@@ -112,16 +112,20 @@ impl<'m> VerifyStage<'m> {
     fn queue_change_work(
         &mut self,
         result: &PoseResult,
-        decided: Option<(&FrameInfo, Camera, crate::core::rigid::Rigid3, Option<Image<f32>>)>,
+        decided: Option<(
+            &FrameInfo,
+            Camera,
+            crate::core::rigid::Rigid3,
+            Option<Image<f32>>,
+        )>,
     ) {
         if !self.changes {
             return;
         }
         let work = match decided {
-            Some((info, camera, cam_from_world, depth_m)) if result.accepted => {
-                ChangeWork::Job(
-                    result.frame_id,
-                    ChangeJob {
+            Some((info, camera, cam_from_world, depth_m)) if result.accepted => ChangeWork::Job(
+                result.frame_id,
+                Box::new(ChangeJob {
                     meta: ChangeJobMeta {
                         info: info.clone(),
                         camera,
@@ -130,9 +134,8 @@ impl<'m> VerifyStage<'m> {
                     depth_m: std::borrow::Cow::Owned(
                         depth_m.map(Image::into_data).unwrap_or_default(),
                     ),
-                    },
-                )
-            }
+                }),
+            ),
             _ => ChangeWork::Result(not_registered(
                 result.frame_id,
                 &result.name,

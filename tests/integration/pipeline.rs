@@ -505,9 +505,14 @@ fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_
         &body("chg-iox", "rate_hz = 4.0\n"),
     );
     let out_iox = dir.path().join("out-iox");
-    let mut launcher = command(&["launch", path_str(&launch_config), "--out", path_str(&out_iox)])
-        .spawn()
-        .unwrap();
+    let mut launcher = command(&[
+        "launch",
+        path_str(&launch_config),
+        "--out",
+        path_str(&out_iox),
+    ])
+    .spawn()
+    .unwrap();
     let (events, received) = mpsc::channel::<Event>();
     let pid_events = events.clone();
     let stderr = launcher.stderr.take().unwrap();
