@@ -49,7 +49,7 @@ fn pipeline_benches(c: &mut Criterion) {
                     &transport,
                     &mesh,
                     Duration::from_secs(600),
-                    &mut |_, _| {},
+                    &mut |_| {},
                 )
                 .expect("pipeline run");
                 assert_eq!(collected.results.len(), FRAMES);

@@ -1,8 +1,8 @@
 //! The streaming pipeline's commands: `run` (all stages as threads of this process; with no
 //! config it makes a synthetic scene: the embedded default), `stage` (one stage worker as its own
-//! process), `launch` (the ground-station supervisor), `subscribe` (print PoseResults as they
-//! arrive) and `bench pipeline` (frames/s per flow-worker count). `main` only wires: the loops
-//! are in `asgreg::runtime`.
+//! process), `launch` (the ground-station supervisor), `subscribe` (print PoseResults, change
+//! results and the final change set as they arrive) and `bench pipeline` (frames/s per
+//! flow-worker count). `main` only wires: the loops are in `asgreg::runtime`.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -10,8 +10,8 @@ use std::time::Duration;
 
 use anyhow::{bail, Context};
 use asgreg::io::mesh_file::read_mesh;
-use asgreg::msg::{Header, PoseResult};
-use asgreg::runtime::collect::{summary, Collected};
+use asgreg::msg::{ChangeResult, ChangeSet, Header, PoseResult};
+use asgreg::runtime::collect::{summary, Collected, Delivered};
 use asgreg::runtime::config::PipelineConfig;
 use asgreg::runtime::launch::{absolute, launch, StageCommand};
 use asgreg::runtime::nodes::{self, NodeContext};
@@ -36,6 +36,9 @@ pub struct RunArgs {
     /// Override the number of flow workers.
     #[arg(long)]
     pub flow_workers: Option<u32>,
+    /// Override the number of change detection workers (0: no change detection).
+    #[arg(long)]
+    pub change_workers: Option<u32>,
     /// Frames of the embedded default scene.
     #[arg(long, default_value_t = 8)]
     pub frames: usize,
@@ -65,6 +68,8 @@ pub enum StageName {
     Flow,
     Pose,
     Verify,
+    Change,
+    Fusion,
 }
 
 #[derive(clap::Args, Debug)]
@@ -166,6 +171,78 @@ fn scene_config(scene: &Path) -> PipelineConfig {
     }
 }
 
+/// Prints what the collector hands on: results, change results, the final change set.
+fn print_delivered(delivered: Delivered<'_>) {
+    match delivered {
+        Delivered::Pose(header, result) => print_result(header, result),
+        Delivered::Change(result) => print_change(result),
+        Delivered::ChangeSet(set) => print_change_set(set),
+    }
+}
+
+fn print_change(result: &ChangeResult) {
+    match &result.failure {
+        Some(why) => println!(
+            "change {:>3} {:<20} none ({why})",
+            result.frame_id, result.name
+        ),
+        None => {
+            let regions: Vec<String> = result
+                .regions
+                .iter()
+                .map(|r| {
+                    format!(
+                        "{} {:.0} m² {:.1} m high at ({:.1}, {:.1})",
+                        r.kind.name(),
+                        r.footprint_area_m2,
+                        r.height_m,
+                        r.centroid_m[0],
+                        r.centroid_m[1]
+                    )
+                })
+                .collect();
+            println!(
+                "change {:>3} {:<20} {} regions ({} added, {} removed px) in {:.1} ms (worker {}){}{}",
+                result.frame_id,
+                result.name,
+                result.regions.len(),
+                result.counts.added,
+                result.counts.removed,
+                result.change_ms,
+                result.change_worker.map_or("-".to_string(), |w| w.to_string()),
+                if regions.is_empty() { "" } else { ": " },
+                regions.join("; ")
+            )
+        }
+    }
+}
+
+fn print_change_set(set: &ChangeSet) {
+    println!(
+        "change set: {} objects ({} confirmed) from {} change maps of {} frames",
+        set.objects.len(),
+        set.objects.iter().filter(|o| o.confirmed).count(),
+        set.frames_with_map,
+        set.frames_with_result
+    );
+    for object in &set.objects {
+        println!(
+            "  {:<7} {:>7.1} m² footprint, {:>5.1} m high, at ({:.1}, {:.1}), frames {:?}{}",
+            object.kind.name(),
+            object.footprint_area_m2,
+            object.height_m,
+            object.centroid_m[0],
+            object.centroid_m[1],
+            object.frames,
+            if object.confirmed {
+                ", confirmed"
+            } else {
+                ", unconfirmed"
+            }
+        );
+    }
+}
+
 fn print_result(_header: &Header, result: &PoseResult) {
     let pose = result
         .cam_from_world
@@ -222,6 +299,23 @@ fn write_outputs(out: &Path, collected: &Collected, text: &str) -> anyhow::Resul
         writeln!(file)?;
     }
     file.flush()?;
+    if !collected.change_results.is_empty() || collected.change_set.is_some() {
+        let path = out.join("changes.jsonl");
+        let mut file = std::io::BufWriter::new(
+            std::fs::File::create(&path)
+                .with_context(|| format!("cannot write {}", path.display()))?,
+        );
+        for result in collected.changes_by_frame() {
+            serde_json::to_writer(&mut file, result)?;
+            writeln!(file)?;
+        }
+        file.flush()?;
+        if let Some(set) = &collected.change_set {
+            let path = out.join("change_set.json");
+            std::fs::write(&path, serde_json::to_string_pretty(set)?)
+                .with_context(|| format!("cannot write {}", path.display()))?;
+        }
+    }
     std::fs::write(out.join("summary.txt"), text)?;
     println!(
         "results: {}, summary: {}",
@@ -244,6 +338,18 @@ fn check_complete(collected: &Collected) -> anyhow::Result<()> {
             "frames without exactly one result: missing {missing:?}, duplicated {:?}",
             collected.duplicates
         );
+    }
+    if !collected.change_results.is_empty() || collected.change_set.is_some() {
+        let missing = collected.missing_changes();
+        if !missing.is_empty() || !collected.change_duplicates.is_empty() {
+            bail!(
+                "frames without exactly one change result: missing {missing:?}, duplicated {:?}",
+                collected.change_duplicates
+            );
+        }
+        if collected.change_set.is_none() {
+            bail!("the change stream did not end: no complete change set arrived");
+        }
     }
     Ok(())
 }
@@ -273,11 +379,19 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     if let Some(flow) = args.flow_workers {
         config.workers.flow = flow;
     }
+    if let Some(change) = args.change_workers {
+        config.workers.change = change;
+    }
     config.validate(args.config.as_deref().unwrap_or(Path::new("(defaults)")))?;
     let mesh = read_mesh(&config.mesh)?;
     let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
+    let change_stages = if config.changes_enabled() {
+        format!(", {} change and fusion", config.workers.change)
+    } else {
+        String::new()
+    };
     println!(
-        "running ingest, {} render, {} flow, {} pose and verify as threads over {}",
+        "running ingest, {} render, {} flow, {} pose, verify{change_stages} as threads over {}",
         config.workers.render,
         config.workers.flow,
         config.workers.pose,
@@ -288,7 +402,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         transport.as_ref(),
         &mesh,
         Duration::from_secs_f64(config.launch.deadline_s),
-        &mut print_result,
+        &mut print_delivered,
     )?;
     report(&args.out, &collected, config.backend.name())
 }
@@ -307,7 +421,7 @@ pub fn stage(args: &StageArgs) -> anyhow::Result<()> {
     };
     let needs_mesh = matches!(
         args.stage,
-        StageName::Render | StageName::Flow | StageName::Verify
+        StageName::Render | StageName::Flow | StageName::Verify | StageName::Change
     );
     let mesh = if needs_mesh {
         Some(read_mesh(&config.mesh)?)
@@ -321,6 +435,8 @@ pub fn stage(args: &StageArgs) -> anyhow::Result<()> {
         (StageName::Flow, Some(mesh)) => nodes::run_flow(&context, mesh)?,
         (StageName::Pose, _) => nodes::run_pose(&context)?,
         (StageName::Verify, Some(mesh)) => nodes::run_verify(&context, mesh)?,
+        (StageName::Change, Some(mesh)) => nodes::run_change(&context, mesh)?,
+        (StageName::Fusion, _) => nodes::run_fusion(&context)?,
         (stage, None) => bail!("stage {stage:?} needs the mesh"),
     };
     tracing::info!(
@@ -339,7 +455,7 @@ pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
         &args.config,
         verbose,
         &mut |stage, worker, pid| eprintln!("launch: {stage} worker {worker} pid {pid}"),
-        &mut print_result,
+        &mut print_delivered,
     )?;
     report(&args.out, &collected, config.backend.name())
 }
@@ -352,7 +468,7 @@ fn launch_pipeline(
     config_path: &Path,
     verbose: u8,
     on_started: &mut dyn FnMut(&str, u32, u32),
-    on_result: &mut dyn FnMut(&Header, &PoseResult),
+    on_result: &mut dyn FnMut(Delivered<'_>),
 ) -> anyhow::Result<Collected> {
     if config.backend == Backend::Crossbeam {
         bail!(
@@ -444,14 +560,17 @@ pub fn router(args: &RouterArgs) -> anyhow::Result<()> {
 pub fn subscribe(args: &SubscribeArgs) -> anyhow::Result<()> {
     let config = PipelineConfig::read(&args.config)?;
     let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
-    let mut collector = asgreg::runtime::collect::Collector::open(transport.as_ref())?;
+    let mut collector =
+        asgreg::runtime::collect::Collector::open(transport.as_ref(), config.changes_enabled())?;
     let seen = std::cell::Cell::new(0usize);
     let count = args.count;
     let collected = collector.collect(
         Duration::from_secs_f64(config.launch.deadline_s),
-        &mut |header, result| {
-            seen.set(seen.get() + 1);
-            print_result(header, result);
+        &mut |delivered| {
+            if let Delivered::Pose(..) = delivered {
+                seen.set(seen.get() + 1);
+            }
+            print_delivered(delivered);
         },
         &mut || count == 0 || seen.get() < count,
     )?;
@@ -489,7 +608,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                     transport.as_ref(),
                     &mesh,
                     Duration::from_secs(3600),
-                    &mut |_, _| {},
+                    &mut |_| {},
                 )?
             } else {
                 // One process per stage worker, as deployed.
@@ -506,7 +625,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                     .out
                     .join(format!("bench-{}-{flow}.toml", config.backend.name()));
                 std::fs::write(&path, toml::to_string(&config)?)?;
-                launch_pipeline(&config, &path, 0, &mut |_, _, _| {}, &mut |_, _| {})?
+                launch_pipeline(&config, &path, 0, &mut |_, _, _| {}, &mut |_| {})?
             };
             check_complete(&collected)?;
             rows.push((config.backend.name(), flow, collected));

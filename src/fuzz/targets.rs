@@ -601,9 +601,19 @@ fn decode_and_use(bytes: &[u8]) -> Result<(), String> {
         }
         Body::FrameQuery(query) => {
             query.query_image().map_err(display_error)?;
+            query.depth().map_err(display_error)?;
+        }
+        Body::ChangeJob(job) => {
+            job.depth().map_err(display_error)?;
         }
         Body::PoseResult(result) => {
             crate::msg::pose_result_json(&envelope.header, result);
+        }
+        Body::ChangeResult(result) => {
+            crate::msg::change_result_json(&envelope.header, result);
+        }
+        Body::ChangeSet(set) => {
+            crate::msg::change_set_json(&envelope.header, set);
         }
         Body::Hypothesis(_)
         | Body::FrameFailed(_)

@@ -1,5 +1,5 @@
 //! The wire types of the bus and the one place that encodes and decodes them (docs/design.md §5).
-//! `schemas/v3/` describes the same layout for subscribers in other languages.
+//! `schemas/v4/` describes the same layout for subscribers in other languages.
 //!
 //! Layout of every message (all integers little-endian):
 //! ```text
@@ -28,9 +28,10 @@ mod wire;
 #[cfg(test)]
 mod tests;
 
-pub use json::pose_result_json;
+pub use json::{change_result_json, change_set_json, pose_result_json};
 pub use types::*;
 pub use wire::{decode, encode, DecodeError, EncodeError, Encoded, HEADER_BYTES, MAGIC};
 
-/// The schema version in every header; bump it (and add `schemas/v3/`) on any layout change.
-pub const SCHEMA_VERSION: u16 = 3;
+/// The schema version in every header; bump it (and add `schemas/v<N>/`) on any layout change.
+/// v4: change detection (ChangeJob, ChangeResult, ChangeSet; FrameQuery carries the depth map).
+pub const SCHEMA_VERSION: u16 = 4;

@@ -6,6 +6,8 @@ use nalgebra::{UnitQuaternion, Vector3};
 
 use super::*;
 use crate::core::camera::{Camera, PinholeIntrinsics};
+use crate::core::change::fusion::{FusedChange, FusionConfig};
+use crate::core::change::{ChangeKind, ChangeRegion, ClassCounts};
 use crate::core::frame::CoarseOutcome;
 use crate::core::rigid::Rigid3;
 use crate::core::verify::PoseHypothesis;
@@ -146,8 +148,67 @@ fn every_kind() -> Vec<Body<'static>> {
         Body::FrameQuery(FrameQuery {
             info: info(),
             query: Cow::Owned(image.clone()),
+            depth_m: Cow::Owned(vec![12.5; 12]),
+        }),
+        Body::ChangeJob(ChangeJob {
+            meta: ChangeJobMeta {
+                info: info(),
+                camera: info().camera,
+                cam_from_world: info().initial_cam_from_world,
+            },
+            depth_m: Cow::Owned(image.iter().map(|v| 10.0 + v).collect()),
+        }),
+        Body::ChangeResult(change_result_example()),
+        Body::ChangeSet(ChangeSet {
+            complete: true,
+            frame_count: Some(4),
+            frames_with_result: 4,
+            frames_with_map: 3,
+            objects: vec![FusedChange {
+                kind: ChangeKind::Added,
+                frames: vec![0, 2],
+                confirmed: true,
+                footprint_m: vec![[0.0, 0.0], [4.0, 0.0], [4.0, 3.0]],
+                footprint_area_m2: 6.0,
+                height_m: 5.5,
+                centroid_m: [1.0, 2.0, 3.0],
+                confidence: 0.9,
+                region_count: 2,
+            }],
+            fusion: FusionConfig::default(),
         }),
     ]
+}
+
+fn change_result_example() -> ChangeResult {
+    ChangeResult {
+        frame_id: 9,
+        name: "a.png".to_string(),
+        failure: None,
+        counts: ClassCounts {
+            unknown: 1,
+            unchanged: 8,
+            added: 2,
+            removed: 1,
+        },
+        regions: vec![ChangeRegion {
+            kind: ChangeKind::Added,
+            pixel_count: 40,
+            surface_area_m2: 20.0,
+            footprint_area_m2: 12.0,
+            height_m: 6.0,
+            vertical_extent_m: 5.0,
+            footprint_width_m: 3.0,
+            footprint_length_m: 4.0,
+            depth_difference_m: 5.5,
+            centroid_m: [1.0, 2.0, 3.0],
+            footprint_m: vec![[0.0, 0.0], [4.0, 0.0], [4.0, 3.0], [0.0, 3.0]],
+            confidence: 0.8,
+            bbox_px: [0, 0, 2, 2],
+        }],
+        change_ms: 3.5,
+        change_worker: Some(1),
+    }
 }
 
 #[test]
@@ -206,7 +267,7 @@ fn golden_bytes_of_every_kind() {
             path.display()
         );
     }
-    let every_kind: Vec<u16> = (1..=10).collect();
+    let every_kind: Vec<u16> = (1..=13).collect();
     assert_eq!(
         kinds_seen.into_iter().collect::<Vec<_>>(),
         every_kind,
@@ -353,7 +414,7 @@ fn pose_result_json_carries_header_and_result() {
 #[test]
 fn pose_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v3/pose_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v4/pose_result.schema.json")).unwrap();
     let keys = |value: &serde_json::Value| -> Vec<String> {
         let mut keys: Vec<String> = value.as_object().unwrap().keys().cloned().collect();
         keys.sort();
@@ -386,5 +447,73 @@ fn pose_result_json_has_exactly_the_schema_properties() {
     assert_eq!(
         keys(&json["cam_from_world"]),
         keys(&properties["cam_from_world"]["oneOf"][1]["properties"])
+    );
+}
+
+fn sorted_keys(value: &serde_json::Value) -> Vec<String> {
+    let mut keys: Vec<String> = value
+        .as_object()
+        .unwrap_or_else(|| panic!("not an object: {value}"))
+        .keys()
+        .cloned()
+        .collect();
+    keys.sort();
+    keys
+}
+
+/// The JSON of `json` has exactly the schema's properties, every one required.
+fn assert_matches_schema(json: &serde_json::Value, schema: &serde_json::Value) {
+    let properties = &schema["properties"];
+    assert_eq!(sorted_keys(json), sorted_keys(properties));
+    let mut required: Vec<String> = schema["required"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap().to_string())
+        .collect();
+    required.sort();
+    assert_eq!(required, sorted_keys(properties));
+}
+
+#[test]
+fn change_result_json_has_exactly_the_schema_properties() {
+    let schema: serde_json::Value =
+        serde_json::from_str(include_str!("../../schemas/v4/change_result.schema.json")).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&change_result_json(&header(), &change_result_example())).unwrap();
+    assert_eq!(json["schema_version"], SCHEMA_VERSION);
+    assert_matches_schema(&json, &schema);
+    let properties = &schema["properties"];
+    assert_eq!(
+        sorted_keys(&json["counts"]),
+        sorted_keys(&properties["counts"]["properties"])
+    );
+    assert_eq!(
+        sorted_keys(&json["regions"][0]),
+        sorted_keys(&properties["regions"]["items"]["properties"])
+    );
+}
+
+#[test]
+fn change_set_json_has_exactly_the_schema_properties() {
+    let schema: serde_json::Value =
+        serde_json::from_str(include_str!("../../schemas/v4/change_set.schema.json")).unwrap();
+    let set = every_kind()
+        .into_iter()
+        .find_map(|body| match body {
+            Body::ChangeSet(set) => Some(set),
+            _ => None,
+        })
+        .expect("every_kind has a ChangeSet");
+    let json: serde_json::Value = serde_json::from_str(&change_set_json(&header(), &set)).unwrap();
+    assert_matches_schema(&json, &schema);
+    let properties = &schema["properties"];
+    assert_eq!(
+        sorted_keys(&json["objects"][0]),
+        sorted_keys(&properties["objects"]["items"]["properties"])
+    );
+    assert_eq!(
+        sorted_keys(&json["fusion"]),
+        sorted_keys(&properties["fusion"]["properties"])
     );
 }

@@ -7,6 +7,8 @@ use std::borrow::Cow;
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
+use crate::core::change::fusion::{FusedChange, FusionConfig};
+use crate::core::change::{ChangeRegion, ClassCounts};
 use nalgebra::{Vector2, Vector3};
 
 use crate::core::frame::{CoarseOutcome, ViewCorrespondences, ViewRef};
@@ -43,6 +45,9 @@ pub enum MessageKind {
     Metrics = 8,
     StreamEnd = 9,
     FrameQuery = 10,
+    ChangeJob = 11,
+    ChangeResult = 12,
+    ChangeSet = 13,
 }
 
 impl MessageKind {
@@ -58,6 +63,9 @@ impl MessageKind {
             8 => Self::Metrics,
             9 => Self::StreamEnd,
             10 => Self::FrameQuery,
+            11 => Self::ChangeJob,
+            12 => Self::ChangeResult,
+            13 => Self::ChangeSet,
             _ => return None,
         })
     }
@@ -83,6 +91,9 @@ pub enum Body<'a> {
     Metrics(StageMetrics),
     StreamEnd(StreamEnd),
     FrameQuery(FrameQuery<'a>),
+    ChangeJob(ChangeJob<'a>),
+    ChangeResult(ChangeResult),
+    ChangeSet(ChangeSet),
 }
 
 impl Body<'_> {
@@ -98,6 +109,9 @@ impl Body<'_> {
             Body::Metrics(_) => MessageKind::Metrics,
             Body::StreamEnd(_) => MessageKind::StreamEnd,
             Body::FrameQuery(_) => MessageKind::FrameQuery,
+            Body::ChangeJob(_) => MessageKind::ChangeJob,
+            Body::ChangeResult(_) => MessageKind::ChangeResult,
+            Body::ChangeSet(_) => MessageKind::ChangeSet,
         }
     }
 }
@@ -160,12 +174,14 @@ impl Frame<'_> {
 }
 
 /// A frame's query gradient image (render → verify): what the final refinement aligns the chosen
-/// pose with.
+/// pose with; and the photo's depth map, which verify hands to the change stage with the pose.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrameQuery<'a> {
     pub info: FrameInfo,
     /// The photo's gradient image (query), 0..1, `camera.width_px × camera.height_px`.
     pub query: Blob<'a, f32>,
+    /// The photo's depth map in metres (0 = hole), same size; empty when the source has none.
+    pub depth_m: Blob<'a, f32>,
 }
 
 impl FrameQuery<'_> {
@@ -173,6 +189,87 @@ impl FrameQuery<'_> {
     pub fn query_image(&self) -> Result<ImageView<'_, f32>, ImageError> {
         self.info.image(&self.query)
     }
+
+    /// The photo's depth map as an image of the camera's size; `None` when there is none.
+    pub fn depth(&self) -> Result<Option<ImageView<'_, f32>>, ImageError> {
+        if self.depth_m.is_empty() {
+            return Ok(None);
+        }
+        self.info.image(&self.depth_m).map(Some)
+    }
+}
+
+/// An accepted frame's change detection job (verify → change workers, dispatched): the
+/// registered camera and pose and the photo's depth map.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ChangeJob<'a> {
+    pub meta: ChangeJobMeta,
+    /// The photo's depth map in metres (0 = hole), `camera.width_px × camera.height_px`; empty
+    /// when the source has none (the change stage then says "no depth").
+    pub depth_m: Blob<'a, f32>,
+}
+
+impl ChangeJob<'_> {
+    /// The photo's depth map as an image of the registered camera's size; `None` when there is
+    /// none.
+    pub fn depth(&self) -> Result<Option<ImageView<'_, f32>>, ImageError> {
+        if self.depth_m.is_empty() {
+            return Ok(None);
+        }
+        let camera = &self.meta.camera;
+        ImageView::new(
+            camera.width_px as usize,
+            camera.height_px as usize,
+            &self.depth_m,
+        )
+        .map(Some)
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChangeJobMeta {
+    pub info: FrameInfo,
+    /// The registered camera (estimated intrinsics when they were unknown).
+    pub camera: Camera,
+    /// The registered pose (the frame's PoseResult).
+    pub cam_from_world: Rigid3,
+}
+
+/// One frame's change detection (change workers, or verify for a frame without a pose →
+/// fusion → subscribers); also published as JSON (`schemas/v4/change_result.schema.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChangeResult {
+    pub frame_id: u64,
+    pub name: String,
+    /// Why there is no change map: the frame was not registered (its rejection), or it has no
+    /// depth, or the depth map is unusable. `None`: `counts` and `regions` are the frame's.
+    pub failure: Option<String>,
+    /// Pixels per class (all zero when there is no change map).
+    pub counts: ClassCounts,
+    /// Changed regions in the model's georeferenced frame.
+    pub regions: Vec<ChangeRegion>,
+    /// Time the change stage spent on the frame (render + compare + regions), ms.
+    pub change_ms: f64,
+    /// Which change worker made it; `None` when no worker was needed (no pose).
+    pub change_worker: Option<u32>,
+}
+
+/// The changes of every frame so far fused into objects (fusion → subscribers); published now
+/// and then while frames arrive and once, `complete`, when every frame has its change result.
+/// Also published as JSON (`schemas/v4/change_set.schema.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChangeSet {
+    /// Whether every frame of the stream has its change result (the final set).
+    pub complete: bool,
+    /// Frames of the stream, when its end is known.
+    pub frame_count: Option<u64>,
+    /// Frames with a change result, and of those with a change map.
+    pub frames_with_result: u64,
+    pub frames_with_map: u64,
+    /// Fused objects; their `frames` are frame ids. Confirmed when seen by at least
+    /// `fusion.min_frames` frames.
+    pub objects: Vec<FusedChange>,
+    pub fusion: FusionConfig,
 }
 
 /// Identifies a unit of parallel work: one coarse pose of one frame.
@@ -409,7 +506,7 @@ pub struct StageTimesMs {
 }
 
 /// The one result of a frame (verify → subscribers); also published as JSON
-/// (`schemas/v3/pose_result.schema.json`).
+/// (`schemas/v4/pose_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseResult {
     pub frame_id: u64,

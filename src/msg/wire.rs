@@ -146,8 +146,17 @@ pub fn encode<'m>(message: &'m Envelope<'_>) -> Result<Encoded<'m>, EncodeError>
         Body::StreamEnd(body) => (meta_bytes(kind, body)?, Vec::new()),
         Body::FrameQuery(body) => (
             meta_bytes(kind, &body.info)?,
-            vec![bytemuck::cast_slice(&body.query)],
+            vec![
+                bytemuck::cast_slice(&body.query),
+                bytemuck::cast_slice(&body.depth_m),
+            ],
         ),
+        Body::ChangeJob(job) => (
+            meta_bytes(kind, &job.meta)?,
+            vec![bytemuck::cast_slice(&job.depth_m)],
+        ),
+        Body::ChangeResult(body) => (meta_bytes(kind, body)?, Vec::new()),
+        Body::ChangeSet(body) => (meta_bytes(kind, body)?, Vec::new()),
     };
     let header = &message.header;
     let mut fixed = [0u8; HEADER_BYTES];
@@ -246,12 +255,37 @@ impl<'a> Reader<'a> {
         })
     }
 
+    /// Array `index`: empty, or an image of `len` values.
+    fn optional_image(
+        &self,
+        index: usize,
+        name: &str,
+        len: usize,
+    ) -> Result<Blob<'a, f32>, DecodeError> {
+        let values = self.array(index, name, None)?;
+        if !values.is_empty() && values.len() != len {
+            return Err(self.corrupt(format!(
+                "array '{name}' has {} values, expected 0 or {len}",
+                values.len()
+            )));
+        }
+        Ok(values)
+    }
+
     fn image_len(&self, info: &FrameInfo) -> Result<usize, DecodeError> {
-        let len = info.camera.width_px as usize * info.camera.height_px as usize;
+        self.camera_len(&info.name, &info.camera)
+    }
+
+    fn camera_len(
+        &self,
+        name: &str,
+        camera: &crate::core::camera::Camera,
+    ) -> Result<usize, DecodeError> {
+        let len = camera.width_px as usize * camera.height_px as usize;
         if len == 0 {
             return Err(self.corrupt(format!(
-                "camera of frame '{}' is {}×{} px",
-                info.name, info.camera.width_px, info.camera.height_px
+                "camera of frame '{name}' is {}×{} px",
+                camera.width_px, camera.height_px
             )));
         }
         Ok(len)
@@ -333,13 +367,7 @@ pub fn decode(bytes: &[u8]) -> Result<Envelope<'_>, DecodeError> {
             let info: FrameInfo = reader.meta()?;
             let len = reader.image_len(&info)?;
             let image = reader.array(0, "image", Some(len))?;
-            let depth_m = reader.array(1, "depth_m", None)?;
-            if !depth_m.is_empty() && depth_m.len() != len {
-                return Err(reader.corrupt(format!(
-                    "array 'depth_m' has {} values, expected 0 or {len}",
-                    depth_m.len()
-                )));
-            }
+            let depth_m = reader.optional_image(1, "depth_m", len)?;
             Body::Frame(Frame {
                 info,
                 image,
@@ -394,13 +422,31 @@ pub fn decode(bytes: &[u8]) -> Result<Envelope<'_>, DecodeError> {
             Body::StreamEnd(reader.meta()?)
         }
         MessageKind::FrameQuery => {
-            reader.expect_arrays(1)?;
+            reader.expect_arrays(2)?;
             let info: FrameInfo = reader.meta()?;
             let len = reader.image_len(&info)?;
             Body::FrameQuery(FrameQuery {
                 query: reader.array(0, "query", Some(len))?,
+                depth_m: reader.optional_image(1, "depth_m", len)?,
                 info,
             })
+        }
+        MessageKind::ChangeJob => {
+            reader.expect_arrays(1)?;
+            let meta: ChangeJobMeta = reader.meta()?;
+            let len = reader.camera_len(&meta.info.name, &meta.camera)?;
+            Body::ChangeJob(ChangeJob {
+                depth_m: reader.optional_image(0, "depth_m", len)?,
+                meta,
+            })
+        }
+        MessageKind::ChangeResult => {
+            reader.expect_arrays(0)?;
+            Body::ChangeResult(reader.meta()?)
+        }
+        MessageKind::ChangeSet => {
+            reader.expect_arrays(0)?;
+            Body::ChangeSet(reader.meta()?)
         }
     };
     Ok(Envelope { header, body })

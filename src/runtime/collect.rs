@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::msg::{Body, Header, PoseResult, StageMetrics};
+use crate::msg::{Body, ChangeResult, ChangeSet, Header, PoseResult, StageMetrics};
 use crate::transport::{keys, Transport};
 
 use super::bus::{BusError, Inbox};
@@ -26,6 +26,23 @@ pub struct Collected {
     /// Latest metrics of every stage worker, by (stage, worker).
     pub metrics: BTreeMap<(String, u32), StageMetrics>,
     pub rejected_messages: u64,
+    /// With change detection: the first change result of each frame, in arrival order.
+    pub change_results: Vec<ChangeResult>,
+    /// Frames that received more than one change result (must stay empty).
+    pub change_duplicates: Vec<u64>,
+    /// The final (complete) change set, once the change stream ended.
+    pub change_set: Option<ChangeSet>,
+}
+
+/// What the collector hands on as it arrives.
+#[derive(Clone, Copy, Debug)]
+pub enum Delivered<'a> {
+    /// A frame's (first) PoseResult.
+    Pose(&'a Header, &'a PoseResult),
+    /// A frame's (first) ChangeResult.
+    Change(&'a ChangeResult),
+    /// The final change set.
+    ChangeSet(&'a ChangeSet),
 }
 
 impl Collected {
@@ -69,6 +86,24 @@ impl Collected {
         split
     }
 
+    /// Frame ids without a change result (must be empty after a complete stream with change
+    /// detection).
+    pub fn missing_changes(&self) -> Vec<u64> {
+        let Some(count) = self.frame_count else {
+            return Vec::new();
+        };
+        let seen: std::collections::BTreeSet<u64> =
+            self.change_results.iter().map(|r| r.frame_id).collect();
+        (0..count).filter(|id| !seen.contains(id)).collect()
+    }
+
+    /// Change results in frame order.
+    pub fn changes_by_frame(&self) -> Vec<&ChangeResult> {
+        let mut results: Vec<&ChangeResult> = self.change_results.iter().collect();
+        results.sort_by_key(|r| r.frame_id);
+        results
+    }
+
     pub fn accepted(&self) -> usize {
         self.results.iter().filter(|r| r.accepted).count()
     }
@@ -81,33 +116,49 @@ impl Collected {
     }
 }
 
-/// A subscriber to the results and metrics of a pipeline, opened before the stages start.
+/// A subscriber to the results (and change results) and metrics of a pipeline, opened before
+/// the stages start.
 pub struct Collector {
     results: Inbox,
     metrics: Inbox,
+    /// With change detection: the change stream (change results, change sets, its end).
+    changes: Option<Inbox>,
 }
 
 impl Collector {
-    pub fn open(transport: &dyn Transport) -> Result<Self, BusError> {
+    /// `changes`: also collect the change stream (the pipeline runs change detection), and
+    /// wait for its end as well.
+    pub fn open(transport: &dyn Transport, changes: bool) -> Result<Self, BusError> {
         Ok(Self {
             results: Inbox::open(transport, keys::RESULTS, "collector")?,
             metrics: Inbox::open(transport, keys::METRICS, "collector")?,
+            changes: if changes {
+                Some(Inbox::open(transport, keys::CHANGES, "collector")?)
+            } else {
+                None
+            },
         })
     }
 
-    /// Receives until the end of the stream (or `deadline`), calling `on_result` for each.
-    /// `keep_going` is polled; returning false ends the wait early (e.g. all stages died).
+    /// Receives until the end of the stream (and of the change stream, when collecting it) or
+    /// `deadline`, calling `on_result` for each result. `keep_going` is polled; returning false
+    /// ends the wait early (e.g. all stages died).
     pub fn collect(
         &mut self,
         deadline: Duration,
-        on_result: &mut dyn FnMut(&Header, &PoseResult),
+        on_result: &mut dyn FnMut(Delivered<'_>),
         keep_going: &mut dyn FnMut() -> bool,
     ) -> Result<Collected, BusError> {
         let started = Instant::now();
         let mut collected = Collected::default();
         let mut seen = std::collections::BTreeSet::new();
+        let mut seen_changes = std::collections::BTreeSet::new();
+        let mut changes_ended = self.changes.is_none();
         let mut scratch = StageMetrics::default();
-        while collected.frame_count.is_none() && started.elapsed() < deadline && keep_going() {
+        while !(collected.frame_count.is_some() && changes_ended)
+            && started.elapsed() < deadline
+            && keep_going()
+        {
             self.results.receive(
                 Duration::from_millis(50),
                 &mut scratch,
@@ -116,7 +167,7 @@ impl Collector {
                     // exactly-once check) but neither handed on nor kept.
                     Body::PoseResult(result) => {
                         if seen.insert(result.frame_id) {
-                            on_result(&message.header, &result);
+                            on_result(Delivered::Pose(&message.header, &result));
                             collected.results.push(result);
                         } else {
                             tracing::warn!(
@@ -131,6 +182,34 @@ impl Collector {
                     _ => {}
                 },
             )?;
+            // After the results: a frame's change result is printed after its pose.
+            if let Some(changes) = &mut self.changes {
+                while changes.receive(
+                    Duration::ZERO,
+                    &mut scratch,
+                    &mut |message, _| match message.body {
+                        Body::ChangeResult(result) => {
+                            if seen_changes.insert(result.frame_id) {
+                                on_result(Delivered::Change(&result));
+                                collected.change_results.push(result);
+                            } else {
+                                tracing::warn!(
+                                    "frame {} '{}': a second change result arrived; ignored",
+                                    result.frame_id,
+                                    result.name
+                                );
+                                collected.change_duplicates.push(result.frame_id);
+                            }
+                        }
+                        Body::ChangeSet(set) if set.complete => {
+                            on_result(Delivered::ChangeSet(&set));
+                            collected.change_set = Some(set);
+                        }
+                        Body::StreamEnd(_) => changes_ended = true,
+                        _ => {}
+                    },
+                )? {}
+            }
             self.drain_metrics(&mut collected)?;
         }
         collected.wall_s = started.elapsed().as_secs_f64();
@@ -245,6 +324,55 @@ pub fn summary(collected: &Collected, backend: &str) -> String {
         collected.transport_share_percent()
     );
     let _ = writeln!(text, "flow jobs per worker: {:?}", collected.flow_split());
+    if !collected.change_results.is_empty() || collected.change_set.is_some() {
+        let missing = collected.missing_changes();
+        let _ = writeln!(
+            text,
+            "exactly one change result per frame: {} (missing {:?}, duplicated {:?})",
+            if missing.is_empty() && collected.change_duplicates.is_empty() {
+                "yes"
+            } else {
+                "NO"
+            },
+            missing,
+            collected.change_duplicates
+        );
+        let mapped: Vec<f64> = collected
+            .change_results
+            .iter()
+            .filter(|r| r.failure.is_none())
+            .map(|r| r.change_ms)
+            .collect();
+        let registration: Vec<f64> = collected
+            .results
+            .iter()
+            .filter(|r| r.accepted)
+            .map(|r| r.times.render_ms + r.times.flow_ms + r.times.pose_ms + r.times.verify_ms)
+            .collect();
+        let _ = writeln!(
+            text,
+            "change maps: {} of {} frames; change stage per frame p50 {:.1} ms, p90 {:.1} ms (registration's compute per accepted frame: p50 {:.0} ms)",
+            mapped.len(),
+            collected.change_results.len(),
+            percentile(&mapped, 0.5),
+            percentile(&mapped, 0.9),
+            percentile(&registration, 0.5)
+        );
+        match &collected.change_set {
+            Some(set) => {
+                let _ = writeln!(
+                    text,
+                    "change set: {} objects ({} confirmed by ≥ {} frames)",
+                    set.objects.len(),
+                    set.objects.iter().filter(|o| o.confirmed).count(),
+                    set.fusion.min_frames
+                );
+            }
+            None => {
+                let _ = writeln!(text, "change set: NONE (the change stream did not end)");
+            }
+        }
+    }
     if collected.rejected_messages > 0 {
         let _ = writeln!(
             text,

@@ -6,6 +6,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::core::change::fusion::FusionConfig;
+use crate::core::change::ChangeConfig;
 use crate::core::frame::RegistrationConfig;
 use crate::stage::ingest::SourceConfig;
 use crate::transport::zenoh::ZenohSettings;
@@ -31,6 +33,10 @@ pub struct PipelineConfig {
     pub timeouts: Timeouts,
     pub launch: LaunchSettings,
     pub registration: RegistrationConfig,
+    /// Change detection of the change stage (`workers.change` > 0), as `asgreg changes`.
+    pub change: ChangeConfig,
+    /// How the fusion stage merges the frames' change regions into objects.
+    pub fusion: FusionConfig,
     /// Folder of the run's durable state: the results journal (`<pipeline>.results-journal`,
     /// the frames whose result is published), which a restarted ingest resumes from and a
     /// restarted verify reads so it publishes no result twice. Ingest and verify must see the
@@ -52,6 +58,8 @@ impl Default for PipelineConfig {
             timeouts: Timeouts::default(),
             launch: LaunchSettings::default(),
             registration: RegistrationConfig::default(),
+            change: ChangeConfig::default(),
+            fusion: FusionConfig::default(),
             state_dir: None,
         }
     }
@@ -68,6 +76,9 @@ pub struct Workers {
     /// Flow workers the launcher starts itself; the rest attach from other hosts (zenoh).
     pub flow_local: Option<u32>,
     pub pose: u32,
+    /// Change detection workers (accepted frames' change maps, dispatched like flow), plus one
+    /// fusion stage when > 0. 0: no change detection.
+    pub change: u32,
     /// Jobs a worker holds at once (1: strict sharing; 2 hides transport latency).
     pub slots: u32,
 }
@@ -79,6 +90,7 @@ impl Default for Workers {
             flow: 2,
             flow_local: None,
             pose: 1,
+            change: 0,
             slots: 1,
         }
     }
@@ -206,6 +218,11 @@ impl PipelineConfig {
         Ok(config)
     }
 
+    /// Whether the change and fusion stages run (`workers.change` > 0).
+    pub fn changes_enabled(&self) -> bool {
+        self.workers.change > 0
+    }
+
     fn resolve_paths(&mut self, base: &Path) {
         let resolve = |p: &mut PathBuf| {
             if !p.as_os_str().is_empty() && p.is_relative() {
@@ -319,6 +336,21 @@ impl PipelineConfig {
         self.registration
             .validate()
             .map_err(|e| invalid("registration", e.to_string()))?;
+        self.change
+            .validate()
+            .map_err(|e| invalid("change", e.to_string()))?;
+        if !(self.fusion.merge_distance_m.is_finite()
+            && self.fusion.merge_distance_m >= 0.0
+            && self.fusion.min_frames >= 1)
+        {
+            return Err(invalid(
+                "fusion",
+                format!(
+                    "merge_distance_m must be ≥ 0 (got {}) and min_frames ≥ 1 (got {})",
+                    self.fusion.merge_distance_m, self.fusion.min_frames
+                ),
+            ));
+        }
         Ok(())
     }
 }

@@ -169,12 +169,21 @@ impl<'t> Dispatcher<'t> {
             });
         if worker.incarnation != credit.incarnation {
             let lost = std::mem::take(&mut worker.outstanding);
-            tracing::warn!(
-                "{}: worker {} restarted; redoing its {} unfinished job(s)",
-                self.link,
-                credit.worker_index,
-                lost.len()
-            );
+            let level_warn = !lost.is_empty();
+            if level_warn {
+                tracing::warn!(
+                    "{}: worker {} restarted; redoing its {} unfinished job(s)",
+                    self.link,
+                    credit.worker_index,
+                    lost.len()
+                );
+            } else {
+                tracing::debug!(
+                    "{}: worker {} restarted or left with no unfinished job",
+                    self.link,
+                    credit.worker_index
+                );
+            }
             worker.incarnation = credit.incarnation;
             worker.last_heard = now;
             worker.presumed_dead = false;

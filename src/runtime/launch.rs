@@ -11,10 +11,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
-use crate::msg::{Header, PoseResult};
 use crate::transport::Transport;
 
-use super::collect::{Collected, Collector};
+use super::collect::{Collected, Collector, Delivered};
 use super::config::PipelineConfig;
 use super::RuntimeError;
 
@@ -104,7 +103,12 @@ impl StageCommand {
 
 /// The stage workers a configuration asks for on this host, downstream first.
 pub fn local_stages(config: &PipelineConfig) -> Vec<(&'static str, u32)> {
-    let mut stages = vec![("verify", 0), ("pose", 0)];
+    let mut stages = Vec::new();
+    if config.changes_enabled() {
+        stages.push(("fusion", 0));
+        stages.extend((0..config.workers.change).map(|w| ("change", w)));
+    }
+    stages.extend([("verify", 0), ("pose", 0)]);
     let flow_local = config.workers.flow_local.unwrap_or(config.workers.flow);
     stages.extend((0..flow_local).map(|w| ("flow", w)));
     stages.extend((0..config.workers.render).map(|w| ("render", w)));
@@ -119,12 +123,12 @@ pub fn launch(
     transport: &dyn Transport,
     command: &StageCommand,
     on_started: &mut dyn FnMut(&str, u32, u32),
-    on_result: &mut dyn FnMut(&Header, &PoseResult),
+    on_result: &mut dyn FnMut(Delivered<'_>),
 ) -> Result<Collected, RuntimeError> {
     // A new run: the results journal starts empty (restarted stages resume from it).
     let journal_path = super::journal::path(config);
     super::journal::reset(&journal_path)?;
-    let mut collector = Collector::open(transport)?;
+    let mut collector = Collector::open(transport, config.changes_enabled())?;
     let window = Duration::from_secs_f64(config.launch.restart_window_s);
     let mut processes: Vec<Supervised> = Vec::new();
     for (stage, worker) in local_stages(config) {

@@ -18,10 +18,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use crate::core::mesh::Mesh;
-use crate::msg::{Header, PoseResult};
 use crate::transport::Transport;
 
-use collect::{Collected, Collector};
+use collect::{Collected, Collector, Delivered};
 use config::PipelineConfig;
 use nodes::{NodeContext, NodeError};
 
@@ -52,7 +51,7 @@ pub fn run_in_process(
     transport: &dyn Transport,
     mesh: &Mesh,
     deadline: Duration,
-    on_result: &mut dyn FnMut(&Header, &PoseResult),
+    on_result: &mut dyn FnMut(Delivered<'_>),
 ) -> Result<Collected, RuntimeError> {
     // Threads do not restart, so nothing resumes: the run keeps its results journal in a folder
     // of its own (never shared with another run of the same pipeline name), removed at the end.
@@ -79,10 +78,10 @@ fn run_stage_threads(
     transport: &dyn Transport,
     mesh: &Mesh,
     deadline: Duration,
-    on_result: &mut dyn FnMut(&Header, &PoseResult),
+    on_result: &mut dyn FnMut(Delivered<'_>),
 ) -> Result<Collected, RuntimeError> {
     let stop = AtomicBool::new(false);
-    let mut collector = Collector::open(transport)?;
+    let mut collector = Collector::open(transport, config.changes_enabled())?;
     let context = |worker_index| NodeContext {
         transport,
         config,
@@ -94,6 +93,17 @@ fn run_stage_threads(
             std::thread::ScopedJoinHandle<'s, Result<crate::msg::StageMetrics, NodeError>>;
         let mut handles: Vec<(&'static str, u32, Handle)> = Vec::new();
         // Downstream first, so every stage finds its reader.
+        if config.changes_enabled() {
+            handles.push(("fusion", 0, scope.spawn(|| nodes::run_fusion(&context(0)))));
+            for worker in 0..config.workers.change {
+                let ctx = context(worker);
+                handles.push((
+                    "change",
+                    worker,
+                    scope.spawn(move || nodes::run_change(&ctx, mesh)),
+                ));
+            }
+        }
         handles.push((
             "verify",
             0,

@@ -10,12 +10,17 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use crate::core::mesh::Mesh;
-use crate::msg::{pose_result_json, Body, FrameFailed, JobKey, StageMetrics, StreamEnd};
+use crate::msg::{
+    change_result_json, change_set_json, pose_result_json, Body, FrameFailed, Header, JobKey,
+    StageMetrics, StreamEnd,
+};
+use crate::stage::change::ChangeStage;
 use crate::stage::flow::FlowStage;
+use crate::stage::fusion::FusionStage;
 use crate::stage::ingest::{FolderSource, SourceError};
 use crate::stage::pose::PoseStage;
 use crate::stage::render::RenderStage;
-use crate::stage::verify::VerifyStage;
+use crate::stage::verify::{ChangeWork, VerifyStage};
 use crate::transport::{keys, Transport};
 
 use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
@@ -25,6 +30,9 @@ use super::journal::{self, JournalError, ResultsJournal};
 
 /// How long a loop waits for a message before checking the stop flag.
 const POLL: Duration = Duration::from_millis(20);
+/// Change jobs verify queues for the change workers (verify never waits for them: a change job
+/// is a few ms of work per frame, far less than a frame's registration).
+const CHANGE_JOBS_QUEUED: usize = 1024;
 /// Most compute samples a metrics message carries (the most recent ones).
 const MAX_SAMPLES: usize = 4096;
 
@@ -493,6 +501,9 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
     verify.wait_for_reader("verify", ctx.startup())?;
     let mut stage = RenderStage::new(mesh, config.registration.clone());
+    if config.changes_enabled() {
+        stage = stage.with_depth_forwarding();
+    }
     // Room for a whole frame's jobs before taking it (soft: a frame may bring more than the queue
     // holds when the pose search gives it several centres).
     let frame_room = config
@@ -708,6 +719,23 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         config.registration.clone(),
         Duration::from_secs_f64(config.timeouts.frame_timeout_s),
     );
+    // With change detection: accepted frames' change jobs go to the change workers, the other
+    // frames' change results (why there is none) and the end of the stream to fusion.
+    let mut changes = if config.changes_enabled() {
+        stage = stage.with_changes();
+        let dispatcher = Dispatcher::open(
+            ctx.transport,
+            keys::CHANGE_LINK,
+            CHANGE_JOBS_QUEUED,
+            Duration::from_secs_f64(config.timeouts.worker_silence_s),
+        )?;
+        let mut fusion = Outbox::open(ctx.transport, keys::FUSION_IN)?;
+        fusion.wait_for_reader("fusion", ctx.startup())?;
+        Some((dispatcher, fusion))
+    } else {
+        None
+    };
+    let mut fusion_told_end: Option<Instant> = None;
     let mut capture_times: HashMap<u64, u64> = HashMap::new();
     let mut stream_ended = false;
     // Results published before a restart of this stage are not published again.
@@ -751,8 +779,10 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             record_compute(metrics, started);
         })?;
         produced.extend(stage.expire(Instant::now()));
+        let mut change_captures = Vec::new();
         for mut result in produced {
             let capture = capture_times.remove(&result.frame_id).unwrap_or(0);
+            change_captures.push((result.frame_id, capture));
             if published.contains(&result.frame_id) {
                 tracing::info!(
                     "verify: frame {} already has its published result (before a restart); not publishing it again",
@@ -789,6 +819,49 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 }
             }
         }
+        if let Some((dispatcher, fusion)) = &mut changes {
+            // Also for a frame published before a restart: fusion keeps the first change result.
+            for work in stage.change_work.drain(..) {
+                let (frame_id, body) = match work {
+                    ChangeWork::Job(frame_id, job) => (frame_id, Body::ChangeJob(*job)),
+                    ChangeWork::Result(result) => (result.frame_id, Body::ChangeResult(result)),
+                };
+                let capture = change_captures
+                    .iter()
+                    .find(|(id, _)| *id == frame_id)
+                    .map_or(0, |(_, capture)| *capture);
+                match body {
+                    Body::ChangeJob(job) => {
+                        let key = JobKey {
+                            frame_id,
+                            coarse_index: 0,
+                        };
+                        dispatcher
+                            .push(key, encode_to_vec(frame_id, capture, Body::ChangeJob(job))?);
+                    }
+                    body => {
+                        fusion.send(frame_id, capture, body, &mut metrics)?;
+                    }
+                }
+            }
+            dispatcher.pump(Duration::ZERO)?;
+            if let Some(frame_count) = stage.stream_complete() {
+                // Repeated now and then: fusion takes the first, and a restarted one learns it.
+                if fusion_told_end.is_none_or(|at| at.elapsed() >= Duration::from_secs(2)) {
+                    fusion.send(
+                        0,
+                        0,
+                        Body::StreamEnd(StreamEnd {
+                            frame_count,
+                            finished_frames: Vec::new(),
+                        }),
+                        &mut metrics,
+                    )?;
+                    fusion_told_end = Some(Instant::now());
+                }
+            }
+            metrics.redispatched = dispatcher.metrics.redispatched;
+        }
         if !stream_ended {
             if let Some(frame_count) = stage.stream_complete() {
                 stream_ended = true;
@@ -805,6 +878,148 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             }
         }
         metrics.max_queue_depth = metrics.max_queue_depth.max(stage.pending_frames() as u64);
+        reporter.tick(&metrics, false);
+    }
+    reporter.tick(&metrics, true);
+    Ok(metrics)
+}
+
+/// Stage "change" (N workers): one accepted frame's change job at a time, its change result to
+/// fusion.
+pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
+    let mut metrics = ctx.metrics("change");
+    let mut reporter = MetricsReporter::open(ctx.transport)?;
+    let mut port = WorkerPort::open(
+        ctx.transport,
+        keys::CHANGE_LINK,
+        ctx.worker_index,
+        ctx.config.workers.slots,
+        "change",
+    )?;
+    let mut fusion = Outbox::open(ctx.transport, keys::FUSION_IN)?;
+    fusion.wait_for_reader("fusion", ctx.startup())?;
+    let mut stage = ChangeStage::new(mesh, ctx.config.change, ctx.worker_index);
+    while !ctx.stopped() {
+        let mut finished: Option<Result<JobKey, BusError>> = None;
+        port.receive(POLL, &mut metrics, &mut |message, metrics| {
+            let frame_id = message.header.frame_id;
+            let Body::ChangeJob(job) = message.body else {
+                unexpected("change", message.body.kind(), frame_id);
+                return;
+            };
+            let started = Instant::now();
+            let result = stage.process(frame_id, &job);
+            record_compute(metrics, started);
+            finished = Some(
+                fusion
+                    .send(
+                        frame_id,
+                        message.header.capture_time_ns,
+                        Body::ChangeResult(result),
+                        metrics,
+                    )
+                    .map(|_| JobKey {
+                        frame_id,
+                        coarse_index: 0,
+                    }),
+            );
+        })?;
+        if let Some(finished) = finished {
+            port.finished(finished?)?;
+        }
+        reporter.tick(&metrics, false);
+    }
+    if let Err(error) = port.leave() {
+        tracing::debug!("jobs not handed back (their producer is gone too): {error}");
+    }
+    reporter.tick(&metrics, true);
+    Ok(metrics)
+}
+
+/// Stage "fusion": publishes each frame's first change result (bincode on `changes`, JSON on
+/// `changes/json`), the fused change set now and then while frames arrive, and, once every
+/// frame has its change result, the final set (`changeset/json` too) and the end of the change
+/// stream.
+pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
+    let mut metrics = ctx.metrics("fusion");
+    let mut reporter = MetricsReporter::open(ctx.transport)?;
+    let mut inbox = Inbox::open(ctx.transport, keys::FUSION_IN, "fusion")?;
+    let mut changes = Outbox::open(ctx.transport, keys::CHANGES)?;
+    let mut changes_json = Outbox::open(ctx.transport, keys::CHANGES_JSON)?;
+    let mut set_json = Outbox::open(ctx.transport, keys::CHANGE_SET_JSON)?;
+    let mut stage = FusionStage::new(ctx.config.fusion);
+    let mut completed = false;
+    // Results since the last published set, and when it was published.
+    let mut unpublished = 0usize;
+    let mut last_set = Instant::now();
+    while !ctx.stopped() {
+        let mut sent: Result<(), BusError> = Ok(());
+        inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
+            let frame_id = message.header.frame_id;
+            let capture = message.header.capture_time_ns;
+            let started = Instant::now();
+            match message.body {
+                Body::ChangeResult(result) => {
+                    if let Some(result) = stage.on_result(result) {
+                        let header = Header {
+                            frame_id,
+                            sequence: 0,
+                            capture_time_ns: capture,
+                            sent_time_ns: unix_time_ns(),
+                        };
+                        let json = change_result_json(&header, result);
+                        if sent.is_ok() {
+                            let body = Body::ChangeResult(result.clone());
+                            sent = changes
+                                .send(frame_id, capture, body, metrics)
+                                .and_then(|_| changes_json.send_raw(json.as_bytes()));
+                        }
+                        unpublished += 1;
+                    }
+                }
+                Body::StreamEnd(end) => stage.on_stream_end(end.frame_count),
+                other => unexpected("fusion", other.kind(), frame_id),
+            }
+            record_compute(metrics, started);
+        })?;
+        sent?;
+        let complete = !completed && stage.is_complete();
+        if complete || (unpublished > 0 && last_set.elapsed() >= Duration::from_secs(1)) {
+            let started = Instant::now();
+            let set = stage.change_set();
+            record_compute(&mut metrics, started);
+            let header = Header {
+                frame_id: 0,
+                sequence: 0,
+                capture_time_ns: 0,
+                sent_time_ns: unix_time_ns(),
+            };
+            let json = change_set_json(&header, &set);
+            if complete {
+                tracing::info!(
+                    "fusion: all {} frames have their change result: {} objects ({} confirmed)",
+                    stage.result_count(),
+                    set.objects.len(),
+                    set.objects.iter().filter(|o| o.confirmed).count()
+                );
+            }
+            changes.send(0, 0, Body::ChangeSet(set), &mut metrics)?;
+            set_json.send_raw(json.as_bytes())?;
+            unpublished = 0;
+            last_set = Instant::now();
+            if complete {
+                completed = true;
+                changes.send(
+                    0,
+                    0,
+                    Body::StreamEnd(StreamEnd {
+                        frame_count: stage.result_count() as u64,
+                        finished_frames: Vec::new(),
+                    }),
+                    &mut metrics,
+                )?;
+            }
+        }
         reporter.tick(&metrics, false);
     }
     reporter.tick(&metrics, true);

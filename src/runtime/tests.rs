@@ -58,7 +58,7 @@ fn run_on_crossbeam(config: &PipelineConfig) -> (crate::core::mesh::Mesh, collec
         &transport,
         &mesh,
         Duration::from_secs(300),
-        &mut |_, _| {},
+        &mut |_| {},
     )
     .unwrap();
     (mesh, collected)
@@ -162,7 +162,7 @@ fn bad_messages_are_rejected_and_the_pipeline_goes_on() {
             &transport,
             &mesh,
             Duration::from_secs(300),
-            &mut |_, _| {},
+            &mut |_| {},
         )
         .unwrap()
     });
@@ -327,7 +327,7 @@ fn the_collector_hands_on_one_result_per_frame() {
     use crate::msg::{Body, Evidence, PoseResult, StageTimesMs, StreamEnd};
 
     let transport = CrossbeamTransport::new(crate::transport::conformance::config("collector"));
-    let mut collector = collect::Collector::open(&transport).unwrap();
+    let mut collector = collect::Collector::open(&transport, false).unwrap();
     let mut results = bus::Outbox::open(&transport, keys::RESULTS).unwrap();
     let result = |frame_id: u64, reason: &str| PoseResult {
         frame_id,
@@ -363,7 +363,11 @@ fn the_collector_hands_on_one_result_per_frame() {
     let collected = collector
         .collect(
             Duration::from_secs(30),
-            &mut |_, r| handed_on.push((r.frame_id, r.failure.clone().unwrap_or_default())),
+            &mut |delivered| {
+                if let collect::Delivered::Pose(_, r) = delivered {
+                    handed_on.push((r.frame_id, r.failure.clone().unwrap_or_default()))
+                }
+            },
             &mut || true,
         )
         .unwrap();
@@ -397,7 +401,7 @@ fn restarted_ingest_and_verify_resume_from_the_results_journal() {
         &transport,
         &mesh,
         Duration::from_secs(300),
-        &mut |_, _| {},
+        &mut |_| {},
     )
     .unwrap();
     assert_eq!(collected.frame_count, Some(4));

@@ -26,7 +26,8 @@ pub struct SourceConfig {
     pub cameras: PathBuf,
     /// The initial (GPS/IMU) poses: a COLMAP `images.txt` or `images.bin`, or a model folder.
     pub poses: PathBuf,
-    /// Folder of depth maps (`<image stem>.pfm`); set to register with the depth-ASG query.
+    /// Folder of depth maps (`<image stem>.pfm`): the change stage's photo depth, and the
+    /// depth-ASG query when `registration.query_mode` asks for it.
     pub depth: Option<PathBuf>,
     /// False: the intrinsics are estimated (DLT) instead of trusted (EPnP).
     pub intrinsics_known: bool,

@@ -2,7 +2,9 @@
 //! with a `process` method, testable without any transport; `runtime` runs them as threads or
 //! processes and moves their messages. No transport, no async, no I/O of the bus here.
 
+pub mod change;
 pub mod flow;
+pub mod fusion;
 pub mod ingest;
 pub mod pose;
 pub mod render;

@@ -1,5 +1,5 @@
 //! Stage "render": a Frame becomes its FrameQuery (the query gradient, for verify's final
-//! refinement) and one FlowJob per coarse pose (the query gradient and the ASG rendering, depth
+//! refinement, and with change detection the frame's depth map, which verify hands on) and one FlowJob per coarse pose (the query gradient and the ASG rendering, depth
 //! and face index of the view), by the frame sequence's own query, plan and render steps
 //! (`core::frame`).
 
@@ -20,6 +20,8 @@ pub struct RenderStage<'m> {
     config: RegistrationConfig,
     rasterizer: Rasterizer,
     view: CoarseView,
+    /// Whether the frame's depth map goes to verify with the query (for the change stage).
+    forward_depth: bool,
 }
 
 impl<'m> RenderStage<'m> {
@@ -29,7 +31,14 @@ impl<'m> RenderStage<'m> {
             config,
             rasterizer: Rasterizer::new(),
             view: CoarseView::default(),
+            forward_depth: false,
         }
+    }
+
+    /// Sends each frame's depth map to verify with its query (the change stage runs).
+    pub fn with_depth_forwarding(mut self) -> Self {
+        self.forward_depth = true;
+        self
     }
 
     /// Hands the frame's query to `emit_query`, then renders the frame's coarse views and hands
@@ -64,6 +73,11 @@ impl<'m> RenderStage<'m> {
         emit_query(FrameQuery {
             info: info.clone(),
             query: Cow::Borrowed(query.data()),
+            depth_m: if self.forward_depth {
+                Cow::Borrowed(&frame.depth_m[..])
+            } else {
+                Cow::Borrowed(&[])
+            },
         });
         render_views(
             self.mesh,

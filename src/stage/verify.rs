@@ -13,13 +13,24 @@ use crate::core::frame::{
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::msg::{
-    CameraNumbers, Evidence, FrameFailed, FrameInfo, FrameQuery, Hypothesis, PoseNumbers,
-    PoseResult, RefinementNumbers, StageTimesMs,
+    CameraNumbers, ChangeJob, ChangeJobMeta, ChangeResult, Evidence, FrameFailed, FrameInfo,
+    FrameQuery, Hypothesis, PoseNumbers, PoseResult, RefinementNumbers, StageTimesMs,
 };
 
+use super::change::not_registered;
 use super::elapsed_ms;
 
+/// What the change stage gets of a decided frame.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ChangeWork {
+    /// An accepted frame: its change job (to the change workers).
+    Job(u64, Box<ChangeJob<'static>>),
+    /// A frame without a pose: its change result, saying why there is no change map.
+    Result(ChangeResult),
+}
+
 struct PendingFrame {
+    info: FrameInfo,
     name: String,
     camera: Camera,
     intrinsics: IntrinsicsMode,
@@ -28,18 +39,22 @@ struct PendingFrame {
     hypotheses: BTreeMap<u32, Hypothesis>,
     /// The frame's query gradient image (render sends it before the flow jobs).
     query: Option<Image<f32>>,
+    /// The photo's depth map (render sends it with the query), for the change stage.
+    depth_m: Option<Image<f32>>,
     first_seen: Instant,
 }
 
 impl PendingFrame {
     fn new(info: &FrameInfo) -> Self {
         Self {
+            info: info.clone(),
             name: info.name.clone(),
             camera: info.camera,
             intrinsics: IntrinsicsMode::from_known(info.intrinsics_known),
             coarse_count: None,
             hypotheses: BTreeMap::new(),
             query: None,
+            depth_m: None,
             first_seen: Instant::now(),
         }
     }
@@ -63,6 +78,10 @@ pub struct VerifyStage<'m> {
     stream_frame_count: Option<u64>,
     /// Messages for frames that already had their result (redone jobs), ignored.
     pub late_messages: u64,
+    /// Whether decided frames make change work (the change stage runs).
+    changes: bool,
+    /// Change work of the frames decided so far, oldest first (the runtime takes it).
+    pub change_work: Vec<ChangeWork>,
 }
 
 impl<'m> VerifyStage<'m> {
@@ -77,7 +96,53 @@ impl<'m> VerifyStage<'m> {
             finished_above: BTreeSet::new(),
             stream_frame_count: None,
             late_messages: 0,
+            changes: false,
+            change_work: Vec::new(),
         }
+    }
+
+    /// Makes every decided frame also give its change work (`change_work`).
+    pub fn with_changes(mut self) -> Self {
+        self.changes = true;
+        self
+    }
+
+    /// Queues the change work of a frame decided as `result` (accepted: with its registered
+    /// camera and pose from `decided`).
+    fn queue_change_work(
+        &mut self,
+        result: &PoseResult,
+        decided: Option<(
+            &FrameInfo,
+            Camera,
+            crate::core::rigid::Rigid3,
+            Option<Image<f32>>,
+        )>,
+    ) {
+        if !self.changes {
+            return;
+        }
+        let work = match decided {
+            Some((info, camera, cam_from_world, depth_m)) if result.accepted => ChangeWork::Job(
+                result.frame_id,
+                Box::new(ChangeJob {
+                    meta: ChangeJobMeta {
+                        info: info.clone(),
+                        camera,
+                        cam_from_world,
+                    },
+                    depth_m: std::borrow::Cow::Owned(
+                        depth_m.map(Image::into_data).unwrap_or_default(),
+                    ),
+                }),
+            ),
+            _ => ChangeWork::Result(not_registered(
+                result.frame_id,
+                &result.name,
+                result.failure.as_deref(),
+            )),
+        };
+        self.change_work.push(work);
     }
 
     fn is_finished(&self, frame_id: u64) -> bool {
@@ -142,6 +207,15 @@ impl<'m> VerifyStage<'m> {
         if pending.query.replace(image).is_some() {
             self.late_messages += 1;
         }
+        if self.changes {
+            match query.depth() {
+                Ok(depth) => pending.depth_m = depth.map(|d| d.to_image()),
+                Err(error) => tracing::warn!(
+                    "frame {frame_id} '{}': depth map unusable ({error}); its change result will say no depth",
+                    query.info.name
+                ),
+            }
+        }
         self.decide_if_complete(frame_id)
     }
 
@@ -163,11 +237,13 @@ impl<'m> VerifyStage<'m> {
             return None;
         }
         self.mark_finished(frame_id);
-        Some(failed_result(
+        let result = failed_result(
             frame_id,
             &failure.name,
             format!("{}: {}", failure.stage, failure.reason),
-        ))
+        );
+        self.queue_change_work(&result, None);
+        Some(result)
     }
 
     /// The source produced `frame_count` frames (ids 0..frame_count), of which `finished_frames`
@@ -208,14 +284,16 @@ impl<'m> VerifyStage<'m> {
                 } else {
                     "every coarse pose".to_string()
                 };
-                results.push(failed_result(
+                let result = failed_result(
                     frame_id,
                     &frame.name,
                     format!(
                         "verify: timed out after {:.0} s waiting for {waited_for} (a stage lost them; see its log)",
                         self.frame_timeout.as_secs_f64(),
                     ),
-                ));
+                );
+                self.queue_change_work(&result, None);
+                results.push(result);
             }
             self.mark_finished(frame_id);
         }
@@ -264,7 +342,8 @@ impl<'m> VerifyStage<'m> {
             times.pose_ms += hypothesis.pose_ms;
         }
         times.verify_ms = elapsed_ms(started);
-        PoseResult {
+        let registered = accepted.map(|h| (h.camera, h.cam_from_world));
+        let result = PoseResult {
             frame_id,
             name: frame.name,
             accepted: verdict.accepted(),
@@ -286,7 +365,13 @@ impl<'m> VerifyStage<'m> {
             },
             times,
             flow_workers: frame.hypotheses.values().map(|h| h.flow_worker).collect(),
-        }
+        };
+        let PendingFrame { info, depth_m, .. } = frame;
+        self.queue_change_work(
+            &result,
+            registered.map(|(camera, pose)| (&info, camera, pose, depth_m)),
+        );
+        result
     }
 }
 

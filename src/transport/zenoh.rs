@@ -1,6 +1,6 @@
 //! Network transport between hosts (zenoh): the stages of one pipeline spread over several
 //! machines (a ground station and remote flow-worker hosts), and any outside subscriber (Python,
-//! C, ROS 2 via zenoh) reading the results as `asgreg/v3/<pipeline>/results/json` (docs/design.md §5).
+//! C, ROS 2 via zenoh) reading the results as `asgreg/v4/<pipeline>/results/json` (docs/design.md §5).
 //!
 //! **Topology.** The ground station runs one zenoh *router* (the launcher runs it as a process of
 //! its own that calls [`open_router`]; `deploy/zenoh/router.json5` is the same as a file). Every
@@ -926,7 +926,7 @@ mod tests {
                 b"allowed"
             ))
             .unwrap());
-        // A key outside asgreg/v3/** is not routed.
+        // A key outside asgreg/v4/** is not routed.
         let outside = subscriber_side
             .session
             .declare_subscriber("other/results")
@@ -951,7 +951,7 @@ mod tests {
 
     #[test]
     #[ignore = "needs python3 with eclipse-zenoh (.ci/run installs it)"]
-    fn python_subscriber_prints_published_results() {
+    fn python_subscriber_prints_published_results_and_the_change_set() {
         let python_has_zenoh = Command::new("python3")
             .args(["-c", "import zenoh"])
             .stdout(Stdio::null())
@@ -966,6 +966,8 @@ mod tests {
         let endpoint = shared_router_endpoint();
         let config = crate::transport::conformance::config("python");
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/subscribe.py");
+        let out_dir = tempfile::tempdir().expect("temporary folder");
+        let geojson_path = out_dir.path().join("changes.geojson");
         let mut child = Command::new("python3")
             .arg(&script)
             .args([
@@ -975,7 +977,10 @@ mod tests {
                 &config.pipeline,
                 "--count",
                 "2",
+                "--until-change-set",
+                "--changes-out",
             ])
+            .arg(&geojson_path)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
@@ -1018,6 +1023,59 @@ mod tests {
                 .send(crate::msg::pose_result_json(&header, &result).as_bytes())
                 .expect("send");
         }
+        // The change stream: one frame's change result, then the final fused set.
+        let header = crate::msg::Header::default();
+        let region = crate::core::change::ChangeRegion {
+            kind: crate::core::change::ChangeKind::Added,
+            pixel_count: 120,
+            surface_area_m2: 40.0,
+            footprint_area_m2: 16.0,
+            height_m: 6.0,
+            vertical_extent_m: 6.0,
+            footprint_width_m: 4.0,
+            footprint_length_m: 4.0,
+            depth_difference_m: -6.0,
+            centroid_m: [2.0, 2.0, 3.0],
+            footprint_m: vec![[0.0, 0.0], [4.0, 0.0], [4.0, 4.0], [0.0, 4.0]],
+            confidence: 0.9,
+            bbox_px: [1, 2, 30, 40],
+        };
+        let change = crate::msg::ChangeResult {
+            frame_id: 0,
+            name: "frame_0001.jpg".to_string(),
+            failure: None,
+            counts: Default::default(),
+            regions: vec![region.clone()],
+            change_ms: 4.5,
+            change_worker: Some(0),
+        };
+        let set = crate::msg::ChangeSet {
+            complete: true,
+            frame_count: Some(2),
+            frames_with_result: 2,
+            frames_with_map: 1,
+            objects: crate::core::change::fusion::fuse_regions(
+                &[(0, &region)],
+                &Default::default(),
+            ),
+            fusion: Default::default(),
+        };
+        for (topic, text) in [
+            (
+                keys::CHANGES_JSON,
+                crate::msg::change_result_json(&header, &change),
+            ),
+            (
+                keys::CHANGE_SET_JSON,
+                crate::msg::change_set_json(&header, &set),
+            ),
+        ] {
+            let mut publisher = transport.publisher(topic).expect("publisher");
+            assert!(publisher
+                .wait_for_subscriber(Duration::from_secs(30))
+                .unwrap());
+            publisher.send(text.as_bytes()).expect("send");
+        }
         let deadline = Instant::now() + Duration::from_secs(30);
         let status = loop {
             if let Some(status) = child.try_wait().expect("wait python") {
@@ -1046,6 +1104,16 @@ mod tests {
         assert!(status.success(), "python: {status}\n{stdout}\n{stderr}");
         assert!(stdout.contains("frame_0001.jpg"), "{stdout}");
         assert!(stdout.contains("frame_0002.jpg"), "{stdout}");
+        assert!(stdout.contains("1 change regions"), "{stdout}");
+        assert!(
+            stdout.contains("change set (final): 1 objects, 0 confirmed"),
+            "{stdout}"
+        );
+        let geojson: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(&geojson_path).expect("the GeoJSON the subscriber wrote"),
+        )
+        .expect("GeoJSON");
+        assert_eq!(geojson["features"].as_array().map(Vec::len), Some(1));
         println!("{stdout}");
     }
 }

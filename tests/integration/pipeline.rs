@@ -391,3 +391,201 @@ fn shipped_deployment_configs_parse() {
             .unwrap_or_else(|error| panic!("{file}: {error}"));
     }
 }
+
+/// The change results of a run, frame by frame, without the parts that legitimately differ
+/// between runs (time, which worker).
+fn change_results(out: &Path) -> Vec<serde_json::Value> {
+    let text = std::fs::read_to_string(out.join("changes.jsonl")).unwrap();
+    text.lines()
+        .map(|line| {
+            let mut value: serde_json::Value = serde_json::from_str(line).unwrap();
+            let object = value.as_object_mut().unwrap();
+            object.remove("change_ms");
+            object.remove("change_worker");
+            value
+        })
+        .collect()
+}
+
+fn change_set(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("change_set.json")).unwrap()).unwrap()
+}
+
+/// Change detection in the pipeline on a tiny `synth --changes` scene (5 photos, 160×88, given
+/// depth maps): `run` prints a change result per frame (a map for the registered frames, the
+/// reason for the others) and the fused change set; `launch` over iceoryx2 with 2 change
+/// workers, one of them SIGKILLed mid-stream, gives every frame exactly one change result and
+/// the same change set as `run`.
+#[test]
+fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_set() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let output = asgreg(&[
+        "synth",
+        "--out",
+        path_str(&scene),
+        "--width",
+        "160",
+        "--height",
+        "88",
+        "--images",
+        "5",
+        "--levels",
+        "30",
+        "--seed",
+        "2",
+        "--changes",
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let depth = format!("[source]\ndepth = \"{}\"\n", scene.join("depth").display());
+    let body = |name: &str, extra_source: &str| {
+        format!(
+            "{depth}{extra_source}\n{}",
+            common(&unique(name), 2, "change = 2")
+        )
+    };
+    let run_config = write_config(
+        dir.path(),
+        "changes-run.toml",
+        &scene,
+        "crossbeam",
+        &body("chg-run", ""),
+    );
+    let out_run = dir.path().join("out-run");
+    let output = asgreg(&[
+        "run",
+        "--config",
+        path_str(&run_config),
+        "--out",
+        path_str(&out_run),
+    ]);
+    let printed = stdout(&output);
+    assert!(output.status.success(), "{printed}\n{}", stderr(&output));
+    for frame in 0..5 {
+        assert!(
+            printed.contains(&format!("change {frame:>3} view_{frame:03}")),
+            "no change result printed for frame {frame}:\n{printed}"
+        );
+    }
+    assert!(
+        printed.contains("exactly one change result per frame: yes"),
+        "{printed}"
+    );
+    assert!(printed.contains("change set: "), "{printed}");
+    let reference = change_results(&out_run);
+    assert_eq!(reference.len(), 5);
+    let accepted: Vec<bool> = results(&out_run)
+        .iter()
+        .map(|r| r["accepted"].as_bool().unwrap())
+        .collect();
+    assert!(
+        accepted.iter().any(|a| *a),
+        "no frame registered: the change stage made no change map"
+    );
+    for (result, accepted) in reference.iter().zip(&accepted) {
+        let failure = result["failure"].as_str();
+        if *accepted {
+            assert_eq!(failure, None, "{result}");
+        } else {
+            assert!(
+                failure.is_some_and(|f| f.starts_with("not registered: ")),
+                "{result}"
+            );
+        }
+    }
+    let reference_set = change_set(&out_run);
+    assert_eq!(reference_set["complete"], true);
+
+    // launch, 2 change workers, frames at 4/s; change worker 0 is killed after the first result.
+    let launch_config = write_config(
+        dir.path(),
+        "changes-iox.toml",
+        &scene,
+        "iceoryx2",
+        &body("chg-iox", "rate_hz = 4.0\n"),
+    );
+    let out_iox = dir.path().join("out-iox");
+    let mut launcher = command(&[
+        "launch",
+        path_str(&launch_config),
+        "--out",
+        path_str(&out_iox),
+    ])
+    .spawn()
+    .unwrap();
+    let (events, received) = mpsc::channel::<Event>();
+    let pid_events = events.clone();
+    let stderr = launcher.stderr.take().unwrap();
+    let log = std::thread::spawn(move || {
+        let mut text = String::new();
+        for line in BufReader::new(stderr).lines() {
+            let line = line.unwrap();
+            if let Some(pid) = line.strip_prefix("launch: change worker 0 pid ") {
+                let pid = pid.trim().parse::<u32>().unwrap();
+                let _ = pid_events.send(Event::Started {
+                    stage: "change",
+                    pid,
+                });
+            }
+            text.push_str(&line);
+            text.push('\n');
+        }
+        text
+    });
+    let stdout = launcher.stdout.take().unwrap();
+    let printed = std::thread::spawn(move || {
+        let mut text = String::new();
+        for line in BufReader::new(stdout).lines() {
+            let line = line.unwrap();
+            if line.starts_with("frame ") {
+                let _ = events.send(Event::Result);
+            }
+            text.push_str(&line);
+            text.push('\n');
+        }
+        text
+    });
+    let mut starts = Vec::new();
+    loop {
+        match received.recv_timeout(Duration::from_secs(120)) {
+            Ok(Event::Started { pid, .. }) => starts.push(pid),
+            Ok(Event::Result) => break,
+            Err(_) => {
+                let _ = launcher.kill();
+                panic!("no result from the launcher:\n{}", log.join().unwrap());
+            }
+        }
+    }
+    let killed = Command::new("kill")
+        .args(["-9", &starts[0].to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let status = launcher.wait().unwrap();
+    let log = log.join().unwrap();
+    let printed = printed.join().unwrap();
+    assert!(status.success(), "launch failed:\n{printed}\n{log}");
+    while let Ok(event) = received.try_recv() {
+        if let Event::Started { pid, .. } = event {
+            starts.push(pid);
+        }
+    }
+    assert!(
+        starts.len() >= 2,
+        "the killed change worker was not restarted:\n{log}"
+    );
+    assert!(
+        printed.contains("exactly one change result per frame: yes"),
+        "{printed}"
+    );
+    assert_eq!(
+        change_results(&out_iox),
+        reference,
+        "launch's change results differ from run's:\n{printed}"
+    );
+    assert_eq!(
+        change_set(&out_iox),
+        reference_set,
+        "launch's change set differs from run's"
+    );
+}
