@@ -19,6 +19,7 @@
 
 pub mod fusion;
 pub mod polygon;
+pub mod stereo;
 
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
