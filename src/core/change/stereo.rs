@@ -34,6 +34,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::core::camera::{nearest_pixel, pixel_center, PinholeIntrinsics};
 use crate::core::edge_align::{bilinear, parabola_peak};
+use crate::core::frame::views::median_scene_depth_m;
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::raster::{Rasterizer, RenderBuffers, RenderOptions};
@@ -75,6 +76,12 @@ pub struct StereoConfig {
     pub left_right_check: bool,
     /// Tolerance of that check, in plane steps of inverse depth.
     pub consistency_planes: f32,
+    /// With the check: keep depths the neighbour cannot confirm (its own depth is a hole there)
+    /// and drop only those it contradicts.
+    pub keep_unconfirmed: bool,
+    /// Holes filled from their (2r+1)² working neighbourhood when at least half of it has depth
+    /// that agrees (quartiles within 3 % in inverse depth): the median; 0 = no filling.
+    pub fill_radius_px: usize,
     /// Near end of the range: the model's 2nd depth percentile × this.
     pub near_factor: f32,
     /// Far end of the range: the model's 98th depth percentile × this.
@@ -91,10 +98,12 @@ impl Default for StereoConfig {
             max_planes: 192,
             best_k: 2,
             max_cost: 0.5,
-            min_texture: 0.01,
-            uniqueness_margin: 0.05,
+            min_texture: 0.004,
+            uniqueness_margin: 0.02,
             left_right_check: true,
             consistency_planes: 2.0,
+            keep_unconfirmed: false,
+            fill_radius_px: 2,
             near_factor: 0.6,
             far_factor: 1.4,
         }
@@ -313,6 +322,77 @@ pub fn select_neighbours(
         .collect()
 }
 
+/// Median depth of the model under `camera`'s pose, rendered at a quarter of its size (the
+/// `scene_depth_m` of [`select_neighbours`]); `None` when the model is not in view.
+pub fn scene_depth_m(mesh: &Mesh, camera: &PosedCamera) -> Option<f64> {
+    let (w, h) = (camera.width_px.div_ceil(4), camera.height_px.div_ceil(4));
+    let k = &camera.intrinsics;
+    let (sx, sy) = (
+        w as f64 / camera.width_px.max(1) as f64,
+        h as f64 / camera.height_px.max(1) as f64,
+    );
+    let intrinsics = PinholeIntrinsics {
+        fx_px: k.fx_px * sx,
+        fy_px: k.fy_px * sy,
+        cx_px: k.cx_px * sx,
+        cy_px: k.cy_px * sy,
+        skew_px: k.skew_px * sx,
+    };
+    let mut buffers = RenderBuffers::new(w, h);
+    Rasterizer::new().render(
+        mesh,
+        &intrinsics,
+        &camera.cam_from_world,
+        &RenderOptions::default(),
+        &mut buffers,
+    );
+    median_scene_depth_m(&buffers)
+}
+
+/// How a depth map compares with a reference depth map of the same size (both 0 = hole).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct DepthErrors {
+    /// Pixels where both have a depth.
+    pub compared: usize,
+    /// Median |estimate − reference| / reference over them.
+    pub median_relative: f64,
+    /// Shares of them within 1, 2 and 5 %.
+    pub within_1_percent: f64,
+    pub within_2_percent: f64,
+    pub within_5_percent: f64,
+    /// Share of the reference's depth pixels that have an estimate.
+    pub valid_share: f64,
+}
+
+/// The error distribution of `estimate` against `reference` (e.g. a true or MVS depth map).
+pub fn depth_errors(estimate: ImageView<'_, f32>, reference: ImageView<'_, f32>) -> DepthErrors {
+    let mut relative: Vec<f64> = estimate
+        .data()
+        .iter()
+        .zip(reference.data())
+        .filter(|(e, t)| **e > 0.0 && **t > 0.0 && e.is_finite() && t.is_finite())
+        .map(|(e, t)| f64::from((e - t).abs() / t))
+        .collect();
+    let with_reference = reference.data().iter().filter(|t| **t > 0.0).count();
+    let n = relative.len().max(1) as f64;
+    let within = |limit: f64| relative.iter().filter(|r| **r <= limit).count() as f64 / n;
+    let (w1, w2, w5) = (within(0.01), within(0.02), within(0.05));
+    let median_relative = if relative.is_empty() {
+        f64::INFINITY
+    } else {
+        let middle = relative.len() / 2;
+        *relative.select_nth_unstable_by(middle, f64::total_cmp).1
+    };
+    DepthErrors {
+        compared: relative.len(),
+        median_relative,
+        within_1_percent: w1,
+        within_2_percent: w2,
+        within_5_percent: w5,
+        valid_share: relative.len() as f64 / with_reference.max(1) as f64,
+    }
+}
+
 /// The sweep's range from the model's depth under the reference pose (0 = no surface): its 2nd
 /// and 98th percentiles times `near_factor` and `far_factor`; `None` with fewer than
 /// `min_pixels` surface pixels.
@@ -439,6 +519,9 @@ pub fn depth_from_neighbours(
             },
         );
         left_right_check(&mut sweep, &reference_w, &back, first, config);
+    }
+    if config.fill_radius_px > 0 {
+        fill_holes(&mut sweep.depth_m, config.fill_radius_px);
     }
     let valid = sweep.depth_m.data().iter().filter(|d| **d > 0.0).count();
     let centre = reference.cam_from_world.camera_center();
@@ -812,8 +895,12 @@ fn left_right_check(
             .project(&point)
             .and_then(|px| nearest_pixel(px, nw, nh))
             .map(|(col, row)| back_depth[row * nw + col])
-            .is_some_and(|other| {
-                other > 0.0 && (1.0 / point.z as f32 - 1.0 / other).abs() <= tolerance
+            .map_or(false, |other| {
+                if other > 0.0 {
+                    (1.0 / point.z as f32 - 1.0 / other).abs() <= tolerance
+                } else {
+                    config.keep_unconfirmed
+                }
             });
         if !confirmed {
             *depth = 0.0;
@@ -821,6 +908,49 @@ fn left_right_check(
         }
     }
     sweep.holes.inconsistent += inconsistent;
+}
+
+/// Least share of a hole's neighbourhood with depth for [`fill_holes`].
+const FILL_MIN_SHARE: f32 = 0.5;
+/// Largest inverse-depth spread (upper/lower quartile − 1) of that neighbourhood.
+const FILL_AGREEMENT: f32 = 0.03;
+
+/// Holes whose (2r+1)² neighbourhood is at least half depth that agrees get its median (one
+/// pass; filled values are not used to fill others).
+fn fill_holes(depth_m: &mut Image<f32>, radius: usize) {
+    let (w, h) = depth_m.size();
+    let source = depth_m.clone();
+    let data = source.data();
+    let r = radius as i64;
+    let window = ((2 * radius + 1) * (2 * radius + 1)) as f32;
+    let mut values = Vec::with_capacity(window as usize);
+    for (index, depth) in depth_m.data_mut().iter_mut().enumerate() {
+        if *depth > 0.0 {
+            continue;
+        }
+        let (col, row) = ((index % w) as i64, (index / w) as i64);
+        values.clear();
+        for dr in -r..=r {
+            for dc in -r..=r {
+                let (rr, cc) = (row + dr, col + dc);
+                if rr >= 0 && cc >= 0 && rr < h as i64 && cc < w as i64 {
+                    let v = data[rr as usize * w + cc as usize];
+                    if v > 0.0 {
+                        values.push(1.0 / v);
+                    }
+                }
+            }
+        }
+        if (values.len() as f32) < FILL_MIN_SHARE * window {
+            continue;
+        }
+        values.sort_by(f32::total_cmp);
+        let n = values.len();
+        let (low, high) = (values[n / 4], values[(3 * n) / 4]);
+        if high <= low * (1.0 + FILL_AGREEMENT) {
+            *depth = 1.0 / values[n / 2];
+        }
+    }
 }
 
 /// Inverse-depth taps further apart than this share are a depth edge: no interpolation across.
@@ -1002,27 +1132,14 @@ mod tests {
         (small, depth.depth_m().clone())
     }
 
-    /// Error distribution of `estimate` against `truth` where both have a depth: median |rel|,
-    /// shares within 1, 2, 5 %, and the share of true-depth pixels with an estimate.
+    /// Median |rel|, shares within 1, 2, 5 %, valid share (see [`depth_errors`]).
     fn errors(estimate: &Image<f32>, truth: &Image<f32>) -> (f64, [f64; 3], f64) {
-        let mut relative: Vec<f64> = estimate
-            .data()
-            .iter()
-            .zip(truth.data())
-            .filter(|(e, t)| **e > 0.0 && **t > 0.0)
-            .map(|(e, t)| f64::from((e - t).abs() / t))
-            .collect();
-        let with_truth = truth.data().iter().filter(|t| **t > 0.0).count();
-        let valid = relative.len() as f64 / with_truth.max(1) as f64;
-        let n = relative.len().max(1) as f64;
-        let within =
-            [0.01, 0.02, 0.05].map(|l| relative.iter().filter(|r| **r <= l).count() as f64 / n);
-        relative.sort_by(f64::total_cmp);
-        let median = relative
-            .get(relative.len() / 2)
-            .copied()
-            .unwrap_or(f64::INFINITY);
-        (median, within, valid)
+        let e = depth_errors(estimate.view(), truth.view());
+        (
+            e.median_relative,
+            [e.within_1_percent, e.within_2_percent, e.within_5_percent],
+            e.valid_share,
+        )
     }
 
     struct Rig {
