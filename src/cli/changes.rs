@@ -108,7 +108,7 @@ pub struct ChangesArgs {
 }
 
 /// Default disparity error of stereo depth, working pixels (see docs/measurements.md).
-pub const DEFAULT_DISPARITY_SIGMA_PX: f64 = 0.3;
+pub const DEFAULT_DISPARITY_SIGMA_PX: f64 = 0.6;
 
 impl ChangesArgs {
     /// The same settings with every other option at its default.

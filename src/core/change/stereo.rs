@@ -140,17 +140,18 @@ impl StereoConfig {
                 self.downsample, self.window_radius_px
             ));
         }
-        if !(self.plane_step_px > 0.0) || self.min_planes < 4 || self.max_planes < self.min_planes {
+        if !(self.plane_step_px > 0.0 && self.min_planes >= 4 && self.max_planes >= self.min_planes)
+        {
             return bad(format!(
                 "plane_step_px {} must be > 0 and 4 ≤ min_planes {} ≤ max_planes {}",
                 self.plane_step_px, self.min_planes, self.max_planes
             ));
         }
         if self.best_k == 0
-            || !(self.max_cost > 0.0)
-            || !(self.min_texture >= 0.0)
-            || !(self.uniqueness_margin >= 0.0)
-            || !(self.consistency_planes > 0.0)
+            || !(self.max_cost > 0.0
+                && self.min_texture >= 0.0
+                && self.uniqueness_margin >= 0.0
+                && self.consistency_planes > 0.0)
         {
             return bad(format!(
                 "best_k {} must be ≥ 1, max_cost {} > 0, min_texture {} ≥ 0, uniqueness_margin {} ≥ 0, consistency_planes {} > 0",
@@ -671,13 +672,13 @@ fn plane_costs(
         costs.fill(f32::NAN);
         let Some(warp) = warp else { continue };
         let photo = neighbour.photo.view();
-        for index in 0..w * h {
+        for (index, (out, &i)) in scratch.samples.iter_mut().zip(reference_data).enumerate() {
             let pixel = pixel_center(index % w, index / w);
             let sample = warp
                 .apply(pixel, inverse_depth)
                 .and_then(|x| bilinear(&photo, x));
-            scratch.samples[index] = match sample {
-                Some(j) => [j, j * j, j * reference_data[index], 1.0],
+            *out = match sample {
+                Some(j) => [j, j * j, j * i, 1.0],
                 None => [0.0; 4],
             };
         }
@@ -895,7 +896,7 @@ fn left_right_check(
             .project(&point)
             .and_then(|px| nearest_pixel(px, nw, nh))
             .map(|(col, row)| back_depth[row * nw + col])
-            .map_or(false, |other| {
+            .is_some_and(|other| {
                 if other > 0.0 {
                     (1.0 / point.z as f32 - 1.0 / other).abs() <= tolerance
                 } else {
