@@ -32,7 +32,7 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::core::camera::{nearest_pixel, pixel_center, PinholeIntrinsics};
+use crate::core::camera::{nearest_pixel, pixel_center, Camera, PinholeIntrinsics};
 use crate::core::edge_align::{bilinear, parabola_peak};
 use crate::core::frame::views::median_scene_depth_m;
 use crate::core::image::{Image, ImageView};
@@ -327,18 +327,11 @@ pub fn select_neighbours(
 /// `scene_depth_m` of [`select_neighbours`]); `None` when the model is not in view.
 pub fn scene_depth_m(mesh: &Mesh, camera: &PosedCamera) -> Option<f64> {
     let (w, h) = (camera.width_px.div_ceil(4), camera.height_px.div_ceil(4));
-    let k = &camera.intrinsics;
-    let (sx, sy) = (
-        w as f64 / camera.width_px.max(1) as f64,
-        h as f64 / camera.height_px.max(1) as f64,
+    let intrinsics = resized_intrinsics(
+        &camera.intrinsics,
+        (camera.width_px, camera.height_px),
+        (w, h),
     );
-    let intrinsics = PinholeIntrinsics {
-        fx_px: k.fx_px * sx,
-        fy_px: k.fy_px * sy,
-        cx_px: k.cx_px * sx,
-        cy_px: k.cy_px * sy,
-        skew_px: k.skew_px * sx,
-    };
     let mut buffers = RenderBuffers::new(w, h);
     Rasterizer::new().render(
         mesh,
@@ -422,6 +415,17 @@ pub fn depth_range_from_model(
     })
 }
 
+/// The intrinsics of an image of `from` px resized to `to` px (`Camera::resized`).
+fn resized_intrinsics(
+    intrinsics: &PinholeIntrinsics,
+    from: (usize, usize),
+    to: (usize, usize),
+) -> PinholeIntrinsics {
+    Camera::pinhole(from.0 as u32, from.1 as u32, *intrinsics)
+        .resized(to.0 as u32, to.1 as u32)
+        .intrinsics
+}
+
 /// One view at the working scale.
 struct WorkingView {
     photo: Image<f32>,
@@ -456,17 +460,9 @@ fn working_view(
     }
     let mut photo = Image::default();
     resize_area(view.photo, ww, wh, &mut photo);
-    let (sx, sy) = (ww as f64 / w as f64, wh as f64 / h as f64);
-    let k = &view.intrinsics;
     Ok(WorkingView {
         photo,
-        intrinsics: PinholeIntrinsics {
-            fx_px: k.fx_px * sx,
-            fy_px: k.fy_px * sy,
-            cx_px: k.cx_px * sx,
-            cy_px: k.cy_px * sy,
-            skew_px: k.skew_px * sx,
-        },
+        intrinsics: resized_intrinsics(&view.intrinsics, (w, h), (ww, wh)),
         cam_from_world: view.cam_from_world,
     })
 }
@@ -1004,6 +1000,7 @@ fn upsample_depth(depth_m: ImageView<'_, f32>, width_px: usize, height_px: usize
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::change::tests::mesh_of;
 
     /// splitmix64 of a lattice point: a deterministic value in 0..1.
     fn lattice(ix: i64, iy: i64, iz: i64, seed: u64) -> f32 {
@@ -1044,22 +1041,10 @@ mod tests {
             + 0.15 * value_noise(p, 0.13, 3)
     }
 
-    fn quad_mesh(quads: &[[[f64; 3]; 4]]) -> Mesh {
-        let mut positions = Vec::new();
-        let mut faces = Vec::new();
-        for quad in quads {
-            let base = positions.len() as u32;
-            positions.extend(quad.iter().map(|p| Vector3::new(p[0], p[1], p[2])));
-            faces.push([base, base + 1, base + 2]);
-            faces.push([base, base + 2, base + 3]);
-        }
-        Mesh::from_world(&positions, faces, None).expect("a valid mesh")
-    }
-
     /// Ground (60 × 60 m) and a 6 × 4 × 4 m box at the origin.
     fn scene() -> Mesh {
         let (x0, x1, y0, y1, z) = (-3.0, 3.0, -2.0, 2.0, 4.0);
-        quad_mesh(&[
+        mesh_of(&[
             [
                 [-30.0, -30.0, 0.0],
                 [30.0, -30.0, 0.0],
