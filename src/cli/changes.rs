@@ -3,19 +3,26 @@
 //! red, removed blue over the photo), `changes.geojson` (fused footprints in the model's
 //! georeferenced frame, with kind, area, height, frames, confirmed) and `report.json` (per-frame
 //! summary, fused objects, settings, time per frame). `eval --changes` runs the same function.
+//! Depth: the given maps (`--depth`, e.g. MVS) or, without `--depth`, plane-sweep stereo of each
+//! frame against its nearest registered frames (`core::change::stereo`), written to `depth/`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use asgreg::core::change::fusion::{fuse_regions, FusedChange, FusionConfig};
+use asgreg::core::change::stereo::{
+    depth_from_neighbours, scene_depth_m, select_neighbours, NeighbourConfig, PosedCamera,
+    StereoConfig, StereoView,
+};
 use asgreg::core::change::{
     classes_to_mask, detect_changes, ChangeClass, ChangeConfig, ChangeRegion, ChangeWorkspace,
     ClassCounts,
 };
 use asgreg::core::image::Image;
-use asgreg::frame_files::{depth_path_for, FrameLoader};
+use asgreg::frame_files::{depth_path_for, FrameFiles, FrameLoader};
 use asgreg::io::images::{save_gray_png, save_rgb_png};
+use asgreg::io::pfm::write_pfm;
 use serde::Serialize;
 
 use super::inputs::load_posed_inputs;
@@ -35,9 +42,41 @@ pub struct ChangesArgs {
     #[arg(long)]
     pub poses: PathBuf,
     /// Folder of depth maps `<image stem>.pfm` (MVS, metres along the optical axis, holes 0).
-    /// Required for now: depth computed in the pipeline from neighbouring frames is not built.
+    /// Without it, each frame's depth is computed by plane-sweep stereo against its nearest
+    /// registered frames (written to OUT/depth/).
     #[arg(long)]
     pub depth: Option<PathBuf>,
+    /// Without --depth: neighbour frames per stereo depth map (1–4).
+    #[arg(long, default_value_t = NeighbourConfig::default().count)]
+    pub stereo_neighbours: usize,
+    /// Without --depth: integer downsampling of the photos for the plane sweep (1 = full size).
+    #[arg(long, default_value_t = StereoConfig::default().downsample)]
+    pub stereo_downsample: usize,
+    /// Without --depth: half side of the ZNCC window, working pixels.
+    #[arg(long, default_value_t = StereoConfig::default().window_radius_px)]
+    pub stereo_window_radius_px: usize,
+    /// Without --depth: a second cost minimum must be this much above the best (1 − ZNCC).
+    #[arg(long, default_value_t = StereoConfig::default().uniqueness_margin)]
+    pub stereo_uniqueness_margin: f32,
+    /// Without --depth: least grey standard deviation of a window (0..1 grey).
+    #[arg(long, default_value_t = StereoConfig::default().min_texture)]
+    pub stereo_min_texture: f32,
+    /// Without --depth: largest accepted cost 1 − ZNCC.
+    #[arg(long, default_value_t = StereoConfig::default().max_cost)]
+    pub stereo_max_cost: f32,
+    /// Without --depth: keep depths the left-right check cannot confirm (drop only contradicted).
+    #[arg(long)]
+    pub stereo_keep_unconfirmed: bool,
+    /// Without --depth: fill holes from their (2r+1)² working neighbourhood when it agrees.
+    #[arg(long, default_value_t = StereoConfig::default().fill_radius_px)]
+    pub stereo_fill_radius_px: usize,
+    /// Without --depth: skip the left-right check against the first neighbour's own depth.
+    #[arg(long)]
+    pub stereo_no_left_right: bool,
+    /// Without --depth: disparity error of the stereo depth, working pixels; sets the change
+    /// threshold's stereo term σ_quad = σ_disparity / (f·B) per frame.
+    #[arg(long, default_value_t = DEFAULT_DISPARITY_SIGMA_PX)]
+    pub stereo_disparity_sigma_px: f64,
     /// Output folder (created): masks/, overlays/, changes.geojson, report.json.
     #[arg(long)]
     pub out: PathBuf,
@@ -68,7 +107,70 @@ pub struct ChangesArgs {
     pub limit: Option<usize>,
 }
 
+/// Default disparity error of stereo depth, working pixels (see docs/measurements.md).
+pub const DEFAULT_DISPARITY_SIGMA_PX: f64 = 0.6;
+
 impl ChangesArgs {
+    /// The same settings with every other option at its default.
+    pub fn with_defaults(
+        mesh: PathBuf,
+        images: PathBuf,
+        cameras: PathBuf,
+        poses: PathBuf,
+        depth: Option<PathBuf>,
+        out: PathBuf,
+    ) -> Self {
+        let change = ChangeConfig::default();
+        let fusion = FusionConfig::default();
+        Self {
+            mesh,
+            images,
+            cameras,
+            poses,
+            depth,
+            stereo_neighbours: NeighbourConfig::default().count,
+            stereo_downsample: StereoConfig::default().downsample,
+            stereo_window_radius_px: StereoConfig::default().window_radius_px,
+            stereo_uniqueness_margin: StereoConfig::default().uniqueness_margin,
+            stereo_min_texture: StereoConfig::default().min_texture,
+            stereo_max_cost: StereoConfig::default().max_cost,
+            stereo_no_left_right: false,
+            stereo_keep_unconfirmed: StereoConfig::default().keep_unconfirmed,
+            stereo_fill_radius_px: StereoConfig::default().fill_radius_px,
+            stereo_disparity_sigma_px: DEFAULT_DISPARITY_SIGMA_PX,
+            out,
+            min_area_m2: change.min_area_m2,
+            min_extent_m: change.min_extent_m,
+            threshold_sigmas: change.threshold_sigmas,
+            relative_sigma: change.relative_sigma,
+            model_sigma_m: change.model_sigma_m,
+            merge_distance_m: fusion.merge_distance_m,
+            min_frames: fusion.min_frames,
+            limit: None,
+        }
+    }
+
+    pub fn stereo_config(&self) -> StereoConfig {
+        StereoConfig {
+            downsample: self.stereo_downsample,
+            window_radius_px: self.stereo_window_radius_px,
+            uniqueness_margin: self.stereo_uniqueness_margin,
+            min_texture: self.stereo_min_texture,
+            max_cost: self.stereo_max_cost,
+            left_right_check: !self.stereo_no_left_right,
+            keep_unconfirmed: self.stereo_keep_unconfirmed,
+            fill_radius_px: self.stereo_fill_radius_px,
+            ..StereoConfig::default()
+        }
+    }
+
+    pub fn neighbour_config(&self) -> NeighbourConfig {
+        NeighbourConfig {
+            count: self.stereo_neighbours,
+            ..NeighbourConfig::default()
+        }
+    }
+
     pub fn change_config(&self) -> ChangeConfig {
         ChangeConfig {
             min_area_m2: self.min_area_m2,
@@ -98,6 +200,22 @@ pub struct FrameChangeReport {
     pub regions: Vec<ChangeRegion>,
     /// Render + compare + regions, milliseconds.
     pub detect_ms: f64,
+    /// How the frame's depth was computed, when by stereo.
+    pub stereo: Option<FrameStereoReport>,
+}
+
+/// A frame's stereo depth in report.json.
+#[derive(Clone, Debug, Serialize)]
+pub struct FrameStereoReport {
+    pub neighbours: Vec<String>,
+    pub planes: usize,
+    pub working_size_px: (usize, usize),
+    pub mean_baseline_m: f64,
+    pub valid_fraction: f64,
+    pub holes: asgreg::core::change::stereo::HoleCounts,
+    /// σ_quad used for this frame's change threshold, per metre.
+    pub quadratic_sigma_per_m: f64,
+    pub stereo_ms: f64,
 }
 
 /// What `changes` found.
@@ -109,6 +227,15 @@ pub struct ChangesReport {
     /// Fused objects; `frames` index into [`Self::frames`].
     pub objects: Vec<FusedChange>,
     pub mean_detect_ms: f64,
+    /// "given" (--depth) or "stereo".
+    pub depth_source: &'static str,
+    /// Stereo depth per frame, mean over the frames that have one, milliseconds.
+    pub mean_stereo_ms: Option<f64>,
+}
+
+/// The stereo depth file of an image in `out` (written when `--depth` is not given).
+pub fn stereo_depth_path(out: &Path, image_name: &str) -> PathBuf {
+    depth_path_for(&out.join("depth"), image_name)
 }
 
 /// The mask file of an image in `out`.
@@ -119,33 +246,85 @@ pub fn mask_path(out: &Path, image_name: &str) -> PathBuf {
 
 /// Runs change detection over every posed image and writes the outputs into `args.out`.
 pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
-    let Some(depth_dir) = &args.depth else {
-        bail!("--depth is required: give a folder of depth maps <image stem>.pfm (e.g. a synth scene's depth/); depth from neighbouring frames is not built yet");
-    };
     let config = args.change_config();
     config
         .validate()
         .context("check --min-area-m2, --threshold-sigmas, --relative-sigma, --model-sigma-m")?;
+    let stereo_config = args.stereo_config();
+    if args.depth.is_none() {
+        stereo_config
+            .validate()
+            .context("check the --stereo-* options")?;
+        anyhow::ensure!(
+            (1..=asgreg::core::change::stereo::MAX_NEIGHBOURS).contains(&args.stereo_neighbours),
+            "--stereo-neighbours {} must be 1..={}",
+            args.stereo_neighbours,
+            asgreg::core::change::stereo::MAX_NEIGHBOURS
+        );
+    }
     let fusion = args.fusion_config();
     let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
-    for dir in ["masks", "overlays"] {
+    let mut dirs = vec!["masks", "overlays"];
+    if args.depth.is_none() {
+        dirs.push("depth");
+    }
+    for dir in dirs {
         let dir = args.out.join(dir);
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create the output folder {}", dir.display()))?;
     }
     let loader = FrameLoader::new(None);
+    // Stereo: every posed frame's photo, loaded once (the neighbours of each reference).
+    let posed_frames: Vec<Result<FrameFiles, String>> = if args.depth.is_none() {
+        inputs
+            .images
+            .iter()
+            .map(|image| {
+                let camera = inputs.cameras.get(&image.camera_id).ok_or_else(|| {
+                    format!(
+                        "camera {} is not in {}",
+                        image.camera_id,
+                        args.cameras.display()
+                    )
+                })?;
+                loader
+                    .load(
+                        &args.images.join(&image.name),
+                        image.camera_id,
+                        camera,
+                        None,
+                    )
+                    .map_err(|e| e.to_string())
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let posed_cameras: Vec<Option<PosedCamera>> = posed_frames
+        .iter()
+        .zip(&inputs.images)
+        .map(|(files, image)| {
+            files.as_ref().ok().map(|files| PosedCamera {
+                intrinsics: files.camera.intrinsics,
+                width_px: files.photo.width_px(),
+                height_px: files.photo.height_px(),
+                cam_from_world: image.cam_from_world,
+            })
+        })
+        .collect();
     let mut workspace = ChangeWorkspace::new();
     let mut classes: Image<ChangeClass> = Image::default();
     let mut mask = Image::default();
     let mut frames = Vec::new();
     let limit = args.limit.unwrap_or(usize::MAX);
-    for image in inputs.images.iter().take(limit) {
+    for (index, image) in inputs.images.iter().enumerate().take(limit) {
         let failed = |why: String| FrameChangeReport {
             name: image.name.clone(),
             failure: Some(why),
             counts: ClassCounts::default(),
             regions: Vec::new(),
             detect_ms: 0.0,
+            stereo: None,
         };
         let Some(camera) = inputs.cameras.get(&image.camera_id) else {
             frames.push(failed(format!(
@@ -156,23 +335,65 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             continue;
         };
         let image_path = args.images.join(&image.name);
-        let depth_path = depth_path_for(depth_dir, &image.name);
-        let files = match loader.load(
-            &image_path,
-            image.camera_id,
-            camera,
-            Some(depth_path.as_path()),
-        ) {
-            Ok(files) => files,
-            Err(error) => {
-                tracing::warn!("{}: no change result: {error}", image.name);
-                frames.push(failed(error.to_string()));
-                continue;
+        let mut loaded: Option<FrameFiles> = None;
+        let (depth, stereo, frame_config) = match &args.depth {
+            Some(depth_dir) => {
+                let depth_path = depth_path_for(depth_dir, &image.name);
+                let mut files = match loader.load(
+                    &image_path,
+                    image.camera_id,
+                    camera,
+                    Some(depth_path.as_path()),
+                ) {
+                    Ok(files) => files,
+                    Err(error) => {
+                        tracing::warn!("{}: no change result: {error}", image.name);
+                        frames.push(failed(error.to_string()));
+                        continue;
+                    }
+                };
+                let Some(depth) = files.depth_m.take() else {
+                    frames.push(failed(format!("no depth map at {}", depth_path.display())));
+                    continue;
+                };
+                loaded = Some(files);
+                (depth, None, config)
+            }
+            None => {
+                if let Err(error) = &posed_frames[index] {
+                    tracing::warn!("{}: no change result: {error}", image.name);
+                    frames.push(failed(error.clone()));
+                    continue;
+                }
+                match stereo_depth(
+                    args,
+                    &inputs,
+                    &posed_frames,
+                    &posed_cameras,
+                    index,
+                    &stereo_config,
+                ) {
+                    Ok((depth, report)) => {
+                        let path = stereo_depth_path(&args.out, &image.name);
+                        write_pfm(&path, depth.view())
+                            .with_context(|| format!("cannot write {}", path.display()))?;
+                        let frame_config = ChangeConfig {
+                            quadratic_sigma_per_m: report.quadratic_sigma_per_m as f32,
+                            ..config
+                        };
+                        (depth, Some(report), frame_config)
+                    }
+                    Err(why) => {
+                        tracing::warn!("{}: no change result: {why}", image.name);
+                        frames.push(failed(why));
+                        continue;
+                    }
+                }
             }
         };
-        let Some(depth) = &files.depth_m else {
-            frames.push(failed(format!("no depth map at {}", depth_path.display())));
-            continue;
+        let files = match (&loaded, &posed_frames.get(index)) {
+            (Some(files), _) | (None, Some(Ok(files))) => files,
+            _ => continue,
         };
         let started = Instant::now();
         let result = detect_changes(
@@ -180,7 +401,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             &files.camera.intrinsics,
             &image.cam_from_world,
             depth.view(),
-            &config,
+            &frame_config,
             &mut workspace,
             &mut classes,
         );
@@ -224,6 +445,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             counts: changes.counts,
             regions: changes.regions,
             detect_ms,
+            stereo,
         });
     }
     let regions: Vec<(usize, &ChangeRegion)> = frames
@@ -237,9 +459,20 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         .filter(|f| f.failure.is_none())
         .map(|f| f.detect_ms)
         .collect();
+    let stereo_ms: Vec<f64> = frames
+        .iter()
+        .filter_map(|f| f.stereo.as_ref().map(|s| s.stereo_ms))
+        .collect();
     let report = ChangesReport {
         config,
         fusion,
+        depth_source: if args.depth.is_some() {
+            "given"
+        } else {
+            "stereo"
+        },
+        mean_stereo_ms: (!stereo_ms.is_empty())
+            .then(|| stereo_ms.iter().sum::<f64>() / stereo_ms.len() as f64),
         mean_detect_ms: timed.iter().sum::<f64>() / timed.len().max(1) as f64,
         frames,
         objects,
@@ -252,6 +485,86 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
     std::fs::write(&report_path, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("cannot write {}", report_path.display()))?;
     Ok(report)
+}
+
+/// Frame `index`'s depth by plane-sweep stereo against its nearest registered frames; the
+/// error says why there is none.
+fn stereo_depth(
+    args: &ChangesArgs,
+    inputs: &super::inputs::PosedInputs,
+    frames: &[Result<FrameFiles, String>],
+    cameras: &[Option<PosedCamera>],
+    index: usize,
+    config: &StereoConfig,
+) -> Result<(Image<f32>, FrameStereoReport), String> {
+    let name = &inputs.images[index].name;
+    let (Some(reference), Ok(files)) = (&cameras[index], &frames[index]) else {
+        return Err(format!("{name}: the photo could not be loaded"));
+    };
+    let scene_depth = scene_depth_m(&inputs.mesh, reference).ok_or_else(|| {
+        "the model is not in view under the frame's pose: no depth range for stereo".to_string()
+    })?;
+    let (candidate_index, candidates): (Vec<usize>, Vec<PosedCamera>) = cameras
+        .iter()
+        .enumerate()
+        .filter(|(other, _)| *other != index)
+        .filter_map(|(other, camera)| camera.map(|c| (other, c)))
+        .unzip();
+    let chosen: Vec<usize> = select_neighbours(
+        reference,
+        scene_depth,
+        &candidates,
+        &args.neighbour_config(),
+    )
+    .into_iter()
+    .map(|k| candidate_index[k])
+    .collect();
+    if chosen.is_empty() {
+        return Err(format!(
+            "no registered frame sees the scene from a usable baseline ({:.1}–{:.1} m at a scene depth of {scene_depth:.1} m, optical axes within {:.0}°): give --depth or more frames",
+            NeighbourConfig::default().min_baseline_ratio * scene_depth,
+            NeighbourConfig::default().max_baseline_ratio * scene_depth,
+            NeighbourConfig::default().max_axis_angle_deg
+        ));
+    }
+    let view = |k: usize| -> Option<StereoView<'_>> {
+        let files = frames[k].as_ref().ok()?;
+        Some(StereoView {
+            photo: files.photo.view(),
+            intrinsics: files.camera.intrinsics,
+            cam_from_world: inputs.images[k].cam_from_world,
+        })
+    };
+    let neighbours: Vec<StereoView<'_>> = chosen.iter().filter_map(|&k| view(k)).collect();
+    let reference_view = StereoView {
+        photo: files.photo.view(),
+        intrinsics: files.camera.intrinsics,
+        cam_from_world: inputs.images[index].cam_from_world,
+    };
+    let started = Instant::now();
+    let depth = depth_from_neighbours(&inputs.mesh, &reference_view, &neighbours, config)
+        .map_err(|e| format!("stereo depth: {e}"))?;
+    let stereo_ms = started.elapsed().as_secs_f64() * 1e3;
+    tracing::info!(
+        "{name}: stereo depth from {} neighbours, {} planes, {:.0} % valid in {stereo_ms:.0} ms",
+        neighbours.len(),
+        depth.planes,
+        100.0 * depth.valid_fraction
+    );
+    let report = FrameStereoReport {
+        neighbours: chosen
+            .iter()
+            .map(|&k| inputs.images[k].name.clone())
+            .collect(),
+        planes: depth.planes,
+        working_size_px: depth.working_size_px,
+        mean_baseline_m: depth.mean_baseline_m,
+        valid_fraction: depth.valid_fraction,
+        holes: depth.holes,
+        quadratic_sigma_per_m: depth.quadratic_sigma_per_m(args.stereo_disparity_sigma_px),
+        stereo_ms,
+    };
+    Ok((depth.depth_m, report))
 }
 
 /// The fused objects as a GeoJSON FeatureCollection (coordinates: the model's frame).
@@ -314,6 +627,9 @@ pub fn run(args: &ChangesArgs) -> anyhow::Result<()> {
             object.frames.len(),
             object.confidence
         );
+    }
+    if let Some(ms) = report.mean_stereo_ms {
+        println!("depth by plane-sweep stereo: {ms:.0} ms per frame (written to depth/)");
     }
     println!(
         "wrote {}/masks, overlays, changes.geojson, report.json",

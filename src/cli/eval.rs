@@ -72,6 +72,17 @@ pub struct EvalArgs {
     /// registered poses); the ground truth gt/ when not given.
     #[arg(long)]
     pub changes_poses: Option<PathBuf>,
+    /// With --changes: the photos' depth: the scene's given MVS-like maps (depth/), or plane-sweep
+    /// stereo from each frame's registered neighbours (also measured against depth/).
+    #[arg(long, value_enum, default_value_t = DepthSourceArg::Given)]
+    pub depth_source: DepthSourceArg,
+}
+
+/// Where `eval --changes` takes the photos' depth from.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthSourceArg {
+    Given,
+    Stereo,
 }
 
 /// One initial-error level: a folder under `initial/`.

@@ -1,6 +1,7 @@
 //! `asgreg eval --changes`: change detection measured on a `synth --changes` scene. Runs
-//! `asgreg changes` (the same function) with the scene's depth maps under the ground-truth poses
-//! (or `--changes-poses`), then compares its masks with `changes_gt/` (pixel precision, recall,
+//! `asgreg changes` (the same function) with the scene's depth maps (or, `--depth-source stereo`,
+//! plane-sweep stereo depth, also measured against the scene's depth maps) under the ground-truth
+//! poses (or `--changes-poses`), then compares its masks with `changes_gt/` (pixel precision, recall,
 //! IoU per kind) and its fused objects with `changes.json` (object recall over the true objects
 //! of at least 3 × 3 m seen by at least 2 frames, precision over the confirmed detections; every
 //! unmatched detection is listed: clutter that is not in the model shows there, not hidden).
@@ -16,8 +17,10 @@ use asgreg::core::change::{ChangeClass, ChangeKind};
 use asgreg::synth::changes::{ChangesFile, TrueChange, MASK_DIR, OBJECTS_FILE};
 use serde::Serialize;
 
-use super::changes::{detect_all, mask_path, ChangesArgs};
-use super::eval::EvalArgs;
+use super::changes::{detect_all, mask_path, stereo_depth_path, ChangesArgs};
+use super::eval::{DepthSourceArg, EvalArgs};
+use asgreg::core::change::stereo::{depth_errors, DepthErrors};
+use asgreg::io::pfm::read_pfm;
 
 /// A detection matches a true object of its kind when their footprints are this close, m.
 const MATCH_DISTANCE_M: f64 = 1.0;
@@ -78,22 +81,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         .changes_poses
         .clone()
         .unwrap_or_else(|| scene.join("gt/images.txt"));
-    let detect_args = ChangesArgs {
-        mesh: scene.join("model.ply"),
-        images: scene.join("images"),
-        cameras: scene.join("gt/cameras.txt"),
-        poses: poses.clone(),
-        depth: Some(scene.join("depth")),
-        out: args.out.join("changes"),
-        min_area_m2: asgreg::core::change::ChangeConfig::default().min_area_m2,
-        min_extent_m: asgreg::core::change::ChangeConfig::default().min_extent_m,
-        threshold_sigmas: asgreg::core::change::ChangeConfig::default().threshold_sigmas,
-        relative_sigma: asgreg::core::change::ChangeConfig::default().relative_sigma,
-        model_sigma_m: asgreg::core::change::ChangeConfig::default().model_sigma_m,
-        merge_distance_m: asgreg::core::change::fusion::FusionConfig::default().merge_distance_m,
-        min_frames: asgreg::core::change::fusion::FusionConfig::default().min_frames,
-        limit: args.limit,
-    };
+    let stereo = args.depth_source == DepthSourceArg::Stereo;
+    let mut detect_args = ChangesArgs::with_defaults(
+        scene.join("model.ply"),
+        scene.join("images"),
+        scene.join("gt/cameras.txt"),
+        poses.clone(),
+        (!stereo).then(|| scene.join("depth")),
+        args.out
+            .join(if stereo { "changes_stereo" } else { "changes" }),
+    );
+    detect_args.limit = args.limit;
     let report = detect_all(&detect_args)?;
 
     // Pixels.
@@ -133,6 +131,37 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             }
         }
         frames_with_result.push(frame.name.clone());
+    }
+
+    // Stereo depth against the scene's given (MVS-like) depth, over the frames with a result.
+    let mut stereo_errors: Option<DepthErrors> = None;
+    if stereo {
+        let (mut estimate, mut reference) = (Vec::new(), Vec::new());
+        for name in &frames_with_result {
+            let ours = stereo_depth_path(&detect_args.out, name);
+            let given = asgreg::frame_files::depth_path_for(&scene.join("depth"), name);
+            let ours =
+                read_pfm(&ours).with_context(|| format!("cannot read {}", ours.display()))?;
+            let given = read_pfm(&given).with_context(|| {
+                format!(
+                    "cannot read {} (the scene's depth, to measure stereo against)",
+                    given.display()
+                )
+            })?;
+            anyhow::ensure!(
+                ours.size() == given.size(),
+                "{name}: stereo depth {:?} and given depth {:?} differ in size",
+                ours.size(),
+                given.size()
+            );
+            estimate.extend_from_slice(ours.data());
+            reference.extend_from_slice(given.data());
+        }
+        let n = estimate.len();
+        stereo_errors = Some(depth_errors(
+            asgreg::core::image::ImageView::new(n, 1, &estimate)?,
+            asgreg::core::image::ImageView::new(n, 1, &reference)?,
+        ));
     }
 
     // Objects.
@@ -176,13 +205,25 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let mut text = String::new();
     writeln!(
         text,
-        "# asgreg eval --changes\n\nscene {}, poses {}, {} frames with a change map ({} without), {:.1} ms per frame\n",
+        "# asgreg eval --changes\n\nscene {}, poses {}, depth {}, {} frames with a change map ({} without), {:.1} ms per frame\n",
         scene.display(),
         poses.display(),
+        report.depth_source,
         frames_with_result.len(),
         report.frames.len() - frames_with_result.len(),
         report.mean_detect_ms
     )?;
+    if let (Some(e), Some(ms)) = (&stereo_errors, report.mean_stereo_ms) {
+        writeln!(
+            text,
+            "stereo depth ({ms:.0} ms per frame) against the scene's given MVS-like depth (0.7 % noise): median |rel| {:.2} %, within 1/2/5 %: {:.1} / {:.1} / {:.1} %, {:.1} % of the given depth's pixels have a stereo depth\n",
+            100.0 * e.median_relative,
+            100.0 * e.within_1_percent,
+            100.0 * e.within_2_percent,
+            100.0 * e.within_5_percent,
+            100.0 * e.valid_share
+        )?;
+    }
     writeln!(text, "| pixels | precision | recall | IoU | TP | FP | FN |")?;
     writeln!(text, "|---|---|---|---|---|---|---|")?;
     for (kind, s) in &pixels {
@@ -280,6 +321,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         "poses": poses,
         "frames": frames_with_result.len(),
         "mean_detect_ms": report.mean_detect_ms,
+        "depth_source": report.depth_source,
+        "mean_stereo_ms": report.mean_stereo_ms,
+        "stereo_depth_errors": stereo_errors,
         "pixels": pixels.iter().map(|(k, s)| (k.name(), serde_json::json!({
             "precision": s.precision(), "recall": s.recall(), "iou": s.iou(), "counts": s,
         }))).collect::<BTreeMap<_, _>>(),

@@ -651,7 +651,7 @@ fn log_parabola_peak(before: f32, centre: f32, after: f32) -> f64 {
 }
 
 /// Offset of the vertex of the parabola through `(−1, before), (0, centre), (1, after)`.
-fn parabola_peak(before: f32, centre: f32, after: f32) -> f64 {
+pub(crate) fn parabola_peak(before: f32, centre: f32, after: f32) -> f64 {
     let denominator = f64::from(before) - 2.0 * f64::from(centre) + f64::from(after);
     if denominator.abs() < 1e-12 {
         0.0

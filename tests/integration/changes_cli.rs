@@ -1,6 +1,7 @@
 //! `asgreg synth --changes` then `asgreg changes` on a tiny house scene: the change map finds the
 //! objects the scene was built with (changes.json), as confirmed objects of the right kind in
-//! changes.geojson, and writes a mask and an overlay per photo.
+//! changes.geojson, and writes a mask and an overlay per photo; without `--depth` the depth
+//! comes from plane-sweep stereo of each photo with its nearest posed photos.
 
 use crate::util::*;
 
@@ -100,4 +101,45 @@ fn changes_finds_the_new_and_the_demolished_buildings_of_a_synth_changes_scene()
         checked >= 2,
         "only {checked} objects seen by two photos: {truth}"
     );
+
+    // Without --depth: stereo depth from the neighbouring photos, written beside the masks.
+    let out = dir.path().join("changes_stereo");
+    let output = asgreg(&[
+        "changes",
+        "--mesh",
+        path_str(&scene.join("model.ply")),
+        "--images",
+        path_str(&scene.join("images")),
+        "--cameras",
+        path_str(&scene.join("gt/cameras.txt")),
+        "--poses",
+        path_str(&scene.join("gt/images.txt")),
+        "--out",
+        path_str(&out),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    assert!(
+        stdout(&output).contains("plane-sweep stereo"),
+        "{}",
+        stdout(&output)
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["depth_source"], "stereo");
+    let with_depth: Vec<&serde_json::Value> = report["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|f| f["stereo"].is_object())
+        .collect();
+    assert!(with_depth.len() >= 3, "{report}");
+    for frame in with_depth {
+        let name = frame["name"].as_str().unwrap().replace(".jpg", ".pfm");
+        assert!(out.join("depth").join(&name).is_file(), "{name}");
+        assert!(
+            frame["stereo"]["valid_fraction"].as_f64().unwrap() > 0.05,
+            "{frame}"
+        );
+        assert!(!frame["stereo"]["neighbours"].as_array().unwrap().is_empty());
+    }
 }

@@ -19,6 +19,7 @@
 
 pub mod fusion;
 pub mod polygon;
+pub mod stereo;
 
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -669,7 +670,7 @@ impl From<u8> for ChangeClass {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::core::camera::PinholeIntrinsics;
 
@@ -687,7 +688,7 @@ mod tests {
     }
 
     /// Quads as two triangles each.
-    fn mesh_of(quads: &[[[f64; 3]; 4]]) -> Mesh {
+    pub(crate) fn mesh_of(quads: &[[[f64; 3]; 4]]) -> Mesh {
         let mut positions = Vec::new();
         let mut faces = Vec::new();
         for quad in quads {

@@ -1,0 +1,1308 @@
+//! Depth for a registered frame without offline MVS (issue #13 item 1): plane-sweep stereo of the
+//! frame against 1–4 already registered neighbour frames, so change detection runs on a live
+//! camera feed. One entry point, [`depth_from_neighbours`] (the batch `changes` and the pipeline
+//! call it); [`select_neighbours`] picks the neighbours among registered frames.
+//!
+//! Method, at a working scale (`downsample`, default 2: 505×275 → 253×138):
+//! - fronto-parallel planes of the reference camera sampled uniformly in inverse depth over a
+//!   range from the model: the model rendered under the reference pose, its 2nd–98th depth
+//!   percentiles widened by `near_factor`/`far_factor` (added objects stand in front of the model,
+//!   the ground behind a demolished one lies beyond it); as many planes as the widest neighbour
+//!   needs for a shift of at most `plane_step_px` between planes;
+//! - per plane and neighbour: the neighbour warped into the reference by the plane's homography
+//!   `K_n (R + t·nᵀ/d) K_r⁻¹` (bilinear), cost `1 − ZNCC` over a (2r+1)² window (box sums);
+//!   windows leaving the neighbour have no cost;
+//! - per plane the mean of the best `best_k` neighbour costs (a neighbour that sees the pixel
+//!   occluded drops out), then winner-take-all over the planes with a parabola through the best
+//!   plane and its two neighbours (sub-plane);
+//! - holes where unsure: reference window untextured (grey std below `min_texture`), best cost
+//!   above `max_cost`, best at either end of the range, a second minimum (more than 2 planes away)
+//!   within `uniqueness_margin` of the best (flat or repetitive cost), and, with
+//!   `left_right_check`, pixels whose depth disagrees with the first neighbour's own depth (the
+//!   same sweep run from the neighbour against the reference) by more than
+//!   `consistency_planes` plane steps, or that the neighbour's depth cannot confirm;
+//! - the working depth brought back to the reference's size: bilinear in inverse depth where the
+//!   four taps agree within 5 %, else the nearest tap.
+//!
+//! Pure functions: grey images, pinhole intrinsics, `cam_from_world` poses and the mesh in; a depth
+//! map (metres along the optical axis, 0 = hole) and what it rests on out. Photos must be of the
+//! working (undistorted pinhole) camera, as `frame_files` loads them.
+
+use nalgebra::{Matrix3, Vector2, Vector3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::core::camera::{nearest_pixel, pixel_center, Camera, PinholeIntrinsics};
+use crate::core::edge_align::{bilinear, parabola_peak};
+use crate::core::frame::views::median_scene_depth_m;
+use crate::core::image::{Image, ImageView};
+use crate::core::mesh::Mesh;
+use crate::core::raster::{Rasterizer, RenderBuffers, RenderOptions};
+use crate::core::rigid::Rigid3;
+use crate::core::undistort::resize_area;
+
+/// Most neighbours one reference is compared with.
+pub const MAX_NEIGHBOURS: usize = 4;
+
+/// One frame as stereo sees it: its grey photo (0..1) through a pinhole camera at a pose.
+#[derive(Clone, Copy, Debug)]
+pub struct StereoView<'a> {
+    pub photo: ImageView<'a, f32>,
+    pub intrinsics: PinholeIntrinsics,
+    pub cam_from_world: Rigid3,
+}
+
+/// How the plane sweep runs; `Default` is what `asgreg changes` uses.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StereoConfig {
+    /// Integer downsampling of the photos before the sweep (1 = full size).
+    pub downsample: usize,
+    /// Half side of the ZNCC window at the working scale, pixels.
+    pub window_radius_px: usize,
+    /// Largest image shift between consecutive planes in any neighbour, working pixels.
+    pub plane_step_px: f32,
+    pub min_planes: usize,
+    pub max_planes: usize,
+    /// Neighbour costs averaged per plane (the best ones: occluded neighbours drop out).
+    pub best_k: usize,
+    /// Largest accepted cost `1 − ZNCC`.
+    pub max_cost: f32,
+    /// Least grey standard deviation of the reference window (0..1 grey).
+    pub min_texture: f32,
+    /// A second minimum more than 2 planes from the best must cost at least this much more.
+    pub uniqueness_margin: f32,
+    /// Check each depth against the first neighbour's own depth (a second, one-pair sweep).
+    pub left_right_check: bool,
+    /// Tolerance of that check, in plane steps of inverse depth.
+    pub consistency_planes: f32,
+    /// With the check: keep depths the neighbour cannot confirm (its own depth is a hole there)
+    /// and drop only those it contradicts.
+    pub keep_unconfirmed: bool,
+    /// Holes filled from their (2r+1)² working neighbourhood when at least half of it has depth
+    /// that agrees (quartiles within 3 % in inverse depth): the median; 0 = no filling.
+    pub fill_radius_px: usize,
+    /// Near end of the range: the model's 2nd depth percentile × this.
+    pub near_factor: f32,
+    /// Far end of the range: the model's 98th depth percentile × this.
+    pub far_factor: f32,
+}
+
+impl Default for StereoConfig {
+    fn default() -> Self {
+        Self {
+            downsample: 2,
+            window_radius_px: 2,
+            plane_step_px: 1.0,
+            min_planes: 24,
+            max_planes: 192,
+            best_k: 2,
+            max_cost: 0.5,
+            min_texture: 0.004,
+            uniqueness_margin: 0.02,
+            left_right_check: true,
+            consistency_planes: 2.0,
+            keep_unconfirmed: false,
+            fill_radius_px: 2,
+            near_factor: 0.6,
+            far_factor: 1.4,
+        }
+    }
+}
+
+/// Errors of the plane sweep; each names what to change.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum StereoError {
+    #[error(
+        "{count} neighbour frames given; stereo needs 1 to {MAX_NEIGHBOURS} registered neighbours"
+    )]
+    NeighbourCount { count: usize },
+    #[error("the {what} photo is {width_px}×{height_px} px, too small for a {window}×{window} px window at downsampling {downsample}")]
+    PhotoTooSmall {
+        what: &'static str,
+        width_px: usize,
+        height_px: usize,
+        window: usize,
+        downsample: usize,
+    },
+    #[error("the model shows no surface under the reference pose (fewer than {min_pixels} px): no depth range to sweep; is the pose registered?")]
+    NoModelSurface { min_pixels: usize },
+    #[error("invalid stereo config: {0}")]
+    InvalidConfig(String),
+}
+
+impl StereoConfig {
+    pub fn validate(&self) -> Result<(), StereoError> {
+        let bad = |what: String| Err(StereoError::InvalidConfig(what));
+        if !(1..=8).contains(&self.downsample) || !(1..=7).contains(&self.window_radius_px) {
+            return bad(format!(
+                "downsample {} must be 1..8 and window_radius_px {} 1..7",
+                self.downsample, self.window_radius_px
+            ));
+        }
+        if !(self.plane_step_px > 0.0 && self.min_planes >= 4 && self.max_planes >= self.min_planes)
+        {
+            return bad(format!(
+                "plane_step_px {} must be > 0 and 4 ≤ min_planes {} ≤ max_planes {}",
+                self.plane_step_px, self.min_planes, self.max_planes
+            ));
+        }
+        if self.best_k == 0
+            || !(self.max_cost > 0.0
+                && self.min_texture >= 0.0
+                && self.uniqueness_margin >= 0.0
+                && self.consistency_planes > 0.0)
+        {
+            return bad(format!(
+                "best_k {} must be ≥ 1, max_cost {} > 0, min_texture {} ≥ 0, uniqueness_margin {} ≥ 0, consistency_planes {} > 0",
+                self.best_k, self.max_cost, self.min_texture, self.uniqueness_margin, self.consistency_planes
+            ));
+        }
+        if !(self.near_factor > 0.0 && self.near_factor <= 1.0 && self.far_factor >= 1.0) {
+            return bad(format!(
+                "near_factor {} must be in (0, 1] and far_factor {} ≥ 1",
+                self.near_factor, self.far_factor
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The depths swept, metres along the reference's optical axis.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DepthRange {
+    pub near_m: f32,
+    pub far_m: f32,
+}
+
+/// Why pixels of the working depth map are holes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HoleCounts {
+    /// Window leaves the image or is untextured.
+    pub untextured: usize,
+    /// No neighbour sees the pixel at any plane.
+    pub unseen: usize,
+    pub high_cost: usize,
+    pub at_range_end: usize,
+    pub ambiguous: usize,
+    /// Disagrees with (or is not confirmed by) the first neighbour's depth.
+    pub inconsistent: usize,
+}
+
+/// A frame's depth from its neighbours and what it rests on.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StereoDepth {
+    /// Metres along the optical axis at the reference photo's size; 0 = hole.
+    pub depth_m: Image<f32>,
+    pub range: DepthRange,
+    pub planes: usize,
+    /// Size of the sweep's images.
+    pub working_size_px: (usize, usize),
+    /// Focal length at the working scale (fx), pixels.
+    pub working_focal_px: f64,
+    /// Mean distance from the reference's camera centre to its neighbours', metres.
+    pub mean_baseline_m: f64,
+    /// Share of the working pixels with a depth.
+    pub valid_fraction: f64,
+    /// Holes of the working depth map by reason.
+    pub holes: HoleCounts,
+}
+
+impl StereoDepth {
+    /// The stereo term of the change noise model, σ_quad = σ_disparity / (f·B) per metre, for a
+    /// disparity error of `disparity_sigma_px` working pixels (`ChangeConfig::quadratic_sigma_per_m`).
+    pub fn quadratic_sigma_per_m(&self, disparity_sigma_px: f64) -> f64 {
+        disparity_sigma_px / (self.working_focal_px * self.mean_baseline_m).max(1e-9)
+    }
+}
+
+/// A frame [`select_neighbours`] may choose: camera, image size and pose.
+#[derive(Clone, Copy, Debug)]
+pub struct PosedCamera {
+    pub intrinsics: PinholeIntrinsics,
+    pub width_px: usize,
+    pub height_px: usize,
+    pub cam_from_world: Rigid3,
+}
+
+/// Which registered frames are a reference's stereo neighbours.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NeighbourConfig {
+    /// Neighbours to choose (1..=4).
+    pub count: usize,
+    /// Largest angle between the optical axes, degrees.
+    pub max_axis_angle_deg: f64,
+    /// Least baseline as a share of the scene depth (a shorter one measures no depth).
+    pub min_baseline_ratio: f64,
+    /// Largest baseline as a share of the scene depth (a longer one sees another picture).
+    pub max_baseline_ratio: f64,
+}
+
+impl Default for NeighbourConfig {
+    fn default() -> Self {
+        Self {
+            count: 3,
+            max_axis_angle_deg: 40.0,
+            min_baseline_ratio: 0.03,
+            max_baseline_ratio: 0.6,
+        }
+    }
+}
+
+/// Indices into `candidates` of the reference's neighbours, nearest camera centre first: frames
+/// whose optical axis is within `max_axis_angle_deg` of the reference's, whose baseline is
+/// within the ratios of `scene_depth_m` (e.g. the model's median depth under the reference), and
+/// that see at least 3 of 5 points of the reference's view at that depth (centre and the quarter
+/// points). A candidate at the reference's own pose has no baseline and is never chosen.
+pub fn select_neighbours(
+    reference: &PosedCamera,
+    scene_depth_m: f64,
+    candidates: &[PosedCamera],
+    config: &NeighbourConfig,
+) -> Vec<usize> {
+    let world_from_ref = reference.cam_from_world.inverse();
+    let centre = reference.cam_from_world.camera_center();
+    let axis = world_from_ref.transform_vector(&Vector3::z());
+    let (w, h) = (reference.width_px as f64, reference.height_px as f64);
+    let probes: Vec<Vector3<f64>> = [
+        (0.5, 0.5),
+        (0.25, 0.25),
+        (0.75, 0.25),
+        (0.25, 0.75),
+        (0.75, 0.75),
+    ]
+    .iter()
+    .map(|&(fx, fy)| {
+        let n = reference
+            .intrinsics
+            .pixel_to_normalized(Vector2::new(fx * w, fy * h));
+        world_from_ref.transform_point(&(Vector3::new(n.x, n.y, 1.0) * scene_depth_m))
+    })
+    .collect();
+    let max_angle = config.max_axis_angle_deg.to_radians();
+    let mut chosen: Vec<(f64, usize)> = candidates
+        .iter()
+        .enumerate()
+        .filter_map(|(index, candidate)| {
+            let baseline = (candidate.cam_from_world.camera_center() - centre).norm();
+            if baseline < config.min_baseline_ratio * scene_depth_m
+                || baseline > config.max_baseline_ratio * scene_depth_m
+            {
+                return None;
+            }
+            let their_axis = candidate
+                .cam_from_world
+                .inverse()
+                .transform_vector(&Vector3::z());
+            if axis.angle(&their_axis) > max_angle {
+                return None;
+            }
+            let seen = probes
+                .iter()
+                .filter(|p| {
+                    candidate
+                        .intrinsics
+                        .project(&candidate.cam_from_world.transform_point(p))
+                        .is_some_and(|px| {
+                            px.x >= 0.0
+                                && px.y >= 0.0
+                                && px.x < candidate.width_px as f64
+                                && px.y < candidate.height_px as f64
+                        })
+                })
+                .count();
+            (seen >= 3).then_some((baseline, index))
+        })
+        .collect();
+    chosen.sort_by(|a, b| a.0.total_cmp(&b.0));
+    chosen
+        .into_iter()
+        .take(config.count.min(MAX_NEIGHBOURS))
+        .map(|(_, index)| index)
+        .collect()
+}
+
+/// Median depth of the model under `camera`'s pose, rendered at a quarter of its size (the
+/// `scene_depth_m` of [`select_neighbours`]); `None` when the model is not in view.
+pub fn scene_depth_m(mesh: &Mesh, camera: &PosedCamera) -> Option<f64> {
+    let (w, h) = (camera.width_px.div_ceil(4), camera.height_px.div_ceil(4));
+    let intrinsics = resized_intrinsics(
+        &camera.intrinsics,
+        (camera.width_px, camera.height_px),
+        (w, h),
+    );
+    let mut buffers = RenderBuffers::new(w, h);
+    Rasterizer::new().render(
+        mesh,
+        &intrinsics,
+        &camera.cam_from_world,
+        &RenderOptions::default(),
+        &mut buffers,
+    );
+    median_scene_depth_m(&buffers)
+}
+
+/// How a depth map compares with a reference depth map of the same size (both 0 = hole).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct DepthErrors {
+    /// Pixels where both have a depth.
+    pub compared: usize,
+    /// Median |estimate − reference| / reference over them.
+    pub median_relative: f64,
+    /// Shares of them within 1, 2 and 5 %.
+    pub within_1_percent: f64,
+    pub within_2_percent: f64,
+    pub within_5_percent: f64,
+    /// Share of the reference's depth pixels that have an estimate.
+    pub valid_share: f64,
+}
+
+/// The error distribution of `estimate` against `reference` (e.g. a true or MVS depth map).
+pub fn depth_errors(estimate: ImageView<'_, f32>, reference: ImageView<'_, f32>) -> DepthErrors {
+    let mut relative: Vec<f64> = estimate
+        .data()
+        .iter()
+        .zip(reference.data())
+        .filter(|(e, t)| **e > 0.0 && **t > 0.0 && e.is_finite() && t.is_finite())
+        .map(|(e, t)| f64::from((e - t).abs() / t))
+        .collect();
+    let with_reference = reference.data().iter().filter(|t| **t > 0.0).count();
+    let n = relative.len().max(1) as f64;
+    let within = |limit: f64| relative.iter().filter(|r| **r <= limit).count() as f64 / n;
+    let (w1, w2, w5) = (within(0.01), within(0.02), within(0.05));
+    let median_relative = if relative.is_empty() {
+        f64::INFINITY
+    } else {
+        let middle = relative.len() / 2;
+        *relative.select_nth_unstable_by(middle, f64::total_cmp).1
+    };
+    DepthErrors {
+        compared: relative.len(),
+        median_relative,
+        within_1_percent: w1,
+        within_2_percent: w2,
+        within_5_percent: w5,
+        valid_share: relative.len() as f64 / with_reference.max(1) as f64,
+    }
+}
+
+/// The sweep's range from the model's depth under the reference pose (0 = no surface): its 2nd
+/// and 98th percentiles times `near_factor` and `far_factor`; `None` with fewer than
+/// `min_pixels` surface pixels.
+pub fn depth_range_from_model(
+    model_depth_m: ImageView<'_, f32>,
+    config: &StereoConfig,
+    min_pixels: usize,
+) -> Option<DepthRange> {
+    let mut depths: Vec<f32> = model_depth_m
+        .data()
+        .iter()
+        .copied()
+        .filter(|d| d.is_finite() && *d > 0.0)
+        .collect();
+    if depths.len() < min_pixels.max(1) {
+        return None;
+    }
+    let mut quantile = |q: f64| {
+        let k = ((depths.len() - 1) as f64 * q).round() as usize;
+        *depths.select_nth_unstable_by(k, f32::total_cmp).1
+    };
+    let (low, high) = (quantile(0.02), quantile(0.98));
+    Some(DepthRange {
+        near_m: low * config.near_factor,
+        far_m: (high * config.far_factor).max(low * config.near_factor * 1.01),
+    })
+}
+
+/// The intrinsics of an image of `from` px resized to `to` px (`Camera::resized`).
+fn resized_intrinsics(
+    intrinsics: &PinholeIntrinsics,
+    from: (usize, usize),
+    to: (usize, usize),
+) -> PinholeIntrinsics {
+    Camera::pinhole(from.0 as u32, from.1 as u32, *intrinsics)
+        .resized(to.0 as u32, to.1 as u32)
+        .intrinsics
+}
+
+/// One view at the working scale.
+struct WorkingView {
+    photo: Image<f32>,
+    intrinsics: PinholeIntrinsics,
+    cam_from_world: Rigid3,
+}
+
+fn working_view(
+    view: &StereoView<'_>,
+    what: &'static str,
+    config: &StereoConfig,
+) -> Result<WorkingView, StereoError> {
+    let (w, h) = view.photo.size();
+    let f = config.downsample;
+    let (ww, wh) = ((w + f / 2) / f, (h + f / 2) / f);
+    let window = 2 * config.window_radius_px + 1;
+    if ww < 2 * window || wh < 2 * window {
+        return Err(StereoError::PhotoTooSmall {
+            what,
+            width_px: w,
+            height_px: h,
+            window,
+            downsample: f,
+        });
+    }
+    if f == 1 {
+        return Ok(WorkingView {
+            photo: view.photo.to_image(),
+            intrinsics: view.intrinsics,
+            cam_from_world: view.cam_from_world,
+        });
+    }
+    let mut photo = Image::default();
+    resize_area(view.photo, ww, wh, &mut photo);
+    Ok(WorkingView {
+        photo,
+        intrinsics: resized_intrinsics(&view.intrinsics, (w, h), (ww, wh)),
+        cam_from_world: view.cam_from_world,
+    })
+}
+
+/// Least share of the reference's pixels on the model for a depth range.
+const MIN_MODEL_SHARE: f64 = 0.01;
+
+/// The reference frame's depth from its neighbours (1..=4 registered frames that see the same
+/// scene), with holes where unsure; see the module's method. `mesh` is the model in the poses'
+/// world frame: its depth under the reference pose sets the range swept.
+pub fn depth_from_neighbours(
+    mesh: &Mesh,
+    reference: &StereoView<'_>,
+    neighbours: &[StereoView<'_>],
+    config: &StereoConfig,
+) -> Result<StereoDepth, StereoError> {
+    config.validate()?;
+    if neighbours.is_empty() || neighbours.len() > MAX_NEIGHBOURS {
+        return Err(StereoError::NeighbourCount {
+            count: neighbours.len(),
+        });
+    }
+    let reference_w = working_view(reference, "reference", config)?;
+    let neighbours_w = neighbours
+        .iter()
+        .map(|n| working_view(n, "neighbour", config))
+        .collect::<Result<Vec<_>, _>>()?;
+    let (ww, wh) = reference_w.photo.size();
+    let mut model = RenderBuffers::new(ww, wh);
+    Rasterizer::new().render(
+        mesh,
+        &reference_w.intrinsics,
+        &reference_w.cam_from_world,
+        &RenderOptions::default(),
+        &mut model,
+    );
+    let min_pixels = ((ww * wh) as f64 * MIN_MODEL_SHARE).ceil() as usize;
+    let range = depth_range_from_model(model.depth_m().view(), config, min_pixels)
+        .ok_or(StereoError::NoModelSurface { min_pixels })?;
+    let neighbour_refs: Vec<&WorkingView> = neighbours_w.iter().collect();
+    let mut sweep = plane_sweep(&reference_w, &neighbour_refs, range, config);
+    if config.left_right_check {
+        let first = &neighbours_w[0];
+        let back = plane_sweep(
+            first,
+            &[&reference_w],
+            range,
+            &StereoConfig {
+                best_k: 1,
+                ..*config
+            },
+        );
+        left_right_check(&mut sweep, &reference_w, &back, first, config);
+    }
+    if config.fill_radius_px > 0 {
+        fill_holes(&mut sweep.depth_m, config.fill_radius_px);
+    }
+    let valid = sweep.depth_m.data().iter().filter(|d| **d > 0.0).count();
+    let centre = reference.cam_from_world.camera_center();
+    let mean_baseline_m = neighbours
+        .iter()
+        .map(|n| (n.cam_from_world.camera_center() - centre).norm())
+        .sum::<f64>()
+        / neighbours.len() as f64;
+    let (w, h) = reference.photo.size();
+    Ok(StereoDepth {
+        depth_m: upsample_depth(sweep.depth_m.view(), w, h),
+        range,
+        planes: sweep.planes,
+        working_size_px: (ww, wh),
+        working_focal_px: reference_w.intrinsics.fx_px,
+        mean_baseline_m,
+        valid_fraction: valid as f64 / (ww * wh).max(1) as f64,
+        holes: sweep.holes,
+    })
+}
+
+/// The working-scale result of one sweep.
+struct Sweep {
+    depth_m: Image<f32>,
+    planes: usize,
+    /// Inverse-depth step between planes, 1/m.
+    inverse_step: f32,
+    holes: HoleCounts,
+}
+
+/// The plane homography of one neighbour in the form `x_n ~ A·x_r + q/d`: `A = K_n R K_r⁻¹`,
+/// `q = K_n t` with `(R, t)` = neighbour_from_reference.
+struct PlaneWarp {
+    a: Matrix3<f64>,
+    q: Vector3<f64>,
+}
+
+fn plane_warp(reference: &WorkingView, neighbour: &WorkingView) -> Option<PlaneWarp> {
+    let n_from_r = neighbour
+        .cam_from_world
+        .compose(&reference.cam_from_world.inverse());
+    let k_r_inv = reference.intrinsics.k_matrix().try_inverse()?;
+    let k_n = neighbour.intrinsics.k_matrix();
+    Some(PlaneWarp {
+        a: k_n * n_from_r.rotation_matrix() * k_r_inv,
+        q: k_n * n_from_r.translation,
+    })
+}
+
+impl PlaneWarp {
+    fn apply(&self, pixel: Vector2<f64>, inverse_depth: f64) -> Option<Vector2<f64>> {
+        let x = self.a * Vector3::new(pixel.x, pixel.y, 1.0) + self.q * inverse_depth;
+        (x.z > 1e-9).then(|| Vector2::new(x.x / x.z, x.y / x.z))
+    }
+}
+
+/// Running sums over windows of `2r+1` along rows then columns (valid where the window is
+/// inside the image; other outputs are left 0).
+fn box_sums(
+    src: &[[f32; 4]],
+    w: usize,
+    h: usize,
+    r: usize,
+    tmp: &mut [[f32; 4]],
+    out: &mut [[f32; 4]],
+) {
+    let add = |a: &mut [f32; 4], b: &[f32; 4]| a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+    let sub = |a: &mut [f32; 4], b: &[f32; 4]| a.iter_mut().zip(b).for_each(|(x, y)| *x -= y);
+    let n = 2 * r + 1;
+    tmp.fill([0.0; 4]);
+    out.fill([0.0; 4]);
+    for row in 0..h {
+        let line = &src[row * w..(row + 1) * w];
+        let mut sum = [0.0f32; 4];
+        for v in &line[..n] {
+            add(&mut sum, v);
+        }
+        tmp[row * w + r] = sum;
+        for col in r + 1..w - r {
+            add(&mut sum, &line[col + r]);
+            sub(&mut sum, &line[col - r - 1]);
+            tmp[row * w + col] = sum;
+        }
+    }
+    for col in r..w - r {
+        let mut sum = [0.0f32; 4];
+        for row in 0..n {
+            add(&mut sum, &tmp[row * w + col]);
+        }
+        out[r * w + col] = sum;
+        for row in r + 1..h - r {
+            add(&mut sum, &tmp[(row + r) * w + col]);
+            sub(&mut sum, &tmp[(row - r - 1) * w + col]);
+            out[row * w + col] = sum;
+        }
+    }
+}
+
+/// Per reference pixel: window mean and standard deviation of the grey values; `None` where the
+/// window leaves the image or is untextured.
+fn reference_stats(photo: &Image<f32>, config: &StereoConfig) -> Vec<Option<(f32, f32)>> {
+    let (w, h) = photo.size();
+    let r = config.window_radius_px;
+    let n = ((2 * r + 1) * (2 * r + 1)) as f32;
+    let src: Vec<[f32; 4]> = photo.data().iter().map(|&v| [v, v * v, 0.0, 0.0]).collect();
+    let mut tmp = vec![[0.0; 4]; w * h];
+    let mut sums = vec![[0.0; 4]; w * h];
+    box_sums(&src, w, h, r, &mut tmp, &mut sums);
+    (0..w * h)
+        .map(|index| {
+            let (col, row) = (index % w, index / w);
+            if col < r || row < r || col + r >= w || row + r >= h {
+                return None;
+            }
+            let mean = sums[index][0] / n;
+            let std = (sums[index][1] / n - mean * mean).max(0.0).sqrt();
+            (std >= config.min_texture.max(1e-4)).then_some((mean, std))
+        })
+        .collect()
+}
+
+/// Scratch of one thread's plane: warped samples and their box sums, each neighbour's cost.
+struct PlaneScratch {
+    samples: Vec<[f32; 4]>,
+    tmp: Vec<[f32; 4]>,
+    sums: Vec<[f32; 4]>,
+    costs: Vec<Vec<f32>>,
+}
+
+#[allow(clippy::too_many_arguments)]
+fn plane_costs(
+    reference: &WorkingView,
+    stats: &[Option<(f32, f32)>],
+    neighbours: &[&WorkingView],
+    warps: &[Option<PlaneWarp>],
+    inverse_depth: f64,
+    config: &StereoConfig,
+    scratch: &mut PlaneScratch,
+    out: &mut [f32],
+) {
+    let (w, h) = reference.photo.size();
+    let r = config.window_radius_px;
+    let n = ((2 * r + 1) * (2 * r + 1)) as f32;
+    let reference_data = reference.photo.data();
+    for (k, (neighbour, warp)) in neighbours.iter().zip(warps).enumerate() {
+        let costs = &mut scratch.costs[k];
+        costs.fill(f32::NAN);
+        let Some(warp) = warp else { continue };
+        let photo = neighbour.photo.view();
+        for (index, (out, &i)) in scratch.samples.iter_mut().zip(reference_data).enumerate() {
+            let pixel = pixel_center(index % w, index / w);
+            let sample = warp
+                .apply(pixel, inverse_depth)
+                .and_then(|x| bilinear(&photo, x));
+            *out = match sample {
+                Some(j) => [j, j * j, j * i, 1.0],
+                None => [0.0; 4],
+            };
+        }
+        box_sums(
+            &scratch.samples,
+            w,
+            h,
+            r,
+            &mut scratch.tmp,
+            &mut scratch.sums,
+        );
+        for (index, (cost, stat)) in costs.iter_mut().zip(stats).enumerate() {
+            let Some((mean_i, std_i)) = stat else {
+                continue;
+            };
+            let s = scratch.sums[index];
+            if s[3] < n - 0.5 {
+                continue;
+            }
+            let mean_j = s[0] / n;
+            let var_j = s[1] / n - mean_j * mean_j;
+            let zncc = if var_j < 1e-8 {
+                0.0
+            } else {
+                ((s[2] / n - mean_i * mean_j) / (std_i * var_j.sqrt())).clamp(-1.0, 1.0)
+            };
+            *cost = 1.0 - zncc;
+        }
+    }
+    let best_k = config.best_k;
+    for (index, out) in out.iter_mut().enumerate() {
+        let mut valid = [f32::INFINITY; MAX_NEIGHBOURS];
+        let mut count = 0;
+        for costs in &scratch.costs {
+            let c = costs[index];
+            if c.is_finite() {
+                valid[count] = c;
+                count += 1;
+            }
+        }
+        if count == 0 {
+            *out = f32::NAN;
+            continue;
+        }
+        valid[..count].sort_by(f32::total_cmp);
+        let used = best_k.min(count);
+        *out = valid[..used].iter().sum::<f32>() / used as f32;
+    }
+}
+
+fn plane_count(
+    reference: &WorkingView,
+    warps: &[Option<PlaneWarp>],
+    range: DepthRange,
+    config: &StereoConfig,
+) -> usize {
+    let (w, h) = reference.photo.size();
+    let (near, far) = (1.0 / f64::from(range.near_m), 1.0 / f64::from(range.far_m));
+    let mut widest = 0.0f64;
+    for warp in warps.iter().flatten() {
+        for (fx, fy) in [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (0.5, 0.5)] {
+            let pixel = Vector2::new(fx * w as f64, fy * h as f64);
+            if let (Some(a), Some(b)) = (warp.apply(pixel, near), warp.apply(pixel, far)) {
+                widest = widest.max((a - b).norm());
+            }
+        }
+    }
+    ((widest / f64::from(config.plane_step_px)).ceil() as usize + 1)
+        .clamp(config.min_planes, config.max_planes)
+}
+
+/// One plane sweep of `reference` against `neighbours` (working scale), winner-take-all with
+/// the hole tests except the left-right check.
+fn plane_sweep(
+    reference: &WorkingView,
+    neighbours: &[&WorkingView],
+    range: DepthRange,
+    config: &StereoConfig,
+) -> Sweep {
+    let (w, h) = reference.photo.size();
+    let pixels = w * h;
+    let warps: Vec<Option<PlaneWarp>> = neighbours
+        .iter()
+        .map(|n| plane_warp(reference, n))
+        .collect();
+    let planes = plane_count(reference, &warps, range, config);
+    let inverse_near = 1.0 / range.near_m;
+    let inverse_far = 1.0 / range.far_m;
+    let inverse_step = (inverse_near - inverse_far) / (planes - 1) as f32;
+    // Plane i at inverse depth 1/near − i·step: plane 0 nearest.
+    let inverse_depth = |plane: f32| inverse_near - plane * inverse_step;
+    let stats = reference_stats(&reference.photo, config);
+    let mut volume = vec![f32::NAN; planes * pixels];
+    volume.par_chunks_mut(pixels).enumerate().for_each_init(
+        || PlaneScratch {
+            samples: vec![[0.0; 4]; pixels],
+            tmp: vec![[0.0; 4]; pixels],
+            sums: vec![[0.0; 4]; pixels],
+            costs: vec![vec![f32::NAN; pixels]; neighbours.len()],
+        },
+        |scratch, (plane, out)| {
+            plane_costs(
+                reference,
+                &stats,
+                neighbours,
+                &warps,
+                f64::from(inverse_depth(plane as f32)),
+                config,
+                scratch,
+                out,
+            );
+        },
+    );
+    let outcomes: Vec<Result<f32, HoleReason>> = (0..pixels)
+        .into_par_iter()
+        .map(|index| {
+            if stats[index].is_none() {
+                return Err(HoleReason::Untextured);
+            }
+            let cost = |plane: usize| volume[plane * pixels + index];
+            let best = (0..planes)
+                .filter(|&p| cost(p).is_finite())
+                .min_by(|&a, &b| cost(a).total_cmp(&cost(b)))
+                .ok_or(HoleReason::Unseen)?;
+            let best_cost = cost(best);
+            if best_cost > config.max_cost {
+                return Err(HoleReason::HighCost);
+            }
+            if best == 0 || best + 1 == planes {
+                return Err(HoleReason::AtRangeEnd);
+            }
+            let second = (0..planes)
+                .filter(|&p| p + 2 < best || p > best + 2)
+                .map(cost)
+                .filter(|c| c.is_finite())
+                .fold(f32::INFINITY, f32::min);
+            if second - best_cost < config.uniqueness_margin {
+                return Err(HoleReason::Ambiguous);
+            }
+            let (before, after) = (cost(best - 1), cost(best + 1));
+            let offset = if before.is_finite() && after.is_finite() {
+                parabola_peak(before, best_cost, after).clamp(-0.5, 0.5) as f32
+            } else {
+                0.0
+            };
+            Ok(1.0 / inverse_depth(best as f32 + offset))
+        })
+        .collect();
+    let mut holes = HoleCounts::default();
+    let mut depth_m = Image::filled(w, h, 0.0f32);
+    for (depth, outcome) in depth_m.data_mut().iter_mut().zip(outcomes) {
+        match outcome {
+            Ok(d) => *depth = d,
+            Err(reason) => reason.count(&mut holes),
+        }
+    }
+    Sweep {
+        depth_m,
+        planes,
+        inverse_step,
+        holes,
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+enum HoleReason {
+    Untextured,
+    Unseen,
+    HighCost,
+    AtRangeEnd,
+    Ambiguous,
+}
+
+impl HoleReason {
+    fn count(self, holes: &mut HoleCounts) {
+        match self {
+            HoleReason::Untextured => holes.untextured += 1,
+            HoleReason::Unseen => holes.unseen += 1,
+            HoleReason::HighCost => holes.high_cost += 1,
+            HoleReason::AtRangeEnd => holes.at_range_end += 1,
+            HoleReason::Ambiguous => holes.ambiguous += 1,
+        }
+    }
+}
+
+/// Keeps the depths of `sweep` that `neighbour`'s own depth (`back`) confirms: the point seen
+/// at the reference pixel lands in the neighbour at a pixel whose depth agrees within
+/// `consistency_planes` plane steps of inverse depth.
+fn left_right_check(
+    sweep: &mut Sweep,
+    reference: &WorkingView,
+    back: &Sweep,
+    neighbour: &WorkingView,
+    config: &StereoConfig,
+) {
+    let w = sweep.depth_m.width_px();
+    let (nw, nh) = back.depth_m.size();
+    let n_from_r = neighbour
+        .cam_from_world
+        .compose(&reference.cam_from_world.inverse());
+    let tolerance = config.consistency_planes * back.inverse_step.max(sweep.inverse_step);
+    let back_depth = back.depth_m.data();
+    let mut inconsistent = 0;
+    for (index, depth) in sweep.depth_m.data_mut().iter_mut().enumerate() {
+        if *depth <= 0.0 {
+            continue;
+        }
+        let n = reference
+            .intrinsics
+            .pixel_to_normalized(pixel_center(index % w, index / w));
+        let d = f64::from(*depth);
+        let point = n_from_r.transform_point(&Vector3::new(n.x * d, n.y * d, d));
+        let confirmed = neighbour
+            .intrinsics
+            .project(&point)
+            .and_then(|px| nearest_pixel(px, nw, nh))
+            .map(|(col, row)| back_depth[row * nw + col])
+            .is_some_and(|other| {
+                if other > 0.0 {
+                    (1.0 / point.z as f32 - 1.0 / other).abs() <= tolerance
+                } else {
+                    config.keep_unconfirmed
+                }
+            });
+        if !confirmed {
+            *depth = 0.0;
+            inconsistent += 1;
+        }
+    }
+    sweep.holes.inconsistent += inconsistent;
+}
+
+/// Least share of a hole's neighbourhood with depth for [`fill_holes`].
+const FILL_MIN_SHARE: f32 = 0.5;
+/// Largest inverse-depth spread (upper/lower quartile − 1) of that neighbourhood.
+const FILL_AGREEMENT: f32 = 0.03;
+
+/// Holes whose (2r+1)² neighbourhood is at least half depth that agrees get its median (one
+/// pass; filled values are not used to fill others).
+fn fill_holes(depth_m: &mut Image<f32>, radius: usize) {
+    let (w, h) = depth_m.size();
+    let source = depth_m.clone();
+    let data = source.data();
+    let r = radius as i64;
+    let window = ((2 * radius + 1) * (2 * radius + 1)) as f32;
+    let mut values = Vec::with_capacity(window as usize);
+    for (index, depth) in depth_m.data_mut().iter_mut().enumerate() {
+        if *depth > 0.0 {
+            continue;
+        }
+        let (col, row) = ((index % w) as i64, (index / w) as i64);
+        values.clear();
+        for dr in -r..=r {
+            for dc in -r..=r {
+                let (rr, cc) = (row + dr, col + dc);
+                if rr >= 0 && cc >= 0 && rr < h as i64 && cc < w as i64 {
+                    let v = data[rr as usize * w + cc as usize];
+                    if v > 0.0 {
+                        values.push(1.0 / v);
+                    }
+                }
+            }
+        }
+        if (values.len() as f32) < FILL_MIN_SHARE * window {
+            continue;
+        }
+        values.sort_by(f32::total_cmp);
+        let n = values.len();
+        let (low, high) = (values[n / 4], values[(3 * n) / 4]);
+        if high <= low * (1.0 + FILL_AGREEMENT) {
+            *depth = 1.0 / values[n / 2];
+        }
+    }
+}
+
+/// Inverse-depth taps further apart than this share are a depth edge: no interpolation across.
+const UPSAMPLE_AGREEMENT: f32 = 0.05;
+
+/// The working depth at `width_px × height_px`: bilinear in inverse depth where the four taps
+/// agree, else the nearest tap (which may be a hole).
+fn upsample_depth(depth_m: ImageView<'_, f32>, width_px: usize, height_px: usize) -> Image<f32> {
+    let (lw, lh) = depth_m.size();
+    if (lw, lh) == (width_px, height_px) {
+        return depth_m.to_image();
+    }
+    let (sx, sy) = (lw as f64 / width_px as f64, lh as f64 / height_px as f64);
+    let data = depth_m.data();
+    Image::from_fn(width_px, height_px, |col, row| {
+        let centre = pixel_center(col, row);
+        let low = Vector2::new(centre.x * sx, centre.y * sy);
+        let Some((nc, nr)) = nearest_pixel(low, lw, lh) else {
+            return 0.0;
+        };
+        let nearest = data[nr * lw + nc];
+        let (x, y) = (low.x - 0.5, low.y - 0.5);
+        if x < 0.0 || y < 0.0 || x > (lw - 1) as f64 || y > (lh - 1) as f64 {
+            return nearest;
+        }
+        let (c0, r0) = ((x as usize).min(lw - 2), (y as usize).min(lh - 2));
+        let taps = [
+            data[r0 * lw + c0],
+            data[r0 * lw + c0 + 1],
+            data[(r0 + 1) * lw + c0],
+            data[(r0 + 1) * lw + c0 + 1],
+        ];
+        if taps.iter().any(|d| *d <= 0.0) {
+            return nearest;
+        }
+        let inverse = taps.map(|d| 1.0 / d);
+        let (lo, hi) = inverse.iter().fold((f32::INFINITY, 0.0f32), |(lo, hi), v| {
+            (lo.min(*v), hi.max(*v))
+        });
+        if hi > lo * (1.0 + UPSAMPLE_AGREEMENT) {
+            return nearest;
+        }
+        let (fx, fy) = ((x - c0 as f64) as f32, (y - r0 as f64) as f32);
+        let top = inverse[0] * (1.0 - fx) + inverse[1] * fx;
+        let bottom = inverse[2] * (1.0 - fx) + inverse[3] * fx;
+        1.0 / (top * (1.0 - fy) + bottom * fy)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::change::tests::mesh_of;
+
+    /// splitmix64 of a lattice point: a deterministic value in 0..1.
+    fn lattice(ix: i64, iy: i64, iz: i64, seed: u64) -> f32 {
+        let mut z = seed
+            ^ (ix as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            ^ (iy as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+            ^ (iz as u64).wrapping_mul(0x1656_67B1_9E37_79F9);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        (z >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// Trilinear value noise with cells of `cell_m`.
+    fn value_noise(p: &Vector3<f64>, cell_m: f64, seed: u64) -> f32 {
+        let q = p / cell_m;
+        let (fx, fy, fz) = (q.x.floor(), q.y.floor(), q.z.floor());
+        let (tx, ty, tz) = ((q.x - fx) as f32, (q.y - fy) as f32, (q.z - fz) as f32);
+        let (ix, iy, iz) = (fx as i64, fy as i64, fz as i64);
+        let mut value = 0.0;
+        for (dz, wz) in [(0, 1.0 - tz), (1, tz)] {
+            for (dy, wy) in [(0, 1.0 - ty), (1, ty)] {
+                for (dx, wx) in [(0, 1.0 - tx), (1, tx)] {
+                    value += wx * wy * wz * lattice(ix + dx, iy + dy, iz + dz, seed);
+                }
+            }
+        }
+        value
+    }
+
+    /// Grey albedo of a world point: three octaves of noise; flat grey inside `flat` (x range).
+    fn albedo(p: &Vector3<f64>, flat: Option<(f64, f64)>) -> f32 {
+        if flat.is_some_and(|(lo, hi)| p.x > lo && p.x < hi && p.z < 0.01) {
+            return 0.45;
+        }
+        0.15 + 0.4 * value_noise(p, 0.9, 1)
+            + 0.3 * value_noise(p, 0.35, 2)
+            + 0.15 * value_noise(p, 0.13, 3)
+    }
+
+    /// Ground (60 × 60 m) and a 6 × 4 × 4 m box at the origin.
+    fn scene() -> Mesh {
+        let (x0, x1, y0, y1, z) = (-3.0, 3.0, -2.0, 2.0, 4.0);
+        mesh_of(&[
+            [
+                [-30.0, -30.0, 0.0],
+                [30.0, -30.0, 0.0],
+                [30.0, 30.0, 0.0],
+                [-30.0, 30.0, 0.0],
+            ],
+            [[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]],
+            [[x0, y0, 0.0], [x1, y0, 0.0], [x1, y0, z], [x0, y0, z]],
+            [[x1, y0, 0.0], [x1, y1, 0.0], [x1, y1, z], [x1, y0, z]],
+            [[x1, y1, 0.0], [x0, y1, 0.0], [x0, y1, z], [x1, y1, z]],
+            [[x0, y1, 0.0], [x0, y0, 0.0], [x0, y0, z], [x0, y1, z]],
+        ])
+    }
+
+    const WIDTH: usize = 240;
+    const HEIGHT: usize = 160;
+    const FOCAL_PX: f64 = 200.0;
+
+    fn camera_at(eye: [f64; 3]) -> (PinholeIntrinsics, Rigid3) {
+        let pose = Rigid3::look_at(
+            &Vector3::from(eye),
+            &Vector3::new(0.0, 0.0, 1.0),
+            &Vector3::z(),
+        )
+        .expect("a valid look-at");
+        (
+            PinholeIntrinsics::centered(FOCAL_PX, WIDTH as u32, HEIGHT as u32),
+            pose,
+        )
+    }
+
+    /// A photo of `mesh` (2×2 supersampled, shaded by the normal, sensor noise of 0.004) and
+    /// its true depth.
+    fn photo(
+        mesh: &Mesh,
+        intrinsics: &PinholeIntrinsics,
+        pose: &Rigid3,
+        flat: Option<(f64, f64)>,
+        seed: u64,
+    ) -> (Image<f32>, Image<f32>) {
+        let fine = intrinsics.scaled(2.0);
+        let mut buffers = RenderBuffers::new(2 * WIDTH, 2 * HEIGHT);
+        let mut rasterizer = Rasterizer::new();
+        rasterizer.render(mesh, &fine, pose, &RenderOptions::default(), &mut buffers);
+        let world_from_cam = pose.inverse();
+        let light = glam::Vec3::new(0.3, -0.6, -0.75).normalize();
+        let sharp = Image::from_fn(2 * WIDTH, 2 * HEIGHT, |col, row| {
+            let d = buffers.depth_m().data()[row * 2 * WIDTH + col];
+            if d <= 0.0 {
+                return 0.8;
+            }
+            let n = fine.pixel_to_normalized(pixel_center(col, row));
+            let d = f64::from(d);
+            let p = world_from_cam.transform_point(&Vector3::new(n.x * d, n.y * d, d));
+            let normal = buffers.normal_cam().data()[row * 2 * WIDTH + col];
+            albedo(&p, flat) * (0.7 + 0.3 * normal.dot(light).abs())
+        });
+        let mut small = Image::default();
+        resize_area(sharp.view(), WIDTH, HEIGHT, &mut small);
+        for (index, v) in small.data_mut().iter_mut().enumerate() {
+            *v += 0.004 * (lattice(index as i64, 0, 0, seed) - 0.5) * 3.46;
+        }
+        let mut depth = RenderBuffers::new(WIDTH, HEIGHT);
+        rasterizer.render(
+            mesh,
+            intrinsics,
+            pose,
+            &RenderOptions::default(),
+            &mut depth,
+        );
+        (small, depth.depth_m().clone())
+    }
+
+    /// Median |rel|, shares within 1, 2, 5 %, valid share (see [`depth_errors`]).
+    fn errors(estimate: &Image<f32>, truth: &Image<f32>) -> (f64, [f64; 3], f64) {
+        let e = depth_errors(estimate.view(), truth.view());
+        (
+            e.median_relative,
+            [e.within_1_percent, e.within_2_percent, e.within_5_percent],
+            e.valid_share,
+        )
+    }
+
+    struct Rig {
+        mesh: Mesh,
+        views: Vec<(PinholeIntrinsics, Rigid3, Image<f32>, Image<f32>)>,
+    }
+
+    /// The reference 20 m south and 18 m up, neighbours 2–3 m away on three sides.
+    fn rig(flat: Option<(f64, f64)>) -> Rig {
+        let mesh = scene();
+        let eyes = [
+            [0.0, -20.0, 18.0],
+            [2.5, -20.0, 18.0],
+            [-2.0, -19.5, 19.0],
+            [0.5, -17.5, 17.0],
+        ];
+        let views = eyes
+            .iter()
+            .enumerate()
+            .map(|(seed, eye)| {
+                let (k, pose) = camera_at(*eye);
+                let (photo, depth) = photo(&mesh, &k, &pose, flat, seed as u64 + 10);
+                (k, pose, photo, depth)
+            })
+            .collect();
+        Rig { mesh, views }
+    }
+
+    fn stereo(rig: &Rig, neighbours: usize, config: &StereoConfig) -> StereoDepth {
+        let view = |i: usize| StereoView {
+            photo: rig.views[i].2.view(),
+            intrinsics: rig.views[i].0,
+            cam_from_world: rig.views[i].1,
+        };
+        let others: Vec<StereoView> = (1..=neighbours).map(view).collect();
+        depth_from_neighbours(&rig.mesh, &view(0), &others, config).expect("stereo depth")
+    }
+
+    #[test]
+    fn plane_sweep_recovers_a_textured_box_on_the_ground() {
+        let rig = rig(None);
+        let truth = &rig.views[0].3;
+        for (downsample, neighbours, left_right) in
+            [(1, 3, true), (2, 3, true), (2, 1, true), (2, 3, false)]
+        {
+            let config = StereoConfig {
+                downsample,
+                left_right_check: left_right,
+                ..StereoConfig::default()
+            };
+            let result = stereo(&rig, neighbours, &config);
+            assert_eq!(result.depth_m.size(), (WIDTH, HEIGHT));
+            let (median, within, valid) = errors(&result.depth_m, truth);
+            eprintln!(
+                "downsample {downsample}, {neighbours} neighbours, left-right {left_right}: {} planes, median |rel| {:.4}, within 1/2/5 %: {:.3}/{:.3}/{:.3}, valid {:.3}, holes {:?}",
+                result.planes, median, within[0], within[1], within[2], valid, result.holes
+            );
+            assert!(median < 0.01, "median relative error {median}");
+            assert!(within[2] > 0.9, "within 5 %: {}", within[2]);
+            assert!(valid > 0.5, "valid share {valid}");
+        }
+    }
+
+    #[test]
+    fn untextured_ground_and_unseen_pixels_are_holes() {
+        let rig = rig(Some((-30.0, -4.0)));
+        let result = stereo(&rig, 2, &StereoConfig::default());
+        // Pixels whose true point lies on the flat patch: almost all holes.
+        let world_from_cam = rig.views[0].1.inverse();
+        let (mut flat, mut flat_valid) = (0, 0);
+        for (index, (&t, &e)) in rig.views[0]
+            .3
+            .data()
+            .iter()
+            .zip(result.depth_m.data())
+            .enumerate()
+        {
+            if t <= 0.0 {
+                continue;
+            }
+            let n = rig.views[0]
+                .0
+                .pixel_to_normalized(pixel_center(index % WIDTH, index / WIDTH));
+            let d = f64::from(t);
+            let p = world_from_cam.transform_point(&Vector3::new(n.x * d, n.y * d, d));
+            // Away from the patch's edge (the window reaches 2 working px = 4 px over it).
+            if p.x < -5.0 && p.z < 0.01 {
+                flat += 1;
+                flat_valid += usize::from(e > 0.0);
+            }
+        }
+        eprintln!(
+            "flat patch: {flat_valid} of {flat} px with a depth, holes {:?}",
+            result.holes
+        );
+        assert!(flat > 1000, "the patch is in view ({flat} px)");
+        assert!(
+            (flat_valid as f64) < 0.02 * flat as f64,
+            "{flat_valid} of {flat} untextured pixels got a depth"
+        );
+        // The textured rest still has depth.
+        let (median, _, valid) = errors(&result.depth_m, &rig.views[0].3);
+        assert!(
+            median < 0.01 && valid > 0.3,
+            "median {median}, valid {valid}"
+        );
+    }
+
+    #[test]
+    fn neighbours_are_the_nearest_frames_with_a_baseline_that_see_the_scene() {
+        let at = |eye: [f64; 3], target: [f64; 3]| PosedCamera {
+            intrinsics: PinholeIntrinsics::centered(FOCAL_PX, WIDTH as u32, HEIGHT as u32),
+            width_px: WIDTH,
+            height_px: HEIGHT,
+            cam_from_world: Rigid3::look_at(
+                &Vector3::from(eye),
+                &Vector3::from(target),
+                &Vector3::z(),
+            )
+            .expect("a valid look-at"),
+        };
+        let reference = at([0.0, -20.0, 18.0], [0.0, 0.0, 1.0]);
+        let candidates = [
+            at([0.0, -20.0, 18.0], [0.0, 0.0, 1.0]), // itself: no baseline
+            at([6.0, -20.0, 18.0], [0.0, 0.0, 1.0]), // 6 m
+            at([2.0, -20.0, 18.0], [0.0, 0.0, 1.0]), // 2 m
+            at([0.0, 20.0, 18.0], [0.0, 0.0, 1.0]),  // opposite side
+            at([3.0, -20.0, 18.0], [60.0, 0.0, 1.0]), // looks elsewhere
+            at([-3.0, -19.0, 18.0], [0.0, 0.0, 1.0]), // 3.2 m
+        ];
+        let depth = 26.0;
+        let chosen = select_neighbours(&reference, depth, &candidates, &NeighbourConfig::default());
+        assert_eq!(chosen, vec![2, 5, 1]);
+        let two = NeighbourConfig {
+            count: 2,
+            ..NeighbourConfig::default()
+        };
+        assert_eq!(
+            select_neighbours(&reference, depth, &candidates, &two),
+            vec![2, 5]
+        );
+    }
+
+    #[test]
+    fn bad_inputs_are_named() {
+        let rig = rig(None);
+        let view = StereoView {
+            photo: rig.views[0].2.view(),
+            intrinsics: rig.views[0].0,
+            cam_from_world: rig.views[0].1,
+        };
+        let error = depth_from_neighbours(&rig.mesh, &view, &[], &StereoConfig::default())
+            .expect_err("no neighbours");
+        assert_eq!(error, StereoError::NeighbourCount { count: 0 });
+        let away = Rigid3::look_at(
+            &Vector3::new(0.0, -20.0, 18.0),
+            &Vector3::new(0.0, -40.0, 30.0),
+            &Vector3::z(),
+        )
+        .expect("a valid look-at");
+        let sky = StereoView {
+            cam_from_world: away,
+            ..view
+        };
+        let error = depth_from_neighbours(&rig.mesh, &sky, &[view], &StereoConfig::default())
+            .expect_err("no model in view");
+        assert!(
+            matches!(error, StereoError::NoModelSurface { .. }),
+            "{error}"
+        );
+        let config = StereoConfig {
+            best_k: 0,
+            ..StereoConfig::default()
+        };
+        assert!(matches!(
+            depth_from_neighbours(&rig.mesh, &view, &[view], &config),
+            Err(StereoError::InvalidConfig(_))
+        ));
+    }
+}
