@@ -1,6 +1,6 @@
 //! `asgreg register`: refines the initial poses of a folder of photos against a mesh and writes
 //! the accepted poses (COLMAP text and binary, omega-phi-kappa CSV), a per-frame report and
-//! before/after overlays. Photos are registered with their working camera (undistorted, at the
+//! before/after overlays (loose PNGs and report.html, `report_html`). Photos are registered with their working camera (undistorted, at the
 //! working width: `frame_files`) and the poses are written for their own camera.
 
 use std::collections::BTreeMap;
