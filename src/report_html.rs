@@ -190,7 +190,11 @@ pub fn render_report_html(page: &ReportPage) -> String {
     if !page.plots_svg.is_empty() {
         html.push_str("<section class=\"plots\"><h2>Plots</h2>\n");
         for (caption, svg) in &page.plots_svg {
-            let _ = writeln!(html, "<figure>{svg}<figcaption>{}</figcaption></figure>", escape(caption));
+            let _ = writeln!(
+                html,
+                "<figure>{svg}<figcaption>{}</figcaption></figure>",
+                escape(caption)
+            );
         }
         html.push_str("</section>\n");
     }
@@ -343,8 +347,7 @@ fn downscale_rgb(image: ImageView<'_, [u8; 3]>, max_width_px: usize) -> Image<[u
 
 /// Standard base64 (RFC 4648, with padding).
 fn base64(bytes: &[u8]) -> String {
-    const ALPHABET: &[u8; 64] =
-        b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
     let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
     for chunk in bytes.chunks(3) {
         let b = [
@@ -389,7 +392,10 @@ mod tests {
         let picture = Picture::from_rgb("a.jpg", "before", photo.view(), 100).unwrap();
         assert!(picture.data_uri.starts_with("data:image/jpeg;base64,/9j/"));
         assert_eq!(downscale_rgb(photo.view(), 100).size(), (100, 50));
-        assert_eq!(downscale_rgb(photo.view(), 100).get(10, 10), Some(&[200, 100, 50]));
+        assert_eq!(
+            downscale_rgb(photo.view(), 100).get(10, 10),
+            Some(&[200, 100, 50])
+        );
         let page = ReportPage {
             command: "register".into(),
             subject: "<photos> & co".into(),
@@ -412,6 +418,9 @@ mod tests {
         assert!(html.contains("x&quot;&lt;y&gt;.jpg") && html.contains("a &lt; b"));
         assert!(html.contains("class=\"frame rejected\"") && html.contains("1.23"));
         assert!(html.contains("data-written=\"1\"") && html.contains("input class=\"slider\""));
-        assert!(!html.contains("http://") && !html.contains("https://"), "no network");
+        assert!(
+            !html.contains("http://") && !html.contains("https://"),
+            "no network"
+        );
     }
 }

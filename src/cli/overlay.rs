@@ -115,7 +115,12 @@ pub fn working_overlays(
             Some(estimated) => working.working_camera_for(estimated),
             None => working.working,
         };
-        let render = render_view(mesh, &view_camera, &view.cam_from_world, NormalSource::Vertex);
+        let render = render_view(
+            mesh,
+            &view_camera,
+            &view.cam_from_world,
+            NormalSource::Vertex,
+        );
         let picture = overlay_model(rgb.view(), &render, OverlayStyle::NormalsAndEdges, 0.4)?;
         pictures.push((view.label.to_string(), picture));
     }

@@ -315,7 +315,8 @@ fn write_outputs(
             match frame_overlays(mesh, frame, report, loader) {
                 Ok(overlays) => {
                     for (label, picture) in overlays {
-                        let path = overlay_dir.join(format!("{}_{label}.png", file_stem(&frame.name)));
+                        let path =
+                            overlay_dir.join(format!("{}_{label}.png", file_stem(&frame.name)));
                         save_rgb_png(&path, picture.view())?;
                         pictures.push(Picture::from_rgb(
                             &frame.name,
@@ -336,8 +337,14 @@ fn write_outputs(
         subject: args.images.display().to_string(),
         summary: vec![
             ("mesh".to_string(), args.mesh.display().to_string()),
-            ("initial poses".to_string(), args.poses.display().to_string()),
-            ("intrinsics".to_string(), format!("{:?}", args.intrinsics.mode())),
+            (
+                "initial poses".to_string(),
+                args.poses.display().to_string(),
+            ),
+            (
+                "intrinsics".to_string(),
+                format!("{:?}", args.intrinsics.mode()),
+            ),
             (
                 "working width".to_string(),
                 if args.working_width > 0 {

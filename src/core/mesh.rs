@@ -79,7 +79,9 @@ impl FaceGrid {
         // when it is long enough.
         let mut sorted = extent.to_array();
         sorted.sort_by(f32::total_cmp);
-        let area = (sorted[2] * sorted[1]).max(sorted[2] * sorted[2] * 1e-6).max(f32::MIN_POSITIVE);
+        let area = (sorted[2] * sorted[1])
+            .max(sorted[2] * sorted[2] * 1e-6)
+            .max(f32::MIN_POSITIVE);
         let side = (area / target_cells).sqrt().max(f32::MIN_POSITIVE);
         let dims = extent
             .to_array()

@@ -291,7 +291,10 @@ pub fn save_rgb_png(path: &Path, image: ImageView<'_, [u8; 3]>) -> Result<(), Im
 
 /// An 8-bit RGB image encoded as a JPEG in memory (`quality` 1..=100), for pages that embed
 /// their pictures.
-pub fn encode_rgb_jpeg(image: ImageView<'_, [u8; 3]>, quality: u8) -> Result<Vec<u8>, ImageIoError> {
+pub fn encode_rgb_jpeg(
+    image: ImageView<'_, [u8; 3]>,
+    quality: u8,
+) -> Result<Vec<u8>, ImageIoError> {
     let path = Path::new("<in-memory JPEG>");
     let (width, height) = checked_size(path, image.width_px(), image.height_px())?;
     let bytes: Vec<u8> = image.data().iter().flatten().copied().collect();

@@ -73,8 +73,8 @@ fn read_ply_geometry(path: &Path) -> Result<PlyGeometry, MeshIoError> {
     }
     file.seek(std::io::SeekFrom::Start(header.data_offset as u64))
         .map_err(read_error)?;
-    let data_bytes = usize::try_from(file_bytes.saturating_sub(header.data_offset as u64))
-        .unwrap_or(usize::MAX);
+    let data_bytes =
+        usize::try_from(file_bytes.saturating_sub(header.data_offset as u64)).unwrap_or(usize::MAX);
     let reader = std::io::BufReader::with_capacity(STREAM_BUFFER_BYTES, file);
     let (plans, has_normals) = plan_elements(&header).map_err(|error| error.with_path(path))?;
     // A read error other than the file's end is the file's, not a truncation.

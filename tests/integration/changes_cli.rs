@@ -54,7 +54,10 @@ fn changes_finds_the_new_and_the_demolished_buildings_of_a_synth_changes_scene()
         assert!(out.join(format!("overlays/view_{k:03}.png")).is_file());
         // report.html: a row per photo with the model and the change classes embedded.
         let html = std::fs::read_to_string(out.join("report.html")).unwrap();
-        assert!(html.contains(&format!("view_{k:03}.jpg</td>")), "no row for view_{k:03}");
+        assert!(
+            html.contains(&format!("view_{k:03}.jpg</td>")),
+            "no row for view_{k:03}"
+        );
     }
     let geojson: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("changes.geojson")).unwrap())

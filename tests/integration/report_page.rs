@@ -101,7 +101,10 @@ fn register_report_renders_in_a_headless_browser_with_every_frame() {
         "the count the page's script wrote"
     );
     assert_eq!(element_text(&dom, "accepted-count"), accepted.to_string());
-    assert!(dom.contains("data-ready=\"1\""), "the script ran to its end");
+    assert!(
+        dom.contains("data-ready=\"1\""),
+        "the script ran to its end"
+    );
 
     let shot = dir.path().join("shot.png");
     run_chromium(
