@@ -263,7 +263,7 @@ fn frame_row(html: &mut String, frame: &ReportFrame, has_group: bool) {
     }
     html.push_str("</td><td>");
     match frame.pictures.as_slice() {
-        [] => html.push_str("–"),
+        [] => html.push('–'),
         [only] => {
             let _ = write!(
                 html,
