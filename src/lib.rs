@@ -12,6 +12,7 @@ pub mod fuzz;
 pub mod io;
 pub mod msg;
 pub mod priors;
+pub mod report_html;
 pub mod runtime;
 pub mod stage;
 pub mod synth;

@@ -2,7 +2,8 @@
 //! per image a mask PNG (grey levels of `ChangeClass::mask_value`) and an overlay PNG (added
 //! red, removed blue over the photo), `changes.geojson` (fused footprints in the model's
 //! georeferenced frame, with kind, area, height, frames, confirmed) and `report.json` (per-frame
-//! summary, fused objects, settings, time per frame). `eval --changes` runs the same function.
+//! summary, fused objects, settings, time per frame) and `report.html` (`report_html`: per frame
+//! the model and the change classes over the photo). `eval --changes` runs the same function.
 //! Depth: the given maps (`--depth`, e.g. MVS) or, without `--depth`, plane-sweep stereo of each
 //! frame against its nearest registered frames (`core::change::stereo`), written to `depth/`.
 
@@ -25,7 +26,13 @@ use asgreg::io::images::{save_gray_png, save_rgb_png};
 use asgreg::io::pfm::write_pfm;
 use serde::Serialize;
 
+use asgreg::report_html::{
+    write_report_html, FrameVerdict, Picture, ReportFrame, ReportPage, THUMBNAIL_WIDTH_PX,
+};
+
 use super::inputs::load_posed_inputs;
+use super::overlay::{working_overlays, OverlayView};
+use super::register::REPORT_HTML;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct ChangesArgs {
@@ -316,6 +323,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
     let mut classes: Image<ChangeClass> = Image::default();
     let mut mask = Image::default();
     let mut frames = Vec::new();
+    let mut page_pictures: Vec<(String, Vec<Picture>)> = Vec::new();
     let limit = args.limit.unwrap_or(usize::MAX);
     for (index, image) in inputs.images.iter().enumerate().take(limit) {
         let failed = |why: String| FrameChangeReport {
@@ -432,6 +440,38 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
                 .with_context(|| format!("cannot create {}", parent.display()))?;
         }
         save_rgb_png(&overlay_path, overlay.view())?;
+        let mut pictures = Vec::new();
+        match working_overlays(
+            &inputs.mesh,
+            &loader,
+            &image_path,
+            image.camera_id,
+            camera,
+            &[OverlayView {
+                label: "model",
+                camera: None,
+                cam_from_world: image.cam_from_world,
+            }],
+        ) {
+            Ok(model) => {
+                for (label, picture) in &model {
+                    pictures.push(Picture::from_rgb(
+                        &image.name,
+                        label,
+                        picture.view(),
+                        THUMBNAIL_WIDTH_PX,
+                    )?);
+                }
+            }
+            Err(error) => tracing::warn!("{}: no model overlay: {error:#}", image.name),
+        }
+        pictures.push(Picture::from_rgb(
+            &image.name,
+            "changes",
+            overlay.view(),
+            THUMBNAIL_WIDTH_PX,
+        )?);
+        page_pictures.push((image.name.clone(), pictures));
         tracing::info!(
             "{}: {} regions ({} added, {} removed px) in {detect_ms:.1} ms",
             image.name,
@@ -484,6 +524,10 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
     let report_path = args.out.join("report.json");
     std::fs::write(&report_path, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("cannot write {}", report_path.display()))?;
+    write_report_html(
+        &args.out.join(REPORT_HTML),
+        &report_page(args, &report, page_pictures),
+    )?;
     Ok(report)
 }
 
@@ -567,6 +611,67 @@ fn stereo_depth(
     Ok((depth.depth_m, report))
 }
 
+/// report.html of a change detection run: per frame the pixel counts, regions and time, the
+/// model over the photo under its pose and the change classes over it (a slider between them).
+fn report_page(
+    args: &ChangesArgs,
+    report: &ChangesReport,
+    mut pictures: Vec<(String, Vec<Picture>)>,
+) -> ReportPage {
+    let frames = report
+        .frames
+        .iter()
+        .map(|frame| {
+            let index = pictures.iter().position(|(name, _)| *name == frame.name);
+            let frame_pictures = index.map(|i| pictures.swap_remove(i).1).unwrap_or_default();
+            ReportFrame {
+                name: frame.name.clone(),
+                group: None,
+                verdict: if frame.failure.is_some() {
+                    FrameVerdict::Failed
+                } else {
+                    FrameVerdict::Done
+                },
+                reason: frame.failure.clone(),
+                confidence: None,
+                initial_delta_px: None,
+                delta_px: None,
+                timings_ms: vec![("total (change map)".to_string(), frame.detect_ms)],
+                details: vec![
+                    ("regions".to_string(), frame.regions.len().to_string()),
+                    ("added px".to_string(), frame.counts.added.to_string()),
+                    ("removed px".to_string(), frame.counts.removed.to_string()),
+                    ("unknown px".to_string(), frame.counts.unknown.to_string()),
+                ],
+                pictures: frame_pictures,
+            }
+        })
+        .collect();
+    ReportPage {
+        command: "changes".to_string(),
+        subject: args.images.display().to_string(),
+        summary: vec![
+            ("mesh".to_string(), args.mesh.display().to_string()),
+            ("poses".to_string(), args.poses.display().to_string()),
+            (
+                "objects".to_string(),
+                format!(
+                    "{} ({} confirmed by ≥ {} frames), in changes.geojson",
+                    report.objects.len(),
+                    report.objects.iter().filter(|o| o.confirmed).count(),
+                    report.fusion.min_frames
+                ),
+            ),
+            (
+                "change map".to_string(),
+                format!("{:.1} ms per frame", report.mean_detect_ms),
+            ),
+        ],
+        plots_svg: Vec::new(),
+        frames,
+    }
+}
+
 /// The fused objects as a GeoJSON FeatureCollection (coordinates: the model's frame).
 fn geojson(report: &ChangesReport) -> serde_json::Value {
     let features: Vec<serde_json::Value> = report
@@ -632,7 +737,7 @@ pub fn run(args: &ChangesArgs) -> anyhow::Result<()> {
         println!("depth by plane-sweep stereo: {ms:.0} ms per frame (written to depth/)");
     }
     println!(
-        "wrote {}/masks, overlays, changes.geojson, report.json",
+        "wrote {}/masks, overlays, changes.geojson, report.json, report.html",
         args.out.display()
     );
     Ok(())

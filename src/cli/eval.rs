@@ -1,6 +1,7 @@
 //! `asgreg eval`: the evaluation protocol of docs/design.md §3 on a scene folder (as `asgreg synth` writes
 //! it): registration from every initial level with known and unknown intrinsics, δ to ground truth,
-//! acceptance and false accepts; tables laid out like the paper's, JSON, and an SVG plot.
+//! acceptance and false accepts; tables laid out like the paper's, JSON, an SVG plot, and
+//! report.html (`report_html`: the plot and every frame run with its overlays).
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -27,7 +28,16 @@ use asgreg::io::pfm::read_pfm;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::register::{progress_bar, registration_config, CoarseArgs, IntrinsicsArg};
+use asgreg::frame_files::FrameLoader;
+use asgreg::report_html::{write_report_html, FrameVerdict, Picture, ReportFrame, ReportPage};
+
+use super::register::{
+    frame_overlays, progress_bar, registration_config, report_frame, CoarseArgs, IntrinsicsArg,
+    REPORT_HTML,
+};
+
+/// Width of eval's embedded overlays, px: a run has many frames (levels × methods).
+const EVAL_THUMBNAIL_WIDTH_PX: usize = 320;
 
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
@@ -195,6 +205,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         BTreeMap::new();
     let mut methods_seen: Vec<Method> = Vec::new();
     let mut search_ms: BTreeMap<(Level, &'static str), f64> = BTreeMap::new();
+    // report.html: one row per frame run, the ASG rows with their overlays (the loader's working
+    // camera, as registration saw the photo).
+    let loader = FrameLoader::default();
+    let mut page_frames: Vec<ReportFrame> = Vec::new();
     for (level, method, initial) in jobs {
         if !methods_seen.contains(&method) {
             methods_seen.push(method);
@@ -218,6 +232,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             &mut workspace,
         )
         .unwrap_or(f64::NAN);
+        let mut asg_row = None;
         let outcome = match method {
             Method::Asg(intrinsics) if args.diagnose => {
                 let config = registration_config(with_depth, &args.coarse);
@@ -274,6 +289,38 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     args.seed,
                     &mut workspace,
                 );
+                let frame = scene_batch_frame(
+                    &args.scene,
+                    &initial,
+                    gt,
+                    camera,
+                    intrinsics.mode(),
+                    with_depth,
+                );
+                let pictures = match frame_overlays(&mesh, &frame, &report, &loader) {
+                    Ok(overlays) => overlays
+                        .iter()
+                        .map(|(label, picture)| {
+                            Picture::from_rgb(
+                                &frame.name,
+                                label,
+                                picture.view(),
+                                EVAL_THUMBNAIL_WIDTH_PX,
+                            )
+                        })
+                        .collect::<Result<Vec<_>, _>>()?,
+                    Err(error) => {
+                        tracing::warn!("{}: no overlay: {error:#}", frame.name);
+                        Vec::new()
+                    }
+                };
+                asg_row = Some(report_frame(
+                    &report,
+                    Some(format!("level {level}, {}", method.name())),
+                    Some(initial_delta_px),
+                    final_delta_px,
+                    pictures,
+                ));
                 FrameOutcome {
                     accepted: report.accepted,
                     final_delta_px,
@@ -364,6 +411,24 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             bar.println(line);
         }
         bar.inc(1);
+        page_frames.push(asg_row.unwrap_or_else(|| ReportFrame {
+            name: initial.name.clone(),
+            group: Some(format!("level {level}, {}", method.name())),
+            verdict: if outcome.accepted {
+                FrameVerdict::Accepted
+            } else if outcome.final_delta_px.is_some() {
+                FrameVerdict::Rejected
+            } else {
+                FrameVerdict::Failed
+            },
+            reason: outcome.reason.clone(),
+            confidence: matches!(method, Method::Asg(_)).then_some(outcome.confidence),
+            initial_delta_px: Some(initial_delta_px),
+            delta_px: outcome.final_delta_px,
+            timings_ms: vec![("total".to_string(), outcome.total_ms)],
+            details: Vec::new(),
+            pictures: Vec::new(),
+        }));
         results
             .entry((level, method.name()))
             .or_default()
@@ -418,7 +483,41 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         serde_json::to_string_pretty(&json)?,
     )
     .with_context(|| format!("writing {}", args.out.join("results.json").display()))?;
-    write_plot(&args.out.join("results.svg"), &stats, &methods)?;
+    let plot = plot_svg(&stats, &methods);
+    std::fs::write(args.out.join("results.svg"), &plot)
+        .with_context(|| format!("writing {}", args.out.join("results.svg").display()))?;
+    let accepted: usize = stats.values().map(|s| s.accepted).sum();
+    let page = ReportPage {
+        command: "eval".to_string(),
+        subject: args.scene.display().to_string(),
+        summary: vec![
+            ("query".to_string(), format!("{:?}", args.query)),
+            (
+                "levels (initial δ, px)".to_string(),
+                args.levels
+                    .iter()
+                    .map(ToString::to_string)
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            ),
+            ("methods".to_string(), methods.join(", ")),
+            (
+                "false accept".to_string(),
+                format!("accepted with δ > {false_accept_px:.2} px"),
+            ),
+            (
+                "accepted".to_string(),
+                format!("{accepted} of {} frame runs", page_frames.len()),
+            ),
+            ("tables".to_string(), "results.md, results.json".to_string()),
+        ],
+        plots_svg: vec![(
+            "mean δ of the accepted frames and the share accepted, per initial δ".to_string(),
+            plot,
+        )],
+        frames: page_frames,
+    };
+    write_report_html(&args.out.join(REPORT_HTML), &page)?;
     if args.diagnose {
         let text = diagnosis_markdown(&diagnoses);
         std::fs::write(args.out.join("diagnosis.md"), &text)
@@ -453,10 +552,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         }
     }
     println!(
-        "wrote {}, {} and {}",
+        "wrote {}, {}, {} and {}",
         args.out.join("results.md").display(),
         args.out.join("results.json").display(),
-        args.out.join("results.svg").display()
+        args.out.join("results.svg").display(),
+        args.out.join(REPORT_HTML).display()
     );
     Ok(())
 }
@@ -763,12 +863,9 @@ ICP has no self-check: its 'accepted' is the paper's success criterion δ < 20 p
     out
 }
 
-/// Two small line charts side by side: mean δ of accepted frames and acceptance, per level.
-fn write_plot(
-    path: &Path,
-    stats: &BTreeMap<(Level, &str), CellStats>,
-    methods: &[&str],
-) -> anyhow::Result<()> {
+/// Two small line charts side by side: mean δ of accepted frames and acceptance, per level
+/// (results.svg, and inline in report.html).
+fn plot_svg(stats: &BTreeMap<(Level, &str), CellStats>, methods: &[&str]) -> String {
     const COLOURS: [&str; 4] = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"];
     // The px levels only: the heading level has no place on the δ axis.
     let levels: Vec<u32> = {
@@ -852,5 +949,5 @@ fn write_plot(
         }
     }
     svg.push_str("</svg>\n");
-    std::fs::write(path, svg).with_context(|| format!("writing {}", path.display()))
+    svg
 }

@@ -1,6 +1,7 @@
 //! Subcommands of the `asgreg` binary. Each file parses its own arguments and calls the library;
 //! errors are `anyhow` here (and only here) so they can carry the file and what to do.
 
+mod bench_mesh;
 mod calibrate;
 mod changes;
 mod demo;

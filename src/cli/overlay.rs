@@ -1,10 +1,16 @@
 //! `asgreg overlay`: the mesh drawn over a photo under a pose, the picture that shows at a glance
 //! whether a pose is right.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+use asgreg::core::camera::Camera;
+use asgreg::core::image::Image;
+use asgreg::core::mesh::Mesh;
 use asgreg::core::raster::NormalSource;
+use asgreg::core::rigid::Rigid3;
+use asgreg::core::undistort::WorkingCamera;
+use asgreg::frame_files::FrameLoader;
 use asgreg::io::images::{check_image_matches_camera, load_rgb, save_rgb_png};
 use asgreg::viz::{overlay_model, OverlayStyle};
 
@@ -79,4 +85,63 @@ pub fn run(args: &OverlayArgs) -> anyhow::Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+/// One view to draw a frame's model under: a label, the camera (the photo's own, or an estimate
+/// of it; None: the photo's camera) and the pose.
+pub struct OverlayView<'a> {
+    pub label: &'a str,
+    pub camera: Option<Camera>,
+    pub cam_from_world: Rigid3,
+}
+
+/// The model drawn over a frame's photo under each of `views`, as registration saw the photo:
+/// with the loader's working camera (undistorted, at the working width), so that a lens's
+/// distortion does not show as misalignment. The one overlay of `register`, `eval` and `changes`
+/// (loose PNGs and report.html).
+pub fn working_overlays(
+    mesh: &Mesh,
+    loader: &FrameLoader,
+    image_path: &Path,
+    camera_id: u32,
+    camera: &Camera,
+    views: &[OverlayView<'_>],
+) -> anyhow::Result<Vec<(String, Image<[u8; 3]>)>> {
+    let working = loader.working_camera(image_path, camera_id, camera)?;
+    let rgb = working_rgb(&working, &load_rgb(image_path)?)?;
+    let mut pictures = Vec::with_capacity(views.len());
+    for view in views {
+        let view_camera = match &view.camera {
+            Some(estimated) => working.working_camera_for(estimated),
+            None => working.working,
+        };
+        let render = render_view(
+            mesh,
+            &view_camera,
+            &view.cam_from_world,
+            NormalSource::Vertex,
+        );
+        let picture = overlay_model(rgb.view(), &render, OverlayStyle::NormalsAndEdges, 0.4)?;
+        pictures.push((view.label.to_string(), picture));
+    }
+    Ok(pictures)
+}
+
+/// A colour photo as the working camera sees it (each channel resampled like the grey photo).
+fn working_rgb(working: &WorkingCamera, rgb: &Image<[u8; 3]>) -> anyhow::Result<Image<[u8; 3]>> {
+    if working.is_identity() {
+        return Ok(rgb.clone());
+    }
+    let mut channels = Vec::with_capacity(3);
+    for channel in 0..3 {
+        let plane = rgb.map(|pixel| f32::from(pixel[channel]) / 255.0);
+        channels.push(working.photo(plane.view())?);
+    }
+    let (width_px, height_px) = channels[0].size();
+    Ok(Image::from_fn(width_px, height_px, |col, row| {
+        std::array::from_fn(|channel| {
+            let value = channels[channel].get(col, row).copied().unwrap_or(0.0);
+            (value.clamp(0.0, 1.0) * 255.0).round() as u8
+        })
+    }))
 }

@@ -105,8 +105,12 @@ pub struct SubscribeArgs {
 
 #[derive(clap::Args, Debug)]
 pub struct BenchArgs {
-    /// What to benchmark (only `pipeline`: whole-pipeline runs).
+    /// What to benchmark: `pipeline` (whole-pipeline runs) or `mesh` (a synthetic city of
+    /// `--triangles`: load time, render ms per frame, culling, one registration, peak RSS).
     pub what: BenchWhat,
+    /// `mesh`: triangles of the synthetic city.
+    #[arg(long, default_value_t = 1_000_000)]
+    pub triangles: u64,
     /// Scene folder as `asgreg synth` writes it; default: make one in OUT/scene.
     #[arg(long)]
     pub scene: Option<PathBuf>,
@@ -126,6 +130,7 @@ pub struct BenchArgs {
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
 pub enum BenchWhat {
     Pipeline,
+    Mesh,
 }
 
 /// The embedded default scene: a town block, `frames` photos at 505×275, 30 px initial poses.
@@ -579,7 +584,9 @@ pub fn subscribe(args: &SubscribeArgs) -> anyhow::Result<()> {
 }
 
 pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
-    let BenchWhat::Pipeline = args.what;
+    if let BenchWhat::Mesh = args.what {
+        return super::bench_mesh::bench_mesh(&args.out, args.triangles, args.frames);
+    }
     let scene = match &args.scene {
         Some(scene) => scene.clone(),
         None => default_scene(&args.out, args.frames)?,

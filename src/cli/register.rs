@@ -1,6 +1,6 @@
 //! `asgreg register`: refines the initial poses of a folder of photos against a mesh and writes
 //! the accepted poses (COLMAP text and binary, omega-phi-kappa CSV), a per-frame report and
-//! before/after overlays. Photos are registered with their working camera (undistorted, at the
+//! before/after overlays (loose PNGs and report.html, `report_html`). Photos are registered with their working camera (undistorted, at the
 //! working width: `frame_files`) and the poses are written for their own camera.
 
 use std::collections::BTreeMap;
@@ -11,19 +11,20 @@ use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
 use asgreg::core::edge_align::EdgeAlignConfig;
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig};
 use asgreg::core::image::Image;
-use asgreg::core::undistort::WorkingCamera;
 use asgreg::core::verify::VerifyConfig;
 use asgreg::frame_files::{depth_path_for, FrameLoader, DEFAULT_WORKING_WIDTH_PX};
 use asgreg::io::colmap::{ColmapModel, ImagePose};
 use asgreg::io::colmap_model::write_model_dir;
-use asgreg::io::images::{load_rgb, save_rgb_png};
+use asgreg::io::images::save_rgb_png;
 use asgreg::io::mesh_file::check_mesh_fits;
 use asgreg::io::opk::{write_opk_csv, OPK_FILE};
 use asgreg::io::output::prepare_output_dir;
-use asgreg::viz::{overlay_model, OverlayStyle};
+use asgreg::report_html::{
+    write_report_html, FrameVerdict, Picture, ReportFrame, ReportPage, THUMBNAIL_WIDTH_PX,
+};
 
 use super::inputs::load_posed_inputs;
-use super::render::render_view;
+use super::overlay::{working_overlays, OverlayView};
 
 #[derive(clap::Args, Debug)]
 pub struct RegisterArgs {
@@ -243,10 +244,11 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
     write_outputs(args, &inputs.mesh, &frames, &reports, &config, &loader)?;
     let accepted = reports.iter().filter(|r| r.accepted).count();
     println!(
-        "registered {accepted} of {} frames; poses in {}, report in {}",
+        "registered {accepted} of {} frames; poses in {}, report in {} (open {} in a browser)",
         reports.len(),
         args.out.join("images.txt").display(),
-        args.out.join("report.json").display()
+        args.out.join("report.json").display(),
+        args.out.join(REPORT_HTML).display()
     );
     Ok(())
 }
@@ -301,70 +303,163 @@ fn write_outputs(
     std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
 
+    let overlay_dir = args.out.join("overlays");
     if !args.no_overlays {
-        let overlay_dir = args.out.join("overlays");
         std::fs::create_dir_all(&overlay_dir)
             .with_context(|| format!("creating {}", overlay_dir.display()))?;
-        for (frame, report) in frames.iter().zip(reports) {
-            if let Err(error) = write_overlays(mesh, frame, report, loader, &overlay_dir) {
-                tracing::warn!("{}: no overlay: {error:#}", frame.name);
+    }
+    let mut page_frames = Vec::with_capacity(reports.len());
+    for (frame, report) in frames.iter().zip(reports) {
+        let mut pictures = Vec::new();
+        if !args.no_overlays {
+            match frame_overlays(mesh, frame, report, loader) {
+                Ok(overlays) => {
+                    for (label, picture) in overlays {
+                        let path =
+                            overlay_dir.join(format!("{}_{label}.png", file_stem(&frame.name)));
+                        save_rgb_png(&path, picture.view())?;
+                        pictures.push(Picture::from_rgb(
+                            &frame.name,
+                            &label,
+                            picture.view(),
+                            THUMBNAIL_WIDTH_PX,
+                        )?);
+                    }
+                }
+                Err(error) => tracing::warn!("{}: no overlay: {error:#}", frame.name),
             }
         }
+        page_frames.push(report_frame(report, None, None, None, pictures));
     }
+    let accepted = reports.iter().filter(|r| r.accepted).count();
+    let page = ReportPage {
+        command: "register".to_string(),
+        subject: args.images.display().to_string(),
+        summary: vec![
+            ("mesh".to_string(), args.mesh.display().to_string()),
+            (
+                "initial poses".to_string(),
+                args.poses.display().to_string(),
+            ),
+            (
+                "intrinsics".to_string(),
+                format!("{:?}", args.intrinsics.mode()),
+            ),
+            (
+                "working width".to_string(),
+                if args.working_width > 0 {
+                    format!("{} px", args.working_width)
+                } else {
+                    "the photos' own".to_string()
+                },
+            ),
+            (
+                "accepted".to_string(),
+                format!("{accepted} of {} frames", reports.len()),
+            ),
+        ],
+        plots_svg: Vec::new(),
+        frames: page_frames,
+    };
+    write_report_html(&args.out.join(REPORT_HTML), &page)?;
     Ok(())
 }
 
-/// The frame's photo with the model drawn over it at the initial and (when accepted) the
-/// registered pose, as registration saw it: with the working camera (undistorted, at the working
-/// width), so that a lens's distortion does not show as misalignment.
-fn write_overlays(
+/// The page's file name in a command's output folder.
+pub const REPORT_HTML: &str = "report.html";
+
+/// A file name without its folder and extension.
+pub fn file_stem(name: &str) -> String {
+    Path::new(name)
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| name.to_string())
+}
+
+/// The model over the frame's photo under the initial pose ("before") and under the output pose
+/// ("after" when accepted, "rejected" for a refused frame's would-be pose).
+pub fn frame_overlays(
     mesh: &asgreg::core::mesh::Mesh,
     frame: &BatchFrame,
     report: &FrameReport,
     loader: &FrameLoader,
-    overlay_dir: &Path,
-) -> anyhow::Result<()> {
-    let working = loader.working_camera(&frame.image_path, frame.camera_id, &frame.camera)?;
-    let rgb = working_rgb(&working, &load_rgb(&frame.image_path)?)?;
-    let stem = Path::new(&frame.name)
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| frame.name.clone());
-    let mut views = vec![("before", working.working, frame.initial_cam_from_world)];
+) -> anyhow::Result<Vec<(String, Image<[u8; 3]>)>> {
+    let mut views = vec![OverlayView {
+        label: "before",
+        camera: None,
+        cam_from_world: frame.initial_cam_from_world,
+    }];
     if let (Some(camera), Some(pose)) = (report.camera, report.cam_from_world) {
-        views.push(("after", working.working_camera_for(&camera), pose));
+        views.push(OverlayView {
+            label: "after",
+            camera: Some(camera),
+            cam_from_world: pose,
+        });
+    } else if let Some(candidate) = report.rejected_candidate {
+        views.push(OverlayView {
+            label: "rejected",
+            camera: Some(candidate.camera),
+            cam_from_world: candidate.cam_from_world,
+        });
     }
-    for (label, camera, pose) in views {
-        let render = render_view(
-            mesh,
-            &camera,
-            &pose,
-            asgreg::core::raster::NormalSource::Vertex,
-        );
-        let picture = overlay_model(rgb.view(), &render, OverlayStyle::NormalsAndEdges, 0.4)?;
-        save_rgb_png(
-            &overlay_dir.join(format!("{stem}_{label}.png")),
-            picture.view(),
-        )?;
-    }
-    Ok(())
+    working_overlays(
+        mesh,
+        loader,
+        &frame.image_path,
+        frame.camera_id,
+        &frame.camera,
+        &views,
+    )
 }
 
-/// A colour photo as the working camera sees it (each channel resampled like the grey photo).
-fn working_rgb(working: &WorkingCamera, rgb: &Image<[u8; 3]>) -> anyhow::Result<Image<[u8; 3]>> {
-    if working.is_identity() {
-        return Ok(rgb.clone());
+/// A registered frame's row of report.html; `group`, the δs (to a ground truth) when known.
+pub fn report_frame(
+    report: &FrameReport,
+    group: Option<String>,
+    initial_delta_px: Option<f64>,
+    delta_px: Option<f64>,
+    pictures: Vec<Picture>,
+) -> ReportFrame {
+    let verdict = if report.accepted {
+        FrameVerdict::Accepted
+    } else if report.hypotheses > 0 || report.rejected_candidate.is_some() {
+        FrameVerdict::Rejected
+    } else {
+        FrameVerdict::Failed
+    };
+    let t = &report.timings;
+    let timings_ms = [
+        ("query", t.query_ms),
+        ("pose search", t.search_ms),
+        ("render", t.render_ms),
+        ("flow", t.flow_ms),
+        ("pose", t.pose_ms),
+        ("verify + refine", t.verify_ms),
+        ("total", t.total_ms),
+    ]
+    .into_iter()
+    .map(|(name, ms)| (name.to_string(), ms))
+    .collect();
+    let mut details = vec![
+        (
+            "agreeing poses".to_string(),
+            format!("{} of {}", report.component_size, report.hypotheses),
+        ),
+        ("RANSAC consensus".to_string(), report.consensus.to_string()),
+    ];
+    if let Some(rms) = report.inlier_rms_px {
+        details.push(("inlier RMS".to_string(), format!("{rms:.2} px")));
     }
-    let mut channels = Vec::with_capacity(3);
-    for channel in 0..3 {
-        let plane = rgb.map(|pixel| f32::from(pixel[channel]) / 255.0);
-        channels.push(working.photo(plane.view())?);
+    ReportFrame {
+        name: report.name.clone(),
+        group,
+        verdict,
+        reason: report.reason.clone(),
+        confidence: (verdict != FrameVerdict::Failed).then_some(report.confidence),
+        initial_delta_px,
+        delta_px,
+        timings_ms,
+        details,
+        pictures,
     }
-    let (width_px, height_px) = channels[0].size();
-    Ok(Image::from_fn(width_px, height_px, |col, row| {
-        std::array::from_fn(|channel| {
-            let value = channels[channel].get(col, row).copied().unwrap_or(0.0);
-            (value.clamp(0.0, 1.0) * 255.0).round() as u8
-        })
-    }))
 }

@@ -28,13 +28,139 @@ pub enum MeshError {
     },
 }
 
-/// A triangle mesh: positions relative to `origin_m`, counter-clockwise faces, optional normals.
+/// A triangle mesh: positions relative to `origin_m`, counter-clockwise faces, optional normals,
+/// and a grid of its faces ([`FaceGrid`]) so that a rendering visits only what its frustum holds.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Mesh {
     origin_m: Vector3<f64>,
     positions_local_m: Vec<Vec3>,
     faces: Vec<[u32; 3]>,
     vertex_normals: Option<Vec<Vec3>>,
+    grid: FaceGrid,
+}
+
+/// Faces per grid cell aimed at: frustum tests per cell stay negligible (10^7 faces: ~5000 cells)
+/// while a city seen from one camera skips most of them.
+const FACES_PER_CELL: usize = 2048;
+
+/// The spatial index of a mesh: its faces grouped by the grid cell of their centroid (a grid over
+/// the two longest extents, and the third when it is long enough), each cell with the tight box
+/// of its faces' vertices in local coordinates. The renderer tests the boxes against the frustum
+/// and rasterises only the faces of cells it can see (`core::raster`).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FaceGrid {
+    cells: Vec<GridCell>,
+    /// Face indices, cell after cell, ascending within a cell.
+    faces: Vec<u32>,
+}
+
+/// One non-empty cell of a [`FaceGrid`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GridCell {
+    /// Tight box of the cell's faces' vertices, local coordinates (m).
+    pub min_local_m: Vec3,
+    pub max_local_m: Vec3,
+    /// The cell's range in [`FaceGrid::faces`].
+    start: u32,
+    end: u32,
+}
+
+impl FaceGrid {
+    fn build(positions: &[Vec3], faces: &[[u32; 3]]) -> Self {
+        let mut min = Vec3::splat(f32::INFINITY);
+        let mut max = Vec3::splat(f32::NEG_INFINITY);
+        for p in positions {
+            min = min.min(*p);
+            max = max.max(*p);
+        }
+        let extent = (max - min).max(Vec3::splat(0.0));
+        let target_cells = (faces.len() / FACES_PER_CELL).clamp(1, 1 << 16) as f32;
+        // Cell side from the two longest extents (a city is flat); the third axis is split too
+        // when it is long enough.
+        let mut sorted = extent.to_array();
+        sorted.sort_by(f32::total_cmp);
+        let area = (sorted[2] * sorted[1])
+            .max(sorted[2] * sorted[2] * 1e-6)
+            .max(f32::MIN_POSITIVE);
+        let side = (area / target_cells).sqrt().max(f32::MIN_POSITIVE);
+        let dims = extent
+            .to_array()
+            .map(|e| ((e / side).floor() as usize).clamp(1, 1 << 12));
+        let cell_of = |p: Vec3| -> usize {
+            let mut index = 0;
+            for axis in (0..3).rev() {
+                let t = if extent[axis] > 0.0 {
+                    (p[axis] - min[axis]) / extent[axis]
+                } else {
+                    0.0
+                };
+                let i = ((t * dims[axis] as f32) as usize).min(dims[axis] - 1);
+                index = index * dims[axis] + i;
+            }
+            index
+        };
+        let cell_count = dims[0] * dims[1] * dims[2];
+        let face_cells: Vec<u32> = faces
+            .iter()
+            .map(|f| {
+                let centroid = f
+                    .iter()
+                    .map(|&v| positions.get(v as usize).copied().unwrap_or(Vec3::ZERO))
+                    .sum::<Vec3>()
+                    / 3.0;
+                cell_of(centroid) as u32
+            })
+            .collect();
+        // Counting sort by cell, stable (face order within a cell).
+        let mut starts = vec![0u32; cell_count + 1];
+        for &c in &face_cells {
+            starts[c as usize + 1] += 1;
+        }
+        for i in 0..cell_count {
+            starts[i + 1] += starts[i];
+        }
+        let mut next = starts.clone();
+        let mut sorted_faces = vec![0u32; faces.len()];
+        for (face_index, &c) in face_cells.iter().enumerate() {
+            sorted_faces[next[c as usize] as usize] = face_index as u32;
+            next[c as usize] += 1;
+        }
+        let cells = (0..cell_count)
+            .filter(|&c| starts[c + 1] > starts[c])
+            .map(|c| {
+                let (start, end) = (starts[c], starts[c + 1]);
+                let mut cell_min = Vec3::splat(f32::INFINITY);
+                let mut cell_max = Vec3::splat(f32::NEG_INFINITY);
+                for &face_index in &sorted_faces[start as usize..end as usize] {
+                    for &v in &faces[face_index as usize] {
+                        let p = positions.get(v as usize).copied().unwrap_or(Vec3::ZERO);
+                        cell_min = cell_min.min(p);
+                        cell_max = cell_max.max(p);
+                    }
+                }
+                GridCell {
+                    min_local_m: cell_min,
+                    max_local_m: cell_max,
+                    start,
+                    end,
+                }
+            })
+            .collect();
+        Self {
+            cells,
+            faces: sorted_faces,
+        }
+    }
+
+    /// The non-empty cells.
+    pub fn cells(&self) -> &[GridCell] {
+        &self.cells
+    }
+
+    /// The faces of `cell` (ascending face indices).
+    pub fn cell_faces(&self, cell: &GridCell) -> &[u32] {
+        &self.faces[cell.start as usize..cell.end as usize]
+    }
 }
 
 impl Mesh {
@@ -106,11 +232,13 @@ impl Mesh {
                 });
             }
         }
+        let grid = FaceGrid::build(&positions_local_m, &faces);
         Ok(Self {
             origin_m,
             positions_local_m,
             faces,
             vertex_normals,
+            grid,
         })
     }
 
@@ -129,6 +257,33 @@ impl Mesh {
 
     pub fn vertex_normals(&self) -> Option<&[Vec3]> {
         self.vertex_normals.as_deref()
+    }
+
+    /// The faces grouped by place, for frustum culling.
+    pub fn grid(&self) -> &FaceGrid {
+        &self.grid
+    }
+
+    /// The mesh with one grid cell holding every face (nothing culled): the reference the
+    /// culling's tests compare with.
+    #[cfg(test)]
+    pub(crate) fn with_single_grid_cell(mut self) -> Self {
+        let mut min = Vec3::splat(f32::INFINITY);
+        let mut max = Vec3::splat(f32::NEG_INFINITY);
+        for p in &self.positions_local_m {
+            min = min.min(*p);
+            max = max.max(*p);
+        }
+        self.grid = FaceGrid {
+            cells: vec![GridCell {
+                min_local_m: min,
+                max_local_m: max,
+                start: 0,
+                end: self.faces.len() as u32,
+            }],
+            faces: (0..self.faces.len() as u32).collect(),
+        };
+        self
     }
 
     pub fn vertex_count(&self) -> usize {
@@ -202,6 +357,7 @@ impl Mesh {
             }
             _ => None,
         };
+        self.grid = FaceGrid::build(&self.positions_local_m, &self.faces);
     }
 }
 

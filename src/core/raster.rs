@@ -8,13 +8,16 @@
 //! - triangles are clipped against the near plane (a ground plane passes under a low camera) and
 //!   binned into horizontal bands of rows; bands are rasterised in parallel (rayon), each band
 //!   walking its triangles in face order, so the result is deterministic;
+//! - frustum culling: the mesh's face grid (`Mesh::grid`) is tested cell box by cell box against
+//!   the frustum's half-spaces, and only the faces of cells it may see are binned and drawn (a
+//!   city mesh seen by one camera); every rendering goes through this one test;
 //! - every vertex is transformed and projected once; binning drops faces whose bounding box holds
 //!   no pixel centre, and tests the one centre of boxes that hold exactly one (most triangles of
 //!   a dense mesh seen from afar are sub-pixel);
 //! - a pixel `(col, row)` is covered when its centre `(col + 0.5, row + 0.5)` lies inside the
 //!   projected triangle (see `camera.rs` for the convention); the depth pass steps affine edge
 //!   functions and `1/z` along each row (perspective-correct depth) and writes only depth and face
-//!   index; the nearest surface wins (ties: the face drawn first, i.e. the lower face index);
+//!   index; the nearest surface wins (ties: the lower face index, whatever order faces come in);
 //! - normals are filled afterwards, once per visible pixel, from its winning face: the face
 //!   normal, or the vertex normals interpolated with the perspective-correct barycentrics of the
 //!   pixel ray's hit on the face (so overdrawn pixels cost no shading);
@@ -155,8 +158,59 @@ pub struct Rasterizer {
     /// Projection of each vertex; meaningful only for vertices in front of the near plane.
     vertices_screen: Vec<ScreenVertex>,
     normals_cam: Vec<Vec3>,
-    /// `bins[chunk][band]`: faces of a chunk of the face list that touch a band.
+    /// `bins[chunk][band]`: faces of a chunk of the visible faces that touch a band.
     bins: Vec<Vec<Vec<u32>>>,
+    /// Faces of the grid cells the frustum may see (`Mesh::grid`).
+    visible_faces: Vec<u32>,
+}
+
+/// The viewing frustum as half-spaces in the camera frame, for culling grid cells: a point p is
+/// inside when `z ≥ near`, `0 ≤ u·z ≤ W·z` and `0 ≤ v·z ≤ H·z` with `u·z = fx x + s y + cx z`,
+/// `v·z = fy y + cy z` (one pixel of margin on each side).
+#[derive(Clone, Copy, Debug)]
+struct Frustum {
+    projector: Projector,
+    width: f32,
+    height: f32,
+}
+
+impl Frustum {
+    fn new(projector: &Projector, width: usize, height: usize) -> Self {
+        Self {
+            projector: *projector,
+            width: width as f32,
+            height: height as f32,
+        }
+    }
+
+    /// False only when the box (local coordinates) lies wholly outside one of the half-spaces:
+    /// conservative, a box it keeps may still show nothing.
+    fn may_see_box(&self, min: Vec3, max: Vec3, rotation: Mat3, translation: Vec3) -> bool {
+        let p = &self.projector;
+        let margin = 1.0;
+        let mut outside = [true; 5];
+        for corner in 0..8 {
+            let local = Vec3::new(
+                if corner & 1 == 0 { min.x } else { max.x },
+                if corner & 2 == 0 { min.y } else { max.y },
+                if corner & 4 == 0 { min.z } else { max.z },
+            );
+            let c = rotation * local + translation;
+            let uz = p.fx * c.x + p.skew * c.y + p.cx * c.z;
+            let vz = p.fy * c.y + p.cy * c.z;
+            let inside = [
+                c.z >= p.near_m,
+                uz >= -margin * c.z,
+                uz <= (self.width + margin) * c.z,
+                vz >= -margin * c.z,
+                vz <= (self.height + margin) * c.z,
+            ];
+            for (out, inside) in outside.iter_mut().zip(inside) {
+                *out &= !inside;
+            }
+        }
+        !outside.iter().any(|&o| o)
+    }
 }
 
 /// The projection used inside the rasteriser (f32, no distortion).
@@ -196,6 +250,11 @@ impl Projector {
 impl Rasterizer {
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// Faces the last rendering's frustum culling kept (those of the grid cells it may see).
+    pub fn visible_face_count(&self) -> usize {
+        self.visible_faces.len()
     }
 
     /// Renders `mesh` seen from `cam_from_world` through `intrinsics` into `out`, which must already
@@ -270,15 +329,31 @@ impl Rasterizer {
                 .for_each(|(out, n)| *out = rotation_f32 * *n);
         }
 
+        // Frustum culling: only the faces of grid cells whose box the frustum can see.
+        let frustum = Frustum::new(&projector, width, height);
+        self.visible_faces.clear();
+        for cell in mesh.grid().cells() {
+            if frustum.may_see_box(
+                cell.min_local_m,
+                cell.max_local_m,
+                rotation_f32,
+                translation_f32,
+            ) {
+                self.visible_faces
+                    .extend_from_slice(mesh.grid().cell_faces(cell));
+            }
+        }
+
         // Bin faces into bands of rows, per chunk of faces, in parallel. Faces that cover no
         // pixel centre (most sub-pixel triangles of a dense mesh) are dropped here.
         let band_count = height.div_ceil(BAND_ROWS);
         let chunk_count = (rayon::current_num_threads() * 4).max(1);
         self.bins.resize_with(chunk_count, Vec::new);
         let faces = mesh.faces();
+        let visible_faces = &self.visible_faces;
         let vertices_cam = &self.vertices_cam;
         let vertices_screen = &self.vertices_screen;
-        let chunk_len = faces.len().div_ceil(chunk_count).max(1);
+        let chunk_len = visible_faces.len().div_ceil(chunk_count).max(1);
         self.bins
             .par_iter_mut()
             .enumerate()
@@ -288,15 +363,15 @@ impl Rasterizer {
                 for band in chunk_bins.iter_mut() {
                     band.clear();
                 }
-                let start = (chunk_index * chunk_len).min(faces.len());
-                let end = (start + chunk_len).min(faces.len());
-                for (offset, face) in faces[start..end].iter().enumerate() {
+                let start = (chunk_index * chunk_len).min(visible_faces.len());
+                let end = (start + chunk_len).min(visible_faces.len());
+                for &face_index in &visible_faces[start..end] {
+                    let face = faces[face_index as usize];
                     let corners = face.map(|v| vertices_cam[v as usize]);
                     let screen = face.map(|v| vertices_screen[v as usize]);
                     if let Some((first_row, last_row)) =
                         face_row_range(&corners, &screen, &projector, options, width, height)
                     {
-                        let face_index = (start + offset) as u32;
                         for band in chunk_bins
                             .iter_mut()
                             .take(last_row / BAND_ROWS + 1)
@@ -595,7 +670,12 @@ fn draw_triangle(screen: &[ScreenVertex; 3], face_index: u32, target: &mut BandT
             }
             let depth = 1.0 / sum_inv_depth;
             let index = line + col;
-            if target.face_index[index] != NO_FACE && depth >= target.depth[index] {
+            // Nearest wins; on a tie the lower face index, whatever order faces come in.
+            let current = target.face_index[index];
+            if current != NO_FACE
+                && (depth > target.depth[index]
+                    || (depth == target.depth[index] && face_index > current))
+            {
                 continue;
             }
             target.depth[index] = depth;

@@ -289,6 +289,25 @@ pub fn save_rgb_png(path: &Path, image: ImageView<'_, [u8; 3]>) -> Result<(), Im
     save_png(path, buffer)
 }
 
+/// An 8-bit RGB image encoded as a JPEG in memory (`quality` 1..=100), for pages that embed
+/// their pictures.
+pub fn encode_rgb_jpeg(
+    image: ImageView<'_, [u8; 3]>,
+    quality: u8,
+) -> Result<Vec<u8>, ImageIoError> {
+    let path = Path::new("<in-memory JPEG>");
+    let (width, height) = checked_size(path, image.width_px(), image.height_px())?;
+    let bytes: Vec<u8> = image.data().iter().flatten().copied().collect();
+    let mut out = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, quality.clamp(1, 100))
+        .encode(&bytes, width, height, image::ExtendedColorType::Rgb8)
+        .map_err(|source| ImageIoError::Write {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    Ok(out)
+}
+
 /// The `image` crate refused a buffer of the right length (cannot happen; an error, not a panic).
 fn unexpected_length(path: &Path, width_px: usize, height_px: usize) -> ImageIoError {
     ImageIoError::EmptyOrTooLarge {

@@ -35,11 +35,7 @@ pub enum PlyEncoding {
 /// `face` (edges, materials, cameras …) and all other properties are skipped. A file without faces
 /// is an error ([`crate::core::mesh::MeshError::NoFaces`]): registration renders the mesh.
 pub fn read_ply(path: &Path) -> Result<Mesh, MeshIoError> {
-    let bytes = std::fs::read(path).map_err(|source| MeshIoError::Read {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let geometry = parse_ply(&bytes).map_err(|error| error.with_path(path))?;
+    let geometry = read_ply_geometry(path)?;
     Mesh::from_world(
         &geometry.positions_m,
         geometry.faces,
@@ -49,6 +45,58 @@ pub fn read_ply(path: &Path) -> Result<Mesh, MeshIoError> {
         path: path.to_path_buf(),
         source,
     })
+}
+
+/// Bytes read from the file at a time when streaming binary data.
+const STREAM_BUFFER_BYTES: usize = 1 << 20;
+
+/// Binary files are streamed through a 1 MiB buffer (a 10^7-triangle city mesh is ~250 MB on
+/// disk: holding the file beside the mesh would double the peak memory); ASCII files are read
+/// whole (they are small: nobody writes a city in ASCII).
+fn read_ply_geometry(path: &Path) -> Result<PlyGeometry, MeshIoError> {
+    use std::io::{Read as _, Seek as _};
+    let read_error = |source| MeshIoError::Read {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut file = std::fs::File::open(path).map_err(read_error)?;
+    let file_bytes = file.metadata().map_err(read_error)?.len();
+    let mut prefix = Vec::new();
+    (&mut file)
+        .take(1 << 20)
+        .read_to_end(&mut prefix)
+        .map_err(read_error)?;
+    let header = parse_header(&prefix).map_err(|error| error.with_path(path))?;
+    if header.format == DataFormat::Ascii {
+        let bytes = std::fs::read(path).map_err(read_error)?;
+        return parse_ply(&bytes).map_err(|error| error.with_path(path));
+    }
+    file.seek(std::io::SeekFrom::Start(header.data_offset as u64))
+        .map_err(read_error)?;
+    let data_bytes =
+        usize::try_from(file_bytes.saturating_sub(header.data_offset as u64)).unwrap_or(usize::MAX);
+    let reader = std::io::BufReader::with_capacity(STREAM_BUFFER_BYTES, file);
+    let (plans, has_normals) = plan_elements(&header).map_err(|error| error.with_path(path))?;
+    // A read error other than the file's end is the file's, not a truncation.
+    let (geometry, io_error) = if header.format == DataFormat::BinaryBigEndian {
+        let mut source = StreamSource::<_, true> {
+            reader,
+            io_error: None,
+        };
+        let geometry = read_records(&mut source, &plans, has_normals, header.format, data_bytes);
+        (geometry, source.io_error)
+    } else {
+        let mut source = StreamSource::<_, false> {
+            reader,
+            io_error: None,
+        };
+        let geometry = read_records(&mut source, &plans, has_normals, header.format, data_bytes);
+        (geometry, source.io_error)
+    };
+    if let Some(source) = io_error {
+        return Err(read_error(source));
+    }
+    geometry.map_err(|error| error.with_path(path))
 }
 
 /// The vertex and face counts a PLY file declares, read from its header alone (the first MiB of
@@ -836,6 +884,63 @@ impl<const BIG_ENDIAN: bool> RecordSource for BinarySource<'_, BIG_ENDIAN> {
             .filter(|&end| end <= self.data.len())
             .ok_or(ValueError::EndOfData)?;
         self.position = end;
+        Ok(())
+    }
+
+    #[inline(always)]
+    fn end_record(&mut self) -> Result<(), ValueError> {
+        Ok(())
+    }
+}
+
+/// Binary data read from a stream (a buffered file), value by value.
+struct StreamSource<R, const BIG_ENDIAN: bool> {
+    reader: R,
+    /// A read error other than the end of the file (reported as the data ending there, with it).
+    io_error: Option<std::io::Error>,
+}
+
+impl<R: std::io::BufRead, const BIG_ENDIAN: bool> RecordSource for StreamSource<R, BIG_ENDIAN> {
+    #[inline(always)]
+    fn begin_record(&mut self) -> Result<(), ValueError> {
+        Ok(())
+    }
+
+    #[inline(always)]
+    fn read_value(&mut self, value_type: ScalarType) -> Result<f64, ValueError> {
+        let mut bytes = [0u8; 8];
+        let bytes = &mut bytes[..value_type.size_bytes()];
+        match self.reader.read_exact(bytes) {
+            Ok(()) => Ok(value_type.decode::<BIG_ENDIAN>(bytes)),
+            Err(error) => {
+                if error.kind() != std::io::ErrorKind::UnexpectedEof {
+                    self.io_error = Some(error);
+                }
+                Err(ValueError::EndOfData)
+            }
+        }
+    }
+
+    fn skip_values(&mut self, value_type: ScalarType, count: usize) -> Result<(), ValueError> {
+        let mut left = value_type
+            .size_bytes()
+            .checked_mul(count)
+            .ok_or(ValueError::EndOfData)?;
+        while left > 0 {
+            let available = match self.reader.fill_buf() {
+                Ok(buffer) => buffer.len(),
+                Err(error) => {
+                    self.io_error = Some(error);
+                    return Err(ValueError::EndOfData);
+                }
+            };
+            if available == 0 {
+                return Err(ValueError::EndOfData);
+            }
+            let step = available.min(left);
+            self.reader.consume(step);
+            left -= step;
+        }
         Ok(())
     }
 

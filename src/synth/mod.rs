@@ -10,6 +10,7 @@
 //! change ground truth of `changes.rs` (`changes_gt/*.png`, `changes.json`).
 
 pub mod changes;
+pub mod city;
 pub mod degrade;
 pub mod geometry;
 pub mod initial;

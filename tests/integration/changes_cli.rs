@@ -1,7 +1,7 @@
 //! `asgreg synth --changes` then `asgreg changes` on a tiny house scene: the change map finds the
 //! objects the scene was built with (changes.json), as confirmed objects of the right kind in
-//! changes.geojson, and writes a mask and an overlay per photo; without `--depth` the depth
-//! comes from plane-sweep stereo of each photo with its nearest posed photos.
+//! changes.geojson, and writes a mask and an overlay per photo and report.html; without `--depth`
+//! the depth comes from plane-sweep stereo of each photo with its nearest posed photos.
 
 use crate::util::*;
 
@@ -53,6 +53,12 @@ fn changes_finds_the_new_and_the_demolished_buildings_of_a_synth_changes_scene()
     for k in 0..9 {
         assert!(out.join(format!("masks/view_{k:03}.png")).is_file());
         assert!(out.join(format!("overlays/view_{k:03}.png")).is_file());
+        // report.html: a row per photo with the model and the change classes embedded.
+        let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+        assert!(
+            html.contains(&format!("view_{k:03}.jpg</td>")),
+            "no row for view_{k:03}"
+        );
     }
     let geojson: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("changes.geojson")).unwrap())

@@ -11,4 +11,5 @@ mod honest_tests;
 mod pipeline;
 mod priors_cli;
 mod register_cli;
+mod report_page;
 mod util;
