@@ -11,4 +11,6 @@ mod honest_tests;
 mod pipeline;
 mod priors_cli;
 mod register_cli;
+mod soak;
+mod tls;
 mod util;
