@@ -99,7 +99,9 @@ impl PartialEq for Resources {
 }
 
 impl Resources {
-    fn now(router_port: Option<u16>) -> Self {
+    /// The counts now; iceoryx2's only with `iceoryx2` (they are machine-wide: a run over
+    /// iceoryx2 at the same time, another soak or test, would move them).
+    fn now(iceoryx2: bool, router_port: Option<u16>) -> Self {
         let dev_shm_iox2 = std::fs::read_dir("/dev/shm")
             .map(|entries| {
                 entries
@@ -107,8 +109,9 @@ impl Resources {
                     .filter(|e| e.file_name().to_string_lossy().starts_with("iox2_"))
                     .count()
             })
-            .unwrap_or(0);
-        let iceoryx2_files = count_files(Path::new("/tmp/iceoryx2"));
+            .unwrap_or(0)
+            * usize::from(iceoryx2);
+        let iceoryx2_files = count_files(Path::new("/tmp/iceoryx2")) * usize::from(iceoryx2);
         let fds: Vec<String> = std::fs::read_dir("/proc/self/fd")
             .map(|entries| {
                 entries
@@ -306,7 +309,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     config.validate(&config_path)?;
     let initial_processes = local_stages(&config).len() + usize::from(router_port.is_some());
 
-    let before = Resources::now(router_port);
+    let before = Resources::now(backend == Backend::Iceoryx2, router_port);
     println!(
         "soak: {} frames {}x{} over {} ({} flow workers, {} coarse poses), a SIGKILL every {:.1} s; resources before: {before:?}",
         args.frames,
@@ -372,7 +375,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
                 if let Ok(mut samples) = samples.lock() {
                     samples.push(sample);
                 }
-                std::thread::sleep(Duration::from_millis(500));
+                std::thread::sleep(Duration::from_millis(100));
             }
         })
     };
@@ -407,7 +410,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     let collected = outcome?;
     // The launcher's transport is closed; give the kernel a moment to close the sockets.
     std::thread::sleep(Duration::from_millis(500));
-    let after = Resources::now(router_port);
+    let after = Resources::now(backend == Backend::Iceoryx2, router_port);
 
     let samples = samples.lock().map(|s| s.clone()).unwrap_or_default();
     let window = |from: f64, to: f64| -> (u64, u64) {
@@ -415,10 +418,14 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
             (from * frames as f64) as usize,
             (to * frames as f64) as usize,
         );
-        let chosen: Vec<&RssSample> = samples
+        let mut chosen: Vec<&RssSample> = samples
             .iter()
             .filter(|s| s.results >= lo && s.results <= hi)
             .collect();
+        // A window shorter than the sampling period: the first sample after its start.
+        if chosen.is_empty() {
+            chosen.extend(samples.iter().find(|s| s.results >= lo));
+        }
         let mut stages: Vec<u64> = chosen.iter().map(|s| s.stages_kib).collect();
         let mut launcher: Vec<u64> = chosen.iter().map(|s| s.launcher_kib).collect();
         (median(&mut stages), median(&mut launcher))

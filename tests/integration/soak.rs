@@ -56,17 +56,17 @@ fn soak(dir: &Path, transport: &str, frames: usize, kill_every_s: f64) {
 }
 
 #[test]
-#[ignore = "a minute of chaos over iceoryx2; .ci/run runs it (soak_short_)"]
+#[ignore = "200 frames, a kill every 1.5 s over iceoryx2 (~1 min); .ci/run runs it (soak_short_)"]
 fn soak_short_iceoryx2_every_frame_one_result_under_kills() {
     let dir = tempfile::tempdir().unwrap();
-    soak(dir.path(), "iceoryx2", 60, 2.0);
+    soak(dir.path(), "iceoryx2", 200, 1.5);
 }
 
 #[test]
-#[ignore = "a minute of chaos over zenoh with the router killed too; .ci/run runs it (soak_short_)"]
+#[ignore = "200 frames, a kill every 1.5 s over zenoh, router included (~1 min); .ci/run runs it (soak_short_)"]
 fn soak_short_zenoh_every_frame_one_result_under_kills() {
     let dir = tempfile::tempdir().unwrap();
-    soak(dir.path(), "zenoh", 60, 2.0);
+    soak(dir.path(), "zenoh", 200, 1.5);
 }
 
 #[test]
