@@ -15,6 +15,7 @@ mod pipeline;
 mod priors;
 mod register;
 mod render;
+mod soak;
 mod synth;
 
 use clap::{Parser, Subcommand};
@@ -72,6 +73,10 @@ pub enum Command {
     /// Dev command: fuzz every reader of user files and every message decoder with mutated
     /// inputs (panics, hangs, allocation blow-ups); one Markdown row per target.
     Fuzz(fuzz::FuzzArgs),
+    /// Dev command: stream many small synthetic frames through `launch` while a chaos loop
+    /// SIGKILLs a random stage, flow worker or the router every few seconds; checks exactly one
+    /// result per frame, memory and shared-memory/socket counts; prints the figures.
+    Soak(soak::SoakArgs),
 }
 
 pub fn init_logging(verbose: u8) {
@@ -110,5 +115,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Overlay(args) => overlay::run(&args),
         Command::Priors(args) => priors::run(&args),
         Command::Fuzz(args) => fuzz::run(&args),
+        Command::Soak(args) => soak::run(&args),
     }
 }

@@ -13,7 +13,7 @@ use asgreg::io::mesh_file::read_mesh;
 use asgreg::msg::{ChangeResult, ChangeSet, Header, PoseResult};
 use asgreg::runtime::collect::{summary, Collected, Delivered};
 use asgreg::runtime::config::PipelineConfig;
-use asgreg::runtime::launch::{absolute, launch, StageCommand};
+use asgreg::runtime::launch::{absolute, launch, start_router, StageCommand};
 use asgreg::runtime::nodes::{self, NodeContext};
 use asgreg::runtime::run_in_process;
 use asgreg::stage::ingest::SourceConfig;
@@ -139,6 +139,16 @@ fn default_scene(out: &Path, frames: usize) -> anyhow::Result<PathBuf> {
 }
 
 fn default_scene_at(scene: &Path, frames: usize) -> anyhow::Result<PathBuf> {
+    synthetic_scene_at(scene, frames, (505, 275))
+}
+
+/// A town-block scene of `frames` photos of `width`×`height` with 30 px initial poses in
+/// `scene`, made unless one with that many photos is there.
+pub(super) fn synthetic_scene_at(
+    scene: &Path,
+    frames: usize,
+    (width, height): (u32, u32),
+) -> anyhow::Result<PathBuf> {
     let scene = scene.to_path_buf();
     if scene.join("scene.json").is_file() && scene.join("initial/30/images.txt").is_file() {
         let listed = asgreg::io::colmap::read_images_txt(&scene.join("initial/30/images.txt"))?;
@@ -148,14 +158,14 @@ fn default_scene_at(scene: &Path, frames: usize) -> anyhow::Result<PathBuf> {
         }
     }
     println!(
-        "making a synthetic scene in {} ({frames} photos of a town block seen from 30–60 m, 505x275)",
+        "making a synthetic scene in {} ({frames} photos of a town block seen from 30–60 m, {width}x{height})",
         scene.display()
     );
     let args = SynthArgs {
         out: scene.clone(),
         seed: 1,
-        width: 505,
-        height: 275,
+        width,
+        height,
         images: frames,
         // The product's case (docs/design.md §1: a drone over a town). The paper's free-standing house
         // (`asgreg synth --scene house`) is harder: see the #4 note in README.
@@ -168,7 +178,7 @@ fn default_scene_at(scene: &Path, frames: usize) -> anyhow::Result<PathBuf> {
     Ok(scene)
 }
 
-fn scene_config(scene: &Path) -> PipelineConfig {
+pub(super) fn scene_config(scene: &Path) -> PipelineConfig {
     PipelineConfig {
         mesh: scene.join("model.ply"),
         source: SourceConfig::scene(scene, 30),
@@ -293,7 +303,7 @@ fn report(out: &Path, collected: &Collected, backend: &str) -> anyhow::Result<()
     check_complete(collected)
 }
 
-fn write_outputs(out: &Path, collected: &Collected, text: &str) -> anyhow::Result<()> {
+pub(super) fn write_outputs(out: &Path, collected: &Collected, text: &str) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let path = out.join("results.jsonl");
     let mut file = std::io::BufWriter::new(
@@ -330,7 +340,7 @@ fn write_outputs(out: &Path, collected: &Collected, text: &str) -> anyhow::Resul
     Ok(())
 }
 
-fn check_complete(collected: &Collected) -> anyhow::Result<()> {
+pub(super) fn check_complete(collected: &Collected) -> anyhow::Result<()> {
     let missing = collected.missing();
     if collected.frame_count.is_none() {
         bail!(
@@ -468,7 +478,7 @@ pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
 /// Runs `config` (read from `config_path`, which the stage processes read too) as one process
 /// per stage worker: cleans stale iceoryx2 resources or starts the zenoh router, supervises the
 /// stages, and returns what the collector saw.
-fn launch_pipeline(
+pub(super) fn launch_pipeline(
     config: &PipelineConfig,
     config_path: &Path,
     verbose: u8,
@@ -487,76 +497,74 @@ fn launch_pipeline(
             println!("cleaned the shared-memory resources of {cleaned} dead process(es)");
         }
     }
-    // zenoh's router runs in a process of its own: next to slow subscribers in one process it
-    // can deadlock (see transport::zenoh).
+    // zenoh's router runs in a process of its own (next to slow subscribers in one process it
+    // can deadlock, see transport::zenoh), supervised by `launch` like a stage.
     let program = std::env::current_exe().context("cannot find the asgreg executable")?;
-    let mut router =
-        if config.backend == Backend::Zenoh && !config.launch.zenoh_router_listen.is_empty() {
-            Some(start_router(&program, &config.launch.zenoh_router_listen)?)
-        } else {
-            None
-        };
-    let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
     let command = StageCommand {
         program,
         config_path: absolute(config_path),
         global_args: (0..verbose).map(|_| "-v".to_string()).collect(),
     };
-    let collected = launch(config, transport.as_ref(), &command, on_started, on_result);
-    drop(transport);
-    if let Some(router) = &mut router {
-        let _ = router.kill();
-        let _ = router.wait();
+    let mut router = start_router(config, &command)?;
+    if let Some(router) = &router {
+        eprintln!(
+            "launch: zenoh router pid {} on {}",
+            router.id(),
+            config.launch.zenoh_router_listen.join(", ")
+        );
     }
-    Ok(collected?)
-}
-
-/// Starts `asgreg zenoh-router` and waits until its first endpoint accepts connections.
-fn start_router(program: &Path, listen: &[String]) -> anyhow::Result<std::process::Child> {
-    let mut command = std::process::Command::new(program);
-    command.arg("zenoh-router");
-    for endpoint in listen {
-        command.arg("--listen").arg(endpoint);
-    }
-    let mut child = command
-        .spawn()
-        .with_context(|| format!("cannot start the zenoh router ({})", program.display()))?;
-    eprintln!(
-        "launch: zenoh router pid {} on {}",
-        child.id(),
-        listen.join(", ")
-    );
-    let address = listen
-        .first()
-        .and_then(|endpoint| endpoint.strip_prefix("tcp/"))
-        .map(str::to_string);
-    let started = std::time::Instant::now();
-    if let Some(address) = address {
-        while std::net::TcpStream::connect(address.as_str()).is_err() {
-            if let Some(status) = child.try_wait()? {
-                bail!("the zenoh router exited ({status}) before listening on {address}");
+    let transport = match transport::open(config.backend, &config.transport, &config.zenoh) {
+        Ok(transport) => transport,
+        Err(error) => {
+            if let Some(router) = &mut router {
+                let _ = router.kill();
+                let _ = router.wait();
             }
-            if started.elapsed() > Duration::from_secs(20) {
-                let _ = child.kill();
-                bail!("the zenoh router did not listen on {address} within 20 s");
-            }
-            std::thread::sleep(Duration::from_millis(50));
+            return Err(error.into());
         }
-    }
-    Ok(child)
+    };
+    Ok(launch(
+        config,
+        transport.as_ref(),
+        &command,
+        router,
+        on_started,
+        on_result,
+    )?)
 }
 
 #[derive(clap::Args, Debug)]
 pub struct RouterArgs {
-    /// Endpoint to listen on, e.g. tcp/192.168.10.1:7447 (repeat for several).
-    #[arg(long, required = true)]
+    /// Endpoint to listen on, e.g. tcp/192.168.10.1:7447 or tls/192.168.10.1:7448 (repeat for
+    /// several). With --config: replaces the file's listen endpoints.
+    #[arg(long, required_unless_present = "config")]
     pub listen: Vec<String>,
+    /// A zenoh json5 router config to start from (TLS, access control: deploy/zenoh/).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
 }
 
 /// `asgreg zenoh-router`: the ground station's zenoh router, until killed.
 pub fn router(args: &RouterArgs) -> anyhow::Result<()> {
-    let _router = transport::zenoh::open_router(&args.listen)?;
-    tracing::info!("zenoh router listening on {}", args.listen.join(", "));
+    let _router = transport::zenoh::RouterHandle::open(&transport::zenoh::ZenohSettings {
+        mode: transport::zenoh::ZenohMode::Router,
+        listen: (!args.listen.is_empty()).then(|| args.listen.clone()),
+        connect: None,
+        config_file: args.config.clone(),
+        ..transport::zenoh::ZenohSettings::default()
+    })?;
+    tracing::info!(
+        "zenoh router listening on {}{}",
+        if args.listen.is_empty() {
+            "the config file's endpoints".to_string()
+        } else {
+            args.listen.join(", ")
+        },
+        args.config
+            .as_ref()
+            .map(|path| format!(" (config {})", path.display()))
+            .unwrap_or_default()
+    );
     loop {
         std::thread::sleep(Duration::from_secs(3600));
     }

@@ -157,6 +157,10 @@ pub struct LaunchSettings {
     /// With the zenoh backend: endpoints the launcher's own zenoh router listens on (stages and
     /// remote workers connect to it). Empty: no router (one runs elsewhere).
     pub zenoh_router_listen: Vec<String>,
+    /// With the zenoh backend: a zenoh json5 router config the launcher's router starts from
+    /// (TLS, access control: `deploy/zenoh/router-tls.json5`, `router-tls-acl.json5`); its
+    /// listen endpoints are replaced by `zenoh_router_listen`. Relative to the config file.
+    pub zenoh_router_config: Option<PathBuf>,
     /// Restart intensity, as Erlang's and systemd's supervisors have it: a stage worker that
     /// dies more than `max_restarts` times within `restart_window_s` makes the launcher give up
     /// on the run (it crashes faster than it can work); slower crashes are restarted forever.
@@ -175,6 +179,7 @@ impl Default for LaunchSettings {
     fn default() -> Self {
         Self {
             zenoh_router_listen: Vec::new(),
+            zenoh_router_config: None,
             max_restarts: 5,
             restart_window_s: 60.0,
             stop_grace_s: 10.0,
@@ -254,6 +259,12 @@ impl PipelineConfig {
         if let Some(state_dir) = &mut self.state_dir {
             resolve(state_dir);
         }
+        if let Some(file) = &mut self.zenoh.config_file {
+            resolve(file);
+        }
+        if let Some(file) = &mut self.launch.zenoh_router_config {
+            resolve(file);
+        }
     }
 
     pub fn validate(&self, path: &Path) -> Result<(), ConfigError> {
@@ -294,6 +305,14 @@ impl PipelineConfig {
             return Err(invalid(
                 "workers.flow_local",
                 "cannot exceed workers.flow".to_string(),
+            ));
+        }
+        if self.launch.zenoh_router_config.is_some() && self.launch.zenoh_router_listen.is_empty() {
+            return Err(invalid(
+                "launch.zenoh_router_config",
+                "needs launch.zenoh_router_listen: the endpoints the launcher's router listens on \
+                 (e.g. [\"tcp/127.0.0.1:7447\", \"tls/192.168.10.1:7448\"])"
+                    .to_string(),
             ));
         }
         let coarse = self.registration.coarse_pose_count;

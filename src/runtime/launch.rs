@@ -4,7 +4,9 @@
 //! results, and stops the stages when every frame has its result. Stale iceoryx2 resources of
 //! killed processes are cleaned before anything starts. A stage is restarted as long as it does
 //! not crash more than `launch.max_restarts` times within `launch.restart_window_s`
-//! ([`RestartIntensity`]).
+//! ([`RestartIntensity`]). With zenoh and `launch.zenoh_router_listen`, the router is one more
+//! supervised process ([`start_router`]): restarted under the same intensity, the stages' zenoh
+//! clients reconnect to it by themselves, and it is stopped last.
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
@@ -81,7 +83,29 @@ pub struct StageCommand {
     pub global_args: Vec<String>,
 }
 
+/// The name the router goes by among the supervised processes (logs, `on_started`).
+pub const ROUTER: &str = "router";
+
 impl StageCommand {
+    /// `asgreg zenoh-router` on `launch.zenoh_router_listen`, from `launch.zenoh_router_config`
+    /// when set (TLS, access control).
+    fn spawn_router(&self, config: &PipelineConfig) -> Result<Child, RuntimeError> {
+        let mut command = Command::new(&self.program);
+        command.args(&self.global_args).arg("zenoh-router");
+        for endpoint in &config.launch.zenoh_router_listen {
+            command.arg("--listen").arg(endpoint);
+        }
+        if let Some(file) = &config.launch.zenoh_router_config {
+            command.arg("--config").arg(file);
+        }
+        command.spawn().map_err(|error| {
+            RuntimeError::Launch(format!(
+                "cannot start the zenoh router ({}): {error}",
+                self.program.display()
+            ))
+        })
+    }
+
     fn spawn(&self, stage: &str, worker: u32) -> Result<Child, RuntimeError> {
         Command::new(&self.program)
             .args(&self.global_args)
@@ -116,21 +140,84 @@ pub fn local_stages(config: &PipelineConfig) -> Vec<(&'static str, u32)> {
     stages
 }
 
-/// Runs a launch: starts the stages, supervises them, returns what the collector saw.
-/// `on_started` is told each (stage, worker, pid) as it starts (the log, and tests that kill one).
+/// Starts the launcher's zenoh router when the configuration asks for one (zenoh backend and
+/// `launch.zenoh_router_listen`) and waits until its first endpoint accepts connections; hand
+/// it to [`launch`], which supervises it. Before the launcher opens its own transport.
+pub fn start_router(
+    config: &PipelineConfig,
+    command: &StageCommand,
+) -> Result<Option<Child>, RuntimeError> {
+    if config.backend != crate::transport::Backend::Zenoh
+        || config.launch.zenoh_router_listen.is_empty()
+    {
+        return Ok(None);
+    }
+    let mut child = command.spawn_router(config)?;
+    let address = config
+        .launch
+        .zenoh_router_listen
+        .first()
+        .and_then(|endpoint| {
+            let rest = endpoint.split_once('/').map(|(_, rest)| rest)?;
+            rest.split(['?', '#']).next().map(str::to_string)
+        });
+    let started = Instant::now();
+    if let Some(address) = address {
+        while std::net::TcpStream::connect(address.as_str()).is_err() {
+            let exited = child.try_wait().map_err(|error| {
+                RuntimeError::Launch(format!("cannot poll the zenoh router: {error}"))
+            })?;
+            if let Some(status) = exited {
+                return Err(RuntimeError::Launch(format!(
+                    "the zenoh router exited ({status}) before listening on {address} (launch.zenoh_router_listen, launch.zenoh_router_config): see its log above"
+                )));
+            }
+            if started.elapsed() > Duration::from_secs(20) {
+                let _ = child.kill();
+                let _ = child.wait();
+                return Err(RuntimeError::Launch(format!(
+                    "the zenoh router did not listen on {address} within 20 s (launch.zenoh_router_listen)"
+                )));
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+    Ok(Some(child))
+}
+
+/// Runs a launch: starts the stages, supervises them (and `router`, from [`start_router`]),
+/// returns what the collector saw. `on_started` is told each (stage, worker, pid) as it starts
+/// (the log, and tests that kill one); the router is ([`ROUTER`], 0, pid).
 pub fn launch(
     config: &PipelineConfig,
     transport: &dyn Transport,
     command: &StageCommand,
+    router: Option<Child>,
     on_started: &mut dyn FnMut(&str, u32, u32),
     on_result: &mut dyn FnMut(Delivered<'_>),
 ) -> Result<Collected, RuntimeError> {
     // A new run: the results journal starts empty (restarted stages resume from it).
     let journal_path = super::journal::path(config);
     super::journal::reset(&journal_path)?;
-    let mut collector = Collector::open(transport, config.changes_enabled())?;
     let window = Duration::from_secs_f64(config.launch.restart_window_s);
     let mut processes: Vec<Supervised> = Vec::new();
+    if let Some(child) = router {
+        on_started(ROUTER, 0, child.id());
+        processes.push(Supervised {
+            stage: ROUTER,
+            worker: 0,
+            child,
+            restarts: RestartIntensity::new(config.launch.max_restarts, window),
+            done: false,
+        });
+    }
+    let mut collector = match Collector::open(transport, config.changes_enabled()) {
+        Ok(collector) => collector,
+        Err(error) => {
+            stop_all(&mut processes, config);
+            return Err(error.into());
+        }
+    };
     for (stage, worker) in local_stages(config) {
         let child = command.spawn(stage, worker)?;
         on_started(stage, worker, child.id());
@@ -179,7 +266,12 @@ pub fn launch(
                 config.launch.max_restarts,
                 config.launch.restart_window_s
             );
-            match command.spawn(process.stage, process.worker) {
+            let respawned = if process.stage == ROUTER {
+                command.spawn_router(config)
+            } else {
+                command.spawn(process.stage, process.worker)
+            };
+            match respawned {
                 Ok(child) => {
                     on_started(process.stage, process.worker, child.id());
                     process.child = child;
@@ -196,12 +288,7 @@ pub fn launch(
     if outcome.is_ok() {
         std::thread::sleep(Duration::from_millis(1200));
     }
-    let grace = Duration::from_secs_f64(config.launch.stop_grace_s);
-    let mut children: Vec<(String, &mut Child)> = processes
-        .iter_mut()
-        .map(|p| (format!("{} worker {}", p.stage, p.worker), &mut p.child))
-        .collect();
-    stop_gracefully(&mut children, grace);
+    stop_all(&mut processes, config);
     let mut collected = outcome?;
     collector.drain_metrics(&mut collected)?;
     if let Some(error) = failure {
@@ -212,6 +299,19 @@ pub fn launch(
         super::journal::reset(&journal_path)?;
     }
     Ok(collected)
+}
+
+/// Stops the stages gracefully, then the router (the stages hand their jobs back through it).
+fn stop_all(processes: &mut [Supervised], config: &PipelineConfig) {
+    let grace = Duration::from_secs_f64(config.launch.stop_grace_s);
+    for routers in [false, true] {
+        let mut children: Vec<(String, &mut Child)> = processes
+            .iter_mut()
+            .filter(|p| (p.stage == ROUTER) == routers)
+            .map(|p| (format!("{} worker {}", p.stage, p.worker), &mut p.child))
+            .collect();
+        stop_gracefully(&mut children, grace);
+    }
 }
 
 /// Stops processes the way an operator's `systemctl stop` does: SIGTERM to each (a stage then

@@ -12,4 +12,6 @@ mod pipeline;
 mod priors_cli;
 mod register_cli;
 mod report_page;
+mod soak;
+mod tls;
 mod util;

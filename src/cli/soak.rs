@@ -1,0 +1,525 @@
+//! `asgreg soak` (dev command, issue #15 item 3): many small synthetic frames streamed through
+//! `launch` (iceoryx2, or zenoh with the launcher's router) while a chaos loop SIGKILLs a random
+//! stage process (ingest included), flow worker or the router every few seconds. It checks what
+//! an operator needs of a station that runs for hours: every frame exactly one result, nothing
+//! duplicated; resident memory at the end within a bound of after warm-up; the shared-memory
+//! entries and sockets back to where they started. It prints the figures (frames, kills,
+//! restarts, redone jobs, RSS) and writes them to `<out>/soak.json`; it fails when a check does.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use asgreg::runtime::collect::{summary, Delivered};
+use asgreg::runtime::launch::local_stages;
+use asgreg::transport::Backend;
+use rand::{Rng, SeedableRng};
+use serde::Serialize;
+
+use super::pipeline::{
+    check_complete, launch_pipeline, scene_config, synthetic_scene_at, write_outputs, BackendArg,
+};
+
+#[derive(clap::Args, Debug)]
+pub struct SoakArgs {
+    /// Frames to stream (each a photo of the synthetic town block).
+    #[arg(long, default_value_t = 1000)]
+    pub frames: usize,
+    /// Seconds between two kills (SIGKILL of a random stage process, flow worker or router).
+    #[arg(long, default_value_t = 3.0)]
+    pub kill_every_s: f64,
+    /// iceoryx2 (one host, shared memory) or zenoh (the launcher's router, TCP loopback).
+    #[arg(long, value_enum, default_value = "iceoryx2")]
+    pub transport: BackendArg,
+    /// Scene, configuration, results and soak.json.
+    #[arg(long, default_value = "asgreg-soak")]
+    pub out: PathBuf,
+    /// Photo size: small, so that a thousand frames take minutes.
+    #[arg(long, default_value_t = 64)]
+    pub width: u32,
+    #[arg(long, default_value_t = 48)]
+    pub height: u32,
+    /// Flow workers (processes).
+    #[arg(long, default_value_t = 2)]
+    pub flow_workers: u32,
+    /// Coarse poses per frame (flow jobs per frame).
+    #[arg(long, default_value_t = 3)]
+    pub coarse_poses: usize,
+    /// Seed of the chaos loop's choices.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Largest allowed growth of the resident memory from after warm-up to the end (0.10: 10 %).
+    #[arg(long, default_value_t = 0.10)]
+    pub max_rss_growth: f64,
+}
+
+/// What the chaos loop and the samplers share with the launcher's callbacks.
+#[derive(Default)]
+struct Shared {
+    /// The live process of each (stage, worker), as the launcher last started it.
+    pids: Mutex<BTreeMap<(String, u32), u32>>,
+    starts: AtomicUsize,
+    results: AtomicUsize,
+    done: AtomicBool,
+}
+
+/// Counts of what a run must give back: iceoryx2's shared memory and files, this process's
+/// descriptors (files, pipes) and sockets, TCP connections of the router's port.
+/// `launcher_runtime_fds` (epoll/eventfd: zenoh's process-wide async runtime, started once and
+/// kept for the process's life) is reported, not compared.
+#[derive(Clone, Debug, Default, Serialize)]
+struct Resources {
+    dev_shm_iox2: usize,
+    iceoryx2_files: usize,
+    launcher_fds: usize,
+    launcher_sockets: usize,
+    router_tcp: usize,
+    launcher_runtime_fds: usize,
+}
+
+impl PartialEq for Resources {
+    fn eq(&self, other: &Self) -> bool {
+        (
+            self.dev_shm_iox2,
+            self.iceoryx2_files,
+            self.launcher_fds,
+            self.launcher_sockets,
+            self.router_tcp,
+        ) == (
+            other.dev_shm_iox2,
+            other.iceoryx2_files,
+            other.launcher_fds,
+            other.launcher_sockets,
+            other.router_tcp,
+        )
+    }
+}
+
+impl Resources {
+    /// The counts now; iceoryx2's only with `iceoryx2` (they are machine-wide: a run over
+    /// iceoryx2 at the same time, another soak or test, would move them).
+    fn now(iceoryx2: bool, router_port: Option<u16>) -> Self {
+        let dev_shm_iox2 = std::fs::read_dir("/dev/shm")
+            .map(|entries| {
+                entries
+                    .filter_map(Result::ok)
+                    .filter(|e| e.file_name().to_string_lossy().starts_with("iox2_"))
+                    .count()
+            })
+            .unwrap_or(0)
+            * usize::from(iceoryx2);
+        let iceoryx2_files = count_files(Path::new("/tmp/iceoryx2")) * usize::from(iceoryx2);
+        let fds: Vec<String> = std::fs::read_dir("/proc/self/fd")
+            .map(|entries| {
+                entries
+                    .filter_map(Result::ok)
+                    .filter_map(|e| std::fs::read_link(e.path()).ok())
+                    .map(|target| target.to_string_lossy().into_owned())
+                    .collect()
+            })
+            .unwrap_or_default();
+        let launcher_sockets = fds.iter().filter(|t| t.starts_with("socket:")).count();
+        let launcher_runtime_fds = fds.iter().filter(|t| t.starts_with("anon_inode:")).count();
+        let router_tcp = router_port.map_or(0, tcp_connections_of_port);
+        Self {
+            dev_shm_iox2,
+            iceoryx2_files,
+            // Minus the descriptor read_dir itself holds.
+            launcher_fds: fds.len().saturating_sub(1 + launcher_runtime_fds),
+            launcher_sockets,
+            router_tcp,
+            launcher_runtime_fds,
+        }
+    }
+}
+
+fn count_files(dir: &Path) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .filter_map(Result::ok)
+        .map(|entry| {
+            if entry.file_type().is_ok_and(|t| t.is_dir()) {
+                count_files(&entry.path())
+            } else {
+                1
+            }
+        })
+        .sum()
+}
+
+/// TCP sockets of this host with `port` at either end, TIME_WAIT excluded (the kernel's, not a
+/// process's).
+fn tcp_connections_of_port(port: u16) -> usize {
+    let hex = format!(":{port:04X}");
+    ["/proc/net/tcp", "/proc/net/tcp6"]
+        .iter()
+        .filter_map(|file| std::fs::read_to_string(file).ok())
+        .flat_map(|text| {
+            text.lines()
+                .skip(1)
+                .filter(|line| {
+                    let fields: Vec<&str> = line.split_whitespace().collect();
+                    fields.len() > 3
+                        && (fields[1].ends_with(&hex) || fields[2].ends_with(&hex))
+                        && fields[3] != "06"
+                })
+                .map(str::to_string)
+                .collect::<Vec<_>>()
+        })
+        .count()
+}
+
+/// Resident memory of a process, KiB (0 when it is gone).
+fn rss_kib(pid: u32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .ok()
+        .and_then(|text| {
+            text.lines()
+                .find_map(|line| line.strip_prefix("VmRSS:"))
+                .and_then(|rest| rest.split_whitespace().next()?.parse().ok())
+        })
+        .unwrap_or(0)
+}
+
+/// Whether `pid` is a child of this process (so a pid reused by another process is never
+/// killed).
+fn is_our_child(pid: u32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .ok()
+        .and_then(|stat| {
+            // pid (comm) state ppid ...: comm may hold spaces, so read after the last ')'.
+            let rest = &stat[stat.rfind(')')? + 1..];
+            rest.split_whitespace().nth(1)?.parse::<u32>().ok()
+        })
+        .is_some_and(|ppid| ppid == std::process::id())
+}
+
+fn sigkill(pid: u32) -> bool {
+    let Ok(pid) = libc::pid_t::try_from(pid) else {
+        return false;
+    };
+    // SAFETY: kill(2) on a child of this process, checked just before (is_our_child).
+    unsafe { libc::kill(pid, libc::SIGKILL) == 0 }
+}
+
+/// One RSS sample: results so far, total of the stage processes (and router), the launcher.
+#[derive(Clone, Copy, Debug, Serialize)]
+struct RssSample {
+    results: usize,
+    stages_kib: u64,
+    launcher_kib: u64,
+}
+
+/// The soak's figures (soak.json).
+#[derive(Debug, Serialize)]
+struct Figures {
+    transport: String,
+    frames: usize,
+    results: usize,
+    accepted: usize,
+    duplicated: usize,
+    missing: usize,
+    wall_s: f64,
+    kill_every_s: f64,
+    kills: BTreeMap<String, usize>,
+    restarts: usize,
+    redone_jobs: u64,
+    rss_warm_kib: u64,
+    rss_end_kib: u64,
+    rss_growth: f64,
+    launcher_rss_warm_kib: u64,
+    launcher_rss_end_kib: u64,
+    resources_before: Resources,
+    resources_after: Resources,
+    failures: Vec<String>,
+}
+
+fn median(values: &mut [u64]) -> u64 {
+    values.sort_unstable();
+    values.get(values.len() / 2).copied().unwrap_or(0)
+}
+
+pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
+    let backend: Backend = args.transport.into();
+    if backend == Backend::Crossbeam {
+        bail!("--transport crossbeam is one process: soak needs iceoryx2 or zenoh (processes to kill)");
+    }
+    if !(args.kill_every_s.is_finite() && args.kill_every_s > 0.0) {
+        bail!(
+            "--kill-every-s must be a positive number of seconds, got {}",
+            args.kill_every_s
+        );
+    }
+    if args.frames < 10 {
+        bail!(
+            "--frames must be at least 10 (warm-up is the first 10–20 %), got {}",
+            args.frames
+        );
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    let out = asgreg::runtime::launch::absolute(&args.out);
+    let scene = synthetic_scene_at(
+        &out.join(format!(
+            "scene-{}x{}-{}",
+            args.width, args.height, args.frames
+        )),
+        args.frames,
+        (args.width, args.height),
+    )?;
+    let mut config = scene_config(&scene);
+    config.backend = backend;
+    config.transport.pipeline = format!("soak-{}", std::process::id());
+    config.workers.flow = args.flow_workers;
+    config.registration.coarse_pose_count = args.coarse_poses;
+    // The soak exercises supervision, not registration: without the pose search (renderings
+    // at several headings, ~0.5 s of a 64x48 frame) and the final edge refinement a frame is
+    // a fraction of a second, so a thousand take minutes.
+    config.registration.pose_search.enabled = false;
+    config.registration.edge_align.enabled = false;
+    config.state_dir = Some(out.join("state"));
+    // The same intensity policy as a station, with room for a kill every few seconds spread
+    // over ~7 processes: more than 10 deaths of one process within a minute is a crash loop.
+    config.launch.max_restarts = 10;
+    config.launch.restart_window_s = 60.0;
+    config.launch.deadline_s = 60.0 + 10.0 * args.frames as f64;
+    // A frame whose hypotheses died with pose or verify is sent again by ingest; the timeout is
+    // the last resort, far above a small frame's seconds.
+    config.timeouts.frame_timeout_s = 120.0;
+    config.timeouts.worker_silence_s = 20.0;
+    let router_port = if backend == Backend::Zenoh {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")?
+            .local_addr()?
+            .port();
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        config.launch.zenoh_router_listen = vec![endpoint.clone()];
+        config.zenoh.connect = Some(vec![endpoint]);
+        Some(port)
+    } else {
+        None
+    };
+    let config_path = out.join("soak.toml");
+    std::fs::write(&config_path, toml::to_string(&config)?)
+        .with_context(|| format!("cannot write {}", config_path.display()))?;
+    config.validate(&config_path)?;
+    let initial_processes = local_stages(&config).len() + usize::from(router_port.is_some());
+
+    let before = Resources::now(backend == Backend::Iceoryx2, router_port);
+    println!(
+        "soak: {} frames {}x{} over {} ({} flow workers, {} coarse poses), a SIGKILL every {:.1} s; resources before: {before:?}",
+        args.frames,
+        args.width,
+        args.height,
+        backend.name(),
+        args.flow_workers,
+        args.coarse_poses,
+        args.kill_every_s
+    );
+    let shared = Arc::new(Shared::default());
+    let kills: Arc<Mutex<BTreeMap<String, usize>>> = Arc::default();
+    let samples: Arc<Mutex<Vec<RssSample>>> = Arc::default();
+    let chaos = {
+        let (shared, kills) = (shared.clone(), kills.clone());
+        let period = Duration::from_secs_f64(args.kill_every_s);
+        let seed = args.seed;
+        std::thread::spawn(move || {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let mut next = Instant::now() + period;
+            while !shared.done.load(Ordering::SeqCst) {
+                std::thread::sleep(Duration::from_millis(20));
+                // Kills start with the first result (the stages are up) and stop at the last.
+                if Instant::now() < next || shared.results.load(Ordering::SeqCst) == 0 {
+                    continue;
+                }
+                next = Instant::now() + period;
+                let victims: Vec<((String, u32), u32)> = shared
+                    .pids
+                    .lock()
+                    .map(|pids| pids.iter().map(|(k, v)| (k.clone(), *v)).collect())
+                    .unwrap_or_default();
+                if victims.is_empty() {
+                    continue;
+                }
+                let ((stage, worker), pid) = &victims[rng.random_range(0..victims.len())];
+                if shared.done.load(Ordering::SeqCst) || !is_our_child(*pid) {
+                    continue;
+                }
+                if sigkill(*pid) {
+                    eprintln!("soak: SIGKILL {stage} worker {worker} (pid {pid})");
+                    if let Ok(mut kills) = kills.lock() {
+                        *kills.entry(stage.clone()).or_default() += 1;
+                    }
+                }
+            }
+        })
+    };
+    let sampler = {
+        let (shared, samples) = (shared.clone(), samples.clone());
+        std::thread::spawn(move || {
+            while !shared.done.load(Ordering::SeqCst) {
+                let pids: Vec<u32> = shared
+                    .pids
+                    .lock()
+                    .map(|pids| pids.values().copied().collect())
+                    .unwrap_or_default();
+                let sample = RssSample {
+                    results: shared.results.load(Ordering::SeqCst),
+                    stages_kib: pids.iter().map(|&pid| rss_kib(pid)).sum(),
+                    launcher_kib: rss_kib(std::process::id()),
+                };
+                if let Ok(mut samples) = samples.lock() {
+                    samples.push(sample);
+                }
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        })
+    };
+    let frames = args.frames;
+    let started = Instant::now();
+    let outcome = launch_pipeline(
+        &config,
+        &config_path,
+        0,
+        &mut |stage, worker, pid| {
+            shared.starts.fetch_add(1, Ordering::SeqCst);
+            if let Ok(mut pids) = shared.pids.lock() {
+                pids.insert((stage.to_string(), worker), pid);
+            }
+        },
+        &mut |delivered| {
+            // Poses only: the soak's pipeline runs without the change stage.
+            if !matches!(delivered, Delivered::Pose(..)) {
+                return;
+            }
+            let count = shared.results.fetch_add(1, Ordering::SeqCst) + 1;
+            if count % 100 == 0 {
+                println!(
+                    "soak: {count}/{frames} results after {:.0} s",
+                    started.elapsed().as_secs_f64()
+                );
+            }
+            if count >= frames {
+                shared.done.store(true, Ordering::SeqCst);
+            }
+        },
+    );
+    shared.done.store(true, Ordering::SeqCst);
+    let _ = chaos.join();
+    let _ = sampler.join();
+    let collected = outcome?;
+    // The launcher's transport is closed; give the kernel a moment to close the sockets.
+    std::thread::sleep(Duration::from_millis(500));
+    let after = Resources::now(backend == Backend::Iceoryx2, router_port);
+
+    let samples = samples.lock().map(|s| s.clone()).unwrap_or_default();
+    let window = |from: f64, to: f64| -> (u64, u64) {
+        let (lo, hi) = (
+            (from * frames as f64) as usize,
+            (to * frames as f64) as usize,
+        );
+        let mut chosen: Vec<&RssSample> = samples
+            .iter()
+            .filter(|s| s.results >= lo && s.results <= hi)
+            .collect();
+        // A window shorter than the sampling period: the first sample after its start.
+        if chosen.is_empty() {
+            chosen.extend(samples.iter().find(|s| s.results >= lo));
+        }
+        let mut stages: Vec<u64> = chosen.iter().map(|s| s.stages_kib).collect();
+        let mut launcher: Vec<u64> = chosen.iter().map(|s| s.launcher_kib).collect();
+        (median(&mut stages), median(&mut launcher))
+    };
+    let (rss_warm_kib, launcher_rss_warm_kib) = window(0.10, 0.20);
+    let (rss_end_kib, launcher_rss_end_kib) = window(0.90, 1.0);
+    let total_warm = rss_warm_kib + launcher_rss_warm_kib;
+    let total_end = rss_end_kib + launcher_rss_end_kib;
+    let rss_growth = total_end as f64 / total_warm.max(1) as f64 - 1.0;
+    let kills = kills.lock().map(|k| k.clone()).unwrap_or_default();
+    let redone_jobs: u64 = collected.metrics.values().map(|m| m.redispatched).sum();
+
+    let mut failures = Vec::new();
+    if let Err(error) = check_complete(&collected) {
+        failures.push(format!("{error:#}"));
+    }
+    if collected.results.len() != frames {
+        failures.push(format!(
+            "{} results for {frames} frames",
+            collected.results.len()
+        ));
+    }
+    if total_warm == 0 || total_end == 0 {
+        failures.push("too few RSS samples in the warm-up or end window".to_string());
+    } else if rss_growth > args.max_rss_growth {
+        failures.push(format!(
+            "resident memory grew {:.1} % from after warm-up ({total_warm} KiB) to the end ({total_end} KiB), more than {:.0} %",
+            100.0 * rss_growth,
+            100.0 * args.max_rss_growth
+        ));
+    }
+    if after != before {
+        failures.push(format!(
+            "resources not back to the start: before {before:?}, after {after:?}"
+        ));
+    }
+    let figures = Figures {
+        transport: backend.name().to_string(),
+        frames,
+        results: collected.results.len(),
+        accepted: collected.accepted(),
+        duplicated: collected.duplicates.len(),
+        missing: collected.missing().len(),
+        wall_s: started.elapsed().as_secs_f64(),
+        kill_every_s: args.kill_every_s,
+        restarts: shared
+            .starts
+            .load(Ordering::SeqCst)
+            .saturating_sub(initial_processes),
+        kills,
+        redone_jobs,
+        rss_warm_kib: total_warm,
+        rss_end_kib: total_end,
+        rss_growth,
+        launcher_rss_warm_kib,
+        launcher_rss_end_kib,
+        resources_before: before,
+        resources_after: after,
+        failures,
+    };
+    let text = summary(&collected, backend.name());
+    write_outputs(&out, &collected, &text)?;
+    let json = out.join("soak.json");
+    std::fs::write(&json, serde_json::to_string_pretty(&figures)?)
+        .with_context(|| format!("cannot write {}", json.display()))?;
+    let total_kills: usize = figures.kills.values().sum();
+    println!(
+        "soak figures: transport {} | frames {} | results {} (duplicated {}, missing {}, accepted {}) | {:.0} s | kills {total_kills} {:?} | restarts {} | redone jobs {} | RSS after warm-up {:.1} MiB, at the end {:.1} MiB ({:+.1} %; launcher {:.1} → {:.1} MiB) | resources before {:?} after {:?}",
+        figures.transport,
+        figures.frames,
+        figures.results,
+        figures.duplicated,
+        figures.missing,
+        figures.accepted,
+        figures.wall_s,
+        figures.kills,
+        figures.restarts,
+        figures.redone_jobs,
+        figures.rss_warm_kib as f64 / 1024.0,
+        figures.rss_end_kib as f64 / 1024.0,
+        100.0 * figures.rss_growth,
+        figures.launcher_rss_warm_kib as f64 / 1024.0,
+        figures.launcher_rss_end_kib as f64 / 1024.0,
+        figures.resources_before,
+        figures.resources_after
+    );
+    println!("soak: figures in {}", json.display());
+    if !figures.failures.is_empty() {
+        bail!("soak failed: {}", figures.failures.join("; "));
+    }
+    println!("soak passed: every frame exactly one result, memory and resources back");
+    Ok(())
+}
