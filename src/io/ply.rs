@@ -75,7 +75,10 @@ fn read_ply_geometry(path: &Path) -> Result<PlyGeometry, MeshIoError> {
         .map_err(read_error)?;
     let data_bytes =
         usize::try_from(file_bytes.saturating_sub(header.data_offset as u64)).unwrap_or(usize::MAX);
-    let reader = std::io::BufReader::with_capacity(STREAM_BUFFER_BYTES, file);
+    // Never a buffer larger than the data (a header claiming 10^9 faces over a few bytes must not
+    // cost a MiB: fuzz::regressions).
+    let reader =
+        std::io::BufReader::with_capacity(STREAM_BUFFER_BYTES.min(data_bytes.max(4096)), file);
     let (plans, has_normals) = plan_elements(&header).map_err(|error| error.with_path(path))?;
     // A read error other than the file's end is the file's, not a truncation.
     let (geometry, io_error) = if header.format == DataFormat::BinaryBigEndian {
