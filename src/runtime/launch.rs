@@ -219,7 +219,15 @@ pub fn launch(
         }
     };
     for (stage, worker) in local_stages(config) {
-        let child = command.spawn(stage, worker)?;
+        // A stage that cannot start stops those already started (router included): nothing is
+        // left running behind an error.
+        let child = match command.spawn(stage, worker) {
+            Ok(child) => child,
+            Err(error) => {
+                stop_all(&mut processes, config);
+                return Err(error);
+            }
+        };
         on_started(stage, worker, child.id());
         tracing::info!("started {stage} worker {worker} (pid {})", child.id());
         processes.push(Supervised {
