@@ -619,50 +619,69 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
 
 /// Stage "flow" (N workers): one (frame, coarse pose) job at a time, correspondences to pose.
 pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
-    let mut metrics = ctx.metrics("flow");
-    let mut reporter = MetricsReporter::open(ctx.transport)?;
-    let mut port = WorkerPort::open(
-        ctx.transport,
-        keys::FLOW_LINK,
-        ctx.worker_index,
-        ctx.config.workers.slots,
-        "flow",
-    )?;
     let mut pose = Outbox::open(ctx.transport, keys::CORRESPONDENCES)?;
     pose.wait_for_reader("pose", ctx.startup())?;
     let mut stage = FlowStage::new(mesh, ctx.config.registration.clone(), ctx.worker_index);
+    serve_jobs(ctx, "flow", keys::FLOW_LINK, &mut |message, metrics| {
+        let frame_id = message.header.frame_id;
+        let Body::FlowJob(job) = message.body else {
+            unexpected("flow", message.body.kind(), frame_id);
+            return None;
+        };
+        let started = Instant::now();
+        // The job's images are read where they arrived (shared memory for iceoryx2).
+        let correspondences = stage.process(frame_id, &job);
+        record_compute(metrics, started);
+        let key = JobKey {
+            frame_id,
+            coarse_index: job.meta.coarse_index,
+        };
+        Some(
+            pose.send(
+                frame_id,
+                message.header.capture_time_ns,
+                Body::Correspondences(correspondences),
+                metrics,
+            )
+            .map(|_| key),
+        )
+    })
+}
+
+/// What a dispatched worker does with one message: `None` when it is not a job, else the
+/// job's key once its output is sent (or the send's error).
+type JobHandler<'a> =
+    dyn FnMut(crate::msg::Envelope<'_>, &mut StageMetrics) -> Option<Result<JobKey, BusError>> + 'a;
+
+/// The loop of a worker that the dispatcher feeds over `link` (flow, change): each job is
+/// handed to `work`, which processes it, sends its output on and returns the job's key (or
+/// `None` for a message that is not a job); the job is then reported finished. On stop, jobs
+/// given to this worker after its last one are handed back to be redone elsewhere at once.
+fn serve_jobs(
+    ctx: &NodeContext,
+    stage: &str,
+    link: &str,
+    work: &mut JobHandler<'_>,
+) -> Result<StageMetrics, NodeError> {
+    let mut metrics = ctx.metrics(stage);
+    let mut reporter = MetricsReporter::open(ctx.transport)?;
+    let mut port = WorkerPort::open(
+        ctx.transport,
+        link,
+        ctx.worker_index,
+        ctx.config.workers.slots,
+        stage,
+    )?;
     while !ctx.stopped() {
         let mut finished: Option<Result<JobKey, BusError>> = None;
         port.receive(POLL, &mut metrics, &mut |message, metrics| {
-            let frame_id = message.header.frame_id;
-            let Body::FlowJob(job) = message.body else {
-                unexpected("flow", message.body.kind(), frame_id);
-                return;
-            };
-            let started = Instant::now();
-            // The job's images are read where they arrived (shared memory for iceoryx2).
-            let correspondences = stage.process(frame_id, &job);
-            record_compute(metrics, started);
-            let key = JobKey {
-                frame_id,
-                coarse_index: job.meta.coarse_index,
-            };
-            finished = Some(
-                pose.send(
-                    frame_id,
-                    message.header.capture_time_ns,
-                    Body::Correspondences(correspondences),
-                    metrics,
-                )
-                .map(|_| key),
-            );
+            finished = work(message, metrics);
         })?;
         if let Some(finished) = finished {
             port.finished(finished?)?;
         }
         reporter.tick(&metrics, false);
     }
-    // Jobs given to this worker after its last one are redone elsewhere at once.
     if let Err(error) = port.leave() {
         tracing::debug!("jobs not handed back (their producer is gone too): {error}");
     }
@@ -887,53 +906,32 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
 /// Stage "change" (N workers): one accepted frame's change job at a time, its change result to
 /// fusion.
 pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
-    let mut metrics = ctx.metrics("change");
-    let mut reporter = MetricsReporter::open(ctx.transport)?;
-    let mut port = WorkerPort::open(
-        ctx.transport,
-        keys::CHANGE_LINK,
-        ctx.worker_index,
-        ctx.config.workers.slots,
-        "change",
-    )?;
     let mut fusion = Outbox::open(ctx.transport, keys::FUSION_IN)?;
     fusion.wait_for_reader("fusion", ctx.startup())?;
     let mut stage = ChangeStage::new(mesh, ctx.config.change, ctx.worker_index);
-    while !ctx.stopped() {
-        let mut finished: Option<Result<JobKey, BusError>> = None;
-        port.receive(POLL, &mut metrics, &mut |message, metrics| {
-            let frame_id = message.header.frame_id;
-            let Body::ChangeJob(job) = message.body else {
-                unexpected("change", message.body.kind(), frame_id);
-                return;
-            };
-            let started = Instant::now();
-            let result = stage.process(frame_id, &job);
-            record_compute(metrics, started);
-            finished = Some(
-                fusion
-                    .send(
-                        frame_id,
-                        message.header.capture_time_ns,
-                        Body::ChangeResult(result),
-                        metrics,
-                    )
-                    .map(|_| JobKey {
-                        frame_id,
-                        coarse_index: 0,
-                    }),
-            );
-        })?;
-        if let Some(finished) = finished {
-            port.finished(finished?)?;
-        }
-        reporter.tick(&metrics, false);
-    }
-    if let Err(error) = port.leave() {
-        tracing::debug!("jobs not handed back (their producer is gone too): {error}");
-    }
-    reporter.tick(&metrics, true);
-    Ok(metrics)
+    serve_jobs(ctx, "change", keys::CHANGE_LINK, &mut |message, metrics| {
+        let frame_id = message.header.frame_id;
+        let Body::ChangeJob(job) = message.body else {
+            unexpected("change", message.body.kind(), frame_id);
+            return None;
+        };
+        let started = Instant::now();
+        let result = stage.process(frame_id, &job);
+        record_compute(metrics, started);
+        Some(
+            fusion
+                .send(
+                    frame_id,
+                    message.header.capture_time_ns,
+                    Body::ChangeResult(result),
+                    metrics,
+                )
+                .map(|_| JobKey {
+                    frame_id,
+                    coarse_index: 0,
+                }),
+        )
+    })
 }
 
 /// Stage "fusion": publishes each frame's first change result (bincode on `changes`, JSON on
