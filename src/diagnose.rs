@@ -26,6 +26,7 @@ use serde::Serialize;
 use crate::core::camera::{nearest_pixel, Camera};
 use crate::core::edge_align::AlignedParameters;
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
+use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
 use crate::core::frame::{
     correspond_view, decide_frame, lift_pixel, query_features, query_gradient, refine_pose,
     render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView, CorrespondWorkspace,
@@ -116,6 +117,49 @@ pub struct FrameDiagnosis {
     pub aligned_from_truth_delta_px: Option<f64>,
     /// The smallest δ of any hypothesis, px: what a perfect choice would have output.
     pub best_delta_px: Option<f64>,
+    /// The pose search against the truth (`None` when the search is off).
+    pub search: Option<SearchDiagnosis>,
+}
+
+/// The pose search (step "search") against the truth: where its beams and centres ended, what a
+/// search over rotations alone could reach from the prior's centre, and the edge support at the
+/// truth (what the search's decision compares with).
+#[derive(Clone, Debug, Serialize)]
+pub struct SearchDiagnosis {
+    /// δ(prior, truth), px.
+    pub prior_delta_px: Option<f64>,
+    /// The prior's centre's position error, metres.
+    pub prior_centre_error_m: f64,
+    /// δ(the true rotation at the prior's centre, truth), px: the best a rotation-only search
+    /// can reach before the beams' refinement.
+    pub rotation_reach_delta_px: Option<f64>,
+    /// Each refined beam (the prior first): its edge support and δ to the truth, px.
+    pub beams: Vec<SearchBeamDiagnosis>,
+    /// δ of each centre of the coarse poses, px (best first, as the search ranked them).
+    pub centres_delta_px: Vec<Option<f64>>,
+    pub moved: bool,
+    /// Edge support at the true pose (0..1), measured as the search measures its beams'.
+    pub truth_support: Option<f64>,
+    /// The grid score (0..1) of a candidate exactly at the truth, and of the true rotation at the
+    /// prior's centre (what the rotation grid can find); compare with the beams' grid scores.
+    pub truth_grid_score: f64,
+    pub rotation_reach_grid_score: f64,
+    /// δ of the first centre of a search started from the prior's rotation at the true centre,
+    /// px: what the search reaches when the position is right.
+    pub true_centre_search_delta_px: Option<f64>,
+}
+
+/// One refined beam of the search against the truth.
+#[derive(Clone, Debug, Serialize)]
+pub struct SearchBeamDiagnosis {
+    pub yaw_deg: f64,
+    pub pitch_deg: f64,
+    pub roll_deg: f64,
+    pub grid_score: f64,
+    /// Edge support after the search's render-free screening alignment (NaN for the prior).
+    pub screened_support: f64,
+    pub support: f64,
+    pub delta_px: Option<f64>,
 }
 
 /// Runs a frame's steps one by one and measures each against the true pose `truth`.
@@ -154,7 +198,7 @@ pub fn diagnose_query(
 ) -> Result<FrameDiagnosis, RegistrationError> {
     let mut views: Vec<CoarseView> = Vec::with_capacity(config.coarse_pose_count);
     let mut rasterizer = Rasterizer::new();
-    render_views(
+    let rendered = render_views(
         mesh,
         camera,
         initial_cam_from_world,
@@ -273,6 +317,17 @@ pub fn diagnose_query(
         .iter()
         .filter_map(|v| v.hypothesis_delta_px)
         .min_by(f64::total_cmp);
+    let search = rendered.search.as_ref().map(|outcome| {
+        search_diagnosis(
+            mesh,
+            camera,
+            initial_cam_from_world,
+            query,
+            truth,
+            outcome,
+            config,
+        )
+    });
     Ok(FrameDiagnosis {
         views: diagnoses,
         at_truth,
@@ -283,7 +338,122 @@ pub fn diagnose_query(
         aligned_delta_px,
         aligned_from_truth_delta_px,
         best_delta_px,
+        search,
     })
+}
+
+/// Only the pose search of a frame, against the true pose `truth` (`None` when the search is
+/// off): what `eval --diagnose-search` reports, a frame's search without its coarse views.
+pub fn diagnose_search(
+    mesh: &Mesh,
+    input: &FrameInput,
+    truth: &Rigid3,
+    config: &RegistrationConfig,
+) -> Result<Option<SearchDiagnosis>, RegistrationError> {
+    config.validate()?;
+    let query = query_gradient(input, config)?;
+    let outcome = search_pose(
+        mesh,
+        input.camera,
+        &input.initial_cam_from_world,
+        query.view(),
+        config,
+        &mut Rasterizer::new(),
+        &mut CoarseView::default(),
+    );
+    Ok(outcome.map(|outcome| {
+        search_diagnosis(
+            mesh,
+            input.camera,
+            &input.initial_cam_from_world,
+            query.view(),
+            truth,
+            &outcome,
+            config,
+        )
+    }))
+}
+
+/// The search's `outcome` for the frame with prior `prior` measured against `truth`.
+fn search_diagnosis(
+    mesh: &Mesh,
+    camera: &Camera,
+    prior: &Rigid3,
+    query: ImageView<'_, f32>,
+    truth: &Rigid3,
+    outcome: &PoseSearchOutcome,
+    config: &RegistrationConfig,
+) -> SearchDiagnosis {
+    let mut reprojection = ReprojectionWorkspace::new();
+    let mut delta = |pose: &Rigid3| {
+        mutual_reprojection_error_px(mesh, camera, pose, camera, truth, &mut reprojection)
+    };
+    let mut rasterizer = Rasterizer::new();
+    let mut view = CoarseView::default();
+    let prior_centre = prior.camera_center();
+    let rotation_reach = Rigid3::new(truth.rotation, -(truth.rotation * prior_centre));
+    let truth_support = refine_pose(
+        mesh,
+        camera,
+        query,
+        truth,
+        AlignedParameters::Pose,
+        config,
+        &mut RefineWorkspace::default(),
+    )
+    .ok()
+    .map(|r| r.verified.support_fraction());
+    let at_true_centre = Rigid3::new(prior.rotation, -(prior.rotation * truth.camera_center()));
+    let true_centre_search_delta_px = search_pose(
+        mesh,
+        camera,
+        &at_true_centre,
+        query,
+        config,
+        &mut rasterizer,
+        &mut view,
+    )
+    .and_then(|outcome| outcome.centres.first().and_then(&mut delta));
+    SearchDiagnosis {
+        true_centre_search_delta_px,
+        prior_delta_px: delta(prior),
+        prior_centre_error_m: (prior_centre - truth.camera_center()).norm(),
+        rotation_reach_delta_px: delta(&rotation_reach),
+        beams: outcome
+            .beams
+            .iter()
+            .map(|beam| SearchBeamDiagnosis {
+                yaw_deg: beam.yaw_deg,
+                pitch_deg: beam.pitch_deg,
+                roll_deg: beam.roll_deg,
+                grid_score: beam.grid_score,
+                screened_support: beam.screened_support,
+                support: beam.support,
+                delta_px: delta(&beam.cam_from_world),
+            })
+            .collect(),
+        centres_delta_px: outcome.centres.iter().map(&mut delta).collect(),
+        moved: outcome.moved,
+        truth_support,
+        truth_grid_score: grid_score_at(
+            mesh,
+            camera,
+            truth,
+            query,
+            config,
+            &mut rasterizer,
+            &mut view,
+        ),
+        rotation_reach_grid_score: grid_score_at(
+            mesh,
+            camera,
+            &rotation_reach,
+            query,
+            config,
+            &mut rasterizer,
+            &mut view,
+        ),
+    }
 }
 
 /// The errors of one view's correspondences against the truth.

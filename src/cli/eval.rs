@@ -17,7 +17,10 @@ use asgreg::core::confidence::FrameEvidence;
 use asgreg::core::frame::{IntrinsicsMode, RegistrationConfig};
 use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
-use asgreg::diagnose::{diagnose_frame, DiagnosisSummary, FrameDiagnosis, ORACLE_MAX_ERROR_PX};
+use asgreg::diagnose::{
+    diagnose_frame, diagnose_search, DiagnosisSummary, FrameDiagnosis, SearchDiagnosis,
+    ORACLE_MAX_ERROR_PX,
+};
 use asgreg::eval::{
     calibration_bins, cell_stats, format_accuracy, CalibrationBin, CellStats, EvalFrame,
 };
@@ -74,6 +77,11 @@ pub struct EvalArgs {
     /// one at a time, each solved twice).
     #[arg(long)]
     pub diagnose: bool,
+    /// Run only each frame's pose search and measure it against the ground truth (its beams,
+    /// centres, what a rotation-only search can reach, the truth's edge support and grid score):
+    /// search_diagnosis.md and .json. No registration, so no verdicts; fast.
+    #[arg(long, conflicts_with = "diagnose")]
+    pub diagnose_search: bool,
     /// Evaluate change detection instead (a scene from `synth --changes`): pixel and object
     /// precision/recall against changes_gt/ and changes.json (eval_changes.rs).
     #[arg(long)]
@@ -203,6 +211,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let mut results: BTreeMap<(Level, &'static str), Vec<EvalFrame>> = BTreeMap::new();
     let mut diagnoses: BTreeMap<(Level, &'static str), Vec<(String, FrameDiagnosis)>> =
         BTreeMap::new();
+    let mut search_diagnoses: SearchDiagnoses = BTreeMap::new();
     let mut methods_seen: Vec<Method> = Vec::new();
     let mut search_ms: BTreeMap<(Level, &'static str), f64> = BTreeMap::new();
     // report.html: one row per frame run, the ASG rows with their overlays (the loader's working
@@ -234,6 +243,54 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         .unwrap_or(f64::NAN);
         let mut asg_row = None;
         let outcome = match method {
+            Method::Asg(intrinsics) if args.diagnose_search => {
+                let config = registration_config(with_depth, &args.coarse);
+                let started = std::time::Instant::now();
+                let frame = scene_batch_frame(
+                    &args.scene,
+                    &initial,
+                    gt,
+                    camera,
+                    intrinsics.mode(),
+                    with_depth,
+                );
+                let diagnosis = frame
+                    .load()
+                    .map_err(|e| e.to_string())
+                    .and_then(|files| {
+                        diagnose_search(
+                            &mesh,
+                            &frame.input(&files, args.seed),
+                            &gt.cam_from_world,
+                            &config,
+                        )
+                        .map_err(|e| e.to_string())
+                    })
+                    .and_then(|d| d.ok_or_else(|| "the pose search is off".to_string()));
+                let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
+                let outcome = FrameOutcome {
+                    accepted: false,
+                    final_delta_px: diagnosis
+                        .as_ref()
+                        .ok()
+                        .and_then(|d| d.centres_delta_px.first().copied().flatten()),
+                    confidence: 0.0,
+                    evidence: None,
+                    reason: Some(match &diagnosis {
+                        Ok(_) => "search only (--diagnose-search): δ of the first centre".into(),
+                        Err(why) => why.clone(),
+                    }),
+                    total_ms: elapsed_ms,
+                    search_ms: elapsed_ms,
+                };
+                if let Ok(diagnosis) = diagnosis {
+                    search_diagnoses
+                        .entry((level, method.name()))
+                        .or_default()
+                        .push((initial.name.clone(), None, diagnosis));
+                }
+                outcome
+            }
             Method::Asg(intrinsics) if args.diagnose => {
                 let config = registration_config(with_depth, &args.coarse);
                 let started = std::time::Instant::now();
@@ -248,7 +305,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     &config,
                     args.seed,
                 ) {
-                    Ok(diagnosis) => {
+                    Ok(mut diagnosis) => {
+                        if let Some(search) = diagnosis.search.take() {
+                            search_diagnoses
+                                .entry((level, method.name()))
+                                .or_default()
+                                .push((
+                                    initial.name.clone(),
+                                    Some(diagnosis.verdict.accepted()),
+                                    search,
+                                ));
+                        }
                         let outcome = FrameOutcome {
                             accepted: diagnosis.verdict.accepted(),
                             final_delta_px: diagnosis.chosen_delta_px,
@@ -539,6 +606,23 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         .with_context(|| format!("writing {}", args.out.join("diagnosis.json").display()))?;
         println!("{text}");
     }
+    if !search_diagnoses.is_empty() {
+        let text = search_diagnosis_markdown(&search_diagnoses);
+        let path = args.out.join("search_diagnosis.md");
+        std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
+        let json = serde_json::json!({
+            "scene": args.scene,
+            "cells": search_diagnoses.iter().map(|((level, method), frames)| serde_json::json!({
+                "level_px": level,
+                "method": method,
+                "frames": frames.iter().map(|(name, accepted, d)| serde_json::json!({"name": name, "accepted": accepted, "search": d})).collect::<Vec<_>>(),
+            })).collect::<Vec<_>>(),
+        });
+        let path = args.out.join("search_diagnosis.json");
+        std::fs::write(&path, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        println!("{text}");
+    }
     println!("{table}");
     for ((level, method), total_search_ms) in &search_ms {
         if let (Some(frames), true) = (results.get(&(*level, *method)), *total_search_ms > 0.0) {
@@ -700,6 +784,87 @@ and of the alignment started at the true pose (its own bias).\n"
             );
         }
     }
+    out
+}
+
+/// Each frame's pose search against the truth, by (level, method): name, the verdict when the
+/// frame was registered too, the diagnosis.
+type SearchDiagnoses =
+    BTreeMap<(Level, &'static str), Vec<(String, Option<bool>, SearchDiagnosis)>>;
+
+/// The pose-search table of `eval --diagnose` / `--diagnose-search`: one line per frame.
+fn search_diagnosis_markdown(diagnoses: &SearchDiagnoses) -> String {
+    let px = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.2}"));
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "# Pose search against the truth\n\nPer frame: δ of the prior, its centre's error, δ of the true rotation at the \
+prior's centre (the reach of a rotation-only search), the edge support at the truth, the grid score of a \
+candidate at the truth and at the rotation reach, whether a beam replaced the prior, δ of each centre of \
+the coarse poses, and each refined beam as δ px (edge support %, grid score, edge support after the \
+screening %; the prior first).\n"
+    );
+    let _ = writeln!(
+        out,
+        "| level | frame | verdict | prior δ | centre error m | rotation reach δ | support at truth | grid score at truth / rotation reach | moved | centres δ | search from the true centre δ | beams δ (support, grid score, screened support) |"
+    );
+    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let mut first_centre_within_5px = 0usize;
+    let mut frames = 0usize;
+    for ((level, _), rows) in diagnoses {
+        for (name, accepted, search) in rows {
+            frames += 1;
+            if search
+                .centres_delta_px
+                .first()
+                .copied()
+                .flatten()
+                .is_some_and(|d| d <= 5.0)
+            {
+                first_centre_within_5px += 1;
+            }
+            let _ = writeln!(
+                out,
+                "| {level} | {name} | {} | {} | {:.2} | {} | {} | {:.3} / {:.3} | {} | {} | {} | {} |",
+                match accepted {
+                    Some(true) => "accepted",
+                    Some(false) => "rejected",
+                    None => "–",
+                },
+                px(search.prior_delta_px),
+                search.prior_centre_error_m,
+                px(search.rotation_reach_delta_px),
+                search
+                    .truth_support
+                    .map_or("–".to_string(), |s| format!("{:.0} %", 100.0 * s)),
+                search.truth_grid_score,
+                search.rotation_reach_grid_score,
+                if search.moved { "yes" } else { "no" },
+                search
+                    .centres_delta_px
+                    .iter()
+                    .map(|d| px(*d))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                px(search.true_centre_search_delta_px),
+                search
+                    .beams
+                    .iter()
+                    .map(|b| format!(
+                        "{} ({:.0} %, {:.3})",
+                        px(b.delta_px),
+                        100.0 * b.support,
+                        b.grid_score
+                    ))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            );
+        }
+    }
+    let _ = writeln!(
+        out,
+        "\nFirst centre within 5 px of the truth: {first_centre_within_5px} of {frames} frames."
+    );
     out
 }
 

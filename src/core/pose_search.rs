@@ -12,8 +12,11 @@
 //! 3. every candidate rotation of the grid (heading about the world's up axis, densely; pitch and
 //!    roll about the camera's axes, narrowly) scored by projecting the samples' points and their
 //!    tangents and reading the map at their projected direction ([`score_rotations`]);
-//! 4. the top-scoring candidates that differ by more than a separation angle are the beams
-//!    ([`select_beams`]); the frame step refines each against the photo and decides among them.
+//! 4. the top-scoring candidates that differ by more than a separation angle ([`select_beams`])
+//!    are screened: each is aligned with the photo's edges on its rendering's samples, without a
+//!    rendering of its own (6 DoF, so the prior's position error is taken up too), and the best
+//!    by edge support after that alignment are the beams; the frame step refines each against
+//!    the photo with re-rendering and decides among them.
 //!
 //! Only the rotation is gridded: at the priors' position errors (1–2 m at 30–60 m) a camera
 //! translation moves the image mostly like a small rotation, and the beams' refinement (edge
@@ -63,7 +66,14 @@ pub struct PoseSearchConfig {
     pub bin_blur_px: f64,
     /// At most one model edge sample per square cell of this side, full-resolution px.
     pub sample_spacing_px: usize,
-    /// Beams kept after the grid (besides the prior, which is always one).
+    /// Grid candidates (best grid score first, distinct by `beam_separation_deg`) screened by a
+    /// render-free edge alignment: the grid score ranks the truth among the top few dozen but not
+    /// reliably first (measured: `eval --diagnose-search`), while the edge support after an
+    /// alignment separates it clearly; this many are aligned, cheaply, on the samples of their
+    /// heading's rendering.
+    pub screened_candidates: usize,
+    /// Beams kept after the screening, best screened edge support first, each then refined with
+    /// re-rendering (besides the prior, which is always one).
     pub beams: usize,
     /// Two beams are distinct when their rotations differ by more than this, degrees.
     pub beam_separation_deg: f64,
@@ -101,6 +111,7 @@ impl Default for PoseSearchConfig {
             map_blur_px: 3.0,
             bin_blur_px: 1.5,
             sample_spacing_px: 6,
+            screened_candidates: 24,
             beams: 4,
             beam_separation_deg: 6.0,
             refine_initial_radius_px: 16.0,
@@ -166,6 +177,15 @@ impl PoseSearchConfig {
         }
         if self.sample_spacing_px == 0 {
             return bad("sample_spacing_px", "must be at least 1".into());
+        }
+        if self.screened_candidates < self.beams {
+            return bad(
+                "screened_candidates",
+                format!(
+                    "{} is fewer than the {} beams kept after the screening",
+                    self.screened_candidates, self.beams
+                ),
+            );
         }
         if self.max_centres == 0 {
             return bad("max_centres", "must be at least 1".into());

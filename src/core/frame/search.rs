@@ -14,12 +14,15 @@ use serde::{Deserialize, Serialize};
 
 use super::{refine_pose, render_coarse_view, CoarseView, RefineWorkspace, RegistrationConfig};
 use crate::core::camera::Camera;
-use crate::core::edge_align::{model_edge_samples, AlignedParameters, EdgeAlignConfig};
-use crate::core::image::ImageView;
+use crate::core::edge_align::{
+    align_level, blurred_query, edge_evidence, model_edge_samples, AlignedParameters,
+    EdgeAlignConfig, EdgeSample,
+};
+use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::pose_search::{
-    score_rotations, search_samples, select_beams, turned_pose, wrap_deg, Candidate,
-    OrientedEdgeMap,
+    score_rotation, score_rotations, search_samples, select_beams, turned_pose, wrap_deg,
+    Candidate, OrientedEdgeMap,
 };
 use crate::core::raster::Rasterizer;
 use crate::core::rigid::Rigid3;
@@ -34,6 +37,8 @@ pub struct Beam {
     pub roll_deg: f64,
     /// The grid score (mean oriented edge-map value, 0..1; the prior's is not computed: NaN).
     pub grid_score: f64,
+    /// Its edge support after the render-free screening alignment (0..1; NaN for the prior).
+    pub screened_support: f64,
     /// Where its edge alignment ended (or the candidate when the alignment was not better).
     pub cam_from_world: Rigid3,
     /// Its edge support (share of model edges supported by photo ridges, 0..1).
@@ -97,8 +102,10 @@ pub fn search_pose(
         }
     }
     let mut candidates: Vec<Candidate> = Vec::new();
-    let mut edge_samples = Vec::new();
+    // Per heading group: its rendered heading and its edge samples (world points, normals).
+    let mut group_samples: Vec<(f64, Vec<EdgeSample>)> = Vec::with_capacity(groups.len());
     for (rendered_yaw_deg, yaws) in &groups {
+        let mut edge_samples = Vec::new();
         let rendered = turned_pose(prior, *rendered_yaw_deg, 0.0, 0.0);
         render_coarse_view(mesh, camera, 0, &rendered, config, rasterizer, view);
         model_edge_samples(
@@ -121,8 +128,23 @@ pub fn search_pose(
             (*rendered_yaw_deg, yaws),
             search,
         ));
+        group_samples.push((*rendered_yaw_deg, edge_samples));
     }
-    let grid_beams = select_beams(&candidates, search.beams, search.beam_separation_deg);
+    let screened = select_beams(
+        &candidates,
+        search.screened_candidates,
+        search.beam_separation_deg,
+    );
+    let grid_beams = screen_candidates(
+        &screened,
+        &group_samples,
+        camera,
+        query,
+        config,
+        search.render_heading_step_deg,
+    );
+    let grid_beams: Vec<(Candidate, Rigid3, f64)> =
+        grid_beams.into_iter().take(search.beams).collect();
 
     // Each beam, and the prior, refined by edge alignment from a wide first search.
     let refine_config = RegistrationConfig {
@@ -166,16 +188,18 @@ pub fn search_pose(
         pitch_deg: 0.0,
         roll_deg: 0.0,
         grid_score: f64::NAN,
+        screened_support: f64::NAN,
         cam_from_world: prior_refined,
         support: prior_refined_support,
     }];
-    for candidate in &grid_beams {
-        let (pose, support, _) = refine(&candidate.cam_from_world);
+    for (candidate, screened_pose, screened_support) in &grid_beams {
+        let (pose, support, _) = refine(screened_pose);
         beams.push(Beam {
             yaw_deg: candidate.yaw_deg,
             pitch_deg: candidate.pitch_deg,
             roll_deg: candidate.roll_deg,
             grid_score: candidate.score,
+            screened_support: *screened_support,
             cam_from_world: pose,
             support,
         });
@@ -254,6 +278,97 @@ pub fn search_pose(
         ambiguous,
         search_ms: started.elapsed().as_secs_f64() * 1e3,
     })
+}
+
+/// The screening of the grid's best candidates: each aligned with the query's edges (6 DoF,
+/// coarse to fine over the search's refinement radii down to the final radius) on the edge
+/// samples of the rendering nearest its heading, without a rendering of its own; returned with
+/// its aligned pose and edge support, best support first. The samples' visibility is their
+/// rendering's, a few degrees of heading away: good enough to rank, not to output.
+fn screen_candidates(
+    candidates: &[Candidate],
+    group_samples: &[(f64, Vec<EdgeSample>)],
+    camera: &Camera,
+    query: ImageView<'_, f32>,
+    config: &RegistrationConfig,
+    render_heading_step_deg: f64,
+) -> Vec<(Candidate, Rigid3, f64)> {
+    let align = EdgeAlignConfig {
+        initial_search_radius_px: config
+            .pose_search
+            .refine_initial_radius_px
+            .max(config.edge_align.final_search_radius_px),
+        ..config.edge_align
+    };
+    let radii = align.level_radii_px();
+    let blurred: Vec<Image<f32>> = radii
+        .iter()
+        .map(|&radius_px| {
+            let mut out = Image::default();
+            blurred_query(query, radius_px, &mut out);
+            out
+        })
+        .collect();
+    let mut screened: Vec<(Candidate, Rigid3, f64)> = candidates
+        .iter()
+        .filter_map(|candidate| {
+            let rendered = wrap_deg(
+                (candidate.yaw_deg / render_heading_step_deg).round() * render_heading_step_deg,
+            );
+            let (_, samples) = group_samples
+                .iter()
+                .find(|(r, _)| wrap_deg(r - rendered).abs() < 1e-9)?;
+            let mut pose = candidate.cam_from_world;
+            for (radius_px, query_level) in radii.iter().zip(&blurred) {
+                let (_, next, _) = align_level(
+                    samples,
+                    &query_level.view(),
+                    camera,
+                    &pose,
+                    AlignedParameters::Pose,
+                    *radius_px,
+                    &align,
+                );
+                pose = next;
+            }
+            let support = edge_evidence(samples, &query, camera, &pose, &align).support_fraction();
+            Some((*candidate, pose, support))
+        })
+        .collect();
+    screened.sort_by(|a, b| b.2.total_cmp(&a.2));
+    screened
+}
+
+/// The grid score (as [`search_pose`] scores its candidates) of `pose` from a rendering at
+/// `pose` itself: what a candidate exactly there would score. For the diagnosis, which compares
+/// the truth's score with the beams'.
+pub fn grid_score_at(
+    mesh: &Mesh,
+    camera: &Camera,
+    pose: &Rigid3,
+    query: ImageView<'_, f32>,
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+    view: &mut CoarseView,
+) -> f64 {
+    let search = &config.pose_search;
+    let map = OrientedEdgeMap::build(query, search);
+    let sampling = EdgeAlignConfig {
+        sample_spacing_px: search.sample_spacing_px,
+        ..config.edge_align
+    };
+    render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
+    let mut edge_samples = Vec::new();
+    model_edge_samples(
+        view.asg.view(),
+        view.render.depth_m().view(),
+        camera,
+        pose,
+        &sampling,
+        &mut edge_samples,
+    );
+    let samples = search_samples(&edge_samples, camera, pose);
+    score_rotation(&samples, &map, camera, &nalgebra::Matrix3::identity())
 }
 
 #[cfg(test)]
