@@ -130,21 +130,29 @@ pub fn search_pose(
         ));
         group_samples.push((*rendered_yaw_deg, edge_samples));
     }
-    let screened = select_beams(
-        &candidates,
-        search.screened_candidates,
-        search.beam_separation_deg,
-    );
-    let grid_beams = screen_candidates(
-        &screened,
-        &group_samples,
-        camera,
-        query,
-        config,
-        search.render_heading_step_deg,
-    );
-    let grid_beams: Vec<(Candidate, Rigid3, f64)> =
-        grid_beams.into_iter().take(search.beams).collect();
+    let grid_beams: Vec<(Candidate, Rigid3, f64)> = if search.screened_candidates == 0 {
+        select_beams(&candidates, search.beams, search.beam_separation_deg)
+            .into_iter()
+            .map(|c| (c, c.cam_from_world, f64::NAN))
+            .collect()
+    } else {
+        let screened = select_beams(
+            &candidates,
+            search.screened_candidates,
+            search.beam_separation_deg,
+        );
+        screen_candidates(
+            &screened,
+            &group_samples,
+            camera,
+            query,
+            config,
+            search.render_heading_step_deg,
+        )
+        .into_iter()
+        .take(search.beams)
+        .collect()
+    };
 
     // Each beam, and the prior, refined by edge alignment from a wide first search.
     let refine_config = RegistrationConfig {
