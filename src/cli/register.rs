@@ -328,7 +328,11 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
             println!(
                 "{}: {}, δ to the truth {} → {}",
                 report.name,
-                if report.accepted { "accepted" } else { "not accepted" },
+                if report.accepted {
+                    "accepted"
+                } else {
+                    "not accepted"
+                },
                 show(delta.initial_px),
                 show(delta.final_px)
             );
@@ -339,10 +343,19 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
             delta_summary(deltas.iter().flatten().filter_map(|d| d.initial_px))
         );
     }
-    write_outputs(args, &inputs.mesh, &frames, &reports, &deltas, &config, &loader)?;
+    write_outputs(
+        args,
+        &inputs.mesh,
+        &frames,
+        &reports,
+        &deltas,
+        &config,
+        &loader,
+    )?;
     let accepted = reports.iter().filter(|r| r.accepted).count();
+    let (_, peak_rss_mib) = super::bench_mesh::rss_mib();
     println!(
-        "registered {accepted} of {} frames; poses in {}, report in {} (open {} in a browser)",
+        "registered {accepted} of {} frames (peak RSS {peak_rss_mib:.0} MiB); poses in {}, report in {} (open {} in a browser)",
         reports.len(),
         args.out.join("images.txt").display(),
         args.out.join("report.json").display(),
@@ -398,6 +411,7 @@ fn write_outputs(
         "intrinsics": args.intrinsics.mode(),
         "working_width_px": (args.working_width > 0).then_some(args.working_width),
         "frames": reports,
+        "peak_rss_mib": super::bench_mesh::rss_mib().1,
         "truth": args.truth.as_ref().map(|truth| serde_json::json!({
             "model": truth.display().to_string(),
             "delta_px": frames

@@ -415,10 +415,8 @@ fn city_photo(
             let up = 1.0 - row as f32 / (height * ss) as f32;
             return Vec3::new(0.45, 0.55, 0.7) * (0.6 + 0.4 * up);
         }
-        let normalized = intrinsics.pixel_to_normalized(nalgebra::Vector2::new(
-            col as f64 + 0.5,
-            row as f64 + 0.5,
-        ));
+        let normalized = intrinsics
+            .pixel_to_normalized(nalgebra::Vector2::new(col as f64 + 0.5, row as f64 + 0.5));
         let point_cam = Vector3::new(normalized.x * depth, normalized.y * depth, depth);
         let world = world_from_cam.transform_point(&point_cam) - origin;
         let p = Vec3::new(world.x as f32, world.y as f32, world.z as f32);
@@ -511,14 +509,17 @@ pub fn generate_city_scene(
     let mut images = Vec::with_capacity(config.image_count);
     let photos_started = Instant::now();
     for index in 0..config.image_count {
-        let pose = city_viewpoint(city.side_m, &mut view_rng).ok_or_else(|| {
-            SynthError::InvalidConfig(format!("no viewpoint for image {index}"))
-        })?;
+        let pose = city_viewpoint(city.side_m, &mut view_rng)
+            .ok_or_else(|| SynthError::InvalidConfig(format!("no viewpoint for image {index}")))?;
         let name = format!("city_{index:04}.jpg");
         let image_seed = super::texture::hash_u64(config.seed ^ (index as u64 + 1));
         let (photo, depth, surface_fraction) =
             city_photo(&mesh, &camera, &pose, config, image_seed, &mut rasterizer);
-        write_jpeg(&out_dir.join("images").join(&name), &photo, config.jpeg_quality)?;
+        write_jpeg(
+            &out_dir.join("images").join(&name),
+            &photo,
+            config.jpeg_quality,
+        )?;
         let depth_path = out_dir
             .join("depth")
             .join(Path::new(&name).with_extension("pfm"));
@@ -615,6 +616,57 @@ mod tests {
     use crate::core::raster::{Rasterizer, RenderBuffers, RenderOptions};
     use crate::core::rigid::Rigid3;
     use nalgebra::Vector3;
+
+    #[test]
+    fn a_city_scene_has_photos_of_the_city_poses_and_calibrated_initial_levels() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = CityConfig {
+            triangles: 30_000,
+            width_px: 160,
+            height_px: 90,
+            image_count: 2,
+            heading_level: false,
+            ..CityConfig::default()
+        };
+        let summary = generate_city_scene(&config, dir.path()).unwrap();
+        assert_eq!(summary.images.len(), 2);
+        for image in &summary.images {
+            assert!(dir.path().join("images").join(&image.name).is_file());
+            let depth = crate::io::pfm::read_pfm(
+                &dir.path()
+                    .join("depth")
+                    .join(Path::new(&image.name).with_extension("pfm")),
+            )
+            .unwrap();
+            assert_eq!(depth.size(), (160, 90));
+            assert!(
+                image.surface_fraction > 0.5,
+                "{} sees the city on {:.2} of its pixels",
+                image.name,
+                image.surface_fraction
+            );
+        }
+        let (gt, _) = crate::io::colmap_model::read_images_at(&dir.path().join("gt")).unwrap();
+        assert_eq!(gt.len(), 2);
+        let level = &summary.initial_levels[0];
+        assert!(
+            (level.mean_px - 30.0).abs() < 3.0,
+            "initial level 30 px reached {} px",
+            level.mean_px
+        );
+        assert!(dir.path().join("initial/30/images.txt").is_file());
+        // The model is the georeferenced city.
+        let mesh = crate::io::mesh_file::read_mesh(&dir.path().join("model.ply")).unwrap();
+        assert_eq!(mesh.face_count() as u64, summary.model_faces);
+        // Same config, same photos.
+        let again = tempfile::tempdir().unwrap();
+        generate_city_scene(&config, again.path()).unwrap();
+        let name = &summary.images[0].name;
+        assert_eq!(
+            std::fs::read(dir.path().join("images").join(name)).unwrap(),
+            std::fs::read(again.path().join("images").join(name)).unwrap()
+        );
+    }
 
     #[test]
     fn a_small_city_reads_back_georeferenced_and_renders_only_what_the_camera_sees() {

@@ -716,7 +716,11 @@ fn write_grey_png(path: &Path, image: &Image<u8>) -> Result<(), SynthError> {
 }
 
 /// Writes an 8-bit sRGB photo as a JPEG.
-pub(crate) fn write_jpeg(path: &Path, photo: &Image<[u8; 3]>, quality: u8) -> Result<(), SynthError> {
+pub(crate) fn write_jpeg(
+    path: &Path,
+    photo: &Image<[u8; 3]>,
+    quality: u8,
+) -> Result<(), SynthError> {
     let file = std::fs::File::create(path).map_err(io_error(path))?;
     let mut writer = std::io::BufWriter::new(file);
     let mut encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut writer, quality);
