@@ -20,7 +20,7 @@ use nalgebra::{UnitQuaternion, Vector3};
 use super::render::asg_display_image;
 
 /// The process's resident memory now and at its peak, MiB (Linux /proc/self/status).
-fn rss_mib() -> (f64, f64) {
+pub(crate) fn rss_mib() -> (f64, f64) {
     let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
     let field = |name: &str| {
         status

@@ -42,6 +42,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         levels: vec![30.0, 57.0, 80.0, 104.0],
         changes: false,
         no_heading_level: false,
+        triangles: 1_000_000,
     };
     println!("1/4 making a synthetic scene: a town block seen obliquely from 30–60 m, {} photos at 505x275", args.images);
     let started = std::time::Instant::now();

@@ -173,6 +173,7 @@ pub(super) fn synthetic_scene_at(
         levels: vec![30.0],
         changes: false,
         no_heading_level: true,
+        triangles: 1_000_000,
     };
     asgreg::synth::generate_scene(&args.config(), &scene)?;
     Ok(scene)

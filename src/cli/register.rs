@@ -72,6 +72,82 @@ pub struct RegisterArgs {
     /// before loading it (PLY: declared vertices and faces; OBJ: the file's size).
     #[arg(long, value_name = "MIB")]
     pub max_mesh_mib: Option<u64>,
+    /// A COLMAP model (folder, text or binary) with the true poses of (some of) the photos, matched
+    /// by name: each frame's δ to the truth before and after (under the truth's camera) goes into
+    /// the output, report.json and report.html. For a data set with surveyed or SfM poses.
+    #[arg(long, value_name = "MODEL")]
+    pub truth: Option<PathBuf>,
+}
+
+/// A frame's mutual reprojection error δ to its true pose, px: under the initial pose and under
+/// the accepted one.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct TruthDelta {
+    pub initial_px: Option<f64>,
+    pub final_px: Option<f64>,
+}
+
+/// δ of each frame's initial and accepted pose to the truth of `truth_path` (`None` for frames
+/// the truth does not hold), each pair of poses under the truth's camera.
+fn truth_deltas(
+    truth_path: &Path,
+    mesh: &asgreg::core::mesh::Mesh,
+    frames: &[BatchFrame],
+    reports: &[FrameReport],
+) -> anyhow::Result<Vec<Option<TruthDelta>>> {
+    use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
+    let (cameras, cameras_file) = asgreg::io::colmap_model::read_cameras_at(truth_path)?;
+    let (images, images_file) = asgreg::io::colmap_model::read_images_at(truth_path)?;
+    let mut workspace = ReprojectionWorkspace::new();
+    let mut deltas = Vec::with_capacity(frames.len());
+    for (frame, report) in frames.iter().zip(reports) {
+        let Some(truth) = images.iter().find(|t| t.name == frame.name) else {
+            tracing::warn!("{}: not in {}, no δ", frame.name, images_file.display());
+            deltas.push(None);
+            continue;
+        };
+        let camera = cameras.get(&truth.camera_id).with_context(|| {
+            format!(
+                "{}: {} uses camera {}, which {} does not define",
+                images_file.display(),
+                truth.name,
+                truth.camera_id,
+                cameras_file.display()
+            )
+        })?;
+        let mut delta = |pose: &asgreg::core::rigid::Rigid3| {
+            mutual_reprojection_error_px(
+                mesh,
+                camera,
+                pose,
+                camera,
+                &truth.cam_from_world,
+                &mut workspace,
+            )
+        };
+        deltas.push(Some(TruthDelta {
+            initial_px: delta(&frame.initial_cam_from_world),
+            final_px: report
+                .cam_from_world
+                .filter(|_| report.accepted)
+                .and_then(|pose| delta(&pose)),
+        }));
+    }
+    Ok(deltas)
+}
+
+/// "mean M px, max X px (N frames)" of the values present, or "none".
+fn delta_summary(values: impl Iterator<Item = f64>) -> String {
+    let values: Vec<f64> = values.collect();
+    if values.is_empty() {
+        return "none".to_string();
+    }
+    format!(
+        "mean {:.2} px, max {:.2} px ({} frames)",
+        values.iter().sum::<f64>() / values.len() as f64,
+        values.iter().copied().fold(0.0, f64::max),
+        values.len()
+    )
 }
 
 /// How the coarse poses are drawn around the initial pose, and how far their refined poses must
@@ -241,10 +317,45 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
 
-    write_outputs(args, &inputs.mesh, &frames, &reports, &config, &loader)?;
+    let deltas = match &args.truth {
+        Some(truth) => truth_deltas(truth, &inputs.mesh, &frames, &reports)?,
+        None => vec![None; frames.len()],
+    };
+    if args.truth.is_some() {
+        for (report, delta) in reports.iter().zip(&deltas) {
+            let Some(delta) = delta else { continue };
+            let show = |d: Option<f64>| d.map_or("-".to_string(), |d| format!("{d:.2} px"));
+            println!(
+                "{}: {}, δ to the truth {} → {}",
+                report.name,
+                if report.accepted {
+                    "accepted"
+                } else {
+                    "not accepted"
+                },
+                show(delta.initial_px),
+                show(delta.final_px)
+            );
+        }
+        println!(
+            "δ to the truth: accepted {}; initial (all frames) {}",
+            delta_summary(deltas.iter().flatten().filter_map(|d| d.final_px)),
+            delta_summary(deltas.iter().flatten().filter_map(|d| d.initial_px))
+        );
+    }
+    write_outputs(
+        args,
+        &inputs.mesh,
+        &frames,
+        &reports,
+        &deltas,
+        &config,
+        &loader,
+    )?;
     let accepted = reports.iter().filter(|r| r.accepted).count();
+    let (_, peak_rss_mib) = super::bench_mesh::rss_mib();
     println!(
-        "registered {accepted} of {} frames; poses in {}, report in {} (open {} in a browser)",
+        "registered {accepted} of {} frames (peak RSS {peak_rss_mib:.0} MiB); poses in {}, report in {} (open {} in a browser)",
         reports.len(),
         args.out.join("images.txt").display(),
         args.out.join("report.json").display(),
@@ -258,6 +369,7 @@ fn write_outputs(
     mesh: &asgreg::core::mesh::Mesh,
     frames: &[BatchFrame],
     reports: &[FrameReport],
+    deltas: &[Option<TruthDelta>],
     config: &RegistrationConfig,
     loader: &FrameLoader,
 ) -> anyhow::Result<()> {
@@ -299,6 +411,15 @@ fn write_outputs(
         "intrinsics": args.intrinsics.mode(),
         "working_width_px": (args.working_width > 0).then_some(args.working_width),
         "frames": reports,
+        "peak_rss_mib": super::bench_mesh::rss_mib().1,
+        "truth": args.truth.as_ref().map(|truth| serde_json::json!({
+            "model": truth.display().to_string(),
+            "delta_px": frames
+                .iter()
+                .zip(deltas)
+                .map(|(frame, delta)| serde_json::json!({"name": frame.name, "delta": delta}))
+                .collect::<Vec<_>>(),
+        })),
     });
     std::fs::write(&report_path, serde_json::to_string_pretty(&json)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
@@ -309,7 +430,7 @@ fn write_outputs(
             .with_context(|| format!("creating {}", overlay_dir.display()))?;
     }
     let mut page_frames = Vec::with_capacity(reports.len());
-    for (frame, report) in frames.iter().zip(reports) {
+    for ((frame, report), delta) in frames.iter().zip(reports).zip(deltas) {
         let mut pictures = Vec::new();
         if !args.no_overlays {
             match frame_overlays(mesh, frame, report, loader) {
@@ -329,7 +450,13 @@ fn write_outputs(
                 Err(error) => tracing::warn!("{}: no overlay: {error:#}", frame.name),
             }
         }
-        page_frames.push(report_frame(report, None, None, None, pictures));
+        page_frames.push(report_frame(
+            report,
+            None,
+            delta.and_then(|d| d.initial_px),
+            delta.and_then(|d| d.final_px),
+            pictures,
+        ));
     }
     let accepted = reports.iter().filter(|r| r.accepted).count();
     let page = ReportPage {
@@ -357,7 +484,19 @@ fn write_outputs(
                 "accepted".to_string(),
                 format!("{accepted} of {} frames", reports.len()),
             ),
-        ],
+        ]
+        .into_iter()
+        .chain(args.truth.as_ref().map(|truth| {
+            (
+                format!("δ to the truth ({})", truth.display()),
+                format!(
+                    "accepted: {}; initial: {}",
+                    delta_summary(deltas.iter().flatten().filter_map(|d| d.final_px)),
+                    delta_summary(deltas.iter().flatten().filter_map(|d| d.initial_px))
+                ),
+            )
+        }))
+        .collect(),
         plots_svg: Vec::new(),
         frames: page_frames,
     };

@@ -2,6 +2,7 @@
 
 use std::path::PathBuf;
 
+use asgreg::synth::city::{generate_city_scene, CityConfig, CitySceneSummary};
 use asgreg::synth::{generate_scene, SceneKind, SceneSummary, SynthConfig};
 
 #[derive(clap::Args, Debug)]
@@ -21,7 +22,8 @@ pub struct SynthArgs {
     /// Number of photos.
     #[arg(long, default_value_t = 48)]
     pub images: usize,
-    /// A free-standing house seen from 2, 8 and 15 m, or a block of buildings seen from 30–60 m.
+    /// A free-standing house seen from 2, 8 and 15 m, a block of buildings seen from 30–60 m, or
+    /// a city of `--triangles` triangles (georeferenced, binary PLY) seen from 120–180 m up.
     #[arg(long, value_enum, default_value_t = SceneArg::House)]
     pub scene: SceneArg,
     /// Mean initial-pose errors to calibrate, in pixels, comma separated.
@@ -36,12 +38,16 @@ pub struct SynthArgs {
     /// fourth photo, pitch/roll within 1°, GPS-like centre noise).
     #[arg(long)]
     pub no_heading_level: bool,
+    /// `--scene city`: triangles of the city mesh (10^7 for a district).
+    #[arg(long, default_value_t = 1_000_000)]
+    pub triangles: u64,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum SceneArg {
     House,
     Block,
+    City,
 }
 
 impl SynthArgs {
@@ -52,7 +58,9 @@ impl SynthArgs {
             height_px: self.height,
             image_count: self.images,
             scene: match self.scene {
-                SceneArg::House => SceneKind::House,
+                // `--scene city` is made by `generate_city_scene` from `city_config`, not from
+                // this config.
+                SceneArg::House | SceneArg::City => SceneKind::House,
                 SceneArg::Block => SceneKind::Block,
             },
             initial_levels_px: self.levels.clone(),
@@ -92,7 +100,58 @@ pub fn print_summary(summary: &SceneSummary, out: &std::path::Path, seconds: f64
     }
 }
 
+/// The `--scene city` settings the command line selects.
+fn city_config(args: &SynthArgs) -> CityConfig {
+    CityConfig {
+        seed: args.seed,
+        triangles: args.triangles,
+        width_px: args.width,
+        height_px: args.height,
+        image_count: args.images,
+        initial_levels_px: args.levels.clone(),
+        heading_level: !args.no_heading_level,
+        ..CityConfig::default()
+    }
+}
+
+fn print_city_summary(summary: &CitySceneSummary, out: &std::path::Path) {
+    let t = &summary.timings;
+    println!(
+        "wrote {} in {:.1} s: city of {} x {} lots ({:.0} m), model {} faces, {} vertices (write {:.1} s, load {:.1} s); {} photos at {}x{} px (f = {:.1} px) in {:.1} s",
+        out.display(),
+        t.total_s,
+        summary.lots_per_side,
+        summary.lots_per_side,
+        summary.side_m,
+        summary.model_faces,
+        summary.model_vertices,
+        t.mesh_write_s,
+        t.mesh_load_s,
+        summary.images.len(),
+        summary.config.width_px,
+        summary.config.height_px,
+        summary.camera_fx_px,
+        t.photos_s
+    );
+    for level in &summary.initial_levels {
+        println!(
+            "    initial level {:>6.1} px → {:>6.1} px, {:.1}..{:.1} px",
+            level.target_px, level.mean_px, level.min_px, level.max_px
+        );
+    }
+    if let Some([min_px, mean_px, max_px]) = summary.heading_level_px {
+        println!("    heading → {mean_px:>6.1} px, {min_px:.1}..{max_px:.1} px");
+    }
+    let (_, peak_mib) = super::bench_mesh::rss_mib();
+    println!("    peak RSS {peak_mib:.0} MiB");
+}
+
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
+    if args.scene == SceneArg::City {
+        let summary = generate_city_scene(&city_config(args), &args.out)?;
+        print_city_summary(&summary, &args.out);
+        return Ok(());
+    }
     let started = std::time::Instant::now();
     let summary = generate_scene(&args.config(), &args.out)?;
     print_summary(&summary, &args.out, started.elapsed().as_secs_f64());

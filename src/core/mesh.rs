@@ -43,15 +43,25 @@ pub struct Mesh {
 /// while a city seen from one camera skips most of them.
 const FACES_PER_CELL: usize = 2048;
 
+/// Most distinct vertices in one cell, so that a cell's faces can name their corners by a `u16`
+/// index into the cell's vertex list (a cell that would hold more is split into several).
+const MAX_CELL_VERTICES: usize = 1 << 16;
+
 /// The spatial index of a mesh: its faces grouped by the grid cell of their centroid (a grid over
 /// the two longest extents, and the third when it is long enough), each cell with the tight box
-/// of its faces' vertices in local coordinates. The renderer tests the boxes against the frustum
-/// and rasterises only the faces of cells it can see (`core::raster`).
+/// of its faces' vertices in local coordinates, the list of the vertices its faces use, and its
+/// faces' corners as indices into that list. The renderer tests the boxes against the frustum and
+/// transforms and rasterises only the vertices and faces of cells it can see (`core::raster`), so
+/// a rendering's work and scratch memory follow what the camera sees, not the mesh's size.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FaceGrid {
     cells: Vec<GridCell>,
     /// Face indices, cell after cell, ascending within a cell.
     faces: Vec<u32>,
+    /// Parallel to `faces`: each face's corners as indices into its cell's vertex list.
+    cell_corners: Vec<[u16; 3]>,
+    /// Vertex indices, cell after cell: the distinct vertices of each cell's faces.
+    vertices: Vec<u32>,
 }
 
 /// One non-empty cell of a [`FaceGrid`].
@@ -60,9 +70,24 @@ pub struct GridCell {
     /// Tight box of the cell's faces' vertices, local coordinates (m).
     pub min_local_m: Vec3,
     pub max_local_m: Vec3,
-    /// The cell's range in [`FaceGrid::faces`].
-    start: u32,
-    end: u32,
+    /// The cell's range in [`FaceGrid::faces`] and `cell_corners`.
+    start: usize,
+    end: usize,
+    /// The cell's range in `FaceGrid::vertices`.
+    vertex_start: usize,
+    vertex_end: usize,
+}
+
+impl GridCell {
+    /// Faces of the cell.
+    pub fn face_count(&self) -> usize {
+        self.end - self.start
+    }
+
+    /// Distinct vertices of the cell's faces.
+    pub fn vertex_count(&self) -> usize {
+        self.vertex_end - self.vertex_start
+    }
 }
 
 impl FaceGrid {
@@ -125,30 +150,82 @@ impl FaceGrid {
             sorted_faces[next[c as usize] as usize] = face_index as u32;
             next[c as usize] += 1;
         }
-        let cells = (0..cell_count)
+        drop(face_cells);
+        drop(next);
+        let groups = (0..cell_count)
             .filter(|&c| starts[c + 1] > starts[c])
-            .map(|c| {
-                let (start, end) = (starts[c], starts[c + 1]);
+            .map(|c| starts[c] as usize..starts[c + 1] as usize);
+        Self::from_groups(positions, faces, sorted_faces, groups, None)
+    }
+
+    /// The grid of `sorted_faces` split into `groups` (consecutive ranges of it); a group whose
+    /// faces use more than [`MAX_CELL_VERTICES`] vertices becomes several cells. Each cell's box
+    /// is the tight box of its vertices, or `fixed_box` when given.
+    fn from_groups(
+        positions: &[Vec3],
+        faces: &[[u32; 3]],
+        sorted_faces: Vec<u32>,
+        groups: impl Iterator<Item = std::ops::Range<usize>>,
+        fixed_box: Option<(Vec3, Vec3)>,
+    ) -> Self {
+        // For each vertex, the cell that last listed it and its index in that cell's list
+        // (build-time scratch, one pass over the faces).
+        let mut listed_in = vec![u32::MAX; positions.len()];
+        let mut listed_as = vec![0u16; positions.len()];
+        let mut cells = Vec::new();
+        let mut cell_corners = Vec::with_capacity(sorted_faces.len());
+        let mut vertices = Vec::new();
+        for group in groups {
+            let mut face_position = group.start;
+            while face_position < group.end {
+                let cell_index = cells.len() as u32;
+                let (start, vertex_start) = (face_position, vertices.len());
                 let mut cell_min = Vec3::splat(f32::INFINITY);
                 let mut cell_max = Vec3::splat(f32::NEG_INFINITY);
-                for &face_index in &sorted_faces[start as usize..end as usize] {
-                    for &v in &faces[face_index as usize] {
-                        let p = positions.get(v as usize).copied().unwrap_or(Vec3::ZERO);
-                        cell_min = cell_min.min(p);
-                        cell_max = cell_max.max(p);
+                while face_position < group.end {
+                    let face = faces[sorted_faces[face_position] as usize];
+                    let new_vertices = face
+                        .iter()
+                        .filter(|&&v| listed_in.get(v as usize) != Some(&cell_index))
+                        .count();
+                    if vertices.len() - vertex_start + new_vertices > MAX_CELL_VERTICES {
+                        break;
                     }
+                    let corners = face.map(|v| {
+                        let v = v as usize;
+                        if listed_in.get(v) != Some(&cell_index) {
+                            if let (Some(cell), Some(local)) =
+                                (listed_in.get_mut(v), listed_as.get_mut(v))
+                            {
+                                *cell = cell_index;
+                                *local = (vertices.len() - vertex_start) as u16;
+                            }
+                            vertices.push(v as u32);
+                            let p = positions.get(v).copied().unwrap_or(Vec3::ZERO);
+                            cell_min = cell_min.min(p);
+                            cell_max = cell_max.max(p);
+                        }
+                        listed_as.get(v).copied().unwrap_or(0)
+                    });
+                    cell_corners.push(corners);
+                    face_position += 1;
                 }
-                GridCell {
-                    min_local_m: cell_min,
-                    max_local_m: cell_max,
+                let (min_local_m, max_local_m) = fixed_box.unwrap_or((cell_min, cell_max));
+                cells.push(GridCell {
+                    min_local_m,
+                    max_local_m,
                     start,
-                    end,
-                }
-            })
-            .collect();
+                    end: face_position,
+                    vertex_start,
+                    vertex_end: vertices.len(),
+                });
+            }
+        }
         Self {
             cells,
             faces: sorted_faces,
+            cell_corners,
+            vertices,
         }
     }
 
@@ -159,7 +236,18 @@ impl FaceGrid {
 
     /// The faces of `cell` (ascending face indices).
     pub fn cell_faces(&self, cell: &GridCell) -> &[u32] {
-        &self.faces[cell.start as usize..cell.end as usize]
+        &self.faces[cell.start..cell.end]
+    }
+
+    /// The corners of `cell`'s faces (parallel to [`Self::cell_faces`]) as indices into
+    /// [`Self::cell_vertices`].
+    pub fn cell_corners(&self, cell: &GridCell) -> &[[u16; 3]] {
+        &self.cell_corners[cell.start..cell.end]
+    }
+
+    /// The distinct vertices of `cell`'s faces (mesh vertex indices).
+    pub fn cell_vertices(&self, cell: &GridCell) -> &[u32] {
+        &self.vertices[cell.vertex_start..cell.vertex_end]
     }
 }
 
@@ -171,22 +259,19 @@ impl Mesh {
         faces: Vec<[u32; 3]>,
         vertex_normals: Option<Vec<Vec3>>,
     ) -> Result<Self, MeshError> {
-        for (vertex_index, p) in positions_world_m.iter().enumerate() {
-            if let Some(value) = p.iter().copied().find(|v| !v.is_finite()) {
-                return Err(MeshError::NonFiniteVertex {
-                    vertex_index,
-                    value,
-                });
-            }
-        }
-        let origin_m = bounds_center(positions_world_m.iter().copied());
-        let positions_local_m = positions_world_m
-            .iter()
-            .map(|p| {
-                let local = p - origin_m;
-                Vec3::new(local.x as f32, local.y as f32, local.z as f32)
-            })
-            .collect();
+        let (origin_m, positions_local_m) = local_positions(positions_world_m)?;
+        Self::from_local(origin_m, positions_local_m, faces, vertex_normals)
+    }
+
+    /// [`Self::from_world`] taking the f64 positions by value: they are freed before the face
+    /// grid is built, so a city-size mesh never holds both at once (readers use this).
+    pub fn from_world_owned(
+        positions_world_m: Vec<Vector3<f64>>,
+        faces: Vec<[u32; 3]>,
+        vertex_normals: Option<Vec<Vec3>>,
+    ) -> Result<Self, MeshError> {
+        let (origin_m, positions_local_m) = local_positions(&positions_world_m)?;
+        drop(positions_world_m);
         Self::from_local(origin_m, positions_local_m, faces, vertex_normals)
     }
 
@@ -264,8 +349,8 @@ impl Mesh {
         &self.grid
     }
 
-    /// The mesh with one grid cell holding every face (nothing culled): the reference the
-    /// culling's tests compare with.
+    /// The mesh with its faces in one group in index order, every cell with the whole mesh's box
+    /// (nothing culled): the reference the culling's tests compare with.
     #[cfg(test)]
     pub(crate) fn with_single_grid_cell(mut self) -> Self {
         let mut min = Vec3::splat(f32::INFINITY);
@@ -274,15 +359,14 @@ impl Mesh {
             min = min.min(*p);
             max = max.max(*p);
         }
-        self.grid = FaceGrid {
-            cells: vec![GridCell {
-                min_local_m: min,
-                max_local_m: max,
-                start: 0,
-                end: self.faces.len() as u32,
-            }],
-            faces: (0..self.faces.len() as u32).collect(),
-        };
+        let face_count = self.faces.len();
+        self.grid = FaceGrid::from_groups(
+            &self.positions_local_m,
+            &self.faces,
+            (0..face_count as u32).collect(),
+            std::iter::once(0..face_count),
+            Some((min, max)),
+        );
         self
     }
 
@@ -361,6 +445,30 @@ impl Mesh {
     }
 }
 
+/// The local origin (bounding-box centre) of world positions and the positions relative to it in
+/// f32; an error names the first non-finite vertex.
+fn local_positions(
+    positions_world_m: &[Vector3<f64>],
+) -> Result<(Vector3<f64>, Vec<Vec3>), MeshError> {
+    for (vertex_index, p) in positions_world_m.iter().enumerate() {
+        if let Some(value) = p.iter().copied().find(|v| !v.is_finite()) {
+            return Err(MeshError::NonFiniteVertex {
+                vertex_index,
+                value,
+            });
+        }
+    }
+    let origin_m = bounds_center(positions_world_m.iter().copied());
+    let positions_local_m = positions_world_m
+        .iter()
+        .map(|p| {
+            let local = p - origin_m;
+            Vec3::new(local.x as f32, local.y as f32, local.z as f32)
+        })
+        .collect();
+    Ok((origin_m, positions_local_m))
+}
+
 fn bounds_center(points: impl Iterator<Item = Vector3<f64>>) -> Vector3<f64> {
     let mut min = Vector3::repeat(f64::INFINITY);
     let mut max = Vector3::repeat(f64::NEG_INFINITY);
@@ -424,6 +532,56 @@ mod tests {
                 ..
             })
         ));
+    }
+
+    /// Every face is in exactly one cell, and its cell's corners name its own vertices.
+    fn assert_grid_consistent(mesh: &Mesh) {
+        let grid = mesh.grid();
+        let mut seen = vec![0u32; mesh.face_count()];
+        for cell in grid.cells() {
+            let vertices = grid.cell_vertices(cell);
+            assert!(vertices.len() <= MAX_CELL_VERTICES);
+            for (&face, corners) in grid.cell_faces(cell).iter().zip(grid.cell_corners(cell)) {
+                seen[face as usize] += 1;
+                assert_eq!(
+                    corners.map(|c| vertices[c as usize]),
+                    mesh.faces()[face as usize]
+                );
+                for v in mesh.faces()[face as usize] {
+                    let p = mesh.positions_local_m()[v as usize];
+                    assert!(p.cmpge(cell.min_local_m).all() && p.cmple(cell.max_local_m).all());
+                }
+            }
+        }
+        assert!(seen.iter().all(|&n| n == 1));
+    }
+
+    #[test]
+    fn grid_cells_list_their_vertices_and_split_above_the_u16_limit() {
+        // A strip of 2 × 40 000 vertices: one group of every face needs more than 2^16 vertices.
+        let columns = 40_000;
+        let positions: Vec<Vector3<f64>> = (0..columns)
+            .flat_map(|i| {
+                [
+                    Vector3::new(i as f64, 0.0, 0.0),
+                    Vector3::new(i as f64, 1.0, 0.0),
+                ]
+            })
+            .collect();
+        let faces: Vec<[u32; 3]> = (0..columns as u32 - 1)
+            .flat_map(|i| {
+                [
+                    [2 * i, 2 * i + 2, 2 * i + 1],
+                    [2 * i + 1, 2 * i + 2, 2 * i + 3],
+                ]
+            })
+            .collect();
+        let mesh = Mesh::from_world(&positions, faces, None).unwrap();
+        assert!(mesh.grid().cells().len() > 1);
+        assert_grid_consistent(&mesh);
+        let single = mesh.with_single_grid_cell();
+        assert_eq!(single.grid().cells().len(), 2, "80 000 vertices: two cells");
+        assert_grid_consistent(&single);
     }
 
     #[test]

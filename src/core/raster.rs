@@ -11,13 +11,18 @@
 //! - frustum culling: the mesh's face grid (`Mesh::grid`) is tested cell box by cell box against
 //!   the frustum's half-spaces, and only the faces of cells it may see are binned and drawn (a
 //!   city mesh seen by one camera); every rendering goes through this one test;
-//! - every vertex is transformed and projected once; binning drops faces whose bounding box holds
-//!   no pixel centre, and tests the one centre of boxes that hold exactly one (most triangles of
-//!   a dense mesh seen from afar are sub-pixel);
+//! - only the vertices of the cells the frustum keeps are transformed and projected, once per
+//!   cell that lists them (each cell lists its faces' vertices, `FaceGrid::cell_vertices`, and
+//!   names its faces' corners in that list): a rendering's work and scratch buffers follow what
+//!   the camera sees, never the mesh's vertex count (a 10^7-triangle city seen by one camera);
+//! - binning drops faces whose bounding box holds no pixel centre, and tests the one centre of
+//!   boxes that hold exactly one (most triangles of a dense mesh seen from afar are sub-pixel);
 //! - a pixel `(col, row)` is covered when its centre `(col + 0.5, row + 0.5)` lies inside the
 //!   projected triangle (see `camera.rs` for the convention); the depth pass steps affine edge
 //!   functions and `1/z` along each row (perspective-correct depth) and writes only depth and face
-//!   index; the nearest surface wins (ties: the lower face index, whatever order faces come in);
+//!   index (while a band is drawn, the face's slot in the visible list, turned into the mesh's
+//!   face index once the band is done); the nearest surface wins (ties: the lower face index,
+//!   whatever order faces come in);
 //! - normals are filled afterwards, once per visible pixel, from its winning face: the face
 //!   normal, or the vertex normals interpolated with the perspective-correct barycentrics of the
 //!   pixel ray's hit on the face (so overdrawn pixels cost no shading);
@@ -151,17 +156,31 @@ struct ScreenVertex {
     inv_depth: f32,
 }
 
-/// Scratch state reused between renderings.
+/// A face of a grid cell the frustum may see: its index in the mesh and its corners as slots of
+/// the rendering's transformed vertices.
+#[derive(Clone, Copy, Debug, Default)]
+struct VisibleFace {
+    face_index: u32,
+    corners: [u32; 3],
+}
+
+/// Scratch state reused between renderings; every buffer is sized by the grid cells the frustum
+/// keeps, not by the mesh.
 #[derive(Default)]
 pub struct Rasterizer {
+    /// Mesh vertex index of each slot: the vertex lists of the kept cells, one after the other.
+    visible_vertices: Vec<u32>,
+    /// Camera-frame position of each slot.
     vertices_cam: Vec<Vec3>,
-    /// Projection of each vertex; meaningful only for vertices in front of the near plane.
+    /// Projection of each slot; meaningful only for vertices in front of the near plane.
     vertices_screen: Vec<ScreenVertex>,
+    /// Camera-frame vertex normal of each slot (meshes with vertex normals).
     normals_cam: Vec<Vec3>,
-    /// `bins[chunk][band]`: faces of a chunk of the visible faces that touch a band.
+    /// `bins[chunk][band]`: faces (positions in `visible_faces`) of a chunk of the visible faces
+    /// that touch a band.
     bins: Vec<Vec<Vec<u32>>>,
     /// Faces of the grid cells the frustum may see (`Mesh::grid`).
-    visible_faces: Vec<u32>,
+    visible_faces: Vec<VisibleFace>,
 }
 
 /// The viewing frustum as half-spaces in the camera frame, for culling grid cells: a point p is
@@ -304,16 +323,46 @@ impl Rasterizer {
             near_m: options.near_m,
         };
 
-        // Transform and project every vertex once.
-        self.vertices_cam.resize(mesh.vertex_count(), Vec3::ZERO);
+        // Frustum culling: only the vertices and faces of grid cells whose box the frustum can
+        // see; each kept cell's vertex list becomes a run of slots.
+        let frustum = Frustum::new(&projector, width, height);
+        let grid = mesh.grid();
+        self.visible_faces.clear();
+        self.visible_vertices.clear();
+        for cell in grid.cells() {
+            if frustum.may_see_box(
+                cell.min_local_m,
+                cell.max_local_m,
+                rotation_f32,
+                translation_f32,
+            ) {
+                let base = self.visible_vertices.len() as u32;
+                self.visible_vertices
+                    .extend_from_slice(grid.cell_vertices(cell));
+                self.visible_faces.extend(
+                    grid.cell_faces(cell)
+                        .iter()
+                        .zip(grid.cell_corners(cell))
+                        .map(|(&face_index, corners)| VisibleFace {
+                            face_index,
+                            corners: corners.map(|c| base + u32::from(c)),
+                        }),
+                );
+            }
+        }
+
+        // Transform and project the kept vertices, once per slot.
+        let slot_count = self.visible_vertices.len();
+        let positions = mesh.positions_local_m();
+        self.vertices_cam.resize(slot_count, Vec3::ZERO);
         self.vertices_screen
-            .resize(mesh.vertex_count(), ScreenVertex::default());
+            .resize(slot_count, ScreenVertex::default());
         self.vertices_cam
             .par_iter_mut()
             .zip(self.vertices_screen.par_iter_mut())
-            .zip(mesh.positions_local_m().par_iter())
-            .for_each(|((cam, screen), p)| {
-                *cam = rotation_f32 * *p + translation_f32;
+            .zip(self.visible_vertices.par_iter())
+            .for_each(|((cam, screen), &v)| {
+                *cam = rotation_f32 * positions[v as usize] + translation_f32;
                 if cam.z >= projector.near_m {
                     *screen = projector.screen_vertex(*cam);
                 }
@@ -322,26 +371,11 @@ impl Rasterizer {
         let use_vertex_normals =
             options.normal_source == NormalSource::Vertex && mesh.vertex_normals().is_some();
         if let (true, Some(normals)) = (use_vertex_normals, mesh.vertex_normals()) {
-            self.normals_cam.resize(normals.len(), Vec3::ZERO);
+            self.normals_cam.resize(slot_count, Vec3::ZERO);
             self.normals_cam
                 .par_iter_mut()
-                .zip(normals.par_iter())
-                .for_each(|(out, n)| *out = rotation_f32 * *n);
-        }
-
-        // Frustum culling: only the faces of grid cells whose box the frustum can see.
-        let frustum = Frustum::new(&projector, width, height);
-        self.visible_faces.clear();
-        for cell in mesh.grid().cells() {
-            if frustum.may_see_box(
-                cell.min_local_m,
-                cell.max_local_m,
-                rotation_f32,
-                translation_f32,
-            ) {
-                self.visible_faces
-                    .extend_from_slice(mesh.grid().cell_faces(cell));
-            }
+                .zip(self.visible_vertices.par_iter())
+                .for_each(|(out, &v)| *out = rotation_f32 * normals[v as usize]);
         }
 
         // Bin faces into bands of rows, per chunk of faces, in parallel. Faces that cover no
@@ -349,7 +383,6 @@ impl Rasterizer {
         let band_count = height.div_ceil(BAND_ROWS);
         let chunk_count = (rayon::current_num_threads() * 4).max(1);
         self.bins.resize_with(chunk_count, Vec::new);
-        let faces = mesh.faces();
         let visible_faces = &self.visible_faces;
         let vertices_cam = &self.vertices_cam;
         let vertices_screen = &self.vertices_screen;
@@ -365,10 +398,9 @@ impl Rasterizer {
                 }
                 let start = (chunk_index * chunk_len).min(visible_faces.len());
                 let end = (start + chunk_len).min(visible_faces.len());
-                for &face_index in &visible_faces[start..end] {
-                    let face = faces[face_index as usize];
-                    let corners = face.map(|v| vertices_cam[v as usize]);
-                    let screen = face.map(|v| vertices_screen[v as usize]);
+                for (slot, face) in (start..end).zip(&visible_faces[start..end]) {
+                    let corners = face.corners.map(|v| vertices_cam[v as usize]);
+                    let screen = face.corners.map(|v| vertices_screen[v as usize]);
                     if let Some((first_row, last_row)) =
                         face_row_range(&corners, &screen, &projector, options, width, height)
                     {
@@ -377,7 +409,7 @@ impl Rasterizer {
                             .take(last_row / BAND_ROWS + 1)
                             .skip(first_row / BAND_ROWS)
                         {
-                            band.push(face_index);
+                            band.push(slot as u32);
                         }
                     }
                 }
@@ -399,20 +431,21 @@ impl Rasterizer {
                     rows: depth.len() / width,
                     width,
                     depth,
-                    face_index: face_out,
+                    face_slot: face_out,
+                    visible_faces,
                 };
                 for chunk in bins {
                     let Some(band_faces) = chunk.get(band) else {
                         continue;
                     };
-                    for &face_index in band_faces {
-                        let face = faces[face_index as usize];
-                        let corners = face.map(|v| vertices_cam[v as usize]);
+                    for &slot in band_faces {
+                        let face = visible_faces[slot as usize];
+                        let corners = face.corners.map(|v| vertices_cam[v as usize]);
                         if corners.iter().all(|c| c.z >= projector.near_m) {
-                            let screen = face.map(|v| vertices_screen[v as usize]);
-                            draw_triangle(&screen, face_index, &mut band_target);
+                            let screen = face.corners.map(|v| vertices_screen[v as usize]);
+                            draw_triangle(&screen, slot, &mut band_target);
                         } else {
-                            draw_clipped_face(&corners, face_index, &projector, &mut band_target);
+                            draw_clipped_face(&corners, slot, &projector, &mut band_target);
                         }
                     }
                 }
@@ -424,11 +457,15 @@ impl Rasterizer {
                 shade_band(
                     &band_target,
                     normal,
-                    faces,
                     vertices_cam,
                     normal_source,
                     &projector,
                 );
+                for pixel in band_target.face_slot.iter_mut() {
+                    if *pixel != NO_FACE {
+                        *pixel = visible_faces[*pixel as usize].face_index;
+                    }
+                }
             });
     }
 }
@@ -439,7 +476,9 @@ struct BandTarget<'a> {
     rows: usize,
     width: usize,
     depth: &'a mut [f32],
-    face_index: &'a mut [u32],
+    /// Position in `visible_faces` of each pixel's nearest face so far; [`NO_FACE`] where none.
+    face_slot: &'a mut [u32],
+    visible_faces: &'a [VisibleFace],
 }
 
 /// Rows `[first, last]` a face may cover, or `None` when it cannot be seen or covers no pixel
@@ -561,7 +600,7 @@ fn is_back_facing(corners: &[Vec3; 3]) -> bool {
 /// Clips a face that crosses the near plane (up to 4 corners) and draws the resulting triangles.
 fn draw_clipped_face(
     corners: &[Vec3; 3],
-    face_index: u32,
+    slot: u32,
     projector: &Projector,
     target: &mut BandTarget,
 ) {
@@ -585,15 +624,16 @@ fn draw_clipped_face(
     }
     let screen = polygon.map(|p| projector.screen_vertex(p));
     for i in 1..count.saturating_sub(1) {
-        draw_triangle(&[screen[0], screen[i], screen[i + 1]], face_index, target);
+        draw_triangle(&[screen[0], screen[i], screen[i + 1]], slot, target);
     }
 }
 
 /// Depth-tests one projected triangle (entirely in front of the near plane) into the band:
-/// writes depth and face index where it is nearest. Edge functions and `1/z` are affine in the
+/// writes depth and the face's slot where it is nearest. Edge functions and `1/z` are affine in the
 /// image, so each row is evaluated once at its start and stepped along the row; the covered span
 /// of a row is solved from the three edge functions, so no time goes to pixels outside it.
-fn draw_triangle(screen: &[ScreenVertex; 3], face_index: u32, target: &mut BandTarget) {
+fn draw_triangle(screen: &[ScreenVertex; 3], slot: u32, target: &mut BandTarget) {
+    let face_index = target.visible_faces[slot as usize].face_index;
     let [p0, p1, p2] = screen.map(|s| s.position_px);
     let edge = edge_function;
     let signed_area = edge(p0, p1, p2);
@@ -671,15 +711,16 @@ fn draw_triangle(screen: &[ScreenVertex; 3], face_index: u32, target: &mut BandT
             let depth = 1.0 / sum_inv_depth;
             let index = line + col;
             // Nearest wins; on a tie the lower face index, whatever order faces come in.
-            let current = target.face_index[index];
+            let current = target.face_slot[index];
             if current != NO_FACE
                 && (depth > target.depth[index]
-                    || (depth == target.depth[index] && face_index > current))
+                    || (depth == target.depth[index]
+                        && face_index > target.visible_faces[current as usize].face_index))
             {
                 continue;
             }
             target.depth[index] = depth;
-            target.face_index[index] = face_index;
+            target.face_slot[index] = slot;
         }
     }
 }
@@ -690,7 +731,6 @@ fn draw_triangle(screen: &[ScreenVertex; 3], face_index: u32, target: &mut BandT
 fn shade_band(
     target: &BandTarget,
     normal_out: &mut [Vec3],
-    faces: &[[u32; 3]],
     vertices_cam: &[Vec3],
     vertex_normals_cam: Option<&[Vec3]>,
     projector: &Projector,
@@ -700,11 +740,11 @@ fn shade_band(
         let line = local_row * target.width;
         for col in 0..target.width {
             let index = line + col;
-            let face_index = target.face_index[index];
-            if face_index == NO_FACE {
+            let slot = target.face_slot[index];
+            if slot == NO_FACE {
                 continue;
             }
-            let face = faces[face_index as usize];
+            let face = target.visible_faces[slot as usize].corners;
             let [a, b, c] = face.map(|v| vertices_cam[v as usize]);
             let edge_ab = b - a;
             let edge_ac = c - a;
@@ -1010,6 +1050,52 @@ mod tests {
     }
 
     #[test]
+    fn culling_changes_no_pixel_of_depth_face_index_or_interpolated_normals() {
+        // A hilly 300 m × 300 m ground of 2 m quads (45 000 faces, many grid cells) with a cube,
+        // vertex normals, seen obliquely from one corner: most cells are culled.
+        let cells = 150;
+        let row = cells + 1;
+        let positions: Vec<Vector3<f64>> = (0..row * row)
+            .map(|k| {
+                let (x, y) = ((k % row) as f64 * 2.0, (k / row) as f64 * 2.0);
+                Vector3::new(x, y, 3.0 * (x * 0.05).sin() * (y * 0.04).cos())
+            })
+            .collect();
+        let faces: Vec<[u32; 3]> = (0..cells * cells)
+            .flat_map(|k| {
+                let v = ((k / cells) * row + k % cells) as u32;
+                let r = row as u32;
+                [[v, v + 1, v + r + 1], [v, v + r + 1, v + r]]
+            })
+            .collect();
+        let mut mesh = Mesh::from_world(&positions, faces, None).unwrap();
+        mesh.append(&cube(Vector3::new(40.0, 40.0, 8.0), 6.0));
+        mesh.compute_vertex_normals();
+        let eye = Vector3::new(-10.0, -10.0, 40.0);
+        let pose = Rigid3::look_at(&eye, &Vector3::new(25.0, 25.0, 0.0), &Vector3::z()).unwrap();
+        let intrinsics = PinholeIntrinsics::centered(150.0, 160, 120);
+        let options = RenderOptions::default();
+        let mut rasterizer = Rasterizer::new();
+        let mut culled = RenderBuffers::new(160, 120);
+        rasterizer.render(&mesh, &intrinsics, &pose, &options, &mut culled);
+        assert!(mesh.grid().cells().len() > 10);
+        assert!(
+            rasterizer.visible_face_count() * 2 < mesh.face_count(),
+            "culling keeps {} of {} faces",
+            rasterizer.visible_face_count(),
+            mesh.face_count()
+        );
+        assert!(rasterizer.vertices_cam.len() * 2 < mesh.vertex_count());
+        assert!(culled.valid_count() > 160 * 120 / 2);
+        let whole = mesh.with_single_grid_cell();
+        let mut all = RenderBuffers::new(160, 120);
+        Rasterizer::new().render(&whole, &intrinsics, &pose, &options, &mut all);
+        assert_eq!(culled.depth_m, all.depth_m);
+        assert_eq!(culled.face_index, all.face_index);
+        assert_eq!(culled.normal_cam, all.normal_cam);
+    }
+
+    #[test]
     fn re_rendering_into_the_same_buffers_allocates_nothing() {
         let (mesh, pose) = oblique_scene(Vector3::zeros());
         let intrinsics = PinholeIntrinsics::centered(150.0, 160, 120);
@@ -1038,6 +1124,14 @@ mod tests {
                     r.vertices_screen.capacity(),
                 ),
                 (r.bins.as_ptr() as usize, r.bins.capacity()),
+                (
+                    r.visible_faces.as_ptr() as usize,
+                    r.visible_faces.capacity(),
+                ),
+                (
+                    r.visible_vertices.as_ptr() as usize,
+                    r.visible_vertices.capacity(),
+                ),
             ];
             for chunk in &r.bins {
                 prints.push((chunk.as_ptr() as usize, chunk.capacity()));

@@ -69,7 +69,7 @@ pub fn read_obj(path: &Path) -> Result<Mesh, MeshIoError> {
         corner_normals.add_model(mesh, first_vertex as usize, positions_m.len());
     }
     let vertex_normals = corner_normals.into_vertex_normals(path);
-    Mesh::from_world(&positions_m, faces, vertex_normals).map_err(|source| MeshIoError::Mesh {
+    Mesh::from_world_owned(positions_m, faces, vertex_normals).map_err(|source| MeshIoError::Mesh {
         path: path.to_path_buf(),
         source,
     })

@@ -36,8 +36,8 @@ pub enum PlyEncoding {
 /// is an error ([`crate::core::mesh::MeshError::NoFaces`]): registration renders the mesh.
 pub fn read_ply(path: &Path) -> Result<Mesh, MeshIoError> {
     let geometry = read_ply_geometry(path)?;
-    Mesh::from_world(
-        &geometry.positions_m,
+    Mesh::from_world_owned(
+        geometry.positions_m,
         geometry.faces,
         geometry.vertex_normals,
     )

@@ -257,7 +257,7 @@ pub enum SynthError {
     Pfm(#[from] crate::io::pfm::PfmError),
 }
 
-fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> SynthError + '_ {
+pub(crate) fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> SynthError + '_ {
     move |source| SynthError::Io {
         path: path.to_path_buf(),
         source,
@@ -676,7 +676,7 @@ fn write_mesh(path: &Path, mesh: &Mesh) -> Result<(), SynthError> {
     )?)
 }
 
-fn write_colmap(
+pub(crate) fn write_colmap(
     dir: &Path,
     camera: &Camera,
     names: &[String],
@@ -716,7 +716,11 @@ fn write_grey_png(path: &Path, image: &Image<u8>) -> Result<(), SynthError> {
 }
 
 /// Writes an 8-bit sRGB photo as a JPEG.
-fn write_jpeg(path: &Path, photo: &Image<[u8; 3]>, quality: u8) -> Result<(), SynthError> {
+pub(crate) fn write_jpeg(
+    path: &Path,
+    photo: &Image<[u8; 3]>,
+    quality: u8,
+) -> Result<(), SynthError> {
     let file = std::fs::File::create(path).map_err(io_error(path))?;
     let mut writer = std::io::BufWriter::new(file);
     let mut encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut writer, quality);

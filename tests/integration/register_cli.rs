@@ -98,3 +98,71 @@ fn register_with_a_missing_mesh_names_it_and_exits_non_zero() {
     ]);
     assert_fails_naming(&output, &["nope.ply"]);
 }
+
+/// `synth --scene city` writes a scene `register` runs on, and `register --truth` puts each
+/// frame's δ to the true poses in its output: the path of issue #16's city-size check, small.
+#[test]
+fn a_city_scene_registers_and_truth_gives_each_frame_its_delta() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("city");
+    let output = asgreg(&[
+        "synth",
+        "--scene",
+        "city",
+        "--triangles",
+        "30000",
+        "--images",
+        "2",
+        "--levels",
+        "30",
+        "--no-heading-level",
+        "--width",
+        "240",
+        "--height",
+        "135",
+        "--out",
+        path_str(&scene),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    assert!(stdout(&output).contains("peak RSS"), "{}", stdout(&output));
+    let out = dir.path().join("out");
+    let output = asgreg(&[
+        "register",
+        "--mesh",
+        path_str(&scene.join("model.ply")),
+        "--images",
+        path_str(&scene.join("images")),
+        "--cameras",
+        path_str(&scene.join("gt")),
+        "--poses",
+        path_str(&scene.join("initial/30")),
+        "--truth",
+        path_str(&scene.join("gt")),
+        "--coarse-poses",
+        "5",
+        "--no-overlays",
+        "--out",
+        path_str(&out),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let deltas = report["truth"]["delta_px"].as_array().unwrap();
+    assert_eq!(deltas.len(), 2, "{report}");
+    for (frame, delta) in report["frames"].as_array().unwrap().iter().zip(deltas) {
+        let initial_px = delta["delta"]["initial_px"].as_f64().unwrap();
+        assert!((5.0..80.0).contains(&initial_px), "{delta}");
+        // An accepted frame has its δ after; a refused one none.
+        assert_eq!(
+            frame["accepted"].as_bool().unwrap(),
+            delta["delta"]["final_px"].is_f64(),
+            "{frame} {delta}"
+        );
+    }
+    assert!(report["peak_rss_mib"].as_f64().unwrap() > 0.0);
+    assert!(
+        stdout(&output).contains("δ to the truth"),
+        "{}",
+        stdout(&output)
+    );
+}
