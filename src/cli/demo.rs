@@ -125,7 +125,11 @@ fn register_scene(
 
     println!("4/4 registering every frame from its 30 px initial pose (known intrinsics, query = ASG of the photo's depth)");
     let initial = read_images_txt(&scene_dir.join("initial/30/images.txt"))?;
-    let config = registration_config(true, &CoarseArgs::default());
+    let config = registration_config(
+        asgreg::core::frame::QueryMode::DepthAsg,
+        IntrinsicsArg::Known,
+        &CoarseArgs::default(),
+    );
     let mut workspace = ReprojectionWorkspace::new();
     let (mut accepted, mut sum_before, mut sum_after) = (0usize, 0.0f64, 0.0f64);
     for start in &initial {

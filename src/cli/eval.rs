@@ -36,7 +36,7 @@ use asgreg::report_html::{write_report_html, FrameVerdict, Picture, ReportFrame,
 
 use super::register::{
     frame_overlays, progress_bar, registration_config, report_frame, CoarseArgs, IntrinsicsArg,
-    REPORT_HTML,
+    QueryArg, REPORT_HTML,
 };
 
 /// Width of eval's embedded overlays, px: a run has many frames (levels × methods).
@@ -57,7 +57,8 @@ pub struct EvalArgs {
     /// Intrinsics modes to run.
     #[arg(long, value_delimiter = ',', value_enum, default_values_t = [IntrinsicsArg::Known, IntrinsicsArg::Unknown])]
     pub intrinsics: Vec<IntrinsicsArg>,
-    /// Query gradient image: the photo's gradient, or the ASG of its depth map (needs depth/).
+    /// Query gradient image: the photo's gradient, the ASG of its depth map (needs depth/), or
+    /// depth-ASG where the depth is valid and trustworthy and the photo's gradient elsewhere.
     #[arg(long, value_enum, default_value_t = QueryArg::Depth)]
     pub query: QueryArg,
     /// Use only the first N images of each level.
@@ -154,16 +155,11 @@ impl Method {
         match self {
             Method::Asg(IntrinsicsArg::Known) => "known K",
             Method::Asg(IntrinsicsArg::Unknown) => "unknown K",
+            Method::Asg(IntrinsicsArg::Focal) => "unknown focal",
             Method::Icp(IcpVariant::PointToPlane) => "ICP point-to-plane",
             Method::Icp(IcpVariant::PointToPoint) => "ICP point-to-point",
         }
     }
-}
-
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum QueryArg {
-    Gradient,
-    Depth,
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
@@ -174,10 +170,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let gt_cameras = read_cameras_txt(&args.scene.join("gt/cameras.txt"))?;
     let gt_images = read_images_txt(&args.scene.join("gt/images.txt"))?;
     let depth_dir = args.scene.join("depth");
-    let with_depth = args.query == QueryArg::Depth;
+    let query_mode = args.query.mode();
+    let with_depth = query_mode.needs_depth();
     if with_depth && !depth_dir.is_dir() {
         bail!(
-            "--query depth needs the photos' depth maps in {}; pass --query gradient to use the photos' gradients",
+            "--query depth and --query mixed need the photos' depth maps in {}; pass --query gradient to use the photos' gradients",
             depth_dir.display()
         );
     }
@@ -292,7 +289,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 outcome
             }
             Method::Asg(intrinsics) if args.diagnose => {
-                let config = registration_config(with_depth, &args.coarse);
+                let config = registration_config(query_mode, intrinsics, &args.coarse);
                 let started = std::time::Instant::now();
                 match diagnose_scene_frame(
                     &mesh,
@@ -343,7 +340,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 }
             }
             Method::Asg(intrinsics) => {
-                let config = registration_config(with_depth, &args.coarse);
+                let config = registration_config(query_mode, intrinsics, &args.coarse);
                 let (report, final_delta_px) = register_scene_frame(
                     &mesh,
                     &args.scene,

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
 use asgreg::core::edge_align::EdgeAlignConfig;
-use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig};
+use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig, UnknownIntrinsics};
 use asgreg::core::image::Image;
 use asgreg::core::verify::VerifyConfig;
 use asgreg::frame_files::{depth_path_for, FrameLoader, DEFAULT_WORKING_WIDTH_PX};
@@ -40,13 +40,18 @@ pub struct RegisterArgs {
     /// COLMAP images.txt or images.bin, or a model folder, with the initial poses.
     #[arg(long)]
     pub poses: PathBuf,
-    /// Known intrinsics (EPnP) or unknown (DLT, estimated per image).
+    /// Known intrinsics (EPnP), unknown (DLT, estimated per image) or only the focal length
+    /// unknown (principal point at the centre, no skew).
     #[arg(long, value_enum, default_value_t = IntrinsicsArg::Known)]
     pub intrinsics: IntrinsicsArg,
     /// Folder of the photos' depth maps (`<image stem>.pfm`): the query becomes the ASG of the
-    /// depth's normals (the paper's mode) instead of the photo's gradient.
+    /// depth's normals (the paper's mode) instead of the photo's gradient, unless --query says.
     #[arg(long)]
     pub depth: Option<PathBuf>,
+    /// The image standing for the photo: `depth` when --depth is given, else `gradient`;
+    /// `depth` and `mixed` need --depth.
+    #[arg(long, value_enum)]
+    pub query: Option<QueryArg>,
     /// Output folder.
     #[arg(long)]
     pub out: PathBuf,
@@ -201,27 +206,62 @@ impl Default for CoarseArgs {
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum IntrinsicsArg {
+    /// Calibrated: only the pose is estimated (EPnP).
     Known,
+    /// Uncalibrated: focal lengths, principal point and pose (the paper's 11-DoF DLT).
     Unknown,
+    /// Only the focal length is unknown; principal point at the image centre, no skew (EPnP
+    /// with unknown focal length): a drone's EXIF camera.
+    Focal,
 }
 
 impl IntrinsicsArg {
     pub fn mode(self) -> IntrinsicsMode {
         match self {
             IntrinsicsArg::Known => IntrinsicsMode::Known,
-            IntrinsicsArg::Unknown => IntrinsicsMode::Unknown,
+            IntrinsicsArg::Unknown | IntrinsicsArg::Focal => IntrinsicsMode::Unknown,
+        }
+    }
+
+    /// What an unknown calibration estimates under this argument.
+    pub fn unknown_intrinsics(self) -> UnknownIntrinsics {
+        match self {
+            IntrinsicsArg::Focal => UnknownIntrinsics::Focal,
+            IntrinsicsArg::Known | IntrinsicsArg::Unknown => UnknownIntrinsics::Dlt,
+        }
+    }
+}
+
+/// Which image stands for the photo in the flow.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum QueryArg {
+    /// The photo's gradient magnitude.
+    Gradient,
+    /// The ASG of the photo's depth map (the paper's mode; needs depth maps).
+    Depth,
+    /// Depth-ASG where the depth is valid and trustworthy, the photo's gradient elsewhere.
+    Mixed,
+}
+
+impl QueryArg {
+    pub fn mode(self) -> QueryMode {
+        match self {
+            QueryArg::Gradient => QueryMode::ImageGradient,
+            QueryArg::Depth => QueryMode::DepthAsg,
+            QueryArg::Mixed => QueryMode::Mixed,
         }
     }
 }
 
 /// The registration settings the command line selects.
-pub fn registration_config(with_depth: bool, coarse: &CoarseArgs) -> RegistrationConfig {
+pub fn registration_config(
+    query_mode: QueryMode,
+    intrinsics: IntrinsicsArg,
+    coarse: &CoarseArgs,
+) -> RegistrationConfig {
     RegistrationConfig {
-        query_mode: if with_depth {
-            QueryMode::DepthAsg
-        } else {
-            QueryMode::ImageGradient
-        },
+        query_mode,
+        unknown_intrinsics: intrinsics.unknown_intrinsics(),
         coarse_pose_count: coarse.coarse_poses,
         coarse_rotation_sigma_deg: coarse.coarse_rotation_deg,
         coarse_translation_sigma_fraction: coarse.coarse_translation_fraction,
@@ -263,7 +303,17 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
         check_mesh_fits(&args.mesh, limit_mib)?;
     }
     let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
-    let config = registration_config(args.depth.is_some(), &args.coarse);
+    let query = args.query.unwrap_or(if args.depth.is_some() {
+        QueryArg::Depth
+    } else {
+        QueryArg::Gradient
+    });
+    if query.mode().needs_depth() && args.depth.is_none() {
+        anyhow::bail!(
+            "--query {query:?} needs the photos' depth maps: pass --depth <folder>, or --query gradient"
+        );
+    }
+    let config = registration_config(query.mode(), args.intrinsics, &args.coarse);
     config.validate()?;
     let mut frames = Vec::new();
     for image in inputs.images.iter().take(args.limit.unwrap_or(usize::MAX)) {

@@ -5,13 +5,15 @@
 //! photos and a reconstructed mesh do, so registration on them is not made easy.
 //!
 //! Entry point: [`generate_scene`] with a [`SynthConfig`]; it writes
-//! `model.ply`, `model_true.ply`, `images/*.jpg`, `depth/*.pfm`, `gt/{cameras,images,points3D}.txt`,
+//! `model.ply`, `model_true.ply`, `images/*.jpg`, `depth/*.pfm` (MVS-like), `depth_exact/*.pfm`
+//! (exact, for tests and comparisons), `gt/{cameras,images,points3D}.txt`,
 //! `initial/<level>/{cameras,images,points3D}.txt` and `scene.json`; with `changes`, also the
 //! change ground truth of `changes.rs` (`changes_gt/*.png`, `changes.json`).
 
 pub mod changes;
 pub mod city;
 pub mod degrade;
+pub mod depth;
 pub mod geometry;
 pub mod initial;
 pub mod photo;
@@ -32,10 +34,14 @@ use crate::core::image::Image;
 use crate::core::mesh::{Mesh, MeshError};
 use crate::core::rigid::Rigid3;
 use crate::io::colmap::{self, ImagePose};
+pub use depth::DepthParams;
 use geometry::{PartKind, Scene};
 use initial::LevelCalibration;
-use photo::{DepthParams, PhotoParams, PhotoRenderer};
+use photo::{PhotoParams, PhotoRenderer};
 pub use viewpoints::SceneKind;
+
+/// Folder of the exact depth maps (next to `depth/`, the MVS-like ones).
+pub const EXACT_DEPTH_DIR: &str = "depth_exact";
 
 /// Everything that shapes a synthetic scene. Same config (and seed) → byte-identical files
 /// (except the timings in `scene.json`).
@@ -81,14 +87,8 @@ pub struct SynthConfig {
     pub exposure_jitter: f32,
     /// JPEG quality, 1–100.
     pub jpeg_quality: u8,
-    /// Multiplicative depth noise (standard deviation, relative).
-    pub depth_relative_noise: f32,
-    /// Fraction of each depth map removed as random blobs.
-    pub depth_hole_fraction: f32,
-    /// Depths beyond this are dropped (background), metres.
-    pub depth_max_m: f32,
-    /// Depth is dropped where the photo's 5×5 luma standard deviation is below this, 8-bit DN.
-    pub depth_untextured_std_dn: f32,
+    /// The MVS-like depth maps (`depth.rs`): the stereo they imitate.
+    pub depth: DepthParams,
     /// Whether to add clutter (trees, cars, fences, people, bushes) to the photos.
     pub clutter: bool,
     /// Voxel size of the model's remeshing (≈ triangle size), metres.
@@ -135,10 +135,7 @@ impl Default for SynthConfig {
             vignetting: 0.25,
             exposure_jitter: 0.06,
             jpeg_quality: 85,
-            depth_relative_noise: 0.007,
-            depth_hole_fraction: 0.08,
-            depth_max_m: 150.0,
-            depth_untextured_std_dn: 1.2,
+            depth: DepthParams::default(),
             clutter: true,
             model_voxel_m: 0.25,
             model_smoothing_sigma_m: 0.15,
@@ -208,12 +205,7 @@ impl SynthConfig {
                 self.model_voxel_m
             ));
         }
-        if !(0.0..0.9).contains(&self.depth_hole_fraction) {
-            return invalid(format!(
-                "depth_hole_fraction {} is outside [0, 0.9)",
-                self.depth_hole_fraction
-            ));
-        }
+        self.depth.validate().map_err(SynthError::InvalidConfig)?;
         if !(self.initial_tolerance > 0.0 && self.initial_tolerance < 0.5) {
             return invalid(format!(
                 "initial_tolerance {} is outside (0, 0.5)",
@@ -355,6 +347,7 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         out_dir.to_path_buf(),
         out_dir.join("images"),
         out_dir.join("depth"),
+        out_dir.join(EXACT_DEPTH_DIR),
         out_dir.join("gt"),
     ] {
         std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
@@ -461,12 +454,6 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
     };
     let shadow_map_s = shadow_started.elapsed().as_secs_f64();
     let photos_started = Instant::now();
-    let depth_params = DepthParams {
-        relative_noise: config.depth_relative_noise,
-        hole_fraction: config.depth_hole_fraction,
-        max_depth_m: config.depth_max_m,
-        untextured_std_dn: config.depth_untextured_std_dn,
-    };
     let mut images = Vec::with_capacity(views.len());
     for (index, view) in views.iter().enumerate() {
         let image_seed =
@@ -494,11 +481,11 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
             &view.cam_from_world,
             image_seed,
         );
-        let depth = renderer.depth_map(
+        let (depth, exact_depth) = renderer.depth_maps(
             &camera.intrinsics,
             &photo,
             &view.cam_from_world,
-            &depth_params,
+            &config.depth,
             image_seed,
         );
         let image_path = out_dir.join("images").join(&view.name);
@@ -509,6 +496,10 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         let depth_valid_fraction =
             depth.data().iter().filter(|d| **d > 0.0).count() as f64 / (width * height) as f64;
         crate::io::pfm::write_pfm(&depth_path, depth.view())?;
+        let exact_path = out_dir
+            .join(EXACT_DEPTH_DIR)
+            .join(Path::new(&view.name).with_extension("pfm"));
+        crate::io::pfm::write_pfm(&exact_path, exact_depth.view())?;
         if let Some((renderer, file)) = &mut truth {
             let (mask, counts) =
                 renderer.mask(&camera.intrinsics, width, height, &view.cam_from_world);
@@ -803,6 +794,7 @@ mod tests {
         for k in 0..3 {
             expected.push(PathBuf::from(format!("images/view_{k:03}.jpg")));
             expected.push(PathBuf::from(format!("depth/view_{k:03}.pfm")));
+            expected.push(PathBuf::from(format!("depth_exact/view_{k:03}.pfm")));
         }
         expected.sort();
         assert_eq!(files, expected);
@@ -1080,18 +1072,7 @@ mod tests {
             );
         }
         // Query mode (b), the paper's: ASG of the normals of the photo's MVS-like depth map.
-        let depth = renderer.depth_map(
-            &camera.intrinsics,
-            &photo,
-            &gt,
-            &photo::DepthParams {
-                relative_noise: config.depth_relative_noise,
-                hole_fraction: config.depth_hole_fraction,
-                max_depth_m: config.depth_max_m,
-                untextured_std_dn: config.depth_untextured_std_dn,
-            },
-            77,
-        );
+        let (depth, _) = renderer.depth_maps(&camera.intrinsics, &photo, &gt, &config.depth, 77);
         let mut depth_normals = Image::default();
         crate::core::shading::normals_from_depth(
             depth.view(),

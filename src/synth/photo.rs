@@ -5,12 +5,13 @@
 //! glass, a sky with clouds and haze. Then camera effects: box-downsampling from a supersampled
 //! rendering (antialiasing), auto-exposure jitter, vignetting, a tone curve, Gaussian lens blur,
 //! signal-dependent sensor noise and 8-bit quantisation (JPEG compression happens when writing).
-//! It also produces the MVS-like depth map of each photo.
+//! It also produces each photo's exact depth and its MVS-like depth (`depth.rs`).
 
 use glam::{Vec2, Vec3};
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
+use super::depth::{gaussian_from_hash, mvs_like_depth, DepthParams, TrueSurfaces};
 use super::geometry::{FaceTag, PartKind, Scene, NO_PANEL};
 use super::texture::{self, fbm, hash_u64, value_noise, Material};
 use crate::core::camera::PinholeIntrinsics;
@@ -34,19 +35,6 @@ pub struct PhotoParams {
     /// Standard deviation of the per-photo exposure change (auto exposure), relative.
     pub exposure_jitter: f32,
     pub seed: u64,
-}
-
-/// Depth-map parameters (MVS-like).
-#[derive(Clone, Copy, Debug)]
-pub struct DepthParams {
-    /// Relative standard deviation of the multiplicative depth noise.
-    pub relative_noise: f32,
-    /// Fraction of the image removed as random blob-shaped holes.
-    pub hole_fraction: f32,
-    /// Depths beyond this are background (no MVS depth), metres.
-    pub max_depth_m: f32,
-    /// Pixels whose 5×5 luma standard deviation (8-bit DN) is below this have no depth.
-    pub untextured_std_dn: f32,
 }
 
 /// Luma (Rec. 601) in `[0, 255]` of a rendered photo (8-bit sRGB).
@@ -399,96 +387,99 @@ impl<'a> PhotoRenderer<'a> {
         rgb
     }
 
-    /// The MVS-like depth map of a photo: true depth incl. clutter with multiplicative noise,
-    /// holes in blobs, background and untextured regions (0.0).
-    pub fn depth_map(
+    /// The MVS-like depth map of a photo (`depth::mvs_like_depth`: holes 0.0 where stereo
+    /// would find nothing, fattened occlusion edges, noise growing with depth) and the exact
+    /// depth of the full scene (clutter included, 0.0 where nothing is hit).
+    pub fn depth_maps(
         &mut self,
         intrinsics: &PinholeIntrinsics,
         photo: &Image<[u8; 3]>,
         cam_from_world: &Rigid3,
         params: &DepthParams,
         image_seed: u64,
-    ) -> Image<f32> {
+    ) -> (Image<f32>, Image<f32>) {
         let (w, h) = photo.size();
         self.render_visibility(intrinsics, w, h, cam_from_world);
         let luma = luma(photo);
-        let local_std = local_std_dev(&luma, w, h, 2);
-        // Blob holes: threshold a smooth noise field so that about `hole_fraction` is removed.
-        let blob_threshold = hole_threshold(params.hole_fraction);
-        let depth = self.depth_buffers.depth_m().data();
-        Image::from_fn(w, h, |col, row| {
-            let index = row * w + col;
-            let d = depth[index];
-            if d <= 0.0 || d > params.max_depth_m || local_std[index] < params.untextured_std_dn {
-                return 0.0;
-            }
-            let p = Vec3::new(col as f32 / 14.0, row as f32 / 14.0, 0.0);
-            let blob = 0.65 * value_noise(image_seed ^ 301, p)
-                + 0.35 * value_noise(image_seed ^ 302, p * 2.7);
-            if blob > blob_threshold {
-                return 0.0;
-            }
-            let correlated = fbm(
-                image_seed ^ 303,
-                Vec3::new(col as f32, row as f32, 0.0),
-                20.0,
-                3,
-                0.0,
-            );
-            let white = gaussian_from_hash(hash_u64(image_seed ^ 0xD1 ^ index as u64));
-            d * (1.0 + params.relative_noise * (0.6 * white + 1.6 * correlated))
-        })
+        let rotation = cam_from_world.inverse().rotation_matrix();
+        let (depth, faces) = (
+            self.depth_buffers.depth_m().data(),
+            self.depth_buffers.face_index().data(),
+        );
+        let eye = cam_from_world.camera_center();
+        let eye = Vec3::new(eye.x as f32, eye.y as f32, eye.z as f32);
+        let footprint_per_m = 1.0 / intrinsics.fx_px as f32;
+        let (scene, face_normals, seed) = (self.scene, &self.face_normals, self.params.seed);
+        // Per pixel: |cos| of the incidence angle and whether the surface is view-dependent.
+        let surfaces: Vec<(f32, bool)> = (0..w * h)
+            .into_par_iter()
+            .map(|index| {
+                let face = faces[index];
+                if face == NO_FACE || depth[index] <= 0.0 {
+                    return (0.0, false);
+                }
+                let (col, row) = (index % w, index / w);
+                let normalized = intrinsics.pixel_to_normalized(nalgebra::Vector2::new(
+                    col as f64 + 0.5,
+                    row as f64 + 0.5,
+                ));
+                let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
+                let ray_world = rotation * ray_cam;
+                let ray = Vec3::new(ray_world.x as f32, ray_world.y as f32, ray_world.z as f32);
+                let normal = face_normals[face as usize];
+                let cos = normal.dot(ray.normalize()).abs();
+                let p = eye + ray * depth[index];
+                let tag = scene.tags[face as usize];
+                let view_dependent = match tag.material {
+                    Material::Foliage { .. } => true,
+                    Material::Ground => {
+                        texture::ground_kind(seed, &scene.ground, p, depth[index] * footprint_per_m)
+                            == texture::GroundKind::Grass
+                    }
+                    Material::Opening | Material::CarGlass => {
+                        let panel =
+                            (tag.panel != NO_PANEL).then(|| &scene.panels[tag.panel as usize]);
+                        let surface = texture::evaluate(
+                            tag.material,
+                            panel,
+                            &scene.ground,
+                            p,
+                            normal,
+                            depth[index] * footprint_per_m,
+                            seed,
+                            tag.object_id,
+                        );
+                        surface.mirror > MIRROR_VIEW_DEPENDENT
+                    }
+                    _ => false,
+                };
+                (cos, view_dependent)
+            })
+            .collect();
+        let cos_incidence: Vec<f32> = surfaces.iter().map(|s| s.0).collect();
+        let view_dependent: Vec<bool> = surfaces.iter().map(|s| s.1).collect();
+        let truth = TrueSurfaces {
+            depth_m: depth,
+            cos_incidence: &cos_incidence,
+            view_dependent: &view_dependent,
+        };
+        let mvs = mvs_like_depth(
+            &luma,
+            w,
+            h,
+            &truth,
+            intrinsics.fx_px as f32,
+            params,
+            image_seed,
+        );
+        let exact = Image::from_fn(w, h, |col, row| depth[row * w + col].max(0.0));
+        (mvs, exact)
     }
 }
 
-/// Threshold on the blob noise (≈ uniform-ish around 0.5) giving the wanted hole fraction.
-fn hole_threshold(hole_fraction: f32) -> f32 {
-    // The sum of two value noises concentrates around 0.5 with std ≈ 0.12; map the fraction
-    // through a logistic-ish approximation of that distribution's upper tail.
-    let f = hole_fraction.clamp(0.0, 0.99);
-    if f <= 0.0 {
-        return f32::INFINITY;
-    }
-    // Inverse of an approximate normal upper tail: z with P(Z > z) = f.
-    let z = inverse_normal_upper_tail(f);
-    0.5 + 0.12 * z
-}
-
-fn inverse_normal_upper_tail(p: f32) -> f32 {
-    // Bisection on the complementary error function approximation.
-    let tail = |z: f32| 0.5 * erfc_approx(z / std::f32::consts::SQRT_2);
-    let (mut lo, mut hi) = (-6.0f32, 6.0f32);
-    for _ in 0..60 {
-        let mid = 0.5 * (lo + hi);
-        if tail(mid) > p {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    0.5 * (lo + hi)
-}
-
-fn erfc_approx(x: f32) -> f32 {
-    // Abramowitz–Stegun 7.1.26.
-    let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
-    let y = t
-        * (0.254_829_6
-            + t * (-0.284_496_7 + t * (1.421_413_7 + t * (-1.453_152 + t * 1.061_405_4))));
-    let erfc = y * (-x * x).exp();
-    if x >= 0.0 {
-        erfc
-    } else {
-        2.0 - erfc
-    }
-}
-
-/// A standard normal number from a hash (Box–Muller on two 24-bit uniforms).
-fn gaussian_from_hash(key: u64) -> f32 {
-    let u1 = ((key >> 40) as f32 + 0.5) / (1u64 << 24) as f32;
-    let u2 = (((key >> 8) & 0xFF_FFFF) as f32 + 0.5) / (1u64 << 24) as f32;
-    (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
-}
+/// Mirror reflectance above which a surface shows mostly the reflected world (glass): stereo
+/// matches the reflection, not the surface.
+const MIRROR_VIEW_DEPENDENT: f32 = 0.2;
 
 fn horizon_colour() -> Vec3 {
     Vec3::new(0.78, 0.82, 0.88)
@@ -565,48 +556,9 @@ fn gaussian_blur_rgb(image: &[Vec3], w: usize, h: usize, sigma_px: f32) -> Vec<V
     out
 }
 
-/// Standard deviation over a `(2r+1)²` window (clamped at the border).
-fn local_std_dev(values: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
-    (0..w * h)
-        .into_par_iter()
-        .map(|index| {
-            let (row, col) = (index / w, index % w);
-            let (mut sum, mut sum_sq, mut n) = (0.0f32, 0.0f32, 0.0f32);
-            for rr in row.saturating_sub(r)..(row + r + 1).min(h) {
-                for cc in col.saturating_sub(r)..(col + r + 1).min(w) {
-                    let v = values[rr * w + cc];
-                    sum += v;
-                    sum_sq += v * v;
-                    n += 1.0;
-                }
-            }
-            let mean = sum / n;
-            (sum_sq / n - mean * mean).max(0.0).sqrt()
-        })
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn hole_threshold_removes_about_the_requested_fraction() {
-        let threshold = hole_threshold(0.1);
-        let mut removed = 0;
-        let n = 200 * 200;
-        for row in 0..200 {
-            for col in 0..200 {
-                let p = Vec3::new(col as f32 / 14.0, row as f32 / 14.0, 0.0);
-                let blob = 0.65 * value_noise(5 ^ 301, p) + 0.35 * value_noise(5 ^ 302, p * 2.7);
-                if blob > threshold {
-                    removed += 1;
-                }
-            }
-        }
-        let fraction = removed as f32 / n as f32;
-        assert!(fraction > 0.03 && fraction < 0.25, "{fraction}");
-    }
 
     #[test]
     fn the_house_casts_a_shadow_away_from_the_sun() {
@@ -635,17 +587,5 @@ mod tests {
         assert_eq!(renderer.shadow.sun_visibility(behind, sun.z), 0.0);
         assert_eq!(renderer.shadow.sun_visibility(in_front, sun.z), 1.0);
         assert_eq!(renderer.shadow.sun_visibility(far_behind, sun.z), 1.0);
-    }
-
-    #[test]
-    fn gaussian_from_hash_has_unit_variance() {
-        let n = 20000;
-        let values: Vec<f32> = (0..n).map(|i| gaussian_from_hash(hash_u64(i))).collect();
-        let mean = values.iter().sum::<f32>() / n as f32;
-        let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f32>() / n as f32;
-        assert!(
-            mean.abs() < 0.05 && (var - 1.0).abs() < 0.05,
-            "{mean} {var}"
-        );
     }
 }

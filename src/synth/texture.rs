@@ -464,23 +464,46 @@ fn opening(seed: u64, panel: &Panel, p: Vec3, footprint_m: f32) -> SurfaceSample
     }
 }
 
-/// The ground's albedo at a world point: asphalt, gravel, concrete or grass with dirt patches.
-pub fn ground_albedo(seed: u64, layout: &GroundLayout, p: Vec3, footprint_m: f32) -> Vec3 {
+/// What covers the ground at a point.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GroundKind {
+    Asphalt,
+    Concrete,
+    Gravel,
+    /// Everything not paved: grass with dirt patches.
+    Grass,
+}
+
+/// What covers the ground at a world point (borders between kinds are noisy).
+pub fn ground_kind(seed: u64, layout: &GroundLayout, p: Vec3, footprint_m: f32) -> GroundKind {
     let xy = Vec2::new(p.x, p.y);
-    // A noisy border between materials.
     let border_jitter = 0.08 * fbm(seed ^ 121, p, 0.5, 2, footprint_m);
     let within = |segments: &[(Vec2, Vec2, f32)]| {
         segments
             .iter()
             .any(|&(a, b, half_width)| distance_to_segment(xy, a, b) < half_width + border_jitter)
     };
-    let large = fbm(seed ^ 122, p, 6.0, 3, footprint_m);
     if within(&layout.asphalt) {
+        GroundKind::Asphalt
+    } else if within(&layout.concrete) {
+        GroundKind::Concrete
+    } else if within(&layout.gravel) {
+        GroundKind::Gravel
+    } else {
+        GroundKind::Grass
+    }
+}
+
+/// The ground's albedo at a world point: asphalt, gravel, concrete or grass with dirt patches.
+pub fn ground_albedo(seed: u64, layout: &GroundLayout, p: Vec3, footprint_m: f32) -> Vec3 {
+    let kind = ground_kind(seed, layout, p, footprint_m);
+    let large = fbm(seed ^ 122, p, 6.0, 3, footprint_m);
+    if kind == GroundKind::Asphalt {
         let grain = fbm(seed ^ 123, p, 0.05, 3, footprint_m);
         let patches = fbm(seed ^ 124, p, 1.2, 3, footprint_m);
         return srgb(75, 75, 78) * (1.0 + 0.5 * large + 0.35 * grain + 0.4 * patches);
     }
-    if within(&layout.concrete) {
+    if kind == GroundKind::Concrete {
         // Square slabs with joints.
         const SLAB_M: f32 = 0.6;
         let ds = (p.x - (p.x / SLAB_M).round() * SLAB_M).abs();
@@ -495,7 +518,7 @@ pub fn ground_albedo(seed: u64, layout: &GroundLayout, p: Vec3, footprint_m: f32
         ) - 0.5;
         return srgb(170, 168, 160) * (1.0 + 0.3 * large + 0.15 * slab) * (1.0 - 0.5 * joint);
     }
-    if within(&layout.gravel) {
+    if kind == GroundKind::Gravel {
         let stones = value_noise(seed ^ 126, p / 0.03) - 0.5;
         let visibility = pattern_visibility(0.03, footprint_m);
         return srgb(160, 150, 135) * (1.0 + 0.4 * large + 0.8 * visibility * stones);

@@ -43,8 +43,11 @@ fn changes_finds_the_new_and_the_demolished_buildings_of_a_synth_changes_scene()
         path_str(&scene.join("gt/cameras.txt")),
         "--poses",
         path_str(&scene.join("gt/images.txt")),
+        // The exact depth: since synth's depth/ became MVS-like (a third of the pixels, none
+        // on grass), the demolished building, which stood on grass, is not found with it (the
+        // ground behind has no depth); that is change detection's limit, not this CLI's.
         "--depth",
-        path_str(&scene.join("depth")),
+        path_str(&scene.join("depth_exact")),
         "--out",
         path_str(&out),
     ]);

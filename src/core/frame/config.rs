@@ -21,6 +21,17 @@ pub enum QueryMode {
     ImageGradient,
     /// ASG of the normals of the photo's depth map (the paper's choice); needs a depth map.
     DepthAsg,
+    /// Depth-ASG where the photo's depth is valid and trustworthy (a full neighbourhood of valid
+    /// depth), the photo's gradient elsewhere, each on the 0..1 scale; needs a depth map. Real
+    /// MVS depth has holes on plain walls, grass and roofs, where the depth query alone is blank.
+    Mixed,
+}
+
+impl QueryMode {
+    /// Whether the mode reads the photo's depth map.
+    pub fn needs_depth(self) -> bool {
+        matches!(self, Self::DepthAsg | Self::Mixed)
+    }
 }
 
 /// Whether the photo's intrinsics are known.
@@ -31,6 +42,19 @@ pub enum IntrinsicsMode {
     Known,
     /// Uncalibrated: DLT, focal lengths, principal point and pose are estimated.
     Unknown,
+}
+
+/// What "unknown intrinsics" ([`IntrinsicsMode::Unknown`]) estimates. A setting of the
+/// registration, not of the frame: the frame only says that its calibration is not to be trusted
+/// (the wire's `intrinsics_known`), and every stage reads the same settings.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum UnknownIntrinsics {
+    /// The paper's 11-DoF DLT: focal lengths, principal point, (skew) and pose.
+    #[default]
+    Dlt,
+    /// Only the focal length (fx = fy · aspect of the nominal camera), principal point at the
+    /// image centre, no skew: what a drone's EXIF leaves open (EPnP with unknown focal length).
+    Focal,
 }
 
 impl IntrinsicsMode {
@@ -60,6 +84,8 @@ pub struct RegistrationConfig {
     /// scene depth seen from the initial pose (dimensionless; 0.02 at 40 m is 0.8 m).
     pub coarse_translation_sigma_fraction: f64,
     pub query_mode: QueryMode,
+    /// What a frame with unknown intrinsics estimates (`--intrinsics unknown|focal`).
+    pub unknown_intrinsics: UnknownIntrinsics,
     /// [`QueryMode::DepthAsg`]: radius of the discontinuity-aware smoothing of the photo's depth
     /// before normals are taken, px (0: none). MVS depth is noisy per pixel; normals of raw depth
     /// are noise (a 0.7 % depth error at 20 m is 14 cm, more than the 5 cm pixel footprint).
@@ -67,6 +93,10 @@ pub struct RegistrationConfig {
     /// Neighbours whose depth differs by more than this fraction from the centre's are not
     /// averaged (they are across an occlusion edge), dimensionless.
     pub query_depth_max_relative_step: f32,
+    /// [`QueryMode::Mixed`]: a pixel's depth-ASG is trusted when at least this share of the
+    /// pixels within the smoothing radius + 1 have depth (and all of its 3×3 neighbours do);
+    /// between this share and 1 the query blends from the photo's gradient to the depth-ASG.
+    pub query_mixed_min_valid_share: f32,
     pub render: RenderOptions,
     pub asg: AsgOptions,
     /// Dense matching of the query against each rendering (pixel pairs; paper §3.2).
@@ -101,8 +131,10 @@ impl Default for RegistrationConfig {
             coarse_rotation_sigma_deg: 1.0,
             coarse_translation_sigma_fraction: 0.02,
             query_mode: QueryMode::ImageGradient,
+            unknown_intrinsics: UnknownIntrinsics::Dlt,
             query_depth_smoothing_radius_px: 3,
             query_depth_max_relative_step: 0.03,
+            query_mixed_min_valid_share: 0.8,
             render: RenderOptions::default(),
             asg: AsgOptions::default(),
             matching,
@@ -130,8 +162,8 @@ pub enum RegistrationError {
         camera_width_px: u32,
         camera_height_px: u32,
     },
-    #[error("query mode DepthAsg needs the photo's depth map, and none was given")]
-    MissingDepth,
+    #[error("query mode {mode:?} needs the photo's depth map, and none was given: give the depth folder, or use the gradient query")]
+    MissingDepth { mode: QueryMode },
     #[error("the depth map is {depth_width_px}x{depth_height_px} px, the photo {photo_width_px}x{photo_height_px} px")]
     DepthSize {
         depth_width_px: usize,
@@ -186,6 +218,12 @@ impl RegistrationConfig {
                     "{} is not a non-negative number",
                     self.query_depth_max_relative_step
                 ),
+            );
+        }
+        if !(0.0..1.0).contains(&self.query_mixed_min_valid_share) {
+            return bad(
+                "query_mixed_min_valid_share",
+                format!("{} is outside [0, 1)", self.query_mixed_min_valid_share),
             );
         }
         if self.min_correspondences_per_pose < 6 {

@@ -37,7 +37,9 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-pub use config::{IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError};
+pub use config::{
+    IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError, UnknownIntrinsics,
+};
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
 pub use decide::{decide_frame, Decision};
 pub use query::{query_gradient, smooth_depth};
@@ -66,7 +68,8 @@ const GRADIENT_SCALE_PERCENTILE: f64 = 0.99;
 pub struct FrameInput<'a> {
     /// Grey photo, values 0..1.
     pub photo: ImageView<'a, f32>,
-    /// The photo's depth map (metres along the optical axis, holes 0), for [`QueryMode::DepthAsg`].
+    /// The photo's depth map (metres along the optical axis, holes 0), for [`QueryMode::DepthAsg`]
+    /// and [`QueryMode::Mixed`].
     pub depth_m: Option<ImageView<'a, f32>>,
     /// The camera: known intrinsics, or the nominal ones coarse poses are rendered with.
     pub camera: &'a Camera,

@@ -1,11 +1,16 @@
 //! Step "solve": one coarse view's 2D–3D correspondences become a refined pose by RANSAC (EPnP
-//! for known intrinsics, the 11-DoF DLT for unknown) and Levenberg–Marquardt (paper §3.3,
+//! for known intrinsics, the 11-DoF DLT for unknown, EPnP with unknown focal length when only the
+//! focal length is unknown) and Levenberg–Marquardt (paper §3.3,
 //! docs/design.md §2 step 6), or the reason there is none.
 
 use nalgebra::{Vector2, Vector3};
 
-use super::{frame_rng, CoarseOutcome, IntrinsicsMode, RegistrationConfig, ViewCorrespondences};
+use super::{
+    frame_rng, CoarseOutcome, IntrinsicsMode, RegistrationConfig, UnknownIntrinsics,
+    ViewCorrespondences,
+};
 use crate::core::camera::Camera;
+use crate::core::pose::epnpf::FocalPrior;
 use crate::core::pose::estimate::{estimate_pose, IntrinsicsPrior};
 use crate::core::pose::{Correspondences, PoseError};
 use crate::core::verify::PoseHypothesis;
@@ -59,8 +64,20 @@ fn solve_pose(
     let data = Correspondences::new(&image_points, &world_points)?;
     let prior = match intrinsics {
         IntrinsicsMode::Known => IntrinsicsPrior::Known(camera.intrinsics),
-        IntrinsicsMode::Unknown => IntrinsicsPrior::Unknown {
-            planar_fallback: Some(camera.intrinsics),
+        IntrinsicsMode::Unknown => match config.unknown_intrinsics {
+            UnknownIntrinsics::Dlt => IntrinsicsPrior::Unknown {
+                planar_fallback: Some(camera.intrinsics),
+            },
+            UnknownIntrinsics::Focal => IntrinsicsPrior::UnknownFocal {
+                prior: FocalPrior::centred(
+                    &camera.intrinsics,
+                    Vector2::new(
+                        0.5 * f64::from(camera.width_px),
+                        0.5 * f64::from(camera.height_px),
+                    ),
+                ),
+                planar_fallback: Some(camera.intrinsics),
+            },
         },
     };
     let mut rng = frame_rng(seed, 100 + correspondences.coarse_index as u64);

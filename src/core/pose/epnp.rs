@@ -101,57 +101,13 @@ fn solve_variant(
         EpnpVariant::General => 4,
     };
 
-    // Control points in the world: the centroid, then centroid + σₖ·axisₖ.
-    let mut world_controls = vec![shape.centroid_m];
-    for axis in 0..control_count - 1 {
-        world_controls
-            .push(shape.centroid_m + shape.principal_axes[axis] * shape.principal_std_m[axis]);
-    }
-    // Barycentric coordinates: the axes are orthonormal, so they come by projection.
-    let alphas: Vec<[f64; 4]> = world_points
-        .iter()
-        .map(|point| {
-            let centred = point - shape.centroid_m;
-            let mut alpha = [0.0; 4];
-            for axis in 0..control_count - 1 {
-                alpha[axis + 1] =
-                    centred.dot(&shape.principal_axes[axis]) / shape.principal_std_m[axis];
-            }
-            alpha[0] = 1.0 - alpha[1..].iter().sum::<f64>();
-            alpha
-        })
-        .collect();
+    let (world_controls, alphas) = control_points(shape, control_count, world_points);
     let normalized_points: Vec<Vector2<f64>> = image_points_px
         .iter()
         .map(|p| intrinsics.pixel_to_normalized(*p))
         .collect();
-
-    // MᵀM, accumulated row by row: per control point j, each point gives the rows
-    // [αⱼ, 0, -αⱼ x] and [0, αⱼ, -αⱼ y].
     let dimension = 3 * control_count;
-    let mut normal_matrix = DMatrix::<f64>::zeros(dimension, dimension);
-    let mut row_u = [0.0; 12];
-    let mut row_v = [0.0; 12];
-    for (alpha, point) in alphas.iter().zip(&normalized_points) {
-        for j in 0..control_count {
-            row_u[3 * j] = alpha[j];
-            row_u[3 * j + 1] = 0.0;
-            row_u[3 * j + 2] = -alpha[j] * point.x;
-            row_v[3 * j] = 0.0;
-            row_v[3 * j + 1] = alpha[j];
-            row_v[3 * j + 2] = -alpha[j] * point.y;
-        }
-        for a in 0..dimension {
-            for b in a..dimension {
-                normal_matrix[(a, b)] += row_u[a] * row_u[b] + row_v[a] * row_v[b];
-            }
-        }
-    }
-    for a in 0..dimension {
-        for b in 0..a {
-            normal_matrix[(a, b)] = normal_matrix[(b, a)];
-        }
-    }
+    let normal_matrix = normal_matrix(&alphas, &normalized_points, control_count);
     let eigen = SymmetricEigen::try_new(normal_matrix, f64::EPSILON, 1000).ok_or(
         PoseError::Degenerate {
             why: "the EPnP system did not diagonalise",
@@ -241,6 +197,70 @@ fn solve_variant(
     best.map(|(_, pose)| pose).ok_or(PoseError::Degenerate {
         why: "no EPnP candidate put the points in front of the camera",
     })
+}
+
+/// The world control points (the centroid, then centroid + σₖ·axisₖ for `control_count − 1`
+/// principal axes of `shape`) and each world point's barycentric coordinates in them (the axes
+/// are orthonormal, so they come by projection).
+pub(super) fn control_points(
+    shape: &super::PointCloudShape,
+    control_count: usize,
+    world_points: &[Vector3<f64>],
+) -> (Vec<Vector3<f64>>, Vec<[f64; 4]>) {
+    let mut world_controls = vec![shape.centroid_m];
+    for axis in 0..control_count - 1 {
+        world_controls
+            .push(shape.centroid_m + shape.principal_axes[axis] * shape.principal_std_m[axis]);
+    }
+    let alphas = world_points
+        .iter()
+        .map(|point| {
+            let centred = point - shape.centroid_m;
+            let mut alpha = [0.0; 4];
+            for axis in 0..control_count - 1 {
+                alpha[axis + 1] =
+                    centred.dot(&shape.principal_axes[axis]) / shape.principal_std_m[axis];
+            }
+            alpha[0] = 1.0 - alpha[1..].iter().sum::<f64>();
+            alpha
+        })
+        .collect();
+    (world_controls, alphas)
+}
+
+/// `MᵀM` of EPnP's system `M x = 0` in the control points' camera coordinates, accumulated row by
+/// row: per control point j, each point gives the rows [αⱼ, 0, -αⱼ x] and [0, αⱼ, -αⱼ y]
+/// (`x`, `y` its normalised image coordinates).
+pub(super) fn normal_matrix(
+    alphas: &[[f64; 4]],
+    normalized_points: &[Vector2<f64>],
+    control_count: usize,
+) -> DMatrix<f64> {
+    let dimension = 3 * control_count;
+    let mut normal_matrix = DMatrix::<f64>::zeros(dimension, dimension);
+    let mut row_u = [0.0; 12];
+    let mut row_v = [0.0; 12];
+    for (alpha, point) in alphas.iter().zip(normalized_points) {
+        for j in 0..control_count {
+            row_u[3 * j] = alpha[j];
+            row_u[3 * j + 1] = 0.0;
+            row_u[3 * j + 2] = -alpha[j] * point.x;
+            row_v[3 * j] = 0.0;
+            row_v[3 * j + 1] = alpha[j];
+            row_v[3 * j + 2] = -alpha[j] * point.y;
+        }
+        for a in 0..dimension {
+            for b in a..dimension {
+                normal_matrix[(a, b)] += row_u[a] * row_u[b] + row_v[a] * row_v[b];
+            }
+        }
+    }
+    for a in 0..dimension {
+        for b in 0..a {
+            normal_matrix[(a, b)] = normal_matrix[(b, a)];
+        }
+    }
+    normal_matrix
 }
 
 /// The βs for `beta_count` kernel vectors from the linearised distance constraints.

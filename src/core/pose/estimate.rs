@@ -4,6 +4,9 @@
 //! Solver choice and the planar policy:
 //! - **known intrinsics** → EPnP (or P3P, [`FixedIntrinsicsSolver`]) inside RANSAC — EPnP switches
 //!   to its planar variant for planar samples — then Levenberg–Marquardt on the pose (6 DoF);
+//! - **unknown focal length** (principal point, aspect known, no skew) → EPnP with unknown focal
+//!   length ([`super::epnpf`]) on 6 points, then Levenberg–Marquardt on the focal length and the
+//!   pose (7 DoF); the same planar policy as the DLT's below;
 //! - **unknown intrinsics** → the paper's normalised DLT on 6 points, then Levenberg–Marquardt on
 //!   `fx, fy, cx, cy` and the pose, from skew 0 (`zero_skew`, the default) or the DLT's skew.
 //!   A DLT needs relief: when the planarity ratio of all 3D points (smallest over largest
@@ -20,10 +23,11 @@
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
+use super::epnpf::FocalPrior;
 use super::planarity::{point_cloud_shape, PointCloudShape};
 use super::ransac::{
-    ransac_camera, Consensus, DltEstimator, EpnpEstimator, P3pEstimator, RansacConfig,
-    ReprojectionConsensus,
+    ransac_camera, Consensus, DltEstimator, EpnpEstimator, EpnpFocalEstimator, P3pEstimator,
+    RansacConfig, ReprojectionConsensus,
 };
 use super::refine::{refine_camera, RefineConfig, RefinedParameters, RefinementSummary};
 use super::{CameraPose, Correspondences, PoseError};
@@ -37,6 +41,13 @@ pub enum IntrinsicsPrior {
     /// Uncalibrated: intrinsics and pose are estimated (DLT). `planar_fallback` is used, fixed,
     /// when the 3D points are too close to a plane for a DLT; `None` makes such frames fail.
     Unknown {
+        planar_fallback: Option<PinholeIntrinsics>,
+    },
+    /// Only the focal length is unknown (principal point, aspect ratio known, no skew): EPnP
+    /// with unknown focal length ([`super::epnpf`]), then refinement of focal length and pose.
+    /// `planar_fallback` as for `Unknown`.
+    UnknownFocal {
+        prior: FocalPrior,
         planar_fallback: Option<PinholeIntrinsics>,
     },
 }
@@ -106,6 +117,8 @@ pub enum SolverKind {
     Epnp,
     /// P3P on 3 + 1 points (intrinsics fixed).
     P3p,
+    /// EPnP with unknown focal length on 6 points (focal length estimated).
+    EpnpFocal,
 }
 
 /// The solver used when the intrinsics are fixed (known, or the planar fallback).
@@ -190,13 +203,28 @@ pub fn estimate_pose<R: Rng + ?Sized>(
             let (output, solver) = fixed_intrinsics_ransac(intrinsics, rng)?;
             (output, solver, IntrinsicsSource::Known)
         }
-        IntrinsicsPrior::Unknown { planar_fallback } => {
+        IntrinsicsPrior::Unknown { planar_fallback }
+        | IntrinsicsPrior::UnknownFocal {
+            planar_fallback, ..
+        } => {
             if point_cloud_shape.planarity_ratio >= config.dlt_min_planarity_ratio {
-                (
-                    ransac_camera(&DltEstimator, data, &config.ransac, rng)?,
-                    SolverKind::Dlt,
-                    IntrinsicsSource::Estimated,
-                )
+                match prior {
+                    IntrinsicsPrior::UnknownFocal { prior, .. } => (
+                        ransac_camera(
+                            &EpnpFocalEstimator::new(*prior)?,
+                            data,
+                            &config.ransac,
+                            rng,
+                        )?,
+                        SolverKind::EpnpFocal,
+                        IntrinsicsSource::Estimated,
+                    ),
+                    _ => (
+                        ransac_camera(&DltEstimator, data, &config.ransac, rng)?,
+                        SolverKind::Dlt,
+                        IntrinsicsSource::Estimated,
+                    ),
+                }
             } else if let Some(intrinsics) = planar_fallback {
                 let (output, solver) = fixed_intrinsics_ransac(intrinsics, rng)?;
                 (output, solver, IntrinsicsSource::PlanarFallback)
@@ -209,6 +237,9 @@ pub fn estimate_pose<R: Rng + ?Sized>(
         }
     };
     let refined_parameters = match intrinsics_source {
+        IntrinsicsSource::Estimated if solver == SolverKind::EpnpFocal => {
+            RefinedParameters::FocalAndPose
+        }
         IntrinsicsSource::Estimated => RefinedParameters::IntrinsicsAndPose,
         IntrinsicsSource::Known | IntrinsicsSource::PlanarFallback => RefinedParameters::Pose,
     };
@@ -329,6 +360,49 @@ mod tests {
                 estimate.inlier_count
             );
             assert!(estimate.point_cloud_shape.planarity_ratio > 0.1);
+        }
+    }
+
+    #[test]
+    fn unknown_focal_length_is_recovered_with_outliers_and_noise() {
+        for seed in 0..3 {
+            let scene = scene(210 + seed, 15.0);
+            let data = Correspondences::new(&scene.image_points_px, &scene.world_points).unwrap();
+            let truth = &scene.camera;
+            // Principal point and aspect ratio known, the nominal focal length 20 % off.
+            let prior = IntrinsicsPrior::UnknownFocal {
+                prior: FocalPrior::centred(
+                    &PinholeIntrinsics {
+                        fx_px: 1.2 * truth.intrinsics.fx_px,
+                        fy_px: 1.2 * truth.intrinsics.fy_px,
+                        ..truth.intrinsics
+                    },
+                    nalgebra::Vector2::new(truth.intrinsics.cx_px, truth.intrinsics.cy_px),
+                ),
+                planar_fallback: None,
+            };
+            let estimate = estimate_pose(
+                &data,
+                &prior,
+                &PoseEstimationConfig::default(),
+                &mut ChaCha8Rng::seed_from_u64(seed),
+            )
+            .unwrap();
+            assert_eq!(estimate.solver, SolverKind::EpnpFocal);
+            assert_eq!(estimate.intrinsics_source, IntrinsicsSource::Estimated);
+            let k = &estimate.camera.intrinsics;
+            assert_eq!((k.cx_px, k.cy_px, k.skew_px), (330.0, 235.0, 0.0));
+            assert!(estimate.inlier_rms_px < 0.75, "{}", estimate.inlier_rms_px);
+            assert!(
+                (k.fx_px - truth.intrinsics.fx_px).abs() < 0.01 * truth.intrinsics.fx_px,
+                "focal {} vs {}",
+                k.fx_px,
+                truth.intrinsics.fx_px
+            );
+            assert!(
+                rotation_error_deg(&estimate.camera.cam_from_world, &truth.cam_from_world) < 0.3
+            );
+            assert!((295..=310).contains(&estimate.inlier_count));
         }
     }
 

@@ -4,6 +4,8 @@
 //! - [`dlt`]: normalised DLT on ≥ 6 points, decomposed into `K` and `cam_from_world` (unknown
 //!   intrinsics, the paper's solver);
 //! - [`epnp`]: EPnP on ≥ 4 points (known intrinsics), with its planar three-control-point variant;
+//! - [`epnpf`]: EPnP with unknown focal length on ≥ 6 points (UPnP's linear case; principal point
+//!   known, no skew: a drone's EXIF camera);
 //! - [`p3p`]: Grunert's P3P (known intrinsics), the minimal alternative inside RANSAC;
 //! - [`refine`]: Levenberg–Marquardt on the reprojection error of the inliers;
 //! - [`ransac`]: the generic RANSAC loop (estimator / sampler / consensus, seeded RNG passed in)
@@ -17,6 +19,7 @@
 
 pub mod dlt;
 pub mod epnp;
+pub mod epnpf;
 pub mod estimate;
 pub mod p3p;
 pub mod planarity;
@@ -29,7 +32,8 @@ pub use estimate::{
 };
 pub use planarity::{depth_relief_ratio, point_cloud_shape, PointCloudShape};
 pub use ransac::{
-    ransac_camera, DltEstimator, EpnpEstimator, P3pEstimator, RansacConfig, RansacOutput,
+    ransac_camera, DltEstimator, EpnpEstimator, EpnpFocalEstimator, P3pEstimator, RansacConfig,
+    RansacOutput,
 };
 pub use refine::{refine_camera, RefineConfig, RefineStop, RefinedParameters, RefinementSummary};
 

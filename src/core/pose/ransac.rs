@@ -23,7 +23,7 @@ use nalgebra::{Matrix3x4, Vector2, Vector3};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use super::{dlt, epnp, p3p, project_with_matrix, CameraPose, Correspondences, PoseError};
+use super::{dlt, epnp, epnpf, p3p, project_with_matrix, CameraPose, Correspondences, PoseError};
 use crate::core::camera::PinholeIntrinsics;
 
 /// Settings of the RANSAC loop. Defaults are the paper's stopping rule.
@@ -439,6 +439,40 @@ impl Estimator for EpnpEstimator {
             intrinsics: self.intrinsics,
             cam_from_world: epnp::solve(&self.intrinsics, image_points_px, world_points)?,
         })
+    }
+
+    fn projection_matrix(&self, model: &CameraPose) -> Matrix3x4<f64> {
+        model.projection_matrix()
+    }
+}
+
+/// Unknown focal length (principal point, aspect ratio known, no skew): EPnP with unknown focal
+/// length on 6 points ([`epnpf`]).
+#[derive(Clone, Copy, Debug)]
+pub struct EpnpFocalEstimator {
+    prior: epnpf::FocalPrior,
+}
+
+impl EpnpFocalEstimator {
+    pub fn new(prior: epnpf::FocalPrior) -> Result<Self, PoseError> {
+        prior.validate()?;
+        Ok(Self { prior })
+    }
+}
+
+impl Estimator for EpnpFocalEstimator {
+    type Model = CameraPose;
+
+    fn sample_size(&self) -> usize {
+        epnpf::EPNPF_MIN_POINTS
+    }
+
+    fn fit(
+        &self,
+        image_points_px: &[Vector2<f64>],
+        world_points: &[Vector3<f64>],
+    ) -> Result<CameraPose, PoseError> {
+        epnpf::solve(&self.prior, image_points_px, world_points)
     }
 
     fn projection_matrix(&self, model: &CameraPose) -> Matrix3x4<f64> {

@@ -9,7 +9,7 @@
 //! (`R ← exp([ω]×) R`, `t ← exp([ω]×) t + δt`), so the parameterisation has no singularity.
 //!
 //! Preconditions: every given point is in front of the start camera (inliers are), at least 3
-//! points for the pose alone and 5 with the intrinsics, finite input. Steps that raise the cost,
+//! points for the pose alone, 4 with the focal length and 5 with the intrinsics, finite input. Steps that raise the cost,
 //! put a point behind the camera or make a focal length non-positive are rejected (the damping
 //! grows), so a bad start never gets worse. Skew is kept at its starting value (0 for a physical
 //! camera, the DLT's value otherwise); distortion is not modelled.
@@ -76,6 +76,9 @@ pub enum RefinedParameters {
     Pose,
     /// `fx, fy, cx, cy` and the pose (10 DoF); skew stays as it is.
     IntrinsicsAndPose,
+    /// One focal length (`fx` and `fy` change together, keeping `fy / fx`) and the pose
+    /// (7 DoF); principal point and skew stay as they are.
+    FocalAndPose,
 }
 
 impl RefinedParameters {
@@ -83,6 +86,7 @@ impl RefinedParameters {
         match self {
             RefinedParameters::Pose => 6,
             RefinedParameters::IntrinsicsAndPose => 10,
+            RefinedParameters::FocalAndPose => 7,
         }
     }
 }
@@ -301,10 +305,18 @@ fn linearise(
             row_u[3 + axis] = du[axis];
             row_v[3 + axis] = dv[axis];
         }
-        if parameters == RefinedParameters::IntrinsicsAndPose {
-            // fx, fy, cx, cy.
-            row_u[6..10].copy_from_slice(&[x, 0.0, 1.0, 0.0]);
-            row_v[6..10].copy_from_slice(&[0.0, y, 0.0, 1.0]);
+        match parameters {
+            RefinedParameters::Pose => {}
+            RefinedParameters::IntrinsicsAndPose => {
+                // fx, fy, cx, cy.
+                row_u[6..10].copy_from_slice(&[x, 0.0, 1.0, 0.0]);
+                row_v[6..10].copy_from_slice(&[0.0, y, 0.0, 1.0]);
+            }
+            RefinedParameters::FocalAndPose => {
+                // f = fx, with fy = f · (fy / fx) and skew fixed.
+                row_u[6] = x;
+                row_v[6] = y * k.fy_px / k.fx_px;
+            }
         }
         for a in 0..dimension {
             gradient[a] += row_u[a] * residual_u + row_v[a] * residual_v;
@@ -335,11 +347,19 @@ fn apply_step(
         rotation_step * pose.translation + Vector3::new(step[3], step[4], step[5]),
     );
     let mut intrinsics = camera.intrinsics;
-    if parameters == RefinedParameters::IntrinsicsAndPose {
-        intrinsics.fx_px += step[6];
-        intrinsics.fy_px += step[7];
-        intrinsics.cx_px += step[8];
-        intrinsics.cy_px += step[9];
+    match parameters {
+        RefinedParameters::Pose => {}
+        RefinedParameters::IntrinsicsAndPose => {
+            intrinsics.fx_px += step[6];
+            intrinsics.fy_px += step[7];
+            intrinsics.cx_px += step[8];
+            intrinsics.cy_px += step[9];
+        }
+        RefinedParameters::FocalAndPose => {
+            let aspect = intrinsics.fy_px / intrinsics.fx_px;
+            intrinsics.fx_px += step[6];
+            intrinsics.fy_px = intrinsics.fx_px * aspect;
+        }
     }
     let refined = CameraPose {
         intrinsics,
