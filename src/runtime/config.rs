@@ -77,7 +77,7 @@ pub struct Workers {
     pub flow_local: Option<u32>,
     pub pose: u32,
     /// Change detection workers (accepted frames' change maps, dispatched like flow), plus one
-    /// fusion stage when > 0. 0: no change detection.
+    /// fusion stage when > 0 (the default: 1). 0: no change detection.
     pub change: u32,
     /// Jobs a worker holds at once (1: strict sharing; 2 hides transport latency).
     pub slots: u32,
@@ -90,7 +90,7 @@ impl Default for Workers {
             flow: 2,
             flow_local: None,
             pose: 1,
-            change: 0,
+            change: 1,
             slots: 1,
         }
     }
