@@ -414,10 +414,10 @@ fn change_set(out: &Path) -> serde_json::Value {
 /// Change detection in the pipeline on a tiny `synth --changes` scene (5 photos, 160×88, given
 /// depth maps): `run` prints a change result per frame (a map for the registered frames, the
 /// reason for the others) and the fused change set; `launch` over iceoryx2 with 2 change
-/// workers, one of them SIGKILLed mid-stream, gives every frame exactly one change result and
-/// the same change set as `run`.
+/// workers, with change worker 0, then verify, then fusion SIGKILLed mid-stream, gives every
+/// frame exactly one change result and the same change results and change set as `run`.
 #[test]
-fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_set() {
+fn change_stage_run_and_launch_with_killed_change_verify_and_fusion_give_the_same_change_set() {
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("scene");
     let output = asgreg(&[
@@ -496,13 +496,14 @@ fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_
     let reference_set = change_set(&out_run);
     assert_eq!(reference_set["complete"], true);
 
-    // launch, 2 change workers, frames at 4/s; change worker 0 is killed after the first result.
+    // launch, 2 change workers, frames at 1.5/s; change worker 0 is killed after the first
+    // result, verify 0.5 s later, fusion 0.5 s after that (most of the stream still to come).
     let launch_config = write_config(
         dir.path(),
         "changes-iox.toml",
         &scene,
         "iceoryx2",
-        &body("chg-iox", "rate_hz = 4.0\n"),
+        &body("chg-iox", "rate_hz = 1.5\n"),
     );
     let out_iox = dir.path().join("out-iox");
     let mut launcher = command(&[
@@ -520,12 +521,11 @@ fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_
         let mut text = String::new();
         for line in BufReader::new(stderr).lines() {
             let line = line.unwrap();
-            if let Some(pid) = line.strip_prefix("launch: change worker 0 pid ") {
-                let pid = pid.trim().parse::<u32>().unwrap();
-                let _ = pid_events.send(Event::Started {
-                    stage: "change",
-                    pid,
-                });
+            for stage in ["change", "verify", "fusion"] {
+                if let Some(pid) = line.strip_prefix(&format!("launch: {stage} worker 0 pid ")) {
+                    let pid = pid.trim().parse::<u32>().unwrap();
+                    let _ = pid_events.send(Event::Started { stage, pid });
+                }
             }
             text.push_str(&line);
             text.push('\n');
@@ -545,10 +545,10 @@ fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_
         }
         text
     });
-    let mut starts = Vec::new();
+    let mut started = Vec::new();
     loop {
         match received.recv_timeout(Duration::from_secs(120)) {
-            Ok(Event::Started { pid, .. }) => starts.push(pid),
+            Ok(Event::Started { stage, pid }) => started.push((stage, pid)),
             Ok(Event::Result) => break,
             Err(_) => {
                 let _ = launcher.kill();
@@ -556,36 +556,54 @@ fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_
             }
         }
     }
-    let killed = Command::new("kill")
-        .args(["-9", &starts[0].to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
+    for (i, stage) in ["change", "verify", "fusion"].into_iter().enumerate() {
+        if i > 0 {
+            std::thread::sleep(Duration::from_millis(500));
+        }
+        let pid = started.iter().find(|(s, _)| *s == stage).unwrap().1;
+        let killed = Command::new("kill")
+            .args(["-9", &pid.to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+    }
     let status = launcher.wait().unwrap();
     let log = log.join().unwrap();
     let printed = printed.join().unwrap();
     assert!(status.success(), "launch failed:\n{printed}\n{log}");
     while let Ok(event) = received.try_recv() {
-        if let Event::Started { pid, .. } = event {
-            starts.push(pid);
+        if let Event::Started { stage, pid } = event {
+            started.push((stage, pid));
         }
     }
-    assert!(
-        starts.len() >= 2,
-        "the killed change worker was not restarted:\n{log}"
-    );
+    for stage in ["change", "verify", "fusion"] {
+        let starts = started.iter().filter(|(s, _)| *s == stage).count();
+        assert!(
+            starts >= 2,
+            "the killed {stage} worker was not restarted:\n{log}"
+        );
+    }
     assert!(
         printed.contains("exactly one change result per frame: yes"),
+        "{printed}"
+    );
+    assert!(
+        printed.contains("exactly one result per frame: yes"),
         "{printed}"
     );
     assert_eq!(
         change_results(&out_iox),
         reference,
-        "launch's change results differ from run's:\n{printed}"
+        "launch's change results differ from run's:\n{printed}\n{log}"
     );
     assert_eq!(
         change_set(&out_iox),
         reference_set,
         "launch's change set differs from run's"
+    );
+    assert_eq!(
+        results(&out_iox),
+        results(&out_run),
+        "launch's pose results differ from run's"
     );
 }
