@@ -14,7 +14,7 @@ use crate::msg::{
     change_result_json, change_set_json, pose_result_json, Body, FrameFailed, Header, JobKey,
     StageMetrics, StreamEnd,
 };
-use crate::stage::change::ChangeStage;
+use crate::stage::change::{ChangeStage, StereoDepthSettings};
 use crate::stage::flow::FlowStage;
 use crate::stage::fusion::FusionStage;
 use crate::stage::ingest::{FolderSource, SourceError};
@@ -33,6 +33,9 @@ const POLL: Duration = Duration::from_millis(20);
 /// Change jobs verify queues for the change workers (verify never waits for them: a change job
 /// is a few ms of work per frame, far less than a frame's registration).
 const CHANGE_JOBS_QUEUED: usize = 1024;
+/// How long verify waits for a change result to be published after no change worker holds its
+/// job any more (or after sending a frame's result to fusion) before it issues the work again.
+const CHANGE_RESEND_AFTER: Duration = Duration::from_secs(3);
 /// Most compute samples a metrics message carries (the most recent ones).
 const MAX_SAMPLES: usize = 4096;
 
@@ -793,7 +796,9 @@ pub fn run_pose(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
 /// `changes`, or in the change journal). When fusion restarts, the change results it had
 /// received but not yet published are gone with it, so verify issues the work of every frame
 /// still without a published change result again (fusion keeps the first change result per
-/// frame, across its restarts by the change journal). A change worker's restart is the
+/// frame, across its restarts by the change journal); and work that no change worker holds any
+/// more and whose result is still not published [`CHANGE_RESEND_AFTER`] later is issued again
+/// (a fusion restart verify did not see, e.g. while verify itself restarted). A change worker's restart is the
 /// dispatcher's redo; a restart of verify itself is ingest's ([`Recovery`]: a frame is finished
 /// for ingest only once its change result is out too).
 struct ChangeRecovery<'t> {
@@ -802,8 +807,9 @@ struct ChangeRecovery<'t> {
     changes: Inbox,
     metrics: Inbox,
     fusion_incarnation: Option<u64>,
-    /// Encoded change work per frame: (is a job for the change workers, the message).
-    pending: std::collections::BTreeMap<u64, (bool, std::sync::Arc<Vec<u8>>)>,
+    /// Encoded change work per frame: (is a job for the change workers, the message, since
+    /// when it is out of the dispatcher's hands).
+    pending: std::collections::BTreeMap<u64, (bool, std::sync::Arc<Vec<u8>>, Instant)>,
     /// Frames whose change result is published.
     published: std::collections::BTreeSet<u64>,
     journal: (std::path::PathBuf, String),
@@ -871,8 +877,10 @@ impl<'t> ChangeRecovery<'t> {
             return Ok(());
         }
         let bytes = std::sync::Arc::new(encode_to_vec(frame_id, capture, body)?);
-        self.pending
-            .insert(frame_id, (is_job, std::sync::Arc::clone(&bytes)));
+        self.pending.insert(
+            frame_id,
+            (is_job, std::sync::Arc::clone(&bytes), Instant::now()),
+        );
         self.send(frame_id, is_job, bytes, metrics)
     }
 
@@ -937,15 +945,27 @@ impl<'t> ChangeRecovery<'t> {
                 "verify: the fusion stage restarted; issuing the change work of the {} frame(s) without a published change result again",
                 self.pending.len()
             );
-            let pending: Vec<_> = self
-                .pending
-                .iter()
-                .map(|(id, (is_job, bytes))| (*id, *is_job, std::sync::Arc::clone(bytes)))
-                .collect();
-            for (frame_id, is_job, bytes) in pending {
-                self.reissued += 1;
-                self.send(frame_id, is_job, bytes, metrics)?;
+        }
+        let now = Instant::now();
+        let mut resend = Vec::new();
+        for (frame_id, (is_job, bytes, since)) in &mut self.pending {
+            if *is_job && self.dispatcher.holds(*frame_id) {
+                *since = now;
+            } else if fusion_restarted || now.duration_since(*since) >= CHANGE_RESEND_AFTER {
+                *since = now;
+                resend.push((*frame_id, *is_job, std::sync::Arc::clone(bytes)));
             }
+        }
+        if !fusion_restarted && !resend.is_empty() {
+            tracing::warn!(
+                "verify: {} frame(s) still without a published change result {:.0} s after their change work was done; issuing it again",
+                resend.len(),
+                CHANGE_RESEND_AFTER.as_secs_f64()
+            );
+        }
+        for (frame_id, is_job, bytes) in resend {
+            self.reissued += 1;
+            self.send(frame_id, is_job, bytes, metrics)?;
         }
         self.dispatcher.pump(Duration::ZERO)?;
         Ok(())
@@ -969,7 +989,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     // With change detection: accepted frames' change jobs go to the change workers, the other
     // frames' change results (why there is none) and the end of the stream to fusion.
     let mut changes = if config.changes_enabled() {
-        stage = stage.with_changes();
+        stage = stage.with_changes(config.stereo.neighbours, config.stereo.window_frames);
         Some(ChangeRecovery::open(ctx)?)
     } else {
         None
@@ -1061,6 +1081,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             }
         }
         if let Some(recovery) = &mut changes {
+            stage.release_stereo_jobs();
             // Also for a frame published before a restart of verify (ingest sends it again while
             // its change result is not out).
             for work in stage.change_work.drain(..) {
@@ -1119,7 +1140,11 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
 pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
     let mut fusion = Outbox::open(ctx.transport, keys::FUSION_IN)?;
     fusion.wait_for_reader("fusion", ctx.startup())?;
-    let mut stage = ChangeStage::new(mesh, ctx.config.change, ctx.worker_index);
+    let stereo = StereoDepthSettings {
+        sweep: ctx.config.stereo.sweep,
+        disparity_sigma_px: ctx.config.stereo.disparity_sigma_px,
+    };
+    let mut stage = ChangeStage::new(mesh, ctx.config.change, stereo, ctx.worker_index);
     serve_jobs(ctx, "change", keys::CHANGE_LINK, &mut |message, metrics| {
         let frame_id = message.header.frame_id;
         let Body::ChangeJob(job) = message.body else {
