@@ -317,10 +317,7 @@ mod tests {
         let blocker = dir.path().join("not-a-dir");
         std::fs::write(&blocker, b"").unwrap();
         let path = blocker.join("p.results-journal");
-        let error = Journal::open(&path, "# h")
-            .err()
-            .unwrap()
-            .to_string();
+        let error = Journal::open(&path, "# h").err().unwrap().to_string();
         assert!(
             error.contains("not-a-dir") && error.contains("state_dir"),
             "{error}"

@@ -224,8 +224,7 @@ impl Recovery {
             journal::Kind::Change => self.changed.insert(frame_id),
         };
         let needs_change = self.changes.is_some();
-        if self.posed.contains(&frame_id) && (!needs_change || self.changed.contains(&frame_id))
-        {
+        if self.posed.contains(&frame_id) && (!needs_change || self.changed.contains(&frame_id)) {
             self.kept.remove(&frame_id);
             self.finished.insert(frame_id);
         }
@@ -1171,10 +1170,7 @@ pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
 }
 
 /// A change result back from its change journal line.
-fn restore_change_result(
-    frame_id: u64,
-    payload: &str,
-) -> Result<crate::msg::ChangeResult, String> {
+fn restore_change_result(frame_id: u64, payload: &str) -> Result<crate::msg::ChangeResult, String> {
     let bytes = journal::from_hex(payload).ok_or("not hex")?;
     let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
     match message.body {

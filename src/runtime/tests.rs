@@ -391,7 +391,10 @@ fn restarted_ingest_verify_and_fusion_resume_from_the_results_journals() {
     let dir = tempfile::tempdir().unwrap();
     let mut config = tiny_scene(dir.path());
     config.state_dir = Some(dir.path().join("state"));
-    assert!(config.changes_enabled(), "change detection is on by default");
+    assert!(
+        config.changes_enabled(),
+        "change detection is on by default"
+    );
     let path = journal::path(&config, journal::Kind::Pose);
     let header = journal::header(&config, journal::Kind::Pose);
     let (mut written, _) = journal::Journal::open(&path, &header).unwrap();
@@ -423,7 +426,11 @@ fn restarted_ingest_verify_and_fusion_resume_from_the_results_journals() {
     .unwrap();
     assert_eq!(collected.frame_count, Some(4));
     let ids: Vec<u64> = collected.by_frame().iter().map(|r| r.frame_id).collect();
-    assert_eq!(ids, vec![3], "only the frames without a result are published");
+    assert_eq!(
+        ids,
+        vec![3],
+        "only the frames without a result are published"
+    );
     assert!(collected.duplicates.is_empty());
     let render = &collected.metrics[&("render".to_string(), 0)];
     assert_eq!(

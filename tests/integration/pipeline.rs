@@ -629,7 +629,7 @@ fn run_without_depth_gives_the_change_results_of_batch_stereo() {
         "--images",
         "9",
         "--levels",
-        "30",
+        "8",
         "--seed",
         "2",
         "--changes",
