@@ -399,9 +399,9 @@ impl PipelineConfig {
             .validate()
             .map_err(|e| invalid("stereo.sweep", e.to_string()))?;
         let count = self.stereo.neighbours.count;
-        if !(1..=MAX_NEIGHBOURS).contains(&count)
-            || !(self.stereo.disparity_sigma_px.is_finite() && self.stereo.disparity_sigma_px > 0.0)
-        {
+        let sigma_ok =
+            self.stereo.disparity_sigma_px.is_finite() && self.stereo.disparity_sigma_px > 0.0;
+        if !((1..=MAX_NEIGHBOURS).contains(&count) && sigma_ok) {
             return Err(invalid(
                 "stereo",
                 format!(
