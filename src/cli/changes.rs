@@ -13,8 +13,8 @@ use std::time::Instant;
 use anyhow::Context;
 use asgreg::core::change::fusion::{fuse_regions, FusedChange, FusionConfig};
 use asgreg::core::change::stereo::{
-    depth_from_neighbours, scene_depth_m, select_neighbours, NeighbourConfig, PosedCamera,
-    StereoConfig, StereoView,
+    choose_neighbours, depth_from_neighbours, NeighbourConfig, PosedCamera, StereoConfig,
+    StereoView,
 };
 use asgreg::core::change::{
     classes_to_mask, detect_changes, ChangeClass, ChangeConfig, ChangeRegion, ChangeWorkspace,
@@ -114,8 +114,7 @@ pub struct ChangesArgs {
     pub limit: Option<usize>,
 }
 
-/// Default disparity error of stereo depth, working pixels (see docs/measurements.md).
-pub const DEFAULT_DISPARITY_SIGMA_PX: f64 = 0.6;
+pub use asgreg::core::change::stereo::DEFAULT_DISPARITY_SIGMA_PX;
 
 impl ChangesArgs {
     /// The same settings with every other option at its default.
@@ -545,32 +544,22 @@ fn stereo_depth(
     let (Some(reference), Ok(files)) = (&cameras[index], &frames[index]) else {
         return Err(format!("{name}: the photo could not be loaded"));
     };
-    let scene_depth = scene_depth_m(&inputs.mesh, reference).ok_or_else(|| {
-        "the model is not in view under the frame's pose: no depth range for stereo".to_string()
-    })?;
     let (candidate_index, candidates): (Vec<usize>, Vec<PosedCamera>) = cameras
         .iter()
         .enumerate()
         .filter(|(other, _)| *other != index)
         .filter_map(|(other, camera)| camera.map(|c| (other, c)))
         .unzip();
-    let chosen: Vec<usize> = select_neighbours(
+    let chosen: Vec<usize> = choose_neighbours(
+        &inputs.mesh,
         reference,
-        scene_depth,
         &candidates,
         &args.neighbour_config(),
     )
+    .map_err(|error| format!("{error}: give --depth or more frames"))?
     .into_iter()
     .map(|k| candidate_index[k])
     .collect();
-    if chosen.is_empty() {
-        return Err(format!(
-            "no registered frame sees the scene from a usable baseline ({:.1}–{:.1} m at a scene depth of {scene_depth:.1} m, optical axes within {:.0}°): give --depth or more frames",
-            NeighbourConfig::default().min_baseline_ratio * scene_depth,
-            NeighbourConfig::default().max_baseline_ratio * scene_depth,
-            NeighbourConfig::default().max_axis_angle_deg
-        ));
-    }
     let view = |k: usize| -> Option<StereoView<'_>> {
         let files = frames[k].as_ref().ok()?;
         Some(StereoView {

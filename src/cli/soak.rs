@@ -276,6 +276,9 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     config.backend = backend;
     config.transport.pipeline = format!("soak-{}", std::process::id());
     config.workers.flow = args.flow_workers;
+    // Poses only (its frames have no depth; the change stage's restarts are tested by
+    // tests/integration/pipeline.rs).
+    config.workers.change = 0;
     config.registration.coarse_pose_count = args.coarse_poses;
     // The soak exercises supervision, not registration: without the pose search (renderings
     // at several headings, ~0.5 s of a 64x48 frame) and the final edge refinement a frame is

@@ -1,5 +1,5 @@
 //! The wire types of the bus and the one place that encodes and decodes them (docs/design.md §5).
-//! `schemas/v4/` describes the same layout for subscribers in other languages.
+//! `schemas/v5/` describes the same layout for subscribers in other languages.
 //!
 //! Layout of every message (all integers little-endian):
 //! ```text
@@ -34,4 +34,6 @@ pub use wire::{decode, encode, DecodeError, EncodeError, Encoded, HEADER_BYTES, 
 
 /// The schema version in every header; bump it (and add `schemas/v<N>/`) on any layout change.
 /// v4: change detection (ChangeJob, ChangeResult, ChangeSet; FrameQuery carries the depth map).
-pub const SCHEMA_VERSION: u16 = 4;
+/// v5: depth in the pipeline (FrameQuery carries the grey photo; ChangeJob the photo and its
+/// stereo neighbours).
+pub const SCHEMA_VERSION: u16 = 5;

@@ -149,14 +149,23 @@ fn every_kind() -> Vec<Body<'static>> {
             info: info(),
             query: Cow::Owned(image.clone()),
             depth_m: Cow::Owned(vec![12.5; 12]),
+            photo: Cow::Owned(Vec::new()),
         }),
         Body::ChangeJob(ChangeJob {
             meta: ChangeJobMeta {
                 info: info(),
                 camera: info().camera,
                 cam_from_world: info().initial_cam_from_world,
+                neighbours: vec![NeighbourMeta {
+                    frame_id: 3,
+                    name: "view_003.png".to_string(),
+                    camera: info().camera,
+                    cam_from_world: info().initial_cam_from_world,
+                }],
             },
-            depth_m: Cow::Owned(image.iter().map(|v| 10.0 + v).collect()),
+            depth_m: Cow::Owned(Vec::new()),
+            photo: Cow::Owned(image.clone()),
+            neighbour_photos: Cow::Owned(image.iter().map(|v| 1.0 - v).collect()),
         }),
         Body::ChangeResult(change_result_example()),
         Body::ChangeSet(ChangeSet {
@@ -414,7 +423,7 @@ fn pose_result_json_carries_header_and_result() {
 #[test]
 fn pose_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v4/pose_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v5/pose_result.schema.json")).unwrap();
     let keys = |value: &serde_json::Value| -> Vec<String> {
         let mut keys: Vec<String> = value.as_object().unwrap().keys().cloned().collect();
         keys.sort();
@@ -478,7 +487,7 @@ fn assert_matches_schema(json: &serde_json::Value, schema: &serde_json::Value) {
 #[test]
 fn change_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v4/change_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v5/change_result.schema.json")).unwrap();
     let json: serde_json::Value =
         serde_json::from_str(&change_result_json(&header(), &change_result_example())).unwrap();
     assert_eq!(json["schema_version"], SCHEMA_VERSION);
@@ -497,7 +506,7 @@ fn change_result_json_has_exactly_the_schema_properties() {
 #[test]
 fn change_set_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v4/change_set.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v5/change_set.schema.json")).unwrap();
     let set = every_kind()
         .into_iter()
         .find_map(|body| match body {

@@ -174,7 +174,8 @@ impl Frame<'_> {
 }
 
 /// A frame's query gradient image (render → verify): what the final refinement aligns the chosen
-/// pose with; and the photo's depth map, which verify hands to the change stage with the pose.
+/// pose with; and the photo's depth map (or, without one, the grey photo for stereo), which
+/// verify hands to the change stage with the pose.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrameQuery<'a> {
     pub info: FrameInfo,
@@ -182,6 +183,9 @@ pub struct FrameQuery<'a> {
     pub query: Blob<'a, f32>,
     /// The photo's depth map in metres (0 = hole), same size; empty when the source has none.
     pub depth_m: Blob<'a, f32>,
+    /// The grey photo (0..1), same size: sent only with change detection and no depth map (the
+    /// change stage computes depth by stereo from it and its registered neighbours); else empty.
+    pub photo: Blob<'a, f32>,
 }
 
 impl FrameQuery<'_> {
@@ -197,19 +201,66 @@ impl FrameQuery<'_> {
         }
         self.info.image(&self.depth_m).map(Some)
     }
+
+    /// The grey photo as an image of the camera's size; `None` when it was not sent.
+    pub fn photo(&self) -> Result<Option<ImageView<'_, f32>>, ImageError> {
+        if self.photo.is_empty() {
+            return Ok(None);
+        }
+        self.info.image(&self.photo).map(Some)
+    }
 }
 
 /// An accepted frame's change detection job (verify → change workers, dispatched): the
-/// registered camera and pose and the photo's depth map.
+/// registered camera and pose and the photo's depth map; without a depth map, the grey photo
+/// and its stereo neighbours (registered frames of the stream chosen by verify) with theirs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ChangeJob<'a> {
     pub meta: ChangeJobMeta,
     /// The photo's depth map in metres (0 = hole), `camera.width_px × camera.height_px`; empty
-    /// when the source has none (the change stage then says "no depth").
+    /// when the source has none (the change stage then computes it by stereo).
     pub depth_m: Blob<'a, f32>,
+    /// Without a depth map: the grey photo (0..1), same size; else empty.
+    pub photo: Blob<'a, f32>,
+    /// The neighbours' grey photos one after the other (each of its camera's size, in the order
+    /// of `meta.neighbours`); empty without neighbours.
+    pub neighbour_photos: Blob<'a, f32>,
 }
 
 impl ChangeJob<'_> {
+    /// The grey photo as an image of the registered camera's size; `None` when there is none.
+    pub fn photo(&self) -> Result<Option<ImageView<'_, f32>>, ImageError> {
+        if self.photo.is_empty() {
+            return Ok(None);
+        }
+        let camera = &self.meta.camera;
+        ImageView::new(
+            camera.width_px as usize,
+            camera.height_px as usize,
+            &self.photo,
+        )
+        .map(Some)
+    }
+
+    /// Each neighbour with its photo, in the order of `meta.neighbours`.
+    pub fn neighbours(&self) -> Result<Vec<(&NeighbourMeta, ImageView<'_, f32>)>, ImageError> {
+        let mut offset = 0;
+        let mut out = Vec::with_capacity(self.meta.neighbours.len());
+        for neighbour in &self.meta.neighbours {
+            let (w, h) = (
+                neighbour.camera.width_px as usize,
+                neighbour.camera.height_px as usize,
+            );
+            let end = (offset + w * h).min(self.neighbour_photos.len());
+            out.push((
+                neighbour,
+                ImageView::new(w, h, &self.neighbour_photos[offset..end])?,
+            ));
+            offset = end;
+        }
+        Ok(out)
+    }
+
     /// The photo's depth map as an image of the registered camera's size; `None` when there is
     /// none.
     pub fn depth(&self) -> Result<Option<ImageView<'_, f32>>, ImageError> {
@@ -233,10 +284,22 @@ pub struct ChangeJobMeta {
     pub camera: Camera,
     /// The registered pose (the frame's PoseResult).
     pub cam_from_world: Rigid3,
+    /// Without a depth map: the registered frames whose photos come with the job for stereo.
+    pub neighbours: Vec<NeighbourMeta>,
+}
+
+/// A registered frame of the stream sent with a change job as a stereo neighbour.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NeighbourMeta {
+    pub frame_id: u64,
+    pub name: String,
+    /// Its registered camera and pose.
+    pub camera: Camera,
+    pub cam_from_world: Rigid3,
 }
 
 /// One frame's change detection (change workers, or verify for a frame without a pose →
-/// fusion → subscribers); also published as JSON (`schemas/v4/change_result.schema.json`).
+/// fusion → subscribers); also published as JSON (`schemas/v5/change_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeResult {
     pub frame_id: u64,
@@ -256,7 +319,7 @@ pub struct ChangeResult {
 
 /// The changes of every frame so far fused into objects (fusion → subscribers); published now
 /// and then while frames arrive and once, `complete`, when every frame has its change result.
-/// Also published as JSON (`schemas/v4/change_set.schema.json`).
+/// Also published as JSON (`schemas/v5/change_set.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeSet {
     /// Whether every frame of the stream has its change result (the final set).
@@ -506,7 +569,7 @@ pub struct StageTimesMs {
 }
 
 /// The one result of a frame (verify → subscribers); also published as JSON
-/// (`schemas/v4/pose_result.schema.json`).
+/// (`schemas/v5/pose_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseResult {
     pub frame_id: u64,

@@ -149,11 +149,16 @@ pub fn encode<'m>(message: &'m Envelope<'_>) -> Result<Encoded<'m>, EncodeError>
             vec![
                 bytemuck::cast_slice(&body.query),
                 bytemuck::cast_slice(&body.depth_m),
+                bytemuck::cast_slice(&body.photo),
             ],
         ),
         Body::ChangeJob(job) => (
             meta_bytes(kind, &job.meta)?,
-            vec![bytemuck::cast_slice(&job.depth_m)],
+            vec![
+                bytemuck::cast_slice(&job.depth_m),
+                bytemuck::cast_slice(&job.photo),
+                bytemuck::cast_slice(&job.neighbour_photos),
+            ],
         ),
         Body::ChangeResult(body) => (meta_bytes(kind, body)?, Vec::new()),
         Body::ChangeSet(body) => (meta_bytes(kind, body)?, Vec::new()),
@@ -422,21 +427,28 @@ pub fn decode(bytes: &[u8]) -> Result<Envelope<'_>, DecodeError> {
             Body::StreamEnd(reader.meta()?)
         }
         MessageKind::FrameQuery => {
-            reader.expect_arrays(2)?;
+            reader.expect_arrays(3)?;
             let info: FrameInfo = reader.meta()?;
             let len = reader.image_len(&info)?;
             Body::FrameQuery(FrameQuery {
                 query: reader.array(0, "query", Some(len))?,
                 depth_m: reader.optional_image(1, "depth_m", len)?,
+                photo: reader.optional_image(2, "photo", len)?,
                 info,
             })
         }
         MessageKind::ChangeJob => {
-            reader.expect_arrays(1)?;
+            reader.expect_arrays(3)?;
             let meta: ChangeJobMeta = reader.meta()?;
             let len = reader.camera_len(&meta.info.name, &meta.camera)?;
+            let mut neighbours_len = 0;
+            for neighbour in &meta.neighbours {
+                neighbours_len += reader.camera_len(&neighbour.name, &neighbour.camera)?;
+            }
             Body::ChangeJob(ChangeJob {
                 depth_m: reader.optional_image(0, "depth_m", len)?,
+                photo: reader.optional_image(1, "photo", len)?,
+                neighbour_photos: reader.array(2, "neighbour_photos", Some(neighbours_len))?,
                 meta,
             })
         }

@@ -7,6 +7,9 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::core::change::fusion::FusionConfig;
+use crate::core::change::stereo::{
+    NeighbourConfig, StereoConfig, DEFAULT_DISPARITY_SIGMA_PX, MAX_NEIGHBOURS,
+};
 use crate::core::change::ChangeConfig;
 use crate::core::frame::RegistrationConfig;
 use crate::stage::ingest::SourceConfig;
@@ -37,6 +40,8 @@ pub struct PipelineConfig {
     pub change: ChangeConfig,
     /// How the fusion stage merges the frames' change regions into objects.
     pub fusion: FusionConfig,
+    /// Depth of frames without a given depth map: stereo from registered neighbours.
+    pub stereo: StereoSettings,
     /// Folder of the run's durable state: the results journal (`<pipeline>.results-journal`,
     /// the frames whose result is published), which a restarted ingest resumes from and a
     /// restarted verify reads so it publishes no result twice. Ingest and verify must see the
@@ -60,7 +65,38 @@ impl Default for PipelineConfig {
             registration: RegistrationConfig::default(),
             change: ChangeConfig::default(),
             fusion: FusionConfig::default(),
+            stereo: StereoSettings::default(),
             state_dir: None,
+        }
+    }
+}
+
+/// The change stage's depth for a frame without a given depth map (`[stereo]`): plane-sweep
+/// stereo against registered neighbours, chosen by verify among the accepted frames of the
+/// stream within `window_frames` of it (before and after, in frame order). The defaults are
+/// `asgreg changes`'s, so on a stream no longer than the window both choose from the same frames.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StereoSettings {
+    /// Which registered frames are a frame's neighbours (`count`: 1–4).
+    pub neighbours: NeighbourConfig,
+    /// The plane sweep.
+    pub sweep: StereoConfig,
+    /// Disparity error of the stereo depth, working pixels (the change threshold's stereo term).
+    pub disparity_sigma_px: f64,
+    /// Frames before and after a frame whose accepted ones are its candidate neighbours; its
+    /// change job waits until the `window_frames` frames after it are decided (or the stream
+    /// ends), so this is also the change result's delay in frames.
+    pub window_frames: u64,
+}
+
+impl Default for StereoSettings {
+    fn default() -> Self {
+        Self {
+            neighbours: NeighbourConfig::default(),
+            sweep: StereoConfig::default(),
+            disparity_sigma_px: DEFAULT_DISPARITY_SIGMA_PX,
+            window_frames: 6,
         }
     }
 }
@@ -77,7 +113,7 @@ pub struct Workers {
     pub flow_local: Option<u32>,
     pub pose: u32,
     /// Change detection workers (accepted frames' change maps, dispatched like flow), plus one
-    /// fusion stage when > 0. 0: no change detection.
+    /// fusion stage when > 0 (the default: 1). 0: no change detection.
     pub change: u32,
     /// Jobs a worker holds at once (1: strict sharing; 2 hides transport latency).
     pub slots: u32,
@@ -90,7 +126,7 @@ impl Default for Workers {
             flow: 2,
             flow_local: None,
             pose: 1,
-            change: 0,
+            change: 1,
             slots: 1,
         }
     }
@@ -358,6 +394,22 @@ impl PipelineConfig {
         self.change
             .validate()
             .map_err(|e| invalid("change", e.to_string()))?;
+        self.stereo
+            .sweep
+            .validate()
+            .map_err(|e| invalid("stereo.sweep", e.to_string()))?;
+        let count = self.stereo.neighbours.count;
+        let sigma_ok =
+            self.stereo.disparity_sigma_px.is_finite() && self.stereo.disparity_sigma_px > 0.0;
+        if !((1..=MAX_NEIGHBOURS).contains(&count) && sigma_ok) {
+            return Err(invalid(
+                "stereo",
+                format!(
+                    "neighbours.count must be 1..={MAX_NEIGHBOURS} (got {count}) and disparity_sigma_px > 0 (got {})",
+                    self.stereo.disparity_sigma_px
+                ),
+            ));
+        }
         if !(self.fusion.merge_distance_m.is_finite()
             && self.fusion.merge_distance_m >= 0.0
             && self.fusion.min_frames >= 1)

@@ -87,6 +87,16 @@ impl<'t> Dispatcher<'t> {
         self.queue.iter().any(|(key, _)| key.frame_id == frame_id)
     }
 
+    /// Whether a job of `frame_id` waits for a worker or is with one (not yet finished).
+    pub fn holds(&self, frame_id: u64) -> bool {
+        self.has_queued(frame_id)
+            || self.workers.values().any(|w| {
+                w.outstanding
+                    .iter()
+                    .any(|(key, _)| key.frame_id == frame_id)
+            })
+    }
+
     /// Jobs sent and not yet reported finished.
     pub fn outstanding(&self) -> usize {
         self.workers.values().map(|w| w.outstanding.len()).sum()

@@ -1,16 +1,22 @@
-//! The results journal: what has a published result survives a crash. Verify appends each frame
-//! id right after it publishes the frame's PoseResult; a restarted verify reads it and publishes
-//! none of those again, and a restarted ingest reads it and resumes instead of replaying the
-//! source (it sends only the frames without a result). One text file per pipeline under
-//! `state_dir`: a header line naming the run's pipeline and source, then one frame id per line.
-//! `asgreg launch` starts each run with an empty journal and removes it when the run is
-//! complete; `asgreg run` (threads, which never restart) keeps one of its own in a temporary
-//! folder; stages started by hand continue the one they find (delete it to start over). A line
-//! cut short by a crash is ignored. The one window left for a repeated result is a crash of
-//! verify between publishing a result and appending its id (the JSON send and one `write`
-//! call). Appends are not fsync'ed: the journal survives a process crash, not a power cut.
+//! The results journals: what has a published result survives a crash. Two journals per
+//! pipeline, one implementation ([`Journal`]), under `state_dir`: a header line naming the run's
+//! pipeline, source and kind, then one line per published frame, `<frame id>[ <payload>]`.
+//! - the pose journal ([`Kind::Pose`], ids only): verify appends each frame id right after it
+//!   publishes the frame's PoseResult; a restarted verify publishes none of those again;
+//! - the change journal ([`Kind::Change`]): fusion appends each frame id with its published
+//!   ChangeResult (hex of the encoded message) right after publishing it; a restarted fusion
+//!   reads them back, publishes none of them again and fuses them with the rest.
+//!
+//! A restarted ingest reads both and resumes instead of replaying the source: it sends only the
+//! frames without a published result (with change detection: without both results).
+//! `asgreg launch` starts each run with empty journals and removes them when the run is complete;
+//! `asgreg run` (threads, which never restart) keeps its own in a temporary folder; stages
+//! started by hand continue the ones they find (delete them to start over). A line cut short by
+//! a crash is ignored. The one window left for a repeated result is a crash between publishing a
+//! result and appending its line (one `write` call). Appends are not fsync'ed: the journals
+//! survive a process crash, not a power cut.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
@@ -26,24 +32,56 @@ pub enum JournalError {
     },
 }
 
+/// Which results a journal lists.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    /// Published PoseResults (verify writes it), frame ids only.
+    Pose,
+    /// Published ChangeResults (fusion writes it), each with its encoded result.
+    Change,
+}
+
+impl Kind {
+    fn file_suffix(self) -> &'static str {
+        match self {
+            Kind::Pose => "results-journal",
+            Kind::Change => "change-journal",
+        }
+    }
+}
+
 /// The header that ties a journal to a run's pipeline and source: a journal with another
 /// header (an earlier run over other photos) is not read.
-pub fn header(config: &PipelineConfig) -> String {
+pub fn header(config: &PipelineConfig, kind: Kind) -> String {
+    let what = match kind {
+        Kind::Pose => "results",
+        Kind::Change => "change results",
+    };
     format!(
-        "# asgreg results journal v1 pipeline={} poses={} max_frames={}",
+        "# asgreg {what} journal v1 pipeline={} poses={} max_frames={}",
         config.transport.pipeline,
         config.source.poses.display(),
         config.source.max_frames
     )
 }
 
-/// Where a configuration keeps its results journal.
-pub fn path(config: &PipelineConfig) -> PathBuf {
+/// Where a configuration keeps its journal of `kind`.
+pub fn path(config: &PipelineConfig, kind: Kind) -> PathBuf {
     let dir = config
         .state_dir
         .clone()
         .unwrap_or_else(|| std::env::temp_dir().join("asgreg-state"));
-    dir.join(format!("{}.results-journal", config.transport.pipeline))
+    dir.join(format!(
+        "{}.{}",
+        config.transport.pipeline,
+        kind.file_suffix()
+    ))
+}
+
+/// Starts a run over: removes both journals of a configuration (none is fine).
+pub fn reset_all(config: &PipelineConfig) -> Result<(), JournalError> {
+    reset(&path(config, Kind::Pose))?;
+    reset(&path(config, Kind::Change))
 }
 
 /// Starts a run over: removes the journal (none is fine).
@@ -59,26 +97,34 @@ pub fn reset(path: &Path) -> Result<(), JournalError> {
     }
 }
 
-/// The frame ids a journal text lists under `header`; `None` when its header is another.
-/// Lines not ended by a newline (cut short by a crash) and unreadable lines are left out.
-fn parse(text: &str, header: &str) -> Option<BTreeSet<u64>> {
+/// The frame ids a journal text lists under `header`, each with its payload (empty when the
+/// line has none; the first line of a frame wins); `None` when its header is another. Lines not
+/// ended by a newline (cut short by a crash) and unreadable lines are left out.
+fn parse(text: &str, header: &str) -> Option<BTreeMap<u64, String>> {
     let mut lines = text.split_inclusive('\n');
     if lines.next().map(str::trim_end) != Some(header) {
         return None;
     }
-    Some(
-        lines
-            .filter(|line| line.ends_with('\n'))
-            .filter_map(|line| line.trim().parse().ok())
-            .collect(),
-    )
+    let mut entries = BTreeMap::new();
+    for line in lines.filter(|line| line.ends_with('\n')) {
+        let line = line.trim();
+        let (id, payload) = line.split_once(' ').unwrap_or((line, ""));
+        if let Ok(frame_id) = id.parse::<u64>() {
+            entries
+                .entry(frame_id)
+                .or_insert_with(|| payload.to_string());
+        }
+    }
+    Some(entries)
 }
 
 /// The frames that have a published result, as the journal at `path` says (ingest's view);
 /// empty when there is no journal or it belongs to another run.
 pub fn read_published(path: &Path, header: &str) -> Result<BTreeSet<u64>, JournalError> {
     match std::fs::read_to_string(path) {
-        Ok(text) => Ok(parse(&text, header).unwrap_or_default()),
+        Ok(text) => Ok(parse(&text, header)
+            .map(|entries| entries.into_keys().collect())
+            .unwrap_or_default()),
         Err(error) if error.kind() == std::io::ErrorKind::NotFound => Ok(BTreeSet::new()),
         Err(source) => Err(JournalError::Io {
             path: path.to_path_buf(),
@@ -88,16 +134,25 @@ pub fn read_published(path: &Path, header: &str) -> Result<BTreeSet<u64>, Journa
     }
 }
 
-/// The writer's side (verify).
-pub struct ResultsJournal {
+/// The writer's side (verify for poses, fusion for change results).
+pub struct Journal {
     path: PathBuf,
     file: std::fs::File,
 }
 
-impl ResultsJournal {
+impl Journal {
     /// Opens the journal for appending and returns the frames it already lists: continues a
     /// journal with this header, starts one (over one of another run) otherwise.
     pub fn open(path: &Path, header: &str) -> Result<(Self, BTreeSet<u64>), JournalError> {
+        let (journal, entries) = Self::open_with_payloads(path, header)?;
+        Ok((journal, entries.into_keys().collect()))
+    }
+
+    /// As [`Journal::open`], with each listed frame's payload.
+    pub fn open_with_payloads(
+        path: &Path,
+        header: &str,
+    ) -> Result<(Self, BTreeMap<u64, String>), JournalError> {
         let io = |action: &'static str| {
             move |source| JournalError::Io {
                 path: path.to_path_buf(),
@@ -135,7 +190,7 @@ impl ResultsJournal {
                 file.seek(SeekFrom::Start(0)).map_err(io("rewind"))?;
                 file.write_all(format!("{header}\n").as_bytes())
                     .map_err(io("write"))?;
-                BTreeSet::new()
+                BTreeMap::new()
             }
         };
         Ok((
@@ -149,8 +204,19 @@ impl ResultsJournal {
 
     /// Records that `frame_id`'s result is published (one `write` call).
     pub fn append(&mut self, frame_id: u64) -> Result<(), JournalError> {
+        self.append_with(frame_id, "")
+    }
+
+    /// Records that `frame_id`'s result is published, with `payload` (no spaces or newlines:
+    /// e.g. hex) that a restart gets back from [`Journal::open_with_payloads`].
+    pub fn append_with(&mut self, frame_id: u64, payload: &str) -> Result<(), JournalError> {
+        let line = if payload.is_empty() {
+            format!("{frame_id}\n")
+        } else {
+            format!("{frame_id} {payload}\n")
+        };
         self.file
-            .write_all(format!("{frame_id}\n").as_bytes())
+            .write_all(line.as_bytes())
             .map_err(|source| JournalError::Io {
                 path: self.path.clone(),
                 action: "append to",
@@ -163,6 +229,28 @@ impl ResultsJournal {
     }
 }
 
+/// Bytes as a journal payload (lower-case hex).
+pub fn to_hex(bytes: &[u8]) -> String {
+    use std::fmt::Write as _;
+    let mut text = String::with_capacity(bytes.len() * 2);
+    for byte in bytes {
+        // Writing to a String cannot fail.
+        let _ = write!(text, "{byte:02x}");
+    }
+    text
+}
+
+/// A journal payload back as bytes; `None` when it is not hex (a damaged line).
+pub fn from_hex(text: &str) -> Option<Vec<u8>> {
+    if text.len() % 2 != 0 {
+        return None;
+    }
+    (0..text.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(text.get(i..i + 2)?, 16).ok())
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -172,7 +260,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("state").join("p.results-journal");
         assert!(read_published(&path, "# run a").unwrap().is_empty());
-        let (mut journal, published) = ResultsJournal::open(&path, "# run a").unwrap();
+        let (mut journal, published) = Journal::open(&path, "# run a").unwrap();
         assert!(published.is_empty());
         for frame_id in [0, 3, 1] {
             journal.append(frame_id).unwrap();
@@ -188,14 +276,14 @@ mod tests {
             .write_all(b"1")
             .unwrap();
         assert_eq!(read_published(&path, "# run a").unwrap(), expected);
-        let (mut journal, published) = ResultsJournal::open(&path, "# run a").unwrap();
+        let (mut journal, published) = Journal::open(&path, "# run a").unwrap();
         assert_eq!(published, expected);
         journal.append(7).unwrap();
         let expected: BTreeSet<u64> = [0, 1, 3, 7].into();
         assert_eq!(read_published(&path, "# run a").unwrap(), expected);
         // Another run's reader sees nothing; its writer starts the file over.
         assert!(read_published(&path, "# run b").unwrap().is_empty());
-        let (_, published) = ResultsJournal::open(&path, "# run b").unwrap();
+        let (_, published) = Journal::open(&path, "# run b").unwrap();
         assert!(published.is_empty());
         assert_eq!(std::fs::read_to_string(&path).unwrap(), "# run b\n");
         reset(&path).unwrap();
@@ -204,15 +292,32 @@ mod tests {
     }
 
     #[test]
+    fn payloads_come_back_with_their_frames_and_the_first_line_of_a_frame_wins() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.change-journal");
+        let (mut journal, entries) = Journal::open_with_payloads(&path, "# c").unwrap();
+        assert!(entries.is_empty());
+        let bytes = [0u8, 1, 0xab, 0xff];
+        journal.append_with(4, &to_hex(&bytes)).unwrap();
+        journal.append_with(4, "00").unwrap();
+        journal.append(2).unwrap();
+        drop(journal);
+        let (_, entries) = Journal::open_with_payloads(&path, "# c").unwrap();
+        assert_eq!(entries.len(), 2);
+        assert_eq!(from_hex(&entries[&4]).unwrap(), bytes);
+        assert_eq!(entries[&2], "");
+        assert_eq!(read_published(&path, "# c").unwrap(), [2, 4].into());
+        assert_eq!(from_hex("0g"), None);
+        assert_eq!(from_hex("abc"), None);
+    }
+
+    #[test]
     fn an_unwritable_state_dir_is_named_in_the_error() {
         let dir = tempfile::tempdir().unwrap();
         let blocker = dir.path().join("not-a-dir");
         std::fs::write(&blocker, b"").unwrap();
         let path = blocker.join("p.results-journal");
-        let error = ResultsJournal::open(&path, "# h")
-            .err()
-            .unwrap()
-            .to_string();
+        let error = Journal::open(&path, "# h").err().unwrap().to_string();
         assert!(
             error.contains("not-a-dir") && error.contains("state_dir"),
             "{error}"

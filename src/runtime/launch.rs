@@ -196,9 +196,8 @@ pub fn launch(
     on_started: &mut dyn FnMut(&str, u32, u32),
     on_result: &mut dyn FnMut(Delivered<'_>),
 ) -> Result<Collected, RuntimeError> {
-    // A new run: the results journal starts empty (restarted stages resume from it).
-    let journal_path = super::journal::path(config);
-    super::journal::reset(&journal_path)?;
+    // A new run: the results journals start empty (restarted stages resume from them).
+    super::journal::reset_all(config)?;
     let window = Duration::from_secs_f64(config.launch.restart_window_s);
     let mut processes: Vec<Supervised> = Vec::new();
     if let Some(child) = router {
@@ -302,9 +301,10 @@ pub fn launch(
     if let Some(error) = failure {
         return Err(error);
     }
-    if collected.frame_count.is_some() && collected.missing().is_empty() {
+    let changes_complete = !config.changes_enabled() || collected.missing_changes().is_empty();
+    if collected.frame_count.is_some() && collected.missing().is_empty() && changes_complete {
         // Complete: nothing to resume.
-        super::journal::reset(&journal_path)?;
+        super::journal::reset_all(config)?;
     }
     Ok(collected)
 }

@@ -14,7 +14,7 @@ use crate::msg::{
     change_result_json, change_set_json, pose_result_json, Body, FrameFailed, Header, JobKey,
     StageMetrics, StreamEnd,
 };
-use crate::stage::change::ChangeStage;
+use crate::stage::change::{ChangeStage, StereoDepthSettings};
 use crate::stage::flow::FlowStage;
 use crate::stage::fusion::FusionStage;
 use crate::stage::ingest::{FolderSource, SourceError};
@@ -26,13 +26,16 @@ use crate::transport::{keys, Transport};
 use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
 use super::config::{BackpressurePolicy, PipelineConfig};
 use super::dispatch::{Dispatcher, WorkerPort};
-use super::journal::{self, JournalError, ResultsJournal};
+use super::journal::{self, Journal, JournalError};
 
 /// How long a loop waits for a message before checking the stop flag.
 const POLL: Duration = Duration::from_millis(20);
 /// Change jobs verify queues for the change workers (verify never waits for them: a change job
 /// is a few ms of work per frame, far less than a frame's registration).
 const CHANGE_JOBS_QUEUED: usize = 1024;
+/// How long verify waits for a change result to be published after no change worker holds its
+/// job any more (or after sending a frame's result to fusion) before it issues the work again.
+const CHANGE_RESEND_AFTER: Duration = Duration::from_secs(3);
 /// Most compute samples a metrics message carries (the most recent ones).
 const MAX_SAMPLES: usize = 4096;
 
@@ -144,50 +147,99 @@ enum Kept {
     Failed(FrameFailed, u64),
 }
 
-/// Ingest's memory of every frame until its result is out, so that the frames a crashed pose or
-/// verify process took with it are redone (render and flow have the dispatcher's redo).
+/// Ingest's memory of every frame until its result is out (with change detection: its pose
+/// result and its change result), so that the frames a crashed pose or verify process took with
+/// it are redone (render and flow have the dispatcher's redo; fusion's restarts are verify's
+/// to repair, see [`ChangeRecovery`]).
 struct Recovery {
     results: Inbox,
+    /// With change detection: the published change results.
+    changes: Option<Inbox>,
     metrics: Inbox,
     kept: std::collections::BTreeMap<u64, Kept>,
+    /// Frames with both results out (the pose result alone without change detection).
     finished: std::collections::BTreeSet<u64>,
+    /// Frames with their pose result out, and (change detection) with their change result out.
+    posed: std::collections::BTreeSet<u64>,
+    changed: std::collections::BTreeSet<u64>,
     incarnations: HashMap<(String, u32), u64>,
-    /// The results journal (path, header) and when it was last read: it also lists results
-    /// published while this process was not there to receive them.
-    journal: (std::path::PathBuf, String),
+    /// The results journals (path, header) and when they were last read: they also list
+    /// results published while this process was not there to receive them.
+    journals: Vec<(journal::Kind, std::path::PathBuf, String)>,
     journal_read: Instant,
     /// Frames in the source: ids at or above it in a journal are not this run's.
     frame_count: u64,
 }
 
 impl Recovery {
-    /// Subscribes to results first, then reads the journal, so a result is either in the
+    /// Subscribes to results first, then reads the journals, so a result is either in a
     /// journal or arrives on the bus.
     fn open(
         transport: &dyn Transport,
         config: &PipelineConfig,
         frame_count: u64,
     ) -> Result<Self, NodeError> {
+        let kinds: &[journal::Kind] = if config.changes_enabled() {
+            &[journal::Kind::Pose, journal::Kind::Change]
+        } else {
+            &[journal::Kind::Pose]
+        };
         let mut recovery = Self {
             results: Inbox::open(transport, keys::RESULTS, "ingest")?,
+            changes: if config.changes_enabled() {
+                Some(Inbox::open(transport, keys::CHANGES, "ingest")?)
+            } else {
+                None
+            },
             metrics: Inbox::open(transport, keys::METRICS, "ingest")?,
             kept: std::collections::BTreeMap::new(),
             finished: std::collections::BTreeSet::new(),
+            posed: std::collections::BTreeSet::new(),
+            changed: std::collections::BTreeSet::new(),
             incarnations: HashMap::new(),
-            journal: (journal::path(config), journal::header(config)),
+            journals: kinds
+                .iter()
+                .map(|&kind| {
+                    (
+                        kind,
+                        journal::path(config, kind),
+                        journal::header(config, kind),
+                    )
+                })
+                .collect(),
             journal_read: Instant::now(),
             frame_count,
         };
-        recovery.read_journal()?;
+        recovery.read_journals()?;
         Ok(recovery)
     }
 
-    fn read_journal(&mut self) -> Result<(), JournalError> {
-        let published = journal::read_published(&self.journal.0, &self.journal.1)?;
+    /// A result of `kind` is out for `frame_id`; the frame is finished once all are.
+    fn on_published(&mut self, kind: journal::Kind, frame_id: u64) {
+        if frame_id >= self.frame_count {
+            return;
+        }
+        match kind {
+            journal::Kind::Pose => self.posed.insert(frame_id),
+            journal::Kind::Change => self.changed.insert(frame_id),
+        };
+        let needs_change = self.changes.is_some();
+        if self.posed.contains(&frame_id) && (!needs_change || self.changed.contains(&frame_id)) {
+            self.kept.remove(&frame_id);
+            self.finished.insert(frame_id);
+        }
+    }
+
+    fn read_journals(&mut self) -> Result<(), JournalError> {
+        let mut published = Vec::new();
+        for (kind, path, header) in &self.journals {
+            for frame_id in journal::read_published(path, header)? {
+                published.push((*kind, frame_id));
+            }
+        }
         self.journal_read = Instant::now();
-        for frame_id in published.range(..self.frame_count) {
-            self.kept.remove(frame_id);
-            self.finished.insert(*frame_id);
+        for (kind, frame_id) in published {
+            self.on_published(kind, frame_id);
         }
         Ok(())
     }
@@ -195,19 +247,28 @@ impl Recovery {
     /// Takes the results and metrics that arrived; true when pose or verify restarted.
     fn poll(&mut self) -> Result<bool, NodeError> {
         if self.journal_read.elapsed() >= Duration::from_secs(1) {
-            self.read_journal()?;
+            self.read_journals()?;
         }
         let mut scratch = StageMetrics::default();
-        let (kept, finished) = (&mut self.kept, &mut self.finished);
+        let mut published = Vec::new();
         while self
             .results
             .receive(Duration::ZERO, &mut scratch, &mut |message, _| {
                 if let Body::PoseResult(result) = message.body {
-                    kept.remove(&result.frame_id);
-                    finished.insert(result.frame_id);
+                    published.push((journal::Kind::Pose, result.frame_id));
                 }
             })?
         {}
+        if let Some(changes) = &mut self.changes {
+            while changes.receive(Duration::ZERO, &mut scratch, &mut |message, _| {
+                if let Body::ChangeResult(result) = message.body {
+                    published.push((journal::Kind::Change, result.frame_id));
+                }
+            })? {}
+        }
+        for (kind, frame_id) in published {
+            self.on_published(kind, frame_id);
+        }
         let mut restarted = false;
         let incarnations = &mut self.incarnations;
         while self
@@ -347,7 +408,12 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         tracing::info!(
             "ingest: resuming: {} of {frame_count} frames already have their published result ({}); sending the other {}",
             recovery.finished.len(),
-            recovery.journal.0.display(),
+            recovery
+                .journals
+                .iter()
+                .map(|(_, path, _)| path.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", "),
             frame_count - recovery.finished.len() as u64
         );
     }
@@ -724,6 +790,187 @@ pub fn run_pose(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     Ok(metrics)
 }
 
+/// Verify's memory of each frame's change work (an accepted frame's change job, or the change
+/// result of a frame without a pose) until the frame's change result is published (seen on
+/// `changes`, or in the change journal). When fusion restarts, the change results it had
+/// received but not yet published are gone with it, so verify issues the work of every frame
+/// still without a published change result again (fusion keeps the first change result per
+/// frame, across its restarts by the change journal); and work that no change worker holds any
+/// more and whose result is still not published [`CHANGE_RESEND_AFTER`] later is issued again
+/// (a fusion restart verify did not see, e.g. while verify itself restarted). A change worker's restart is the
+/// dispatcher's redo; a restart of verify itself is ingest's ([`Recovery`]: a frame is finished
+/// for ingest only once its change result is out too).
+struct ChangeRecovery<'t> {
+    dispatcher: Dispatcher<'t>,
+    fusion: Outbox,
+    changes: Inbox,
+    metrics: Inbox,
+    fusion_incarnation: Option<u64>,
+    /// Encoded change work per frame: (is a job for the change workers, the message, since
+    /// when it is out of the dispatcher's hands).
+    pending: std::collections::BTreeMap<u64, (bool, std::sync::Arc<Vec<u8>>, Instant)>,
+    /// Frames whose change result is published.
+    published: std::collections::BTreeSet<u64>,
+    journal: (std::path::PathBuf, String),
+    journal_read: Option<Instant>,
+    /// Change work issued again after a restart of fusion.
+    reissued: u64,
+}
+
+impl<'t> ChangeRecovery<'t> {
+    fn open(ctx: &NodeContext<'t>) -> Result<Self, NodeError> {
+        let config = ctx.config;
+        let dispatcher = Dispatcher::open(
+            ctx.transport,
+            keys::CHANGE_LINK,
+            CHANGE_JOBS_QUEUED,
+            Duration::from_secs_f64(config.timeouts.worker_silence_s),
+        )?;
+        let mut fusion = Outbox::open(ctx.transport, keys::FUSION_IN)?;
+        fusion.wait_for_reader("fusion", ctx.startup())?;
+        let mut recovery = Self {
+            dispatcher,
+            fusion,
+            changes: Inbox::open(ctx.transport, keys::CHANGES, "verify")?,
+            metrics: Inbox::open(ctx.transport, keys::METRICS, "verify")?,
+            fusion_incarnation: None,
+            pending: std::collections::BTreeMap::new(),
+            published: std::collections::BTreeSet::new(),
+            journal: (
+                journal::path(config, journal::Kind::Change),
+                journal::header(config, journal::Kind::Change),
+            ),
+            journal_read: None,
+            reissued: 0,
+        };
+        recovery.read_journal()?;
+        Ok(recovery)
+    }
+
+    fn read_journal(&mut self) -> Result<(), JournalError> {
+        for frame_id in journal::read_published(&self.journal.0, &self.journal.1)? {
+            self.on_published(frame_id);
+        }
+        self.journal_read = Some(Instant::now());
+        Ok(())
+    }
+
+    fn on_published(&mut self, frame_id: u64) {
+        self.pending.remove(&frame_id);
+        self.published.insert(frame_id);
+    }
+
+    /// Issues a frame's change work (unless its change result is already published).
+    fn issue(
+        &mut self,
+        work: ChangeWork,
+        capture: u64,
+        metrics: &mut StageMetrics,
+    ) -> Result<(), BusError> {
+        let (frame_id, is_job, body) = match work {
+            ChangeWork::Job(frame_id, job) => (frame_id, true, Body::ChangeJob(*job)),
+            ChangeWork::Result(result) => (result.frame_id, false, Body::ChangeResult(result)),
+        };
+        if self.published.contains(&frame_id) {
+            tracing::debug!("verify: frame {frame_id} already has its published change result");
+            return Ok(());
+        }
+        let bytes = std::sync::Arc::new(encode_to_vec(frame_id, capture, body)?);
+        self.pending.insert(
+            frame_id,
+            (is_job, std::sync::Arc::clone(&bytes), Instant::now()),
+        );
+        self.send(frame_id, is_job, bytes, metrics)
+    }
+
+    fn send(
+        &mut self,
+        frame_id: u64,
+        is_job: bool,
+        bytes: std::sync::Arc<Vec<u8>>,
+        metrics: &mut StageMetrics,
+    ) -> Result<(), BusError> {
+        if is_job {
+            let key = JobKey {
+                frame_id,
+                coarse_index: 0,
+            };
+            self.dispatcher.push_shared(key, bytes);
+            Ok(())
+        } else {
+            self.fusion.send_encoded(&bytes, metrics).map(|_| ())
+        }
+    }
+
+    /// Takes the published change results and fusion's metrics; when fusion restarted, issues
+    /// the work of every frame without a published change result again. Then hands out jobs.
+    fn service(&mut self, metrics: &mut StageMetrics) -> Result<(), NodeError> {
+        if self
+            .journal_read
+            .is_none_or(|at| at.elapsed() >= Duration::from_secs(1))
+        {
+            self.read_journal()?;
+        }
+        let mut scratch = StageMetrics::default();
+        let mut published = Vec::new();
+        while self
+            .changes
+            .receive(Duration::ZERO, &mut scratch, &mut |message, _| {
+                if let Body::ChangeResult(result) = message.body {
+                    published.push(result.frame_id);
+                }
+            })?
+        {}
+        for frame_id in published {
+            self.on_published(frame_id);
+        }
+        let mut fusion_restarted = false;
+        let incarnation = &mut self.fusion_incarnation;
+        while self
+            .metrics
+            .receive(Duration::ZERO, &mut scratch, &mut |message, _| {
+                if let Body::Metrics(m) = message.body {
+                    if m.stage == "fusion" {
+                        if incarnation.is_some_and(|previous| previous != m.incarnation) {
+                            fusion_restarted = true;
+                        }
+                        *incarnation = Some(m.incarnation);
+                    }
+                }
+            })?
+        {}
+        if fusion_restarted {
+            tracing::warn!(
+                "verify: the fusion stage restarted; issuing the change work of the {} frame(s) without a published change result again",
+                self.pending.len()
+            );
+        }
+        let now = Instant::now();
+        let mut resend = Vec::new();
+        for (frame_id, (is_job, bytes, since)) in &mut self.pending {
+            if *is_job && self.dispatcher.holds(*frame_id) {
+                *since = now;
+            } else if fusion_restarted || now.duration_since(*since) >= CHANGE_RESEND_AFTER {
+                *since = now;
+                resend.push((*frame_id, *is_job, std::sync::Arc::clone(bytes)));
+            }
+        }
+        if !fusion_restarted && !resend.is_empty() {
+            tracing::warn!(
+                "verify: {} frame(s) still without a published change result {:.0} s after their change work was done; issuing it again",
+                resend.len(),
+                CHANGE_RESEND_AFTER.as_secs_f64()
+            );
+        }
+        for (frame_id, is_job, bytes) in resend {
+            self.reissued += 1;
+            self.send(frame_id, is_job, bytes, metrics)?;
+        }
+        self.dispatcher.pump(Duration::ZERO)?;
+        Ok(())
+    }
+}
+
 /// Stage "verify": gathers hypotheses and failures, emits one PoseResult per frame (bincode on
 /// `results`, JSON on `results/json`), and the end of the stream once every frame has its result.
 pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
@@ -741,16 +988,8 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     // With change detection: accepted frames' change jobs go to the change workers, the other
     // frames' change results (why there is none) and the end of the stream to fusion.
     let mut changes = if config.changes_enabled() {
-        stage = stage.with_changes();
-        let dispatcher = Dispatcher::open(
-            ctx.transport,
-            keys::CHANGE_LINK,
-            CHANGE_JOBS_QUEUED,
-            Duration::from_secs_f64(config.timeouts.worker_silence_s),
-        )?;
-        let mut fusion = Outbox::open(ctx.transport, keys::FUSION_IN)?;
-        fusion.wait_for_reader("fusion", ctx.startup())?;
-        Some((dispatcher, fusion))
+        stage = stage.with_changes(config.stereo.neighbours, config.stereo.window_frames);
+        Some(ChangeRecovery::open(ctx)?)
     } else {
         None
     };
@@ -758,8 +997,10 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     let mut capture_times: HashMap<u64, u64> = HashMap::new();
     let mut stream_ended = false;
     // Results published before a restart of this stage are not published again.
-    let (mut journal, mut published) =
-        ResultsJournal::open(&journal::path(config), &journal::header(config))?;
+    let (mut journal, mut published) = Journal::open(
+        &journal::path(config, journal::Kind::Pose),
+        &journal::header(config, journal::Kind::Pose),
+    )?;
     if !published.is_empty() {
         tracing::info!(
             "verify: {} frames already have their published result ({}); they are not published again",
@@ -838,36 +1079,26 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 }
             }
         }
-        if let Some((dispatcher, fusion)) = &mut changes {
-            // Also for a frame published before a restart: fusion keeps the first change result.
+        if let Some(recovery) = &mut changes {
+            stage.release_stereo_jobs();
+            // Also for a frame published before a restart of verify (ingest sends it again while
+            // its change result is not out).
             for work in stage.change_work.drain(..) {
-                let (frame_id, body) = match work {
-                    ChangeWork::Job(frame_id, job) => (frame_id, Body::ChangeJob(*job)),
-                    ChangeWork::Result(result) => (result.frame_id, Body::ChangeResult(result)),
+                let frame_id = match &work {
+                    ChangeWork::Job(frame_id, _) => *frame_id,
+                    ChangeWork::Result(result) => result.frame_id,
                 };
                 let capture = change_captures
                     .iter()
                     .find(|(id, _)| *id == frame_id)
                     .map_or(0, |(_, capture)| *capture);
-                match body {
-                    Body::ChangeJob(job) => {
-                        let key = JobKey {
-                            frame_id,
-                            coarse_index: 0,
-                        };
-                        dispatcher
-                            .push(key, encode_to_vec(frame_id, capture, Body::ChangeJob(job))?);
-                    }
-                    body => {
-                        fusion.send(frame_id, capture, body, &mut metrics)?;
-                    }
-                }
+                recovery.issue(work, capture, &mut metrics)?;
             }
-            dispatcher.pump(Duration::ZERO)?;
+            recovery.service(&mut metrics)?;
             if let Some(frame_count) = stage.stream_complete() {
                 // Repeated now and then: fusion takes the first, and a restarted one learns it.
                 if fusion_told_end.is_none_or(|at| at.elapsed() >= Duration::from_secs(2)) {
-                    fusion.send(
+                    recovery.fusion.send(
                         0,
                         0,
                         Body::StreamEnd(StreamEnd {
@@ -879,7 +1110,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                     fusion_told_end = Some(Instant::now());
                 }
             }
-            metrics.redispatched = dispatcher.metrics.redispatched;
+            metrics.redispatched = recovery.dispatcher.metrics.redispatched + recovery.reissued;
         }
         if !stream_ended {
             if let Some(frame_count) = stage.stream_complete() {
@@ -908,7 +1139,11 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
 pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
     let mut fusion = Outbox::open(ctx.transport, keys::FUSION_IN)?;
     fusion.wait_for_reader("fusion", ctx.startup())?;
-    let mut stage = ChangeStage::new(mesh, ctx.config.change, ctx.worker_index);
+    let stereo = StereoDepthSettings {
+        sweep: ctx.config.stereo.sweep,
+        disparity_sigma_px: ctx.config.stereo.disparity_sigma_px,
+    };
+    let mut stage = ChangeStage::new(mesh, ctx.config.change, stereo, ctx.worker_index);
     serve_jobs(ctx, "change", keys::CHANGE_LINK, &mut |message, metrics| {
         let frame_id = message.header.frame_id;
         let Body::ChangeJob(job) = message.body else {
@@ -934,6 +1169,17 @@ pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     })
 }
 
+/// A change result back from its change journal line.
+fn restore_change_result(frame_id: u64, payload: &str) -> Result<crate::msg::ChangeResult, String> {
+    let bytes = journal::from_hex(payload).ok_or("not hex")?;
+    let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
+    match message.body {
+        Body::ChangeResult(result) if result.frame_id == frame_id => Ok(result),
+        Body::ChangeResult(result) => Err(format!("it holds frame {}", result.frame_id)),
+        other => Err(format!("it holds a {:?} message", other.kind())),
+    }
+}
+
 /// Stage "fusion": publishes each frame's first change result (bincode on `changes`, JSON on
 /// `changes/json`), the fused change set now and then while frames arrive, and, once every
 /// frame has its change result, the final set (`changeset/json` too) and the end of the change
@@ -946,6 +1192,28 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     let mut changes_json = Outbox::open(ctx.transport, keys::CHANGES_JSON)?;
     let mut set_json = Outbox::open(ctx.transport, keys::CHANGE_SET_JSON)?;
     let mut stage = FusionStage::new(ctx.config.fusion);
+    // Change results published before a restart of this stage: fused, not published again.
+    let (mut journal, journaled) = Journal::open_with_payloads(
+        &journal::path(ctx.config, journal::Kind::Change),
+        &journal::header(ctx.config, journal::Kind::Change),
+    )?;
+    let restored = journaled.len();
+    for (frame_id, payload) in journaled {
+        match restore_change_result(frame_id, &payload) {
+            Ok(result) => stage.restore(result),
+            Err(why) => tracing::error!(
+                "fusion: {}: the line of frame {frame_id} is damaged ({why}); that frame's change result is left out of the change set (delete the file to start the run over)",
+                journal.path().display()
+            ),
+        }
+    }
+    if restored > 0 {
+        tracing::info!(
+            "fusion: {restored} frames already have their published change result ({}); they are not published again",
+            journal.path().display()
+        );
+    }
+    let mut journal_failed = false;
     let mut completed = false;
     // Results since the last published set, and when it was published.
     let mut unpublished = 0usize;
@@ -971,6 +1239,23 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                             sent = changes
                                 .send(frame_id, capture, body, metrics)
                                 .and_then(|_| changes_json.send_raw(json.as_bytes()));
+                        }
+                        if sent.is_ok() {
+                            // Published: journaled with the result, for a restart (a failure
+                            // to write it is reported once; the stage goes on).
+                            let line = encode_to_vec(frame_id, capture, Body::ChangeResult(result.clone()))
+                                .map_err(|error| error.to_string())
+                                .and_then(|bytes| {
+                                    journal
+                                        .append_with(frame_id, &journal::to_hex(&bytes))
+                                        .map_err(|error| error.to_string())
+                                });
+                            if let Err(error) = line {
+                                if !journal_failed {
+                                    tracing::error!("fusion: {error}; a restart may publish change results again");
+                                    journal_failed = true;
+                                }
+                            }
                         }
                         unpublished += 1;
                     }

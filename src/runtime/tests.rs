@@ -381,18 +381,38 @@ fn the_collector_hands_on_one_result_per_frame() {
     assert!(collect::summary(&collected, "crossbeam").contains("duplicated [0]"));
 }
 
-/// Ingest and verify started again over a journal that lists frames 0 and 2 (as after both
-/// crashed): ingest sends only frames 1 and 3, verify publishes only theirs, and the stream ends
-/// with every frame accounted for.
+/// Ingest, verify and fusion started again over journals that list frames 0 and 2 (pose and
+/// change results, as after all three crashed) and frame 1's pose result only (its change
+/// result was lost with fusion): ingest sends frames 1 and 3, verify publishes only frame 3's
+/// pose result, fusion publishes only frames 1 and 3's change results, and the final change set
+/// counts all four frames (0 and 2 restored from the change journal).
 #[test]
-fn restarted_ingest_and_verify_resume_from_the_results_journal() {
+fn restarted_ingest_verify_and_fusion_resume_from_the_results_journals() {
     let dir = tempfile::tempdir().unwrap();
     let mut config = tiny_scene(dir.path());
     config.state_dir = Some(dir.path().join("state"));
-    let path = journal::path(&config);
-    let (mut written, _) = journal::ResultsJournal::open(&path, &journal::header(&config)).unwrap();
-    written.append(0).unwrap();
-    written.append(2).unwrap();
+    assert!(
+        config.changes_enabled(),
+        "change detection is on by default"
+    );
+    let path = journal::path(&config, journal::Kind::Pose);
+    let header = journal::header(&config, journal::Kind::Pose);
+    let (mut written, _) = journal::Journal::open(&path, &header).unwrap();
+    for frame_id in [0, 2, 1] {
+        written.append(frame_id).unwrap();
+    }
+    drop(written);
+    let change_path = journal::path(&config, journal::Kind::Change);
+    let change_header = journal::header(&config, journal::Kind::Change);
+    let (mut written, _) = journal::Journal::open(&change_path, &change_header).unwrap();
+    for frame_id in [0, 2] {
+        let result = crate::stage::change::not_registered(frame_id, "before", None);
+        let bytes =
+            bus::encode_to_vec(frame_id, 0, crate::msg::Body::ChangeResult(result)).unwrap();
+        written
+            .append_with(frame_id, &journal::to_hex(&bytes))
+            .unwrap();
+    }
     drop(written);
     let mesh = read_mesh(&config.mesh).unwrap();
     let transport = CrossbeamTransport::new(config.transport.clone());
@@ -408,17 +428,34 @@ fn restarted_ingest_and_verify_resume_from_the_results_journal() {
     let ids: Vec<u64> = collected.by_frame().iter().map(|r| r.frame_id).collect();
     assert_eq!(
         ids,
-        vec![1, 3],
-        "only the frames without a result are redone"
+        vec![3],
+        "only the frames without a result are published"
     );
     assert!(collected.duplicates.is_empty());
     let render = &collected.metrics[&("render".to_string(), 0)];
     assert_eq!(
         render.messages_in, 2,
-        "ingest sent frames that had a result"
+        "ingest sent frames that had both results (or not frame 1, whose change result was lost)"
     );
-    let journaled = journal::read_published(&path, &journal::header(&config)).unwrap();
-    assert_eq!(journaled, [0, 1, 2, 3].into());
+    let changed: Vec<u64> = collected
+        .changes_by_frame()
+        .iter()
+        .map(|r| r.frame_id)
+        .collect();
+    assert_eq!(changed, vec![1, 3]);
+    assert!(collected.change_duplicates.is_empty());
+    let set = collected.change_set.as_ref().expect("the final change set");
+    assert!(set.complete);
+    assert_eq!(set.frames_with_result, 4);
+    assert_eq!(read_published(&path, &header), [0, 1, 2, 3].into());
+    assert_eq!(
+        read_published(&change_path, &change_header),
+        [0, 1, 2, 3].into()
+    );
+}
+
+fn read_published(path: &Path, header: &str) -> std::collections::BTreeSet<u64> {
+    journal::read_published(path, header).unwrap()
 }
 
 /// Ingest stopped by a signal before its stream is complete ends with an error (the supervisor

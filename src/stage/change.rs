@@ -1,10 +1,12 @@
 //! Stage "change": an accepted frame's ChangeJob (registered camera and pose, the photo's depth
-//! map) becomes its ChangeResult by the change detection of one frame (`core::change::
-//! detect_changes`, the same function `asgreg changes` calls). Runs as N workers, dispatched
-//! like flow. [`photo_depth`] is the one place that decides where a frame's depth comes from.
+//! map, or without one the photo and its registered stereo neighbours) becomes its ChangeResult
+//! by the change detection of one frame (`core::change::detect_changes`, the same function
+//! `asgreg changes` calls). Runs as N workers, dispatched like flow. [`photo_depth`] is the one
+//! place that decides where a frame's depth comes from.
 
 use std::time::Instant;
 
+use crate::core::change::stereo::{depth_from_neighbours, StereoConfig, StereoView};
 use crate::core::change::{detect_changes, ChangeClass, ChangeConfig, ChangeWorkspace};
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
@@ -12,33 +14,96 @@ use crate::msg::{ChangeJob, ChangeResult};
 
 use super::elapsed_ms;
 
-/// Why a frame has no change map although it was registered.
-pub const NO_DEPTH: &str = "no depth: the source has no depth map for this frame (set source.depth to a folder of <image stem>.pfm); depth computed in the pipeline from neighbouring frames is not built yet";
+/// How the change stage computes the depth of a frame without a given depth map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StereoDepthSettings {
+    pub sweep: StereoConfig,
+    /// Disparity error of the stereo depth, working pixels (the threshold's stereo term).
+    pub disparity_sigma_px: f64,
+}
+
+/// A frame's depth map for its change map: the given one, or computed by stereo.
+pub enum PhotoDepth<'j> {
+    Given(ImageView<'j, f32>),
+    /// Plane-sweep stereo from the job's neighbours, with the threshold's stereo term
+    /// σ_quad (per metre) of this frame's baseline.
+    Stereo {
+        depth_m: Image<f32>,
+        quadratic_sigma_per_m: f64,
+    },
+}
 
 /// The depth map a frame's change map compares with the model: the given one (MVS, as
-/// `asgreg changes --depth`) when the frame carries it. In-pipeline depth (plane-sweep stereo
-/// from the frame and its registered neighbours) goes here, as the `None` branch.
-pub fn photo_depth<'j>(job: &'j ChangeJob) -> Result<ImageView<'j, f32>, String> {
+/// `asgreg changes --depth`) when the frame carries it; otherwise plane-sweep stereo
+/// (`core::change::stereo::depth_from_neighbours`, as `asgreg changes` without `--depth`) of the
+/// frame's photo against the registered neighbours verify sent with it.
+pub fn photo_depth<'j>(
+    mesh: &Mesh,
+    job: &'j ChangeJob,
+    stereo: &StereoDepthSettings,
+) -> Result<PhotoDepth<'j>, String> {
     match job.depth() {
-        Ok(Some(depth)) => Ok(depth),
-        Ok(None) => Err(NO_DEPTH.to_string()),
-        Err(error) => Err(format!("depth map unusable: {error}")),
+        Ok(Some(depth)) => return Ok(PhotoDepth::Given(depth)),
+        Ok(None) => {}
+        Err(error) => return Err(format!("depth map unusable: {error}")),
     }
+    let photo = match job.photo() {
+        Ok(Some(photo)) => photo,
+        Ok(None) => return Err(NO_DEPTH.to_string()),
+        Err(error) => return Err(format!("photo unusable: {error}")),
+    };
+    let neighbours = job
+        .neighbours()
+        .map_err(|error| format!("neighbour photo unusable: {error}"))?;
+    if neighbours.is_empty() {
+        return Err(format!(
+            "{NO_DEPTH}; no registered neighbour came with the frame"
+        ));
+    }
+    let reference = StereoView {
+        photo,
+        intrinsics: job.meta.camera.intrinsics,
+        cam_from_world: job.meta.cam_from_world,
+    };
+    let views: Vec<StereoView<'_>> = neighbours
+        .iter()
+        .map(|(meta, photo)| StereoView {
+            photo: *photo,
+            intrinsics: meta.camera.intrinsics,
+            cam_from_world: meta.cam_from_world,
+        })
+        .collect();
+    let depth = depth_from_neighbours(mesh, &reference, &views, &stereo.sweep)
+        .map_err(|error| format!("stereo depth: {error}"))?;
+    Ok(PhotoDepth::Stereo {
+        quadratic_sigma_per_m: depth.quadratic_sigma_per_m(stereo.disparity_sigma_px),
+        depth_m: depth.depth_m,
+    })
 }
+
+/// Why a frame has no change map although it was registered.
+pub const NO_DEPTH: &str = "no depth: the source has no depth map for this frame (set source.depth to a folder of <image stem>.pfm) and no photo came for stereo";
 
 pub struct ChangeStage<'m> {
     mesh: &'m Mesh,
     config: ChangeConfig,
+    stereo: StereoDepthSettings,
     worker_index: u32,
     workspace: ChangeWorkspace,
     classes: Image<ChangeClass>,
 }
 
 impl<'m> ChangeStage<'m> {
-    pub fn new(mesh: &'m Mesh, config: ChangeConfig, worker_index: u32) -> Self {
+    pub fn new(
+        mesh: &'m Mesh,
+        config: ChangeConfig,
+        stereo: StereoDepthSettings,
+        worker_index: u32,
+    ) -> Self {
         Self {
             mesh,
             config,
+            stereo,
             worker_index,
             workspace: ChangeWorkspace::new(),
             classes: Image::default(),
@@ -58,13 +123,26 @@ impl<'m> ChangeStage<'m> {
             change_ms: 0.0,
             change_worker: Some(self.worker_index),
         };
-        let detected = photo_depth(job).and_then(|depth| {
+        let detected = photo_depth(self.mesh, job, &self.stereo).and_then(|depth| {
+            let (depth, config) = match &depth {
+                PhotoDepth::Given(depth) => (*depth, self.config),
+                PhotoDepth::Stereo {
+                    depth_m,
+                    quadratic_sigma_per_m,
+                } => (
+                    depth_m.view(),
+                    ChangeConfig {
+                        quadratic_sigma_per_m: *quadratic_sigma_per_m as f32,
+                        ..self.config
+                    },
+                ),
+            };
             detect_changes(
                 self.mesh,
                 &meta.camera.intrinsics,
                 &meta.cam_from_world,
                 depth,
-                &self.config,
+                &config,
                 &mut self.workspace,
                 &mut self.classes,
             )

@@ -1,7 +1,9 @@
 //! Stage "fusion": gathers the frames' change results (one per frame: the first kept, repeats
 //! from redone change jobs ignored) and fuses their regions across frames into a ChangeSet by
 //! `core::change::fusion::fuse_regions` (the function `asgreg changes` calls). The set is made
-//! in frame order, so it does not depend on which worker finished first.
+//! in frame order, so it does not depend on which worker finished first. After a restart, the
+//! results published before it come back from the change journal (`restore`), so none is
+//! published twice and the set is the same as without the restart.
 
 use std::collections::BTreeMap;
 
@@ -35,6 +37,12 @@ impl FusionStage {
             return None;
         }
         Some(self.results.entry(frame_id).or_insert(result))
+    }
+
+    /// A change result published before a restart of this stage (from the change journal):
+    /// kept, so it is fused and not published again.
+    pub fn restore(&mut self, result: ChangeResult) {
+        self.results.entry(result.frame_id).or_insert(result);
     }
 
     /// The source produced `frame_count` frames (ids 0..frame_count).

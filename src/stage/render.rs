@@ -1,5 +1,6 @@
 //! Stage "render": a Frame becomes its FrameQuery (the query gradient, for verify's final
-//! refinement, and with change detection the frame's depth map, which verify hands on) and one FlowJob per coarse pose (the query gradient and the ASG rendering, depth
+//! refinement, and with change detection the frame's depth map, or without one its grey photo
+//! for stereo, which verify hands on) and one FlowJob per coarse pose (the query gradient and the ASG rendering, depth
 //! and face index of the view), by the frame sequence's own query, plan and render steps
 //! (`core::frame`).
 
@@ -75,6 +76,12 @@ impl<'m> RenderStage<'m> {
             query: Cow::Borrowed(query.data()),
             depth_m: if self.forward_depth {
                 Cow::Borrowed(&frame.depth_m[..])
+            } else {
+                Cow::Borrowed(&[])
+            },
+            // Without a depth map the change stage computes it by stereo from the photo.
+            photo: if self.forward_depth && frame.depth_m.is_empty() {
+                Cow::Borrowed(&frame.image[..])
             } else {
                 Cow::Borrowed(&[])
             },

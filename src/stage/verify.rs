@@ -6,7 +6,10 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
 
+use std::sync::Arc;
+
 use crate::core::camera::Camera;
+use crate::core::change::stereo::{choose_neighbours, NeighbourConfig, PosedCamera};
 use crate::core::frame::{
     decide_frame, CoarseOutcome, Decision, IntrinsicsMode, RefineWorkspace, RegistrationConfig,
 };
@@ -14,7 +17,8 @@ use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::msg::{
     CameraNumbers, ChangeJob, ChangeJobMeta, ChangeResult, Evidence, FrameFailed, FrameInfo,
-    FrameQuery, Hypothesis, PoseNumbers, PoseResult, RefinementNumbers, StageTimesMs,
+    FrameQuery, Hypothesis, NeighbourMeta, PoseNumbers, PoseResult, RefinementNumbers,
+    StageTimesMs,
 };
 
 use super::change::not_registered;
@@ -29,6 +33,34 @@ pub enum ChangeWork {
     Result(ChangeResult),
 }
 
+/// What an accepted frame brings to its change work.
+struct Decided {
+    info: FrameInfo,
+    camera: Camera,
+    cam_from_world: crate::core::rigid::Rigid3,
+    depth_m: Option<Image<f32>>,
+    photo: Option<Image<f32>>,
+}
+
+/// An accepted frame kept as a stereo reference or neighbour.
+struct RegisteredView {
+    info: FrameInfo,
+    camera: Camera,
+    cam_from_world: crate::core::rigid::Rigid3,
+    photo: Arc<Image<f32>>,
+}
+
+impl RegisteredView {
+    fn posed(&self) -> PosedCamera {
+        PosedCamera {
+            intrinsics: self.camera.intrinsics,
+            width_px: self.photo.width_px(),
+            height_px: self.photo.height_px(),
+            cam_from_world: self.cam_from_world,
+        }
+    }
+}
+
 struct PendingFrame {
     info: FrameInfo,
     name: String,
@@ -41,6 +73,8 @@ struct PendingFrame {
     query: Option<Image<f32>>,
     /// The photo's depth map (render sends it with the query), for the change stage.
     depth_m: Option<Image<f32>>,
+    /// Without a depth map: the grey photo (render sends it with the query), for stereo.
+    photo: Option<Image<f32>>,
     first_seen: Instant,
 }
 
@@ -55,6 +89,7 @@ impl PendingFrame {
             hypotheses: BTreeMap::new(),
             query: None,
             depth_m: None,
+            photo: None,
             first_seen: Instant::now(),
         }
     }
@@ -80,6 +115,14 @@ pub struct VerifyStage<'m> {
     pub late_messages: u64,
     /// Whether decided frames make change work (the change stage runs).
     changes: bool,
+    /// Stereo neighbours: how they are chosen, and the window (frames before and after).
+    neighbour_config: NeighbourConfig,
+    window_frames: u64,
+    /// Accepted frames with a photo and no depth map (stereo references and neighbours) within
+    /// the window of a frame still waiting.
+    registered_views: BTreeMap<u64, RegisteredView>,
+    /// Accepted frames whose change job waits for the frames after them (their neighbours).
+    stereo_waiting: BTreeSet<u64>,
     /// Change work of the frames decided so far, oldest first (the runtime takes it).
     pub change_work: Vec<ChangeWork>,
 }
@@ -97,45 +140,66 @@ impl<'m> VerifyStage<'m> {
             stream_frame_count: None,
             late_messages: 0,
             changes: false,
+            neighbour_config: NeighbourConfig::default(),
+            window_frames: 0,
+            registered_views: BTreeMap::new(),
+            stereo_waiting: BTreeSet::new(),
             change_work: Vec::new(),
         }
     }
 
-    /// Makes every decided frame also give its change work (`change_work`).
-    pub fn with_changes(mut self) -> Self {
+    /// Makes every decided frame also give its change work (`change_work`). A frame without a
+    /// depth map gets stereo neighbours: the accepted frames within `window_frames` of it (before
+    /// and after) chosen by `core::change::stereo::choose_neighbours`; its change job waits until
+    /// the frames after it are decided.
+    pub fn with_changes(mut self, neighbours: NeighbourConfig, window_frames: u64) -> Self {
         self.changes = true;
+        self.neighbour_config = neighbours;
+        self.window_frames = window_frames;
         self
     }
 
     /// Queues the change work of a frame decided as `result` (accepted: with its registered
-    /// camera and pose from `decided`).
-    fn queue_change_work(
-        &mut self,
-        result: &PoseResult,
-        decided: Option<(
-            &FrameInfo,
-            Camera,
-            crate::core::rigid::Rigid3,
-            Option<Image<f32>>,
-        )>,
-    ) {
+    /// camera and pose from `decided`); an accepted frame without depth but with its photo waits
+    /// for its stereo neighbours ([`VerifyStage::release_stereo_jobs`]).
+    fn queue_change_work(&mut self, result: &PoseResult, decided: Option<Decided>) {
         if !self.changes {
             return;
         }
         let work = match decided {
-            Some((info, camera, cam_from_world, depth_m)) if result.accepted => ChangeWork::Job(
-                result.frame_id,
-                Box::new(ChangeJob {
-                    meta: ChangeJobMeta {
-                        info: info.clone(),
-                        camera,
-                        cam_from_world,
-                    },
-                    depth_m: std::borrow::Cow::Owned(
-                        depth_m.map(Image::into_data).unwrap_or_default(),
-                    ),
-                }),
-            ),
+            Some(decided) if result.accepted => {
+                if decided.depth_m.is_none() {
+                    if let Some(photo) = decided.photo {
+                        self.registered_views.insert(
+                            result.frame_id,
+                            RegisteredView {
+                                info: decided.info,
+                                camera: decided.camera,
+                                cam_from_world: decided.cam_from_world,
+                                photo: Arc::new(photo),
+                            },
+                        );
+                        self.stereo_waiting.insert(result.frame_id);
+                        return;
+                    }
+                }
+                ChangeWork::Job(
+                    result.frame_id,
+                    Box::new(ChangeJob {
+                        meta: ChangeJobMeta {
+                            info: decided.info,
+                            camera: decided.camera,
+                            cam_from_world: decided.cam_from_world,
+                            neighbours: Vec::new(),
+                        },
+                        depth_m: std::borrow::Cow::Owned(
+                            decided.depth_m.map(Image::into_data).unwrap_or_default(),
+                        ),
+                        photo: std::borrow::Cow::Owned(Vec::new()),
+                        neighbour_photos: std::borrow::Cow::Owned(Vec::new()),
+                    }),
+                )
+            }
             _ => ChangeWork::Result(not_registered(
                 result.frame_id,
                 &result.name,
@@ -143,6 +207,102 @@ impl<'m> VerifyStage<'m> {
             )),
         };
         self.change_work.push(work);
+    }
+
+    /// The change jobs of the frames waiting for stereo neighbours whose window is decided (the
+    /// `window_frames` frames after them, or the end of the stream): each with the neighbours
+    /// chosen among the accepted frames within the window, or, when there is none, its change
+    /// result saying why. Frames no waiting frame can use are forgotten.
+    pub fn release_stereo_jobs(&mut self) {
+        let window = self.window_frames;
+        let last = self.stream_frame_count.map(|count| count.saturating_sub(1));
+        let complete = self.stream_complete().is_some();
+        let ready: Vec<u64> = self
+            .stereo_waiting
+            .iter()
+            .copied()
+            .filter(|&frame_id| {
+                let until = frame_id.saturating_add(window);
+                let until = last.map_or(until, |last| until.min(last));
+                complete || (frame_id + 1..=until).all(|id| self.is_finished(id))
+            })
+            .collect();
+        for frame_id in ready {
+            self.stereo_waiting.remove(&frame_id);
+            let work = self.stereo_job(frame_id);
+            self.change_work.push(work);
+        }
+        // Keep what a waiting frame, or one still to be decided, may choose.
+        let keep_from = self
+            .stereo_waiting
+            .first()
+            .copied()
+            .unwrap_or(self.finished_below)
+            .min(self.finished_below)
+            .saturating_sub(window);
+        self.registered_views = self.registered_views.split_off(&keep_from);
+    }
+
+    fn stereo_job(&self, frame_id: u64) -> ChangeWork {
+        let Some(reference) = self.registered_views.get(&frame_id) else {
+            return ChangeWork::Result(not_registered(frame_id, "", None));
+        };
+        let window = self.window_frames;
+        let candidates: Vec<(u64, &RegisteredView)> = self
+            .registered_views
+            .range(frame_id.saturating_sub(window)..=frame_id.saturating_add(window))
+            .filter(|(id, _)| **id != frame_id)
+            .map(|(id, view)| (*id, view))
+            .collect();
+        let posed: Vec<PosedCamera> = candidates.iter().map(|(_, v)| v.posed()).collect();
+        match choose_neighbours(
+            self.mesh,
+            &reference.posed(),
+            &posed,
+            &self.neighbour_config,
+        ) {
+            Ok(chosen) => {
+                let mut neighbour_photos = Vec::new();
+                let neighbours = chosen
+                    .iter()
+                    .map(|&k| {
+                        let (id, view) = candidates[k];
+                        neighbour_photos.extend_from_slice(view.photo.data());
+                        NeighbourMeta {
+                            frame_id: id,
+                            name: view.info.name.clone(),
+                            camera: view.camera,
+                            cam_from_world: view.cam_from_world,
+                        }
+                    })
+                    .collect();
+                ChangeWork::Job(
+                    frame_id,
+                    Box::new(ChangeJob {
+                        meta: ChangeJobMeta {
+                            info: reference.info.clone(),
+                            camera: reference.camera,
+                            cam_from_world: reference.cam_from_world,
+                            neighbours,
+                        },
+                        depth_m: std::borrow::Cow::Owned(Vec::new()),
+                        photo: std::borrow::Cow::Owned(reference.photo.data().to_vec()),
+                        neighbour_photos: std::borrow::Cow::Owned(neighbour_photos),
+                    }),
+                )
+            }
+            Err(error) => ChangeWork::Result(ChangeResult {
+                frame_id,
+                name: reference.info.name.clone(),
+                failure: Some(format!(
+                    "no depth: the source has no depth map for this frame and stereo found none: {error} (within {window} frames of it in the stream)"
+                )),
+                counts: Default::default(),
+                regions: Vec::new(),
+                change_ms: 0.0,
+                change_worker: None,
+            }),
+        }
     }
 
     fn is_finished(&self, frame_id: u64) -> bool {
@@ -212,6 +372,13 @@ impl<'m> VerifyStage<'m> {
                 Ok(depth) => pending.depth_m = depth.map(|d| d.to_image()),
                 Err(error) => tracing::warn!(
                     "frame {frame_id} '{}': depth map unusable ({error}); its change result will say no depth",
+                    query.info.name
+                ),
+            }
+            match query.photo() {
+                Ok(photo) => pending.photo = photo.map(|p| p.to_image()),
+                Err(error) => tracing::warn!(
+                    "frame {frame_id} '{}': photo unusable ({error}); no stereo depth for it",
                     query.info.name
                 ),
             }
@@ -366,10 +533,21 @@ impl<'m> VerifyStage<'m> {
             times,
             flow_workers: frame.hypotheses.values().map(|h| h.flow_worker).collect(),
         };
-        let PendingFrame { info, depth_m, .. } = frame;
+        let PendingFrame {
+            info,
+            depth_m,
+            photo,
+            ..
+        } = frame;
         self.queue_change_work(
             &result,
-            registered.map(|(camera, pose)| (&info, camera, pose, depth_m)),
+            registered.map(|(camera, cam_from_world)| Decided {
+                info,
+                camera,
+                cam_from_world,
+                depth_m,
+                photo,
+            }),
         );
         result
     }

@@ -1,17 +1,17 @@
 //! Every topic name and every zenoh key expression of the bus, in one place and versioned
-//! (`asgreg/v4/...`): a subscriber in any language builds its keys from this file's rules.
+//! (`asgreg/v5/...`): a subscriber in any language builds its keys from this file's rules.
 //!
 //! A topic is a `/`-separated name relative to a pipeline (`results`, `flow/jobs/3`); its key is
-//! `asgreg/v4/<pipeline>/<topic>`. iceoryx2 service names are the same string.
+//! `asgreg/v5/<pipeline>/<topic>`. iceoryx2 service names are the same string.
 
 /// The version segment of every key; it changes with `msg::SCHEMA_VERSION`.
-pub const KEY_VERSION: &str = "v4";
+pub const KEY_VERSION: &str = "v5";
 /// The first segment of every key.
 pub const KEY_ROOT: &str = "asgreg";
 
 /// Final results, one `PoseResult` per frame (bincode).
 pub const RESULTS: &str = "results";
-/// The same results as JSON (`schemas/v4/pose_result.schema.json`) for non-Rust subscribers.
+/// The same results as JSON (`schemas/v5/pose_result.schema.json`) for non-Rust subscribers.
 pub const RESULTS_JSON: &str = "results/json";
 /// Correspondences from flow workers to the pose stage.
 pub const CORRESPONDENCES: &str = "pose/in";
@@ -22,9 +22,9 @@ pub const VERIFY_IN: &str = "verify/in";
 pub const FUSION_IN: &str = "fusion/in";
 /// Change results (one per frame), fused change sets and the end of the change stream (bincode).
 pub const CHANGES: &str = "changes";
-/// The change results as JSON (`schemas/v4/change_result.schema.json`).
+/// The change results as JSON (`schemas/v5/change_result.schema.json`).
 pub const CHANGES_JSON: &str = "changes/json";
-/// The fused change sets as JSON (`schemas/v4/change_set.schema.json`).
+/// The fused change sets as JSON (`schemas/v5/change_set.schema.json`).
 pub const CHANGE_SET_JSON: &str = "changeset/json";
 /// Per-stage metrics snapshots.
 pub const METRICS: &str = "metrics";
@@ -47,7 +47,7 @@ pub fn credits(link: &str) -> String {
     format!("{link}/credits")
 }
 
-/// The full key of a topic in a pipeline: `asgreg/v4/<pipeline>/<topic>`.
+/// The full key of a topic in a pipeline: `asgreg/v5/<pipeline>/<topic>`.
 pub fn key(pipeline: &str, topic: &str) -> String {
     format!("{KEY_ROOT}/{KEY_VERSION}/{pipeline}/{topic}")
 }
@@ -63,9 +63,9 @@ mod tests {
 
     #[test]
     fn keys_are_versioned_and_scoped_by_pipeline() {
-        assert_eq!(key("gs1", RESULTS), "asgreg/v4/gs1/results");
-        assert_eq!(key("gs1", &jobs("flow", 3)), "asgreg/v4/gs1/flow/jobs/3");
-        assert_eq!(key("gs1", &credits("flow")), "asgreg/v4/gs1/flow/credits");
-        assert_eq!(pipeline_wildcard("gs1"), "asgreg/v4/gs1/**");
+        assert_eq!(key("gs1", RESULTS), "asgreg/v5/gs1/results");
+        assert_eq!(key("gs1", &jobs("flow", 3)), "asgreg/v5/gs1/flow/jobs/3");
+        assert_eq!(key("gs1", &credits("flow")), "asgreg/v5/gs1/flow/credits");
+        assert_eq!(pipeline_wildcard("gs1"), "asgreg/v5/gs1/**");
     }
 }

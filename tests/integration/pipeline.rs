@@ -320,7 +320,8 @@ fn a_stage_process_rejects_a_wrong_schema_version_and_keeps_running() {
         "verify.toml",
         &scene,
         "iceoryx2",
-        &common(&unique("schema"), 1, ""),
+        // Without change detection: verify alone, not waiting for a fusion stage.
+        &common(&unique("schema"), 1, "change = 0"),
     );
     let mut verify = command(&["stage", "verify", "--config", path_str(&config_path)])
         .spawn()
@@ -414,10 +415,10 @@ fn change_set(out: &Path) -> serde_json::Value {
 /// Change detection in the pipeline on a tiny `synth --changes` scene (5 photos, 160×88, given
 /// depth maps): `run` prints a change result per frame (a map for the registered frames, the
 /// reason for the others) and the fused change set; `launch` over iceoryx2 with 2 change
-/// workers, one of them SIGKILLed mid-stream, gives every frame exactly one change result and
-/// the same change set as `run`.
+/// workers, with change worker 0, then verify, then fusion SIGKILLed mid-stream, gives every
+/// frame exactly one change result and the same change results and change set as `run`.
 #[test]
-fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_set() {
+fn change_stage_run_and_launch_with_killed_change_verify_and_fusion_give_the_same_change_set() {
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("scene");
     let output = asgreg(&[
@@ -496,13 +497,14 @@ fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_
     let reference_set = change_set(&out_run);
     assert_eq!(reference_set["complete"], true);
 
-    // launch, 2 change workers, frames at 4/s; change worker 0 is killed after the first result.
+    // launch, 2 change workers, frames at 1.5/s; change worker 0 is killed after the first
+    // result, verify 0.5 s later, fusion 0.5 s after that (most of the stream still to come).
     let launch_config = write_config(
         dir.path(),
         "changes-iox.toml",
         &scene,
         "iceoryx2",
-        &body("chg-iox", "rate_hz = 4.0\n"),
+        &body("chg-iox", "rate_hz = 1.5\n"),
     );
     let out_iox = dir.path().join("out-iox");
     let mut launcher = command(&[
@@ -520,12 +522,11 @@ fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_
         let mut text = String::new();
         for line in BufReader::new(stderr).lines() {
             let line = line.unwrap();
-            if let Some(pid) = line.strip_prefix("launch: change worker 0 pid ") {
-                let pid = pid.trim().parse::<u32>().unwrap();
-                let _ = pid_events.send(Event::Started {
-                    stage: "change",
-                    pid,
-                });
+            for stage in ["change", "verify", "fusion"] {
+                if let Some(pid) = line.strip_prefix(&format!("launch: {stage} worker 0 pid ")) {
+                    let pid = pid.trim().parse::<u32>().unwrap();
+                    let _ = pid_events.send(Event::Started { stage, pid });
+                }
             }
             text.push_str(&line);
             text.push('\n');
@@ -545,10 +546,10 @@ fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_
         }
         text
     });
-    let mut starts = Vec::new();
+    let mut started = Vec::new();
     loop {
         match received.recv_timeout(Duration::from_secs(120)) {
-            Ok(Event::Started { pid, .. }) => starts.push(pid),
+            Ok(Event::Started { stage, pid }) => started.push((stage, pid)),
             Ok(Event::Result) => break,
             Err(_) => {
                 let _ = launcher.kill();
@@ -556,36 +557,200 @@ fn change_stage_run_and_launch_with_a_killed_change_worker_give_the_same_change_
             }
         }
     }
-    let killed = Command::new("kill")
-        .args(["-9", &starts[0].to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
+    for (i, stage) in ["change", "verify", "fusion"].into_iter().enumerate() {
+        if i > 0 {
+            std::thread::sleep(Duration::from_millis(500));
+        }
+        let pid = started.iter().find(|(s, _)| *s == stage).unwrap().1;
+        let killed = Command::new("kill")
+            .args(["-9", &pid.to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+    }
     let status = launcher.wait().unwrap();
     let log = log.join().unwrap();
     let printed = printed.join().unwrap();
     assert!(status.success(), "launch failed:\n{printed}\n{log}");
     while let Ok(event) = received.try_recv() {
-        if let Event::Started { pid, .. } = event {
-            starts.push(pid);
+        if let Event::Started { stage, pid } = event {
+            started.push((stage, pid));
         }
     }
-    assert!(
-        starts.len() >= 2,
-        "the killed change worker was not restarted:\n{log}"
-    );
+    for stage in ["change", "verify", "fusion"] {
+        let starts = started.iter().filter(|(s, _)| *s == stage).count();
+        assert!(
+            starts >= 2,
+            "the killed {stage} worker was not restarted:\n{log}"
+        );
+    }
     assert!(
         printed.contains("exactly one change result per frame: yes"),
+        "{printed}"
+    );
+    assert!(
+        printed.contains("exactly one result per frame: yes"),
         "{printed}"
     );
     assert_eq!(
         change_results(&out_iox),
         reference,
-        "launch's change results differ from run's:\n{printed}"
+        "launch's change results differ from run's:\n{printed}\n{log}"
     );
     assert_eq!(
         change_set(&out_iox),
         reference_set,
         "launch's change set differs from run's"
     );
+    assert_eq!(
+        results(&out_iox),
+        results(&out_run),
+        "launch's pose results differ from run's"
+    );
+}
+
+/// In-pipeline depth: `asgreg run` on a small `synth --changes` scene without depth maps computes
+/// each accepted frame's depth by plane-sweep stereo from its registered neighbours in the
+/// stream (the window covers the whole stream here), and its change results are those of
+/// `asgreg changes` without `--depth` under the same poses (the same neighbour choice and
+/// stereo, `core::change::stereo`).
+#[test]
+fn run_without_depth_gives_the_change_results_of_batch_stereo() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let output = asgreg(&[
+        "synth",
+        "--out",
+        path_str(&scene),
+        "--width",
+        "240",
+        "--height",
+        "132",
+        "--images",
+        "9",
+        "--levels",
+        "8",
+        "--seed",
+        "2",
+        "--changes",
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let body = format!(
+        "{}\n[stereo]\nwindow_frames = 8\n",
+        common(&unique("chg-stereo"), 2, "change = 2")
+    );
+    let config = write_config(dir.path(), "stereo.toml", &scene, "crossbeam", &body);
+    let out = dir.path().join("out-run");
+    let output = asgreg(&[
+        "run",
+        "--config",
+        path_str(&config),
+        "--out",
+        path_str(&out),
+    ]);
+    let printed = stdout(&output);
+    assert!(output.status.success(), "{printed}\n{}", stderr(&output));
+    assert!(
+        printed.contains("exactly one change result per frame: yes"),
+        "{printed}"
+    );
+    // The registered poses as a COLMAP images.txt (ids and cameras from the scene's).
+    let gt = std::fs::read_to_string(scene.join("gt/images.txt")).unwrap();
+    let ids: std::collections::HashMap<String, (String, String)> = gt
+        .lines()
+        .filter(|l| !l.starts_with('#') && l.split_whitespace().count() >= 10)
+        .map(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            (f[9].to_string(), (f[0].to_string(), f[8].to_string()))
+        })
+        .collect();
+    let mut images_txt = String::new();
+    let mut accepted = Vec::new();
+    for result in results(&out) {
+        if result["accepted"] != true {
+            continue;
+        }
+        let name = result["name"].as_str().unwrap().to_string();
+        let pose = &result["cam_from_world"];
+        let q: Vec<f64> = pose["qvec_wxyz"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        let t: Vec<f64> = pose["tvec_m"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        let (id, camera) = &ids[&name];
+        images_txt.push_str(&format!(
+            "{id} {} {} {} {} {} {} {} {camera} {name}\n\n",
+            q[0], q[1], q[2], q[3], t[0], t[1], t[2]
+        ));
+        accepted.push(name);
+    }
+    assert!(
+        accepted.len() >= 3,
+        "too few frames registered for stereo ({accepted:?}):\n{printed}"
+    );
+    let poses = dir.path().join("registered.txt");
+    std::fs::write(&poses, images_txt).unwrap();
+    let batch_out = dir.path().join("batch");
+    let output = asgreg(&[
+        "changes",
+        "--mesh",
+        path_str(&scene.join("model.ply")),
+        "--images",
+        path_str(&scene.join("images")),
+        "--cameras",
+        path_str(&scene.join("gt/cameras.txt")),
+        "--poses",
+        path_str(&poses),
+        "--out",
+        path_str(&batch_out),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(batch_out.join("report.json")).unwrap())
+            .unwrap();
+    let batch: std::collections::HashMap<String, &serde_json::Value> = report["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| (f["name"].as_str().unwrap().to_string(), f))
+        .collect();
+    let mut maps = 0;
+    for change in change_results(&out) {
+        let name = change["name"].as_str().unwrap();
+        if !accepted.iter().any(|a| a == name) {
+            continue;
+        }
+        let frame = batch[name];
+        assert_eq!(
+            change["failure"].is_null(),
+            frame["failure"].is_null(),
+            "{name}: pipeline {change}\nbatch {frame}"
+        );
+        if change["failure"].is_null() {
+            maps += 1;
+            for class in ["added", "removed", "unchanged", "unknown"] {
+                let (p, b) = (
+                    change["counts"][class].as_f64().unwrap(),
+                    frame["counts"][class].as_f64().unwrap(),
+                );
+                assert!(
+                    (p - b).abs() <= 0.01 * b.max(p) + 5.0,
+                    "{name} {class}: pipeline {p} px, batch {b} px"
+                );
+            }
+            assert_eq!(
+                change["regions"].as_array().unwrap().len(),
+                frame["regions"].as_array().unwrap().len(),
+                "{name}: pipeline {change}\nbatch {frame}"
+            );
+        }
+    }
+    assert!(maps >= 2, "fewer than 2 stereo change maps:\n{printed}");
 }

@@ -129,7 +129,22 @@ pub enum StereoError {
     NoModelSurface { min_pixels: usize },
     #[error("invalid stereo config: {0}")]
     InvalidConfig(String),
+    #[error("the model is not in view under the frame's pose: no depth range for stereo")]
+    ModelNotInView,
+    #[error("no registered frame sees the scene from a usable baseline ({min_baseline_m:.1}–{max_baseline_m:.1} m at a scene depth of {scene_depth_m:.1} m, optical axes within {max_axis_angle_deg:.0}°) among {candidates} candidate(s)")]
+    NoNeighbour {
+        min_baseline_m: f64,
+        max_baseline_m: f64,
+        scene_depth_m: f64,
+        max_axis_angle_deg: f64,
+        candidates: usize,
+    },
 }
+
+/// Default disparity error of stereo depth, working pixels (see docs/measurements.md): sets the
+/// change threshold's stereo term σ_quad = σ_disparity / (f·B) per frame
+/// ([`StereoDepth::quadratic_sigma_per_m`]).
+pub const DEFAULT_DISPARITY_SIGMA_PX: f64 = 0.6;
 
 impl StereoConfig {
     pub fn validate(&self) -> Result<(), StereoError> {
@@ -321,6 +336,30 @@ pub fn select_neighbours(
         .take(config.count.min(MAX_NEIGHBOURS))
         .map(|(_, index)| index)
         .collect()
+}
+
+/// The reference's stereo neighbours among `candidates` (indices, nearest first), the one choice
+/// of batch (`asgreg changes`) and pipeline (verify, from the registered frames of the stream):
+/// [`scene_depth_m`] under the reference, then [`select_neighbours`]; an error when the model is
+/// not in view or no candidate qualifies.
+pub fn choose_neighbours(
+    mesh: &Mesh,
+    reference: &PosedCamera,
+    candidates: &[PosedCamera],
+    config: &NeighbourConfig,
+) -> Result<Vec<usize>, StereoError> {
+    let scene_depth = scene_depth_m(mesh, reference).ok_or(StereoError::ModelNotInView)?;
+    let chosen = select_neighbours(reference, scene_depth, candidates, config);
+    if chosen.is_empty() {
+        return Err(StereoError::NoNeighbour {
+            min_baseline_m: config.min_baseline_ratio * scene_depth,
+            max_baseline_m: config.max_baseline_ratio * scene_depth,
+            scene_depth_m: scene_depth,
+            max_axis_angle_deg: config.max_axis_angle_deg,
+            candidates: candidates.len(),
+        });
+    }
+    Ok(chosen)
 }
 
 /// Median depth of the model under `camera`'s pose, rendered at a quarter of its size (the
