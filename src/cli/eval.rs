@@ -241,7 +241,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         let mut asg_row = None;
         let outcome = match method {
             Method::Asg(intrinsics) if args.diagnose_search => {
-                let config = registration_config(with_depth, &args.coarse);
+                let config = registration_config(query_mode, intrinsics, &args.coarse);
                 let started = std::time::Instant::now();
                 let frame = scene_batch_frame(
                     &args.scene,
