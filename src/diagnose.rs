@@ -35,6 +35,7 @@ use crate::core::frame::{
 };
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
+use crate::core::pose_search::OrientedEdgeMap;
 use crate::core::raster::{Rasterizer, RenderBuffers};
 use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
@@ -147,6 +148,8 @@ pub struct SearchDiagnosis {
     /// δ of the first centre of a search started from the prior's rotation at the true centre,
     /// px: what the search reaches when the position is right.
     pub true_centre_search_delta_px: Option<f64>,
+    /// The search's own wall time (the frame's, not the diagnosis'), ms.
+    pub search_ms: f64,
 }
 
 /// One refined beam of the search against the truth.
@@ -302,7 +305,7 @@ pub fn diagnose_query(
         .as_ref()
         .ok()
         .and_then(|r| delta(&r.aligned_camera, &r.aligned_cam_from_world));
-    let aligned_from_truth_delta_px = refine_pose(
+    let from_truth = refine_pose(
         mesh,
         camera,
         query,
@@ -311,8 +314,11 @@ pub fn diagnose_query(
         config,
         &mut refine_workspace,
     )
-    .ok()
-    .and_then(|r| delta(&r.aligned_camera, &r.aligned_cam_from_world));
+    .ok();
+    let aligned_from_truth_delta_px = from_truth
+        .as_ref()
+        .and_then(|r| delta(&r.aligned_camera, &r.aligned_cam_from_world));
+    let truth_support = from_truth.map(|r| r.verified.support_fraction());
     let best_delta_px = diagnoses
         .iter()
         .filter_map(|v| v.hypothesis_delta_px)
@@ -324,6 +330,7 @@ pub fn diagnose_query(
             initial_cam_from_world,
             query,
             truth,
+            truth_support,
             outcome,
             config,
         )
@@ -362,25 +369,40 @@ pub fn diagnose_search(
         &mut CoarseView::default(),
     );
     Ok(outcome.map(|outcome| {
+        let truth_support = refine_pose(
+            mesh,
+            input.camera,
+            query.view(),
+            truth,
+            AlignedParameters::Pose,
+            config,
+            &mut RefineWorkspace::default(),
+        )
+        .ok()
+        .map(|r| r.verified.support_fraction());
         search_diagnosis(
             mesh,
             input.camera,
             &input.initial_cam_from_world,
             query.view(),
             truth,
+            truth_support,
             &outcome,
             config,
         )
     }))
 }
 
-/// The search's `outcome` for the frame with prior `prior` measured against `truth`.
+/// The search's `outcome` for the frame with prior `prior` measured against `truth`, whose edge
+/// support (measured by the caller's refinement from the truth) is `truth_support`.
+#[allow(clippy::too_many_arguments)]
 fn search_diagnosis(
     mesh: &Mesh,
     camera: &Camera,
     prior: &Rigid3,
     query: ImageView<'_, f32>,
     truth: &Rigid3,
+    truth_support: Option<f64>,
     outcome: &PoseSearchOutcome,
     config: &RegistrationConfig,
 ) -> SearchDiagnosis {
@@ -392,17 +414,7 @@ fn search_diagnosis(
     let mut view = CoarseView::default();
     let prior_centre = prior.camera_center();
     let rotation_reach = Rigid3::new(truth.rotation, -(truth.rotation * prior_centre));
-    let truth_support = refine_pose(
-        mesh,
-        camera,
-        query,
-        truth,
-        AlignedParameters::Pose,
-        config,
-        &mut RefineWorkspace::default(),
-    )
-    .ok()
-    .map(|r| r.verified.support_fraction());
+    let map = OrientedEdgeMap::build(query, &config.pose_search);
     let at_true_centre = Rigid3::new(prior.rotation, -(prior.rotation * truth.camera_center()));
     let true_centre_search_delta_px = search_pose(
         mesh,
@@ -416,6 +428,7 @@ fn search_diagnosis(
     .and_then(|outcome| outcome.centres.first().and_then(&mut delta));
     SearchDiagnosis {
         true_centre_search_delta_px,
+        search_ms: outcome.search_ms,
         prior_delta_px: delta(prior),
         prior_centre_error_m: (prior_centre - truth.camera_center()).norm(),
         rotation_reach_delta_px: delta(&rotation_reach),
@@ -439,7 +452,7 @@ fn search_diagnosis(
             mesh,
             camera,
             truth,
-            query,
+            &map,
             config,
             &mut rasterizer,
             &mut view,
@@ -448,7 +461,7 @@ fn search_diagnosis(
             mesh,
             camera,
             &rotation_reach,
-            query,
+            &map,
             config,
             &mut rasterizer,
             &mut view,

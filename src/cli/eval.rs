@@ -14,7 +14,7 @@ use asgreg::baseline::icp::{
 use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
 use asgreg::core::camera::Camera;
 use asgreg::core::confidence::FrameEvidence;
-use asgreg::core::frame::{IntrinsicsMode, RegistrationConfig};
+use asgreg::core::frame::{FrameInput, IntrinsicsMode, RegistrationConfig, RegistrationError};
 use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::diagnose::{
@@ -243,27 +243,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             Method::Asg(intrinsics) if args.diagnose_search => {
                 let config = registration_config(query_mode, intrinsics, &args.coarse);
                 let started = std::time::Instant::now();
-                let frame = scene_batch_frame(
+                let diagnosis = with_scene_frame(
                     &args.scene,
                     &initial,
                     gt,
                     camera,
                     intrinsics.mode(),
                     with_depth,
-                );
-                let diagnosis = frame
-                    .load()
-                    .map_err(|e| e.to_string())
-                    .and_then(|files| {
-                        diagnose_search(
-                            &mesh,
-                            &frame.input(&files, args.seed),
-                            &gt.cam_from_world,
-                            &config,
-                        )
-                        .map_err(|e| e.to_string())
-                    })
-                    .and_then(|d| d.ok_or_else(|| "the pose search is off".to_string()));
+                    args.seed,
+                    |input| diagnose_search(&mesh, input, &gt.cam_from_world, &config),
+                )
+                .and_then(|d| d.ok_or_else(|| "the pose search is off".to_string()));
                 let elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
                 let outcome = FrameOutcome {
                     accepted: false,
@@ -278,7 +268,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         Err(why) => why.clone(),
                     }),
                     total_ms: elapsed_ms,
-                    search_ms: elapsed_ms,
+                    search_ms: diagnosis.as_ref().map_or(0.0, |d| d.search_ms),
                 };
                 if let Ok(diagnosis) = diagnosis {
                     search_diagnoses
@@ -291,16 +281,15 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             Method::Asg(intrinsics) if args.diagnose => {
                 let config = registration_config(query_mode, intrinsics, &args.coarse);
                 let started = std::time::Instant::now();
-                match diagnose_scene_frame(
-                    &mesh,
+                match with_scene_frame(
                     &args.scene,
                     &initial,
                     gt,
                     camera,
                     intrinsics.mode(),
                     with_depth,
-                    &config,
                     args.seed,
+                    |input| diagnose_frame(&mesh, input, &gt.cam_from_world, &config),
                 ) {
                     Ok(mut diagnosis) => {
                         if let Some(search) = diagnosis.search.take() {
@@ -642,24 +631,23 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Diagnoses the frame `initial` of a scene folder against its ground truth `gt` (the same
-/// inputs as [`register_scene_frame`]); a frame whose files cannot be used is an error message.
+/// Runs `run` on the frame `initial` of a scene folder (the same inputs as
+/// [`register_scene_frame`]; the diagnoses); a frame whose files cannot be used, or whose run
+/// fails, is an error message.
 #[allow(clippy::too_many_arguments)]
-fn diagnose_scene_frame(
-    mesh: &Mesh,
+fn with_scene_frame<T>(
     scene: &Path,
     initial: &ImagePose,
     gt: &ImagePose,
     camera: Camera,
     intrinsics: IntrinsicsMode,
     with_depth: bool,
-    config: &RegistrationConfig,
     seed: u64,
-) -> Result<FrameDiagnosis, String> {
+    run: impl FnOnce(&FrameInput<'_>) -> Result<T, RegistrationError>,
+) -> Result<T, String> {
     let frame = scene_batch_frame(scene, initial, gt, camera, intrinsics, with_depth);
     let files = frame.load().map_err(|e| e.to_string())?;
-    diagnose_frame(mesh, &frame.input(&files, seed), &gt.cam_from_world, config)
-        .map_err(|e| e.to_string())
+    run(&frame.input(&files, seed)).map_err(|e| e.to_string())
 }
 
 /// The frame `initial` of a scene folder (photo in `images/`, depth in `depth/` when

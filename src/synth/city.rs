@@ -26,7 +26,7 @@ use serde::{Deserialize, Serialize};
 
 use super::initial::{self, LevelCalibration};
 use super::texture::{fbm, hash_unit};
-use super::{io_error, level_dir_name, write_colmap, write_jpeg, SynthError, HEADING_LEVEL_DIR};
+use super::{io_error, write_colmap, write_initial_poses, write_jpeg, SynthError};
 use crate::core::camera::{Camera, PinholeIntrinsics};
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
@@ -538,46 +538,20 @@ pub fn generate_city_scene(
     let initial_started = Instant::now();
     write_colmap(&out_dir.join("gt"), &camera, &names, &poses)?;
     let noise = initial::draw_unit_noise(poses.len(), 10.0, &mut stream_rng(5));
-    let mut workspace = crate::core::reprojection::ReprojectionWorkspace::new();
-    let mut initial_levels = Vec::new();
-    for &level in &config.initial_levels_px {
-        let calibration =
-            initial::calibrate_level(&mesh, &camera, &poses, &noise, level, 0.02, &mut workspace);
-        let dir = out_dir.join("initial").join(level_dir_name(level));
-        std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
-        write_colmap(&dir, &camera, &names, &calibration.poses)?;
-        initial_levels.push(calibration);
-    }
-    let heading_level_px = if config.heading_level {
-        let heading = initial::heading_poses(
-            &poses,
-            &initial::HeadingNoise::default(),
-            &mut stream_rng(6),
-        );
-        let dir = out_dir.join("initial").join(HEADING_LEVEL_DIR);
-        std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
-        write_colmap(&dir, &camera, &names, &heading)?;
-        let deltas: Vec<f64> = heading
-            .iter()
-            .zip(&poses)
-            .filter_map(|(pose, gt)| {
-                crate::core::reprojection::mutual_reprojection_error_px(
-                    &mesh,
-                    &camera,
-                    pose,
-                    &camera,
-                    gt,
-                    &mut workspace,
-                )
-            })
-            .collect();
-        let mean = deltas.iter().sum::<f64>() / deltas.len().max(1) as f64;
-        let min = deltas.iter().copied().fold(f64::INFINITY, f64::min);
-        let max = deltas.iter().copied().fold(0.0, f64::max);
-        Some([min, mean, max])
-    } else {
-        None
-    };
+    let heading_noise = initial::HeadingNoise::default();
+    let (initial_levels, heading_level_px) = write_initial_poses(
+        out_dir,
+        &mesh,
+        &camera,
+        &names,
+        &poses,
+        &noise,
+        &config.initial_levels_px,
+        0.02,
+        config
+            .heading_level
+            .then(|| (&heading_noise, stream_rng(6))),
+    )?;
     let initial_s = initial_started.elapsed().as_secs_f64();
 
     let summary = CitySceneSummary {

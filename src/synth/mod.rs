@@ -535,50 +535,19 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         config.initial_metres_per_radian,
         &mut stream_rng(5),
     );
-    let mut workspace = crate::core::reprojection::ReprojectionWorkspace::new();
-    let mut initial_levels = Vec::with_capacity(config.initial_levels_px.len());
-    for &level in &config.initial_levels_px {
-        let calibration = initial::calibrate_level(
-            &model,
-            &camera,
-            &ground_truth,
-            &noise,
-            level,
-            config.initial_tolerance,
-            &mut workspace,
-        );
-        let dir = out_dir.join("initial").join(level_dir_name(level));
-        std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
-        write_colmap(&dir, &camera, &names, &calibration.poses)?;
-        initial_levels.push(calibration);
-    }
-    let heading_level_px = if config.heading_level {
-        let poses =
-            initial::heading_poses(&ground_truth, &config.heading_noise, &mut stream_rng(6));
-        let dir = out_dir.join("initial").join(HEADING_LEVEL_DIR);
-        std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
-        write_colmap(&dir, &camera, &names, &poses)?;
-        let deltas: Vec<f64> = poses
-            .iter()
-            .zip(&ground_truth)
-            .filter_map(|(pose, gt)| {
-                crate::core::reprojection::mutual_reprojection_error_px(
-                    &model,
-                    &camera,
-                    pose,
-                    &camera,
-                    gt,
-                    &mut workspace,
-                )
-            })
-            .collect();
-        let mean = deltas.iter().sum::<f64>() / deltas.len().max(1) as f64;
-        let min = deltas.iter().copied().fold(f64::INFINITY, f64::min);
-        let max = deltas.iter().copied().fold(0.0, f64::max);
-        Some([min, mean, max])
-    } else {
-        None
-    };
+    let (initial_levels, heading_level_px) = write_initial_poses(
+        out_dir,
+        &model,
+        &camera,
+        &names,
+        &ground_truth,
+        &noise,
+        &config.initial_levels_px,
+        config.initial_tolerance,
+        config
+            .heading_level
+            .then(|| (&config.heading_noise, stream_rng(6))),
+    )?;
     let initial_s = initial_started.elapsed().as_secs_f64();
 
     let count = |kind: PartKind| scene.tags.iter().filter(|t| t.part == kind).count();
@@ -665,6 +634,69 @@ fn write_mesh(path: &Path, mesh: &Mesh) -> Result<(), SynthError> {
         mesh,
         crate::io::ply::PlyEncoding::BinaryLittleEndian,
     )?)
+}
+
+/// Writes a scene's initial poses: one folder per level of `levels_px` (`initial/<level>/`,
+/// noise `noise` scaled so that the mean δ to `ground_truth` hits the level within `tolerance`)
+/// and, when `heading` is given, `initial/heading/` (a drone's compass-like prior). Returns each
+/// level's calibration and the heading level's δ [min, mean, max], px.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn write_initial_poses(
+    out_dir: &Path,
+    model: &Mesh,
+    camera: &Camera,
+    names: &[String],
+    ground_truth: &[Rigid3],
+    noise: &[initial::UnitNoise],
+    levels_px: &[f64],
+    tolerance: f64,
+    heading: Option<(&initial::HeadingNoise, ChaCha8Rng)>,
+) -> Result<(Vec<LevelCalibration>, Option<[f64; 3]>), SynthError> {
+    let mut workspace = crate::core::reprojection::ReprojectionWorkspace::new();
+    let mut initial_levels = Vec::with_capacity(levels_px.len());
+    for &level in levels_px {
+        let calibration = initial::calibrate_level(
+            model,
+            camera,
+            ground_truth,
+            noise,
+            level,
+            tolerance,
+            &mut workspace,
+        );
+        let dir = out_dir.join("initial").join(level_dir_name(level));
+        std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
+        write_colmap(&dir, camera, names, &calibration.poses)?;
+        initial_levels.push(calibration);
+    }
+    let heading_level_px = match heading {
+        Some((heading_noise, mut rng)) => {
+            let poses = initial::heading_poses(ground_truth, heading_noise, &mut rng);
+            let dir = out_dir.join("initial").join(HEADING_LEVEL_DIR);
+            std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
+            write_colmap(&dir, camera, names, &poses)?;
+            let deltas: Vec<f64> = poses
+                .iter()
+                .zip(ground_truth)
+                .filter_map(|(pose, gt)| {
+                    crate::core::reprojection::mutual_reprojection_error_px(
+                        model,
+                        camera,
+                        pose,
+                        camera,
+                        gt,
+                        &mut workspace,
+                    )
+                })
+                .collect();
+            let mean = deltas.iter().sum::<f64>() / deltas.len().max(1) as f64;
+            let min = deltas.iter().copied().fold(f64::INFINITY, f64::min);
+            let max = deltas.iter().copied().fold(0.0, f64::max);
+            Some([min, mean, max])
+        }
+        None => None,
+    };
+    Ok((initial_levels, heading_level_px))
 }
 
 pub(crate) fn write_colmap(

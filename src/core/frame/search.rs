@@ -90,9 +90,7 @@ pub fn search_pose(
     // The grid, a rendering per heading group.
     let mut groups: Vec<(f64, Vec<f64>)> = Vec::new();
     for yaw_deg in search.candidate_yaws_deg() {
-        let rendered = wrap_deg(
-            (yaw_deg / search.render_heading_step_deg).round() * search.render_heading_step_deg,
-        );
+        let rendered = rendered_heading_deg(yaw_deg, search.render_heading_step_deg);
         match groups
             .iter_mut()
             .find(|(r, _)| wrap_deg(r - rendered).abs() < 1e-9)
@@ -288,6 +286,12 @@ pub fn search_pose(
     })
 }
 
+/// The heading (relative to the prior's, degrees) of the rendering whose edge samples score the
+/// candidates of heading `yaw_deg`: the nearest multiple of the render step.
+fn rendered_heading_deg(yaw_deg: f64, render_heading_step_deg: f64) -> f64 {
+    wrap_deg((yaw_deg / render_heading_step_deg).round() * render_heading_step_deg)
+}
+
 /// The screening of the grid's best candidates: each aligned with the query's edges (6 DoF,
 /// coarse to fine over the search's refinement radii down to the final radius) on the edge
 /// samples of the rendering nearest its heading, without a rendering of its own; returned with
@@ -320,9 +324,7 @@ fn screen_candidates(
     let mut screened: Vec<(Candidate, Rigid3, f64)> = candidates
         .iter()
         .filter_map(|candidate| {
-            let rendered = wrap_deg(
-                (candidate.yaw_deg / render_heading_step_deg).round() * render_heading_step_deg,
-            );
+            let rendered = rendered_heading_deg(candidate.yaw_deg, render_heading_step_deg);
             let (_, samples) = group_samples
                 .iter()
                 .find(|(r, _)| wrap_deg(r - rendered).abs() < 1e-9)?;
@@ -349,18 +351,18 @@ fn screen_candidates(
 
 /// The grid score (as [`search_pose`] scores its candidates) of `pose` from a rendering at
 /// `pose` itself: what a candidate exactly there would score. For the diagnosis, which compares
-/// the truth's score with the beams'.
+/// the truth's score with the beams'. `map` is the query's edge map
+/// (`OrientedEdgeMap::build(query, &config.pose_search)`).
 pub fn grid_score_at(
     mesh: &Mesh,
     camera: &Camera,
     pose: &Rigid3,
-    query: ImageView<'_, f32>,
+    map: &OrientedEdgeMap,
     config: &RegistrationConfig,
     rasterizer: &mut Rasterizer,
     view: &mut CoarseView,
 ) -> f64 {
     let search = &config.pose_search;
-    let map = OrientedEdgeMap::build(query, search);
     let sampling = EdgeAlignConfig {
         sample_spacing_px: search.sample_spacing_px,
         ..config.edge_align
@@ -376,7 +378,7 @@ pub fn grid_score_at(
         &mut edge_samples,
     );
     let samples = search_samples(&edge_samples, camera, pose);
-    score_rotation(&samples, &map, camera, &nalgebra::Matrix3::identity())
+    score_rotation(&samples, map, camera, &nalgebra::Matrix3::identity())
 }
 
 #[cfg(test)]
@@ -385,6 +387,7 @@ mod tests {
 
     use super::*;
     use crate::core::frame::tests::{house_and_poses, ideal_query};
+    use crate::core::pose_search::PoseSearchConfig;
     use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
     /// Known pose, ideal query (the model's own ASG at the truth): from a prior whose heading is
@@ -393,11 +396,22 @@ mod tests {
     #[test]
     fn the_search_recovers_a_wrong_heading_and_a_shifted_centre() {
         let (mesh, camera, truth, _) = house_and_poses();
-        let config = RegistrationConfig::default();
+        let default = RegistrationConfig::default();
+        // The screening (off by default) must find the same poses.
+        let screened = RegistrationConfig {
+            pose_search: PoseSearchConfig {
+                screened_candidates: 24,
+                ..default.pose_search
+            },
+            ..default.clone()
+        };
         let mut rasterizer = Rasterizer::new();
-        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let query = ideal_query(&mesh, &camera, &truth, &default);
         let mut reprojection = ReprojectionWorkspace::new();
-        for heading_error_deg in [30.0, -25.0, 180.0] {
+        for (config, heading_error_deg) in [&default, &screened]
+            .into_iter()
+            .flat_map(|c| [30.0, -25.0, 180.0].map(|h| (c, h)))
+        {
             let turned = turned_pose(&truth, heading_error_deg, 0.5, -0.5);
             let centre = turned.camera_center() + Vector3::new(0.5, -0.5, 0.3);
             let prior = Rigid3::new(turned.rotation, -(turned.rotation * centre));
@@ -406,7 +420,7 @@ mod tests {
                 &camera,
                 &prior,
                 query.view(),
-                &config,
+                config,
                 &mut rasterizer,
                 &mut CoarseView::default(),
             )
