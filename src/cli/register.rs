@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
 use asgreg::core::edge_align::EdgeAlignConfig;
+use asgreg::core::pose_search::PoseSearchConfig;
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig, UnknownIntrinsics};
 use asgreg::core::image::Image;
 use asgreg::core::verify::VerifyConfig;
@@ -186,6 +187,11 @@ pub struct CoarseArgs {
     /// photo's oriented edges, beams refined by edge alignment): the paper's method alone.
     #[arg(long)]
     pub no_pose_search: bool,
+    /// Pose search: the grid's best distinct candidates aligned render-free on their heading
+    /// rendering's edge samples before the best beams are refined (0: the grid's best beams are
+    /// refined directly).
+    #[arg(long, default_value_t = PoseSearchConfig::default().screened_candidates)]
+    pub screened_candidates: usize,
 }
 
 impl Default for CoarseArgs {
@@ -200,6 +206,7 @@ impl Default for CoarseArgs {
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
             no_pose_search: false,
+            screened_candidates: PoseSearchConfig::default().screened_candidates,
         }
     }
 }
@@ -275,8 +282,9 @@ pub fn registration_config(
             initial_search_radius_px: coarse.edge_search_px,
             ..EdgeAlignConfig::default()
         },
-        pose_search: asgreg::core::pose_search::PoseSearchConfig {
+        pose_search: PoseSearchConfig {
             enabled: !coarse.no_pose_search,
+            screened_candidates: coarse.screened_candidates,
             ..Default::default()
         },
         ..RegistrationConfig::default()
