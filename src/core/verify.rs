@@ -159,6 +159,14 @@ pub enum RejectionReason {
         edge_support: f64,
         edge_support_chance: f64,
     },
+    /// The pose's edge support is high but comes from edges that do not fix it (a sliver of the
+    /// model, parallel lines): the frame's image could move `image_uncertainty_px` per px of
+    /// edge noise ([`crate::core::edge_align::image_uncertainty_px`]), more than `max_px`.
+    Unconstrained {
+        confidence: f64,
+        image_uncertainty_px: f64,
+        max_px: f64,
+    },
     /// The photo confirms two distinct poses, from different centres of the pose search: the
     /// frame cannot be decided without a better prior (never a coin toss).
     Ambiguous {
@@ -206,6 +214,14 @@ impl std::fmt::Display for RejectionReason {
                 "the photo does not confirm the agreed pose: confidence {confidence:.2} < {threshold:.2} ({:.0} % of the model's edges on a photo edge, {:.0} % by chance)",
                 100.0 * edge_support,
                 100.0 * edge_support_chance
+            ),
+            RejectionReason::Unconstrained {
+                confidence,
+                image_uncertainty_px,
+                max_px,
+            } => write!(
+                f,
+                "the photo's edges that support the pose (confidence {confidence:.2}) do not fix it: the frame could move {image_uncertainty_px:.1} px per px of edge noise (at most {max_px:.1} allowed); too little of the model is in view, or only parallel edges"
             ),
             RejectionReason::Ambiguous {
                 confidence,

@@ -139,25 +139,40 @@ fn choose_among_centres(mesh: &Mesh, mut decisions: Vec<Decision>) -> Option<Dec
 
 /// The accept decision on the calibrated confidence (issue #11 item 4): the verdict's confidence
 /// becomes the model's probability that the output pose is correct, and the frame is accepted
-/// exactly when it reaches the threshold. A pose the refined poses agreed on but the photo's
-/// edges do not confirm is rejected ([`RejectionReason::NotConfirmed`]); a pose the photo
+/// exactly when it reaches the threshold and the supporting edges fix the pose (their image
+/// uncertainty is within `max_image_uncertainty_px`). A pose the refined poses agreed on but the
+/// photo's edges do not confirm is rejected ([`RejectionReason::NotConfirmed`]), one they
+/// confirm without fixing it too ([`RejectionReason::Unconstrained`]); a pose the photo
 /// confirms is accepted even when the agreement test failed (its reason is then moot).
 fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceConfig) {
     let confidence = config.model.probability(evidence);
     verdict.confidence = confidence;
-    let confirmed = confidence >= config.accept_above;
+    let image_uncertainty_px = evidence
+        .edges
+        .map_or(f64::INFINITY, |peak| peak.image_uncertainty_px);
+    let fixed = image_uncertainty_px <= config.max_image_uncertainty_px;
+    let confirmed = confidence >= config.accept_above && fixed;
     match &verdict.decision {
         Ok(chosen) if !confirmed => {
-            let (edge_support, edge_support_chance) = evidence
-                .edges
-                .map_or((0.0, 0.0), |peak| (peak.at_pose, peak.far));
-            verdict.decision = Err(Rejection {
-                reason: RejectionReason::NotConfirmed {
+            let reason = if confidence >= config.accept_above {
+                RejectionReason::Unconstrained {
+                    confidence,
+                    image_uncertainty_px,
+                    max_px: config.max_image_uncertainty_px,
+                }
+            } else {
+                let (edge_support, edge_support_chance) = evidence
+                    .edges
+                    .map_or((0.0, 0.0), |peak| (peak.at_pose, peak.far));
+                RejectionReason::NotConfirmed {
                     confidence,
                     threshold: config.accept_above,
                     edge_support,
                     edge_support_chance,
-                },
+                }
+            };
+            verdict.decision = Err(Rejection {
+                reason,
                 candidate: Some(*chosen),
             });
         }

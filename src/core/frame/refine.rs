@@ -242,6 +242,71 @@ mod tests {
     }
 
     /// Unknown intrinsics: a focal length 3 % off (as a DLT may leave it) is aligned with the pose.
+    /// The image uncertainty of the supporting edges: a well-seen model fixes the frame to a
+    /// fraction of a pixel; the same photo's support from a sliver of the model (the samples of
+    /// one small corner of the image) or from parallel edges only leaves the frame free.
+    #[test]
+    fn supporting_edges_of_a_sliver_or_of_parallel_lines_do_not_fix_the_pose() {
+        use crate::core::edge_align::{image_uncertainty_px, model_edge_samples};
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let mut rasterizer = Rasterizer::default();
+        let mut view = CoarseView::default();
+        render_coarse_view(
+            &mesh,
+            &camera,
+            0,
+            &truth,
+            &config,
+            &mut rasterizer,
+            &mut view,
+        );
+        let mut samples = Vec::new();
+        model_edge_samples(
+            view.asg.view(),
+            view.render.depth_m().view(),
+            &camera,
+            &truth,
+            &config.edge_align,
+            &mut samples,
+        );
+        let align = &config.edge_align;
+        let uncertainty =
+            |s: &[EdgeSample]| image_uncertainty_px(s, &query.view(), &camera, &truth, align);
+        let whole_px = uncertainty(&samples);
+        assert!(samples.len() > 50, "{} samples", samples.len());
+        assert!(whole_px < 0.5, "whole model: {whole_px} px");
+
+        let projected = |s: &EdgeSample| {
+            camera
+                .project(&truth.transform_point(&s.world_m))
+                .expect("in front")
+        };
+        let corner = projected(&samples[0]);
+        let sliver: Vec<EdgeSample> = samples
+            .iter()
+            .filter(|s| (projected(s) - corner).norm() < 25.0)
+            .copied()
+            .collect();
+        let sliver_px = uncertainty(&sliver);
+        let parallel: Vec<EdgeSample> = samples
+            .iter()
+            .filter(|s| s.normal.dot(&samples[0].normal).abs() > 0.99)
+            .copied()
+            .collect();
+        let parallel_px = uncertainty(&parallel);
+        println!(
+            "image uncertainty: whole {whole_px:.3} px ({} samples), sliver {sliver_px:.1} px ({}), parallel {parallel_px:.1} px ({})",
+            samples.len(),
+            sliver.len(),
+            parallel.len()
+        );
+        let max_px = config.confidence.max_image_uncertainty_px;
+        assert!(sliver_px > max_px, "sliver: {sliver_px} px");
+        assert!(parallel_px > max_px, "parallel: {parallel_px} px");
+    }
+
     #[test]
     fn edge_alignment_recovers_the_focal_length_with_the_pose() {
         let (mesh, camera, truth, _) = house_and_poses();

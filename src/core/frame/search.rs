@@ -16,7 +16,7 @@ use super::{refine_pose, render_coarse_view, CoarseView, RefineWorkspace, Regist
 use crate::core::camera::Camera;
 use crate::core::edge_align::{
     align_level, blurred_query, edge_evidence, model_edge_samples, AlignedParameters,
-    EdgeAlignConfig, EdgeSample,
+    EdgeAlignConfig, EdgeSample, UNBOUNDED_IMAGE_UNCERTAINTY_PX,
 };
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
@@ -43,6 +43,11 @@ pub struct Beam {
     pub cam_from_world: Rigid3,
     /// Its edge support (share of model edges supported by photo ridges, 0..1).
     pub support: f64,
+    /// How far the frame's image may move per px of edge noise given its supported edges
+    /// ([`crate::core::edge_align::image_uncertainty_px`]); a beam above the confidence's
+    /// `max_image_uncertainty_px` cannot replace the prior nor be its rival.
+    #[serde(default)]
+    pub image_uncertainty_px: f64,
 }
 
 /// What the search found.
@@ -163,7 +168,7 @@ pub fn search_pose(
         ..config.clone()
     };
     let mut workspace = RefineWorkspace::default();
-    let mut refine = |start: &Rigid3| -> (Rigid3, f64, f64) {
+    let mut refine = |start: &Rigid3| -> (Rigid3, f64, f64, f64) {
         match refine_pose(
             mesh,
             camera,
@@ -175,20 +180,22 @@ pub fn search_pose(
         ) {
             Ok(r) => {
                 let before = r.verified.support_fraction();
+                let uncertainty_px = r.peak.image_uncertainty_px;
                 if r.kept {
                     (
                         r.aligned_cam_from_world,
                         r.aligned.support_fraction(),
                         before,
+                        uncertainty_px,
                     )
                 } else {
-                    (*start, before, before)
+                    (*start, before, before, uncertainty_px)
                 }
             }
-            Err(_) => (*start, 0.0, 0.0),
+            Err(_) => (*start, 0.0, 0.0, UNBOUNDED_IMAGE_UNCERTAINTY_PX),
         }
     };
-    let (prior_refined, prior_refined_support, prior_support) = refine(prior);
+    let (prior_refined, prior_refined_support, prior_support, prior_uncertainty_px) = refine(prior);
     let mut beams = vec![Beam {
         yaw_deg: 0.0,
         pitch_deg: 0.0,
@@ -197,9 +204,10 @@ pub fn search_pose(
         screened_support: f64::NAN,
         cam_from_world: prior_refined,
         support: prior_refined_support,
+        image_uncertainty_px: prior_uncertainty_px,
     }];
     for (candidate, screened_pose, screened_support) in &grid_beams {
-        let (pose, support, _) = refine(screened_pose);
+        let (pose, support, _, image_uncertainty_px) = refine(screened_pose);
         beams.push(Beam {
             yaw_deg: candidate.yaw_deg,
             pitch_deg: candidate.pitch_deg,
@@ -208,13 +216,20 @@ pub fn search_pose(
             screened_support: *screened_support,
             cam_from_world: pose,
             support,
+            image_uncertainty_px,
         });
     }
 
-    // The decision.
+    // The decision, among the prior and the beams whose supporting edges fix them (a beam whose
+    // support comes from a sliver of the model or from parallel lines is no evidence).
+    let fixed = |index: usize| {
+        index == 0
+            || beams[index].image_uncertainty_px <= config.confidence.max_image_uncertainty_px
+    };
     let best_index = beams
         .iter()
         .enumerate()
+        .filter(|(index, _)| fixed(*index))
         .max_by(|a, b| a.1.support.total_cmp(&b.1.support))
         .map_or(0, |(index, _)| index);
     let best = &beams[best_index];
@@ -230,6 +245,7 @@ pub fn search_pose(
         .filter(|&index| {
             moved
                 && index != best_index
+                && fixed(index)
                 && beams[index].support >= search.min_support
                 && beams[index].support >= search.ambiguity_ratio * best.support
                 && beams[index]
