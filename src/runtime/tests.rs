@@ -327,7 +327,7 @@ fn the_collector_hands_on_one_result_per_frame() {
     use crate::msg::{Body, Evidence, PoseResult, StageTimesMs, StreamEnd};
 
     let transport = CrossbeamTransport::new(crate::transport::conformance::config("collector"));
-    let mut collector = collect::Collector::open(&transport, false).unwrap();
+    let mut collector = collect::Collector::open(&transport, false, true).unwrap();
     let mut results = bus::Outbox::open(&transport, keys::RESULTS).unwrap();
     let result = |frame_id: u64, reason: &str| PoseResult {
         frame_id,
