@@ -109,6 +109,7 @@ def main():
     except Exception as error:  # zenoh raises ZError
         sys.exit(f"cannot connect to the zenoh router at {args.connect}: {error}")
     received = 0
+    seen = set()
     final_set = None
     # One queue for the three subscriptions, so messages print in arrival order.
     arrived = queue.Queue(maxsize=256)
@@ -130,6 +131,13 @@ def main():
                 except json.JSONDecodeError as error:
                     print(f"not JSON on {sample.key_expr}: {error}", file=sys.stderr, flush=True)
                     continue
+                # The station sends a result again until its collector acknowledges it: keep
+                # the first per frame id (a repeat is a re-delivery of the same result).
+                if kind in ("pose", "change"):
+                    frame_id = message.get("frame_id")
+                    if (kind, frame_id) in seen:
+                        continue
+                    seen.add((kind, frame_id))
                 if kind == "pose":
                     print(describe(message), flush=True)
                     received += 1
@@ -137,7 +145,7 @@ def main():
                     print(describe_change(message), flush=True)
                 else:
                     print(describe_change_set(message), flush=True)
-                    if message.get("complete"):
+                    if message.get("complete") and final_set is None:
                         final_set = message
         except KeyboardInterrupt:
             pass

@@ -574,8 +574,11 @@ pub fn router(args: &RouterArgs) -> anyhow::Result<()> {
 pub fn subscribe(args: &SubscribeArgs) -> anyhow::Result<()> {
     let config = PipelineConfig::read(&args.config)?;
     let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
-    let mut collector =
-        asgreg::runtime::collect::Collector::open(transport.as_ref(), config.changes_enabled())?;
+    let mut collector = asgreg::runtime::collect::Collector::open(
+        transport.as_ref(),
+        config.changes_enabled(),
+        false,
+    )?;
     let seen = std::cell::Cell::new(0usize);
     let count = args.count;
     let collected = collector.collect(

@@ -30,7 +30,7 @@ mod tests;
 
 pub use json::{change_result_json, change_set_json, pose_result_json};
 pub use types::*;
-pub use wire::{decode, encode, DecodeError, EncodeError, Encoded, HEADER_BYTES, MAGIC};
+pub use wire::{decode, encode, same_body, DecodeError, EncodeError, Encoded, HEADER_BYTES, MAGIC};
 
 /// The schema version in every header; bump it (and add `schemas/v<N>/`) on any layout change.
 /// v4: change detection (ChangeJob, ChangeResult, ChangeSet; FrameQuery carries the depth map).

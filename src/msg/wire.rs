@@ -111,6 +111,19 @@ fn meta_bytes<T: Serialize>(kind: MessageKind, meta: &T) -> Result<Vec<u8>, Enco
     })
 }
 
+/// Whether two message bodies are the same value on the wire (their bincode bodies are equal
+/// byte for byte; unlike `==`, a NaN equals itself): a consumer tells a result sent again
+/// (re-delivery, harmless) from a second, different result for the same frame (a fault).
+pub fn same_body<T: Serialize>(a: &T, b: &T) -> bool {
+    match (
+        bincode::serde::encode_to_vec(a, bincode_config()),
+        bincode::serde::encode_to_vec(b, bincode_config()),
+    ) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    }
+}
+
 /// Encodes a message: the only encode function of the bus.
 pub fn encode<'m>(message: &'m Envelope<'_>) -> Result<Encoded<'m>, EncodeError> {
     let kind = message.body.kind();

@@ -1,5 +1,7 @@
 //! The end of a pipeline as its operator sees it: a results subscriber that checks every frame
-//! gets exactly one PoseResult (and hands on only the first of each frame), and the summary (frames/s, latency percentiles, per-stage
+//! gets exactly one PoseResult (and hands on only the first of each frame; an identical repeat
+//! is a re-delivery, counted apart, a different second result a duplicate), acknowledges each
+//! result it holds to the publisher (`runtime::ack`, the station's collector only), and the summary (frames/s, latency percentiles, per-stage
 //! compute, transport bytes and time, drops, rejections, redone jobs, the work split).
 
 use std::collections::BTreeMap;
@@ -7,9 +9,10 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::msg::{Body, ChangeResult, ChangeSet, Header, PoseResult, StageMetrics};
+use crate::msg::{same_body, Body, ChangeResult, ChangeSet, Header, PoseResult, StageMetrics};
 use crate::transport::{keys, Transport};
 
+use super::ack::Acker;
 use super::bus::{BusError, Inbox};
 
 /// Results as they arrived, checked for exactly-once delivery.
@@ -17,9 +20,12 @@ use super::bus::{BusError, Inbox};
 pub struct Collected {
     /// The first result of each frame, in arrival order.
     pub results: Vec<PoseResult>,
-    /// Frames that received more than one result (must stay empty); the repeats are not in
-    /// `results`.
+    /// Frames that received a second, different result (must stay empty); the repeats are not
+    /// in `results`.
     pub duplicates: Vec<u64>,
+    /// Results that arrived again identical to the first of their frame (sent again because
+    /// their ack was late or lost; harmless).
+    pub redelivered: u64,
     /// Frame count announced by the end of the stream.
     pub frame_count: Option<u64>,
     pub wall_s: f64,
@@ -28,8 +34,10 @@ pub struct Collected {
     pub rejected_messages: u64,
     /// With change detection: the first change result of each frame, in arrival order.
     pub change_results: Vec<ChangeResult>,
-    /// Frames that received more than one change result (must stay empty).
+    /// Frames that received a second, different change result (must stay empty).
     pub change_duplicates: Vec<u64>,
+    /// Change results that arrived again identical to the first of their frame.
+    pub change_redelivered: u64,
     /// The final (complete) change set, once the change stream ended.
     pub change_set: Option<ChangeSet>,
 }
@@ -123,13 +131,28 @@ pub struct Collector {
     metrics: Inbox,
     /// With change detection: the change stream (change results, change sets, its end).
     changes: Option<Inbox>,
+    /// The acks of results and change results, when this collector is the station's.
+    results_ack: Option<Acker>,
+    changes_ack: Option<Acker>,
 }
 
 impl Collector {
     /// `changes`: also collect the change stream (the pipeline runs change detection), and
-    /// wait for its end as well.
-    pub fn open(transport: &dyn Transport, changes: bool) -> Result<Self, BusError> {
+    /// wait for its end as well. `ack`: acknowledge each result held (the station's collector,
+    /// of `launch` and `run`; one per pipeline: verify and fusion send a result again until
+    /// some collector acknowledges it).
+    pub fn open(transport: &dyn Transport, changes: bool, ack: bool) -> Result<Self, BusError> {
         Ok(Self {
+            results_ack: if ack {
+                Some(Acker::open(transport, keys::RESULTS_ACK)?)
+            } else {
+                None
+            },
+            changes_ack: if ack && changes {
+                Some(Acker::open(transport, keys::CHANGES_ACK)?)
+            } else {
+                None
+            },
             results: Inbox::open(transport, keys::RESULTS, "collector")?,
             metrics: Inbox::open(transport, keys::METRICS, "collector")?,
             changes: if changes {
@@ -151,31 +174,45 @@ impl Collector {
     ) -> Result<Collected, BusError> {
         let started = Instant::now();
         let mut collected = Collected::default();
-        let mut seen = std::collections::BTreeSet::new();
-        let mut seen_changes = std::collections::BTreeSet::new();
+        // Where each frame's first result is in `collected` (to tell a re-delivery).
+        let mut seen: BTreeMap<u64, usize> = BTreeMap::new();
+        let mut seen_changes: BTreeMap<u64, usize> = BTreeMap::new();
         let mut changes_ended = self.changes.is_none();
         let mut scratch = StageMetrics::default();
         while !(collected.frame_count.is_some() && changes_ended)
             && started.elapsed() < deadline
             && keep_going()
         {
+            let results_ack = &mut self.results_ack;
             self.results.receive(
                 Duration::from_millis(50),
                 &mut scratch,
                 &mut |message, _| match message.body {
                     // Idempotent by frame id: a second result for a frame is counted (the
-                    // exactly-once check) but neither handed on nor kept.
+                    // exactly-once check; an identical one as re-delivery) but neither handed on
+                    // nor kept.
                     Body::PoseResult(result) => {
-                        if seen.insert(result.frame_id) {
-                            on_result(Delivered::Pose(&message.header, &result));
-                            collected.results.push(result);
-                        } else {
-                            tracing::warn!(
-                                "frame {} '{}': a second result arrived; ignored",
-                                result.frame_id,
-                                result.name
-                            );
-                            collected.duplicates.push(result.frame_id);
+                        let frame_id = result.frame_id;
+                        match seen.get(&frame_id) {
+                            None => {
+                                seen.insert(frame_id, collected.results.len());
+                                on_result(Delivered::Pose(&message.header, &result));
+                                collected.results.push(result);
+                            }
+                            Some(&first) if same_body(&collected.results[first], &result) => {
+                                tracing::debug!("frame {frame_id}: its result arrived again (re-delivery)");
+                                collected.redelivered += 1;
+                            }
+                            Some(_) => {
+                                tracing::warn!(
+                                    "frame {frame_id} '{}': a second, different result arrived; ignored",
+                                    result.name
+                                );
+                                collected.duplicates.push(frame_id);
+                            }
+                        }
+                        if let Some(acker) = results_ack {
+                            acker.hold(frame_id);
                         }
                     }
                     Body::StreamEnd(end) => collected.frame_count = Some(end.frame_count),
@@ -184,24 +221,38 @@ impl Collector {
             )?;
             // After the results: a frame's change result is printed after its pose.
             if let Some(changes) = &mut self.changes {
+                let changes_ack = &mut self.changes_ack;
                 while changes.receive(
                     Duration::ZERO,
                     &mut scratch,
                     &mut |message, _| match message.body {
                         Body::ChangeResult(result) => {
-                            if seen_changes.insert(result.frame_id) {
-                                on_result(Delivered::Change(&result));
-                                collected.change_results.push(result);
-                            } else {
-                                tracing::warn!(
-                                    "frame {} '{}': a second change result arrived; ignored",
-                                    result.frame_id,
-                                    result.name
-                                );
-                                collected.change_duplicates.push(result.frame_id);
+                            let frame_id = result.frame_id;
+                            match seen_changes.get(&frame_id) {
+                                None => {
+                                    seen_changes.insert(frame_id, collected.change_results.len());
+                                    on_result(Delivered::Change(&result));
+                                    collected.change_results.push(result);
+                                }
+                                Some(&first)
+                                    if same_body(&collected.change_results[first], &result) =>
+                                {
+                                    collected.change_redelivered += 1;
+                                }
+                                Some(_) => {
+                                    tracing::warn!(
+                                        "frame {frame_id} '{}': a second, different change result arrived; ignored",
+                                        result.name
+                                    );
+                                    collected.change_duplicates.push(frame_id);
+                                }
+                            }
+                            if let Some(acker) = changes_ack {
+                                acker.hold(frame_id);
                             }
                         }
-                        Body::ChangeSet(set) if set.complete => {
+                        // The first final set is handed on (fusion repeats it now and then).
+                        Body::ChangeSet(set) if set.complete && collected.change_set.is_none() => {
                             on_result(Delivered::ChangeSet(&set));
                             collected.change_set = Some(set);
                         }
@@ -210,7 +261,19 @@ impl Collector {
                     },
                 )? {}
             }
+            for acker in [&mut self.results_ack, &mut self.changes_ack]
+                .into_iter()
+                .flatten()
+            {
+                acker.flush(false)?;
+            }
             self.drain_metrics(&mut collected)?;
+        }
+        for acker in [&mut self.results_ack, &mut self.changes_ack]
+            .into_iter()
+            .flatten()
+        {
+            acker.flush(true)?;
         }
         collected.wall_s = started.elapsed().as_secs_f64();
         collected.rejected_messages = scratch.rejected;
@@ -275,14 +338,15 @@ pub fn summary(collected: &Collected, backend: &str) -> String {
     let missing = collected.missing();
     let _ = writeln!(
         text,
-        "exactly one result per frame: {} (missing {:?}, duplicated {:?})",
+        "exactly one result per frame: {} (missing {:?}, duplicated {:?}; re-delivered identical: {})",
         if missing.is_empty() && collected.duplicates.is_empty() {
             "yes"
         } else {
             "NO"
         },
         missing,
-        collected.duplicates
+        collected.duplicates,
+        collected.redelivered
     );
     let _ = writeln!(
         text,
@@ -328,14 +392,15 @@ pub fn summary(collected: &Collected, backend: &str) -> String {
         let missing = collected.missing_changes();
         let _ = writeln!(
             text,
-            "exactly one change result per frame: {} (missing {:?}, duplicated {:?})",
+            "exactly one change result per frame: {} (missing {:?}, duplicated {:?}; re-delivered identical: {})",
             if missing.is_empty() && collected.change_duplicates.is_empty() {
                 "yes"
             } else {
                 "NO"
             },
             missing,
-            collected.change_duplicates
+            collected.change_duplicates,
+            collected.change_redelivered
         );
         let mapped: Vec<f64> = collected
             .change_results

@@ -174,6 +174,10 @@ pub struct Timeouts {
     pub worker_silence_s: f64,
     /// How long a stage waits for the stage it sends to before giving up at start, s.
     pub startup_s: f64,
+    /// A published result (pose or change) that the collector has not acknowledged after this
+    /// long is sent again, then after twice as long, ... up to 16 s (`runtime::ack`), s. 0: never
+    /// sent again (a result lost in flight stays lost).
+    pub resend_after_s: f64,
 }
 
 impl Default for Timeouts {
@@ -182,6 +186,7 @@ impl Default for Timeouts {
             frame_timeout_s: 300.0,
             worker_silence_s: 60.0,
             startup_s: 60.0,
+            resend_after_s: 2.0,
         }
     }
 }
@@ -378,6 +383,13 @@ impl PipelineConfig {
                     format!("must be a positive number of seconds, got {value}"),
                 ));
             }
+        }
+        let resend = self.timeouts.resend_after_s;
+        if !(resend.is_finite() && resend >= 0.0) {
+            return Err(invalid(
+                "timeouts.resend_after_s",
+                format!("must be ≥ 0 s (0: never send a result again), got {resend}"),
+            ));
         }
         if !(self.source.rate_hz.is_finite() && self.source.rate_hz >= 0.0) {
             return Err(invalid(

@@ -6,7 +6,10 @@
 //! - a worker that restarts (new incarnation, e.g. after SIGKILL and the supervisor's restart)
 //!   gets its unfinished jobs redone — by whichever worker is free first;
 //! - a worker silent for longer than the silence limit with jobs outstanding has them redone
-//!   elsewhere (a remote host that vanished).
+//!   elsewhere (a remote host that vanished);
+//! - a job lost on the way (e.g. while the zenoh router restarted) is redone once it has been
+//!   out longer than the silence limit, and a worker repeats its finished jobs in its credits
+//!   for a few seconds, so a lost credit loses no completion.
 //!
 //! Redone jobs can produce duplicates downstream; verify keeps the first per (frame, coarse pose).
 //! Backpressure: the dispatcher's queue is bounded; the producer asks [`Dispatcher::has_room`]
@@ -24,12 +27,17 @@ use super::bus::{BusError, Inbox, Outbox};
 /// How often an idle worker repeats its credit (a heartbeat; lost credits are harmless).
 pub const CREDIT_INTERVAL: Duration = Duration::from_millis(250);
 
+/// How long a worker repeats a finished job in its credits (longer than a router restart).
+const COMPLETED_REPEAT: Duration = Duration::from_secs(5);
+
 type Job = (JobKey, Arc<Vec<u8>>);
 
 struct WorkerState {
     incarnation: u64,
     slots: u32,
     outstanding: Vec<Job>,
+    /// When each outstanding job was sent (same order as `outstanding`).
+    sent_at: Vec<Instant>,
     last_heard: Instant,
     /// Silent past the limit: gets no new work until heard from again.
     presumed_dead: bool,
@@ -173,12 +181,14 @@ impl<'t> Dispatcher<'t> {
                 incarnation: credit.incarnation,
                 slots: credit.free_slots,
                 outstanding: Vec::new(),
+                sent_at: Vec::new(),
                 last_heard: now,
                 presumed_dead: false,
                 jobs_done: 0,
             });
         if worker.incarnation != credit.incarnation {
             let lost = std::mem::take(&mut worker.outstanding);
+            worker.sent_at.clear();
             let level_warn = !lost.is_empty();
             if level_warn {
                 tracing::warn!(
@@ -207,6 +217,7 @@ impl<'t> Dispatcher<'t> {
         for key in &credit.completed {
             if let Some(position) = worker.outstanding.iter().position(|(k, _)| k == key) {
                 worker.outstanding.remove(position);
+                worker.sent_at.remove(position);
                 worker.jobs_done += 1;
             }
         }
@@ -225,6 +236,26 @@ impl<'t> Dispatcher<'t> {
                         worker.outstanding.len()
                     );
                     lost.append(&mut worker.outstanding);
+                    worker.sent_at.clear();
+                }
+            } else if !worker.presumed_dead {
+                // A job out longer than the silence limit (longer than the slowest job) with
+                // its worker alive was lost on the way (e.g. while the zenoh router restarted):
+                // redone (a late finish is harmless: downstream keeps the first).
+                let mut kept = 0;
+                while kept < worker.outstanding.len() {
+                    if now.duration_since(worker.sent_at[kept]) > self.silence_limit {
+                        tracing::warn!(
+                            "{}: job {:?} of worker {index} unfinished after {:.0} s; redoing it",
+                            self.link,
+                            worker.outstanding[kept].0,
+                            self.silence_limit.as_secs_f64()
+                        );
+                        lost.push(worker.outstanding.remove(kept));
+                        worker.sent_at.remove(kept);
+                    } else {
+                        kept += 1;
+                    }
                 }
             }
         }
@@ -258,6 +289,7 @@ impl<'t> Dispatcher<'t> {
             }
             if let Some(worker) = self.workers.get_mut(&index) {
                 worker.outstanding.push(job);
+                worker.sent_at.push(Instant::now());
             }
         }
         Ok(())
@@ -271,7 +303,9 @@ pub struct WorkerPort {
     worker_index: u32,
     incarnation: u64,
     slots: u32,
-    completed: Vec<JobKey>,
+    /// Jobs finished within [`COMPLETED_REPEAT`], repeated in every credit (a credit lost on
+    /// the way, e.g. while the zenoh router restarts, would leave the job outstanding for ever).
+    completed: VecDeque<(JobKey, Instant)>,
     last_credit: Option<Instant>,
 }
 
@@ -291,16 +325,23 @@ impl WorkerPort {
             worker_index,
             incarnation,
             slots: slots.max(1),
-            completed: Vec::new(),
+            completed: VecDeque::new(),
             last_credit: None,
         })
     }
 
     fn send_credit(&mut self) -> Result<(), BusError> {
+        while self
+            .completed
+            .front()
+            .is_some_and(|(_, at)| at.elapsed() > COMPLETED_REPEAT)
+        {
+            self.completed.pop_front();
+        }
         let credit = Credit {
             worker_index: self.worker_index,
             incarnation: self.incarnation,
-            completed: std::mem::take(&mut self.completed),
+            completed: self.completed.iter().map(|(key, _)| *key).collect(),
             free_slots: self.slots,
         };
         let mut scratch = StageMetrics::default();
@@ -323,7 +364,7 @@ impl WorkerPort {
 
     /// Reports a finished job at once (so the dispatcher can send the next).
     pub fn finished(&mut self, key: JobKey) -> Result<(), BusError> {
-        self.completed.push(key);
+        self.completed.push_back((key, Instant::now()));
         self.send_credit()
     }
 

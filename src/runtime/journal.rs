@@ -1,13 +1,18 @@
-//! The results journals: what has a published result survives a crash. Two journals per
+//! The results journals: what has a published result survives a crash. Four journals per
 //! pipeline, one implementation ([`Journal`]), under `state_dir`: a header line naming the run's
 //! pipeline, source and kind, then one line per published frame, `<frame id>[ <payload>]`.
-//! - the pose journal ([`Kind::Pose`], ids only): verify appends each frame id right after it
-//!   publishes the frame's PoseResult; a restarted verify publishes none of those again;
+//! - the pose journal ([`Kind::Pose`]): verify appends each frame id with its published
+//!   PoseResult (hex of the encoded message) right after it publishes it; a restarted verify
+//!   publishes none of those again (it only sends the unacknowledged ones again, see below);
 //! - the change journal ([`Kind::Change`]): fusion appends each frame id with its published
 //!   ChangeResult (hex of the encoded message) right after publishing it; a restarted fusion
 //!   reads them back, publishes none of them again and fuses them with the rest.
+//! - the acknowledgement journals ([`Kind::PoseAcked`], [`Kind::ChangeAcked`], ids only):
+//!   verify and fusion append each frame whose result the collector acknowledged
+//!   (`runtime::ack`); a restarted verify or fusion sends the journaled results that are not
+//!   acknowledged again (the same message, so consumers see a re-delivery).
 //!
-//! A restarted ingest reads both and resumes instead of replaying the source: it sends only the
+//! A restarted ingest reads the first two and resumes instead of replaying the source: it sends only the
 //! frames without a published result (with change detection: without both results).
 //! `asgreg launch` starts each run with empty journals and removes them when the run is complete;
 //! `asgreg run` (threads, which never restart) keeps its own in a temporary folder; stages
@@ -39,6 +44,10 @@ pub enum Kind {
     Pose,
     /// Published ChangeResults (fusion writes it), each with its encoded result.
     Change,
+    /// PoseResults the collector acknowledged (verify writes it), frame ids only.
+    PoseAcked,
+    /// ChangeResults the collector acknowledged (fusion writes it), frame ids only.
+    ChangeAcked,
 }
 
 impl Kind {
@@ -46,6 +55,8 @@ impl Kind {
         match self {
             Kind::Pose => "results-journal",
             Kind::Change => "change-journal",
+            Kind::PoseAcked => "results-acked",
+            Kind::ChangeAcked => "change-acked",
         }
     }
 }
@@ -56,6 +67,8 @@ pub fn header(config: &PipelineConfig, kind: Kind) -> String {
     let what = match kind {
         Kind::Pose => "results",
         Kind::Change => "change results",
+        Kind::PoseAcked => "acknowledged results",
+        Kind::ChangeAcked => "acknowledged change results",
     };
     format!(
         "# asgreg {what} journal v1 pipeline={} poses={} max_frames={}",
@@ -78,10 +91,12 @@ pub fn path(config: &PipelineConfig, kind: Kind) -> PathBuf {
     ))
 }
 
-/// Starts a run over: removes both journals of a configuration (none is fine).
+/// Starts a run over: removes every journal of a configuration (none is fine).
 pub fn reset_all(config: &PipelineConfig) -> Result<(), JournalError> {
-    reset(&path(config, Kind::Pose))?;
-    reset(&path(config, Kind::Change))
+    for kind in [Kind::Pose, Kind::Change, Kind::PoseAcked, Kind::ChangeAcked] {
+        reset(&path(config, kind))?;
+    }
+    Ok(())
 }
 
 /// Starts a run over: removes the journal (none is fine).

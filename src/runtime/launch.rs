@@ -210,7 +210,7 @@ pub fn launch(
             done: false,
         });
     }
-    let mut collector = match Collector::open(transport, config.changes_enabled()) {
+    let mut collector = match Collector::open(transport, config.changes_enabled(), true) {
         Ok(collector) => collector,
         Err(error) => {
             stop_all(&mut processes, config);

@@ -1,8 +1,10 @@
 //! Wiring from a configuration (docs/design.md §5): the stage loops (`nodes`), work sharing with redo
 //! (`dispatch`), the bus wrappers (`bus`), the results collector and summary (`collect`), the
-//! one-process runner (`run_in_process`), the process supervisor (`launch`) and the results
-//! journal that makes "has a result" survive a crash (`journal`).
+//! one-process runner (`run_in_process`), the process supervisor (`launch`), the results
+//! journal that makes "has a result" survive a crash (`journal`) and the end-to-end acks that
+//! make a result lost in flight be sent again (`ack`).
 
+pub mod ack;
 pub mod bus;
 pub mod collect;
 pub mod config;
@@ -81,7 +83,7 @@ fn run_stage_threads(
     on_result: &mut dyn FnMut(Delivered<'_>),
 ) -> Result<Collected, RuntimeError> {
     let stop = AtomicBool::new(false);
-    let mut collector = Collector::open(transport, config.changes_enabled())?;
+    let mut collector = Collector::open(transport, config.changes_enabled(), true)?;
     let context = |worker_index| NodeContext {
         transport,
         config,

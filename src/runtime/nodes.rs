@@ -23,6 +23,7 @@ use crate::stage::render::RenderStage;
 use crate::stage::verify::{ChangeWork, VerifyStage};
 use crate::transport::{keys, Transport};
 
+use super::ack::Resender;
 use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
 use super::config::{BackpressurePolicy, PipelineConfig};
 use super::dispatch::{Dispatcher, WorkerPort};
@@ -36,6 +37,8 @@ const CHANGE_JOBS_QUEUED: usize = 1024;
 /// How long verify waits for a change result to be published after no change worker holds its
 /// job any more (or after sending a frame's result to fusion) before it issues the work again.
 const CHANGE_RESEND_AFTER: Duration = Duration::from_secs(3);
+/// How often verify and fusion repeat the end of their stream once it is complete.
+const END_REPEAT: Duration = Duration::from_secs(2);
 /// Most compute samples a metrics message carries (the most recent ones).
 const MAX_SAMPLES: usize = 4096;
 
@@ -222,6 +225,8 @@ impl Recovery {
         match kind {
             journal::Kind::Pose => self.posed.insert(frame_id),
             journal::Kind::Change => self.changed.insert(frame_id),
+            // Ingest reads only the journals of published results.
+            journal::Kind::PoseAcked | journal::Kind::ChangeAcked => return,
         };
         let needs_change = self.changes.is_some();
         if self.posed.contains(&frame_id) && (!needs_change || self.changed.contains(&frame_id)) {
@@ -995,19 +1000,22 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     };
     let mut fusion_told_end: Option<Instant> = None;
     let mut capture_times: HashMap<u64, u64> = HashMap::new();
-    let mut stream_ended = false;
-    // Results published before a restart of this stage are not published again.
-    let (mut journal, mut published) = Journal::open(
+    let mut stream_ended: Option<Instant> = None;
+    // Results published before a restart of this stage are not published again; those the
+    // collector has not acknowledged are sent again as they were (runtime::ack).
+    let mut results_ack = Resender::open(
+        ctx.transport,
+        keys::RESULTS_ACK,
+        "verify",
+        Duration::from_secs_f64(config.timeouts.resend_after_s),
+    )?;
+    let (mut journal, journaled) = Journal::open_with_payloads(
         &journal::path(config, journal::Kind::Pose),
         &journal::header(config, journal::Kind::Pose),
     )?;
-    if !published.is_empty() {
-        tracing::info!(
-            "verify: {} frames already have their published result ({}); they are not published again",
-            published.len(),
-            journal.path().display()
-        );
-    }
+    let mut acks = AckJournal::open(config, journal::Kind::PoseAcked, "verify")?;
+    let mut published: std::collections::BTreeSet<u64> = journaled.keys().copied().collect();
+    restore_unacked(&mut results_ack, &journaled, &acks, journal.path());
     let mut journal_failed = false;
     while !ctx.stopped() {
         let mut produced = Vec::new();
@@ -1062,22 +1070,30 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             };
             let json = pose_result_json(&header, &result);
             let frame_id = result.frame_id;
-            results.send(
-                result.frame_id,
-                capture,
-                Body::PoseResult(result),
-                &mut metrics,
-            )?;
+            // Encoded once: the bytes published, journaled and (until acknowledged) sent again.
+            let bytes = encode_to_vec(frame_id, capture, Body::PoseResult(result))?;
+            acks.take(&mut results_ack, &mut metrics)?;
+            results.send_encoded(&bytes, &mut metrics)?;
             results_json.send_raw(json.as_bytes())?;
             published.insert(frame_id);
             // The result is out; the journal only helps a restart, so a failure to write it
             // is reported once and the stage goes on.
-            if let Err(error) = journal.append(frame_id) {
+            if let Err(error) = journal.append_with(frame_id, &journal::to_hex(&bytes)) {
                 if !journal_failed {
                     tracing::error!("verify: {error}; a restart may publish results again");
                     journal_failed = true;
                 }
             }
+            let first_after = results_ack.first_after();
+            results_ack.track(frame_id, bytes, json, first_after);
+        }
+        acks.take(&mut results_ack, &mut metrics)?;
+        for (frame_id, bytes, json) in results_ack.due(Instant::now()) {
+            tracing::info!(
+                "verify: the result of frame {frame_id} is not acknowledged by the collector; sending it again"
+            );
+            results.send_encoded(&bytes, &mut metrics)?;
+            results_json.send_raw(json.as_bytes())?;
         }
         if let Some(recovery) = &mut changes {
             stage.release_stereo_jobs();
@@ -1110,12 +1126,18 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                     fusion_told_end = Some(Instant::now());
                 }
             }
-            metrics.redispatched = recovery.dispatcher.metrics.redispatched + recovery.reissued;
         }
-        if !stream_ended {
+        metrics.redispatched = changes.as_ref().map_or(0, |recovery| {
+            recovery.dispatcher.metrics.redispatched + recovery.reissued
+        }) + results_ack.resent;
+        // The end of the stream is repeated now and then (a lost one would leave the
+        // collector waiting; a repeat is harmless).
+        if stream_ended.is_none_or(|at| at.elapsed() >= END_REPEAT) {
             if let Some(frame_count) = stage.stream_complete() {
-                stream_ended = true;
-                tracing::info!("verify: all {frame_count} frames have their result");
+                if stream_ended.is_none() {
+                    tracing::info!("verify: all {frame_count} frames have their result");
+                }
+                stream_ended = Some(Instant::now());
                 results.send(
                     0,
                     0,
@@ -1169,6 +1191,115 @@ pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     })
 }
 
+/// The acknowledgement journal of verify or fusion (`journal::Kind::PoseAcked`,
+/// `journal::Kind::ChangeAcked`): each frame whose result the collector acknowledged, so that a
+/// restart sends only the others again.
+struct AckJournal {
+    journal: Journal,
+    acked: std::collections::BTreeSet<u64>,
+    stage: &'static str,
+    failed: bool,
+}
+
+impl AckJournal {
+    fn open(
+        config: &PipelineConfig,
+        kind: journal::Kind,
+        stage: &'static str,
+    ) -> Result<Self, NodeError> {
+        let (journal, acked) =
+            Journal::open(&journal::path(config, kind), &journal::header(config, kind))?;
+        Ok(Self {
+            journal,
+            acked,
+            stage,
+            failed: false,
+        })
+    }
+
+    /// Takes the acks that arrived at `resender` and journals them (a failure to write is
+    /// reported once: a restart then only sends some results again).
+    fn take(
+        &mut self,
+        resender: &mut Resender,
+        metrics: &mut StageMetrics,
+    ) -> Result<(), BusError> {
+        for frame_id in resender.take_acks(metrics)? {
+            self.acked.insert(frame_id);
+            if let Err(error) = self.journal.append(frame_id) {
+                if !self.failed {
+                    tracing::error!(
+                        "{}: {error}; a restart sends acknowledged results again",
+                        self.stage
+                    );
+                    self.failed = true;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A journaled result message (PoseResult or ChangeResult of `frame_id`) back: its bytes, sent
+/// again as they are, and its JSON twin.
+fn journaled_result(frame_id: u64, payload: &str) -> Result<(Vec<u8>, String), String> {
+    let bytes = journal::from_hex(payload).ok_or("not hex")?;
+    let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
+    let json = match &message.body {
+        Body::PoseResult(result) if result.frame_id == frame_id => {
+            pose_result_json(&message.header, result)
+        }
+        Body::ChangeResult(result) if result.frame_id == frame_id => {
+            change_result_json(&message.header, result)
+        }
+        other => {
+            return Err(format!(
+                "it holds a {:?} message of frame {}",
+                other.kind(),
+                message.header.frame_id
+            ))
+        }
+    };
+    drop(message);
+    Ok((bytes, json))
+}
+
+/// After a restart: the journaled results the collector has not acknowledged go back into
+/// `resender`, due at once (the collector takes a repeat as re-delivery).
+fn restore_unacked(
+    resender: &mut Resender,
+    journaled: &std::collections::BTreeMap<u64, String>,
+    acks: &AckJournal,
+    path: &std::path::Path,
+) {
+    if journaled.is_empty() {
+        return;
+    }
+    let mut restored = 0usize;
+    for (frame_id, payload) in journaled {
+        if acks.acked.contains(frame_id) {
+            continue;
+        }
+        match journaled_result(*frame_id, payload) {
+            Ok((bytes, json)) => {
+                resender.track(*frame_id, bytes, json, Duration::ZERO);
+                restored += 1;
+            }
+            Err(why) => tracing::error!(
+                "{}: {}: the line of frame {frame_id} is damaged ({why}); its result cannot be sent again",
+                acks.stage,
+                path.display()
+            ),
+        }
+    }
+    tracing::info!(
+        "{}: {} frames already have their published result ({}); none is published again, the {restored} not acknowledged by the collector are sent again",
+        acks.stage,
+        journaled.len(),
+        path.display()
+    );
+}
+
 /// A change result back from its change journal line.
 fn restore_change_result(frame_id: u64, payload: &str) -> Result<crate::msg::ChangeResult, String> {
     let bytes = journal::from_hex(payload).ok_or("not hex")?;
@@ -1197,6 +1328,14 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         &journal::path(ctx.config, journal::Kind::Change),
         &journal::header(ctx.config, journal::Kind::Change),
     )?;
+    let mut changes_ack = Resender::open(
+        ctx.transport,
+        keys::CHANGES_ACK,
+        "fusion",
+        Duration::from_secs_f64(ctx.config.timeouts.resend_after_s),
+    )?;
+    let mut acks = AckJournal::open(ctx.config, journal::Kind::ChangeAcked, "fusion")?;
+    restore_unacked(&mut changes_ack, &journaled, &acks, journal.path());
     let restored = journaled.len();
     for (frame_id, payload) in journaled {
         match restore_change_result(frame_id, &payload) {
@@ -1208,13 +1347,12 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         }
     }
     if restored > 0 {
-        tracing::info!(
-            "fusion: {restored} frames already have their published change result ({}); they are not published again",
-            journal.path().display()
-        );
+        tracing::info!("fusion: {restored} change results restored from the change journal");
     }
     let mut journal_failed = false;
-    let mut completed = false;
+    // When the final change set and the end of the change stream were last sent (repeated
+    // now and then: a lost one would leave the collector waiting).
+    let mut completed: Option<Instant> = None;
     // Results since the last published set, and when it was published.
     let mut unpublished = 0usize;
     let mut last_set = Instant::now();
@@ -1234,28 +1372,29 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                             sent_time_ns: unix_time_ns(),
                         };
                         let json = change_result_json(&header, result);
+                        // Encoded once: the bytes published, journaled and (until
+                        // acknowledged) sent again.
+                        let mut bytes = Vec::new();
                         if sent.is_ok() {
-                            let body = Body::ChangeResult(result.clone());
-                            sent = changes
-                                .send(frame_id, capture, body, metrics)
+                            sent = encode_to_vec(frame_id, capture, Body::ChangeResult(result.clone()))
+                                .and_then(|encoded| {
+                                    bytes = encoded;
+                                    acks.take(&mut changes_ack, metrics)
+                                })
+                                .and_then(|_| changes.send_encoded(&bytes, metrics))
                                 .and_then(|_| changes_json.send_raw(json.as_bytes()));
                         }
                         if sent.is_ok() {
                             // Published: journaled with the result, for a restart (a failure
                             // to write it is reported once; the stage goes on).
-                            let line = encode_to_vec(frame_id, capture, Body::ChangeResult(result.clone()))
-                                .map_err(|error| error.to_string())
-                                .and_then(|bytes| {
-                                    journal
-                                        .append_with(frame_id, &journal::to_hex(&bytes))
-                                        .map_err(|error| error.to_string())
-                                });
-                            if let Err(error) = line {
+                            if let Err(error) = journal.append_with(frame_id, &journal::to_hex(&bytes)) {
                                 if !journal_failed {
                                     tracing::error!("fusion: {error}; a restart may publish change results again");
                                     journal_failed = true;
                                 }
                             }
+                            let first_after = changes_ack.first_after();
+                            changes_ack.track(frame_id, bytes, json, first_after);
                         }
                         unpublished += 1;
                     }
@@ -1266,7 +1405,16 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
             record_compute(metrics, started);
         })?;
         sent?;
-        let complete = !completed && stage.is_complete();
+        acks.take(&mut changes_ack, &mut metrics)?;
+        for (frame_id, bytes, json) in changes_ack.due(Instant::now()) {
+            tracing::info!(
+                "fusion: the change result of frame {frame_id} is not acknowledged by the collector; sending it again"
+            );
+            changes.send_encoded(&bytes, &mut metrics)?;
+            changes_json.send_raw(json.as_bytes())?;
+        }
+        metrics.redispatched = changes_ack.resent;
+        let complete = stage.is_complete() && completed.is_none_or(|at| at.elapsed() >= END_REPEAT);
         if complete || (unpublished > 0 && last_set.elapsed() >= Duration::from_secs(1)) {
             let started = Instant::now();
             let set = stage.change_set();
@@ -1278,7 +1426,7 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                 sent_time_ns: unix_time_ns(),
             };
             let json = change_set_json(&header, &set);
-            if complete {
+            if complete && completed.is_none() {
                 tracing::info!(
                     "fusion: all {} frames have their change result: {} objects ({} confirmed)",
                     stage.result_count(),
@@ -1291,7 +1439,7 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
             unpublished = 0;
             last_set = Instant::now();
             if complete {
-                completed = true;
+                completed = Some(Instant::now());
                 changes.send(
                     0,
                     0,

@@ -327,7 +327,7 @@ fn the_collector_hands_on_one_result_per_frame() {
     use crate::msg::{Body, Evidence, PoseResult, StageTimesMs, StreamEnd};
 
     let transport = CrossbeamTransport::new(crate::transport::conformance::config("collector"));
-    let mut collector = collect::Collector::open(&transport, false).unwrap();
+    let mut collector = collect::Collector::open(&transport, false, true).unwrap();
     let mut results = bus::Outbox::open(&transport, keys::RESULTS).unwrap();
     let result = |frame_id: u64, reason: &str| PoseResult {
         frame_id,
@@ -414,6 +414,21 @@ fn restarted_ingest_verify_and_fusion_resume_from_the_results_journals() {
             .unwrap();
     }
     drop(written);
+    // The collector had acknowledged them before the restart (else verify and fusion would send
+    // them again, runtime::ack).
+    for (kind, frames) in [
+        (journal::Kind::PoseAcked, &[0u64, 2, 1][..]),
+        (journal::Kind::ChangeAcked, &[0, 2][..]),
+    ] {
+        let (mut acked, _) = journal::Journal::open(
+            &journal::path(&config, kind),
+            &journal::header(&config, kind),
+        )
+        .unwrap();
+        for frame_id in frames {
+            acked.append(*frame_id).unwrap();
+        }
+    }
     let mesh = read_mesh(&config.mesh).unwrap();
     let transport = CrossbeamTransport::new(config.transport.clone());
     let collected = run_stage_threads(

@@ -13,6 +13,10 @@ pub const KEY_ROOT: &str = "asgreg";
 pub const RESULTS: &str = "results";
 /// The same results as JSON (`schemas/v5/pose_result.schema.json`) for non-Rust subscribers.
 pub const RESULTS_JSON: &str = "results/json";
+/// Acknowledgements of the results by the station's collector (a `Credit` message whose
+/// `completed` lists the frames it holds): verify sends each PoseResult again, with backoff,
+/// until it is acknowledged here (a result lost in flight, e.g. while the zenoh router restarts).
+pub const RESULTS_ACK: &str = "results/ack";
 /// Correspondences from flow workers to the pose stage.
 pub const CORRESPONDENCES: &str = "pose/in";
 /// Pose hypotheses and whole-frame failures to the verify stage.
@@ -26,6 +30,9 @@ pub const CHANGES: &str = "changes";
 pub const CHANGES_JSON: &str = "changes/json";
 /// The fused change sets as JSON (`schemas/v5/change_set.schema.json`).
 pub const CHANGE_SET_JSON: &str = "changeset/json";
+/// Acknowledgements of the change results by the station's collector (as [`RESULTS_ACK`]):
+/// fusion sends each ChangeResult again until it is acknowledged here.
+pub const CHANGES_ACK: &str = "changes/ack";
 /// Per-stage metrics snapshots.
 pub const METRICS: &str = "metrics";
 
@@ -67,5 +74,7 @@ mod tests {
         assert_eq!(key("gs1", &jobs("flow", 3)), "asgreg/v5/gs1/flow/jobs/3");
         assert_eq!(key("gs1", &credits("flow")), "asgreg/v5/gs1/flow/credits");
         assert_eq!(pipeline_wildcard("gs1"), "asgreg/v5/gs1/**");
+        assert_eq!(key("gs1", RESULTS_ACK), "asgreg/v5/gs1/results/ack");
+        assert_eq!(key("gs1", CHANGES_ACK), "asgreg/v5/gs1/changes/ack");
     }
 }

@@ -1,6 +1,7 @@
 //! Integration tests: one binary (ripgrep's layout), one module per area. They run the `asgreg`
 //! binary the way a user would and check what it prints and how it exits.
 
+mod acks;
 mod bad_environment;
 mod bad_input;
 mod changes_cli;
