@@ -183,10 +183,11 @@ pub struct CoarseArgs {
     /// Final refinement: search half-length of its first level, px (levels halve it down to 2).
     #[arg(long, default_value_t = RegistrationConfig::default().edge_align.initial_search_radius_px)]
     pub edge_search_px: f64,
-    /// Final refinement: estimate the model's edge rounding radius with the pose (a smoothed,
-    /// Poisson-like model rounds its edges; the photo's edges lie where the sharp ones would).
+    /// Final refinement: do not estimate the model's edge rounding radius with the pose (by
+    /// default it is: a smoothed, Poisson-like model rounds its edges, and the photo's edges lie
+    /// where the sharp ones would).
     #[arg(long)]
-    pub edge_rounding: bool,
+    pub no_edge_rounding: bool,
     /// Final refinement: which model edges the estimated rounding is undone on.
     #[arg(long, value_enum, default_value_t = EdgeKindsArg::All)]
     pub edge_rounding_kinds: EdgeKindsArg,
@@ -215,7 +216,7 @@ impl Default for CoarseArgs {
             lift_edge_margin_px: defaults.lift_edge_margin_px,
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
-            edge_rounding: defaults.edge_align.estimate_rounding,
+            no_edge_rounding: !defaults.edge_align.estimate_rounding,
             edge_kinds: EdgeKindsArg::All,
             edge_rounding_kinds: EdgeKindsArg::All,
             no_pose_search: false,
@@ -314,7 +315,7 @@ pub fn registration_config(
         edge_align: EdgeAlignConfig {
             enabled: !coarse.no_edge_align,
             initial_search_radius_px: coarse.edge_search_px,
-            estimate_rounding: coarse.edge_rounding,
+            estimate_rounding: !coarse.no_edge_rounding,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),
             ..EdgeAlignConfig::default()

@@ -102,7 +102,7 @@ impl Default for EdgeAlignConfig {
             support_px: 1.0,
             evidence_radius_px: 4.0,
             min_samples: 40,
-            estimate_rounding: false,
+            estimate_rounding: true,
             rounding_kinds: AlignedKinds::All,
             aligned_kinds: AlignedKinds::All,
         }
