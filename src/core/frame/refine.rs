@@ -292,7 +292,14 @@ mod tests {
         let sqrt2_minus_1 = std::f64::consts::SQRT_2 - 1.0;
         for sample in &samples {
             let factor = sample.rounding.norm();
-            assert!(factor <= sqrt2_minus_1 + 0.05, "{sample:?}");
+            // A contour's factor assumes a right angle; a crease's grows with its angle
+            // (1 at 120°, e.g. a steep roof's ridge).
+            let most = if sample.kind == EdgeKind::Contour {
+                sqrt2_minus_1 + 1e-9
+            } else {
+                2.0
+            };
+            assert!(factor <= most, "{sample:?}");
             if factor > 1e-9 {
                 assert!(sample.rounding.dot(&sample.outward) > 0.0, "{sample:?}");
             }
