@@ -304,18 +304,20 @@ mod tests {
                 assert!(sample.rounding.dot(&sample.outward) > 0.0, "{sample:?}");
             }
         }
-        // Most convex creases of the house are right-angled (walls, eaves): factor √2 − 1.
-        let mut factors: Vec<f64> = samples
+        // Many convex creases of the house are right-angled (wall corners, window reveals):
+        // factor √2 − 1.
+        let convex_factors: Vec<f64> = samples
             .iter()
             .filter(|s| s.kind == EdgeKind::ConvexCrease)
             .map(|s| s.rounding.norm())
             .collect();
-        factors.sort_by(f64::total_cmp);
-        let median = factors[factors.len() / 2];
-        assert!(
-            (median - sqrt2_minus_1).abs() < 0.1,
-            "median factor {median}"
-        );
+        let right_angled = convex_factors
+            .iter()
+            .filter(|f| (**f - sqrt2_minus_1).abs() < 0.05)
+            .count() as f64
+            / convex_factors.len() as f64;
+        println!("right-angled convex creases: {:.0} %", 100.0 * right_angled);
+        assert!(right_angled >= 0.2, "{right_angled}");
     }
 
     /// With the rounding estimated on a query whose edges are the model's own, there is no
