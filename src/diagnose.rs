@@ -18,13 +18,18 @@
 //!
 //! And per frame the *choice*: δ of the verification's output against the best hypothesis, and
 //! the *refinement*: δ of the verified pose, of the pose the edge alignment ends at (kept or not),
-//! of the output, and of an alignment started at the true pose (its bias floor).
+//! of the output, and of an alignment started at the true pose (its bias floor), with where that
+//! bias comes from ([`EdgeBiasDiagnosis`]): the signed offsets of the model's edge samples to the
+//! photo's ridges at the true pose by kind of edge, depth and orientation, and the floor's pose
+//! error split into its part along the view axis and the rest.
 
 use nalgebra::{Vector2, Vector3};
 use serde::Serialize;
 
 use crate::core::camera::{nearest_pixel, Camera};
-use crate::core::edge_align::AlignedParameters;
+use crate::core::edge_align::{
+    model_edge_samples, pose_jacobian_rows, search_ridge, AlignedParameters, EdgeKind, EdgeSample,
+};
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
 use crate::core::frame::{
@@ -120,6 +125,200 @@ pub struct FrameDiagnosis {
     pub best_delta_px: Option<f64>,
     /// The pose search against the truth (`None` when the search is off).
     pub search: Option<SearchDiagnosis>,
+    /// Where the edge alignment's bias comes from, measured at the true pose.
+    pub edge_bias: EdgeBiasDiagnosis,
+}
+
+/// The edge alignment's bias at the true pose: each model edge sample of a rendering at the truth
+/// searched in the query (as the evidence searches: unblurred, `evidence_radius_px`), its signed
+/// offset to the photo's ridge positive *outward* (towards where the sharp edge of a rounded
+/// model lies: the far side of a contour, the faces' bisector of a convex crease, the inside of a
+/// concave one), grouped; and the pose error of the alignment started at the truth, split.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct EdgeBiasDiagnosis {
+    pub groups: Vec<EdgeBiasGroup>,
+    /// The alignment started at the truth: where it ended, split (`None` when it did not run).
+    pub from_truth: Option<PoseErrorSplit>,
+}
+
+/// One group of model edge samples at the true pose (see [`EdgeBiasDiagnosis`]).
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct EdgeBiasGroup {
+    /// "kind: contour", "depth: near (< 0.8× median)", "orientation: vertical edge", …
+    pub group: String,
+    pub samples: usize,
+    /// Samples with a photo ridge within the search radius.
+    pub matched: usize,
+    /// Per matched sample with a known outward direction: signed offset, outward positive, px.
+    #[serde(skip)]
+    pub outward_px: Vec<f64>,
+    /// Per such sample: how far its edge moves outward per metre of rounding radius, px/m
+    /// ([`EdgeSample::rounding`] projected on the search direction).
+    #[serde(skip)]
+    pub rounding_px_per_m: Vec<f64>,
+    pub mean_outward_px: Option<f64>,
+    pub median_outward_px: Option<f64>,
+    pub mean_abs_px: Option<f64>,
+    /// The rounding radius that best explains the offsets (least squares, offsets within 3 px),
+    /// m.
+    pub rounding_fit_m: Option<f64>,
+}
+
+impl EdgeBiasGroup {
+    fn new(group: String) -> Self {
+        Self {
+            group,
+            ..Self::default()
+        }
+    }
+
+    /// Fills the statistics from the lists.
+    fn finish(&mut self) {
+        let n = self.outward_px.len();
+        if n == 0 {
+            return;
+        }
+        let mut sorted = self.outward_px.clone();
+        sorted.sort_by(f64::total_cmp);
+        self.median_outward_px = Some(sorted[n / 2]);
+        self.mean_outward_px = mean(self.outward_px.iter().copied());
+        self.mean_abs_px = mean(self.outward_px.iter().map(|v| v.abs()));
+        let (num, den) = self
+            .outward_px
+            .iter()
+            .zip(&self.rounding_px_per_m)
+            .filter(|(s, _)| s.abs() <= 3.0)
+            .fold((0.0, 0.0), |(a, b), (s, q)| (a + s * q, b + q * q));
+        self.rounding_fit_m = (den > 1e-9).then(|| num / den);
+    }
+
+    fn merge(&mut self, other: &EdgeBiasGroup) {
+        self.samples += other.samples;
+        self.matched += other.matched;
+        self.outward_px.extend_from_slice(&other.outward_px);
+        self.rounding_px_per_m
+            .extend_from_slice(&other.rounding_px_per_m);
+    }
+}
+
+/// A pose's error against the truth split into its parts: the translation error in the true
+/// camera's frame (lateral, and along the view axis: what a scale error of the model's edges
+/// pulls), the rotation error, and δ of the truth moved by only the axial part or only the rest.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct PoseErrorSplit {
+    pub delta_px: Option<f64>,
+    pub lateral_m: f64,
+    pub along_axis_m: f64,
+    pub rotation_deg: f64,
+    pub along_axis_delta_px: Option<f64>,
+    pub lateral_and_rotation_delta_px: Option<f64>,
+    /// The rounding radius the alignment estimated, m (0 unless estimated).
+    pub rounding_m: f64,
+}
+
+/// Groups of [`EdgeBiasDiagnosis`]: by kind, by depth (against the samples' median), by
+/// orientation of the edge in the image.
+fn edge_bias_groups(
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    truth: &Rigid3,
+    config: &RegistrationConfig,
+) -> Vec<EdgeBiasGroup> {
+    const KINDS: [(EdgeKind, &str); 3] = [
+        (EdgeKind::Contour, "kind: contour"),
+        (EdgeKind::ConvexCrease, "kind: convex crease"),
+        (EdgeKind::ConcaveCrease, "kind: concave crease"),
+    ];
+    let names = [
+        "all",
+        KINDS[0].1,
+        KINDS[1].1,
+        KINDS[2].1,
+        "depth: near (< 0.8× median)",
+        "depth: mid",
+        "depth: far (> 1.25× median)",
+        "orientation: vertical edge (±30°)",
+        "orientation: horizontal edge (±30°)",
+        "orientation: oblique",
+    ];
+    let mut groups: Vec<EdgeBiasGroup> = names
+        .iter()
+        .map(|n| EdgeBiasGroup::new((*n).to_string()))
+        .collect();
+    let mut depths: Vec<f64> = samples
+        .iter()
+        .map(|s| truth.transform_point(&s.world_m).z)
+        .collect();
+    if depths.is_empty() {
+        return groups;
+    }
+    let middle = depths.len() / 2;
+    let median_m = *depths.select_nth_unstable_by(middle, f64::total_cmp).1;
+    let align = &config.edge_align;
+    let cos_30 = 30f64.to_radians().cos();
+    for sample in samples {
+        let point_cam = truth.transform_point(&sample.world_m);
+        let kind_group = 1 + KINDS
+            .iter()
+            .position(|(k, _)| *k == sample.kind)
+            .unwrap_or(0);
+        let depth_group = if point_cam.z < 0.8 * median_m {
+            4
+        } else if point_cam.z > 1.25 * median_m {
+            6
+        } else {
+            5
+        };
+        let orientation_group = if sample.normal.x.abs() >= cos_30 {
+            7
+        } else if sample.normal.y.abs() >= cos_30 {
+            8
+        } else {
+            9
+        };
+        let members = [0, kind_group, depth_group, orientation_group];
+        for &g in &members {
+            groups[g].samples += 1;
+        }
+        let Some(projected) = camera.project(&point_cam) else {
+            continue;
+        };
+        let Some(offset_px) = search_ridge(
+            query,
+            projected,
+            sample.normal,
+            align.evidence_radius_px,
+            align.min_query_ridge,
+        ) else {
+            continue;
+        };
+        for &g in &members {
+            groups[g].matched += 1;
+        }
+        // Image motion of the sample's point per metre along a camera-frame direction.
+        let (row_u, row_v) = pose_jacobian_rows(&camera.intrinsics, &point_cam);
+        let along_normal = |direction_world: &Vector3<f64>| {
+            let direction_cam = truth.rotation * direction_world;
+            row_u.fixed_rows::<3>(3).dot(&direction_cam) * sample.normal.x
+                + row_v.fixed_rows::<3>(3).dot(&direction_cam) * sample.normal.y
+        };
+        let outward = along_normal(&sample.outward);
+        if outward.abs() < 1e-9 {
+            continue;
+        }
+        let sign = outward.signum();
+        for &g in &members {
+            groups[g].outward_px.push(sign * offset_px);
+            groups[g]
+                .rounding_px_per_m
+                .push(sign * along_normal(&sample.rounding));
+        }
+    }
+    for group in &mut groups {
+        group.finish();
+    }
+    groups
 }
 
 /// The pose search (step "search") against the truth: where its beams and centres ended, what a
@@ -318,6 +517,36 @@ pub fn diagnose_query(
     let aligned_from_truth_delta_px = from_truth
         .as_ref()
         .and_then(|r| delta(&r.aligned_camera, &r.aligned_cam_from_world));
+    let mut truth_samples = Vec::new();
+    model_edge_samples(
+        truth_view.asg.view(),
+        &truth_view.render,
+        camera,
+        truth,
+        &config.edge_align,
+        &mut truth_samples,
+    );
+    let edge_bias = EdgeBiasDiagnosis {
+        groups: edge_bias_groups(&truth_samples, &query, camera, truth, config),
+        from_truth: from_truth.as_ref().map(|r| {
+            let error = r.aligned_cam_from_world.compose(&truth.inverse());
+            let t = error.translation;
+            let axial = Rigid3::new(
+                nalgebra::UnitQuaternion::identity(),
+                Vector3::new(0.0, 0.0, t.z),
+            );
+            let lateral = Rigid3::new(error.rotation, Vector3::new(t.x, t.y, 0.0));
+            PoseErrorSplit {
+                delta_px: aligned_from_truth_delta_px,
+                lateral_m: t.xy().norm(),
+                along_axis_m: t.z,
+                rotation_deg: error.rotation.angle().to_degrees(),
+                along_axis_delta_px: delta(camera, &axial.compose(truth)),
+                lateral_and_rotation_delta_px: delta(camera, &lateral.compose(truth)),
+                rounding_m: r.rounding_m,
+            }
+        }),
+    };
     let truth_support = from_truth.map(|r| r.verified.support_fraction());
     let best_delta_px = diagnoses
         .iter()
@@ -346,6 +575,7 @@ pub fn diagnose_query(
         aligned_from_truth_delta_px,
         best_delta_px,
         search,
+        edge_bias,
     })
 }
 
@@ -583,6 +813,16 @@ pub struct DiagnosisSummary {
     pub aligned_delta_px: Option<f64>,
     pub aligned_from_truth_delta_px: Option<f64>,
     pub refinement_kept_share: f64,
+    /// The edge bias at the truth, all frames' samples together.
+    pub edge_bias: Vec<EdgeBiasGroup>,
+    /// Means over frames of the alignment from the truth: δ of its axial part and of the rest,
+    /// px; its signed translation error along the view axis and its lateral one, m; the
+    /// estimated rounding radius, m.
+    pub from_truth_along_axis_delta_px: Option<f64>,
+    pub from_truth_lateral_and_rotation_delta_px: Option<f64>,
+    pub from_truth_along_axis_m: Option<f64>,
+    pub from_truth_lateral_m: Option<f64>,
+    pub from_truth_rounding_m: Option<f64>,
 }
 
 fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
@@ -601,6 +841,10 @@ impl DiagnosisSummary {
         let share = |f: fn(&ErrorStats) -> f64| {
             mean(with_matches.iter().map(|v| f(&v.correspondence_error))).unwrap_or(0.0)
         };
+        let splits: Vec<&PoseErrorSplit> = frames
+            .iter()
+            .filter_map(|f| f.edge_bias.from_truth.as_ref())
+            .collect();
         let (near, all) = views.iter().fold((0usize, 0usize), |(n, a), v| {
             (
                 n + v.near_edge_error.count,
@@ -655,6 +899,34 @@ impl DiagnosisSummary {
                     refined.iter().filter(|k| **k).count() as f64 / refined.len() as f64
                 }
             },
+            edge_bias: {
+                let mut merged: Vec<EdgeBiasGroup> = Vec::new();
+                for group in frames.iter().flat_map(|f| &f.edge_bias.groups) {
+                    match merged.iter_mut().find(|m| m.group == group.group) {
+                        Some(m) => m.merge(group),
+                        None => {
+                            let mut first = EdgeBiasGroup::new(group.group.clone());
+                            first.merge(group);
+                            merged.push(first);
+                        }
+                    }
+                }
+                for group in &mut merged {
+                    group.finish();
+                }
+                merged
+            },
+            from_truth_along_axis_delta_px: mean(
+                splits.iter().filter_map(|s| s.along_axis_delta_px),
+            ),
+            from_truth_lateral_and_rotation_delta_px: mean(
+                splits
+                    .iter()
+                    .filter_map(|s| s.lateral_and_rotation_delta_px),
+            ),
+            from_truth_along_axis_m: mean(splits.iter().map(|s| s.along_axis_m)),
+            from_truth_lateral_m: mean(splits.iter().map(|s| s.lateral_m)),
+            from_truth_rounding_m: mean(splits.iter().map(|s| s.rounding_m)),
         }
     }
 }

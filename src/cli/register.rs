@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
-use asgreg::core::edge_align::EdgeAlignConfig;
+use asgreg::core::edge_align::{AlignedKinds, EdgeAlignConfig};
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig, UnknownIntrinsics};
 use asgreg::core::image::Image;
 use asgreg::core::pose_search::PoseSearchConfig;
@@ -183,6 +183,17 @@ pub struct CoarseArgs {
     /// Final refinement: search half-length of its first level, px (levels halve it down to 2).
     #[arg(long, default_value_t = RegistrationConfig::default().edge_align.initial_search_radius_px)]
     pub edge_search_px: f64,
+    /// Final refinement: do not estimate the model's edge rounding radius with the pose (by
+    /// default it is: a smoothed, Poisson-like model rounds its edges, and the photo's edges lie
+    /// where the sharp ones would).
+    #[arg(long)]
+    pub no_edge_rounding: bool,
+    /// Final refinement: which model edges the estimated rounding is undone on.
+    #[arg(long, value_enum, default_value_t = EdgeKindsArg::All)]
+    pub edge_rounding_kinds: EdgeKindsArg,
+    /// Final refinement: which model edges its steps use (the evidence uses all).
+    #[arg(long, value_enum, default_value_t = EdgeKindsArg::All)]
+    pub edge_kinds: EdgeKindsArg,
     /// Skip the pose search before the coarse poses (heading, pitch, roll grid scored on the
     /// photo's oriented edges, beams refined by edge alignment): the paper's method alone.
     #[arg(long)]
@@ -205,8 +216,32 @@ impl Default for CoarseArgs {
             lift_edge_margin_px: defaults.lift_edge_margin_px,
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
+            no_edge_rounding: !defaults.edge_align.estimate_rounding,
+            edge_kinds: EdgeKindsArg::All,
+            edge_rounding_kinds: EdgeKindsArg::All,
             no_pose_search: false,
             screened_candidates: PoseSearchConfig::default().screened_candidates,
+        }
+    }
+}
+
+/// Which model edges the final refinement's steps use.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EdgeKindsArg {
+    /// Occluding contours and creases.
+    All,
+    /// Occluding contours (depth steps) only.
+    Contours,
+    /// Creases only.
+    Creases,
+}
+
+impl From<EdgeKindsArg> for AlignedKinds {
+    fn from(kinds: EdgeKindsArg) -> Self {
+        match kinds {
+            EdgeKindsArg::All => Self::All,
+            EdgeKindsArg::Contours => Self::Contours,
+            EdgeKindsArg::Creases => Self::Creases,
         }
     }
 }
@@ -280,6 +315,9 @@ pub fn registration_config(
         edge_align: EdgeAlignConfig {
             enabled: !coarse.no_edge_align,
             initial_search_radius_px: coarse.edge_search_px,
+            estimate_rounding: !coarse.no_edge_rounding,
+            rounding_kinds: coarse.edge_rounding_kinds.into(),
+            aligned_kinds: coarse.edge_kinds.into(),
             ..EdgeAlignConfig::default()
         },
         pose_search: PoseSearchConfig {

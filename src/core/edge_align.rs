@@ -27,9 +27,10 @@
 use nalgebra::{UnitQuaternion, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
-use super::camera::{pixel_center, Camera, PinholeIntrinsics, MIN_DEPTH_M};
+use super::camera::{nearest_pixel, pixel_center, Camera, PinholeIntrinsics, MIN_DEPTH_M};
 use super::dense_sift::{gaussian_taps, separable_filter_clamped};
 use super::image::{Image, ImageView};
+use super::raster::RenderBuffers;
 use super::rigid::Rigid3;
 
 /// Settings of the edge alignment.
@@ -58,6 +59,34 @@ pub struct EdgeAlignConfig {
     pub evidence_radius_px: f64,
     /// Fewer matched model edge samples than this: no step is taken.
     pub min_samples: usize,
+    /// Estimate the model's edge rounding radius with the pose (see [`EdgeSample::rounding`]).
+    pub estimate_rounding: bool,
+    /// The kinds of model edge the estimated rounding is undone on.
+    pub rounding_kinds: AlignedKinds,
+    /// Which model edge samples the Gauss–Newton steps use (the evidence always uses all).
+    pub aligned_kinds: AlignedKinds,
+}
+
+/// Which kinds of model edge samples the alignment's steps use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum AlignedKinds {
+    /// Contours and creases.
+    #[default]
+    All,
+    /// Occluding contours (depth steps) only.
+    Contours,
+    /// Creases only.
+    Creases,
+}
+
+impl AlignedKinds {
+    pub fn includes(self, kind: EdgeKind) -> bool {
+        match self {
+            Self::All => true,
+            Self::Contours => kind == EdgeKind::Contour,
+            Self::Creases => kind != EdgeKind::Contour,
+        }
+    }
 }
 
 impl Default for EdgeAlignConfig {
@@ -73,6 +102,9 @@ impl Default for EdgeAlignConfig {
             support_px: 1.0,
             evidence_radius_px: 4.0,
             min_samples: 40,
+            estimate_rounding: true,
+            rounding_kinds: AlignedKinds::All,
+            aligned_kinds: AlignedKinds::All,
         }
     }
 }
@@ -138,6 +170,17 @@ impl EdgeAlignConfig {
     }
 }
 
+/// What kind of model edge a sample lies on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum EdgeKind {
+    /// An occluding contour: the surface on one side, a farther one (or none) on the other.
+    Contour,
+    /// A crease whose faces meet at an outward (convex) angle.
+    ConvexCrease,
+    /// A crease whose faces meet at an inward (concave) angle.
+    ConcaveCrease,
+}
+
 /// One model edge sample: a 3D point on a crease or occluding contour and the direction across
 /// the edge in the image.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -145,6 +188,36 @@ pub struct EdgeSample {
     pub world_m: Vector3<f64>,
     /// Unit vector across the edge in the image (the search direction).
     pub normal: Vector2<f64>,
+    pub kind: EdgeKind,
+    /// Where the sharp edge lies from this sample per metre of the model's edge rounding radius
+    /// ρ (world frame, m/m): a model made by smoothing (Poisson-like) rounds every edge with a
+    /// roughly constant radius, so its ASG ridge lies mid-arc and its contour inside the sharp
+    /// one. For two faces with unit normals n₁, n₂ tangent to an arc of radius ρ, the sharp edge
+    /// lies ρ·(1/cos(φ/2) − 1) from mid-arc along the faces' bisector b (φ: the angle between
+    /// the normals; outward for a convex crease, inward for a concave one); a contour whose
+    /// tangent normal u (⟂ the ray) makes angle α with the visible face's normal lies
+    /// ρ·(cos α + sin α − 1) inside the sharp edge's, along u (right-angled edges). Zero when the
+    /// rendering cannot tell.
+    pub rounding: Vector3<f64>,
+    /// Unit direction (world) from the sample towards where the sharp edge lies (the sign of
+    /// [`EdgeSample::rounding`], also where its factor is 0); zero when unknown.
+    pub outward: Vector3<f64>,
+}
+
+impl EdgeSample {
+    /// [`EdgeSample::rounding`] when the rounding is undone on `kinds`' samples, else zero.
+    pub fn rounding_on(&self, kinds: AlignedKinds) -> Vector3<f64> {
+        if kinds.includes(self.kind) {
+            self.rounding
+        } else {
+            Vector3::zeros()
+        }
+    }
+
+    /// The sample's point with the model's edge rounding `rounding_m` undone (on `kinds`).
+    pub fn sharp_point_m(&self, rounding_m: f64, kinds: AlignedKinds) -> Vector3<f64> {
+        self.world_m + self.rounding_on(kinds) * rounding_m
+    }
 }
 
 /// How well a pose's model edges are seen in the photo.
@@ -171,14 +244,29 @@ impl EdgeEvidence {
     }
 }
 
-/// A cell's strongest ridge pixel: (strength, position px, normal, depth m).
-type CellRidge = (f32, Vector2<f64>, Vector2<f64>, f32);
+/// `samples` with the model's edge rounding `rounding_m` undone (each point moved to
+/// [`EdgeSample::sharp_point_m`]) into `out` (cleared first).
+pub fn sharpened_samples(
+    samples: &[EdgeSample],
+    rounding_m: f64,
+    kinds: AlignedKinds,
+    out: &mut Vec<EdgeSample>,
+) {
+    out.clear();
+    out.extend(samples.iter().map(|sample| EdgeSample {
+        world_m: sample.sharp_point_m(rounding_m, kinds),
+        ..*sample
+    }));
+}
+
+/// A cell's strongest ridge pixel: (strength, position px, normal, depth m, pixel).
+type CellRidge = (f32, Vector2<f64>, Vector2<f64>, f32, (usize, usize));
 
 /// The model edge samples of a rendering at `cam_from_world` into `out` (cleared first).
-/// `asg` is the rendering's ASG (0..1), `depth_m` its depth (0: no surface).
+/// `asg` is the rendering's ASG (0..1), `render` its depth and normals.
 pub fn model_edge_samples(
     asg: ImageView<'_, f32>,
-    depth_m: ImageView<'_, f32>,
+    render: &RenderBuffers,
     camera: &Camera,
     cam_from_world: &Rigid3,
     config: &EdgeAlignConfig,
@@ -186,6 +274,7 @@ pub fn model_edge_samples(
 ) {
     out.clear();
     let (width_px, height_px) = asg.size();
+    let depth_m = render.depth_m().view();
     if depth_m.size() != (width_px, height_px) || width_px < 5 || height_px < 5 {
         return;
     }
@@ -224,19 +313,124 @@ pub fn model_edge_samples(
             // its faces' planes meet was measured worse on the degraded block: 2.79 → 3.06 px.)
             let depth = nearest_depth_m(&depth_m, col, row);
             if depth > 0.0 {
-                best[cell] = Some((centre, ridge_px, normal, depth));
+                best[cell] = Some((centre, ridge_px, normal, depth, (col, row)));
             }
         }
     }
-    for (_, position_px, normal, depth) in best.into_iter().flatten() {
+    for (_, position_px, normal, depth, pixel) in best.into_iter().flatten() {
         let Some(ray) = camera.unproject(position_px) else {
             continue;
         };
         let point_cam = ray * f64::from(depth);
+        let geometry = edge_geometry(render, camera, pixel, &point_cam, normal);
         out.push(EdgeSample {
             world_m: world_from_cam.transform_point(&point_cam),
             normal,
+            kind: geometry.kind,
+            rounding: world_from_cam.transform_vector(&geometry.rounding_cam),
+            outward: world_from_cam.transform_vector(&geometry.outward_cam),
         });
+    }
+}
+
+/// Distance either side of a ridge at which its two surfaces are read, px.
+const EDGE_PROBE_PX: f64 = 3.0;
+/// A depth ratio across the ridge above this makes it an occluding contour.
+const CONTOUR_DEPTH_RATIO: f32 = 1.1;
+
+/// The kind and rounding geometry of an edge (camera frame) of [`EdgeSample`].
+struct EdgeGeometry {
+    kind: EdgeKind,
+    rounding_cam: Vector3<f64>,
+    outward_cam: Vector3<f64>,
+}
+
+/// Reads the rendering [`EDGE_PROBE_PX`] either side of the ridge at `pixel` (across `normal`):
+/// a depth step or no surface on one side is a contour, else a crease between the two sides'
+/// faces.
+fn edge_geometry(
+    render: &RenderBuffers,
+    camera: &Camera,
+    pixel: (usize, usize),
+    point_cam: &Vector3<f64>,
+    normal: Vector2<f64>,
+) -> EdgeGeometry {
+    let unknown = EdgeGeometry {
+        kind: EdgeKind::ConvexCrease,
+        rounding_cam: Vector3::zeros(),
+        outward_cam: Vector3::zeros(),
+    };
+    let centre = pixel_center(pixel.0, pixel.1);
+    let (width_px, height_px) = (render.width_px(), render.height_px());
+    let side = |sign: f64| -> Option<(f32, Vector3<f64>, Vector3<f64>)> {
+        let (col, row) = nearest_pixel(
+            centre + normal * (sign * EDGE_PROBE_PX),
+            width_px,
+            height_px,
+        )?;
+        let depth = render.depth_m().data()[row * width_px + col];
+        if depth <= 0.0 {
+            return None;
+        }
+        let n = render.normal_cam().data()[row * width_px + col];
+        let ray = camera.unproject(pixel_center(col, row))?;
+        Some((
+            depth,
+            ray * f64::from(depth),
+            Vector3::new(f64::from(n.x), f64::from(n.y), f64::from(n.z)),
+        ))
+    };
+    let (ahead, behind) = (side(1.0), side(-1.0));
+    // The contour's outward side (+1: along `normal`), and its visible face's normal.
+    let contour = match (ahead, behind) {
+        (None, None) => return unknown,
+        (None, Some((_, _, n))) => Some((1.0, n)),
+        (Some((_, _, n)), None) => Some((-1.0, n)),
+        (Some((da, _, na)), Some((db, _, nb))) => {
+            if da > db * CONTOUR_DEPTH_RATIO {
+                Some((1.0, nb))
+            } else if db > da * CONTOUR_DEPTH_RATIO {
+                Some((-1.0, na))
+            } else {
+                None
+            }
+        }
+    };
+    if let Some((sign, face_normal)) = contour {
+        // The lateral direction (⟂ the ray) whose projection moves along ±normal.
+        let ray = point_cam.normalize();
+        let along = Vector3::new(sign * normal.x, sign * normal.y, 0.0);
+        let lateral = along - ray * along.dot(&ray);
+        let Some(u) = lateral.try_normalize(1e-12) else {
+            return unknown;
+        };
+        let cos_alpha = face_normal.dot(&u).clamp(0.0, 1.0);
+        let sin_alpha = (1.0 - cos_alpha * cos_alpha).sqrt();
+        return EdgeGeometry {
+            kind: EdgeKind::Contour,
+            rounding_cam: u * (cos_alpha + sin_alpha - 1.0).max(0.0),
+            outward_cam: u,
+        };
+    }
+    let (Some((_, point_a, normal_a)), Some((_, point_b, normal_b))) = (ahead, behind) else {
+        return unknown;
+    };
+    let Some(bisector) = (normal_a + normal_b).try_normalize(1e-9) else {
+        return unknown;
+    };
+    let cos_phi = normal_a.dot(&normal_b).clamp(-1.0, 1.0);
+    let factor = (2.0 / (1.0 + cos_phi)).sqrt() - 1.0;
+    // Convex: each side lies behind the other side's face plane.
+    let convex = (point_a - point_b).dot(&(normal_b - normal_a)) < 0.0;
+    let (kind, outward) = if convex {
+        (EdgeKind::ConvexCrease, bisector)
+    } else {
+        (EdgeKind::ConcaveCrease, -bisector)
+    };
+    EdgeGeometry {
+        kind,
+        rounding_cam: outward * factor,
+        outward_cam: outward,
     }
 }
 
@@ -530,6 +724,9 @@ pub struct LevelSummary {
     pub matched: usize,
     /// Robust scale of the distances at the last step, px.
     pub scale_px: f64,
+    /// The model's edge rounding radius after the level, m (0 unless estimated).
+    #[serde(default)]
+    pub rounding_m: f64,
 }
 
 /// What the alignment may change.
@@ -544,8 +741,12 @@ pub enum AlignedParameters {
 }
 
 /// One level of alignment from `camera` at `cam_from_world`: `iterations` rounds of search in
-/// `query` (already blurred for the level) and a robust Gauss–Newton step. Returns the new camera
-/// and pose and what happened; they are unchanged when too few samples match.
+/// `query` (already blurred for the level) and a robust Gauss–Newton step. With
+/// `config.estimate_rounding` the model's edge rounding radius `rounding_m` (each sample's point
+/// is [`EdgeSample::sharp_point_m`]) is estimated with the pose, else it is used as it is.
+/// Returns the new camera and pose and what happened; they are unchanged when too few samples
+/// match.
+#[allow(clippy::too_many_arguments)]
 pub fn align_level(
     samples: &[EdgeSample],
     query: &ImageView<'_, f32>,
@@ -554,6 +755,7 @@ pub fn align_level(
     parameters: AlignedParameters,
     radius_px: f64,
     config: &EdgeAlignConfig,
+    rounding_m: &mut f64,
 ) -> (Camera, Rigid3, LevelSummary) {
     let mut pose = *cam_from_world;
     let mut camera = *camera;
@@ -561,12 +763,17 @@ pub fn align_level(
         search_radius_px: radius_px,
         ..LevelSummary::default()
     };
-    // (point in the camera frame, its projection px, search direction, offset to the ridge px).
+    // (point in the camera frame, its projection px, search direction, offset to the ridge px,
+    // rounding direction in the camera frame).
     let mut matches: Vec<EdgeMatch> = Vec::with_capacity(samples.len());
     for _ in 0..config.iterations_per_level {
         matches.clear();
         for sample in samples {
-            let point_cam = pose.transform_point(&sample.world_m);
+            if !config.aligned_kinds.includes(sample.kind) {
+                continue;
+            }
+            let point_cam =
+                pose.transform_point(&sample.sharp_point_m(*rounding_m, config.rounding_kinds));
             let Some(projected) = camera.project(&point_cam) else {
                 continue;
             };
@@ -577,7 +784,8 @@ pub fn align_level(
                 radius_px,
                 config.min_query_ridge,
             ) {
-                matches.push((point_cam, projected, sample.normal, offset));
+                let rounding_cam = pose.rotation * sample.rounding_on(config.rounding_kinds);
+                matches.push((point_cam, projected, sample.normal, offset, rounding_cam));
             }
         }
         summary.matched = matches.len();
@@ -592,26 +800,31 @@ pub fn align_level(
         summary.scale_px = scale_px;
         let tukey_c = 4.685 * scale_px;
         let k = camera.intrinsics;
-        let mut normal_matrix = Matrix7::zeros();
-        let mut gradient = Vector7::zeros();
-        for (point_cam, projected, normal, offset) in &matches {
+        let mut normal_matrix = Matrix8::zeros();
+        let mut gradient = Vector8::zeros();
+        for (point_cam, projected, normal, offset, rounding_cam) in &matches {
             let ratio = offset / tukey_c;
             if ratio.abs() >= 1.0 {
                 continue;
             }
             let weight = (1.0 - ratio * ratio).powi(2);
             let (row_u, row_v) = pose_jacobian_rows(&k, point_cam);
-            let mut g = Vector7::zeros();
+            let mut g = Vector8::zeros();
             g.fixed_rows_mut::<6>(0)
                 .copy_from(&(row_u * normal.x + row_v * normal.y));
             if parameters == AlignedParameters::PoseAndFocal {
                 // u = fx·(1 + s)·x + skew·y + cx: du/ds = u − cx − skew·y ≈ u − cx.
                 g[6] = (projected.x - k.cx_px) * normal.x + (projected.y - k.cy_px) * normal.y;
             }
+            if config.estimate_rounding {
+                // The point moves with ρ along the rounding direction: the translation's rows.
+                g[7] = (row_u.fixed_rows::<3>(3).dot(rounding_cam)) * normal.x
+                    + (row_v.fixed_rows::<3>(3).dot(rounding_cam)) * normal.y;
+            }
             normal_matrix += g * g.transpose() * weight;
             gradient += g * (weight * offset);
         }
-        for i in 0..7 {
+        for i in 0..8 {
             normal_matrix[(i, i)] = normal_matrix[(i, i)] * (1.0 + 1e-3) + 1e-9;
         }
         let Some(step) = normal_matrix.cholesky().map(|c| c.solve(&gradient)) else {
@@ -626,14 +839,19 @@ pub fn align_level(
             camera.intrinsics.fx_px *= scale;
             camera.intrinsics.fy_px *= scale;
         }
+        if config.estimate_rounding {
+            // A rounding radius is not negative (smoothing only rounds).
+            *rounding_m = (*rounding_m + step[7]).max(0.0);
+        }
         summary.steps += 1;
     }
+    summary.rounding_m = *rounding_m;
     (camera, pose, summary)
 }
 
-type EdgeMatch = (Vector3<f64>, Vector2<f64>, Vector2<f64>, f64);
-type Matrix7 = nalgebra::SMatrix<f64, 7, 7>;
-type Vector7 = nalgebra::SVector<f64, 7>;
+type EdgeMatch = (Vector3<f64>, Vector2<f64>, Vector2<f64>, f64, Vector3<f64>);
+type Matrix8 = nalgebra::SMatrix<f64, 8, 8>;
+type Vector8 = nalgebra::SVector<f64, 8>;
 
 /// `d(u)/dξ` and `d(v)/dξ` of a pinhole projection of `point_cam` for the left perturbation
 /// `ξ = (ω, δt)`: `point_cam' = exp([ω]×) point_cam + δt`.

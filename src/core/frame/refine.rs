@@ -8,8 +8,8 @@ use serde::{Deserialize, Serialize};
 use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::edge_align::{
-    align_level, blurred_query, edge_evidence, model_edge_samples, support_peak, AlignedParameters,
-    EdgeEvidence, EdgeSample, LevelSummary, SupportPeak,
+    align_level, blurred_query, edge_evidence, model_edge_samples, sharpened_samples, support_peak,
+    AlignedParameters, EdgeEvidence, EdgeSample, LevelSummary, SupportPeak,
 };
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
@@ -27,6 +27,10 @@ pub struct PoseRefinement {
     /// intrinsics are unknown).
     pub aligned_cam_from_world: Rigid3,
     pub aligned_camera: Camera,
+    /// The model's edge rounding radius estimated with the pose, m (0 unless
+    /// `edge_align.estimate_rounding`); both evidences are measured with it undone.
+    #[serde(default)]
+    pub rounding_m: f64,
     /// Evidence of the verified pose.
     pub verified: EdgeEvidence,
     /// Evidence of the aligned pose.
@@ -46,6 +50,8 @@ pub struct RefineWorkspace {
     samples: Vec<EdgeSample>,
     /// The samples at the start pose, kept for its support peak when the alignment is not kept.
     start_samples: Vec<EdgeSample>,
+    /// Samples with the estimated rounding undone.
+    sharpened: Vec<EdgeSample>,
     blurred: Image<f32>,
 }
 
@@ -110,18 +116,12 @@ pub fn refine_pose(
         view,
         samples,
         start_samples,
+        sharpened,
         blurred,
     } = workspace;
     let mut sample_at = |camera: &Camera, pose: &Rigid3, samples: &mut Vec<EdgeSample>| {
         render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
-        model_edge_samples(
-            view.asg.view(),
-            view.render.depth_m().view(),
-            camera,
-            pose,
-            align,
-            samples,
-        );
+        model_edge_samples(view.asg.view(), &view.render, camera, pose, align, samples);
     };
     sample_at(camera, start, samples);
     let verified = edge_evidence(samples, &query, camera, start, align);
@@ -136,6 +136,7 @@ pub fn refine_pose(
     let mut pose = *start;
     let mut aligned_camera = *camera;
     let mut levels = Vec::new();
+    let mut rounding_m = 0.0;
     for (level, radius_px) in align.level_radii_px().into_iter().enumerate() {
         if level > 0 {
             sample_at(&aligned_camera, &pose, samples);
@@ -149,11 +150,22 @@ pub fn refine_pose(
             parameters,
             radius_px,
             align,
+            &mut rounding_m,
         );
         (aligned_camera, pose) = (next_camera, next_pose);
         levels.push(summary);
     }
     sample_at(&aligned_camera, &pose, samples);
+    // Both poses measured the same way: with the estimated rounding undone.
+    let verified = if rounding_m > 0.0 {
+        sharpened_samples(start_samples, rounding_m, align.rounding_kinds, sharpened);
+        std::mem::swap(start_samples, sharpened);
+        edge_evidence(start_samples, &query, camera, start, align)
+    } else {
+        verified
+    };
+    sharpened_samples(samples, rounding_m, align.rounding_kinds, sharpened);
+    std::mem::swap(samples, sharpened);
     let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
     let kept = aligned.support_fraction() > verified.support_fraction();
     let peak = if kept {
@@ -166,6 +178,7 @@ pub fn refine_pose(
         verified_cam_from_world: *start,
         aligned_cam_from_world: pose,
         aligned_camera,
+        rounding_m,
         verified,
         aligned,
         kept,
@@ -239,6 +252,107 @@ mod tests {
         .unwrap();
         let stays_px = delta(&from_truth.aligned_cam_from_world);
         assert!(stays_px < 0.2, "{stays_px}");
+    }
+
+    /// The model's edges are told apart (contours and convex creases on a house seen from
+    /// outside), and the rounding geometry points where a sharp edge would lie: a right-angled
+    /// crease's sharp edge is √2 − 1 of the rounding radius from mid-arc, a contour's at most that.
+    #[test]
+    fn edge_samples_know_their_kind_and_rounding_direction() {
+        use crate::core::edge_align::EdgeKind;
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let mut view = CoarseView::default();
+        render_coarse_view(
+            &mesh,
+            &camera,
+            0,
+            &truth,
+            &config,
+            &mut Rasterizer::new(),
+            &mut view,
+        );
+        let mut samples = Vec::new();
+        model_edge_samples(
+            view.asg.view(),
+            &view.render,
+            &camera,
+            &truth,
+            &config.edge_align,
+            &mut samples,
+        );
+        let count = |kind: EdgeKind| samples.iter().filter(|s| s.kind == kind).count();
+        let (contours, convex) = (count(EdgeKind::Contour), count(EdgeKind::ConvexCrease));
+        println!(
+            "{} samples: {contours} contour, {convex} convex, {} concave",
+            samples.len(),
+            count(EdgeKind::ConcaveCrease)
+        );
+        assert!(contours >= 20 && convex >= 20, "{contours} {convex}");
+        let sqrt2_minus_1 = std::f64::consts::SQRT_2 - 1.0;
+        for sample in &samples {
+            let factor = sample.rounding.norm();
+            // A contour's factor assumes a right angle; a crease's grows with its angle
+            // (1 at 120°, e.g. a steep roof's ridge).
+            let most = if sample.kind == EdgeKind::Contour {
+                sqrt2_minus_1 + 1e-9
+            } else {
+                2.0
+            };
+            assert!(factor <= most, "{sample:?}");
+            if factor > 1e-9 {
+                assert!(sample.rounding.dot(&sample.outward) > 0.0, "{sample:?}");
+            }
+        }
+        // Many convex creases of the house are right-angled (wall corners, window reveals):
+        // factor √2 − 1.
+        let convex_factors: Vec<f64> = samples
+            .iter()
+            .filter(|s| s.kind == EdgeKind::ConvexCrease)
+            .map(|s| s.rounding.norm())
+            .collect();
+        let right_angled = convex_factors
+            .iter()
+            .filter(|f| (**f - sqrt2_minus_1).abs() < 0.05)
+            .count() as f64
+            / convex_factors.len() as f64;
+        println!("right-angled convex creases: {:.0} %", 100.0 * right_angled);
+        assert!(right_angled >= 0.2, "{right_angled}");
+    }
+
+    /// With the rounding estimated on a query whose edges are the model's own, there is no
+    /// rounding to find: the truth stays and the estimate stays near zero.
+    #[test]
+    fn the_rounding_estimate_stays_near_zero_on_the_models_own_edges() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let mut config = RegistrationConfig::default();
+        config.edge_align.estimate_rounding = true;
+        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let refinement = refine_pose(
+            &mesh,
+            &camera,
+            query.view(),
+            &truth,
+            AlignedParameters::Pose,
+            &config,
+            &mut RefineWorkspace::default(),
+        )
+        .unwrap();
+        let stays_px = mutual_reprojection_error_px(
+            &mesh,
+            &camera,
+            &refinement.aligned_cam_from_world,
+            &camera,
+            &truth,
+            &mut ReprojectionWorkspace::new(),
+        )
+        .unwrap();
+        println!(
+            "rounding {:.3} m, δ {stays_px:.3} px",
+            refinement.rounding_m
+        );
+        assert!(refinement.rounding_m < 0.05, "{}", refinement.rounding_m);
+        assert!(stays_px < 0.3, "{stays_px}");
     }
 
     /// Unknown intrinsics: a focal length 3 % off (as a DLT may leave it) is aligned with the pose.

@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 use super::{refine_pose, render_coarse_view, CoarseView, RefineWorkspace, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::edge_align::{
-    align_level, blurred_query, edge_evidence, model_edge_samples, AlignedParameters,
+    align_level, blurred_query, edge_evidence, model_edge_samples, AlignedKinds, AlignedParameters,
     EdgeAlignConfig, EdgeSample, UNBOUNDED_IMAGE_UNCERTAINTY_PX,
 };
 use crate::core::image::{Image, ImageView};
@@ -113,7 +113,7 @@ pub fn search_pose(
         render_coarse_view(mesh, camera, 0, &rendered, config, rasterizer, view);
         model_edge_samples(
             view.asg.view(),
-            view.render.depth_m().view(),
+            &view.render,
             camera,
             &rendered,
             &sampling,
@@ -163,7 +163,7 @@ pub fn search_pose(
             initial_search_radius_px: search
                 .refine_initial_radius_px
                 .max(config.edge_align.final_search_radius_px),
-            ..config.edge_align
+            ..search_alignment(&config.edge_align)
         },
         ..config.clone()
     };
@@ -326,7 +326,7 @@ fn screen_candidates(
             .pose_search
             .refine_initial_radius_px
             .max(config.edge_align.final_search_radius_px),
-        ..config.edge_align
+        ..search_alignment(&config.edge_align)
     };
     let radii = align.level_radii_px();
     let blurred: Vec<Image<f32>> = radii
@@ -354,6 +354,7 @@ fn screen_candidates(
                     AlignedParameters::Pose,
                     *radius_px,
                     &align,
+                    &mut 0.0,
                 );
                 pose = next;
             }
@@ -387,7 +388,7 @@ pub fn grid_score_at(
     let mut edge_samples = Vec::new();
     model_edge_samples(
         view.asg.view(),
-        view.render.depth_m().view(),
+        &view.render,
         camera,
         pose,
         &sampling,
@@ -395,6 +396,17 @@ pub fn grid_score_at(
     );
     let samples = search_samples(&edge_samples, camera, pose);
     score_rotation(&samples, map, camera, &nalgebra::Matrix3::identity())
+}
+
+/// The final refinement's edge alignment as the search uses it: the pose alone, on every edge
+/// sample (the search picks a basin; the refinement's precision options are the final step's).
+fn search_alignment(align: &EdgeAlignConfig) -> EdgeAlignConfig {
+    EdgeAlignConfig {
+        estimate_rounding: false,
+        rounding_kinds: AlignedKinds::All,
+        aligned_kinds: AlignedKinds::All,
+        ..*align
+    }
 }
 
 #[cfg(test)]
