@@ -130,7 +130,9 @@ pub struct ChangeConfig {
     /// at a pixel this close is explained by the model's own foreground seen a few pixels off,
     /// px: MVS spreads foreground depth half a matching window across occlusion edges (edge
     /// fattening), which makes the photo nearer than the model there, never farther, so
-    /// `removed` pixels are not touched. 0 compares pixel by pixel.
+    /// `removed` pixels are not touched. 0 compares pixel by pixel. 5 px: half a 7-px MVS
+    /// window plus 2 px of edge noise, or the plane-sweep's 5-px window at half resolution
+    /// (docs/measurements.md: 3 px left roof-edge bands on the block).
     pub edge_tolerance_px: usize,
 }
 
@@ -146,7 +148,7 @@ impl Default for ChangeConfig {
             min_area_m2: 4.0,
             min_pixels: 25,
             min_extent_m: 2.0,
-            edge_tolerance_px: 3,
+            edge_tolerance_px: 5,
         }
     }
 }
