@@ -103,6 +103,10 @@ pub struct ChangesArgs {
     /// The model's deviation from the world, metres (σ_model).
     #[arg(long, default_value_t = ChangeConfig::default().model_sigma_m)]
     pub model_sigma_m: f32,
+    /// A changed pixel whose depth agrees with the model's within this many pixels is
+    /// unchanged (MVS edge fattening, a pose a pixel off); 0: pixel by pixel.
+    #[arg(long, default_value_t = ChangeConfig::default().edge_tolerance_px)]
+    pub edge_tolerance_px: usize,
     /// Footprints closer than this are one object, metres.
     #[arg(long, default_value_t = FusionConfig::default().merge_distance_m)]
     pub merge_distance_m: f64,
@@ -150,6 +154,7 @@ impl ChangesArgs {
             threshold_sigmas: change.threshold_sigmas,
             relative_sigma: change.relative_sigma,
             model_sigma_m: change.model_sigma_m,
+            edge_tolerance_px: change.edge_tolerance_px,
             merge_distance_m: fusion.merge_distance_m,
             min_frames: fusion.min_frames,
             limit: None,
@@ -184,6 +189,7 @@ impl ChangesArgs {
             threshold_sigmas: self.threshold_sigmas,
             relative_sigma: self.relative_sigma,
             model_sigma_m: self.model_sigma_m,
+            edge_tolerance_px: self.edge_tolerance_px,
             ..ChangeConfig::default()
         }
     }

@@ -95,6 +95,9 @@ pub struct EvalArgs {
     /// stereo from each frame's registered neighbours (also measured against depth/).
     #[arg(long, value_enum, default_value_t = DepthSourceArg::Given)]
     pub depth_source: DepthSourceArg,
+    /// With --changes: `asgreg changes --edge-tolerance-px` (0: pixel by pixel).
+    #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().edge_tolerance_px)]
+    pub change_edge_tolerance_px: usize,
 }
 
 /// Where `eval --changes` takes the photos' depth from.

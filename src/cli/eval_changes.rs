@@ -5,6 +5,10 @@
 //! IoU per kind) and its fused objects with `changes.json` (object recall over the true objects
 //! of at least 3 × 3 m seen by at least 2 frames, precision over the confirmed detections; every
 //! unmatched detection is listed: clutter that is not in the model shows there, not hidden).
+//! The truth is every listed difference: the placed changes and the building parts the degraded
+//! model omits by design (`model_omissions`), each shown in its own rows; a detection is true
+//! when it matches one of them (kind, footprint within 1 m, centroid within 1 m of its footprint,
+//! footprint at most 3 × its area + 10 m²: a whole roof is not a find of the small structure on it).
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -12,7 +16,7 @@ use std::path::Path;
 
 use anyhow::Context;
 use asgreg::core::change::fusion::FusedChange;
-use asgreg::core::change::polygon::convex_distance;
+use asgreg::core::change::polygon::{convex_distance, width_and_length};
 use asgreg::core::change::{ChangeClass, ChangeKind};
 use asgreg::synth::changes::{ChangesFile, TrueChange, MASK_DIR, OBJECTS_FILE};
 use serde::Serialize;
@@ -30,6 +34,10 @@ const SEEN_MIN_PIXELS: usize = 25;
 const SEEN_MIN_FRAMES: usize = 2;
 /// Least footprint side of a counted true object, m (3 × 3 m).
 const MIN_SIDE_M: f64 = 3.0;
+/// A matching detection's footprint is at most this many times the true footprint's area…
+const MATCH_AREA_RATIO: f64 = 3.0;
+/// …plus this, m² (footprints of small objects widen by a metre of depth noise on each side).
+const MATCH_AREA_MARGIN_M2: f64 = 10.0;
 
 #[derive(Clone, Copy, Debug, Default, Serialize)]
 struct PixelScores {
@@ -51,19 +59,18 @@ impl PixelScores {
     }
 }
 
+/// The footprint's least width (a rectangle's shorter side).
 fn min_side_m(object: &TrueChange) -> f64 {
-    let n = object.footprint_m.len();
-    (0..n)
-        .map(|i| {
-            let (a, b) = (object.footprint_m[i], object.footprint_m[(i + 1) % n]);
-            ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
-        })
-        .fold(f64::INFINITY, f64::min)
+    width_and_length(&object.footprint_m).0
 }
 
 fn matches(detection: &FusedChange, truth: &TrueChange) -> bool {
+    let centroid = [[detection.centroid_m[0], detection.centroid_m[1]]];
     detection.kind == truth.kind
         && convex_distance(&detection.footprint_m, &truth.footprint_m) <= MATCH_DISTANCE_M
+        && convex_distance(&centroid, &truth.footprint_m) <= MATCH_DISTANCE_M
+        && detection.footprint_area_m2
+            <= MATCH_AREA_RATIO * truth.footprint_area_m2 + MATCH_AREA_MARGIN_M2
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
@@ -92,6 +99,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             .join(if stereo { "changes_stereo" } else { "changes" }),
     );
     detect_args.limit = args.limit;
+    detect_args.edge_tolerance_px = args.change_edge_tolerance_px;
     let report = detect_all(&detect_args)?;
 
     // Pixels.
@@ -164,7 +172,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         ));
     }
 
-    // Objects.
+    // Objects: the placed changes, then the parts the model omits (each true object takes the
+    // nearest unused confirmed detection that matches it; a detection that merged two objects
+    // finds one of them).
     let seen_frames = |object: &TrueChange| {
         object
             .pixels_per_image
@@ -172,34 +182,43 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             .filter(|(name, &count)| count >= SEEN_MIN_PIXELS && frames_with_result.contains(name))
             .count()
     };
-    let counted: Vec<&TrueChange> = truth
-        .objects
-        .iter()
-        .filter(|o| min_side_m(o) >= MIN_SIDE_M - 1e-6 && seen_frames(o) >= SEEN_MIN_FRAMES)
-        .collect();
+    let is_counted =
+        |o: &TrueChange| min_side_m(o) >= MIN_SIDE_M - 1e-6 && seen_frames(o) >= SEEN_MIN_FRAMES;
     let confirmed: Vec<&FusedChange> = report.objects.iter().filter(|o| o.confirmed).collect();
-    // One-to-one: each true object takes the nearest unused confirmed detection that matches
-    // it (a detection that merged two objects finds one of them).
-    let mut used = vec![false; confirmed.len()];
-    let mut found_ids = Vec::new();
-    for object in &truth.objects {
+    let mut used: Vec<Option<u32>> = vec![None; confirmed.len()];
+    let mut found_by: BTreeMap<u32, usize> = BTreeMap::new();
+    for object in truth.objects.iter().chain(&truth.model_omissions) {
         let best = confirmed
             .iter()
             .enumerate()
-            .filter(|(k, d)| !used[*k] && matches(d, object))
+            .filter(|(k, d)| used[*k].is_none() && matches(d, object))
             .min_by(|a, b| {
                 convex_distance(&a.1.footprint_m, &object.footprint_m)
                     .total_cmp(&convex_distance(&b.1.footprint_m, &object.footprint_m))
             })
             .map(|(k, _)| k);
         if let Some(k) = best {
-            used[k] = true;
-            found_ids.push(object.id);
+            used[k] = Some(object.id);
+            found_by.insert(object.id, k);
         }
     }
-    let found = counted.iter().filter(|t| found_ids.contains(&t.id)).count();
-    let true_detections = used.iter().filter(|u| **u).count();
-    let recall = found as f64 / counted.len().max(1) as f64;
+    let score = |list: &[TrueChange]| -> (usize, usize, usize) {
+        let counted = list.iter().filter(|o| is_counted(o)).count();
+        let found = list
+            .iter()
+            .filter(|o| is_counted(o) && found_by.contains_key(&o.id))
+            .count();
+        let detections = list.iter().filter(|o| found_by.contains_key(&o.id)).count();
+        (counted, found, detections)
+    };
+    let (counted_changes, found_changes, on_changes) = score(&truth.objects);
+    let (counted_omissions, found_omissions, on_omissions) = score(&truth.model_omissions);
+    let (counted, found) = (
+        counted_changes + counted_omissions,
+        found_changes + found_omissions,
+    );
+    let true_detections = on_changes + on_omissions;
+    let recall = found as f64 / counted.max(1) as f64;
     let precision = true_detections as f64 / confirmed.len().max(1) as f64;
 
     let mut text = String::new();
@@ -241,51 +260,58 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     }
     writeln!(
         text,
-        "\nobjects: recall {found}/{} = {:.1} % (true objects ≥ 3 × 3 m seen by ≥ {SEEN_MIN_FRAMES} frames), precision {true_detections}/{} = {:.1} % (confirmed detections), {} unconfirmed detections\n",
-        counted.len(),
+        "\nobjects (truth: the placed changes and the parts the model omits by design): recall {found}/{counted} = {:.1} % (true objects ≥ 3 × 3 m seen by ≥ {SEEN_MIN_FRAMES} frames; changes {found_changes}/{counted_changes}, model omissions {found_omissions}/{counted_omissions}), precision {true_detections}/{} = {:.1} % (confirmed detections; {on_changes} on changes, {on_omissions} on model omissions), {} unconfirmed detections\n",
         100.0 * recall,
         confirmed.len(),
         100.0 * precision,
         report.objects.len() - confirmed.len()
     )?;
-    writeln!(
-        text,
-        "| true object | kind | area m² | height m | frames seen | found |"
-    )?;
-    writeln!(text, "|---|---|---|---|---|---|")?;
-    for object in &truth.objects {
+    for (title, list) in [
+        ("true object (placed change)", &truth.objects),
+        (
+            "model omission (a part the degraded model leaves out)",
+            &truth.model_omissions,
+        ),
+    ] {
         writeln!(
             text,
-            "| {} {:?} | {} | {:.1} | {:.1} | {} | {} |",
-            object.id,
-            object.what,
-            object.kind.name(),
-            object.footprint_area_m2,
-            object.height_m,
-            seen_frames(object),
-            if found_ids.contains(&object.id) {
-                "yes"
-            } else {
-                "no"
-            }
+            "| {title} | kind | footprint m | area m² | height m | frames seen | counted | found (detection m²) |"
         )?;
+        writeln!(text, "|---|---|---|---|---|---|---|---|")?;
+        for object in list {
+            let (width, length) = width_and_length(&object.footprint_m);
+            writeln!(
+                text,
+                "| {} {:?} | {} | {:.1} × {:.1} | {:.1} | {:.1} | {} | {} | {} |",
+                object.id,
+                object.what,
+                object.kind.name(),
+                width,
+                length,
+                object.footprint_area_m2,
+                object.height_m,
+                seen_frames(object),
+                if is_counted(object) { "yes" } else { "no" },
+                match found_by.get(&object.id) {
+                    Some(&k) => format!("yes ({:.1})", confirmed[k].footprint_area_m2),
+                    None => "no".to_owned(),
+                }
+            )?;
+        }
+        writeln!(text)?;
     }
     writeln!(
         text,
-        "\nconfirmed detections matched to no true object (clutter not in the model, model errors, or a second object merged into one detection):\n"
+        "confirmed detections matched to no true object (clutter not in the model, model errors, or a second object merged into one detection):\n"
     )?;
-    let on_omission = |detection: &FusedChange| {
-        detection.kind == ChangeKind::Added
-            && truth.model_omissions.iter().any(|o| {
-                convex_distance(&detection.footprint_m, &o.footprint_m) <= MATCH_DISTANCE_M
-                    && detection.centroid_m[2] >= o.z_min_m - 1.0
-                    && detection.centroid_m[2] <= o.z_max_m + 1.0
-            })
-    };
-    for (_, detection) in confirmed.iter().enumerate().filter(|(k, _)| !used[*k]) {
+    for (_, detection) in confirmed
+        .iter()
+        .enumerate()
+        .filter(|(k, _)| used[*k].is_none())
+    {
         writeln!(
             text,
-            "- {} {:.1} m² footprint, {:.1} m high at ({:.1}, {:.1}, {:.1}), {} frames{}",
+            "- {} {:.1} m² footprint, {:.1} m high at ({:.1}, {:.1}, {:.1}), {} frames",
             detection.kind.name(),
             detection.footprint_area_m2,
             detection.height_m,
@@ -293,25 +319,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             detection.centroid_m[1],
             detection.centroid_m[2],
             detection.frames.len(),
-            if on_omission(detection) {
-                " (on a building part the model omits by design)"
-            } else {
-                ""
-            }
         )?;
     }
-    let false_on_omissions = confirmed
+    let omission_pixels: usize = truth
+        .model_omissions
         .iter()
-        .enumerate()
-        .filter(|(k, d)| !used[*k] && on_omission(d))
-        .count();
-    let precision_without_omissions =
-        true_detections as f64 / (confirmed.len() - false_on_omissions).max(1) as f64;
+        .flat_map(|o| o.pixels_per_image.iter())
+        .filter(|(name, _)| frames_with_result.contains(name))
+        .map(|(_, count)| count)
+        .sum();
     writeln!(
         text,
-        "\nprecision without the {false_on_omissions} detections on parts the model omits by design: {true_detections}/{} = {:.1} %",
-        confirmed.len() - false_on_omissions,
-        100.0 * precision_without_omissions
+        "\nof the true added pixels, {omission_pixels} are on model omissions"
     )?;
     print!("{text}");
     std::fs::write(args.out.join("changes_eval.md"), &text)
@@ -328,11 +347,12 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             "precision": s.precision(), "recall": s.recall(), "iou": s.iou(), "counts": s,
         }))).collect::<BTreeMap<_, _>>(),
         "objects": {
-            "counted_true": counted.len(), "found": found, "recall": recall,
+            "counted_true": counted, "found": found, "recall": recall,
             "confirmed": confirmed.len(), "true_detections": true_detections, "precision": precision,
             "unconfirmed": report.objects.len() - confirmed.len(),
-            "false_on_model_omissions": false_on_omissions,
-            "precision_without_model_omissions": precision_without_omissions,
+            "changes": {"counted": counted_changes, "found": found_changes, "detections": on_changes},
+            "model_omissions": {"counted": counted_omissions, "found": found_omissions, "detections": on_omissions},
+            "true_pixels_on_model_omissions": omission_pixels,
         },
     });
     std::fs::write(

@@ -445,9 +445,16 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         Some(worlds) => {
             let dir = out_dir.join(changes::MASK_DIR);
             std::fs::create_dir_all(&dir).map_err(io_error(&dir))?;
+            let omitted = changes::omitted_parts(&worlds.photo);
+            let first_omission_id = scene.tags.iter().map(|t| t.object_id).max().unwrap_or(0) + 1;
+            let file = changes::ChangesFile::new(&placed_changes, &omitted, first_omission_id);
             Some((
-                changes::TruthRenderer::new(worlds, &placed_changes)?,
-                changes::ChangesFile::new(&scene, &placed_changes),
+                changes::TruthRenderer::new(
+                    worlds,
+                    &placed_changes,
+                    (first_omission_id..).zip(omitted).collect(),
+                )?,
+                file,
             ))
         }
         None => None,
@@ -507,7 +514,7 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
                 .join(changes::MASK_DIR)
                 .join(Path::new(&view.name).with_extension("png"));
             write_grey_png(&mask_path, &mask)?;
-            for object in &mut file.objects {
+            for object in file.objects.iter_mut().chain(&mut file.model_omissions) {
                 if let Some(&pixels) = counts.get(&object.id) {
                     object.pixels_per_image.insert(view.name.clone(), pixels);
                 }

@@ -48,7 +48,8 @@ pub struct FusedChange {
     pub region_count: usize,
 }
 
-fn find(parent: &mut [usize], mut i: usize) -> usize {
+/// Union-find root of `i` (with path halving).
+pub(crate) fn find(parent: &mut [usize], mut i: usize) -> usize {
     while parent[i] != i {
         parent[i] = parent[parent[i]];
         i = parent[i];

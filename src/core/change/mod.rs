@@ -126,6 +126,14 @@ pub struct ChangeConfig {
     /// footprint width, footprint length), metres: a strip along a roof edge (a parapet, an
     /// eave the model rounded off) is long but neither high nor wide.
     pub min_extent_m: f64,
+    /// An `added` pixel whose photo depth agrees (within its threshold) with the model's depth
+    /// at a pixel this close is explained by the model's own foreground seen a few pixels off,
+    /// px: MVS spreads foreground depth half a matching window across occlusion edges (edge
+    /// fattening), which makes the photo nearer than the model there, never farther, so
+    /// `removed` pixels are not touched. 0 compares pixel by pixel. 5 px: half a 7-px MVS
+    /// window plus 2 px of edge noise, or the plane-sweep's 5-px window at half resolution
+    /// (docs/measurements.md: 3 px left roof-edge bands on the block).
+    pub edge_tolerance_px: usize,
 }
 
 impl Default for ChangeConfig {
@@ -140,6 +148,7 @@ impl Default for ChangeConfig {
             min_area_m2: 4.0,
             min_pixels: 25,
             min_extent_m: 2.0,
+            edge_tolerance_px: 5,
         }
     }
 }
@@ -177,6 +186,7 @@ impl ChangeConfig {
             || self.min_area_m2 < 0.0
             || self.min_extent_m.is_nan()
             || self.opening_radius_px > 10
+            || self.edge_tolerance_px > 10
         {
             return bad(format!(
                 "min_area_m2 {} must be ≥ 0 and opening_radius_px {} ≤ 10",
@@ -292,6 +302,9 @@ pub fn classify_pixels(
     {
         *class = pixel_class(dp, dm, config);
     }
+    if config.edge_tolerance_px > 0 {
+        explain_by_nearby_model(classes, photo_depth_m, model_depth_m, config);
+    }
     if config.opening_radius_px > 0 {
         for kind in [ChangeClass::Added, ChangeClass::Removed] {
             open_class(classes, kind, config.opening_radius_px, scratch);
@@ -312,6 +325,37 @@ fn pixel_class(photo_m: f32, model_m: f32, config: &ChangeConfig) -> ChangeClass
         ChangeClass::Removed
     } else {
         ChangeClass::Unchanged
+    }
+}
+
+/// `added` pixels whose photo depth agrees with the model's depth within
+/// `config.edge_tolerance_px` become `unchanged` (see [`ChangeConfig::edge_tolerance_px`]).
+fn explain_by_nearby_model(
+    classes: &mut Image<ChangeClass>,
+    photo_depth_m: ImageView<'_, f32>,
+    model_depth_m: ImageView<'_, f32>,
+    config: &ChangeConfig,
+) {
+    let (w, h) = classes.size();
+    let r = config.edge_tolerance_px;
+    let (photo, model) = (photo_depth_m.data(), model_depth_m.data());
+    for row in 0..h {
+        for col in 0..w {
+            let index = row * w + col;
+            if classes.data()[index] != ChangeClass::Added {
+                continue;
+            }
+            let dp = photo[index];
+            let explained = (row.saturating_sub(r)..(row + r + 1).min(h)).any(|rr| {
+                (col.saturating_sub(r)..(col + r + 1).min(w)).any(|cc| {
+                    let dm = model[rr * w + cc];
+                    dm.is_finite() && dm > 0.0 && (dp - dm).abs() <= config.threshold_m(dp.min(dm))
+                })
+            });
+            if explained {
+                classes.data_mut()[index] = ChangeClass::Unchanged;
+            }
+        }
     }
 }
 
@@ -853,6 +897,57 @@ pub(crate) mod tests {
             ),
             Err(ChangeError::SizeMismatch { .. })
         ));
+    }
+
+    #[test]
+    fn foreground_depth_spread_over_an_occlusion_edge_is_explained_but_a_new_object_is_not() {
+        // Model: a building (10 m) on the left half, the ground (20 m) on the right. The photo's
+        // depth spreads the building 3 px over the ground (MVS edge fattening), shows a new
+        // object (15 m) in front of the ground far from the edge, and sees through the model at
+        // a few pixels left of the edge (removed: never explained away).
+        let (w, h) = (80usize, 40usize);
+        let model = Image::from_fn(w, h, |col, _| if col < 40 { 10.0f32 } else { 20.0 });
+        let photo = Image::from_fn(w, h, |col, row| match col {
+            0..=35 => 10.0f32,
+            36..=39 if row < 20 => 10.0,
+            36..=39 => 20.0,
+            40..=42 => 10.0,
+            55..=70 if (10..30).contains(&row) => 15.0,
+            _ => 20.0,
+        });
+        let classify = |edge_tolerance_px| {
+            let config = ChangeConfig {
+                opening_radius_px: 0,
+                edge_tolerance_px,
+                ..ChangeConfig::default()
+            };
+            let mut classes = Image::from_fn(1, 1, |_, _| ChangeClass::Unknown);
+            classify_pixels(
+                photo.view(),
+                model.view(),
+                &config,
+                &mut classes,
+                &mut Vec::new(),
+            )
+            .expect("same sizes");
+            classes
+        };
+        let count = |classes: &Image<ChangeClass>, class, cols: std::ops::Range<usize>| {
+            (0..h)
+                .flat_map(|row| cols.clone().map(move |col| (col, row)))
+                .filter(|&(col, row)| classes.data()[row * w + col] == class)
+                .count()
+        };
+        let strict = classify(0);
+        assert_eq!(count(&strict, ChangeClass::Added, 40..43), 3 * h);
+        let tolerant = classify(3);
+        assert_eq!(count(&tolerant, ChangeClass::Added, 40..43), 0);
+        for classes in [&strict, &tolerant] {
+            assert_eq!(count(classes, ChangeClass::Added, 55..71), 16 * 20);
+            assert_eq!(count(classes, ChangeClass::Removed, 36..40), 4 * 20);
+        }
+        // Farther than the tolerance from the model's foreground, the spread depth is a change.
+        assert_eq!(count(&classify(2), ChangeClass::Added, 42..43), h);
     }
 
     #[test]

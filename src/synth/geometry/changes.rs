@@ -21,6 +21,9 @@ pub enum ChangeWhat {
     Extension,
     /// A free-standing building in the model that is gone from the photos.
     Demolished,
+    /// A building part in the photos that the degraded model leaves out by design (a rooftop
+    /// structure, a dormer, a porch roof): not placed as a change, but a real difference.
+    ModelOmission,
 }
 
 impl ChangeWhat {

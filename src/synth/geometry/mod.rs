@@ -175,6 +175,42 @@ impl Solid {
         }
     }
 
+    /// The footprint rectangle's corners in world x, y (exact for a rotated solid), and its two
+    /// horizontal sides, metres.
+    pub fn footprint_m(&self) -> ([Vec2; 4], (f32, f32)) {
+        let (frame, x_range, y_range) = match self {
+            Solid::Prism {
+                frame,
+                polygon_yz,
+                half_length_m,
+            } => {
+                let (y_min, y_max) = polygon_yz
+                    .iter()
+                    .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), q| {
+                        (lo.min(q.x), hi.max(q.x))
+                    });
+                (frame, (-half_length_m, *half_length_m), (y_min, y_max))
+            }
+            Solid::HipRoof {
+                frame,
+                half_x_m,
+                half_y_m,
+                ..
+            } => (frame, (-half_x_m, *half_x_m), (-half_y_m, *half_y_m)),
+        };
+        let corners = [
+            (x_range.0, y_range.0),
+            (x_range.1, y_range.0),
+            (x_range.1, y_range.1),
+            (x_range.0, y_range.1),
+        ]
+        .map(|(x, y)| {
+            let w = frame.to_world(Vec3::new(x, y, 0.0));
+            Vec2::new(w.x, w.y)
+        });
+        (corners, (x_range.1 - x_range.0, y_range.1 - y_range.0))
+    }
+
     /// World-axis bounding box `(min, max)`.
     pub fn bounds_m(&self) -> (Vec3, Vec3) {
         let corners: Vec<Vec3> = match self {
