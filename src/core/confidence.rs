@@ -169,7 +169,7 @@ impl ConfidenceConfig {
                 why: format!("{} is not within 0..1", self.accept_above),
             });
         }
-        if !(self.max_image_uncertainty_px > 0.0) {
+        if self.max_image_uncertainty_px.is_nan() || self.max_image_uncertainty_px <= 0.0 {
             return Err(ConfidenceConfigError {
                 field: "max_image_uncertainty_px",
                 why: format!(

@@ -379,7 +379,7 @@ mod tests {
         let mut samples = Vec::new();
         model_edge_samples(
             view.asg.view(),
-            view.render.depth_m().view(),
+            &view.render,
             &camera,
             &truth,
             &config.edge_align,
