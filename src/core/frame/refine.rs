@@ -195,6 +195,35 @@ mod tests {
     use crate::core::frame::tests::{house_and_poses, ideal_query};
     use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
+    /// The model edge samples of a rendering at `pose` (as the refinement takes them).
+    fn edge_samples_at(
+        mesh: &Mesh,
+        camera: &Camera,
+        pose: &Rigid3,
+        config: &RegistrationConfig,
+    ) -> Vec<EdgeSample> {
+        let mut view = CoarseView::default();
+        render_coarse_view(
+            mesh,
+            camera,
+            0,
+            pose,
+            config,
+            &mut Rasterizer::new(),
+            &mut view,
+        );
+        let mut samples = Vec::new();
+        model_edge_samples(
+            view.asg.view(),
+            &view.render,
+            camera,
+            pose,
+            &config.edge_align,
+            &mut samples,
+        );
+        samples
+    }
+
     /// Known pose, ideal query (the model's own ASG at the truth): the alignment must bring a pose
     /// a few pixels off back to the truth, keep it, and leave the truth where it is.
     #[test]
@@ -262,25 +291,7 @@ mod tests {
         use crate::core::edge_align::EdgeKind;
         let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
-        let mut view = CoarseView::default();
-        render_coarse_view(
-            &mesh,
-            &camera,
-            0,
-            &truth,
-            &config,
-            &mut Rasterizer::new(),
-            &mut view,
-        );
-        let mut samples = Vec::new();
-        model_edge_samples(
-            view.asg.view(),
-            &view.render,
-            &camera,
-            &truth,
-            &config.edge_align,
-            &mut samples,
-        );
+        let samples = edge_samples_at(&mesh, &camera, &truth, &config);
         let count = |kind: EdgeKind| samples.iter().filter(|s| s.kind == kind).count();
         let (contours, convex) = (count(EdgeKind::Contour), count(EdgeKind::ConvexCrease));
         println!(
@@ -361,30 +372,11 @@ mod tests {
     /// one small corner of the image) or from parallel edges only leaves the frame free.
     #[test]
     fn supporting_edges_of_a_sliver_or_of_parallel_lines_do_not_fix_the_pose() {
-        use crate::core::edge_align::{image_uncertainty_px, model_edge_samples};
+        use crate::core::edge_align::image_uncertainty_px;
         let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
         let query = ideal_query(&mesh, &camera, &truth, &config);
-        let mut rasterizer = Rasterizer::default();
-        let mut view = CoarseView::default();
-        render_coarse_view(
-            &mesh,
-            &camera,
-            0,
-            &truth,
-            &config,
-            &mut rasterizer,
-            &mut view,
-        );
-        let mut samples = Vec::new();
-        model_edge_samples(
-            view.asg.view(),
-            &view.render,
-            &camera,
-            &truth,
-            &config.edge_align,
-            &mut samples,
-        );
+        let samples = edge_samples_at(&mesh, &camera, &truth, &config);
         let align = &config.edge_align;
         let uncertainty =
             |s: &[EdgeSample]| image_uncertainty_px(s, &query.view(), &camera, &truth, align);
