@@ -518,6 +518,34 @@ pub fn search_ridge(
     best.map(|(_, offset)| offset)
 }
 
+/// Each sample of `samples` that projects into the image at `cam_from_world`, with its point in
+/// the camera frame and the photo ridge's offset along its normal within
+/// `config.evidence_radius_px` ([`search_ridge`]; `None` when there is none): the one loop of
+/// [`edge_evidence`] and [`image_uncertainty_px`].
+fn for_each_ridge(
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    config: &EdgeAlignConfig,
+    mut visit: impl FnMut(&EdgeSample, &Vector3<f64>, Option<f64>),
+) {
+    for sample in samples {
+        let point_cam = cam_from_world.transform_point(&sample.world_m);
+        let Some(projected) = camera.project(&point_cam) else {
+            continue;
+        };
+        let offset = search_ridge(
+            query,
+            projected,
+            sample.normal,
+            config.evidence_radius_px,
+            config.min_query_ridge,
+        );
+        visit(sample, &point_cam, offset);
+    }
+}
+
 /// The evidence of the pose whose model edge samples are `samples`: searched in `query` (as it is)
 /// within `config.evidence_radius_px`.
 pub fn edge_evidence(
@@ -528,21 +556,18 @@ pub fn edge_evidence(
     config: &EdgeAlignConfig,
 ) -> EdgeEvidence {
     let mut distances: Vec<f64> = Vec::with_capacity(samples.len());
-    for sample in samples {
-        let Some(projected) = camera.project(&cam_from_world.transform_point(&sample.world_m))
-        else {
-            continue;
-        };
-        if let Some(offset) = search_ridge(
-            query,
-            projected,
-            sample.normal,
-            config.evidence_radius_px,
-            config.min_query_ridge,
-        ) {
-            distances.push(offset.abs());
-        }
-    }
+    for_each_ridge(
+        samples,
+        query,
+        camera,
+        cam_from_world,
+        config,
+        |_, _, offset| {
+            if let Some(offset) = offset {
+                distances.push(offset.abs());
+            }
+        },
+    );
     let supported = distances
         .iter()
         .filter(|d| **d <= config.support_px)
@@ -653,28 +678,21 @@ pub fn image_uncertainty_px(
     let intrinsics = &camera.intrinsics;
     let mut information = nalgebra::Matrix6::<f64>::zeros();
     let mut depths_m: Vec<f64> = Vec::with_capacity(samples.len());
-    for sample in samples {
-        let point_cam = cam_from_world.transform_point(&sample.world_m);
-        let Some(projected) = camera.project(&point_cam) else {
-            continue;
-        };
-        depths_m.push(point_cam.z);
-        let Some(offset) = search_ridge(
-            query,
-            projected,
-            sample.normal,
-            config.evidence_radius_px,
-            config.min_query_ridge,
-        ) else {
-            continue;
-        };
-        if offset.abs() > config.support_px {
-            continue;
-        }
-        let (row_u, row_v) = pose_jacobian_rows(intrinsics, &point_cam);
-        let row = row_u * sample.normal.x + row_v * sample.normal.y;
-        information += row * row.transpose();
-    }
+    for_each_ridge(
+        samples,
+        query,
+        camera,
+        cam_from_world,
+        config,
+        |sample, point_cam, offset| {
+            depths_m.push(point_cam.z);
+            if offset.is_some_and(|offset| offset.abs() <= config.support_px) {
+                let (row_u, row_v) = pose_jacobian_rows(intrinsics, point_cam);
+                let row = row_u * sample.normal.x + row_v * sample.normal.y;
+                information += row * row.transpose();
+            }
+        },
+    );
     if depths_m.is_empty() {
         return UNBOUNDED_IMAGE_UNCERTAINTY_PX;
     }
