@@ -183,6 +183,10 @@ pub struct CoarseArgs {
     /// Final refinement: search half-length of its first level, px (levels halve it down to 2).
     #[arg(long, default_value_t = RegistrationConfig::default().edge_align.initial_search_radius_px)]
     pub edge_search_px: f64,
+    /// Final refinement: how many starting poses (the chosen one and other refined poses of its
+    /// agreeing group); the aligned pose with the most edge support wins.
+    #[arg(long, default_value_t = RegistrationConfig::default().edge_align.starts)]
+    pub edge_starts: usize,
     /// Final refinement: do not estimate the model's edge rounding radius with the pose (by
     /// default it is: a smoothed, Poisson-like model rounds its edges, and the photo's edges lie
     /// where the sharp ones would).
@@ -216,6 +220,7 @@ impl Default for CoarseArgs {
             lift_edge_margin_px: defaults.lift_edge_margin_px,
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
+            edge_starts: defaults.edge_align.starts,
             no_edge_rounding: !defaults.edge_align.estimate_rounding,
             edge_kinds: EdgeKindsArg::All,
             edge_rounding_kinds: EdgeKindsArg::All,
@@ -315,6 +320,7 @@ pub fn registration_config(
         edge_align: EdgeAlignConfig {
             enabled: !coarse.no_edge_align,
             initial_search_radius_px: coarse.edge_search_px,
+            starts: coarse.edge_starts,
             estimate_rounding: !coarse.no_edge_rounding,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),

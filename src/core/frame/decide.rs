@@ -75,8 +75,17 @@ fn decide_centre(
         &config.verify,
         &mut ReprojectionWorkspace::new(),
     );
+    let group: Vec<PoseHypothesis> = verdict.component.iter().map(|&i| hypotheses[i]).collect();
     let refinement = match query {
-        Some(query) => refine_verdict(mesh, query, intrinsics, &mut verdict, config, workspace),
+        Some(query) => refine_verdict(
+            mesh,
+            query,
+            intrinsics,
+            &group,
+            &mut verdict,
+            config,
+            workspace,
+        ),
         None => Err("the frame's query is not at hand".to_string()),
     };
     let evidence = FrameEvidence::new(
