@@ -1088,7 +1088,7 @@ mod tests {
     #[test]
     fn level_radii_halve_down_to_the_final_radius() {
         let config = EdgeAlignConfig::default();
-        assert_eq!(config.level_radii_px(), vec![8.0, 4.0, 2.0]);
+        assert_eq!(config.level_radii_px(), vec![16.0, 8.0, 4.0, 2.0]);
         let config = EdgeAlignConfig {
             initial_search_radius_px: 5.0,
             final_search_radius_px: 2.0,
