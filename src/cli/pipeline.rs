@@ -722,6 +722,17 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 _ => collected.frames_per_s(),
             };
             check_complete(&collected)?;
+            // Each run's per-stage table (messages, compute, send and decode time per worker):
+            // where the time went when a run scales worse than its workers.
+            let summary = args.out.join(format!(
+                "bench-{}-{flow}-summary.txt",
+                config.backend.name()
+            ));
+            std::fs::write(
+                &summary,
+                asgreg::runtime::collect::summary(&collected, config.backend.name()),
+            )
+            .with_context(|| format!("{}", summary.display()))?;
             let stages = format!(
                 "{}/{}/{}",
                 config.workers.render, config.workers.pose, config.workers.verify_threads
