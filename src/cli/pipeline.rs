@@ -125,6 +125,38 @@ pub struct BenchArgs {
     /// Backends to compare (all stages as threads of this process).
     #[arg(long, value_delimiter = ',', default_value = "crossbeam")]
     pub backends: Vec<BackendArg>,
+    /// The real loops, ports, dispatchers and transports, but every stage sleeps a measured
+    /// per-job time instead of computing (`stage::simulate`), so that many flow workers fit on
+    /// a few cores; frames are then the scene's photos repeated.
+    #[arg(long)]
+    pub simulate: bool,
+    /// `--simulate`: every simulated time multiplied by this (shorter runs, same ratios).
+    #[arg(long, default_value_t = 1.0)]
+    pub time_scale: f64,
+    /// `--simulate`: render time per coarse view, ms (default: measured, `SimulatedWork`).
+    #[arg(long)]
+    pub render_view_ms: Option<f64>,
+    /// `--simulate`: flow time per job, ms.
+    #[arg(long)]
+    pub flow_job_ms: Option<f64>,
+    /// `--simulate`: pose time per coarse pose, ms.
+    #[arg(long)]
+    pub pose_job_ms: Option<f64>,
+    /// `--simulate`: verify's decision per frame, ms.
+    #[arg(long)]
+    pub verify_frame_ms: Option<f64>,
+    /// Frames per run at least this many times the flow workers (steady state with many workers).
+    #[arg(long, default_value_t = 0)]
+    pub frames_per_flow_worker: usize,
+    /// Render workers (0: enough for the flow workers by the simulated times).
+    #[arg(long, default_value_t = 1)]
+    pub render_workers: u32,
+    /// Pose workers (0: enough for the flow workers by the simulated times).
+    #[arg(long, default_value_t = 1)]
+    pub pose_workers: u32,
+    /// Verify's deciding threads (0: enough for the flow workers by the simulated times).
+    #[arg(long, default_value_t = 1)]
+    pub verify_threads: u32,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -613,13 +645,50 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         "whole-pipeline runs (crossbeam: threads of one process; iceoryx2, zenoh: one process per stage worker), {} frames at 505x275, {} coarse poses each, on {cores} cores",
         args.frames, base.registration.coarse_pose_count
     );
+    let simulated = args.simulate.then(|| simulated_work(args));
+    if let Some(work) = &simulated {
+        println!(
+            "simulated: render {:.1} ms/view x {} views, flow {:.1} ms/job, pose {:.1} ms/job, verify {:.1} ms/frame (stages sleep instead of computing; --time-scale {})",
+            work.render_view_ms, work.coarse_views, work.flow_job_ms, work.pose_job_ms, work.verify_frame_ms, args.time_scale
+        );
+    }
     let mut rows = Vec::new();
     for backend in &args.backends {
         for &flow in &args.flow_workers {
             let mut config = base.clone();
             config.backend = (*backend).into();
             config.workers.flow = flow;
+            let frames = args.frames.max(args.frames_per_flow_worker * flow as usize);
+            config.source.max_frames = frames;
+            if let Some(work) = simulated {
+                config.simulate = Some(work);
+                if frames > base_frame_count(&config)? {
+                    repeat_frames(&mut config, frames, &args.out)?;
+                }
+            }
+            config.workers.render = match args.render_workers {
+                0 => stage_workers(simulated, flow, |w| w.render_view_ms),
+                n => n,
+            }
+            .min(flow);
+            config.workers.pose = match args.pose_workers {
+                0 => stage_workers(simulated, flow, |w| w.pose_job_ms),
+                n => n,
+            };
+            config.workers.verify_threads = match args.verify_threads {
+                0 => stage_workers(simulated, flow, |w| {
+                    w.verify_frame_ms / f64::from(w.coarse_views.max(1))
+                }),
+                n => n,
+            };
             config.transport.pipeline = format!("bench-{}-{flow}", std::process::id());
+            // When each result arrived: the steady rate leaves out the pipeline's filling.
+            let mut arrivals = Vec::new();
+            let mut on_result = |delivered: Delivered<'_>| {
+                if let Delivered::Pose(..) = delivered {
+                    arrivals.push(std::time::Instant::now());
+                }
+            };
             let collected = if config.backend == Backend::Crossbeam {
                 let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
                 run_in_process(
@@ -627,7 +696,7 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                     transport.as_ref(),
                     &mesh,
                     Duration::from_secs(3600),
-                    &mut |_| {},
+                    &mut on_result,
                 )?
             } else {
                 // One process per stage worker, as deployed.
@@ -644,31 +713,150 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                     .out
                     .join(format!("bench-{}-{flow}.toml", config.backend.name()));
                 std::fs::write(&path, toml::to_string(&config)?)?;
-                launch_pipeline(&config, &path, 0, &mut |_, _, _| {}, &mut |_| {})?
+                launch_pipeline(&config, &path, 0, &mut |_, _, _| {}, &mut on_result)?
+            };
+            let steady = match (arrivals.first(), arrivals.last()) {
+                (Some(first), Some(last)) if arrivals.len() > 1 && last > first => {
+                    (arrivals.len() - 1) as f64 / last.duration_since(*first).as_secs_f64()
+                }
+                _ => collected.frames_per_s(),
             };
             check_complete(&collected)?;
-            rows.push((config.backend.name(), flow, collected));
+            // Each run's per-stage table (messages, compute, send and decode time per worker):
+            // where the time went when a run scales worse than its workers.
+            let summary = args.out.join(format!(
+                "bench-{}-{flow}-summary.txt",
+                config.backend.name()
+            ));
+            std::fs::write(
+                &summary,
+                asgreg::runtime::collect::summary(&collected, config.backend.name()),
+            )
+            .with_context(|| format!("{}", summary.display()))?;
+            let stages = format!(
+                "{}/{}/{}",
+                config.workers.render, config.workers.pose, config.workers.verify_threads
+            );
+            // Each run as it ends (the table follows at the end).
+            println!(
+                "run: {} flow {flow} render/pose/verify {stages}: {} frames, {:.3} frames/s, steady {steady:.3} frames/s",
+                config.backend.name(),
+                collected.results.len(),
+                collected.frames_per_s()
+            );
+            rows.push((config.backend.name(), flow, stages, steady, collected));
         }
     }
     println!(
-        "{:<10} {:>5} {:>9} {:>8} {:>8} {:>8} {:>10} {:>10}  flow jobs per worker",
-        "backend", "flow", "frames/s", "speedup", "p50_ms", "p90_ms", "transport%", "accepted"
+        "{:<10} {:>5} {:>13} {:>6} {:>9} {:>9} {:>8} {:>8} {:>8} {:>10} {:>8}  p50 stage ms: render/frame flow/job pose/job verify/frame; flow jobs per worker",
+        "backend", "flow", "rend/pose/ver", "frames", "frames/s", "steady/s", "speedup", "p50_ms", "p90_ms", "transport%", "accepted"
     );
-    let baseline = rows.first().map_or(1.0, |(_, _, c)| c.frames_per_s());
-    for (backend, flow, collected) in &rows {
+    // Speedup: steady rate (first to last result) over the first row's.
+    let baseline = rows.first().map_or(1.0, |(_, _, _, steady, _)| *steady);
+    for (backend, flow, stages, steady, collected) in &rows {
         let latencies = collected.latencies_ms();
+        let median = |value: &dyn Fn(&PoseResult) -> Option<f64>| {
+            let values: Vec<f64> = collected.results.iter().filter_map(value).collect();
+            asgreg::runtime::collect::percentile(&values, 0.5)
+        };
+        let per_job = |total: f64, r: &PoseResult| {
+            (!r.flow_workers.is_empty()).then(|| total / r.flow_workers.len() as f64)
+        };
+        let split = collected.flow_split();
+        let split: Vec<usize> = split.values().copied().collect();
+        let split = if split.len() > 8 {
+            format!(
+                "min {} max {} of {}",
+                split.iter().min().unwrap_or(&0),
+                split.iter().max().unwrap_or(&0),
+                split.len()
+            )
+        } else {
+            format!("{split:?}")
+        };
         println!(
-            "{:<10} {:>5} {:>9.3} {:>8.2} {:>8.0} {:>8.0} {:>10.2} {:>10}  {:?}",
+            "{:<10} {:>5} {:>13} {:>6} {:>9.3} {:>9.3} {:>8.2} {:>8.0} {:>8.0} {:>10.2} {:>8}  {:.0} {:.0} {:.1} {:.0}; {split}",
             backend,
             flow,
+            stages,
+            collected.results.len(),
             collected.frames_per_s(),
-            collected.frames_per_s() / baseline,
+            steady,
+            steady / baseline,
             asgreg::runtime::collect::percentile(&latencies, 0.5),
             asgreg::runtime::collect::percentile(&latencies, 0.9),
             collected.transport_share_percent(),
             collected.accepted(),
-            collected.flow_split().values().collect::<Vec<_>>()
+            median(&|r| (!r.flow_workers.is_empty()).then_some(r.times.render_ms)),
+            median(&|r| per_job(r.times.flow_ms, r)),
+            median(&|r| per_job(r.times.pose_ms, r)),
+            median(&|r| (!r.flow_workers.is_empty()).then_some(r.times.verify_ms)),
         );
     }
+    Ok(())
+}
+
+/// The simulated per-job times: the measured defaults, each overridden by its argument, scaled.
+fn simulated_work(args: &BenchArgs) -> asgreg::stage::simulate::SimulatedWork {
+    let defaults = asgreg::stage::simulate::SimulatedWork::default();
+    asgreg::stage::simulate::SimulatedWork {
+        render_view_ms: args.render_view_ms.unwrap_or(defaults.render_view_ms),
+        flow_job_ms: args.flow_job_ms.unwrap_or(defaults.flow_job_ms),
+        pose_job_ms: args.pose_job_ms.unwrap_or(defaults.pose_job_ms),
+        verify_frame_ms: args.verify_frame_ms.unwrap_or(defaults.verify_frame_ms),
+        ..defaults
+    }
+    .scaled(args.time_scale)
+}
+
+/// Workers a stage needs to keep up with `flow` flow workers when one of its jobs (per coarse
+/// pose) takes `job_ms` of the simulated times (with a quarter to spare); 1 without simulation.
+fn stage_workers(
+    simulated: Option<asgreg::stage::simulate::SimulatedWork>,
+    flow: u32,
+    job_ms: impl Fn(&asgreg::stage::simulate::SimulatedWork) -> f64,
+) -> u32 {
+    simulated.map_or(1, |work| {
+        let share = job_ms(&work) / work.flow_job_ms.max(1e-9);
+        ((f64::from(flow) * share * 1.25).ceil() as u32).max(1)
+    })
+}
+
+fn base_frame_count(config: &PipelineConfig) -> anyhow::Result<usize> {
+    Ok(asgreg::io::colmap::read_images_txt(&config.source.poses)?.len())
+}
+
+/// A source of `frames` frames: the scene's photos repeated (links under OUT, each frame its
+/// own name and image id), for simulated runs longer than the scene.
+fn repeat_frames(config: &mut PipelineConfig, frames: usize, out: &Path) -> anyhow::Result<()> {
+    let listed = asgreg::io::colmap::read_images_txt(&config.source.poses)?;
+    if listed.is_empty() {
+        bail!("{}: no images", config.source.poses.display());
+    }
+    let folder = absolute(&out.join(format!("repeated-{frames}")));
+    let images = folder.join("images");
+    std::fs::create_dir_all(&images)?;
+    let mut repeated = Vec::with_capacity(frames);
+    for index in 0..frames {
+        let original = &listed[index % listed.len()];
+        let extension = Path::new(&original.name)
+            .extension()
+            .map_or(String::new(), |e| format!(".{}", e.to_string_lossy()));
+        let name = format!("frame_{index:05}{extension}");
+        let link = images.join(&name);
+        if std::fs::symlink_metadata(&link).is_err() {
+            std::os::unix::fs::symlink(config.source.images.join(&original.name), &link)
+                .with_context(|| format!("{}", link.display()))?;
+        }
+        repeated.push(asgreg::io::colmap::ImagePose {
+            image_id: index as u32 + 1,
+            name,
+            ..original.clone()
+        });
+    }
+    let poses = folder.join("images.txt");
+    asgreg::io::colmap::write_images_txt(&poses, &repeated)?;
+    config.source.images = images;
+    config.source.poses = poses;
     Ok(())
 }

@@ -124,6 +124,13 @@ impl Outbox {
     pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), BusError> {
         Ok(self.publisher.send(bytes)?)
     }
+
+    /// Encodes and sends a message best effort: a subscriber with a full queue misses it and
+    /// nobody waits (metrics: a stage never stops on a monitor that does not read).
+    pub fn send_lossy(&mut self, body: Body<'_>) -> Result<(), BusError> {
+        let bytes = encode_to_vec(0, 0, body)?;
+        Ok(self.publisher.send_lossy(&bytes)?)
+    }
 }
 
 /// Encodes a message into a new byte vector (jobs that a dispatcher may have to send again).

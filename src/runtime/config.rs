@@ -47,6 +47,9 @@ pub struct PipelineConfig {
     /// restarted verify reads so it publishes no result twice. Ingest and verify must see the
     /// same folder (same host). Unset: `asgreg-state` in the system's temporary folder.
     pub state_dir: Option<PathBuf>,
+    /// `asgreg bench pipeline --simulate`: every stage sleeps these per-job times instead of
+    /// computing (the loops, dispatchers and transports are the real ones). Unset: real work.
+    pub simulate: Option<crate::stage::simulate::SimulatedWork>,
 }
 
 impl Default for PipelineConfig {
@@ -67,6 +70,7 @@ impl Default for PipelineConfig {
             fusion: FusionConfig::default(),
             stereo: StereoSettings::default(),
             state_dir: None,
+            simulate: None,
         }
     }
 }
@@ -105,13 +109,19 @@ impl Default for StereoSettings {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Workers {
-    /// Render workers; one is supported (it owns the flow dispatcher).
+    /// Render workers; each owns the flow link of its share of the flow workers (flow worker
+    /// `w` serves render worker `w % render`), at most `flow`.
     pub render: u32,
     /// The expensive stage: the (frame, coarse pose) jobs are shared among these.
     pub flow: u32,
     /// Flow workers the launcher starts itself; the rest attach from other hosts (zenoh).
     pub flow_local: Option<u32>,
+    /// Pose workers; each takes the coarse poses whose (frame, coarse index) falls to it
+    /// (`runtime::nodes::pose_worker_of`), so every coarse pose is solved by exactly one.
     pub pose: u32,
+    /// Threads of the verify stage that decide complete frames (plausibility check, final
+    /// refinement); 1: decided in verify's loop. Results stay one per frame.
+    pub verify_threads: u32,
     /// Change detection workers (accepted frames' change maps, dispatched like flow), plus one
     /// fusion stage when > 0 (the default: 1). 0: no change detection.
     pub change: u32,
@@ -126,6 +136,7 @@ impl Default for Workers {
             flow: 2,
             flow_local: None,
             pose: 1,
+            verify_threads: 1,
             change: 1,
             slots: 1,
         }
@@ -326,16 +337,16 @@ impl PipelineConfig {
                 "render, flow and pose need at least one worker each".to_string(),
             ));
         }
-        if self.workers.render != 1 {
+        if self.workers.render > self.workers.flow {
             return Err(invalid(
                 "workers.render",
-                "one render worker is supported: it owns the flow dispatcher (render is ~0.4 s of a frame's ~7 s of compute; flow is the stage to scale)".to_string(),
+                "each render worker feeds its own flow workers (flow worker w serves render worker w % render): at most workers.flow".to_string(),
             ));
         }
-        if self.workers.pose != 1 {
+        if self.workers.verify_threads == 0 {
             return Err(invalid(
-                "workers.pose",
-                "one pose worker is supported (pose takes a few ms per coarse pose)".to_string(),
+                "workers.verify_threads",
+                "verify needs at least one thread".to_string(),
             ));
         }
         if self

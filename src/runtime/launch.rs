@@ -132,7 +132,8 @@ pub fn local_stages(config: &PipelineConfig) -> Vec<(&'static str, u32)> {
         stages.push(("fusion", 0));
         stages.extend((0..config.workers.change).map(|w| ("change", w)));
     }
-    stages.extend([("verify", 0), ("pose", 0)]);
+    stages.push(("verify", 0));
+    stages.extend((0..config.workers.pose).map(|w| ("pose", w)));
     let flow_local = config.workers.flow_local.unwrap_or(config.workers.flow);
     stages.extend((0..flow_local).map(|w| ("flow", w)));
     stages.extend((0..config.workers.render).map(|w| ("render", w)));

@@ -111,7 +111,10 @@ fn run_stage_threads(
             0,
             scope.spawn(|| nodes::run_verify(&context(0), mesh)),
         ));
-        handles.push(("pose", 0, scope.spawn(|| nodes::run_pose(&context(0)))));
+        for worker in 0..config.workers.pose {
+            let ctx = context(worker);
+            handles.push(("pose", worker, scope.spawn(move || nodes::run_pose(&ctx))));
+        }
         for worker in 0..config.workers.flow {
             let ctx = context(worker);
             handles.push((
@@ -137,6 +140,20 @@ fn run_stage_threads(
                 .any(|(name, _, h)| h.is_finished() && *name != "ingest")
         });
         stop.store(true, Ordering::Relaxed);
+        // Every stage sends its last metrics as it stops: keep reading them, so that none of
+        // them waits on the collector's full metrics queue (crossbeam blocks a full queue).
+        let mut late = Collected::default();
+        let mut outcome = outcome;
+        while handles.iter().any(|(_, _, handle)| !handle.is_finished()) {
+            let into = match outcome.as_mut() {
+                Ok(collected) => collected,
+                Err(_) => &mut late,
+            };
+            if let Err(error) = collector.drain_metrics(into) {
+                tracing::debug!("metrics not read while stopping: {error}");
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
         let mut first_error = None;
         let mut finals = Vec::new();
         for (name, worker, handle) in handles {

@@ -9,6 +9,7 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use crate::core::frame::RefineWorkspace;
 use crate::core::mesh::Mesh;
 use crate::msg::{
     change_result_json, change_set_json, pose_result_json, Body, FrameFailed, Header, JobKey,
@@ -20,7 +21,7 @@ use crate::stage::fusion::FusionStage;
 use crate::stage::ingest::{FolderSource, SourceError};
 use crate::stage::pose::PoseStage;
 use crate::stage::render::RenderStage;
-use crate::stage::verify::{ChangeWork, VerifyStage};
+use crate::stage::verify::{ChangeWork, DecidedFrame, ReadyFrame, VerifyStage};
 use crate::transport::{keys, Transport};
 
 use super::ack::Resender;
@@ -127,12 +128,10 @@ impl MetricsReporter {
             return;
         }
         self.last = Instant::now();
-        let mut scratch = StageMetrics::default();
-        // Metrics are best effort: a failure to report never stops a stage.
-        if let Err(error) = self
-            .outbox
-            .send(0, 0, Body::Metrics(metrics.clone()), &mut scratch)
-        {
+        // Metrics are best effort: a failure to report, or a monitor that does not read, never
+        // stops a stage (with many workers every stage both sends and reads metrics: a
+        // blocking send could wait in a cycle).
+        if let Err(error) = self.outbox.send_lossy(Body::Metrics(metrics.clone())) {
             tracing::debug!("metrics not sent: {error}");
         }
     }
@@ -377,6 +376,20 @@ fn unexpected(stage: &str, kind: crate::msg::MessageKind, frame_id: u64) {
     tracing::error!("{stage}: ignored an unexpected {kind:?} message (frame {frame_id})");
 }
 
+/// Ingest stops early: drops its subscriptions (no stage's last metrics wait on them), sends
+/// its last metrics and says why.
+fn stop_ingest(
+    reporter: &mut MetricsReporter,
+    metrics: &StageMetrics,
+    recovery: Recovery,
+    frame_count: u64,
+) -> NodeError {
+    let error = stopped_early(&recovery, frame_count);
+    drop(recovery);
+    reporter.tick(metrics, true);
+    error
+}
+
 /// Ingest stopped (SIGTERM) before every frame had its result: an error, so that the
 /// supervisor restarts it (a clean exit of ingest means the stream is complete).
 fn stopped_early(recovery: &Recovery, frame_count: u64) -> NodeError {
@@ -428,8 +441,7 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     let mut names: HashMap<u64, (String, u64)> = HashMap::new();
     while let Some((frame_id, frame)) = source.next_frame_except(&recovery.finished) {
         if ctx.stopped() {
-            reporter.tick(&metrics, true);
-            return Err(stopped_early(&recovery, frame_count));
+            return Err(stop_ingest(&mut reporter, &metrics, recovery, frame_count));
         }
         recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
         if let Some(period) = period {
@@ -469,8 +481,12 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                     match config.backpressure.policy {
                         BackpressurePolicy::Block => {
                             if ctx.stopped() {
-                                reporter.tick(&metrics, true);
-                                return Err(stopped_early(&recovery, frame_count));
+                                return Err(stop_ingest(
+                                    &mut reporter,
+                                    &metrics,
+                                    recovery,
+                                    frame_count,
+                                ));
                             }
                             dispatcher.pump(POLL)?;
                             recovery.service(&mut dispatcher, &mut verify, None, &mut metrics)?;
@@ -528,8 +544,7 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
             break;
         }
         if ctx.stopped() {
-            reporter.tick(&metrics, true);
-            return Err(stopped_early(&recovery, frame_count));
+            return Err(stop_ingest(&mut reporter, &metrics, recovery, frame_count));
         }
         dispatcher.pump(POLL)?;
         recovery.service(
@@ -543,6 +558,8 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     metrics.redispatched += dispatcher.metrics.redispatched;
     metrics.bytes_out += dispatcher.metrics.bytes_out;
     metrics.send_ms += dispatcher.metrics.send_ms;
+    // Its subscriptions go first: the other stages' last metrics must not wait on them.
+    drop(recovery);
     reporter.tick(&metrics, true);
     Ok(metrics)
 }
@@ -563,15 +580,17 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         2,
         "render",
     )?;
+    // Each render worker feeds its own share of the flow workers (`keys::flow_link`).
     let mut dispatcher = Dispatcher::open(
         ctx.transport,
-        keys::FLOW_LINK,
+        &keys::flow_link(ctx.worker_index),
         config.backpressure.flow_jobs_queued,
         Duration::from_secs_f64(config.timeouts.worker_silence_s),
     )?;
     let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
     verify.wait_for_reader("verify", ctx.startup())?;
-    let mut stage = RenderStage::new(mesh, config.registration.clone());
+    let mut stage =
+        RenderStage::new(mesh, config.registration.clone()).with_simulated_work(config.simulate);
     if config.changes_enabled() {
         stage = stage.with_depth_forwarding();
     }
@@ -631,12 +650,15 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                         frame_id,
                         coarse_index: job.meta.coarse_index,
                     };
-                    match encode_to_vec(frame_id, capture, Body::FlowJob(job)) {
-                        Ok(bytes) => dispatcher.push(key, bytes),
-                        Err(error) => {
-                            if encoded.is_ok() {
-                                encoded = Err(error);
-                            }
+                    // Each job is handed out as soon as its view is rendered (a flow worker
+                    // with a free slot starts on it while the next view renders).
+                    let pushed =
+                        encode_to_vec(frame_id, capture, Body::FlowJob(job)).map(|bytes| {
+                            dispatcher.push(key, bytes);
+                        });
+                    if let Err(error) = pushed.and_then(|()| dispatcher.pump(Duration::ZERO)) {
+                        if encoded.is_ok() {
+                            encoded = Err(error);
                         }
                     }
                     encode_ms += encode_started.elapsed().as_secs_f64() * 1e3;
@@ -692,8 +714,10 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
 pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
     let mut pose = Outbox::open(ctx.transport, keys::CORRESPONDENCES)?;
     pose.wait_for_reader("pose", ctx.startup())?;
-    let mut stage = FlowStage::new(mesh, ctx.config.registration.clone(), ctx.worker_index);
-    serve_jobs(ctx, "flow", keys::FLOW_LINK, &mut |message, metrics| {
+    let mut stage = FlowStage::new(mesh, ctx.config.registration.clone(), ctx.worker_index)
+        .with_simulated_work(ctx.config.simulate);
+    let link = keys::flow_link_of_worker(ctx.worker_index, ctx.config.workers.render);
+    serve_jobs(ctx, "flow", &link, &mut |message, metrics| {
         let frame_id = message.header.frame_id;
         let Body::FlowJob(job) = message.body else {
             unexpected("flow", message.body.kind(), frame_id);
@@ -760,14 +784,26 @@ fn serve_jobs(
     Ok(metrics)
 }
 
-/// Stage "pose": correspondences of one coarse pose → refined pose hypothesis → verify.
+/// The pose worker that solves a frame's coarse pose: every pose worker receives every coarse
+/// pose's correspondences and keeps its share, so each is solved once without a dispatcher (a
+/// restarted pose worker's lost share is redone by ingest, as with one pose worker).
+pub fn pose_worker_of(frame_id: u64, coarse_index: u32, workers: u32) -> u32 {
+    let workers = u64::from(workers.max(1));
+    // Consecutive coarse poses of a frame go to consecutive workers.
+    ((frame_id.wrapping_mul(7) + u64::from(coarse_index)) % workers) as u32
+}
+
+/// Stage "pose" (one or more workers, each its share by [`pose_worker_of`]): correspondences of
+/// one coarse pose → refined pose hypothesis → verify.
 pub fn run_pose(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     let mut metrics = ctx.metrics("pose");
     let mut reporter = MetricsReporter::open(ctx.transport)?;
     let mut inbox = Inbox::open(ctx.transport, keys::CORRESPONDENCES, "pose")?;
     let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
     verify.wait_for_reader("verify", ctx.startup())?;
-    let mut stage = PoseStage::new(ctx.config.registration.clone());
+    let mut stage =
+        PoseStage::new(ctx.config.registration.clone()).with_simulated_work(ctx.config.simulate);
+    let workers = ctx.config.workers.pose;
     while !ctx.stopped() {
         let mut sent: Result<(), BusError> = Ok(());
         inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
@@ -776,6 +812,9 @@ pub fn run_pose(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                 unexpected("pose", message.body.kind(), frame_id);
                 return;
             };
+            if pose_worker_of(frame_id, set.meta.coarse_index, workers) != ctx.worker_index {
+                return;
+            }
             let started = Instant::now();
             let hypothesis = stage.process(&set);
             record_compute(metrics, started);
@@ -989,7 +1028,12 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         mesh,
         config.registration.clone(),
         Duration::from_secs_f64(config.timeouts.frame_timeout_s),
-    );
+    )
+    .with_simulated_work(config.simulate);
+    let threads = config.workers.verify_threads;
+    if threads > 1 {
+        stage = stage.with_deferred_decisions();
+    }
     // With change detection: accepted frames' change jobs go to the change workers, the other
     // frames' change results (why there is none) and the end of the stream to fusion.
     let mut changes = if config.changes_enabled() {
@@ -1017,104 +1061,168 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     let mut published: std::collections::BTreeSet<u64> = journaled.keys().copied().collect();
     restore_unacked(&mut results_ack, &journaled, &acks, journal.path());
     let mut journal_failed = false;
-    while !ctx.stopped() {
-        let mut produced = Vec::new();
-        inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
-            let frame_id = message.header.frame_id;
-            let started = Instant::now();
-            match message.body {
-                Body::Hypothesis(hypothesis) => {
-                    capture_times
-                        .entry(frame_id)
-                        .or_insert(message.header.capture_time_ns);
-                    produced.extend(stage.on_hypothesis(frame_id, hypothesis));
-                }
-                Body::FrameFailed(failure) => {
-                    capture_times
-                        .entry(frame_id)
-                        .or_insert(message.header.capture_time_ns);
-                    produced.extend(stage.on_failure(frame_id, &failure));
-                }
-                Body::FrameQuery(query) => {
-                    capture_times
-                        .entry(frame_id)
-                        .or_insert(message.header.capture_time_ns);
-                    produced.extend(stage.on_query(frame_id, &query));
-                }
-                Body::StreamEnd(end) => stage.on_stream_end(end.frame_count, &end.finished_frames),
-                other => unexpected("verify", other.kind(), frame_id),
+    // With verify_threads > 1: complete frames are decided by a pool of threads (each with its
+    // own refinement workspace) and concluded here, one result per frame as before.
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel::<ReadyFrame>();
+    let ready_rx = std::sync::Mutex::new(ready_rx);
+    let (decided_tx, decided_rx) = std::sync::mpsc::channel::<DecidedFrame>();
+    std::thread::scope(|scope| {
+        let ready_tx = ready_tx;
+        if threads > 1 {
+            for _ in 0..threads {
+                let ready_rx = &ready_rx;
+                let decided_tx = decided_tx.clone();
+                let registration = &config.registration;
+                scope.spawn(move || {
+                    let mut workspace = RefineWorkspace::default();
+                    loop {
+                        let next = match ready_rx.lock() {
+                            Ok(queue) => queue.recv(),
+                            Err(_) => return,
+                        };
+                        let Ok(ready) = next else { return };
+                        if decided_tx
+                            .send(ready.decide(mesh, registration, &mut workspace))
+                            .is_err()
+                        {
+                            return;
+                        }
+                    }
+                });
             }
-            record_compute(metrics, started);
-        })?;
-        produced.extend(stage.expire(Instant::now()));
-        let mut change_captures = Vec::new();
-        for mut result in produced {
-            let capture = capture_times.remove(&result.frame_id).unwrap_or(0);
-            change_captures.push((result.frame_id, capture));
-            if published.contains(&result.frame_id) {
-                tracing::info!(
+        }
+        drop(decided_tx);
+        while !ctx.stopped() {
+            let mut produced = Vec::new();
+            inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
+                let frame_id = message.header.frame_id;
+                let started = Instant::now();
+                match message.body {
+                    Body::Hypothesis(hypothesis) => {
+                        capture_times
+                            .entry(frame_id)
+                            .or_insert(message.header.capture_time_ns);
+                        produced.extend(stage.on_hypothesis(frame_id, hypothesis));
+                    }
+                    Body::FrameFailed(failure) => {
+                        capture_times
+                            .entry(frame_id)
+                            .or_insert(message.header.capture_time_ns);
+                        produced.extend(stage.on_failure(frame_id, &failure));
+                    }
+                    Body::FrameQuery(query) => {
+                        capture_times
+                            .entry(frame_id)
+                            .or_insert(message.header.capture_time_ns);
+                        produced.extend(stage.on_query(frame_id, &query));
+                    }
+                    Body::StreamEnd(end) => {
+                        stage.on_stream_end(end.frame_count, &end.finished_frames)
+                    }
+                    other => unexpected("verify", other.kind(), frame_id),
+                }
+                record_compute(metrics, started);
+            })?;
+            produced.extend(stage.expire(Instant::now()));
+            for ready in stage.take_ready() {
+                // The pool's threads end only with this loop.
+                let _ = ready_tx.send(ready);
+            }
+            while let Ok(decided) = decided_rx.try_recv() {
+                produced.push(stage.conclude(decided));
+            }
+            let mut change_captures = Vec::new();
+            for mut result in produced {
+                let capture = capture_times.remove(&result.frame_id).unwrap_or(0);
+                change_captures.push((result.frame_id, capture));
+                if published.contains(&result.frame_id) {
+                    tracing::info!(
                     "verify: frame {} already has its published result (before a restart); not publishing it again",
                     result.frame_id
                 );
-                stage.late_messages += 1;
-                continue;
-            }
-            if capture > 0 {
-                result.times.latency_ms = unix_time_ns().saturating_sub(capture) as f64 / 1e6;
-            }
-            let header = crate::msg::Header {
-                frame_id: result.frame_id,
-                sequence: 0,
-                capture_time_ns: capture,
-                sent_time_ns: unix_time_ns(),
-            };
-            let json = pose_result_json(&header, &result);
-            let frame_id = result.frame_id;
-            // Encoded once: the bytes published, journaled and (until acknowledged) sent again.
-            let bytes = encode_to_vec(frame_id, capture, Body::PoseResult(result))?;
-            acks.take(&mut results_ack, &mut metrics)?;
-            results.send_encoded(&bytes, &mut metrics)?;
-            results_json.send_raw(json.as_bytes())?;
-            published.insert(frame_id);
-            // The result is out; the journal only helps a restart, so a failure to write it
-            // is reported once and the stage goes on.
-            if let Err(error) = journal.append_with(frame_id, &journal::to_hex(&bytes)) {
-                if !journal_failed {
-                    tracing::error!("verify: {error}; a restart may publish results again");
-                    journal_failed = true;
+                    stage.late_messages += 1;
+                    continue;
                 }
+                if capture > 0 {
+                    result.times.latency_ms = unix_time_ns().saturating_sub(capture) as f64 / 1e6;
+                }
+                let header = crate::msg::Header {
+                    frame_id: result.frame_id,
+                    sequence: 0,
+                    capture_time_ns: capture,
+                    sent_time_ns: unix_time_ns(),
+                };
+                let json = pose_result_json(&header, &result);
+                let frame_id = result.frame_id;
+                // Encoded once: the bytes published, journaled and (until acknowledged) sent again.
+                let bytes = encode_to_vec(frame_id, capture, Body::PoseResult(result))?;
+                acks.take(&mut results_ack, &mut metrics)?;
+                results.send_encoded(&bytes, &mut metrics)?;
+                results_json.send_raw(json.as_bytes())?;
+                published.insert(frame_id);
+                // The result is out; the journal only helps a restart, so a failure to write it
+                // is reported once and the stage goes on.
+                if let Err(error) = journal.append_with(frame_id, &journal::to_hex(&bytes)) {
+                    if !journal_failed {
+                        tracing::error!("verify: {error}; a restart may publish results again");
+                        journal_failed = true;
+                    }
+                }
+                let first_after = results_ack.first_after();
+                results_ack.track(frame_id, bytes, json, first_after);
             }
-            let first_after = results_ack.first_after();
-            results_ack.track(frame_id, bytes, json, first_after);
-        }
-        acks.take(&mut results_ack, &mut metrics)?;
-        for (frame_id, bytes, json) in results_ack.due(Instant::now()) {
-            tracing::info!(
+            acks.take(&mut results_ack, &mut metrics)?;
+            for (frame_id, bytes, json) in results_ack.due(Instant::now()) {
+                tracing::info!(
                 "verify: the result of frame {frame_id} is not acknowledged by the collector; sending it again"
             );
-            results.send_encoded(&bytes, &mut metrics)?;
-            results_json.send_raw(json.as_bytes())?;
-        }
-        if let Some(recovery) = &mut changes {
-            stage.release_stereo_jobs();
-            // Also for a frame published before a restart of verify (ingest sends it again while
-            // its change result is not out).
-            for work in stage.change_work.drain(..) {
-                let frame_id = match &work {
-                    ChangeWork::Job(frame_id, _) => *frame_id,
-                    ChangeWork::Result(result) => result.frame_id,
-                };
-                let capture = change_captures
-                    .iter()
-                    .find(|(id, _)| *id == frame_id)
-                    .map_or(0, |(_, capture)| *capture);
-                recovery.issue(work, capture, &mut metrics)?;
+                results.send_encoded(&bytes, &mut metrics)?;
+                results_json.send_raw(json.as_bytes())?;
             }
-            recovery.service(&mut metrics)?;
-            if let Some(frame_count) = stage.stream_complete() {
-                // Repeated now and then: fusion takes the first, and a restarted one learns it.
-                if fusion_told_end.is_none_or(|at| at.elapsed() >= Duration::from_secs(2)) {
-                    recovery.fusion.send(
+            if let Some(recovery) = &mut changes {
+                stage.release_stereo_jobs();
+                // Also for a frame published before a restart of verify (ingest sends it again while
+                // its change result is not out).
+                for work in stage.change_work.drain(..) {
+                    let frame_id = match &work {
+                        ChangeWork::Job(frame_id, _) => *frame_id,
+                        ChangeWork::Result(result) => result.frame_id,
+                    };
+                    let capture = change_captures
+                        .iter()
+                        .find(|(id, _)| *id == frame_id)
+                        .map_or(0, |(_, capture)| *capture);
+                    recovery.issue(work, capture, &mut metrics)?;
+                }
+                recovery.service(&mut metrics)?;
+                if let Some(frame_count) = stage.stream_complete() {
+                    // Repeated now and then: fusion takes the first, and a restarted one learns it.
+                    if fusion_told_end.is_none_or(|at| at.elapsed() >= Duration::from_secs(2)) {
+                        recovery.fusion.send(
+                            0,
+                            0,
+                            Body::StreamEnd(StreamEnd {
+                                frame_count,
+                                finished_frames: Vec::new(),
+                            }),
+                            &mut metrics,
+                        )?;
+                        fusion_told_end = Some(Instant::now());
+                    }
+                }
+            }
+            metrics.redispatched = changes.as_ref().map_or(0, |recovery| {
+                recovery.dispatcher.metrics.redispatched + recovery.reissued
+            }) + results_ack.resent;
+            // The end of the stream is repeated now and then (a lost one would leave the
+            // collector waiting; a repeat is harmless).
+            if stream_ended.is_none_or(|at| at.elapsed() >= END_REPEAT) {
+                if let Some(frame_count) = stage.stream_complete() {
+                    if stream_ended.is_none() {
+                        tracing::info!("verify: all {frame_count} frames have their result");
+                    }
+                    stream_ended = Some(Instant::now());
+                    results.send(
                         0,
                         0,
                         Body::StreamEnd(StreamEnd {
@@ -1123,37 +1231,17 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                         }),
                         &mut metrics,
                     )?;
-                    fusion_told_end = Some(Instant::now());
                 }
             }
+            metrics.max_queue_depth = metrics.max_queue_depth.max(stage.pending_frames() as u64);
+            reporter.tick(&metrics, false);
         }
-        metrics.redispatched = changes.as_ref().map_or(0, |recovery| {
-            recovery.dispatcher.metrics.redispatched + recovery.reissued
-        }) + results_ack.resent;
-        // The end of the stream is repeated now and then (a lost one would leave the
-        // collector waiting; a repeat is harmless).
-        if stream_ended.is_none_or(|at| at.elapsed() >= END_REPEAT) {
-            if let Some(frame_count) = stage.stream_complete() {
-                if stream_ended.is_none() {
-                    tracing::info!("verify: all {frame_count} frames have their result");
-                }
-                stream_ended = Some(Instant::now());
-                results.send(
-                    0,
-                    0,
-                    Body::StreamEnd(StreamEnd {
-                        frame_count,
-                        finished_frames: Vec::new(),
-                    }),
-                    &mut metrics,
-                )?;
-            }
-        }
-        metrics.max_queue_depth = metrics.max_queue_depth.max(stage.pending_frames() as u64);
-        reporter.tick(&metrics, false);
-    }
-    reporter.tick(&metrics, true);
-    Ok(metrics)
+        // The change recovery's subscriptions (metrics, changes) go first: the other stages' last
+        // metrics must not wait on a queue this stage no longer reads.
+        drop(changes);
+        reporter.tick(&metrics, true);
+        Ok(metrics)
+    })
 }
 
 /// Stage "change" (N workers): one accepted frame's change job at a time, its change result to

@@ -69,6 +69,98 @@ fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
     let dir = tempfile::tempdir().unwrap();
     let config = tiny_scene(dir.path());
     let (mesh, collected) = run_on_crossbeam(&config);
+    assert_same_as_batch(&config, &mesh, &collected);
+    // Both flow workers did some of the work.
+    let split: std::collections::BTreeSet<u32> = collected
+        .results
+        .iter()
+        .flat_map(|r| r.flow_workers.iter().copied())
+        .collect();
+    assert_eq!(split.len(), 2, "work split {split:?}");
+}
+
+#[test]
+fn several_render_pose_workers_and_verify_threads_give_the_batch_results() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    config.workers.render = 2;
+    config.workers.pose = 2;
+    config.workers.verify_threads = 3;
+    config.state_dir = Some(dir.path().join("state"));
+    // As `run`, but keeping the journal in the state folder to read it after.
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let transport = CrossbeamTransport::new(config.transport.clone());
+    let collected = run_stage_threads(
+        &config,
+        &transport,
+        &mesh,
+        Duration::from_secs(300),
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_same_as_batch(&config, &mesh, &collected);
+    // Decided on the pool, each result still went out by verify's one publish path: journaled
+    // once, with the very bytes the collector received (those sent again until acknowledged).
+    let (_, journaled) = journal::Journal::open_with_payloads(
+        &journal::path(&config, journal::Kind::Pose),
+        &journal::header(&config, journal::Kind::Pose),
+    )
+    .unwrap();
+    assert_eq!(
+        journaled.keys().copied().collect::<Vec<u64>>(),
+        vec![0, 1, 2, 3]
+    );
+    for (frame_id, hex) in &journaled {
+        let bytes = journal::from_hex(hex).unwrap();
+        let crate::msg::Body::PoseResult(result) = crate::msg::decode(&bytes).unwrap().body else {
+            panic!("frame {frame_id}: the journal holds no pose result");
+        };
+        let received = collected
+            .results
+            .iter()
+            .find(|r| r.frame_id == *frame_id)
+            .unwrap();
+        assert_eq!(&result, received, "frame {frame_id}");
+    }
+    let pose_workers: std::collections::BTreeSet<u32> = collected
+        .metrics
+        .keys()
+        .filter(|(stage, _)| stage == "pose")
+        .map(|(_, worker)| *worker)
+        .collect();
+    assert_eq!(pose_workers.len(), 2, "{pose_workers:?}");
+}
+
+#[test]
+fn a_simulated_pipeline_gives_one_result_per_frame_through_the_same_loops() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    config.simulate = Some(crate::stage::simulate::SimulatedWork {
+        render_view_ms: 1.0,
+        coarse_views: 3,
+        flow_job_ms: 2.0,
+        pose_job_ms: 1.0,
+        verify_frame_ms: 2.0,
+    });
+    config.workers.flow = 3;
+    config.workers.verify_threads = 2;
+    let (_, collected) = run_on_crossbeam(&config);
+    assert_eq!(collected.frame_count, Some(4));
+    assert!(collected.duplicates.is_empty() && collected.missing().is_empty());
+    for result in &collected.results {
+        // Every simulated job reached verify (no correspondences, so no pose).
+        assert_eq!(result.flow_workers.len(), 3, "{}", result.name);
+        assert!(!result.accepted);
+        assert!(result.times.verify_ms >= 2.0);
+    }
+}
+
+/// Every frame has exactly one result, the one `register` gives (`register_batch_frame`).
+fn assert_same_as_batch(
+    config: &PipelineConfig,
+    mesh: &crate::core::mesh::Mesh,
+    collected: &collect::Collected,
+) {
     assert_eq!(collected.frame_count, Some(4));
     assert!(collected.duplicates.is_empty() && collected.missing().is_empty());
     assert_eq!(collected.results.len(), 4);
@@ -86,7 +178,7 @@ fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
             intrinsics: IntrinsicsMode::from_known(config.source.intrinsics_known),
             initial_cam_from_world: image.cam_from_world,
         };
-        let batch = register_batch_frame(&mesh, &frame, &config.registration, config.source.seed);
+        let batch = register_batch_frame(mesh, &frame, &config.registration, config.source.seed);
         let result = collected
             .results
             .iter()
@@ -106,14 +198,7 @@ fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
         );
         assert_eq!(result.flow_workers.len(), 5);
     }
-    // Both flow workers did some of the work.
-    let split: std::collections::BTreeSet<u32> = collected
-        .results
-        .iter()
-        .flat_map(|r| r.flow_workers.iter().copied())
-        .collect();
-    assert_eq!(split.len(), 2, "work split {split:?}");
-    let summary = collect::summary(&collected, "crossbeam");
+    let summary = collect::summary(collected, "crossbeam");
     assert!(
         summary.contains("exactly one result per frame: yes"),
         "{summary}"

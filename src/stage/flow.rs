@@ -14,6 +14,7 @@ use crate::core::mesh::Mesh;
 use crate::msg::{Correspondences, CorrespondencesMeta, FlowJob};
 
 use super::elapsed_ms;
+use super::simulate::{spend_ms, SimulatedWork};
 
 /// Query features kept per worker: a worker takes jobs of at most a few frames at a time.
 const CACHED_FRAMES: usize = 2;
@@ -27,6 +28,8 @@ pub struct FlowStage<'m> {
     features: Vec<(u64, QueryFeatures)>,
     /// Jobs whose frame's features were already here.
     pub feature_cache_hits: u64,
+    /// `bench pipeline --simulate`: sleep per job instead of computing (no correspondences).
+    simulated: Option<SimulatedWork>,
 }
 
 impl<'m> FlowStage<'m> {
@@ -38,7 +41,14 @@ impl<'m> FlowStage<'m> {
             workspace: CorrespondWorkspace::default(),
             features: Vec::with_capacity(CACHED_FRAMES),
             feature_cache_hits: 0,
+            simulated: None,
         }
+    }
+
+    /// Sleeps the given time per job instead of matching (the job's correspondences are empty).
+    pub fn with_simulated_work(mut self, work: Option<SimulatedWork>) -> Self {
+        self.simulated = work;
+        self
     }
 
     /// The job's correspondences; a flow error leaves them empty (the pose stage then reports
@@ -77,6 +87,14 @@ impl<'m> FlowStage<'m> {
         frame_id: u64,
         job: &FlowJob,
     ) -> Result<ViewCorrespondences, RegistrationError> {
+        if let Some(work) = self.simulated {
+            spend_ms(work.flow_job_ms);
+            return Ok(ViewCorrespondences {
+                coarse_index: job.meta.coarse_index as usize,
+                coarse_cam_from_world: job.meta.coarse_cam_from_world,
+                ..ViewCorrespondences::default()
+            });
+        }
         let view = job.view()?;
         let position = match self.features.iter().position(|(id, _)| *id == frame_id) {
             Some(position) => {

@@ -8,6 +8,7 @@ pub mod fusion;
 pub mod ingest;
 pub mod pose;
 pub mod render;
+pub mod simulate;
 pub mod verify;
 
 /// Milliseconds since `started`.

@@ -7,19 +7,35 @@ use crate::core::frame::{solve_view, IntrinsicsMode, RegistrationConfig};
 use crate::msg::{Correspondences, Hypothesis};
 
 use super::elapsed_ms;
+use super::simulate::{spend_ms, SimulatedWork};
 
 pub struct PoseStage {
     config: RegistrationConfig,
+    /// `bench pipeline --simulate`: sleep per job before solving (the simulated
+    /// correspondences are empty, so the solve itself fails at once).
+    simulated: Option<SimulatedWork>,
 }
 
 impl PoseStage {
     pub fn new(config: RegistrationConfig) -> Self {
-        Self { config }
+        Self {
+            config,
+            simulated: None,
+        }
+    }
+
+    /// Sleeps the given time per coarse pose (simulated pipeline).
+    pub fn with_simulated_work(mut self, work: Option<SimulatedWork>) -> Self {
+        self.simulated = work;
+        self
     }
 
     pub fn process(&mut self, set: &Correspondences) -> Hypothesis {
         let started = Instant::now();
         let meta = &set.meta;
+        if let Some(work) = self.simulated {
+            spend_ms(work.pose_job_ms);
+        }
         let outcome = solve_view(
             &set.to_view(),
             &meta.info.camera,

@@ -15,6 +15,7 @@ use crate::core::raster::Rasterizer;
 use crate::msg::{FlowJob, FlowJobMeta, Frame, FrameFailed, FrameQuery};
 
 use super::elapsed_ms;
+use super::simulate::{spend_ms, SimulatedWork};
 
 pub struct RenderStage<'m> {
     mesh: &'m Mesh,
@@ -23,6 +24,8 @@ pub struct RenderStage<'m> {
     view: CoarseView,
     /// Whether the frame's depth map goes to verify with the query (for the change stage).
     forward_depth: bool,
+    /// `bench pipeline --simulate`: sleep per view instead of rendering.
+    simulated: Option<SimulatedWork>,
 }
 
 impl<'m> RenderStage<'m> {
@@ -33,7 +36,15 @@ impl<'m> RenderStage<'m> {
             rasterizer: Rasterizer::new(),
             view: CoarseView::default(),
             forward_depth: false,
+            simulated: None,
         }
+    }
+
+    /// Sleeps the given time per coarse view instead of rendering it (empty renderings of the
+    /// photo's size are sent, so the messages keep their size).
+    pub fn with_simulated_work(mut self, work: Option<SimulatedWork>) -> Self {
+        self.simulated = work;
+        self
     }
 
     /// Sends each frame's depth map to verify with its query (the change stage runs).
@@ -86,6 +97,28 @@ impl<'m> RenderStage<'m> {
                 Cow::Borrowed(&[])
             },
         });
+        if let Some(work) = self.simulated {
+            let pixels = query.data().len();
+            let zeros = vec![0.0f32; pixels];
+            let no_face = vec![u32::MAX; pixels];
+            for coarse_index in 0..work.coarse_views {
+                spend_ms(work.render_view_ms);
+                emit(FlowJob {
+                    meta: FlowJobMeta {
+                        info: info.clone(),
+                        coarse_index,
+                        coarse_count: work.coarse_views,
+                        coarse_cam_from_world: info.initial_cam_from_world,
+                        render_ms: elapsed_ms(started),
+                    },
+                    query: Cow::Borrowed(query.data()),
+                    asg: Cow::Borrowed(&zeros),
+                    depth_m: Cow::Borrowed(&zeros),
+                    face_index: Cow::Borrowed(&no_face),
+                });
+            }
+            return Ok(work.coarse_views as usize);
+        }
         render_views(
             self.mesh,
             &info.camera,

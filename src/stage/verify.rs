@@ -23,6 +23,7 @@ use crate::msg::{
 
 use super::change::not_registered;
 use super::elapsed_ms;
+use super::simulate::{spend_ms, SimulatedWork};
 
 /// What the change stage gets of a decided frame.
 #[derive(Clone, Debug, PartialEq)]
@@ -125,6 +126,76 @@ pub struct VerifyStage<'m> {
     stereo_waiting: BTreeSet<u64>,
     /// Change work of the frames decided so far, oldest first (the runtime takes it).
     pub change_work: Vec<ChangeWork>,
+    /// Whether complete frames wait in `ready` for the runtime to decide them on other threads
+    /// ([`VerifyStage::take_ready`], [`ReadyFrame::decide`], [`VerifyStage::conclude`]) instead
+    /// of being decided at once.
+    deferred: bool,
+    ready: Vec<ReadyFrame>,
+    /// Frames handed out to be decided and not concluded yet.
+    deciding: BTreeSet<u64>,
+    /// `bench pipeline --simulate`: sleep per frame's decision.
+    simulated: Option<SimulatedWork>,
+}
+
+/// A frame with every hypothesis (and its query, or timed out waiting for it): what deciding it
+/// needs, owned, so that it can be decided on another thread.
+pub struct ReadyFrame {
+    frame_id: u64,
+    frame: PendingFrame,
+    simulated: Option<SimulatedWork>,
+}
+
+/// A frame's decision, to be concluded by the stage ([`VerifyStage::conclude`]).
+pub struct DecidedFrame {
+    frame_id: u64,
+    frame: PendingFrame,
+    decision: Decision,
+    verify_ms: f64,
+}
+
+impl ReadyFrame {
+    pub fn frame_id(&self) -> u64 {
+        self.frame_id
+    }
+
+    /// The frame's decision (`core::frame::decide_frame`); needs no stage state, so any thread
+    /// with the mesh and a workspace can run it.
+    pub fn decide(
+        self,
+        mesh: &Mesh,
+        config: &RegistrationConfig,
+        workspace: &mut RefineWorkspace,
+    ) -> DecidedFrame {
+        let started = Instant::now();
+        let ReadyFrame {
+            frame_id,
+            frame,
+            simulated,
+        } = self;
+        if let Some(work) = simulated {
+            spend_ms(work.verify_frame_ms);
+        }
+        let outcomes: Vec<CoarseOutcome> = frame
+            .hypotheses
+            .values()
+            .map(|h| h.outcome.clone())
+            .collect();
+        let decision = decide_frame(
+            mesh,
+            &frame.camera,
+            &outcomes,
+            frame.query.as_ref().map(|query| query.view()),
+            frame.intrinsics,
+            config,
+            workspace,
+        );
+        DecidedFrame {
+            frame_id,
+            frame,
+            decision,
+            verify_ms: elapsed_ms(started),
+        }
+    }
 }
 
 impl<'m> VerifyStage<'m> {
@@ -145,7 +216,33 @@ impl<'m> VerifyStage<'m> {
             registered_views: BTreeMap::new(),
             stereo_waiting: BTreeSet::new(),
             change_work: Vec::new(),
+            deferred: false,
+            ready: Vec::new(),
+            deciding: BTreeSet::new(),
+            simulated: None,
         }
+    }
+
+    /// Complete frames are not decided at once but wait for [`VerifyStage::take_ready`] (the
+    /// runtime decides them on several threads and concludes each with
+    /// [`VerifyStage::conclude`]); a frame still counts as pending until concluded.
+    pub fn with_deferred_decisions(mut self) -> Self {
+        self.deferred = true;
+        self
+    }
+
+    /// Sleeps the given time per frame's decision (simulated pipeline).
+    pub fn with_simulated_work(mut self, work: Option<SimulatedWork>) -> Self {
+        self.simulated = work;
+        self
+    }
+
+    /// The complete frames waiting to be decided (deferred decisions); each must come back to
+    /// [`VerifyStage::conclude`].
+    pub fn take_ready(&mut self) -> Vec<ReadyFrame> {
+        let ready = std::mem::take(&mut self.ready);
+        self.deciding.extend(ready.iter().map(|r| r.frame_id));
+        ready
     }
 
     /// Makes every decided frame also give its change work (`change_work`). A frame without a
@@ -309,6 +406,13 @@ impl<'m> VerifyStage<'m> {
         frame_id < self.finished_below || self.finished_above.contains(&frame_id)
     }
 
+    /// Finished, or complete and waiting for (or in) its decision: later messages are late.
+    fn is_taken(&self, frame_id: u64) -> bool {
+        self.is_finished(frame_id)
+            || self.deciding.contains(&frame_id)
+            || self.ready.iter().any(|r| r.frame_id == frame_id)
+    }
+
     fn mark_finished(&mut self, frame_id: u64) {
         self.pending.remove(&frame_id);
         self.finished_above.insert(frame_id);
@@ -317,14 +421,14 @@ impl<'m> VerifyStage<'m> {
         }
     }
 
-    /// Frames still waiting for hypotheses.
+    /// Frames still waiting for hypotheses or for their decision.
     pub fn pending_frames(&self) -> usize {
-        self.pending.len()
+        self.pending.len() + self.ready.len() + self.deciding.len()
     }
 
     /// One coarse pose's hypothesis; returns the frame's result when it was the last thing missing.
     pub fn on_hypothesis(&mut self, frame_id: u64, hypothesis: Hypothesis) -> Option<PoseResult> {
-        if self.is_finished(frame_id) {
+        if self.is_taken(frame_id) {
             self.late_messages += 1;
             return None;
         }
@@ -346,7 +450,7 @@ impl<'m> VerifyStage<'m> {
 
     /// The frame's query; returns the frame's result when it was the last thing missing.
     pub fn on_query(&mut self, frame_id: u64, query: &FrameQuery) -> Option<PoseResult> {
-        if self.is_finished(frame_id) {
+        if self.is_taken(frame_id) {
             self.late_messages += 1;
             return None;
         }
@@ -392,14 +496,12 @@ impl<'m> VerifyStage<'m> {
             return None;
         }
         let pending = self.pending.remove(&frame_id)?;
-        let result = self.decide(frame_id, pending);
-        self.mark_finished(frame_id);
-        Some(result)
+        self.decide(frame_id, pending)
     }
 
     /// A stage gave up on the frame: its result is that failure (unless it already has one).
     pub fn on_failure(&mut self, frame_id: u64, failure: &FrameFailed) -> Option<PoseResult> {
-        if self.is_finished(frame_id) {
+        if self.is_taken(frame_id) {
             self.late_messages += 1;
             return None;
         }
@@ -439,29 +541,29 @@ impl<'m> VerifyStage<'m> {
             };
             if frame.has_every_hypothesis() {
                 // Only the query is missing: decided without the final refinement.
-                results.push(self.decide(frame_id, frame));
-            } else {
-                let coarse_count = frame.coarse_count.unwrap_or(0);
-                let missing: Vec<String> = (0..coarse_count)
-                    .filter(|i| !frame.hypotheses.contains_key(i))
-                    .map(|i| i.to_string())
-                    .collect();
-                let waited_for = if frame.coarse_count.is_some() {
-                    format!("coarse poses {} of {coarse_count}", missing.join(", "))
-                } else {
-                    "every coarse pose".to_string()
-                };
-                let result = failed_result(
-                    frame_id,
-                    &frame.name,
-                    format!(
-                        "verify: timed out after {:.0} s waiting for {waited_for} (a stage lost them; see its log)",
-                        self.frame_timeout.as_secs_f64(),
-                    ),
-                );
-                self.queue_change_work(&result, None);
-                results.push(result);
+                results.extend(self.decide(frame_id, frame));
+                continue;
             }
+            let coarse_count = frame.coarse_count.unwrap_or(0);
+            let missing: Vec<String> = (0..coarse_count)
+                .filter(|i| !frame.hypotheses.contains_key(i))
+                .map(|i| i.to_string())
+                .collect();
+            let waited_for = if frame.coarse_count.is_some() {
+                format!("coarse poses {} of {coarse_count}", missing.join(", "))
+            } else {
+                "every coarse pose".to_string()
+            };
+            let result = failed_result(
+                frame_id,
+                &frame.name,
+                format!(
+                    "verify: timed out after {:.0} s waiting for {waited_for} (a stage lost them; see its log)",
+                    self.frame_timeout.as_secs_f64(),
+                ),
+            );
+            self.queue_change_work(&result, None);
+            results.push(result);
             self.mark_finished(frame_id);
         }
         results
@@ -469,30 +571,44 @@ impl<'m> VerifyStage<'m> {
 
     /// When the source has ended and every frame has its result: the frame count.
     pub fn stream_complete(&self) -> Option<u64> {
-        self.stream_frame_count
-            .filter(|&count| self.finished_below >= count && self.pending.is_empty())
+        self.stream_frame_count.filter(|&count| {
+            self.finished_below >= count
+                && self.pending.is_empty()
+                && self.ready.is_empty()
+                && self.deciding.is_empty()
+        })
     }
 
-    fn decide(&mut self, frame_id: u64, frame: PendingFrame) -> PoseResult {
-        let started = Instant::now();
-        let outcomes: Vec<CoarseOutcome> = frame
-            .hypotheses
-            .values()
-            .map(|h| h.outcome.clone())
-            .collect();
-        let Decision {
-            verdict,
-            refinement,
-            ..
-        } = decide_frame(
-            self.mesh,
-            &frame.camera,
-            &outcomes,
-            frame.query.as_ref().map(|query| query.view()),
-            frame.intrinsics,
-            &self.config,
-            &mut self.refine_workspace,
-        );
+    /// A complete frame: decided now, or (deferred decisions) queued for `take_ready`.
+    fn decide(&mut self, frame_id: u64, frame: PendingFrame) -> Option<PoseResult> {
+        let ready = ReadyFrame {
+            frame_id,
+            frame,
+            simulated: self.simulated,
+        };
+        if self.deferred {
+            self.ready.push(ready);
+            return None;
+        }
+        let decided = ready.decide(self.mesh, &self.config, &mut self.refine_workspace);
+        Some(self.conclude(decided))
+    }
+
+    /// A decided frame's one result (and its change work); the frame is finished.
+    pub fn conclude(&mut self, decided: DecidedFrame) -> PoseResult {
+        let DecidedFrame {
+            frame_id,
+            frame,
+            decision:
+                Decision {
+                    verdict,
+                    refinement,
+                    ..
+                },
+            verify_ms,
+        } = decided;
+        self.deciding.remove(&frame_id);
+        self.mark_finished(frame_id);
         if let Err(why) = &refinement {
             tracing::debug!(
                 "frame {frame_id} '{}': no final refinement: {why}",
@@ -508,7 +624,7 @@ impl<'m> VerifyStage<'m> {
             times.flow_ms += hypothesis.flow_ms;
             times.pose_ms += hypothesis.pose_ms;
         }
-        times.verify_ms = elapsed_ms(started);
+        times.verify_ms = verify_ms;
         let registered = accepted.map(|h| (h.camera, h.cam_from_world));
         let result = PoseResult {
             frame_id,

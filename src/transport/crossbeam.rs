@@ -95,6 +95,26 @@ impl Publisher for CrossbeamPublisher {
         }
     }
 
+    fn send_lossy(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
+        super::check_message_size(BACKEND, &self.topic, bytes.len(), self.max_message_bytes)?;
+        let senders: Vec<Sender<Vec<u8>>> = self
+            .subscribers
+            .lock()
+            .map_err(|_| TransportError::Send {
+                backend: BACKEND,
+                topic: self.topic.clone(),
+                detail: "the topic registry is poisoned (a stage thread panicked)".to_string(),
+            })?
+            .get(&self.topic)
+            .cloned()
+            .unwrap_or_default();
+        for sender in senders {
+            // A full or dropped subscriber misses this message; nobody waits.
+            let _ = sender.try_send(bytes.to_vec());
+        }
+        Ok(())
+    }
+
     fn send_with(
         &mut self,
         len: usize,

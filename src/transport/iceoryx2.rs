@@ -75,11 +75,12 @@ use super::{keys, Publisher, Subscriber, Transport, TransportConfig, TransportEr
 
 const BACKEND: &str = "iceoryx2";
 
-/// Publishers one topic supports: a dispatched link's credits topic has one per worker.
-pub const MAX_PUBLISHERS: usize = 16;
+/// Publishers one topic supports: a dispatched link's credits topic has one per worker, and
+/// every stage worker publishes metrics (64 flow workers with the other stages need > 64).
+pub const MAX_PUBLISHERS: usize = 128;
 /// Subscribers one topic supports: results and metrics have a few monitors besides the pipeline.
 /// Each costs every publisher of the topic `queue_depth + 1` reserved (sparse) samples.
-pub const MAX_SUBSCRIBERS: usize = 16;
+pub const MAX_SUBSCRIBERS: usize = 128;
 /// Every port has its own node, so a service sees at most one node per port.
 const MAX_NODES: usize = MAX_PUBLISHERS + MAX_SUBSCRIBERS;
 /// Samples a subscriber holds at once: `receive` lends one and drops it before returning.

@@ -41,6 +41,20 @@ pub const FRAMES_LINK: &str = "frames";
 /// The dispatched link render → flow workers ((frame, coarse pose) jobs).
 pub const FLOW_LINK: &str = "flow";
 
+/// The dispatched link of render worker `render_index` to its flow workers: with several render
+/// workers each has its own link (`flow`, `flow/r1`, `flow/r2`, ...), and flow worker `w` serves
+/// render worker `w % render_workers` ([`flow_link_of_worker`]).
+pub fn flow_link(render_index: u32) -> String {
+    if render_index == 0 {
+        FLOW_LINK.to_string()
+    } else {
+        format!("{FLOW_LINK}/r{render_index}")
+    }
+}
+/// The flow link flow worker `flow_worker` serves when there are `render_workers` render workers.
+pub fn flow_link_of_worker(flow_worker: u32, render_workers: u32) -> String {
+    flow_link(flow_worker % render_workers.max(1))
+}
 /// The dispatched link verify → change workers (one job per accepted frame).
 pub const CHANGE_LINK: &str = "change";
 
@@ -76,5 +90,12 @@ mod tests {
         assert_eq!(pipeline_wildcard("gs1"), "asgreg/v5/gs1/**");
         assert_eq!(key("gs1", RESULTS_ACK), "asgreg/v5/gs1/results/ack");
         assert_eq!(key("gs1", CHANGES_ACK), "asgreg/v5/gs1/changes/ack");
+        assert_eq!(flow_link(0), FLOW_LINK);
+        assert_eq!(
+            key("gs1", &jobs(&flow_link(2), 5)),
+            "asgreg/v5/gs1/flow/r2/jobs/5"
+        );
+        assert_eq!(flow_link_of_worker(5, 2), flow_link(1));
+        assert_eq!(flow_link_of_worker(5, 1), FLOW_LINK);
     }
 }

@@ -125,6 +125,12 @@ pub trait Publisher {
     fn send(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
         self.send_with(bytes.len(), &mut |buffer| buffer.copy_from_slice(bytes))
     }
+    /// Sends best effort (metrics): never waits for a full subscriber queue; a subscriber whose
+    /// queue is full misses the message. The default is `send` (iceoryx2 and zenoh never wait
+    /// here); crossbeam, whose `send` blocks a full queue, overrides it.
+    fn send_lossy(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
+        self.send(bytes)
+    }
 }
 
 /// One side that receives from a topic.

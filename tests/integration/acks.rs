@@ -39,7 +39,7 @@ fn launch_with_router_kills(
             "synthetic_scene = \"{}\"\nbackend = \"zenoh\"\nstate_dir = \"{}\"\n\n\
              [source]\nrate_hz = 10.0\n\n\
              [transport]\npipeline = \"it-ack-{}\"\n\n\
-             [workers]\nflow = 2\nchange = 0\n\n\
+             [workers]\nflow = 2\nchange = 0\nverify_threads = 2\n\n\
              [zenoh]\nmode = \"client\"\nconnect = [\"tcp/127.0.0.1:{port}\"]\n\n\
              [timeouts]\nframe_timeout_s = 1.5\nworker_silence_s = 8.0\nresend_after_s = {resend_after_s}\n\n\
              [launch]\nzenoh_router_listen = [\"tcp/127.0.0.1:{port}\"]\nmax_restarts = 30\nrestart_window_s = 60.0\ndeadline_s = 150.0\n\n\
