@@ -9,13 +9,15 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{bail, Context};
-use asgreg::io::mesh_file::read_mesh;
+use asgreg::io::mesh_file::{check_mesh_fits, read_mesh, read_mesh_within};
+use asgreg::io::output::prepare_output_dir;
 use asgreg::msg::{ChangeResult, ChangeSet, Header, PoseResult};
 use asgreg::runtime::collect::{summary, Collected, Delivered};
 use asgreg::runtime::config::PipelineConfig;
+use asgreg::runtime::journal;
 use asgreg::runtime::launch::{absolute, launch, start_router, StageCommand};
 use asgreg::runtime::nodes::{self, NodeContext};
-use asgreg::runtime::run_in_process;
+use asgreg::runtime::{run_in_process, run_state_parent};
 use asgreg::stage::ingest::SourceConfig;
 use asgreg::transport::{self, Backend};
 
@@ -42,6 +44,10 @@ pub struct RunArgs {
     /// Frames of the embedded default scene.
     #[arg(long, default_value_t = 8)]
     pub frames: usize,
+    /// Refuse a mesh that would take more memory than this to load (MiB), judged from its
+    /// header before any stage starts (over the configuration's `max_mesh_mib`).
+    #[arg(long, value_name = "MIB")]
+    pub max_mesh_mib: Option<u64>,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -82,6 +88,10 @@ pub struct StageArgs {
     /// Worker index among the stage's workers (0-based).
     #[arg(long, default_value_t = 0)]
     pub worker: u32,
+    /// Refuse a mesh that would take more memory than this to load (MiB), over the
+    /// configuration's `max_mesh_mib` (`launch` passes its own).
+    #[arg(long, value_name = "MIB")]
+    pub max_mesh_mib: Option<u64>,
 }
 
 #[derive(clap::Args, Debug)]
@@ -91,6 +101,11 @@ pub struct LaunchArgs {
     /// Where results.jsonl and summary.txt go.
     #[arg(long, default_value = "asgreg-launch")]
     pub out: PathBuf,
+    /// Refuse a mesh that would take more memory than this to load (MiB), judged from its
+    /// header before any stage starts (over the configuration's `max_mesh_mib`; the stages get
+    /// it too).
+    #[arg(long, value_name = "MIB")]
+    pub max_mesh_mib: Option<u64>,
 }
 
 #[derive(clap::Args, Debug)]
@@ -412,14 +427,29 @@ fn ensure_synthetic_scene(config: &PipelineConfig, frames: usize) -> anyhow::Res
     Ok(())
 }
 
+/// The environment of a pipeline run, checked before any stage starts (a station that would
+/// find out an hour in, or leave stages crash-looping, learns it in a second): the output folder
+/// and the state folder (`state`) can be written. Each error is one line naming the folder and
+/// what to do.
+fn check_folders(out: &Path, state: &Path) -> anyhow::Result<()> {
+    prepare_output_dir(out)?;
+    journal::prepare_state_dir(state)?;
+    Ok(())
+}
+
+/// The mesh fits the memory limit (`max_mesh_mib`), judged from its header before any stage
+/// loads it.
+fn check_mesh_limit(config: &PipelineConfig) -> anyhow::Result<()> {
+    if let Some(limit_mib) = config.max_mesh_mib {
+        check_mesh_fits(&config.mesh, limit_mib)?;
+    }
+    Ok(())
+}
+
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let mut config = match &args.config {
-        Some(path) => {
-            let config = PipelineConfig::read(path)?;
-            ensure_synthetic_scene(&config, args.frames)?;
-            config
-        }
-        None => scene_config(&default_scene(&args.out, args.frames)?),
+        Some(path) => PipelineConfig::read(path)?,
+        None => scene_config(&args.out.join("scene")),
     };
     if let Some(backend) = args.backend {
         config.backend = backend.into();
@@ -430,7 +460,18 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     if let Some(change) = args.change_workers {
         config.workers.change = change;
     }
+    if let Some(limit_mib) = args.max_mesh_mib {
+        config.max_mesh_mib = Some(limit_mib);
+    }
     config.validate(args.config.as_deref().unwrap_or(Path::new("(defaults)")))?;
+    check_folders(&args.out, &run_state_parent(&config))?;
+    match &args.config {
+        Some(_) => ensure_synthetic_scene(&config, args.frames)?,
+        None => {
+            default_scene(&args.out, args.frames)?;
+        }
+    }
+    check_mesh_limit(&config)?;
     let mesh = read_mesh(&config.mesh)?;
     let transport = transport::open(config.backend, &config.transport, &config.zenoh)?;
     let change_stages = if config.changes_enabled() {
@@ -472,7 +513,10 @@ pub fn stage(args: &StageArgs) -> anyhow::Result<()> {
         StageName::Render | StageName::Flow | StageName::Verify | StageName::Change
     );
     let mesh = if needs_mesh {
-        Some(read_mesh(&config.mesh)?)
+        Some(read_mesh_within(
+            &config.mesh,
+            args.max_mesh_mib.or(config.max_mesh_mib),
+        )?)
     } else {
         None
     };
@@ -496,8 +540,13 @@ pub fn stage(args: &StageArgs) -> anyhow::Result<()> {
 }
 
 pub fn launch_command(args: &LaunchArgs, verbose: u8) -> anyhow::Result<()> {
-    let config = PipelineConfig::read(&args.config)?;
+    let mut config = PipelineConfig::read(&args.config)?;
+    if let Some(limit_mib) = args.max_mesh_mib {
+        config.max_mesh_mib = Some(limit_mib);
+    }
+    check_folders(&args.out, &journal::state_dir(&config))?;
     ensure_synthetic_scene(&config, 8)?;
+    check_mesh_limit(&config)?;
     let collected = launch_pipeline(
         &config,
         &args.config,
@@ -537,6 +586,11 @@ pub(super) fn launch_pipeline(
         program,
         config_path: absolute(config_path),
         global_args: (0..verbose).map(|_| "-v".to_string()).collect(),
+        // The stages check the limit the launcher was given (its own, or the file's).
+        stage_args: config
+            .max_mesh_mib
+            .map(|limit_mib| vec!["--max-mesh-mib".to_string(), limit_mib.to_string()])
+            .unwrap_or_default(),
     };
     let mut router = start_router(config, &command)?;
     if let Some(router) = &router {

@@ -58,7 +58,7 @@ pub enum MeshIoError {
     },
     /// Loading the mesh would take more memory than the limit the user gave.
     #[error(
-        "{}: the mesh needs about {needed_mib} MiB to load ({what}), more than the limit of {limit_mib} MiB; simplify or tile the mesh, or raise the limit (--max-mesh-mib)",
+        "{}: the mesh needs about {needed_mib} MiB to load ({what}), more than the limit of {limit_mib} MiB; simplify or tile the mesh, or raise the limit (--max-mesh-mib, or max_mesh_mib in a pipeline config)",
         .path.display()
     )]
     TooLarge {

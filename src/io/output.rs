@@ -4,14 +4,19 @@
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
-/// The output folder cannot be made or written.
+/// The output folder (or another folder a command writes, e.g. the pipeline's state folder)
+/// cannot be made or written.
 #[derive(Debug, thiserror::Error)]
-#[error("{}: the output folder cannot be {action}: {source}; choose another output folder, or fix its permissions or free space", .path.display())]
+#[error("{}: the {what} cannot be {action}: {source}; {remedy}", .path.display())]
 pub struct OutputDirError {
     pub path: PathBuf,
+    /// Which folder, in words ("output folder").
+    pub what: &'static str,
     pub action: &'static str,
     #[source]
     pub source: std::io::Error,
+    /// What to do about it.
+    pub remedy: &'static str,
 }
 
 /// Name of the probe file written (and removed) in the output folder.
@@ -22,10 +27,26 @@ const PROBE_FILE: &str = ".asgreg-write-probe";
 /// is flushed with `sync_all`); one that fills up later fails at the first output file, whose
 /// error names that file.
 pub fn prepare_output_dir(dir: &Path) -> Result<(), OutputDirError> {
+    prepare_dir(
+        dir,
+        "output folder",
+        "choose another output folder, or fix its permissions or free space",
+    )
+}
+
+/// [`prepare_output_dir`] for any folder a command must write: `what` names it in the error,
+/// `remedy` says what to do.
+pub fn prepare_dir(
+    dir: &Path,
+    what: &'static str,
+    remedy: &'static str,
+) -> Result<(), OutputDirError> {
     let error = |action, source| OutputDirError {
         path: dir.to_path_buf(),
+        what,
         action,
         source,
+        remedy,
     };
     std::fs::create_dir_all(dir).map_err(|source| error("created", source))?;
     let probe = dir.join(PROBE_FILE);

@@ -43,6 +43,10 @@ struct Pending {
     json: Arc<String>,
     next_at: Instant,
     interval: Duration,
+    /// Tracked due at once (a restarted publisher's journaled result, which a crash may have
+    /// kept from being published: the journal is written ahead): sent once even when
+    /// re-sending is off.
+    restored: bool,
 }
 
 /// What one re-send pass hands back to be sent again: frame id, message, JSON.
@@ -75,8 +79,25 @@ impl Resender {
     }
 
     /// Keeps a published result until it is acknowledged; its first re-send is due after
-    /// `due_in` (a restarted publisher's unacknowledged results: at once).
+    /// `due_in`.
     pub fn track(&mut self, frame_id: u64, message: Vec<u8>, json: String, due_in: Duration) {
+        self.insert(frame_id, message, json, due_in, false);
+    }
+
+    /// Keeps a restarted publisher's journaled, unacknowledged result, due at once (also when
+    /// re-sending is off: once, as the crash may have kept it from being published).
+    pub fn restore(&mut self, frame_id: u64, message: Vec<u8>, json: String) {
+        self.insert(frame_id, message, json, Duration::ZERO, true);
+    }
+
+    fn insert(
+        &mut self,
+        frame_id: u64,
+        message: Vec<u8>,
+        json: String,
+        due_in: Duration,
+        restored: bool,
+    ) {
         let now = Instant::now();
         self.pending.insert(
             frame_id,
@@ -85,6 +106,7 @@ impl Resender {
                 json: Arc::new(json),
                 next_at: now + due_in,
                 interval: self.first_after,
+                restored,
             },
         );
     }
@@ -119,17 +141,20 @@ impl Resender {
     }
 
     /// The results whose re-send is due at `now` (at most a batch; the wait before each one's
-    /// next re-send doubles, up to [`RESEND_MAX`]). None when re-sending is off.
+    /// next re-send doubles, up to [`RESEND_MAX`]). When re-sending is off: only the restored
+    /// ones, once.
     pub fn due(&mut self, now: Instant) -> Vec<Resend> {
-        if self.first_after.is_zero() {
-            return Vec::new();
-        }
+        let off = self.first_after.is_zero();
         let mut due = Vec::new();
         for (frame_id, pending) in &mut self.pending {
             if due.len() >= RESEND_BATCH {
                 break;
             }
+            if off && !pending.restored {
+                continue;
+            }
             if pending.next_at <= now {
+                pending.restored = false;
                 pending.interval = (pending.interval * 2).min(RESEND_MAX);
                 pending.next_at = now + pending.interval;
                 due.push((
@@ -215,7 +240,7 @@ mod tests {
         let mut acker = Acker::open(&transport, "results/ack").unwrap();
         let mut metrics = StageMetrics::default();
         resender.track(3, vec![1, 2, 3], "{}".to_string(), Duration::from_secs(2));
-        resender.track(5, vec![5], "{}".to_string(), Duration::ZERO);
+        resender.restore(5, vec![5], "{}".to_string());
         let start = Instant::now();
         // Not due yet: only the restored one (due at once).
         let due = resender.due(start);
@@ -246,9 +271,14 @@ mod tests {
                 .collect::<Vec<_>>(),
             vec![5]
         );
-        // Off: nothing is ever due.
+        // Off: a fresh result is never due; a restored one (journaled ahead, maybe never
+        // published) once.
         let mut off = Resender::open(&transport, "results/ack", "verify", Duration::ZERO).unwrap();
-        off.track(1, vec![1], String::new(), Duration::ZERO);
-        assert!(off.due(later).is_empty());
+        off.restore(1, vec![1], String::new());
+        off.restore(2, vec![2], String::new());
+        off.track(3, vec![3], String::new(), off.first_after());
+        let once: Vec<u64> = off.due(later).iter().map(|(id, ..)| *id).collect();
+        assert_eq!(once, vec![1, 2]);
+        assert!(off.due(later + Duration::from_secs(600)).is_empty());
     }
 }

@@ -25,6 +25,10 @@ pub struct PipelineConfig {
     pub synthetic_scene: Option<PathBuf>,
     /// Mesh file (PLY or OBJ) every stage that needs geometry loads.
     pub mesh: PathBuf,
+    /// Refuse a mesh that would take more memory than this to load (MiB), judged from its header
+    /// before loading it, as `register --max-mesh-mib` (which `run`, `launch` and `stage` take too,
+    /// over this). `run` and `launch` check it before any stage starts. Unset: no limit.
+    pub max_mesh_mib: Option<u64>,
     pub source: SourceConfig,
     /// Which transport moves the messages: crossbeam (one process), iceoryx2 (processes on one
     /// host) or zenoh (hosts).
@@ -45,7 +49,10 @@ pub struct PipelineConfig {
     /// Folder of the run's durable state: the results journal (`<pipeline>.results-journal`,
     /// the frames whose result is published), which a restarted ingest resumes from and a
     /// restarted verify reads so it publishes no result twice. Ingest and verify must see the
-    /// same folder (same host). Unset: `asgreg-state` in the system's temporary folder.
+    /// same folder (same host). Unset: `asgreg-state` in the system's temporary folder. `asgreg
+    /// run` keeps a folder of its own in it (unset: in the temporary folder), removed at the end.
+    /// `run` and `launch` check that it can be written before any stage starts; a journal that
+    /// cannot be written later (a full disk) fails each frame's result with the reason.
     pub state_dir: Option<PathBuf>,
     /// `asgreg bench pipeline --simulate`: every stage sleeps these per-job times instead of
     /// computing (the loops, dispatchers and transports are the real ones). Unset: real work.
@@ -57,6 +64,7 @@ impl Default for PipelineConfig {
         Self {
             synthetic_scene: None,
             mesh: PathBuf::new(),
+            max_mesh_mib: None,
             source: SourceConfig::default(),
             backend: Backend::Crossbeam,
             transport: TransportConfig::default(),

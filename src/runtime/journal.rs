@@ -15,11 +15,20 @@
 //! A restarted ingest reads the first two and resumes instead of replaying the source: it sends only the
 //! frames without a published result (with change detection: without both results).
 //! `asgreg launch` starts each run with empty journals and removes them when the run is complete;
-//! `asgreg run` (threads, which never restart) keeps its own in a temporary folder; stages
-//! started by hand continue the ones they find (delete them to start over). A line cut short by
-//! a crash is ignored. The one window left for a repeated result is a crash between publishing a
-//! result and appending its line (one `write` call). Appends are not fsync'ed: the journals
-//! survive a process crash, not a power cut.
+//! `asgreg run` (threads, which never restart) keeps its own in a folder of its own under
+//! `state_dir`; stages started by hand continue the ones they find (delete them to start over).
+//! A line cut short by a crash is ignored.
+//!
+//! The pose and change journals are written ahead: a result's line is appended before the
+//! result is published, so a crash between the two leaves a journaled result that the restarted
+//! verify or fusion sends (the same bytes: a re-delivery, never a second result). When the line
+//! cannot be written (a full disk, a state folder gone read-only), the frame's result becomes a
+//! failed one whose reason names the journal and the cause (a result the station cannot record is
+//! not given out as accepted); the stage goes on, and a journal that cannot even be opened is
+//! tried again at each append ([`Journal::open_or_retry`]), so a full disk never makes a stage
+//! crash-loop and the journal resumes once there is room. A line cut short by a failed write is
+//! cut off again. Appends are not fsync'ed: the journals survive a process crash, not a power
+//! cut.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -29,7 +38,7 @@ use super::config::PipelineConfig;
 
 #[derive(Debug, thiserror::Error)]
 pub enum JournalError {
-    #[error("{path}: cannot {action} the results journal: {source} (set `state_dir` in the pipeline config to a writable folder)")]
+    #[error("{path}: cannot {action} the results journal: {source} (free space there, or set `state_dir` in the pipeline config to a writable folder)")]
     Io {
         path: PathBuf,
         action: &'static str,
@@ -78,13 +87,28 @@ pub fn header(config: &PipelineConfig, kind: Kind) -> String {
     )
 }
 
-/// Where a configuration keeps its journal of `kind`.
-pub fn path(config: &PipelineConfig, kind: Kind) -> PathBuf {
-    let dir = config
+/// The folder of a configuration's journals: `state_dir`, or `asgreg-state` in the system's
+/// temporary folder.
+pub fn state_dir(config: &PipelineConfig) -> PathBuf {
+    config
         .state_dir
         .clone()
-        .unwrap_or_else(|| std::env::temp_dir().join("asgreg-state"));
-    dir.join(format!(
+        .unwrap_or_else(|| std::env::temp_dir().join("asgreg-state"))
+}
+
+/// Proves, before a run, that `dir` (a state folder) can be made and written; the error names
+/// it and says what to do.
+pub fn prepare_state_dir(dir: &Path) -> Result<(), crate::io::output::OutputDirError> {
+    crate::io::output::prepare_dir(
+        dir,
+        "state folder (the results journals)",
+        "set `state_dir` in the pipeline config to a writable folder, or fix its permissions or free space",
+    )
+}
+
+/// Where a configuration keeps its journal of `kind`.
+pub fn path(config: &PipelineConfig, kind: Kind) -> PathBuf {
+    state_dir(config).join(format!(
         "{}.{}",
         config.transport.pipeline,
         kind.file_suffix()
@@ -133,26 +157,51 @@ fn parse(text: &str, header: &str) -> Option<BTreeMap<u64, String>> {
     Some(entries)
 }
 
+/// The text of an open journal, at most its length when opened: a path that is not a regular
+/// file (e.g. `/dev/full`, which reads as endless zeros) reads as empty instead of forever.
+fn read_text(file: &mut std::fs::File) -> std::io::Result<String> {
+    let metadata = file.metadata()?;
+    let length = if metadata.is_file() {
+        metadata.len()
+    } else {
+        0
+    };
+    let mut text = String::new();
+    file.take(length).read_to_string(&mut text)?;
+    Ok(text)
+}
+
+/// The frames a journal at `path` lists under `header`, with their payloads; empty when there is
+/// no journal or it belongs to another run.
+pub fn read_entries(path: &Path, header: &str) -> Result<BTreeMap<u64, String>, JournalError> {
+    let io = |action: &'static str| {
+        move |source| JournalError::Io {
+            path: path.to_path_buf(),
+            action,
+            source,
+        }
+    };
+    let mut file = match std::fs::File::open(path) {
+        Ok(file) => file,
+        Err(error) if error.kind() == std::io::ErrorKind::NotFound => return Ok(BTreeMap::new()),
+        Err(source) => return Err(io("read")(source)),
+    };
+    let text = read_text(&mut file).map_err(io("read"))?;
+    Ok(parse(&text, header).unwrap_or_default())
+}
+
 /// The frames that have a published result, as the journal at `path` says (ingest's view);
 /// empty when there is no journal or it belongs to another run.
 pub fn read_published(path: &Path, header: &str) -> Result<BTreeSet<u64>, JournalError> {
-    match std::fs::read_to_string(path) {
-        Ok(text) => Ok(parse(&text, header)
-            .map(|entries| entries.into_keys().collect())
-            .unwrap_or_default()),
-        Err(error) if error.kind() == std::io::ErrorKind::NotFound => Ok(BTreeSet::new()),
-        Err(source) => Err(JournalError::Io {
-            path: path.to_path_buf(),
-            action: "read",
-            source,
-        }),
-    }
+    Ok(read_entries(path, header)?.into_keys().collect())
 }
 
 /// The writer's side (verify for poses, fusion for change results).
 pub struct Journal {
     path: PathBuf,
-    file: std::fs::File,
+    header: String,
+    /// `None` while the journal cannot be opened: the next append tries again.
+    file: Option<std::fs::File>,
 }
 
 impl Journal {
@@ -168,6 +217,43 @@ impl Journal {
         path: &Path,
         header: &str,
     ) -> Result<(Self, BTreeMap<u64, String>), JournalError> {
+        let (file, entries) = Self::open_file(path, header)?;
+        Ok((
+            Self {
+                path: path.to_path_buf(),
+                header: header.to_string(),
+                file: Some(file),
+            },
+            entries,
+        ))
+    }
+
+    /// As [`Journal::open_with_payloads`], but a journal that cannot be opened (a full disk, a
+    /// read-only state folder) is no error that stops the stage: the entries are read as far as
+    /// they can be, the error is returned beside them, and each append tries to open it again
+    /// (and fails with the cause while it cannot).
+    pub fn open_or_retry(
+        path: &Path,
+        header: &str,
+    ) -> (Self, BTreeMap<u64, String>, Option<JournalError>) {
+        match Self::open_with_payloads(path, header) {
+            Ok((journal, entries)) => (journal, entries, None),
+            Err(error) => {
+                let entries = read_entries(path, header).unwrap_or_default();
+                let journal = Self {
+                    path: path.to_path_buf(),
+                    header: header.to_string(),
+                    file: None,
+                };
+                (journal, entries, Some(error))
+            }
+        }
+    }
+
+    fn open_file(
+        path: &Path,
+        header: &str,
+    ) -> Result<(std::fs::File, BTreeMap<u64, String>), JournalError> {
         let io = |action: &'static str| {
             move |source| JournalError::Io {
                 path: path.to_path_buf(),
@@ -184,8 +270,7 @@ impl Journal {
             .create(true)
             .open(path)
             .map_err(io("open"))?;
-        let mut text = String::new();
-        file.read_to_string(&mut text).map_err(io("read"))?;
+        let text = read_text(&mut file).map_err(io("read"))?;
         let published = match parse(&text, header) {
             Some(published) => {
                 // Finish a line cut short by a crash, so the next id starts a line of its own.
@@ -200,21 +285,15 @@ impl Journal {
                         "{}: results journal of another run (header differs); starting it over",
                         path.display()
                     );
+                    file.set_len(0).map_err(io("truncate"))?;
+                    file.seek(SeekFrom::Start(0)).map_err(io("rewind"))?;
                 }
-                file.set_len(0).map_err(io("truncate"))?;
-                file.seek(SeekFrom::Start(0)).map_err(io("rewind"))?;
                 file.write_all(format!("{header}\n").as_bytes())
                     .map_err(io("write"))?;
                 BTreeMap::new()
             }
         };
-        Ok((
-            Self {
-                path: path.to_path_buf(),
-                file,
-            },
-            published,
-        ))
+        Ok((file, published))
     }
 
     /// Records that `frame_id`'s result is published (one `write` call).
@@ -223,20 +302,35 @@ impl Journal {
     }
 
     /// Records that `frame_id`'s result is published, with `payload` (no spaces or newlines:
-    /// e.g. hex) that a restart gets back from [`Journal::open_with_payloads`].
+    /// e.g. hex) that a restart gets back from [`Journal::open_with_payloads`]. A journal that
+    /// could not be opened is opened first; a line only partly written (a disk that filled
+    /// mid-line) is cut off again, so the next line starts clean.
     pub fn append_with(&mut self, frame_id: u64, payload: &str) -> Result<(), JournalError> {
+        let file = match &mut self.file {
+            Some(file) => file,
+            None => {
+                let (file, _) = Self::open_file(&self.path, &self.header)?;
+                self.file.insert(file)
+            }
+        };
         let line = if payload.is_empty() {
             format!("{frame_id}\n")
         } else {
             format!("{frame_id} {payload}\n")
         };
-        self.file
-            .write_all(line.as_bytes())
-            .map_err(|source| JournalError::Io {
+        let length_before = file.metadata().map(|m| m.len()).ok();
+        file.write_all(line.as_bytes()).map_err(|source| {
+            if let Some(length) = length_before {
+                // Shrinking needs no free space; on a file that cannot be cut (a device) the
+                // partial line stays, and a reader leaves out what does not parse.
+                let _ = file.set_len(length);
+            }
+            JournalError::Io {
                 path: self.path.clone(),
                 action: "append to",
                 source,
-            })
+            }
+        })
     }
 
     pub fn path(&self) -> &Path {

@@ -81,6 +81,8 @@ pub struct StageCommand {
     pub config_path: PathBuf,
     /// Extra arguments before the subcommand (e.g. `-v`).
     pub global_args: Vec<String>,
+    /// Extra arguments of `asgreg stage` (e.g. `--max-mesh-mib 512`).
+    pub stage_args: Vec<String>,
 }
 
 /// The name the router goes by among the supervised processes (logs, `on_started`).
@@ -115,6 +117,7 @@ impl StageCommand {
             .arg(&self.config_path)
             .arg("--worker")
             .arg(worker.to_string())
+            .args(&self.stage_args)
             .spawn()
             .map_err(|error| {
                 RuntimeError::Launch(format!(

@@ -56,9 +56,10 @@ pub fn run_in_process(
     on_result: &mut dyn FnMut(Delivered<'_>),
 ) -> Result<Collected, RuntimeError> {
     // Threads do not restart, so nothing resumes: the run keeps its results journal in a folder
-    // of its own (never shared with another run of the same pipeline name), removed at the end.
+    // of its own (never shared with another run of the same pipeline name) under `state_dir`
+    // (unset: the temporary folder), removed at the end.
     let mut config = config.clone();
-    let state_dir = std::env::temp_dir().join(format!(
+    let state_dir = run_state_parent(&config).join(format!(
         "asgreg-run-{}-{}",
         std::process::id(),
         bus::unix_time_ns()
@@ -71,6 +72,12 @@ pub fn run_in_process(
         }
     }
     collected
+}
+
+/// The folder `run_in_process` makes its own state folder in (check it with
+/// [`journal::prepare_state_dir`] before a run).
+pub fn run_state_parent(config: &PipelineConfig) -> std::path::PathBuf {
+    config.state_dir.clone().unwrap_or_else(std::env::temp_dir)
 }
 
 /// Every stage as a thread, continuing the results journal as it is (the frames it lists are

@@ -1053,14 +1053,10 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         "verify",
         Duration::from_secs_f64(config.timeouts.resend_after_s),
     )?;
-    let (mut journal, journaled) = Journal::open_with_payloads(
-        &journal::path(config, journal::Kind::Pose),
-        &journal::header(config, journal::Kind::Pose),
-    )?;
-    let mut acks = AckJournal::open(config, journal::Kind::PoseAcked, "verify")?;
+    let (mut journal, journaled, mut health) = open_journal(config, journal::Kind::Pose, "verify");
+    let mut acks = AckJournal::open(config, journal::Kind::PoseAcked, "verify");
     let mut published: std::collections::BTreeSet<u64> = journaled.keys().copied().collect();
     restore_unacked(&mut results_ack, &journaled, &acks, journal.path());
-    let mut journal_failed = false;
     // With verify_threads > 1: complete frames are decided by a pool of threads (each with its
     // own refinement workspace) and concluded here, one result per frame as before.
     let (ready_tx, ready_rx) = std::sync::mpsc::channel::<ReadyFrame>();
@@ -1152,22 +1148,26 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                     capture_time_ns: capture,
                     sent_time_ns: unix_time_ns(),
                 };
-                let json = pose_result_json(&header, &result);
                 let frame_id = result.frame_id;
-                // Encoded once: the bytes published, journaled and (until acknowledged) sent again.
-                let bytes = encode_to_vec(frame_id, capture, Body::PoseResult(result))?;
+                // Encoded once: the bytes journaled, published and (until acknowledged) sent again.
+                let mut json = pose_result_json(&header, &result);
+                let mut bytes = encode_to_vec(frame_id, capture, Body::PoseResult(result.clone()))?;
+                // Written ahead (runtime::journal): a result the station cannot record is not
+                // given out as it is; the frame's one result is failed, naming the journal and why.
+                let written = journal.append_with(frame_id, &journal::to_hex(&bytes));
+                health.report(frame_id, &written);
+                if let Err(error) = written {
+                    let failed = stage.withdraw(result, &format!("verify: {error}"));
+                    json = pose_result_json(&header, &failed);
+                    bytes = encode_to_vec(frame_id, capture, Body::PoseResult(failed))?;
+                    // Best effort (the disk may have room for a shorter line): journaled, a
+                    // restart knows the frame has its result.
+                    let _ = journal.append_with(frame_id, &journal::to_hex(&bytes));
+                }
                 acks.take(&mut results_ack, &mut metrics)?;
                 results.send_encoded(&bytes, &mut metrics)?;
                 results_json.send_raw(json.as_bytes())?;
                 published.insert(frame_id);
-                // The result is out; the journal only helps a restart, so a failure to write it
-                // is reported once and the stage goes on.
-                if let Err(error) = journal.append_with(frame_id, &journal::to_hex(&bytes)) {
-                    if !journal_failed {
-                        tracing::error!("verify: {error}; a restart may publish results again");
-                        journal_failed = true;
-                    }
-                }
                 let first_after = results_ack.first_after();
                 results_ack.track(frame_id, bytes, json, first_after);
             }
@@ -1290,19 +1290,19 @@ struct AckJournal {
 }
 
 impl AckJournal {
-    fn open(
-        config: &PipelineConfig,
-        kind: journal::Kind,
-        stage: &'static str,
-    ) -> Result<Self, NodeError> {
-        let (journal, acked) =
-            Journal::open(&journal::path(config, kind), &journal::header(config, kind))?;
-        Ok(Self {
+    /// Never fails: a journal that cannot be opened is tried again at each append.
+    fn open(config: &PipelineConfig, kind: journal::Kind, stage: &'static str) -> Self {
+        let path = journal::path(config, kind);
+        let (journal, acked, error) = Journal::open_or_retry(&path, &journal::header(config, kind));
+        if let Some(error) = &error {
+            tracing::error!("{stage}: {error}; a restart sends acknowledged results again");
+        }
+        Self {
             journal,
-            acked,
+            acked: acked.into_keys().collect(),
             stage,
-            failed: false,
-        })
+            failed: error.is_some(),
+        }
     }
 
     /// Takes the acks that arrived at `resender` and journals them (a failure to write is
@@ -1326,6 +1326,59 @@ impl AckJournal {
         }
         Ok(())
     }
+}
+
+/// Whether a stage's results journal is being written, for its log: the first failure is an
+/// error, each further frame a warning, a recovery news.
+struct JournalHealth {
+    stage: &'static str,
+    failing: bool,
+}
+
+impl JournalHealth {
+    fn report(&mut self, frame_id: u64, written: &Result<(), JournalError>) {
+        match written {
+            Ok(()) if self.failing => {
+                tracing::info!("{}: the results journal is written again", self.stage);
+                self.failing = false;
+            }
+            Ok(()) => {}
+            Err(error) if !self.failing => {
+                tracing::error!(
+                    "{}: {error}; frame {frame_id} and every frame until it can be written get a failed result saying so",
+                    self.stage
+                );
+                self.failing = true;
+            }
+            Err(error) => tracing::warn!("{}: frame {frame_id}: {error}", self.stage),
+        }
+    }
+}
+
+/// A stage's results journal (pose: verify; change: fusion) and what it lists. A journal that
+/// cannot be opened stops nothing (a stage that failed here would only be restarted into the
+/// same failure): the stage starts, and each result fails with the reason until it can be written.
+fn open_journal(
+    config: &PipelineConfig,
+    kind: journal::Kind,
+    stage: &'static str,
+) -> (
+    Journal,
+    std::collections::BTreeMap<u64, String>,
+    JournalHealth,
+) {
+    let (journal, journaled, error) =
+        Journal::open_or_retry(&journal::path(config, kind), &journal::header(config, kind));
+    if let Some(error) = &error {
+        tracing::error!(
+            "{stage}: {error}; every frame gets a failed result saying so until it can be written"
+        );
+    }
+    let health = JournalHealth {
+        stage,
+        failing: error.is_some(),
+    };
+    (journal, journaled, health)
 }
 
 /// A journaled result message (PoseResult or ChangeResult of `frame_id`) back: its bytes, sent
@@ -1370,7 +1423,7 @@ fn restore_unacked(
         }
         match journaled_result(*frame_id, payload) {
             Ok((bytes, json)) => {
-                resender.track(*frame_id, bytes, json, Duration::ZERO);
+                resender.restore(*frame_id, bytes, json);
                 restored += 1;
             }
             Err(why) => tracing::error!(
@@ -1412,17 +1465,15 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     let mut set_json = Outbox::open(ctx.transport, keys::CHANGE_SET_JSON)?;
     let mut stage = FusionStage::new(ctx.config.fusion);
     // Change results published before a restart of this stage: fused, not published again.
-    let (mut journal, journaled) = Journal::open_with_payloads(
-        &journal::path(ctx.config, journal::Kind::Change),
-        &journal::header(ctx.config, journal::Kind::Change),
-    )?;
+    let (mut journal, journaled, mut health) =
+        open_journal(ctx.config, journal::Kind::Change, "fusion");
     let mut changes_ack = Resender::open(
         ctx.transport,
         keys::CHANGES_ACK,
         "fusion",
         Duration::from_secs_f64(ctx.config.timeouts.resend_after_s),
     )?;
-    let mut acks = AckJournal::open(ctx.config, journal::Kind::ChangeAcked, "fusion")?;
+    let mut acks = AckJournal::open(ctx.config, journal::Kind::ChangeAcked, "fusion");
     restore_unacked(&mut changes_ack, &journaled, &acks, journal.path());
     let restored = journaled.len();
     for (frame_id, payload) in journaled {
@@ -1437,7 +1488,6 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     if restored > 0 {
         tracing::info!("fusion: {restored} change results restored from the change journal");
     }
-    let mut journal_failed = false;
     // When the final change set and the end of the change stream were last sent (repeated
     // now and then: a lost one would leave the collector waiting).
     let mut completed: Option<Instant> = None;
@@ -1452,37 +1502,51 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
             let started = Instant::now();
             match message.body {
                 Body::ChangeResult(result) => {
-                    if let Some(result) = stage.on_result(result) {
+                    if let Some(result) = stage.on_result(result).cloned() {
                         let header = Header {
                             frame_id,
                             sequence: 0,
                             capture_time_ns: capture,
                             sent_time_ns: unix_time_ns(),
                         };
-                        let json = change_result_json(&header, result);
-                        // Encoded once: the bytes published, journaled and (until
-                        // acknowledged) sent again.
-                        let mut bytes = Vec::new();
                         if sent.is_ok() {
-                            sent = encode_to_vec(frame_id, capture, Body::ChangeResult(result.clone()))
-                                .and_then(|encoded| {
-                                    bytes = encoded;
-                                    acks.take(&mut changes_ack, metrics)
-                                })
-                                .and_then(|_| changes.send_encoded(&bytes, metrics))
-                                .and_then(|_| changes_json.send_raw(json.as_bytes()));
-                        }
-                        if sent.is_ok() {
-                            // Published: journaled with the result, for a restart (a failure
-                            // to write it is reported once; the stage goes on).
-                            if let Err(error) = journal.append_with(frame_id, &journal::to_hex(&bytes)) {
-                                if !journal_failed {
-                                    tracing::error!("fusion: {error}; a restart may publish change results again");
-                                    journal_failed = true;
-                                }
-                            }
-                            let first_after = changes_ack.first_after();
-                            changes_ack.track(frame_id, bytes, json, first_after);
+                            // Encoded once: the bytes journaled, published and (until
+                            // acknowledged) sent again; written ahead, and a change result the
+                            // station cannot record is given out failed, naming the journal.
+                            sent = encode_to_vec(
+                                frame_id,
+                                capture,
+                                Body::ChangeResult(result.clone()),
+                            )
+                            .and_then(|bytes| {
+                                let written =
+                                    journal.append_with(frame_id, &journal::to_hex(&bytes));
+                                health.report(frame_id, &written);
+                                let (bytes, json) = match written {
+                                    Ok(()) => (bytes, change_result_json(&header, &result)),
+                                    Err(error) => {
+                                        let failed = stage
+                                            .withdraw(frame_id, &format!("fusion: {error}"))
+                                            .cloned()
+                                            .unwrap_or(result);
+                                        let bytes = encode_to_vec(
+                                            frame_id,
+                                            capture,
+                                            Body::ChangeResult(failed.clone()),
+                                        )?;
+                                        // Best effort, as in verify.
+                                        let _ =
+                                            journal.append_with(frame_id, &journal::to_hex(&bytes));
+                                        (bytes, change_result_json(&header, &failed))
+                                    }
+                                };
+                                acks.take(&mut changes_ack, metrics)?;
+                                changes.send_encoded(&bytes, metrics)?;
+                                changes_json.send_raw(json.as_bytes())?;
+                                let first_after = changes_ack.first_after();
+                                changes_ack.track(frame_id, bytes, json, first_after);
+                                Ok(())
+                            });
                         }
                         unpublished += 1;
                     }

@@ -583,3 +583,89 @@ fn ingest_stopped_before_the_end_of_its_stream_is_an_error() {
         other => panic!("ingest stopped early returned {other:?}"),
     }
 }
+
+/// A full disk under the journals (issue #15 item 5): the results and change journals are
+/// `/dev/full` (every write fails with ENOSPC, as on a full disk). Every frame still gets
+/// exactly one result, failed, naming the journal and the cause; no stage stops; the stream
+/// ends with the change set complete and without change maps (none could be recorded).
+#[test]
+fn a_full_disk_under_the_journals_fails_each_frame_once_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    config.state_dir = Some(dir.path().join("state"));
+    std::fs::create_dir_all(dir.path().join("state")).unwrap();
+    let pose_journal = journal::path(&config, journal::Kind::Pose);
+    let change_journal = journal::path(&config, journal::Kind::Change);
+    for path in [&pose_journal, &change_journal] {
+        std::os::unix::fs::symlink("/dev/full", path).unwrap();
+    }
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let transport = CrossbeamTransport::new(config.transport.clone());
+    let collected = run_stage_threads(
+        &config,
+        &transport,
+        &mesh,
+        Duration::from_secs(300),
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(collected.frame_count, Some(4));
+    assert!(collected.duplicates.is_empty() && collected.missing().is_empty());
+    let results = collected.by_frame();
+    assert_eq!(results.len(), 4);
+    for result in results {
+        let failure = result.failure.as_deref().unwrap_or_default();
+        assert!(
+            !result.accepted
+                && result.cam_from_world.is_none()
+                && failure.starts_with(&format!("verify: {}", pose_journal.display()))
+                && failure.contains("No space left on device"),
+            "frame {}: {failure:?}",
+            result.frame_id
+        );
+    }
+    assert!(collected.change_duplicates.is_empty() && collected.missing_changes().is_empty());
+    let changes = collected.changes_by_frame();
+    assert_eq!(changes.len(), 4);
+    for change in changes {
+        let failure = change.failure.as_deref().unwrap_or_default();
+        assert!(
+            failure.starts_with(&format!("fusion: {}", change_journal.display()))
+                && failure.contains("No space left on device")
+                && change.regions.is_empty(),
+            "frame {}: {failure:?}",
+            change.frame_id
+        );
+    }
+    let set = collected.change_set.as_ref().expect("the final change set");
+    assert!(set.complete && set.frames_with_result == 4 && set.frames_with_map == 0);
+    // The journals that could be written (the ack journals) were.
+    assert_eq!(
+        read_published(
+            &journal::path(&config, journal::Kind::PoseAcked),
+            &journal::header(&config, journal::Kind::PoseAcked)
+        ),
+        [0, 1, 2, 3].into()
+    );
+}
+
+/// A journal that cannot be opened (a file where its folder should be) stops nothing: the error
+/// names it, each append fails naming it, and once the way is clear the journal is opened and
+/// written again.
+#[test]
+fn a_journal_that_cannot_be_written_recovers_when_it_can() {
+    let dir = tempfile::tempdir().unwrap();
+    let blocker = dir.path().join("state");
+    std::fs::write(&blocker, "a file where the state folder should be").unwrap();
+    let path = blocker.join("p.results-journal");
+    let (mut journal, entries, error) = journal::Journal::open_or_retry(&path, "# h");
+    assert!(entries.is_empty());
+    let error = error.expect("a folder that cannot be made").to_string();
+    assert!(error.contains(&path.display().to_string()), "{error}");
+    let append = journal.append(1).unwrap_err().to_string();
+    assert!(append.contains(&path.display().to_string()), "{append}");
+    std::fs::remove_file(&blocker).unwrap();
+    journal.append(2).unwrap();
+    journal.append(3).unwrap();
+    assert_eq!(read_published(&path, "# h"), [2, 3].into());
+}

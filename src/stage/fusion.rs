@@ -39,6 +39,20 @@ impl FusionStage {
         Some(self.results.entry(frame_id).or_insert(result))
     }
 
+    /// The frame's change result (kept by [`FusionStage::on_result`], not yet published) cannot
+    /// be given out as it is (its journal line could not be written: `reason`): it becomes a
+    /// failed change result with that reason and no regions, so the change set leaves it out too.
+    pub fn withdraw(&mut self, frame_id: u64, reason: &str) -> Option<&ChangeResult> {
+        let result = self.results.get_mut(&frame_id)?;
+        result.failure = Some(match result.failure.take() {
+            Some(earlier) => format!("{reason} (and before: {earlier})"),
+            None => reason.to_string(),
+        });
+        result.regions.clear();
+        result.counts = Default::default();
+        Some(result)
+    }
+
     /// A change result published before a restart of this stage (from the change journal):
     /// kept, so it is fused and not published again.
     pub fn restore(&mut self, result: ChangeResult) {

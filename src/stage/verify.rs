@@ -569,6 +569,50 @@ impl<'m> VerifyStage<'m> {
         results
     }
 
+    /// `result` (this stage's, not yet published) cannot be given out as it is (its journal
+    /// line could not be written: `reason`): it becomes a failed result with that reason, without
+    /// a pose (the evidence and times stay, saying what registration found), and an accepted
+    /// frame's change work becomes a change result saying why there is none (it is no stereo
+    /// neighbour either).
+    pub fn withdraw(&mut self, mut result: PoseResult, reason: &str) -> PoseResult {
+        let frame_id = result.frame_id;
+        result.accepted = false;
+        result.confidence = 0.0;
+        result.camera = None;
+        result.cam_from_world = None;
+        result.failure = Some(match result.failure.take() {
+            Some(earlier) => format!("{reason} (the frame was rejected: {earlier})"),
+            None => reason.to_string(),
+        });
+        if self.changes {
+            self.registered_views.remove(&frame_id);
+            self.stereo_waiting.remove(&frame_id);
+            let replacement = || {
+                ChangeWork::Result(not_registered(
+                    frame_id,
+                    &result.name,
+                    result.failure.as_deref(),
+                ))
+            };
+            let mut replaced = false;
+            for work in &mut self.change_work {
+                let matches = match work {
+                    ChangeWork::Job(id, _) => *id == frame_id,
+                    ChangeWork::Result(change) => change.frame_id == frame_id,
+                };
+                if matches {
+                    *work = replacement();
+                    replaced = true;
+                }
+            }
+            // An accepted frame waiting for its stereo neighbours has no work queued yet.
+            if !replaced {
+                self.change_work.push(replacement());
+            }
+        }
+        result
+    }
+
     /// When the source has ended and every frame has its result: the frame count.
     pub fn stream_complete(&self) -> Option<u64> {
         self.stream_frame_count.filter(|&count| {
