@@ -6,7 +6,9 @@
 //! chosen as COLMAP's `image_undistorter` chooses it with `blank_pixels = 0` (same focal lengths,
 //! the largest image without blank pixels, principal point scaled with the size): the
 //! Brighton Beach SIMPLE_RADIAL 1000×562 camera becomes exactly the shared PINHOLE 995×558 one.
-//! A photo wider than the working width is first averaged down (area resampling) to that width.
+//! A photo wider than the working width is first averaged down (area resampling) to that width,
+//! then resampled to the working camera: that PINHOLE camera brought to the working width, the
+//! camera COLMAP's undistorted photo gets there too.
 //! Poses do not change by either step (the camera frame is the same), so a pose found with the
 //! working camera is a pose of the original camera; only the intrinsics differ, and
 //! [`WorkingCamera::source_camera_for`] maps estimated ones back.
@@ -310,6 +312,21 @@ fn area_weights(source: usize, target: usize) -> Vec<Vec<(usize, f64)>> {
         .collect()
 }
 
+/// `camera` brought to `max_width_px` when it is wider (height in proportion, rounded), else as
+/// it is.
+fn at_most_width(camera: &Camera, max_width_px: Option<u32>) -> Camera {
+    match max_width_px {
+        Some(width_px) if camera.width_px > width_px => {
+            let height_px = (f64::from(camera.height_px) * f64::from(width_px)
+                / f64::from(camera.width_px))
+            .round()
+            .max(1.0) as u32;
+            camera.resized(width_px, height_px)
+        }
+        _ => *camera,
+    }
+}
+
 /// One of [`UndistortMap`]'s resampling functions (photo or depth).
 type Remap = fn(&UndistortMap, ImageView<'_, f32>, &mut Image<f32>) -> Result<(), UndistortError>;
 
@@ -322,7 +339,9 @@ pub struct WorkingCamera {
     pub source: Camera,
     /// `source` at the working size (distortion kept): what the resize produces.
     pub resized: Camera,
-    /// The ideal pinhole camera registration uses.
+    /// The ideal pinhole camera registration uses: COLMAP's undistorted camera of `source`
+    /// ([`undistorted_camera`]) brought to the working width, so the same as the one of the
+    /// photo COLMAP undistorted.
     pub working: Camera,
     map: Option<UndistortMap>,
 }
@@ -334,17 +353,13 @@ impl WorkingCamera {
         if let Some(0) = max_width_px {
             return Err(UndistortError::BadWorkingWidth { width_px: 0 });
         }
-        let resized = match max_width_px {
-            Some(width_px) if source.width_px > width_px => {
-                let height_px = (f64::from(source.height_px) * f64::from(width_px)
-                    / f64::from(source.width_px))
-                .round()
-                .max(1.0) as u32;
-                source.resized(width_px, height_px)
-            }
-            _ => *source,
-        };
-        let working = undistorted_camera(&resized)?;
+        let resized = at_most_width(source, max_width_px);
+        // COLMAP's undistorted camera at the photo's size, then brought to the working width as
+        // an undistorted photo would be: a SIMPLE_RADIAL photo and the photo COLMAP undistorted
+        // from it get the same working camera (undistorting the resized camera instead gives a
+        // camera a few pixels smaller, with another focal length: 502×281 against 505×283 for
+        // the Brighton photos at 505 px).
+        let working = at_most_width(&undistorted_camera(source)?, max_width_px);
         let map = (!matches!(resized.distortion, Distortion::None))
             .then(|| UndistortMap::new(&resized, &working));
         Ok(Self {
@@ -553,6 +568,23 @@ mod tests {
         ] {
             assert!((a - b).abs() < 1e-9, "{got:?} vs {want:?}");
         }
+        // At a working width, the distorted photo and the photo COLMAP undistorted from it get
+        // the same working camera (issue #16: their poses are compared pixel for pixel).
+        for width_px in [505, 333, 995, 1000] {
+            let from_distorted = WorkingCamera::new(&distorted, Some(width_px)).unwrap();
+            let from_undistorted = WorkingCamera::new(&expected, Some(width_px)).unwrap();
+            let (a, b) = (from_distorted.working, from_undistorted.working);
+            assert_eq!(
+                (a.width_px, a.height_px),
+                (b.width_px, b.height_px),
+                "{width_px}"
+            );
+            assert_eq!(a.model, b.model);
+            let difference = (a.intrinsics.k_matrix() - b.intrinsics.k_matrix()).norm();
+            assert!(difference < 1e-9, "{width_px}: {a:?} vs {b:?}");
+        }
+        let at_505 = WorkingCamera::new(&distorted, Some(505)).unwrap().working;
+        assert_eq!((at_505.width_px, at_505.height_px), (505, 283));
     }
 
     /// Gaussian blobs at known working-camera pixels, drawn into the distorted photo through
