@@ -346,19 +346,293 @@ mod tests {
             .collect()
     }
 
+    /// Diagnosis of the gap between the distorted and the undistorted Brighton photos (issue #16
+    /// item 1), printed, asserting nothing: the two working cameras and images, both frames'
+    /// poses, and how far the final refinement moves the pose when only its start, only the
+    /// image, or a faint perturbation of the image changes (δ at the photos' 995 px width;
+    /// `image_uncertainty_px` is at the working width).
+    #[test]
+    #[ignore = "measurement: needs ../shared/data/brighton_beach; run by hand with --nocapture"]
+    fn shared_data_brighton_distortion_gap_diagnosis() {
+        use crate::core::edge_align::AlignedParameters;
+        use crate::core::frame::{query_gradient, refine_pose, register_query, RefineWorkspace};
+        let names: Vec<String> = std::env::var("ASGREG_DIAG_FRAMES")
+            .unwrap_or_else(|_| "DJI_0032.JPG".into())
+            .split(',')
+            .map(str::to_string)
+            .collect();
+        let names: Vec<&str> = names.iter().map(String::as_str).collect();
+        let data = crate::test_data::shared_data("brighton_beach");
+        let mesh = read_mesh(&data.join("mesh.ply")).unwrap();
+        let camera_of =
+            |folder: &str| read_cameras_txt(&data.join(folder).join("cameras.txt")).unwrap()[&1];
+        let distorted_camera = camera_of("gt_simple_radial");
+        let undistorted_camera = camera_of("gt_undistorted");
+        let gt = read_images_txt(&data.join("gt_undistorted/images.txt")).unwrap();
+        let config = RegistrationConfig::default();
+        let loader = FrameLoader::default();
+        let mut workspace = ReprojectionWorkspace::new();
+        let mut refine_workspace = RefineWorkspace::default();
+        for image in brighton_priors(&data, &names) {
+            let frame = |folder: &str, camera: Camera| BatchFrame {
+                image_id: image.image_id,
+                camera_id: image.camera_id,
+                name: image.name.clone(),
+                image_path: data.join(folder).join(&image.name),
+                depth_path: None,
+                camera,
+                intrinsics: IntrinsicsMode::Known,
+                initial_cam_from_world: image.cam_from_world,
+            };
+            let truth = gt
+                .iter()
+                .find(|g| g.name == image.name)
+                .unwrap()
+                .cam_from_world;
+            let frame_u = frame("images_undistorted", undistorted_camera);
+            let frame_d = frame("images_distorted", distorted_camera);
+            let files_u = frame_u.load_with(&loader).unwrap();
+            let files_d = frame_d.load_with(&loader).unwrap();
+            eprintln!(
+                "{}: working camera undistorted set {:?}\n  distorted set {:?}",
+                image.name, files_u.camera, files_d.camera
+            );
+            if files_u.photo.size() == files_d.photo.size() {
+                let (a, b) = (files_u.photo.data(), files_d.photo.data());
+                let mean = a
+                    .iter()
+                    .zip(b)
+                    .map(|(x, y)| f64::from((x - y).abs()))
+                    .sum::<f64>()
+                    / a.len() as f64;
+                eprintln!("  mean |working photo difference| {mean:.4} (grey 0..1)");
+                // The other order: undistorted at the photo's size, then averaged down.
+                let full = crate::core::undistort::WorkingCamera::new(&distorted_camera, None)
+                    .unwrap()
+                    .photo(
+                        crate::io::images::load_gray(&frame_d.image_path)
+                            .unwrap()
+                            .view(),
+                    )
+                    .unwrap();
+                let mut other_order = Image::default();
+                crate::core::undistort::resize_area(
+                    full.view(),
+                    files_u.photo.width_px(),
+                    files_u.photo.height_px(),
+                    &mut other_order,
+                );
+                let mean = a
+                    .iter()
+                    .zip(other_order.data())
+                    .map(|(x, y)| f64::from((x - y).abs()))
+                    .sum::<f64>()
+                    / a.len() as f64;
+                eprintln!("  undistorted at the photo's size, then averaged down: {mean:.4}");
+                if let Ok(dir) = std::env::var("ASGREG_DIAG_DUMP") {
+                    let dir = Path::new(&dir);
+                    for (label, photo) in [
+                        ("undistorted_set", &files_u.photo),
+                        ("distorted_set", &files_d.photo),
+                        ("distorted_set_other_order", &other_order),
+                    ] {
+                        crate::io::pfm::write_pfm(
+                            &dir.join(format!("{}_{label}.pfm", image.name)),
+                            photo.view(),
+                        )
+                        .unwrap();
+                    }
+                }
+            }
+            let input_u = frame_u.input(&files_u, 1);
+            let input_d = frame_d.input(&files_d, 1);
+            let query_u = query_gradient(&input_u, &config).unwrap();
+            let query_d = query_gradient(&input_d, &config).unwrap();
+            let register = |camera: &Camera, query: &Image<f32>| {
+                register_query(
+                    &mesh,
+                    camera,
+                    IntrinsicsMode::Known,
+                    &image.cam_from_world,
+                    query.view(),
+                    &config,
+                    input_u.seed,
+                )
+                .unwrap()
+            };
+            let result_u = register(&files_u.camera, &query_u);
+            let result_d = register(&files_d.camera, &query_d);
+            let pose = |result: &crate::core::frame::FrameResult| {
+                result.verdict.chosen().unwrap().cam_from_world
+            };
+            let start = |result: &crate::core::frame::FrameResult| {
+                result.refinement.as_ref().unwrap().verified_cam_from_world
+            };
+            let uncertainty = |result: &crate::core::frame::FrameResult| {
+                result
+                    .evidence
+                    .edges
+                    .map_or(f64::NAN, |e| e.image_uncertainty_px)
+            };
+            let mut delta_px = |a: &Rigid3, b: &Rigid3| {
+                mutual_reprojection_error_px(
+                    &mesh,
+                    &undistorted_camera,
+                    a,
+                    &undistorted_camera,
+                    b,
+                    &mut workspace,
+                )
+                .unwrap()
+            };
+            let (pose_u, pose_d) = (pose(&result_u), pose(&result_d));
+            eprintln!(
+                "  undistorted: accepted {} confidence {:.3} uncertainty {:.3} working px, δ truth {:.2} px; distorted: accepted {} confidence {:.3} uncertainty {:.3}, δ truth {:.2} px",
+                result_u.verdict.accepted(),
+                result_u.verdict.confidence,
+                uncertainty(&result_u),
+                delta_px(&pose_u, &truth),
+                result_d.verdict.accepted(),
+                result_d.verdict.confidence,
+                uncertainty(&result_d),
+                delta_px(&pose_d, &truth),
+            );
+            eprintln!(
+                "  δ(distorted, undistorted) final {:.3} px, verified (before refinement) {:.3} px",
+                delta_px(&pose_d, &pose_u),
+                delta_px(&start(&result_d), &start(&result_u))
+            );
+            // The aligned pose whether kept or not (the refinement keeps it only when its edge
+            // support is higher than the start's).
+            let mut refine_with = |config: &RegistrationConfig,
+                                   camera: &Camera,
+                                   query: &Image<f32>,
+                                   from: &Rigid3| {
+                let refinement = refine_pose(
+                    &mesh,
+                    camera,
+                    query.view(),
+                    from,
+                    AlignedParameters::Pose,
+                    config,
+                    &mut refine_workspace,
+                )
+                .unwrap();
+                (refinement.aligned_cam_from_world, refinement.kept)
+            };
+            let mut variants = vec![("default", config.clone())];
+            let mut longer = config.clone();
+            longer.edge_align.iterations_per_level = 16;
+            variants.push(("16 steps per level", longer));
+            let mut no_rounding = config.clone();
+            no_rounding.edge_align.estimate_rounding = false;
+            variants.push(("no rounding estimate", no_rounding));
+            let mut both = config.clone();
+            both.edge_align.iterations_per_level = 16;
+            both.edge_align.estimate_rounding = false;
+            variants.push(("16 steps, no rounding", both));
+            let [(_, noisy_photo), _] = faint_perturbations(&files_u.photo);
+            let noisy_query = query_gradient(
+                &FrameInput {
+                    photo: noisy_photo.view(),
+                    ..input_u
+                },
+                &config,
+            )
+            .unwrap();
+            let starts = [
+                ("own start", start(&result_u)),
+                ("distorted run's start", start(&result_d)),
+                ("truth", truth),
+            ];
+            for (label, variant) in &variants {
+                let ends: Vec<(Rigid3, bool)> = starts
+                    .iter()
+                    .map(|(_, from)| refine_with(variant, &files_u.camera, &query_u, from))
+                    .collect();
+                let again = refine_with(variant, &files_u.camera, &query_u, &ends[0].0);
+                let distorted_image = refine_with(variant, &files_d.camera, &query_d, &starts[0].1);
+                let noisy = refine_with(variant, &files_u.camera, &noisy_query, &starts[0].1);
+                eprintln!(
+                    "  refinement ({label}) on the undistorted image: ends from {} / {} / {} (kept {} {} {}): {:.3} / {:.3} px apart (vs own start's end); refined again moves {:.3} px; truth {:.3} px from the end; same start on the distorted image {:.3} px, on the photo + noise 1/255 {:.3} px",
+                    starts[0].0,
+                    starts[1].0,
+                    starts[2].0,
+                    ends[0].1,
+                    ends[1].1,
+                    ends[2].1,
+                    delta_px(&ends[1].0, &ends[0].0),
+                    delta_px(&ends[2].0, &ends[0].0),
+                    delta_px(&again.0, &ends[0].0),
+                    delta_px(&truth, &ends[0].0),
+                    delta_px(&distorted_image.0, &ends[0].0),
+                    delta_px(&noisy.0, &ends[0].0),
+                );
+            }
+            let mut refine = |camera: &Camera, query: &Image<f32>, from: &Rigid3| {
+                let (pose, kept) = refine_with(&config, camera, query, from);
+                if kept {
+                    pose
+                } else {
+                    *from
+                }
+            };
+            for (label, photo) in faint_perturbations(&files_u.photo) {
+                let input = FrameInput {
+                    photo: photo.view(),
+                    ..input_u
+                };
+                let query = query_gradient(&input, &config).unwrap();
+                let from_same_start = refine(&files_u.camera, &query, &start(&result_u));
+                let result = register(&files_u.camera, &query);
+                eprintln!(
+                    "  {label}: refinement from the same start moves {:.3} px; whole registration moves {:.3} px (verified {:.3} px), confidence {:.3}",
+                    delta_px(&from_same_start, &pose_u),
+                    delta_px(&pose(&result), &pose_u),
+                    delta_px(&start(&result), &start(&result_u)),
+                    result.verdict.confidence,
+                );
+            }
+        }
+    }
+
+    /// Two faint perturbations of a working photo that a person could not see: seeded noise of
+    /// one grey level (σ = 1/255), and a shift by a tenth of a pixel to the right (bilinear).
+    /// How far they move a pose is the method's own repeatability on that photo.
+    fn faint_perturbations(photo: &Image<f32>) -> [(&'static str, Image<f32>); 2] {
+        use rand::SeedableRng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let (width_px, height_px) = photo.size();
+        let noisy = Image::from_fn(width_px, height_px, |c, r| {
+            let noise: f32 =
+                rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng);
+            photo.get(c, r).unwrap() + noise / 255.0
+        });
+        let shifted = Image::from_fn(width_px, height_px, |c, r| {
+            let left = *photo.get(c.saturating_sub(1), r).unwrap();
+            0.9 * photo.get(c, r).unwrap() + 0.1 * left
+        });
+        [("noise 1/255", noisy), ("shift 0.1 px", shifted)]
+    }
+
     /// The shared Brighton Beach photos with lens distortion (SIMPLE_RADIAL, `images_distorted`)
     /// register, from the photos' EXIF priors at the default working width, like the photos
-    /// COLMAP undistorted (`images_undistorted`, PINHOLE): the same frames accepted, at poses
-    /// within the method's own repeatability of each other. Measured (2026-12-01): δ between
-    /// the two 1.45 and 1.05 px (DJI_0034: 2.12 px; δ at the photos' 995 px width), while the
-    /// same photos registered with another seed move by 0.6–2.1 px (measured on the set's SfM
-    /// points): the flow's noise, not the lens, sets this bound, so the issue's 0.1 px is out of
-    /// reach of a comparison of two registrations; the pixels themselves are checked in
-    /// `frame_files` against COLMAP's undistorted photo.
+    /// COLMAP undistorted (`images_undistorted`, PINHOLE): both get the same working camera
+    /// (505×283 px, `core::undistort`), so their working photos differ only by resampling and
+    /// JPEG (mean |difference| 0.005 of the grey range). Issue #16 asks for the same poses to
+    /// 0.1 px; measured (docs/measurements.md, branch `distort`): δ between the two 0.77 px
+    /// (DJI_0031) and 1.83 px (DJI_0032), while the pose of the undistorted photo itself moves
+    /// by 2.1–3.5 px when that photo gets invisible noise (1/255) or moves by a tenth of a pixel
+    /// (its `image_uncertainty_px`, 0.14–0.18 working px, is 10× too optimistic): the method's
+    /// repeatability (the final edge alignment does not converge on these photos), not the lens,
+    /// sets the gap, and 0.1 px is out of reach. What the test holds: the gap is within the
+    /// pose's spread under those perturbations of the undistorted photo; both photos give a
+    /// pose; an accepted distorted photo is reported with its own camera. (Acceptance is not
+    /// compared: the frames sit at confidence 0.85–0.91 around the 0.9 threshold, and a tenth
+    /// of a pixel of shift took the undistorted DJI_0031 from 0.879 to 0.905.)
     #[test]
     #[ignore = "needs ../shared/data/brighton_beach (the shared data set beside the repo)"]
     fn shared_data_brighton_distorted_photos_register_like_the_undistorted_ones() {
-        // Two of the four frames accepted at the working width (all 18 take minutes).
         const NAMES: [&str; 2] = ["DJI_0031.JPG", "DJI_0032.JPG"];
         let data = crate::test_data::shared_data("brighton_beach");
         let mesh = read_mesh(&data.join("mesh.ply")).unwrap();
@@ -381,32 +655,15 @@ mod tests {
                 intrinsics: IntrinsicsMode::Known,
                 initial_cam_from_world: image.cam_from_world,
             };
-            let distorted = register_batch_frame_with(
-                &mesh,
-                &frame("images_distorted", distorted_camera),
-                &loader,
-                &config,
-                1,
-            );
-            let undistorted = register_batch_frame_with(
-                &mesh,
-                &frame("images_undistorted", undistorted_camera),
-                &loader,
-                &config,
-                1,
-            );
-            // Both photos must give a pose (accepted, or the pose a rejected frame would have
-            // output): since the calibrated confidence (2026-12-02) DJI_0031 is rejected either
-            // way (27 % of the model's edges on a photo edge against 25 % by chance, confidence
-            // 0.88 < 0.9) although 2.4–3.1 px from the truth; the comparison of the two poses
-            // is what this test is about.
-            let pose_of = |report: &FrameReport| {
-                report
-                    .cam_from_world
-                    .or(report.rejected_candidate.map(|c| c.cam_from_world))
-            };
+            let frame_d = frame("images_distorted", distorted_camera);
+            let frame_u = frame("images_undistorted", undistorted_camera);
+            let distorted = register_batch_frame_with(&mesh, &frame_d, &loader, &config, 1);
+            let undistorted = register_batch_frame_with(&mesh, &frame_u, &loader, &config, 1);
+            let files_d = frame_d.load_with(&loader).unwrap();
+            let files_u = frame_u.load_with(&loader).unwrap();
+            assert_eq!(files_d.camera, files_u.camera, "one working camera");
             let (Some(distorted_pose), Some(undistorted_pose)) =
-                (pose_of(&distorted), pose_of(&undistorted))
+                (output_pose(&distorted), output_pose(&undistorted))
             else {
                 panic!(
                     "{}: no pose: distorted {:?}, undistorted {:?}",
@@ -417,14 +674,6 @@ mod tests {
                 // The output keeps the photo's camera.
                 assert_eq!(distorted.camera, Some(distorted_camera));
             }
-            eprintln!(
-                "{}: accepted distorted {} (confidence {:.2}), undistorted {} ({:.2})",
-                image.name,
-                distorted.accepted,
-                distorted.confidence,
-                undistorted.accepted,
-                undistorted.confidence
-            );
             let truth = gt
                 .iter()
                 .find(|g| g.name == image.name)
@@ -442,25 +691,36 @@ mod tests {
                 .unwrap()
             };
             let between_px = delta_px(&distorted_pose, &undistorted_pose);
-            let distorted_to_truth_px = delta_px(&distorted_pose, &truth);
-            let undistorted_to_truth_px = delta_px(&undistorted_pose, &truth);
             eprintln!(
-                "{}: δ(distorted, undistorted) {between_px:.2} px; to the truth {distorted_to_truth_px:.2} / {undistorted_to_truth_px:.2} px",
-                image.name
+                "{}: accepted distorted {} ({:.3}), undistorted {} ({:.3}); δ(distorted, undistorted) {between_px:.2} px; to the truth {:.2} / {:.2} px",
+                image.name,
+                distorted.accepted,
+                distorted.confidence,
+                undistorted.accepted,
+                undistorted.confidence,
+                delta_px(&distorted_pose, &truth),
+                delta_px(&undistorted_pose, &truth),
             );
-            // Issue #16 asks for 0.1 px between the two; measured 1.05–1.45 px before the final
-            // edge alignment and 3.56 px (DJI_0031) with it, while the same photos move 0.6–2.1 px
-            // with another seed: the method's noise, not the lens. What the test holds: the
-            // distorted photos register as close to the truth as COLMAP's undistorted ones
-            // (measured 2.42 vs 3.12 px for DJI_0031), and not far from them.
-            // The margin is the method's own seed-to-seed spread on these photos (0.6–2.1 px,
-            // above); with the integer BP (2026-12-02) DJI_0032 measured 2.46 vs 1.20 px.
+            let mut spread_px: f64 = 0.0;
+            for (label, photo) in faint_perturbations(&files_u.photo) {
+                let input = FrameInput {
+                    photo: photo.view(),
+                    ..frame_u.input(&files_u, 1)
+                };
+                let result = register_frame(&mesh, &input, &config).unwrap();
+                let pose = result.verdict.chosen().unwrap().cam_from_world;
+                let moved_px = delta_px(&pose, &undistorted_pose);
+                eprintln!(
+                    "  undistorted photo, {label}: the pose moves {moved_px:.2} px (confidence {:.3})",
+                    result.verdict.confidence
+                );
+                spread_px = spread_px.max(moved_px);
+            }
             assert!(
-                distorted_to_truth_px <= undistorted_to_truth_px.max(1.0) + 2.1,
-                "{}: distorted {distorted_to_truth_px} px vs undistorted {undistorted_to_truth_px} px from the truth",
+                between_px <= spread_px,
+                "{}: δ(distorted, undistorted) {between_px} px, beyond the pose's own spread {spread_px} px",
                 image.name
             );
-            assert!(between_px < 5.0, "{}: δ {between_px} px", image.name);
         }
     }
 }

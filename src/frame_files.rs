@@ -111,11 +111,8 @@ impl FrameLoader {
         })?;
         if !plan.is_identity() {
             let steps: Vec<&str> = [
-                (plan.resized != plan.source, "resized"),
-                (
-                    plan.resized.distortion != plan.working.distortion,
-                    "undistorted",
-                ),
+                (plan.undistorted != plan.source, "undistorted"),
+                (plan.working != plan.undistorted, "resized"),
             ]
             .into_iter()
             .filter_map(|(done, step)| done.then_some(step))
