@@ -96,6 +96,11 @@ pub struct PoseSearchConfig {
     /// At most this many centres of coarse poses when the search is ambiguous (the best beam,
     /// the prior, then the rivals by support); each costs a frame's coarse-pose work.
     pub max_centres: usize,
+    /// When a beam replaces the prior, the prior stays a centre of its own coarse poses too
+    /// (within `max_centres`), and verification across the centres decides: a wrong beam that
+    /// beats a weak prior's edge support can then no longer take the frame's only centre
+    /// (issue #12). Costs a second set of coarse poses on the frames where the search moves.
+    pub keep_prior_centre: bool,
 }
 
 impl Default for PoseSearchConfig {
@@ -122,6 +127,7 @@ impl Default for PoseSearchConfig {
             min_support: 0.15,
             ambiguity_ratio: 0.9,
             max_centres: 3,
+            keep_prior_centre: false,
         }
     }
 }

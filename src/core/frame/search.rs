@@ -276,7 +276,12 @@ pub fn search_pose(
     // The centres: the best beam; when a rival is about as good, also the prior (the photo's
     // edges cannot choose, so the prior's own information counts) and the rivals, each distinct
     // from those already chosen.
+    // With `keep_prior_centre`, a move never drops the prior: it is the second centre whether
+    // or not a rival makes the search ambiguous.
     let mut centres = vec![if moved { best.cam_from_world } else { *prior }];
+    if moved && search.keep_prior_centre && search.max_centres > 1 {
+        centres.push(*prior);
+    }
     if ambiguous.is_some() {
         for candidate in
             std::iter::once(*prior).chain(rivals.iter().map(|&i| beams[i].cam_from_world))
@@ -481,5 +486,41 @@ mod tests {
             assert!(angle_deg < 2.0, "heading {heading_error_deg}: {angle_deg}°");
             assert!(delta_px < 5.0, "heading {heading_error_deg}: {delta_px} px");
         }
+    }
+
+    /// With `keep_prior_centre`, a search that moves keeps the prior as its second centre (its
+    /// own coarse poses are tried beside the beam's); without, the beam is the only centre.
+    #[test]
+    fn a_move_keeps_the_prior_as_a_centre_when_asked() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let default = RegistrationConfig::default();
+        let kept = RegistrationConfig {
+            pose_search: PoseSearchConfig {
+                keep_prior_centre: true,
+                ..default.pose_search
+            },
+            ..default.clone()
+        };
+        let query = ideal_query(&mesh, &camera, &truth, &default);
+        let prior = turned_pose(&truth, 30.0, 0.0, 0.0);
+        let mut rasterizer = Rasterizer::new();
+        let mut centres = |config: &RegistrationConfig| {
+            let outcome = search_pose(
+                &mesh,
+                &camera,
+                &prior,
+                query.view(),
+                config,
+                &mut rasterizer,
+                &mut CoarseView::default(),
+            )
+            .expect("the search is enabled by default");
+            assert!(outcome.moved);
+            outcome.centres
+        };
+        let alone = centres(&default);
+        let beside = centres(&kept);
+        assert_eq!(alone.len(), 1);
+        assert_eq!(beside, vec![alone[0], prior]);
     }
 }
