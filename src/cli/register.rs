@@ -204,8 +204,9 @@ pub struct CoarseArgs {
     #[arg(long, default_value_t = PoseSearchConfig::default().screened_candidates)]
     pub screened_candidates: usize,
     /// Pose search: when a beam replaces the prior, the prior stays a centre of its own coarse
-    /// poses too and verification across the centres decides.
-    #[arg(long)]
+    /// poses too and verification across the centres decides (`--keep-prior-centre false`: the
+    /// beam is the only centre unless the search is ambiguous).
+    #[arg(long, default_value_t = PoseSearchConfig::default().keep_prior_centre, action = clap::ArgAction::Set)]
     pub keep_prior_centre: bool,
 }
 
