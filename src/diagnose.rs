@@ -361,6 +361,9 @@ pub struct SearchBeamDiagnosis {
     /// Edge support after the search's render-free screening alignment (NaN for the prior).
     pub screened_support: f64,
     pub support: f64,
+    /// Its image uncertainty (px per px of edge noise); above the confidence's
+    /// `max_image_uncertainty_px` the search ignores the beam.
+    pub image_uncertainty_px: f64,
     pub delta_px: Option<f64>,
 }
 
@@ -672,6 +675,7 @@ fn search_diagnosis(
                 grid_score: beam.grid_score,
                 screened_support: beam.screened_support,
                 support: beam.support,
+                image_uncertainty_px: beam.image_uncertainty_px,
                 delta_px: delta(&beam.cam_from_world),
             })
             .collect(),

@@ -844,11 +844,11 @@ fn search_diagnosis_markdown(diagnoses: &SearchDiagnoses) -> String {
 prior's centre (the reach of a rotation-only search), the edge support at the truth, the grid score of a \
 candidate at the truth and at the rotation reach, whether a beam replaced the prior, δ of each centre of \
 the coarse poses, and each refined beam as δ px (edge support %, grid score, edge support after the \
-screening %; the prior first).\n"
+screening %, image uncertainty px; the prior first).\n"
     );
     let _ = writeln!(
         out,
-        "| level | frame | verdict | prior δ | centre error m | rotation reach δ | support at truth | grid score at truth / rotation reach | moved | centres δ | search from the true centre δ | beams δ (support, grid score, screened support) |"
+        "| level | frame | verdict | prior δ | centre error m | rotation reach δ | support at truth | grid score at truth / rotation reach | moved | centres δ | search from the true centre δ | beams δ (support, grid score, screened support, image uncertainty) |"
     );
     let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|");
     let mut first_centre_within_5px = 0usize;
@@ -893,10 +893,12 @@ screening %; the prior first).\n"
                     .beams
                     .iter()
                     .map(|b| format!(
-                        "{} ({:.0} %, {:.3})",
+                        "{} ({:.0} %, {:.3}, {:.0} %, u {:.2} px)",
                         px(b.delta_px),
                         100.0 * b.support,
-                        b.grid_score
+                        b.grid_score,
+                        100.0 * b.screened_support,
+                        b.image_uncertainty_px
                     ))
                     .collect::<Vec<_>>()
                     .join(", "),

@@ -207,6 +207,11 @@ pub struct CoarseArgs {
     /// refined directly).
     #[arg(long, default_value_t = PoseSearchConfig::default().screened_candidates)]
     pub screened_candidates: usize,
+    /// Pose search: when a beam replaces the prior, the prior stays a centre of its own coarse
+    /// poses too and verification across the centres decides (`--keep-prior-centre false`: the
+    /// beam is the only centre unless the search is ambiguous).
+    #[arg(long, default_value_t = PoseSearchConfig::default().keep_prior_centre, action = clap::ArgAction::Set)]
+    pub keep_prior_centre: bool,
 }
 
 impl Default for CoarseArgs {
@@ -226,6 +231,7 @@ impl Default for CoarseArgs {
             edge_rounding_kinds: EdgeKindsArg::All,
             no_pose_search: false,
             screened_candidates: PoseSearchConfig::default().screened_candidates,
+            keep_prior_centre: PoseSearchConfig::default().keep_prior_centre,
         }
     }
 }
@@ -329,6 +335,7 @@ pub fn registration_config(
         pose_search: PoseSearchConfig {
             enabled: !coarse.no_pose_search,
             screened_candidates: coarse.screened_candidates,
+            keep_prior_centre: coarse.keep_prior_centre,
             ..Default::default()
         },
         ..RegistrationConfig::default()

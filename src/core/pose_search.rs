@@ -70,10 +70,11 @@ pub struct PoseSearchConfig {
     /// render-free edge alignment: the grid score ranks the truth among the top few dozen but not
     /// reliably first (measured: `eval --diagnose-search`), while the edge support after an
     /// alignment separates it clearly; this many are aligned, cheaply, on the samples of their
-    /// heading's rendering. 0 (the default): no screening, the grid's best `beams` are refined
-    /// directly. Measured on (`eval`, first 24 frames, seed 1): block 104 px 12 -> 14/24, heading
-    /// 17 -> 21/24, both 0 FA, but house 30 px 11 -> 10/24 with **1 false accept** (256 px, edge
-    /// support 64 % on the symmetric house's twin pose): off until the ambiguity check catches that.
+    /// heading's rendering. 0: no screening, the grid's best `beams` are refined directly.
+    /// Default 24, with `keep_prior_centre`; measured (`eval`, first 24 frames, seed 1, gradient,
+    /// known K, same build) screening 24 + kept prior vs 0: block 104 px 16/24 vs 12/24, heading
+    /// 21/24 vs 17/24, house 30 px 12/24 vs 10/24, 0 false accepts everywhere (docs/measurements.md,
+    /// branch `reach3`). Screening alone lost house frames to wrong beams that beat a weak prior.
     pub screened_candidates: usize,
     /// Beams kept after the screening, best screened edge support first, each then refined with
     /// re-rendering (besides the prior, which is always one).
@@ -96,6 +97,12 @@ pub struct PoseSearchConfig {
     /// At most this many centres of coarse poses when the search is ambiguous (the best beam,
     /// the prior, then the rivals by support); each costs a frame's coarse-pose work.
     pub max_centres: usize,
+    /// When a beam replaces the prior, the prior stays a centre of its own coarse poses too
+    /// (within `max_centres`), and verification across the centres decides: a wrong beam that
+    /// beats a weak prior's edge support can then no longer take the frame's only centre
+    /// (issue #12). Costs a second set of coarse poses on the frames where the search moves.
+    /// Default on (measured with the screening, see `screened_candidates`).
+    pub keep_prior_centre: bool,
 }
 
 impl Default for PoseSearchConfig {
@@ -114,7 +121,7 @@ impl Default for PoseSearchConfig {
             map_blur_px: 3.0,
             bin_blur_px: 1.5,
             sample_spacing_px: 6,
-            screened_candidates: 0,
+            screened_candidates: 24,
             beams: 4,
             beam_separation_deg: 6.0,
             refine_initial_radius_px: 16.0,
@@ -122,6 +129,7 @@ impl Default for PoseSearchConfig {
             min_support: 0.15,
             ambiguity_ratio: 0.9,
             max_centres: 3,
+            keep_prior_centre: true,
         }
     }
 }

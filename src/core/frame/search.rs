@@ -3,8 +3,10 @@
 //! centre at a few headings; every candidate rotation of the grid is scored on the photo's
 //! oriented edges without a rendering of its own; the best distinct candidates (beams) and the
 //! prior itself are refined by edge alignment ([`super::refine_pose`]) and compared by their edge
-//! support. A beam replaces the prior only when its support clearly beats the prior's; when it
-//! would, and another distinct beam is about as good, the search does not toss a coin: the
+//! support. A beam replaces the prior only when its support clearly beats the prior's, and even
+//! then the prior stays a centre of its own coarse poses (`keep_prior_centre`: a wrong beam can
+//! beat a weak prior's support); when another distinct beam is about as good, the search does
+//! not toss a coin: the
 //! best beam, the prior and the rivals each become the centre of their own coarse poses, and
 //! verification with the calibrated confidence decides among them ([`super::decide`]).
 
@@ -276,7 +278,12 @@ pub fn search_pose(
     // The centres: the best beam; when a rival is about as good, also the prior (the photo's
     // edges cannot choose, so the prior's own information counts) and the rivals, each distinct
     // from those already chosen.
+    // With `keep_prior_centre`, a move never drops the prior: it is the second centre whether
+    // or not a rival makes the search ambiguous.
     let mut centres = vec![if moved { best.cam_from_world } else { *prior }];
+    if moved && search.keep_prior_centre && search.max_centres > 1 {
+        centres.push(*prior);
+    }
     if ambiguous.is_some() {
         for candidate in
             std::iter::once(*prior).chain(rivals.iter().map(|&i| beams[i].cam_from_world))
@@ -425,10 +432,10 @@ mod tests {
     fn the_search_recovers_a_wrong_heading_and_a_shifted_centre() {
         let (mesh, camera, truth, _) = house_and_poses();
         let default = RegistrationConfig::default();
-        // The screening (off by default) must find the same poses.
+        // Without the screening (on by default) the search must find the same poses.
         let screened = RegistrationConfig {
             pose_search: PoseSearchConfig {
-                screened_candidates: 24,
+                screened_candidates: 0,
                 ..default.pose_search
             },
             ..default.clone()
@@ -477,9 +484,48 @@ mod tests {
             );
             assert!(outcome.moved, "heading {heading_error_deg}");
             assert!(outcome.ambiguous.is_none(), "{:?}", outcome.ambiguous);
-            assert_eq!(outcome.centres.len(), 1);
+            // The prior stays the second centre (`keep_prior_centre`, on by default).
+            assert_eq!(outcome.centres.len(), 2);
+            assert_eq!(outcome.centres[1], prior);
             assert!(angle_deg < 2.0, "heading {heading_error_deg}: {angle_deg}°");
             assert!(delta_px < 5.0, "heading {heading_error_deg}: {delta_px} px");
         }
+    }
+
+    /// With `keep_prior_centre` (the default), a search that moves keeps the prior as its second
+    /// centre (its own coarse poses are tried beside the beam's); without, the beam is the only
+    /// centre.
+    #[test]
+    fn a_move_keeps_the_prior_as_a_centre_when_asked() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let kept = RegistrationConfig::default();
+        let default = RegistrationConfig {
+            pose_search: PoseSearchConfig {
+                keep_prior_centre: false,
+                ..kept.pose_search
+            },
+            ..kept.clone()
+        };
+        let query = ideal_query(&mesh, &camera, &truth, &default);
+        let prior = turned_pose(&truth, 30.0, 0.0, 0.0);
+        let mut rasterizer = Rasterizer::new();
+        let mut centres = |config: &RegistrationConfig| {
+            let outcome = search_pose(
+                &mesh,
+                &camera,
+                &prior,
+                query.view(),
+                config,
+                &mut rasterizer,
+                &mut CoarseView::default(),
+            )
+            .expect("the search is enabled by default");
+            assert!(outcome.moved);
+            outcome.centres
+        };
+        let alone = centres(&default);
+        let beside = centres(&kept);
+        assert_eq!(alone.len(), 1);
+        assert_eq!(beside, vec![alone[0], prior]);
     }
 }

@@ -33,8 +33,8 @@ pub struct RenderedViews {
 /// (`std::mem::take`) to keep it, and the next view is then rendered into fresh buffers.
 /// The views come in groups of `config.coarse_pose_count`, one group per centre of the search
 /// (one centre unless the search was ambiguous, [`super::decide`] splits them the same way); a
-/// group's first view is its centre itself (the initial pose unless the search moved it). The
-/// first view's rendering also gives the scene depth that scales the coarse poses.
+/// group's first view is its centre itself (the initial pose unless the search moved it). Each
+/// centre's rendering gives the scene depth that scales its coarse poses.
 #[allow(clippy::too_many_arguments)]
 pub fn render_views(
     mesh: &Mesh,
@@ -62,21 +62,37 @@ pub fn render_views(
     let centres = search
         .as_ref()
         .map_or_else(|| vec![*initial_cam_from_world], |s| s.centres.clone());
-    // The first centre's rendering gives the scene depth that scales every centre's coarse poses
-    // (the centres share the prior's position up to the beams' refinement).
-    render_coarse_view(mesh, camera, 0, &centres[0], config, rasterizer, view);
-    let median_depth_m =
-        median_scene_depth_m(&view.render).ok_or(RegistrationError::ModelNotVisible)?;
+    // Each centre's own rendering gives the scene depth that scales its coarse poses, and the
+    // prior's coarse poses are drawn with the frame's seed wherever it stands among the centres:
+    // a prior kept beside a beam gets exactly the coarse poses it has without the search. The
+    // first centre is rendered last, so that `view` holds it for the first `emit`.
+    let mut median_depths_m = vec![0.0; centres.len()];
+    for index in (0..centres.len()).rev() {
+        render_coarse_view(mesh, camera, 0, &centres[index], config, rasterizer, view);
+        median_depths_m[index] = match median_scene_depth_m(&view.render) {
+            Some(depth_m) => depth_m,
+            None if index == 0 => return Err(RegistrationError::ModelNotVisible),
+            // A centre that sees no surface keeps the first centre's scale (filled below).
+            None => f64::NAN,
+        };
+    }
+    let first_depth_m = median_depths_m[0];
     let poses: Vec<Rigid3> = centres
         .iter()
+        .zip(&median_depths_m)
         .enumerate()
-        .flat_map(|(index, centre)| {
-            coarse_poses(
-                centre,
-                median_depth_m,
-                config,
-                seed.wrapping_add(index as u64),
-            )
+        .flat_map(|(index, (centre, depth_m))| {
+            let depth_m = if depth_m.is_finite() {
+                *depth_m
+            } else {
+                first_depth_m
+            };
+            let centre_seed = if centre == initial_cam_from_world {
+                seed
+            } else {
+                seed.wrapping_add(index as u64)
+            };
+            coarse_poses(centre, depth_m, config, centre_seed)
         })
         .collect();
     emit(view, poses.len());
