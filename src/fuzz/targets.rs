@@ -532,7 +532,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
     Ok(targets)
 }
 
-const MESSAGE_KINDS: [MessageKind; 10] = [
+const MESSAGE_KINDS: [MessageKind; 13] = [
     MessageKind::Frame,
     MessageKind::FlowJob,
     MessageKind::Correspondences,
@@ -543,6 +543,9 @@ const MESSAGE_KINDS: [MessageKind; 10] = [
     MessageKind::Metrics,
     MessageKind::StreamEnd,
     MessageKind::FrameQuery,
+    MessageKind::ChangeJob,
+    MessageKind::ChangeResult,
+    MessageKind::ChangeSet,
 ];
 
 /// The golden wire files of one kind (`tests/data/wire/v<SCHEMA_VERSION>/NN_<Kind>.bin`).
