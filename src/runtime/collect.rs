@@ -12,7 +12,11 @@ use serde::Serialize;
 use crate::msg::{same_body, Body, ChangeResult, ChangeSet, Header, PoseResult, StageMetrics};
 use crate::transport::{keys, Transport};
 
-use super::ack::Acker;
+use super::ack::{Acker, RESEND_MAX};
+
+/// How long the collector waits after the end of the stream for results still missing: two of
+/// the longest waits between re-sends.
+const END_GRACE: Duration = Duration::from_secs(2 * RESEND_MAX.as_secs());
 use super::bus::{BusError, Inbox};
 
 /// Results as they arrived, checked for exactly-once delivery.
@@ -179,7 +183,22 @@ impl Collector {
         let mut seen_changes: BTreeMap<u64, usize> = BTreeMap::new();
         let mut changes_ended = self.changes.is_none();
         let mut scratch = StageMetrics::default();
-        while !(collected.frame_count.is_some() && changes_ended)
+        // The end of the stream says every frame's result was published, not that each arrived:
+        // one lost in flight is re-sent (runtime::ack) up to `RESEND_MAX` apart, so a frame still
+        // missing at the end is waited for a while longer.
+        let mut ended_at: Option<Instant> = None;
+        let collecting_changes = self.changes.is_some();
+        let complete =
+            |collected: &Collected, changes_ended: bool, ended_at: &mut Option<Instant>| {
+                if collected.frame_count.is_none() || !changes_ended {
+                    return false;
+                }
+                let ended = *ended_at.get_or_insert_with(Instant::now);
+                let all_in = collected.missing().is_empty()
+                    && (!collecting_changes || collected.missing_changes().is_empty());
+                all_in || ended.elapsed() >= END_GRACE
+            };
+        while !complete(&collected, changes_ended, &mut ended_at)
             && started.elapsed() < deadline
             && keep_going()
         {
