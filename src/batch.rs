@@ -317,6 +317,60 @@ mod tests {
         assert!(compared >= 1, "no frame gave a pose to compare");
     }
 
+    /// The shared Brighton set as the distortion tests use it: the mesh, the SIMPLE_RADIAL camera
+    /// of the distorted photos, the PINHOLE camera of the undistorted ones and the true poses.
+    struct BrightonPair {
+        data: std::path::PathBuf,
+        mesh: Mesh,
+        distorted_camera: Camera,
+        undistorted_camera: Camera,
+        truth: Vec<crate::io::colmap::ImagePose>,
+    }
+
+    impl BrightonPair {
+        fn load() -> Self {
+            let data = crate::test_data::shared_data("brighton_beach");
+            let camera_of = |folder: &str| {
+                read_cameras_txt(&data.join(folder).join("cameras.txt")).unwrap()[&1]
+            };
+            Self {
+                mesh: read_mesh(&data.join("mesh.ply")).unwrap(),
+                distorted_camera: camera_of("gt_simple_radial"),
+                undistorted_camera: camera_of("gt_undistorted"),
+                truth: read_images_txt(&data.join("gt_undistorted/images.txt")).unwrap(),
+                data,
+            }
+        }
+
+        /// `image` (its prior) as a batch frame of the photo in `folder` with `camera`.
+        fn frame(
+            &self,
+            image: &crate::io::colmap::ImagePose,
+            folder: &str,
+            camera: Camera,
+        ) -> BatchFrame {
+            BatchFrame {
+                image_id: image.image_id,
+                camera_id: image.camera_id,
+                name: image.name.clone(),
+                image_path: self.data.join(folder).join(&image.name),
+                depth_path: None,
+                camera,
+                intrinsics: IntrinsicsMode::Known,
+                initial_cam_from_world: image.cam_from_world,
+            }
+        }
+
+        /// The true pose of the photo `name`.
+        fn truth_of(&self, name: &str) -> Rigid3 {
+            self.truth
+                .iter()
+                .find(|image| image.name == name)
+                .unwrap()
+                .cam_from_world
+        }
+    }
+
     /// The EXIF priors of the shared Brighton set (`NAME QW QX QY QZ TX TY TZ`) of `names`, with
     /// the image and camera ids of `gt_images`.
     fn brighton_priors(data: &Path, names: &[&str]) -> Vec<crate::io::colmap::ImagePose> {
@@ -362,33 +416,19 @@ mod tests {
             .map(str::to_string)
             .collect();
         let names: Vec<&str> = names.iter().map(String::as_str).collect();
-        let data = crate::test_data::shared_data("brighton_beach");
-        let mesh = read_mesh(&data.join("mesh.ply")).unwrap();
-        let camera_of =
-            |folder: &str| read_cameras_txt(&data.join(folder).join("cameras.txt")).unwrap()[&1];
-        let distorted_camera = camera_of("gt_simple_radial");
-        let undistorted_camera = camera_of("gt_undistorted");
-        let gt = read_images_txt(&data.join("gt_undistorted/images.txt")).unwrap();
+        let brighton = BrightonPair::load();
+        let (mesh, distorted_camera, undistorted_camera) = (
+            &brighton.mesh,
+            brighton.distorted_camera,
+            brighton.undistorted_camera,
+        );
         let config = RegistrationConfig::default();
         let loader = FrameLoader::default();
         let mut workspace = ReprojectionWorkspace::new();
         let mut refine_workspace = RefineWorkspace::default();
-        for image in brighton_priors(&data, &names) {
-            let frame = |folder: &str, camera: Camera| BatchFrame {
-                image_id: image.image_id,
-                camera_id: image.camera_id,
-                name: image.name.clone(),
-                image_path: data.join(folder).join(&image.name),
-                depth_path: None,
-                camera,
-                intrinsics: IntrinsicsMode::Known,
-                initial_cam_from_world: image.cam_from_world,
-            };
-            let truth = gt
-                .iter()
-                .find(|g| g.name == image.name)
-                .unwrap()
-                .cam_from_world;
+        for image in brighton_priors(&brighton.data, &names) {
+            let frame = |folder: &str, camera: Camera| brighton.frame(&image, folder, camera);
+            let truth = brighton.truth_of(&image.name);
             let frame_u = frame("images_undistorted", undistorted_camera);
             let frame_d = frame("images_distorted", distorted_camera);
             let files_u = frame_u.load_with(&loader).unwrap();
@@ -450,7 +490,7 @@ mod tests {
             let query_d = query_gradient(&input_d, &config).unwrap();
             let register = |camera: &Camera, query: &Image<f32>| {
                 register_query(
-                    &mesh,
+                    mesh,
                     camera,
                     IntrinsicsMode::Known,
                     &image.cam_from_world,
@@ -476,7 +516,7 @@ mod tests {
             };
             let mut delta_px = |a: &Rigid3, b: &Rigid3| {
                 mutual_reprojection_error_px(
-                    &mesh,
+                    mesh,
                     &undistorted_camera,
                     a,
                     &undistorted_camera,
@@ -509,7 +549,7 @@ mod tests {
                                    query: &Image<f32>,
                                    from: &Rigid3| {
                 let refinement = refine_pose(
-                    &mesh,
+                    mesh,
                     camera,
                     query.view(),
                     from,
@@ -634,31 +674,21 @@ mod tests {
     #[ignore = "needs ../shared/data/brighton_beach (the shared data set beside the repo)"]
     fn shared_data_brighton_distorted_photos_register_like_the_undistorted_ones() {
         const NAMES: [&str; 2] = ["DJI_0031.JPG", "DJI_0032.JPG"];
-        let data = crate::test_data::shared_data("brighton_beach");
-        let mesh = read_mesh(&data.join("mesh.ply")).unwrap();
-        let camera_of =
-            |folder: &str| read_cameras_txt(&data.join(folder).join("cameras.txt")).unwrap()[&1];
-        let distorted_camera = camera_of("gt_simple_radial");
-        let undistorted_camera = camera_of("gt_undistorted");
-        let gt = read_images_txt(&data.join("gt_undistorted/images.txt")).unwrap();
+        let brighton = BrightonPair::load();
+        let (mesh, distorted_camera, undistorted_camera) = (
+            &brighton.mesh,
+            brighton.distorted_camera,
+            brighton.undistorted_camera,
+        );
         let config = RegistrationConfig::default();
         let loader = FrameLoader::default();
         let mut workspace = ReprojectionWorkspace::new();
-        for image in brighton_priors(&data, &NAMES) {
-            let frame = |folder: &str, camera: Camera| BatchFrame {
-                image_id: image.image_id,
-                camera_id: image.camera_id,
-                name: image.name.clone(),
-                image_path: data.join(folder).join(&image.name),
-                depth_path: None,
-                camera,
-                intrinsics: IntrinsicsMode::Known,
-                initial_cam_from_world: image.cam_from_world,
-            };
+        for image in brighton_priors(&brighton.data, &NAMES) {
+            let frame = |folder: &str, camera: Camera| brighton.frame(&image, folder, camera);
             let frame_d = frame("images_distorted", distorted_camera);
             let frame_u = frame("images_undistorted", undistorted_camera);
-            let distorted = register_batch_frame_with(&mesh, &frame_d, &loader, &config, 1);
-            let undistorted = register_batch_frame_with(&mesh, &frame_u, &loader, &config, 1);
+            let distorted = register_batch_frame_with(mesh, &frame_d, &loader, &config, 1);
+            let undistorted = register_batch_frame_with(mesh, &frame_u, &loader, &config, 1);
             let files_d = frame_d.load_with(&loader).unwrap();
             let files_u = frame_u.load_with(&loader).unwrap();
             assert_eq!(files_d.camera, files_u.camera, "one working camera");
@@ -674,14 +704,10 @@ mod tests {
                 // The output keeps the photo's camera.
                 assert_eq!(distorted.camera, Some(distorted_camera));
             }
-            let truth = gt
-                .iter()
-                .find(|g| g.name == image.name)
-                .unwrap()
-                .cam_from_world;
+            let truth = brighton.truth_of(&image.name);
             let mut delta_px = |a: &Rigid3, b: &Rigid3| {
                 mutual_reprojection_error_px(
-                    &mesh,
+                    mesh,
                     &undistorted_camera,
                     a,
                     &undistorted_camera,
@@ -707,7 +733,7 @@ mod tests {
                     photo: photo.view(),
                     ..frame_u.input(&files_u, 1)
                 };
-                let result = register_frame(&mesh, &input, &config).unwrap();
+                let result = register_frame(mesh, &input, &config).unwrap();
                 let pose = result.verdict.chosen().unwrap().cam_from_world;
                 let moved_px = delta_px(&pose, &undistorted_pose);
                 eprintln!(

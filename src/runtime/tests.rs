@@ -64,6 +64,24 @@ fn run_on_crossbeam(config: &PipelineConfig) -> (crate::core::mesh::Mesh, collec
     (mesh, collected)
 }
 
+/// As [`run_on_crossbeam`], through `run_stage_threads` (the journals stay in the config's state
+/// folder, to read after).
+fn run_stage_threads_on_crossbeam(
+    config: &PipelineConfig,
+) -> (crate::core::mesh::Mesh, collect::Collected) {
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let transport = CrossbeamTransport::new(config.transport.clone());
+    let collected = run_stage_threads(
+        config,
+        &transport,
+        &mesh,
+        Duration::from_secs(300),
+        &mut |_| {},
+    )
+    .unwrap();
+    (mesh, collected)
+}
+
 #[test]
 fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
     let dir = tempfile::tempdir().unwrap();
@@ -88,16 +106,7 @@ fn several_render_pose_workers_and_verify_threads_give_the_batch_results() {
     config.workers.verify_threads = 3;
     config.state_dir = Some(dir.path().join("state"));
     // As `run`, but keeping the journal in the state folder to read it after.
-    let mesh = read_mesh(&config.mesh).unwrap();
-    let transport = CrossbeamTransport::new(config.transport.clone());
-    let collected = run_stage_threads(
-        &config,
-        &transport,
-        &mesh,
-        Duration::from_secs(300),
-        &mut |_| {},
-    )
-    .unwrap();
+    let (mesh, collected) = run_stage_threads_on_crossbeam(&config);
     assert_same_as_batch(&config, &mesh, &collected);
     // Decided on the pool, each result still went out by verify's one publish path: journaled
     // once, with the very bytes the collector received (those sent again until acknowledged).
@@ -514,16 +523,7 @@ fn restarted_ingest_verify_and_fusion_resume_from_the_results_journals() {
             acked.append(*frame_id).unwrap();
         }
     }
-    let mesh = read_mesh(&config.mesh).unwrap();
-    let transport = CrossbeamTransport::new(config.transport.clone());
-    let collected = run_stage_threads(
-        &config,
-        &transport,
-        &mesh,
-        Duration::from_secs(300),
-        &mut |_| {},
-    )
-    .unwrap();
+    let (_, collected) = run_stage_threads_on_crossbeam(&config);
     assert_eq!(collected.frame_count, Some(4));
     let ids: Vec<u64> = collected.by_frame().iter().map(|r| r.frame_id).collect();
     assert_eq!(
@@ -599,16 +599,7 @@ fn a_full_disk_under_the_journals_fails_each_frame_once_with_the_reason() {
     for path in [&pose_journal, &change_journal] {
         std::os::unix::fs::symlink("/dev/full", path).unwrap();
     }
-    let mesh = read_mesh(&config.mesh).unwrap();
-    let transport = CrossbeamTransport::new(config.transport.clone());
-    let collected = run_stage_threads(
-        &config,
-        &transport,
-        &mesh,
-        Duration::from_secs(300),
-        &mut |_| {},
-    )
-    .unwrap();
+    let (_, collected) = run_stage_threads_on_crossbeam(&config);
     assert_eq!(collected.frame_count, Some(4));
     assert!(collected.duplicates.is_empty() && collected.missing().is_empty());
     let results = collected.by_frame();

@@ -68,6 +68,24 @@ struct CrossbeamPublisher {
     max_message_bytes: usize,
 }
 
+impl CrossbeamPublisher {
+    /// The topic's subscribers' senders, cloned out of the lock (a blocking send must not hold
+    /// the registry).
+    fn senders(&self) -> Result<Vec<Sender<Vec<u8>>>, TransportError> {
+        Ok(self
+            .subscribers
+            .lock()
+            .map_err(|_| TransportError::Send {
+                backend: BACKEND,
+                topic: self.topic.clone(),
+                detail: "the topic registry is poisoned (a stage thread panicked)".to_string(),
+            })?
+            .get(&self.topic)
+            .cloned()
+            .unwrap_or_default())
+    }
+}
+
 impl Publisher for CrossbeamPublisher {
     fn topic(&self) -> &str {
         &self.topic
@@ -97,17 +115,7 @@ impl Publisher for CrossbeamPublisher {
 
     fn send_lossy(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
         super::check_message_size(BACKEND, &self.topic, bytes.len(), self.max_message_bytes)?;
-        let senders: Vec<Sender<Vec<u8>>> = self
-            .subscribers
-            .lock()
-            .map_err(|_| TransportError::Send {
-                backend: BACKEND,
-                topic: self.topic.clone(),
-                detail: "the topic registry is poisoned (a stage thread panicked)".to_string(),
-            })?
-            .get(&self.topic)
-            .cloned()
-            .unwrap_or_default();
+        let senders = self.senders()?;
         for sender in senders {
             // A full or dropped subscriber misses this message; nobody waits.
             let _ = sender.try_send(bytes.to_vec());
@@ -123,18 +131,7 @@ impl Publisher for CrossbeamPublisher {
         super::check_message_size(BACKEND, &self.topic, len, self.max_message_bytes)?;
         let mut message = vec![0u8; len];
         write(&mut message);
-        // The senders are cloned out of the lock: a blocking send must not hold the registry.
-        let senders: Vec<Sender<Vec<u8>>> = self
-            .subscribers
-            .lock()
-            .map_err(|_| TransportError::Send {
-                backend: BACKEND,
-                topic: self.topic.clone(),
-                detail: "the topic registry is poisoned (a stage thread panicked)".to_string(),
-            })?
-            .get(&self.topic)
-            .cloned()
-            .unwrap_or_default();
+        let senders = self.senders()?;
         let mut dead: Vec<&Sender<Vec<u8>>> = Vec::new();
         // Every subscriber but the last gets a copy; the last gets the message itself.
         if let Some((last, others)) = senders.split_last() {

@@ -66,15 +66,7 @@ fn a_full_disk_while_writing_the_results_names_the_file() {
 #[test]
 fn a_mesh_above_the_memory_limit_is_refused_from_its_header() {
     let dir = tempfile::tempdir().unwrap();
-    let mesh = dir.path().join("huge.ply");
-    // The header of a 10^8-vertex mesh; the data is never read.
-    std::fs::write(
-        &mesh,
-        "ply\nformat binary_little_endian 1.0\nelement vertex 100000000\nproperty float x\n\
-         property float y\nproperty float z\nelement face 200000000\n\
-         property list uchar int vertex_indices\nend_header\n",
-    )
-    .unwrap();
+    let mesh = huge_mesh_header(dir.path());
     let out = dir.path().join("out");
     let output = register(dir.path(), &mesh, &out, &["--max-mesh-mib", "512"]);
     assert_one_line_error(
@@ -234,15 +226,7 @@ fn the_pipeline_refuses_a_state_folder_that_cannot_be_created_before_any_stage()
 #[test]
 fn the_pipeline_refuses_a_mesh_above_the_memory_limit_before_any_stage() {
     let dir = tempfile::tempdir().unwrap();
-    let mesh = dir.path().join("huge.ply");
-    // The header of a 10^8-vertex mesh; the data is never read.
-    std::fs::write(
-        &mesh,
-        "ply\nformat binary_little_endian 1.0\nelement vertex 100000000\nproperty float x\n\
-         property float y\nproperty float z\nelement face 200000000\n\
-         property list uchar int vertex_indices\nend_header\n",
-    )
-    .unwrap();
+    let mesh = huge_mesh_header(dir.path());
     let out = dir.path().join("out");
     let needles = [path_str(&mesh), "needs about 8011 MiB", "limit of 512 MiB"];
     // On the command line, and in the config.
@@ -351,4 +335,18 @@ fn root_a_state_folder_that_fills_while_running_fails_those_frames_with_the_reas
             "{failure}"
         );
     }
+}
+
+/// `dir/huge.ply`: the header of a 10^8-vertex mesh (about 8011 MiB loaded) and no data; a limit
+/// must refuse it from the header alone.
+fn huge_mesh_header(dir: &Path) -> PathBuf {
+    let mesh = dir.join("huge.ply");
+    std::fs::write(
+        &mesh,
+        "ply\nformat binary_little_endian 1.0\nelement vertex 100000000\nproperty float x\n\
+         property float y\nproperty float z\nelement face 200000000\n\
+         property list uchar int vertex_indices\nend_header\n",
+    )
+    .unwrap();
+    mesh
 }

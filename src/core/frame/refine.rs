@@ -104,7 +104,7 @@ pub fn refine_verdict(
 /// agreeing refined poses) by decreasing RANSAC consensus, each kept when it lies at least the
 /// alignment's final search radius from `chosen` and from every start kept before it (closer
 /// starts end in the same place), up to `starts − 1` of them.
-pub fn other_starts(
+fn other_starts(
     mesh: &Mesh,
     chosen: &PoseHypothesis,
     group: &[PoseHypothesis],
@@ -283,7 +283,7 @@ mod tests {
     use nalgebra::{UnitQuaternion, Vector3};
 
     use super::*;
-    use crate::core::frame::tests::{house_and_poses, ideal_query};
+    use crate::core::frame::tests::{house_and_poses, ideal_query, view_at};
     use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
     /// The model edge samples of a rendering at `pose` (as the refinement takes them).
@@ -293,16 +293,7 @@ mod tests {
         pose: &Rigid3,
         config: &RegistrationConfig,
     ) -> Vec<EdgeSample> {
-        let mut view = CoarseView::default();
-        render_coarse_view(
-            mesh,
-            camera,
-            0,
-            pose,
-            config,
-            &mut Rasterizer::new(),
-            &mut view,
-        );
+        let view = view_at(mesh, camera, pose, config);
         let mut samples = Vec::new();
         model_edge_samples(
             view.asg.view(),
@@ -313,6 +304,12 @@ mod tests {
             &mut samples,
         );
         samples
+    }
+
+    /// δ between `pose` and `truth` (both with `camera`), px.
+    fn delta_px(mesh: &Mesh, camera: &Camera, pose: &Rigid3, truth: &Rigid3) -> f64 {
+        let mut workspace = ReprojectionWorkspace::new();
+        mutual_reprojection_error_px(mesh, camera, pose, camera, truth, &mut workspace).unwrap()
     }
 
     /// Known pose, ideal query (the model's own ASG at the truth): the alignment must bring a pose
@@ -327,11 +324,7 @@ mod tests {
             UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006)) * truth.rotation,
             truth.translation + Vector3::new(0.16, -0.1, 0.12),
         );
-        let mut reprojection = ReprojectionWorkspace::new();
-        let mut delta = |pose: &Rigid3| {
-            mutual_reprojection_error_px(&mesh, &camera, pose, &camera, &truth, &mut reprojection)
-                .unwrap()
-        };
+        let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
         let start_delta_px = delta(&start);
         let refinement = refine_pose(
             &mesh,
@@ -618,13 +611,9 @@ mod tests {
         let config = RegistrationConfig::default();
         let query = ideal_query(&mesh, &camera, &truth, &config);
         let start = off_by(&truth, 4.0);
-        let mut reprojection = ReprojectionWorkspace::new();
-        let mut delta = |pose: &Rigid3| {
-            mutual_reprojection_error_px(&mesh, &camera, pose, &camera, &truth, &mut reprojection)
-                .unwrap()
-        };
+        let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
         let start_delta_px = delta(&start);
-        let mut aligned_delta_px = |initial_search_radius_px: f64| {
+        let aligned_delta_px = |initial_search_radius_px: f64| {
             let config = RegistrationConfig {
                 edge_align: EdgeAlignConfig {
                     initial_search_radius_px,
@@ -672,12 +661,8 @@ mod tests {
         let near = hypothesis(off_by(&truth, 1.0), 80);
         let beside_far = hypothesis(off_by(&truth, -8.02), 95);
         let group = [beside_far, far, near];
-        let mut reprojection = ReprojectionWorkspace::new();
-        let mut delta = |pose: &Rigid3| {
-            mutual_reprojection_error_px(&mesh, &camera, pose, &camera, &truth, &mut reprojection)
-                .unwrap()
-        };
-        let mut output_delta_px = |starts: usize| {
+        let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
+        let output_delta_px = |starts: usize| {
             let config = RegistrationConfig {
                 edge_align: EdgeAlignConfig {
                     starts,

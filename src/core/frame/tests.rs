@@ -39,13 +39,13 @@ pub(crate) fn house_and_poses() -> (Mesh, Camera, Rigid3, Rigid3) {
     (house_mesh(), camera, truth, initial)
 }
 
-/// The ideal query of a pose: the model's own ASG rendered there.
-pub(crate) fn ideal_query(
+/// The coarse view (ASG and render buffers) of the model at a pose, as the frame's steps render it.
+pub(crate) fn view_at(
     mesh: &Mesh,
     camera: &Camera,
     pose: &Rigid3,
     config: &RegistrationConfig,
-) -> Image<f32> {
+) -> CoarseView {
     let mut view = CoarseView::default();
     render_coarse_view(
         mesh,
@@ -56,7 +56,17 @@ pub(crate) fn ideal_query(
         &mut Rasterizer::new(),
         &mut view,
     );
-    view.asg
+    view
+}
+
+/// The ideal query of a pose: the model's own ASG rendered there.
+pub(crate) fn ideal_query(
+    mesh: &Mesh,
+    camera: &Camera,
+    pose: &Rigid3,
+    config: &RegistrationConfig,
+) -> Image<f32> {
+    view_at(mesh, camera, pose, config).asg
 }
 
 #[test]
