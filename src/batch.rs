@@ -361,6 +361,12 @@ mod tests {
             }
         }
 
+        /// δ between two poses of the undistorted camera (995 px wide), px.
+        fn delta_px(&self, a: &Rigid3, b: &Rigid3, workspace: &mut ReprojectionWorkspace) -> f64 {
+            let camera = &self.undistorted_camera;
+            mutual_reprojection_error_px(&self.mesh, camera, a, camera, b, workspace).unwrap()
+        }
+
         /// The true pose of the photo `name`.
         fn truth_of(&self, name: &str) -> Rigid3 {
             self.truth
@@ -514,17 +520,7 @@ mod tests {
                     .edges
                     .map_or(f64::NAN, |e| e.image_uncertainty_px)
             };
-            let mut delta_px = |a: &Rigid3, b: &Rigid3| {
-                mutual_reprojection_error_px(
-                    mesh,
-                    &undistorted_camera,
-                    a,
-                    &undistorted_camera,
-                    b,
-                    &mut workspace,
-                )
-                .unwrap()
-            };
+            let mut delta_px = |a: &Rigid3, b: &Rigid3| brighton.delta_px(a, b, &mut workspace);
             let (pose_u, pose_d) = (pose(&result_u), pose(&result_d));
             eprintln!(
                 "  undistorted: accepted {} confidence {:.3} uncertainty {:.3} working px, δ truth {:.2} px; distorted: accepted {} confidence {:.3} uncertainty {:.3}, δ truth {:.2} px",
@@ -705,17 +701,7 @@ mod tests {
                 assert_eq!(distorted.camera, Some(distorted_camera));
             }
             let truth = brighton.truth_of(&image.name);
-            let mut delta_px = |a: &Rigid3, b: &Rigid3| {
-                mutual_reprojection_error_px(
-                    mesh,
-                    &undistorted_camera,
-                    a,
-                    &undistorted_camera,
-                    b,
-                    &mut workspace,
-                )
-                .unwrap()
-            };
+            let mut delta_px = |a: &Rigid3, b: &Rigid3| brighton.delta_px(a, b, &mut workspace);
             let between_px = delta_px(&distorted_pose, &undistorted_pose);
             eprintln!(
                 "{}: accepted distorted {} ({:.3}), undistorted {} ({:.3}); δ(distorted, undistorted) {between_px:.2} px; to the truth {:.2} / {:.2} px",
