@@ -187,6 +187,13 @@ pub struct CoarseArgs {
     /// agreeing group); the aligned pose with the most edge support wins.
     #[arg(long, default_value_t = RegistrationConfig::default().edge_align.starts)]
     pub edge_starts: usize,
+    /// Final refinement: undo a level whose result lowers the edge support.
+    #[arg(long)]
+    pub edge_check_levels: bool,
+    /// Final refinement: moving edges (default), the dense feature-metric alignment, or both in
+    /// turn (`edges-then-dense`).
+    #[arg(long, value_enum, default_value_t = RefineMethodArg::Edges)]
+    pub refine_method: RefineMethodArg,
     /// Final refinement: do not estimate the model's edge rounding radius with the pose (by
     /// default it is: a smoothed, Poisson-like model rounds its edges, and the photo's edges lie
     /// where the sharp ones would).
@@ -226,12 +233,32 @@ impl Default for CoarseArgs {
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
             edge_starts: defaults.edge_align.starts,
+            refine_method: RefineMethodArg::Edges,
+            edge_check_levels: false,
             no_edge_rounding: !defaults.edge_align.estimate_rounding,
             edge_kinds: EdgeKindsArg::All,
             edge_rounding_kinds: EdgeKindsArg::All,
             no_pose_search: false,
             screened_candidates: PoseSearchConfig::default().screened_candidates,
             keep_prior_centre: PoseSearchConfig::default().keep_prior_centre,
+        }
+    }
+}
+
+/// Which alignment the final refinement runs.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RefineMethodArg {
+    Edges,
+    Dense,
+    EdgesThenDense,
+}
+
+impl From<RefineMethodArg> for asgreg::core::edge_align::RefineMethod {
+    fn from(arg: RefineMethodArg) -> Self {
+        match arg {
+            RefineMethodArg::Edges => Self::Edges,
+            RefineMethodArg::Dense => Self::Dense,
+            RefineMethodArg::EdgesThenDense => Self::EdgesThenDense,
         }
     }
 }
@@ -327,6 +354,8 @@ pub fn registration_config(
             enabled: !coarse.no_edge_align,
             initial_search_radius_px: coarse.edge_search_px,
             starts: coarse.edge_starts,
+            method: coarse.refine_method.into(),
+            check_levels: coarse.edge_check_levels,
             estimate_rounding: !coarse.no_edge_rounding,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),

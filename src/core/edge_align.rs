@@ -71,6 +71,36 @@ pub struct EdgeAlignConfig {
     /// edge support wins. 1: the chosen pose only (the default: with 3 starts the block at 30 px
     /// gained, the house lost — its support peaks away from the truth; docs/measurements.md).
     pub starts: usize,
+    /// After each level, keep its result only when the edge support (measured as the evidence
+    /// is, fine, with the current rounding undone) is not lower than at the level's start;
+    /// else return to the level's start and go on with the next, finer level.
+    pub check_levels: bool,
+    /// Which alignment the final refinement runs: moving edges (the default), the dense
+    /// feature-metric alignment of [`crate::core::feature_align`], or both in turn.
+    pub method: RefineMethod,
+    /// Settings of the dense alignment (used when `method` includes it).
+    pub dense: crate::core::feature_align::DenseAlignConfig,
+}
+
+/// Which alignment the final refinement runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum RefineMethod {
+    /// Moving edges only.
+    #[default]
+    Edges,
+    /// The dense feature-metric alignment only.
+    Dense,
+    /// Moving edges, then the dense alignment from where they ended.
+    EdgesThenDense,
+}
+
+impl RefineMethod {
+    pub fn runs_edges(self) -> bool {
+        self != Self::Dense
+    }
+    pub fn runs_dense(self) -> bool {
+        self != Self::Edges
+    }
 }
 
 /// Which kinds of model edge samples the alignment's steps use.
@@ -112,6 +142,9 @@ impl Default for EdgeAlignConfig {
             rounding_kinds: AlignedKinds::All,
             aligned_kinds: AlignedKinds::All,
             starts: 1,
+            check_levels: false,
+            method: RefineMethod::Edges,
+            dense: crate::core::feature_align::DenseAlignConfig::default(),
         }
     }
 }
@@ -755,6 +788,9 @@ pub struct LevelSummary {
     /// The model's edge rounding radius after the level, m (0 unless estimated).
     #[serde(default)]
     pub rounding_m: f64,
+    /// The level's result lowered the edge support and was undone (`check_levels`).
+    #[serde(default)]
+    pub reverted: bool,
 }
 
 /// What the alignment may change.

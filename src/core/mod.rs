@@ -7,6 +7,7 @@ pub mod change;
 pub mod confidence;
 pub mod dense_sift;
 pub mod edge_align;
+pub mod feature_align;
 pub mod flow_consistency;
 pub mod frame;
 pub mod image;

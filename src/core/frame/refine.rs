@@ -11,6 +11,7 @@ use crate::core::edge_align::{
     align_level, blurred_query, edge_evidence, model_edge_samples, sharpened_samples, support_peak,
     AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary, SupportPeak,
 };
+use crate::core::feature_align::{align_dense_level, dense_samples, DenseSample};
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::raster::Rasterizer;
@@ -53,7 +54,12 @@ pub struct RefineWorkspace {
     start_samples: Vec<EdgeSample>,
     /// Samples with the estimated rounding undone.
     sharpened: Vec<EdgeSample>,
+    /// The samples at the current level's start (`check_levels`).
+    level_start_samples: Vec<EdgeSample>,
     blurred: Image<f32>,
+    /// The dense alignment's blurred rendering and samples.
+    blurred_asg: Image<f32>,
+    dense: Vec<DenseSample>,
 }
 
 /// Refines the verdict's chosen pose against `query` (the frame's query gradient image, 0..1) and
@@ -208,13 +214,20 @@ pub fn refine_pose(
         samples,
         start_samples,
         sharpened,
+        level_start_samples,
         blurred,
+        blurred_asg,
+        dense,
     } = workspace;
-    let mut sample_at = |camera: &Camera, pose: &Rigid3, samples: &mut Vec<EdgeSample>| {
+    let sample_at = |rasterizer: &mut Rasterizer,
+                     view: &mut CoarseView,
+                     camera: &Camera,
+                     pose: &Rigid3,
+                     samples: &mut Vec<EdgeSample>| {
         render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
         model_edge_samples(view.asg.view(), &view.render, camera, pose, align, samples);
     };
-    sample_at(camera, start, samples);
+    sample_at(rasterizer, view, camera, start, samples);
     let verified = edge_evidence(samples, &query, camera, start, align);
     start_samples.clone_from(samples);
     if samples.len() < align.min_samples {
@@ -228,9 +241,50 @@ pub fn refine_pose(
     let mut aligned_camera = *camera;
     let mut levels = Vec::new();
     let mut rounding_m = 0.0;
-    for (level, radius_px) in align.level_radii_px().into_iter().enumerate() {
+    let edge_radii_px = if align.method.runs_edges() {
+        align.level_radii_px()
+    } else {
+        Vec::new()
+    };
+    let mut level_start = (aligned_camera, pose, rounding_m);
+    level_start_samples.clone_from(samples);
+    // `check_levels`: the support now against the level's start, both with the current rounding
+    // undone; the level is undone when it lowered it.
+    let mut check_level = |samples: &mut Vec<EdgeSample>,
+                           current: &mut (Camera, Rigid3, f64),
+                           levels: &mut Vec<LevelSummary>| {
+        if !align.check_levels {
+            return;
+        }
+        let support =
+            |samples: &[EdgeSample], camera: &Camera, pose: &Rigid3, out: &mut Vec<EdgeSample>| {
+                sharpened_samples(samples, current.2, align.rounding_kinds, out);
+                edge_evidence(out, &query, camera, pose, align).support_fraction()
+            };
+        let now = support(samples, &current.0, &current.1, sharpened);
+        let before = support(
+            level_start_samples,
+            &level_start.0,
+            &level_start.1,
+            sharpened,
+        );
+        if now < before {
+            *current = level_start;
+            samples.clone_from(level_start_samples);
+            if let Some(last) = levels.last_mut() {
+                last.reverted = true;
+            }
+        } else {
+            level_start = *current;
+            level_start_samples.clone_from(samples);
+        }
+    };
+    for (level, radius_px) in edge_radii_px.into_iter().enumerate() {
         if level > 0 {
-            sample_at(&aligned_camera, &pose, samples);
+            sample_at(rasterizer, view, &aligned_camera, &pose, samples);
+            let mut current = (aligned_camera, pose, rounding_m);
+            check_level(samples, &mut current, &mut levels);
+            (aligned_camera, pose, rounding_m) = current;
         }
         blurred_query(query, radius_px, blurred);
         let (next_camera, next_pose, summary) = align_level(
@@ -246,7 +300,46 @@ pub fn refine_pose(
         (aligned_camera, pose) = (next_camera, next_pose);
         levels.push(summary);
     }
-    sample_at(&aligned_camera, &pose, samples);
+    if !levels.is_empty() {
+        sample_at(rasterizer, view, &aligned_camera, &pose, samples);
+        let mut current = (aligned_camera, pose, rounding_m);
+        check_level(samples, &mut current, &mut levels);
+        (aligned_camera, pose, rounding_m) = current;
+    }
+    if align.method.runs_dense() && parameters == AlignedParameters::Pose {
+        for sigma_px in align.dense.level_sigmas_px() {
+            render_coarse_view(mesh, &aligned_camera, 0, &pose, config, rasterizer, view);
+            // `blurred_query` blurs with a quarter of its radius as σ.
+            blurred_query(view.asg.view(), 4.0 * sigma_px, blurred_asg);
+            dense_samples(
+                blurred_asg.view(),
+                &view.render,
+                &aligned_camera,
+                &pose,
+                &align.dense,
+                dense,
+            );
+            blurred_query(query, 4.0 * sigma_px, blurred);
+            let (next_pose, summary) = align_dense_level(
+                dense,
+                &blurred.view(),
+                &aligned_camera,
+                &pose,
+                sigma_px,
+                &align.dense,
+            );
+            pose = next_pose;
+            levels.push(LevelSummary {
+                search_radius_px: sigma_px,
+                steps: summary.steps,
+                matched: summary.used,
+                scale_px: summary.scale,
+                rounding_m,
+                reverted: false,
+            });
+        }
+    }
+    sample_at(rasterizer, view, &aligned_camera, &pose, samples);
     // Both poses measured the same way: with the estimated rounding undone.
     let verified = if rounding_m > 0.0 {
         sharpened_samples(start_samples, rounding_m, align.rounding_kinds, sharpened);
@@ -283,6 +376,7 @@ mod tests {
     use nalgebra::{UnitQuaternion, Vector3};
 
     use super::*;
+    use crate::core::edge_align::RefineMethod;
     use crate::core::frame::tests::{house_and_poses, ideal_query, view_at};
     use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
@@ -314,6 +408,56 @@ mod tests {
 
     /// Known pose, ideal query (the model's own ASG at the truth): the alignment must bring a pose
     /// a few pixels off back to the truth, keep it, and leave the truth where it is.
+    /// The other two ways of refining (dense feature-metric alignment, and checking each edge
+    /// level) must bring the same start back on an ideal query too.
+    #[test]
+    fn dense_alignment_and_checked_levels_recover_the_true_pose_on_an_ideal_query() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let mut workspace = RefineWorkspace::default();
+        let start = Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006)) * truth.rotation,
+            truth.translation + Vector3::new(0.16, -0.1, 0.12),
+        );
+        let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
+        for (method, check_levels) in [
+            (RefineMethod::Dense, false),
+            (RefineMethod::EdgesThenDense, false),
+            (RefineMethod::Edges, true),
+        ] {
+            let mut config = RegistrationConfig::default();
+            config.edge_align.method = method;
+            config.edge_align.check_levels = check_levels;
+            config.edge_align.dense.iterations_per_level = 20;
+            let query = ideal_query(&mesh, &camera, &truth, &config);
+            let refinement = refine_pose(
+                &mesh,
+                &camera,
+                query.view(),
+                &start,
+                AlignedParameters::Pose,
+                &config,
+                &mut workspace,
+            )
+            .unwrap();
+            let aligned_delta_px = delta(&refinement.aligned_cam_from_world);
+            println!(
+                "{method:?} (levels checked: {check_levels}): δ {:.2} px → {aligned_delta_px:.3} px",
+                delta(&start)
+            );
+            // The dense alignment converges slowly (with its default 6 steps per level 4.2 →
+            // 1.65 px here, with 20 steps 0.63 px): the test gives it 20 and asks for a pixel.
+            let bound_px = if method == RefineMethod::Dense {
+                1.0
+            } else {
+                0.5
+            };
+            assert!(
+                aligned_delta_px < bound_px,
+                "{method:?}: {aligned_delta_px}"
+            );
+        }
+    }
+
     #[test]
     fn edge_alignment_recovers_the_true_pose_on_an_ideal_query() {
         let (mesh, camera, truth, _) = house_and_poses();
