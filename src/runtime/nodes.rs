@@ -712,8 +712,15 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
 
 /// Stage "flow" (N workers): one (frame, coarse pose) job at a time, correspondences to pose.
 pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
-    let mut pose = Outbox::open(ctx.transport, keys::CORRESPONDENCES)?;
-    pose.wait_for_reader("pose", ctx.startup())?;
+    // One outbox per pose worker: each job's correspondences go to the pose worker that solves
+    // them, so a flow worker waits only when that pose worker's queue is full.
+    let pose_workers = ctx.config.workers.pose.max(1);
+    let mut pose = (0..pose_workers)
+        .map(|w| Outbox::open(ctx.transport, &keys::pose_in(w)))
+        .collect::<Result<Vec<_>, _>>()?;
+    for outbox in &mut pose {
+        outbox.wait_for_reader("pose", ctx.startup())?;
+    }
     let mut stage = FlowStage::new(mesh, ctx.config.registration.clone(), ctx.worker_index)
         .with_simulated_work(ctx.config.simulate);
     let link = keys::flow_link_of_worker(ctx.worker_index, ctx.config.workers.render);
@@ -731,14 +738,16 @@ pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeErro
             frame_id,
             coarse_index: job.meta.coarse_index,
         };
+        let pose_worker = pose_worker_of(frame_id, job.meta.coarse_index, pose_workers);
         Some(
-            pose.send(
-                frame_id,
-                message.header.capture_time_ns,
-                Body::Correspondences(correspondences),
-                metrics,
-            )
-            .map(|_| key),
+            pose[pose_worker as usize]
+                .send(
+                    frame_id,
+                    message.header.capture_time_ns,
+                    Body::Correspondences(correspondences),
+                    metrics,
+                )
+                .map(|_| key),
         )
     })
 }
@@ -784,26 +793,27 @@ fn serve_jobs(
     Ok(metrics)
 }
 
-/// The pose worker that solves a frame's coarse pose: every pose worker receives every coarse
-/// pose's correspondences and keeps its share, so each is solved once without a dispatcher (a
-/// restarted pose worker's lost share is redone by ingest, as with one pose worker).
+/// The pose worker that solves a frame's coarse pose: flow sends each coarse pose's
+/// correspondences to that worker's own topic (`keys::pose_in`), so each is solved once without
+/// a dispatcher (a restarted pose worker's lost share is redone by ingest, as with one pose
+/// worker).
 pub fn pose_worker_of(frame_id: u64, coarse_index: u32, workers: u32) -> u32 {
     let workers = u64::from(workers.max(1));
     // Consecutive coarse poses of a frame go to consecutive workers.
     ((frame_id.wrapping_mul(7) + u64::from(coarse_index)) % workers) as u32
 }
 
-/// Stage "pose" (one or more workers, each its share by [`pose_worker_of`]): correspondences of
-/// one coarse pose → refined pose hypothesis → verify.
+/// Stage "pose" (one or more workers, each its share by [`pose_worker_of`] on its own topic):
+/// correspondences of one coarse pose → refined pose hypothesis → verify.
 pub fn run_pose(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     let mut metrics = ctx.metrics("pose");
     let mut reporter = MetricsReporter::open(ctx.transport)?;
-    let mut inbox = Inbox::open(ctx.transport, keys::CORRESPONDENCES, "pose")?;
+    let mut inbox = Inbox::open(ctx.transport, &keys::pose_in(ctx.worker_index), "pose")?;
     let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
     verify.wait_for_reader("verify", ctx.startup())?;
     let mut stage =
         PoseStage::new(ctx.config.registration.clone()).with_simulated_work(ctx.config.simulate);
-    let workers = ctx.config.workers.pose;
+    // Everything on this worker's topic is its share: flow sent it here.
     while !ctx.stopped() {
         let mut sent: Result<(), BusError> = Ok(());
         inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
@@ -812,9 +822,6 @@ pub fn run_pose(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                 unexpected("pose", message.body.kind(), frame_id);
                 return;
             };
-            if pose_worker_of(frame_id, set.meta.coarse_index, workers) != ctx.worker_index {
-                return;
-            }
             let started = Instant::now();
             let hypothesis = stage.process(&set);
             record_compute(metrics, started);
