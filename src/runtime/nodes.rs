@@ -32,6 +32,8 @@ use super::journal::{self, Journal, JournalError};
 
 /// How long a loop waits for a message before checking the stop flag.
 const POLL: Duration = Duration::from_millis(20);
+/// Messages verify takes from its inbox in one pass before its bookkeeping.
+const VERIFY_DRAIN_MAX: usize = 256;
 /// Change jobs verify queues for the change workers (verify never waits for them: a change job
 /// is a few ms of work per frame, far less than a frame's registration).
 const CHANGE_JOBS_QUEUED: usize = 1024;
@@ -1097,35 +1099,46 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         drop(decided_tx);
         while !ctx.stopped() {
             let mut produced = Vec::new();
-            inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
-                let frame_id = message.header.frame_id;
-                let started = Instant::now();
-                match message.body {
-                    Body::Hypothesis(hypothesis) => {
-                        capture_times
-                            .entry(frame_id)
-                            .or_insert(message.header.capture_time_ns);
-                        produced.extend(stage.on_hypothesis(frame_id, hypothesis));
+            // Everything waiting is taken before the bookkeeping below (results, acks, change
+            // work, metrics), which would otherwise run once per message: with many pose workers
+            // the hypotheses arrive faster than one message per pass drains them, and pose
+            // workers (then flow workers) wait on this inbox.
+            let mut wait = POLL;
+            let mut taken = 0;
+            while taken < VERIFY_DRAIN_MAX
+                && inbox.receive(wait, &mut metrics, &mut |message, metrics| {
+                    let frame_id = message.header.frame_id;
+                    let started = Instant::now();
+                    match message.body {
+                        Body::Hypothesis(hypothesis) => {
+                            capture_times
+                                .entry(frame_id)
+                                .or_insert(message.header.capture_time_ns);
+                            produced.extend(stage.on_hypothesis(frame_id, hypothesis));
+                        }
+                        Body::FrameFailed(failure) => {
+                            capture_times
+                                .entry(frame_id)
+                                .or_insert(message.header.capture_time_ns);
+                            produced.extend(stage.on_failure(frame_id, &failure));
+                        }
+                        Body::FrameQuery(query) => {
+                            capture_times
+                                .entry(frame_id)
+                                .or_insert(message.header.capture_time_ns);
+                            produced.extend(stage.on_query(frame_id, &query));
+                        }
+                        Body::StreamEnd(end) => {
+                            stage.on_stream_end(end.frame_count, &end.finished_frames)
+                        }
+                        other => unexpected("verify", other.kind(), frame_id),
                     }
-                    Body::FrameFailed(failure) => {
-                        capture_times
-                            .entry(frame_id)
-                            .or_insert(message.header.capture_time_ns);
-                        produced.extend(stage.on_failure(frame_id, &failure));
-                    }
-                    Body::FrameQuery(query) => {
-                        capture_times
-                            .entry(frame_id)
-                            .or_insert(message.header.capture_time_ns);
-                        produced.extend(stage.on_query(frame_id, &query));
-                    }
-                    Body::StreamEnd(end) => {
-                        stage.on_stream_end(end.frame_count, &end.finished_frames)
-                    }
-                    other => unexpected("verify", other.kind(), frame_id),
-                }
-                record_compute(metrics, started);
-            })?;
+                    record_compute(metrics, started);
+                })?
+            {
+                wait = Duration::ZERO;
+                taken += 1;
+            }
             produced.extend(stage.expire(Instant::now()));
             for ready in stage.take_ready() {
                 // The pool's threads end only with this loop.
