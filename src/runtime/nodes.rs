@@ -32,6 +32,8 @@ use super::journal::{self, Journal, JournalError};
 
 /// How long a loop waits for a message before checking the stop flag.
 const POLL: Duration = Duration::from_millis(20);
+/// Messages verify takes from its inbox in one pass before its bookkeeping.
+const VERIFY_DRAIN_MAX: usize = 256;
 /// Change jobs verify queues for the change workers (verify never waits for them: a change job
 /// is a few ms of work per frame, far less than a frame's registration).
 const CHANGE_JOBS_QUEUED: usize = 1024;
@@ -712,8 +714,15 @@ pub fn run_render(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
 
 /// Stage "flow" (N workers): one (frame, coarse pose) job at a time, correspondences to pose.
 pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
-    let mut pose = Outbox::open(ctx.transport, keys::CORRESPONDENCES)?;
-    pose.wait_for_reader("pose", ctx.startup())?;
+    // One outbox per pose worker: each job's correspondences go to the pose worker that solves
+    // them, so a flow worker waits only when that pose worker's queue is full.
+    let pose_workers = ctx.config.workers.pose.max(1);
+    let mut pose = (0..pose_workers)
+        .map(|w| Outbox::open(ctx.transport, &keys::pose_in(w)))
+        .collect::<Result<Vec<_>, _>>()?;
+    for outbox in &mut pose {
+        outbox.wait_for_reader("pose", ctx.startup())?;
+    }
     let mut stage = FlowStage::new(mesh, ctx.config.registration.clone(), ctx.worker_index)
         .with_simulated_work(ctx.config.simulate);
     let link = keys::flow_link_of_worker(ctx.worker_index, ctx.config.workers.render);
@@ -731,14 +740,16 @@ pub fn run_flow(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeErro
             frame_id,
             coarse_index: job.meta.coarse_index,
         };
+        let pose_worker = pose_worker_of(frame_id, job.meta.coarse_index, pose_workers);
         Some(
-            pose.send(
-                frame_id,
-                message.header.capture_time_ns,
-                Body::Correspondences(correspondences),
-                metrics,
-            )
-            .map(|_| key),
+            pose[pose_worker as usize]
+                .send(
+                    frame_id,
+                    message.header.capture_time_ns,
+                    Body::Correspondences(correspondences),
+                    metrics,
+                )
+                .map(|_| key),
         )
     })
 }
@@ -784,26 +795,27 @@ fn serve_jobs(
     Ok(metrics)
 }
 
-/// The pose worker that solves a frame's coarse pose: every pose worker receives every coarse
-/// pose's correspondences and keeps its share, so each is solved once without a dispatcher (a
-/// restarted pose worker's lost share is redone by ingest, as with one pose worker).
+/// The pose worker that solves a frame's coarse pose: flow sends each coarse pose's
+/// correspondences to that worker's own topic (`keys::pose_in`), so each is solved once without
+/// a dispatcher (a restarted pose worker's lost share is redone by ingest, as with one pose
+/// worker).
 pub fn pose_worker_of(frame_id: u64, coarse_index: u32, workers: u32) -> u32 {
     let workers = u64::from(workers.max(1));
     // Consecutive coarse poses of a frame go to consecutive workers.
     ((frame_id.wrapping_mul(7) + u64::from(coarse_index)) % workers) as u32
 }
 
-/// Stage "pose" (one or more workers, each its share by [`pose_worker_of`]): correspondences of
-/// one coarse pose → refined pose hypothesis → verify.
+/// Stage "pose" (one or more workers, each its share by [`pose_worker_of`] on its own topic):
+/// correspondences of one coarse pose → refined pose hypothesis → verify.
 pub fn run_pose(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     let mut metrics = ctx.metrics("pose");
     let mut reporter = MetricsReporter::open(ctx.transport)?;
-    let mut inbox = Inbox::open(ctx.transport, keys::CORRESPONDENCES, "pose")?;
+    let mut inbox = Inbox::open(ctx.transport, &keys::pose_in(ctx.worker_index), "pose")?;
     let mut verify = Outbox::open(ctx.transport, keys::VERIFY_IN)?;
     verify.wait_for_reader("verify", ctx.startup())?;
     let mut stage =
         PoseStage::new(ctx.config.registration.clone()).with_simulated_work(ctx.config.simulate);
-    let workers = ctx.config.workers.pose;
+    // Everything on this worker's topic is its share: flow sent it here.
     while !ctx.stopped() {
         let mut sent: Result<(), BusError> = Ok(());
         inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
@@ -812,9 +824,6 @@ pub fn run_pose(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                 unexpected("pose", message.body.kind(), frame_id);
                 return;
             };
-            if pose_worker_of(frame_id, set.meta.coarse_index, workers) != ctx.worker_index {
-                return;
-            }
             let started = Instant::now();
             let hypothesis = stage.process(&set);
             record_compute(metrics, started);
@@ -1090,35 +1099,46 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         drop(decided_tx);
         while !ctx.stopped() {
             let mut produced = Vec::new();
-            inbox.receive(POLL, &mut metrics, &mut |message, metrics| {
-                let frame_id = message.header.frame_id;
-                let started = Instant::now();
-                match message.body {
-                    Body::Hypothesis(hypothesis) => {
-                        capture_times
-                            .entry(frame_id)
-                            .or_insert(message.header.capture_time_ns);
-                        produced.extend(stage.on_hypothesis(frame_id, hypothesis));
+            // Everything waiting is taken before the bookkeeping below (results, acks, change
+            // work, metrics), which would otherwise run once per message: with many pose workers
+            // the hypotheses arrive faster than one message per pass drains them, and pose
+            // workers (then flow workers) wait on this inbox.
+            let mut wait = POLL;
+            let mut taken = 0;
+            while taken < VERIFY_DRAIN_MAX
+                && inbox.receive(wait, &mut metrics, &mut |message, metrics| {
+                    let frame_id = message.header.frame_id;
+                    let started = Instant::now();
+                    match message.body {
+                        Body::Hypothesis(hypothesis) => {
+                            capture_times
+                                .entry(frame_id)
+                                .or_insert(message.header.capture_time_ns);
+                            produced.extend(stage.on_hypothesis(frame_id, hypothesis));
+                        }
+                        Body::FrameFailed(failure) => {
+                            capture_times
+                                .entry(frame_id)
+                                .or_insert(message.header.capture_time_ns);
+                            produced.extend(stage.on_failure(frame_id, &failure));
+                        }
+                        Body::FrameQuery(query) => {
+                            capture_times
+                                .entry(frame_id)
+                                .or_insert(message.header.capture_time_ns);
+                            produced.extend(stage.on_query(frame_id, &query));
+                        }
+                        Body::StreamEnd(end) => {
+                            stage.on_stream_end(end.frame_count, &end.finished_frames)
+                        }
+                        other => unexpected("verify", other.kind(), frame_id),
                     }
-                    Body::FrameFailed(failure) => {
-                        capture_times
-                            .entry(frame_id)
-                            .or_insert(message.header.capture_time_ns);
-                        produced.extend(stage.on_failure(frame_id, &failure));
-                    }
-                    Body::FrameQuery(query) => {
-                        capture_times
-                            .entry(frame_id)
-                            .or_insert(message.header.capture_time_ns);
-                        produced.extend(stage.on_query(frame_id, &query));
-                    }
-                    Body::StreamEnd(end) => {
-                        stage.on_stream_end(end.frame_count, &end.finished_frames)
-                    }
-                    other => unexpected("verify", other.kind(), frame_id),
-                }
-                record_compute(metrics, started);
-            })?;
+                    record_compute(metrics, started);
+                })?
+            {
+                wait = Duration::ZERO;
+                taken += 1;
+            }
             produced.extend(stage.expire(Instant::now()));
             for ready in stage.take_ready() {
                 // The pool's threads end only with this loop.

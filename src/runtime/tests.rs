@@ -108,6 +108,18 @@ fn several_render_pose_workers_and_verify_threads_give_the_batch_results() {
     // As `run`, but keeping the journal in the state folder to read it after.
     let (mesh, collected) = run_stage_threads_on_crossbeam(&config);
     assert_same_as_batch(&config, &mesh, &collected);
+    // Each pose worker receives only the coarse poses it solves (its own topic), and both solve.
+    let pose: Vec<&crate::msg::StageMetrics> = collected
+        .metrics
+        .iter()
+        .filter(|((stage, _), _)| stage == "pose")
+        .map(|(_, metrics)| metrics)
+        .collect();
+    assert_eq!(pose.len(), 2);
+    for metrics in &pose {
+        assert!(metrics.messages_in > 0, "{metrics:?}");
+        assert_eq!(metrics.messages_in, metrics.messages_out, "{metrics:?}");
+    }
     // Decided on the pool, each result still went out by verify's one publish path: journaled
     // once, with the very bytes the collector received (those sent again until acknowledged).
     let (_, journaled) = journal::Journal::open_with_payloads(

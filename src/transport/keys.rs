@@ -17,8 +17,15 @@ pub const RESULTS_JSON: &str = "results/json";
 /// `completed` lists the frames it holds): verify sends each PoseResult again, with backoff,
 /// until it is acknowledged here (a result lost in flight, e.g. while the zenoh router restarts).
 pub const RESULTS_ACK: &str = "results/ack";
-/// Correspondences from flow workers to the pose stage.
-pub const CORRESPONDENCES: &str = "pose/in";
+/// The prefix of the pose workers' topics ([`pose_in`]).
+pub const POSE_IN: &str = "pose/in";
+/// Correspondences from flow workers to pose worker `pose_worker` (`pose/in/<worker>`): each
+/// pose worker has its own topic and receives only the coarse poses it solves
+/// (`runtime::nodes::pose_worker_of`), so that a busy pose worker's queue never holds up a flow
+/// worker whose correspondences go to another.
+pub fn pose_in(pose_worker: u32) -> String {
+    format!("{POSE_IN}/{pose_worker}")
+}
 /// Pose hypotheses and whole-frame failures to the verify stage.
 pub const VERIFY_IN: &str = "verify/in";
 /// Change results from the change workers (and verify, for frames without a pose) and the
@@ -97,5 +104,6 @@ mod tests {
         );
         assert_eq!(flow_link_of_worker(5, 2), flow_link(1));
         assert_eq!(flow_link_of_worker(5, 1), FLOW_LINK);
+        assert_eq!(key("gs1", &pose_in(3)), "asgreg/v5/gs1/pose/in/3");
     }
 }

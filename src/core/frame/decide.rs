@@ -3,7 +3,7 @@
 //! chosen pose against the query ([`super::refine`]); the verdict carries the chosen pose itself.
 
 use super::refine::{refine_verdict, PoseRefinement, RefineWorkspace};
-use super::{CoarseOutcome, IntrinsicsMode, RegistrationConfig};
+use super::{process_cpu_ms, CoarseOutcome, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::confidence::{ConfidenceConfig, FrameEvidence};
 use crate::core::image::ImageView;
@@ -20,6 +20,9 @@ pub struct Decision {
     pub refinement: Result<PoseRefinement, String>,
     /// What the decision rests on.
     pub evidence: FrameEvidence,
+    /// The process's CPU time during the final refinements, ms (theirs where one frame at a time
+    /// runs in the process, as in `register`).
+    pub refine_cpu_ms: f64,
 }
 
 /// The verdict over a frame's coarse outcomes (in coarse order), then the final refinement of its
@@ -50,7 +53,10 @@ pub fn decide_frame(
         .chunks(config.coarse_pose_count.max(1))
         .map(&mut decide)
         .collect();
-    choose_among_centres(mesh, decisions).unwrap_or_else(|| decide(&[]))
+    let refine_cpu_ms: f64 = decisions.iter().map(|d| d.refine_cpu_ms).sum();
+    let mut decision = choose_among_centres(mesh, decisions).unwrap_or_else(|| decide(&[]));
+    decision.refine_cpu_ms = refine_cpu_ms;
+    decision
 }
 
 /// One centre's decision: the paper's check over its coarse outcomes, the refinement of the
@@ -76,6 +82,7 @@ fn decide_centre(
         &mut ReprojectionWorkspace::new(),
     );
     let group: Vec<PoseHypothesis> = verdict.component.iter().map(|&i| hypotheses[i]).collect();
+    let refine_started_ms = process_cpu_ms();
     let refinement = match query {
         Some(query) => refine_verdict(
             mesh,
@@ -88,6 +95,7 @@ fn decide_centre(
         ),
         None => Err("the frame's query is not at hand".to_string()),
     };
+    let refine_cpu_ms = process_cpu_ms() - refine_started_ms;
     let evidence = FrameEvidence::new(
         &verdict,
         outcomes.len(),
@@ -98,6 +106,7 @@ fn decide_centre(
         verdict,
         refinement,
         evidence,
+        refine_cpu_ms,
     }
 }
 

@@ -124,6 +124,38 @@ pub struct StageTimings {
     /// Verification and the final refinement.
     pub verify_ms: f64,
     pub total_ms: f64,
+    /// CPU time of each step, ms: the process's CPU time during the step (all its threads),
+    /// which is the step's own where one frame at a time runs in the process (`register`,
+    /// `eval`); `verify_cpu_ms` excludes the final refinement (`edge_align_cpu_ms`) and
+    /// `render_cpu_ms` the search (`search_cpu_ms`).
+    #[serde(default)]
+    pub cpu: StepCpuMs,
+}
+
+/// CPU time per step of a frame, ms (see [`StageTimings::cpu`]).
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+pub struct StepCpuMs {
+    pub query: f64,
+    pub search: f64,
+    pub render: f64,
+    pub features: f64,
+    pub flow: f64,
+    pub pose: f64,
+    pub verify: f64,
+    pub edge_align: f64,
+    pub total: f64,
+}
+
+/// CPU time the process has used so far, ms (all threads; `CLOCK_PROCESS_CPUTIME_ID`).
+pub fn process_cpu_ms() -> f64 {
+    let mut now = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `now` is a valid, writable timespec; the clock id is a constant the C library
+    // knows. On failure `now` stays zero and the step's CPU time reads 0.
+    unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut now) };
+    now.tv_sec as f64 * 1e3 + now.tv_nsec as f64 * 1e-6
 }
 
 /// The result of one frame: the verdict (the pose when accepted) and the evidence.
@@ -157,9 +189,11 @@ pub fn register_frame(
     config: &RegistrationConfig,
 ) -> Result<FrameResult, RegistrationError> {
     let started = Instant::now();
+    let started_cpu_ms = process_cpu_ms();
     config.validate()?;
     let query = query_gradient(input, config)?;
     let query_ms = elapsed_ms(started);
+    let query_cpu_ms = process_cpu_ms() - started_cpu_ms;
     let mut result = register_query(
         mesh,
         input.camera,
@@ -171,6 +205,8 @@ pub fn register_frame(
     )?;
     result.timings.query_ms = query_ms;
     result.timings.total_ms = elapsed_ms(started);
+    result.timings.cpu.query = query_cpu_ms;
+    result.timings.cpu.total = process_cpu_ms() - started_cpu_ms;
     Ok(result)
 }
 
@@ -189,6 +225,14 @@ pub fn register_query(
     let mut timings = StageTimings::default();
 
     let stage = Instant::now();
+    let mut cpu_ms = process_cpu_ms();
+    // The CPU time since the last call (the step just done).
+    let mut step_cpu_ms = || {
+        let now_ms = process_cpu_ms();
+        let step_ms = now_ms - cpu_ms;
+        cpu_ms = now_ms;
+        step_ms
+    };
     let mut views: Vec<CoarseView> = Vec::with_capacity(config.coarse_pose_count);
     let rendered = render_views(
         mesh,
@@ -203,9 +247,12 @@ pub fn register_query(
     )?;
     timings.render_ms = elapsed_ms(stage);
     timings.search_ms = rendered.search.as_ref().map_or(0.0, |s| s.search_ms);
+    timings.cpu.search = rendered.search.as_ref().map_or(0.0, |s| s.search_cpu_ms);
+    timings.cpu.render = step_cpu_ms() - timings.cpu.search;
 
     let stage = Instant::now();
     let features = query_features(query, config)?;
+    timings.cpu.features = step_cpu_ms();
     let correspondences: Vec<ViewCorrespondences> = views
         .par_iter()
         .map_init(CorrespondWorkspace::default, |workspace, view| {
@@ -213,6 +260,7 @@ pub fn register_query(
         })
         .collect::<Result<_, _>>()?;
     timings.flow_ms = elapsed_ms(stage);
+    timings.cpu.flow = step_cpu_ms();
 
     let stage = Instant::now();
     let outcomes: Vec<CoarseOutcome> = correspondences
@@ -220,12 +268,14 @@ pub fn register_query(
         .map(|set| solve_view(set, camera, intrinsics, config, seed))
         .collect();
     timings.pose_ms = elapsed_ms(stage);
+    timings.cpu.pose = step_cpu_ms();
 
     let stage = Instant::now();
     let Decision {
         verdict,
         refinement,
         evidence,
+        refine_cpu_ms,
     } = decide_frame(
         mesh,
         camera,
@@ -236,6 +286,8 @@ pub fn register_query(
         &mut RefineWorkspace::default(),
     );
     timings.verify_ms = elapsed_ms(stage);
+    timings.cpu.edge_align = refine_cpu_ms;
+    timings.cpu.verify = step_cpu_ms() - refine_cpu_ms;
     timings.total_ms = elapsed_ms(started);
     Ok(FrameResult {
         verdict,

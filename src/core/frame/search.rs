@@ -14,7 +14,10 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
-use super::{refine_pose, render_coarse_view, CoarseView, RefineWorkspace, RegistrationConfig};
+use super::{
+    process_cpu_ms, refine_pose, render_coarse_view, CoarseView, RefineWorkspace,
+    RegistrationConfig,
+};
 use crate::core::camera::Camera;
 use crate::core::edge_align::{
     align_level, blurred_query, edge_evidence, model_edge_samples, AlignedKinds, AlignedParameters,
@@ -70,6 +73,10 @@ pub struct PoseSearchOutcome {
     pub ambiguous: Option<String>,
     /// The search's own wall time, ms.
     pub search_ms: f64,
+    /// The process's CPU time during the search, ms (the search's own where nothing else runs in
+    /// the process, as in `register`; its renderings run on several threads).
+    #[serde(default)]
+    pub search_cpu_ms: f64,
 }
 
 /// Searches the region of `config.pose_search` around `prior` for the pose that best explains
@@ -88,6 +95,7 @@ pub fn search_pose(
         return None;
     }
     let started = Instant::now();
+    let started_cpu_ms = process_cpu_ms();
     let map = OrientedEdgeMap::build(query, search);
     let sampling = EdgeAlignConfig {
         sample_spacing_px: search.sample_spacing_px,
@@ -306,6 +314,7 @@ pub fn search_pose(
         beams,
         ambiguous,
         search_ms: started.elapsed().as_secs_f64() * 1e3,
+        search_cpu_ms: process_cpu_ms() - started_cpu_ms,
     })
 }
 
