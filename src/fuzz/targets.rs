@@ -34,6 +34,11 @@ pub struct Target {
     pub text: bool,
     /// Its errors must name the file (every file reader; not the message decoder, which has no file).
     pub names_file: bool,
+    /// Its errors must also say where in the file: at least one of these words (lower case)
+    /// outside the file's path, the units of its format (`line` of a text file, `element` or
+    /// `property` of a PLY header, `record` of a binary COLMAP file …). Empty: not checked
+    /// (message decoders).
+    pub names_place: &'static [&'static str],
     /// Allocation allowed per input byte (beyond a fixed base) before an input is a blow-up: 64
     /// for plain formats, more for compressed images (whose pixels legitimately take up to
     /// thousands of times the file's bytes).
@@ -55,6 +60,24 @@ impl Target {
         self
     }
 }
+
+// Where an error must say it is, per format (at least one of the words, in lower case, outside
+// the file's path; `asgreg fuzz` counts the errors that say none as "errors without the line or
+// field"). Text formats: the line. PLY: the header line, or the element, record and property of
+// the data. Binary COLMAP: the record and its field or byte offset. PFM and .flo: the header
+// (and its width/height/scale/tag field) or the byte offset of the data. PNG: the chunk (or the
+// header and its dimensions) the decoder stopped at. JPEG: the marker or segment (or the
+// dimensions). EXIF of a photo: the tag, or the EXIF/XMP segment. CSV: the line and column.
+// TOML configs: the line and column of a syntax error, or the key (`section.key`) of a value.
+const TEXT_PLACES: &[&str] = &["line"];
+const PLY_PLACES: &[&str] = &["line", "header", "element", "property", "record"];
+const BINARY_PLACES: &[&str] = &["record", "field", "byte"];
+const RASTER_PLACES: &[&str] = &["header", "width", "height", "scale", "tag", "byte"];
+const PNG_PLACES: &[&str] = &["chunk", "header", "width", "height", "dimension"];
+const JPEG_PLACES: &[&str] = &["marker", "segment", "header", "width", "height", "dimension"];
+const EXIF_PLACES: &[&str] = &["tag", "exif", "xmp", "segment", "marker"];
+const CSV_PLACES: &[&str] = &["line", "column"];
+const CONFIG_PLACES: &[&str] = &["line", "column", "`"];
 
 /// Allocation per input byte of a compressed image: the loader's decoder limit (16384 bytes per
 /// file byte, `io::images`) and the f32 grey copy (4 bytes per pixel).
@@ -364,7 +387,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "ply-binary",
             "mesh.ply",
             vec![excerpt_ply, box_ply_binary],
-            true,
+            true, PLY_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -375,7 +398,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "ply-ascii",
             "mesh.ply",
             vec![box_ply_ascii],
-            true,
+            true, PLY_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -386,7 +409,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "obj",
             "mesh.obj",
             vec![OBJ_SEED.as_bytes().to_vec()],
-            true,
+            true, TEXT_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -397,28 +420,28 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "colmap-cameras-txt",
             "cameras.txt",
             cameras_txt.to_vec(),
-            true,
+            true, TEXT_PLACES,
             |path, _| read_cameras_txt(path).map(drop).map_err(display_error),
         ),
         file_target(
             "colmap-images-txt",
             "images.txt",
             images_txt.to_vec(),
-            true,
+            true, TEXT_PLACES,
             |path, _| read_images_txt(path).map(drop).map_err(display_error),
         ),
         file_target(
             "colmap-cameras-bin",
             "cameras.bin",
             vec![cameras_bin],
-            false,
+            false, BINARY_PLACES,
             |path, _| read_cameras_bin(path).map(drop).map_err(display_error),
         ),
         file_target(
             "colmap-images-bin",
             "images.bin",
             vec![images_bin],
-            false,
+            false, BINARY_PLACES,
             |path, _| {
                 read_image_records_bin(path)
                     .map(drop)
@@ -429,15 +452,15 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "colmap-points3d-bin",
             "points3D.bin",
             vec![points3d_bin],
-            false,
+            false, BINARY_PLACES,
             |path, _| read_points3d_bin(path).map(drop).map_err(display_error),
         ),
-        file_target("pfm", "depth.pfm", vec![pfm], true, |path, _| {
+        file_target("pfm", "depth.pfm", vec![pfm], true, RASTER_PLACES, |path, _| {
             crate::io::pfm::read_pfm(path)
                 .map(drop)
                 .map_err(display_error)
         }),
-        file_target("flo", "flow.flo", vec![flo], false, |path, _| {
+        file_target("flo", "flow.flo", vec![flo], false, RASTER_PLACES, |path, _| {
             crate::io::flo::read_flo(path)
                 .map(drop)
                 .map_err(display_error)
@@ -446,7 +469,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "image-png",
             "photo.png",
             vec![png, png_rgb],
-            false,
+            false, PNG_PLACES,
             |path, _| {
                 crate::io::images::read_image_size(path).map_err(display_error)?;
                 crate::io::images::load_gray(path)
@@ -460,7 +483,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "image-jpeg",
             "photo.jpg",
             vec![photo_jpg.clone(), small_jpg],
-            false,
+            false, JPEG_PLACES,
             |path, _| {
                 crate::io::images::read_image_size(path).map_err(display_error)?;
                 crate::io::images::load_gray(path)
@@ -473,7 +496,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "priors-jpeg",
             "DJI_0025.JPG",
             vec![photo_jpg],
-            false,
+            false, EXIF_PLACES,
             |path, _| {
                 crate::priors::jpeg::read_photo(path)
                     .map(drop)
@@ -484,7 +507,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "priors-exif-csv",
             "exif.csv",
             vec![EXIF_CSV_SEED.as_bytes().to_vec()],
-            true,
+            true, CSV_PLACES,
             |path, _| {
                 crate::priors::exif_csv::read_exif_csv(path)
                     .map(drop)
@@ -495,7 +518,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "priors-offset",
             "utm_offset.txt",
             vec![offset_txt],
-            true,
+            true, TEXT_PLACES,
             |path, bytes| {
                 let text = std::str::from_utf8(bytes)
                     .map_err(|_| format!("{}: not UTF-8 text", path.display()))?;
@@ -508,7 +531,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "pipeline-config",
             "pipeline.toml",
             configs,
-            true,
+            true, CONFIG_PLACES,
             |path, _| {
                 crate::runtime::config::PipelineConfig::read(path)
                     .map(drop)
@@ -524,6 +547,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             seeds,
             text: false,
             names_file: false,
+            names_place: &[],
             allocation_per_input_byte: 64,
             fixup: None,
             parse: |_, bytes| decode_and_use(bytes),
@@ -632,6 +656,7 @@ fn file_target(
     file_name: &'static str,
     seeds: Vec<Vec<u8>>,
     text: bool,
+    names_place: &'static [&'static str],
     parse: ParseFn,
 ) -> Target {
     Target {
@@ -640,6 +665,7 @@ fn file_target(
         seeds,
         text,
         names_file: true,
+        names_place,
         allocation_per_input_byte: 64,
         fixup: None,
         parse,

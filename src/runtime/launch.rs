@@ -6,7 +6,9 @@
 //! not crash more than `launch.max_restarts` times within `launch.restart_window_s`
 //! ([`RestartIntensity`]). With zenoh and `launch.zenoh_router_listen`, the router is one more
 //! supervised process ([`start_router`]): restarted under the same intensity, the stages' zenoh
-//! clients reconnect to it by themselves, and it is stopped last.
+//! clients reconnect to it by themselves, and it is stopped last. A stage that exits with
+//! [`super::EXIT_NEEDS_OPERATOR`] (a damaged or unreadable results journal) is not restarted:
+//! the launch stops with that reason.
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
@@ -257,6 +259,20 @@ pub fn launch(
             if status.success() && process.stage == "ingest" {
                 process.done = true;
                 continue;
+            }
+            if process.stage != ROUTER
+                && status.code() == Some(i32::from(super::EXIT_NEEDS_OPERATOR))
+            {
+                // A restart would meet the same error: give up now, naming it.
+                let reason = match super::journal::check(config) {
+                    Err(error) => error.to_string(),
+                    Ok(()) => "see its error above".to_string(),
+                };
+                failure = Some(RuntimeError::Launch(format!(
+                    "stage {} worker {} stopped on an error a restart cannot mend ({status}); giving up without restarting it: {reason}",
+                    process.stage, process.worker
+                )));
+                return false;
             }
             let in_window = match process.restarts.on_crash(Instant::now()) {
                 Ok(in_window) => in_window,
