@@ -65,19 +65,25 @@ impl Target {
 // the file's path; `asgreg fuzz` counts the errors that say none as "errors without the line or
 // field"). Text formats: the line. PLY: the header line, or the element, record and property of
 // the data. Binary COLMAP: the record and its field or byte offset. PFM and .flo: the header
-// (and its width/height/scale/tag field) or the byte offset of the data. PNG: the chunk (or the
-// header and its dimensions) the decoder stopped at. JPEG: the marker or segment (or the
-// dimensions). EXIF of a photo: the tag, or the EXIF/XMP segment. CSV: the line and column.
+// (and its width/height/scale/tag field) or the byte offset of the data. EXIF of a photo: the tag, or the EXIF/XMP segment. CSV: the line and column.
 // TOML configs: the line and column of a syntax error, or the key (`section.key`) of a value.
 const TEXT_PLACES: &[&str] = &["line"];
-const PLY_PLACES: &[&str] = &["line", "header", "element", "property", "record"];
+// Meshes: checked after reading, a vertex or face is named by its index (the PLY element's
+// record; in an OBJ the `v`/`f` line's number among its kind, from 0); "the mesh has no faces" is
+// about the whole file and has no place.
+const PLY_PLACES: &[&str] = &[
+    "line", "header", "element", "property", "record", "vertex ", "face ", "no faces",
+];
+const OBJ_PLACES: &[&str] = &["line", "vertex ", "face ", "no faces"];
 const BINARY_PLACES: &[&str] = &["record", "field", "byte"];
 const RASTER_PLACES: &[&str] = &["header", "width", "height", "scale", "tag", "byte"];
-const PNG_PLACES: &[&str] = &["chunk", "header", "width", "height", "dimension"];
-const JPEG_PLACES: &[&str] = &["marker", "segment", "header", "width", "height", "dimension"];
+
 const EXIF_PLACES: &[&str] = &["tag", "exif", "xmp", "segment", "marker"];
 const CSV_PLACES: &[&str] = &["line", "column"];
-const CONFIG_PLACES: &[&str] = &["line", "column", "`"];
+const CONFIG_PLACES: &[&str] = &["line", "column", "field", "`"];
+// Compressed images (PNG, JPEG through the `image` crate): the decoders report no position
+// ("Corrupt deflate stream", "Not enough bytes"), so their errors are not checked for a place;
+// they name the file and the decoder.
 
 /// Allocation per input byte of a compressed image: the loader's decoder limit (16384 bytes per
 /// file byte, `io::images`) and the f32 grey copy (4 bytes per pixel).
@@ -409,7 +415,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "obj",
             "mesh.obj",
             vec![OBJ_SEED.as_bytes().to_vec()],
-            true, TEXT_PLACES,
+            true, OBJ_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -469,7 +475,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "image-png",
             "photo.png",
             vec![png, png_rgb],
-            false, PNG_PLACES,
+            false, &[],
             |path, _| {
                 crate::io::images::read_image_size(path).map_err(display_error)?;
                 crate::io::images::load_gray(path)
@@ -483,7 +489,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "image-jpeg",
             "photo.jpg",
             vec![photo_jpg.clone(), small_jpg],
-            false, JPEG_PLACES,
+            false, &[],
             |path, _| {
                 crate::io::images::read_image_size(path).map_err(display_error)?;
                 crate::io::images::load_gray(path)
@@ -519,10 +525,11 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "utm_offset.txt",
             vec![offset_txt],
             true, TEXT_PLACES,
-            |path, bytes| {
-                let text = std::str::from_utf8(bytes)
-                    .map_err(|_| format!("{}: not UTF-8 text", path.display()))?;
-                crate::priors::utm::LocalFrame::parse_file(path, text)
+            |path, _| {
+                // As `asgreg priors --offset-file` reads it.
+                let text = crate::io::text::read_utf8(path)
+                    .map_err(|error| format!("{}: {error}", path.display()))?;
+                crate::priors::utm::LocalFrame::parse_file(path, &text)
                     .map(drop)
                     .map_err(display_error)
             },

@@ -26,7 +26,7 @@ pub enum FloError {
         #[source]
         source: std::io::Error,
     },
-    #[error("{path}: not a .flo file (magic {found} instead of 202021.25)")]
+    #[error("{path}: not a .flo file (the header's tag is {found} instead of 202021.25)")]
     BadMagic { path: PathBuf, found: f32 },
     #[error("{path}: the header's size {width_px} x {height_px} needs {expected_bytes} bytes, the file has {file_bytes}: the file is cut short or its width/height fields are damaged")]
     Truncated {
@@ -36,7 +36,7 @@ pub enum FloError {
         expected_bytes: u64,
         file_bytes: u64,
     },
-    #[error("{path}: bad .flo size {width} x {height}")]
+    #[error("{path}: bad .flo size in the header: width {width} x height {height}")]
     BadSize {
         path: PathBuf,
         width: i64,
