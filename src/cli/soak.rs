@@ -330,9 +330,10 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     config.registration.pose_search.enabled = false;
     config.registration.edge_align.enabled = false;
     config.state_dir = Some(out.join("state"));
-    // The same intensity policy as a station, with room for a kill every few seconds spread
-    // over ~7 processes: more than 10 deaths of one process within a minute is a crash loop.
-    config.launch.max_restarts = 10;
+    // The intensity policy of a station, with room for the chaos: a kill every 1.5 s spread over
+    // 9 processes is ~4.4 deaths of one process a minute on average and up to ~10 by chance (a
+    // short soak under load met 11 for verify); more than 20 within a minute is a crash loop.
+    config.launch.max_restarts = 20;
     config.launch.restart_window_s = 60.0;
     config.launch.deadline_s = 60.0 + 10.0 * args.frames as f64;
     // A frame whose hypotheses died with pose or verify is sent again by ingest; the timeout is
@@ -586,7 +587,10 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
             0
         },
         change_maps,
-        change_set_complete: collected.change_set.as_ref().is_some_and(|set| set.complete),
+        change_set_complete: collected
+            .change_set
+            .as_ref()
+            .is_some_and(|set| set.complete),
         change_set_objects: collected
             .change_set
             .as_ref()

@@ -78,7 +78,7 @@ const OBJ_PLACES: &[&str] = &["line", "vertex ", "face ", "no faces"];
 const BINARY_PLACES: &[&str] = &["record", "field", "byte"];
 const RASTER_PLACES: &[&str] = &["header", "width", "height", "scale", "tag", "byte"];
 
-const EXIF_PLACES: &[&str] = &["tag", "exif", "xmp", "segment", "marker"];
+const EXIF_PLACES: &[&str] = &["tag", "field", "exif", "xmp", "segment", "marker"];
 const CSV_PLACES: &[&str] = &["line", "column"];
 const CONFIG_PLACES: &[&str] = &["line", "column", "field", "`"];
 // Compressed images (PNG, JPEG through the `image` crate): the decoders report no position
@@ -393,7 +393,8 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "ply-binary",
             "mesh.ply",
             vec![excerpt_ply, box_ply_binary],
-            true, PLY_PLACES,
+            true,
+            PLY_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -404,7 +405,8 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "ply-ascii",
             "mesh.ply",
             vec![box_ply_ascii],
-            true, PLY_PLACES,
+            true,
+            PLY_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -415,7 +417,8 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "obj",
             "mesh.obj",
             vec![OBJ_SEED.as_bytes().to_vec()],
-            true, OBJ_PLACES,
+            true,
+            OBJ_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -426,28 +429,32 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "colmap-cameras-txt",
             "cameras.txt",
             cameras_txt.to_vec(),
-            true, TEXT_PLACES,
+            true,
+            TEXT_PLACES,
             |path, _| read_cameras_txt(path).map(drop).map_err(display_error),
         ),
         file_target(
             "colmap-images-txt",
             "images.txt",
             images_txt.to_vec(),
-            true, TEXT_PLACES,
+            true,
+            TEXT_PLACES,
             |path, _| read_images_txt(path).map(drop).map_err(display_error),
         ),
         file_target(
             "colmap-cameras-bin",
             "cameras.bin",
             vec![cameras_bin],
-            false, BINARY_PLACES,
+            false,
+            BINARY_PLACES,
             |path, _| read_cameras_bin(path).map(drop).map_err(display_error),
         ),
         file_target(
             "colmap-images-bin",
             "images.bin",
             vec![images_bin],
-            false, BINARY_PLACES,
+            false,
+            BINARY_PLACES,
             |path, _| {
                 read_image_records_bin(path)
                     .map(drop)
@@ -458,24 +465,40 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "colmap-points3d-bin",
             "points3D.bin",
             vec![points3d_bin],
-            false, BINARY_PLACES,
+            false,
+            BINARY_PLACES,
             |path, _| read_points3d_bin(path).map(drop).map_err(display_error),
         ),
-        file_target("pfm", "depth.pfm", vec![pfm], true, RASTER_PLACES, |path, _| {
-            crate::io::pfm::read_pfm(path)
-                .map(drop)
-                .map_err(display_error)
-        }),
-        file_target("flo", "flow.flo", vec![flo], false, RASTER_PLACES, |path, _| {
-            crate::io::flo::read_flo(path)
-                .map(drop)
-                .map_err(display_error)
-        }),
+        file_target(
+            "pfm",
+            "depth.pfm",
+            vec![pfm],
+            true,
+            RASTER_PLACES,
+            |path, _| {
+                crate::io::pfm::read_pfm(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
+        file_target(
+            "flo",
+            "flow.flo",
+            vec![flo],
+            false,
+            RASTER_PLACES,
+            |path, _| {
+                crate::io::flo::read_flo(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
         file_target(
             "image-png",
             "photo.png",
             vec![png, png_rgb],
-            false, &[],
+            false,
+            &[],
             |path, _| {
                 crate::io::images::read_image_size(path).map_err(display_error)?;
                 crate::io::images::load_gray(path)
@@ -489,7 +512,8 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "image-jpeg",
             "photo.jpg",
             vec![photo_jpg.clone(), small_jpg],
-            false, &[],
+            false,
+            &[],
             |path, _| {
                 crate::io::images::read_image_size(path).map_err(display_error)?;
                 crate::io::images::load_gray(path)
@@ -502,7 +526,8 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "priors-jpeg",
             "DJI_0025.JPG",
             vec![photo_jpg],
-            false, EXIF_PLACES,
+            false,
+            EXIF_PLACES,
             |path, _| {
                 crate::priors::jpeg::read_photo(path)
                     .map(drop)
@@ -513,7 +538,8 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "priors-exif-csv",
             "exif.csv",
             vec![EXIF_CSV_SEED.as_bytes().to_vec()],
-            true, CSV_PLACES,
+            true,
+            CSV_PLACES,
             |path, _| {
                 crate::priors::exif_csv::read_exif_csv(path)
                     .map(drop)
@@ -524,7 +550,8 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "priors-offset",
             "utm_offset.txt",
             vec![offset_txt],
-            true, TEXT_PLACES,
+            true,
+            TEXT_PLACES,
             |path, _| {
                 // As `asgreg priors --offset-file` reads it.
                 let text = crate::io::text::read_utf8(path)
@@ -538,7 +565,8 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "pipeline-config",
             "pipeline.toml",
             configs,
-            true, CONFIG_PLACES,
+            true,
+            CONFIG_PLACES,
             |path, _| {
                 crate::runtime::config::PipelineConfig::read(path)
                     .map(drop)

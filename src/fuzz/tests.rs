@@ -213,14 +213,20 @@ fn an_error_must_say_where_in_the_file_by_its_format_rule() {
             target.name
         );
     }
-    let text = targets.iter().find(|t| t.name == "colmap-images-txt").unwrap();
+    let text = targets
+        .iter()
+        .find(|t| t.name == "colmap-images-txt")
+        .unwrap();
     // The message as the check sees it: the file's path taken out.
     assert!(names_place(text, ": line 3: `x` is not a number"));
     assert!(names_place(text, ":12: field QW: found x; a number"));
     assert!(!names_place(text, ": not a number"));
     assert!(!names_place(text, ": 12 fields"));
     let ply = targets.iter().find(|t| t.name == "ply-binary").unwrap();
-    assert!(names_place(ply, ": element face, record 3, property vertex_indices: cut short"));
+    assert!(names_place(
+        ply,
+        ": element face, record 3, property vertex_indices: cut short"
+    ));
     assert!(!names_place(ply, ": unexpected end of file"));
     let message = targets.iter().find(|t| t.name == "msg-Frame").unwrap();
     assert!(names_place(message, "anything"));

@@ -352,6 +352,9 @@ mod tests {
             "v 0 0 0\nv 1 zero 0\nv 0 1 0\nf 1 2 3\nf 1 3 2\n",
         );
         let message = read_obj(&path).unwrap_err().to_string();
-        assert!(message.contains("middle.obj: could not parse the OBJ file at line 2: "), "{message}");
+        assert!(
+            message.contains("middle.obj: could not parse the OBJ file at line 2: "),
+            "{message}"
+        );
     }
 }

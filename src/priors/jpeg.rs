@@ -48,7 +48,7 @@ pub fn read_header<R: Read>(reader: &mut R) -> Result<JpegHeader, String> {
         let mut byte = [0u8; 1];
         reader
             .read_exact(&mut byte)
-            .map_err(|_| "the header ends before the image data (truncated file)".to_string())?;
+            .map_err(|_| "the header segments end before the image data (start-of-scan marker): a truncated file".to_string())?;
         if byte[0] != 0xFF {
             return Err(format!(
                 "expected a segment marker (FF), found {:02X}",

@@ -43,7 +43,10 @@ use super::config::PipelineConfig;
 
 #[derive(Debug, thiserror::Error)]
 pub enum JournalError {
-    #[error("{path}: cannot {action} the results journal: {source} ({})", io_hint(action, source))]
+    #[error(
+        "{path}: cannot {action} the results journal: {source} ({})",
+        io_hint(action, source)
+    )]
     Io {
         path: PathBuf,
         action: &'static str,

@@ -68,17 +68,17 @@ fn soak(dir: &Path, transport: &str, frames: usize, kill_every_s: f64) {
 }
 
 #[test]
-#[ignore = "40 frames, a kill every 1.5 s over iceoryx2 (~1 min); .ci/run runs it (soak_short_)"]
+#[ignore = "40 frames, a kill every 2 s over iceoryx2 (~1 min); .ci/run runs it (soak_short_)"]
 fn soak_short_iceoryx2_every_frame_one_result_under_kills() {
     let dir = tempfile::tempdir().unwrap();
-    soak(dir.path(), "iceoryx2", SHORT_FRAMES, 1.5);
+    soak(dir.path(), "iceoryx2", SHORT_FRAMES, 2.0);
 }
 
 #[test]
-#[ignore = "40 frames, a kill every 1.5 s over zenoh, router included (~1 min); .ci/run runs it (soak_short_)"]
+#[ignore = "40 frames, a kill every 2 s over zenoh, router included (~1 min); .ci/run runs it (soak_short_)"]
 fn soak_short_zenoh_every_frame_one_result_under_kills() {
     let dir = tempfile::tempdir().unwrap();
-    soak(dir.path(), "zenoh", SHORT_FRAMES, 1.5);
+    soak(dir.path(), "zenoh", SHORT_FRAMES, 2.0);
 }
 
 #[test]
