@@ -267,6 +267,25 @@ fn read_bytes(file: &mut std::fs::File) -> std::io::Result<Vec<u8>> {
     Ok(bytes)
 }
 
+/// The bytes of the open journal at `path` and what they say under `header`.
+fn read_parsed(
+    file: &mut std::fs::File,
+    path: &Path,
+    header: &str,
+) -> Result<(Vec<u8>, Parsed), JournalError> {
+    let bytes = read_bytes(file).map_err(|source| JournalError::Io {
+        path: path.to_path_buf(),
+        action: "read",
+        source,
+    })?;
+    let parsed = parse(&bytes, header).map_err(|(line, detail)| JournalError::Damaged {
+        path: path.to_path_buf(),
+        line,
+        detail,
+    })?;
+    Ok((bytes, parsed))
+}
+
 /// What a journal file holds (a reader's view).
 #[derive(Debug, Default)]
 pub struct Contents {
@@ -293,12 +312,7 @@ pub fn read(path: &Path, header: &str) -> Result<Contents, JournalError> {
         }
         Err(source) => return Err(io("read")(source)),
     };
-    let bytes = read_bytes(&mut file).map_err(io("read"))?;
-    let parsed = parse(&bytes, header).map_err(|(line, detail)| JournalError::Damaged {
-        path: path.to_path_buf(),
-        line,
-        detail,
-    })?;
+    let (bytes, parsed) = read_parsed(&mut file, path, header)?;
     Ok(Contents {
         entries: parsed.entries.unwrap_or_default(),
         cut_bytes: bytes.len() - parsed.good_len,
@@ -405,12 +419,7 @@ impl Journal {
             .create(true)
             .open(path)
             .map_err(io("open"))?;
-        let bytes = read_bytes(&mut file).map_err(io("read"))?;
-        let parsed = parse(&bytes, header).map_err(|(line, detail)| JournalError::Damaged {
-            path: path.to_path_buf(),
-            line,
-            detail,
-        })?;
+        let (bytes, parsed) = read_parsed(&mut file, path, header)?;
         let published = match parsed.entries {
             Some(published) => {
                 // Cut off a last line cut short by a crash, so the next id starts a line of
