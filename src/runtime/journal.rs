@@ -254,9 +254,13 @@ fn clip(text: &str) -> String {
 }
 
 /// The bytes of an open journal, at most its length when opened: a path that is not a regular
-/// file (e.g. `/dev/full`, which reads as endless zeros) reads as empty instead of forever.
+/// file (e.g. `/dev/full`, which reads as endless zeros) reads as empty instead of forever; a
+/// folder is an error (it would read as an empty journal: every frame replayed).
 fn read_bytes(file: &mut std::fs::File) -> std::io::Result<Vec<u8>> {
     let metadata = file.metadata()?;
+    if metadata.is_dir() {
+        return Err(std::io::Error::other("it is a folder, not a journal file"));
+    }
     let length = if metadata.is_file() {
         metadata.len()
     } else {
