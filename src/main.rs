@@ -18,7 +18,7 @@ fn main() -> std::process::ExitCode {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(error) => {
             eprintln!("error: {}", one_line(&error));
-            std::process::ExitCode::FAILURE
+            cli::exit_code(&error)
         }
     }
 }

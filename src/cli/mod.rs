@@ -96,6 +96,25 @@ pub fn init_logging(verbose: u8) {
         .init();
 }
 
+/// The process's exit status for an error: [`asgreg::runtime::EXIT_NEEDS_OPERATOR`] when a
+/// restart cannot mend it (a stage's damaged results journal: `launch` then does not restart
+/// the stage), 1 otherwise.
+pub fn exit_code(error: &anyhow::Error) -> std::process::ExitCode {
+    let needs_operator = error.chain().any(|cause| {
+        cause
+            .downcast_ref::<asgreg::runtime::nodes::NodeError>()
+            .is_some_and(|error| error.needs_operator())
+            || cause
+                .downcast_ref::<asgreg::runtime::journal::JournalError>()
+                .is_some_and(|error| error.needs_operator())
+    });
+    if needs_operator {
+        std::process::ExitCode::from(asgreg::runtime::EXIT_NEEDS_OPERATOR)
+    } else {
+        std::process::ExitCode::FAILURE
+    }
+}
+
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Run(args) => pipeline::run(&args),

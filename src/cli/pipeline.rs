@@ -194,18 +194,31 @@ fn default_scene_at(scene: &Path, frames: usize) -> anyhow::Result<PathBuf> {
 pub(super) fn synthetic_scene_at(
     scene: &Path,
     frames: usize,
+    size: (u32, u32),
+) -> anyhow::Result<PathBuf> {
+    synthetic_scene_with(scene, frames, size, 30, false)
+}
+
+/// As [`synthetic_scene_at`], with initial poses of `level_px` and, with `changes`, changes
+/// between the model and the photos (`synth --changes`).
+pub(super) fn synthetic_scene_with(
+    scene: &Path,
+    frames: usize,
     (width, height): (u32, u32),
+    level_px: u32,
+    changes: bool,
 ) -> anyhow::Result<PathBuf> {
     let scene = scene.to_path_buf();
-    if scene.join("scene.json").is_file() && scene.join("initial/30/images.txt").is_file() {
-        let listed = asgreg::io::colmap::read_images_txt(&scene.join("initial/30/images.txt"))?;
+    let initial = scene.join(format!("initial/{level_px}/images.txt"));
+    if scene.join("scene.json").is_file() && initial.is_file() {
+        let listed = asgreg::io::colmap::read_images_txt(&initial)?;
         if listed.len() == frames {
             println!("using the synthetic scene in {}", scene.display());
             return Ok(scene);
         }
     }
     println!(
-        "making a synthetic scene in {} ({frames} photos of a town block seen from 30–60 m, {width}x{height})",
+        "making a synthetic scene in {} ({frames} photos of a town block seen from 30–60 m, {width}x{height}, initial poses {level_px} px off)",
         scene.display()
     );
     let args = SynthArgs {
@@ -217,8 +230,8 @@ pub(super) fn synthetic_scene_at(
         // The product's case (docs/design.md §1: a drone over a town). The paper's free-standing house
         // (`asgreg synth --scene house`) is harder: see the #4 note in README.
         scene: SceneArg::Block,
-        levels: vec![30.0],
-        changes: false,
+        levels: vec![f64::from(level_px)],
+        changes,
         no_heading_level: true,
         triangles: 1_000_000,
     };

@@ -164,7 +164,7 @@ pub fn run(args: &PriorsArgs) -> anyhow::Result<()> {
     };
     let offset_m = match (&args.offset_file, args.offset_e, args.offset_n) {
         (Some(file), _, _) => {
-            let text = std::fs::read_to_string(file).with_context(|| {
+            let text = asgreg::io::text::read_utf8(file).with_context(|| {
                 format!(
                     "{}: cannot read the offset file (--offset-file)",
                     file.display()

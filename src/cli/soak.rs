@@ -1,10 +1,14 @@
 //! `asgreg soak` (dev command, issue #15 item 3): many small synthetic frames streamed through
 //! `launch` (iceoryx2, or zenoh with the launcher's router) while a chaos loop SIGKILLs a random
-//! stage process (ingest included), flow worker or the router every few seconds. It checks what
-//! an operator needs of a station that runs for hours: every frame exactly one result, nothing
-//! duplicated; resident memory at the end within a bound of after warm-up; the shared-memory
-//! entries and sockets back to where they started. It prints the figures (frames, kills,
-//! restarts, redone jobs, RSS) and writes them to `<out>/soak.json`; it fails when a check does.
+//! stage process (ingest included), change worker, flow worker or the router every few seconds.
+//! The frames register (a size and initial error at which registration accepts most of them) and
+//! the change stage runs on them (given depth maps), so the kills hit the accepted path, the
+//! change workers and fusion too. It checks what an operator needs of a station that runs for
+//! hours: every frame exactly one PoseResult and exactly one change result, nothing duplicated,
+//! a share of the frames accepted, the complete fused change set at the end; resident memory at
+//! the end within a bound of after warm-up; the shared-memory entries and sockets back to where
+//! they started. It prints the figures (frames, accepted, kills, restarts, redone jobs, RSS,
+//! change results) and writes them to `<out>/soak.json`; it fails when a check does.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -20,7 +24,7 @@ use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
 use super::pipeline::{
-    check_complete, launch_pipeline, scene_config, synthetic_scene_at, write_outputs, BackendArg,
+    check_complete, launch_pipeline, scene_config, synthetic_scene_with, write_outputs, BackendArg,
 };
 
 #[derive(clap::Args, Debug)]
@@ -37,16 +41,28 @@ pub struct SoakArgs {
     /// Scene, configuration, results and soak.json.
     #[arg(long, default_value = "asgreg-soak")]
     pub out: PathBuf,
-    /// Photo size: small, so that a thousand frames take minutes.
-    #[arg(long, default_value_t = 64)]
+    /// Photo size: small, so that a thousand frames take minutes, yet large enough that
+    /// registration accepts most frames.
+    #[arg(long, default_value_t = SOAK_WIDTH_PX)]
     pub width: u32,
-    #[arg(long, default_value_t = 48)]
+    #[arg(long, default_value_t = SOAK_HEIGHT_PX)]
     pub height: u32,
+    /// Error of the initial poses, pixels (the synthetic scene's level).
+    #[arg(long, default_value_t = SOAK_INITIAL_ERROR_PX)]
+    pub initial_error_px: u32,
+    /// Change workers (processes); 0 runs without the change stage.
+    #[arg(long, default_value_t = 1)]
+    pub change_workers: u32,
+    /// Least share of the frames registration must accept (the soak exercises the accepted
+    /// path: a run where nothing registers proves less).
+    #[arg(long, default_value_t = 0.5)]
+    pub min_accepted: f64,
     /// Flow workers (processes).
     #[arg(long, default_value_t = 2)]
     pub flow_workers: u32,
-    /// Coarse poses per frame (flow jobs per frame).
-    #[arg(long, default_value_t = 3)]
+    /// Coarse poses per frame (flow jobs per frame): verify needs 4 that agree, one more
+    /// leaves room for one that fails.
+    #[arg(long, default_value_t = 5)]
     pub coarse_poses: usize,
     /// Seed of the chaos loop's choices.
     #[arg(long, default_value_t = 1)]
@@ -56,6 +72,12 @@ pub struct SoakArgs {
     pub max_rss_growth: f64,
 }
 
+/// The soak's photo size and initial pose error: see "Soak that registers" in
+/// docs/measurements.md for how they were chosen.
+const SOAK_WIDTH_PX: u32 = 240;
+const SOAK_HEIGHT_PX: u32 = 132;
+const SOAK_INITIAL_ERROR_PX: u32 = 10;
+
 /// What the chaos loop and the samplers share with the launcher's callbacks.
 #[derive(Default)]
 struct Shared {
@@ -63,6 +85,7 @@ struct Shared {
     pids: Mutex<BTreeMap<(String, u32), u32>>,
     starts: AtomicUsize,
     results: AtomicUsize,
+    change_results: AtomicUsize,
     done: AtomicBool,
 }
 
@@ -224,6 +247,15 @@ struct Figures {
     accepted: usize,
     duplicated: usize,
     missing: usize,
+    change_workers: u32,
+    change_results: usize,
+    change_duplicated: usize,
+    change_missing: usize,
+    /// Change results with a change map (the others say why there is none).
+    change_maps: usize,
+    /// The final fused change set: complete, and its objects.
+    change_set_complete: bool,
+    change_set_objects: usize,
     wall_s: f64,
     kill_every_s: f64,
     kills: BTreeMap<String, usize>,
@@ -264,31 +296,44 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let out = asgreg::runtime::launch::absolute(&args.out);
-    let scene = synthetic_scene_at(
+    if !(0.0..=1.0).contains(&args.min_accepted) {
+        bail!(
+            "--min-accepted must be a share between 0 and 1, got {}",
+            args.min_accepted
+        );
+    }
+    let scene = synthetic_scene_with(
         &out.join(format!(
-            "scene-{}x{}-{}",
-            args.width, args.height, args.frames
+            "scene-{}x{}-{}-{}px",
+            args.width, args.height, args.frames, args.initial_error_px
         )),
         args.frames,
         (args.width, args.height),
+        args.initial_error_px,
+        args.change_workers > 0,
     )?;
     let mut config = scene_config(&scene);
+    config.source = asgreg::stage::ingest::SourceConfig::scene(&scene, args.initial_error_px);
     config.backend = backend;
     config.transport.pipeline = format!("soak-{}", std::process::id());
     config.workers.flow = args.flow_workers;
-    // Poses only (its frames have no depth; the change stage's restarts are tested by
-    // tests/integration/pipeline.rs).
-    config.workers.change = 0;
+    // The change stage on the synthetic depth maps (the scene's MVS-like ones): milliseconds a
+    // frame, so the kills reach the change workers and fusion without slowing the soak.
+    config.workers.change = args.change_workers;
+    if args.change_workers > 0 {
+        config.source.depth = Some(scene.join("depth"));
+    }
     config.registration.coarse_pose_count = args.coarse_poses;
-    // The soak exercises supervision, not registration: without the pose search (renderings
-    // at several headings, ~0.5 s of a 64x48 frame) and the final edge refinement a frame is
-    // a fraction of a second, so a thousand take minutes.
+    // The soak exercises supervision, not the search: without the pose search (renderings at
+    // several headings) a small frame is about a second, and the initial poses are close enough
+    // to register without it. The final edge refinement stays on: without it the photo's edges
+    // do not confirm the pose and no frame is accepted (0 of 40 at 240x132).
     config.registration.pose_search.enabled = false;
-    config.registration.edge_align.enabled = false;
     config.state_dir = Some(out.join("state"));
-    // The same intensity policy as a station, with room for a kill every few seconds spread
-    // over ~7 processes: more than 10 deaths of one process within a minute is a crash loop.
-    config.launch.max_restarts = 10;
+    // The intensity policy of a station, with room for the chaos: a kill every 1.5 s spread over
+    // 9 processes is ~4.4 deaths of one process a minute on average and up to ~10 by chance (a
+    // short soak under load met 11 for verify); more than 20 within a minute is a crash loop.
+    config.launch.max_restarts = 20;
     config.launch.restart_window_s = 60.0;
     config.launch.deadline_s = 60.0 + 10.0 * args.frames as f64;
     // A frame whose hypotheses died with pose or verify is sent again by ingest; the timeout is
@@ -314,12 +359,14 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
 
     let before = Resources::now(backend == Backend::Iceoryx2, router_port);
     println!(
-        "soak: {} frames {}x{} over {} ({} flow workers, {} coarse poses), a SIGKILL every {:.1} s; resources before: {before:?}",
+        "soak: {} frames {}x{} ({} px initial error) over {} ({} flow workers, {} change workers, {} coarse poses), a SIGKILL every {:.1} s; resources before: {before:?}",
         args.frames,
         args.width,
         args.height,
+        args.initial_error_px,
         backend.name(),
         args.flow_workers,
+        args.change_workers,
         args.coarse_poses,
         args.kill_every_s
     );
@@ -383,6 +430,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
         })
     };
     let frames = args.frames;
+    let with_changes = args.change_workers > 0;
     let started = Instant::now();
     let outcome = launch_pipeline(
         &config,
@@ -395,18 +443,26 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
             }
         },
         &mut |delivered| {
-            // Poses only: the soak's pipeline runs without the change stage.
-            if !matches!(delivered, Delivered::Pose(..)) {
-                return;
+            match delivered {
+                Delivered::Pose(..) => {
+                    let count = shared.results.fetch_add(1, Ordering::SeqCst) + 1;
+                    if count % 100 == 0 {
+                        println!(
+                            "soak: {count}/{frames} results after {:.0} s",
+                            started.elapsed().as_secs_f64()
+                        );
+                    }
+                }
+                Delivered::Change(..) => {
+                    shared.change_results.fetch_add(1, Ordering::SeqCst);
+                }
+                Delivered::ChangeSet(..) => return,
             }
-            let count = shared.results.fetch_add(1, Ordering::SeqCst) + 1;
-            if count % 100 == 0 {
-                println!(
-                    "soak: {count}/{frames} results after {:.0} s",
-                    started.elapsed().as_secs_f64()
-                );
-            }
-            if count >= frames {
+            // The chaos stops with the last result (of both kinds with the change stage).
+            let poses_done = shared.results.load(Ordering::SeqCst) >= frames;
+            let changes_done =
+                !with_changes || shared.change_results.load(Ordering::SeqCst) >= frames;
+            if poses_done && changes_done {
                 shared.done.store(true, Ordering::SeqCst);
             }
         },
@@ -455,6 +511,52 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
             collected.results.len()
         ));
     }
+    let accepted = collected.accepted();
+    if (accepted as f64) < args.min_accepted * frames as f64 {
+        failures.push(format!(
+            "registration accepted {accepted} of {frames} frames, fewer than {:.0} % (--min-accepted): the soak would not exercise the accepted path",
+            100.0 * args.min_accepted
+        ));
+    }
+    let change_maps = collected
+        .change_results
+        .iter()
+        .filter(|result| result.failure.is_none())
+        .count();
+    if with_changes {
+        let missing = collected.missing_changes();
+        if collected.change_results.len() != frames
+            || !missing.is_empty()
+            || !collected.change_duplicates.is_empty()
+        {
+            failures.push(format!(
+                "{} change results for {frames} frames (missing {missing:?}, duplicated {:?})",
+                collected.change_results.len(),
+                collected.change_duplicates
+            ));
+        }
+        match &collected.change_set {
+            None => failures.push("no fused change set at the end".to_string()),
+            Some(set) => {
+                if !set.complete
+                    || set.frame_count != Some(frames as u64)
+                    || set.frames_with_result != frames as u64
+                    || set.frames_with_map != change_maps as u64
+                {
+                    failures.push(format!(
+                        "the fused change set does not fuse every change result: complete {}, frames {:?}, with a result {}, with a map {} (change maps published: {change_maps})",
+                        set.complete, set.frame_count, set.frames_with_result, set.frames_with_map
+                    ));
+                }
+            }
+        }
+        if change_maps == 0 {
+            failures.push(
+                "no frame got a change map: the soak would not exercise the change workers"
+                    .to_string(),
+            );
+        }
+    }
     if total_warm == 0 || total_end == 0 {
         failures.push("too few RSS samples in the warm-up or end window".to_string());
     } else if rss_growth > args.max_rss_growth {
@@ -473,9 +575,26 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
         transport: backend.name().to_string(),
         frames,
         results: collected.results.len(),
-        accepted: collected.accepted(),
+        accepted,
         duplicated: collected.duplicates.len(),
         missing: collected.missing().len(),
+        change_workers: args.change_workers,
+        change_results: collected.change_results.len(),
+        change_duplicated: collected.change_duplicates.len(),
+        change_missing: if with_changes {
+            collected.missing_changes().len()
+        } else {
+            0
+        },
+        change_maps,
+        change_set_complete: collected
+            .change_set
+            .as_ref()
+            .is_some_and(|set| set.complete),
+        change_set_objects: collected
+            .change_set
+            .as_ref()
+            .map_or(0, |set| set.objects.len()),
         wall_s: started.elapsed().as_secs_f64(),
         kill_every_s: args.kill_every_s,
         restarts: shared
@@ -500,13 +619,19 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", json.display()))?;
     let total_kills: usize = figures.kills.values().sum();
     println!(
-        "soak figures: transport {} | frames {} | results {} (duplicated {}, missing {}, accepted {}) | {:.0} s | kills {total_kills} {:?} | restarts {} | redone jobs {} | RSS after warm-up {:.1} MiB, at the end {:.1} MiB ({:+.1} %; launcher {:.1} → {:.1} MiB) | resources before {:?} after {:?}",
+        "soak figures: transport {} | frames {} | results {} (duplicated {}, missing {}, accepted {}) | change results {} (duplicated {}, missing {}, with a map {}; change set complete {}, {} objects) | {:.0} s | kills {total_kills} {:?} | restarts {} | redone jobs {} | RSS after warm-up {:.1} MiB, at the end {:.1} MiB ({:+.1} %; launcher {:.1} → {:.1} MiB) | resources before {:?} after {:?}",
         figures.transport,
         figures.frames,
         figures.results,
         figures.duplicated,
         figures.missing,
         figures.accepted,
+        figures.change_results,
+        figures.change_duplicated,
+        figures.change_missing,
+        figures.change_maps,
+        figures.change_set_complete,
+        figures.change_set_objects,
         figures.wall_s,
         figures.kills,
         figures.restarts,
@@ -523,6 +648,6 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     if !figures.failures.is_empty() {
         bail!("soak failed: {}", figures.failures.join("; "));
     }
-    println!("soak passed: every frame exactly one result, memory and resources back");
+    println!("soak passed: every frame exactly one result (and one change result), memory and resources back");
     Ok(())
 }

@@ -85,8 +85,10 @@ pub enum FindingKind {
     Hang,
     /// Allocated more than the budget for its size.
     Blowup,
-    /// An error of a file reader that does not name the file.
+    /// An error of a file reader that does not name the file (its path).
     ErrorWithoutFile,
+    /// An error of a file reader that names no place in the file ([`Target::names_place`]).
+    ErrorWithoutPlace,
 }
 
 /// One finding, with the input saved where `saved_to` says.
@@ -292,6 +294,7 @@ pub fn run_target(target: &Target, options: &FuzzOptions) -> Result<TargetReport
         seeds: target.seeds.clone(),
         text: target.text,
         names_file: target.names_file,
+        names_place: target.names_place,
         allocation_per_input_byte: target.allocation_per_input_byte,
         fixup: target.fixup,
         parse: target.parse,
@@ -385,8 +388,12 @@ pub fn run_target(target: &Target, options: &FuzzOptions) -> Result<TargetReport
             Ok(Ok(())) => report.accepted += 1,
             Ok(Err(message)) => {
                 report.refused += 1;
-                if target.names_file && !message.contains(target.file_name) {
+                let path_text = path.display().to_string();
+                if target.names_file && !message.contains(&path_text) {
                     findings.push((FindingKind::ErrorWithoutFile, message.clone()));
+                }
+                if !names_place(target, &message.replace(&path_text, "")) {
+                    findings.push((FindingKind::ErrorWithoutPlace, message.clone()));
                 }
                 let key: String = message
                     .replace(&path.display().to_string(), "")
@@ -440,6 +447,19 @@ pub fn run_target(target: &Target, options: &FuzzOptions) -> Result<TargetReport
     }
     report.elapsed = start.elapsed();
     Ok(report)
+}
+
+/// Whether an error (without the file's path) says where in the file, by the target's rule; a
+/// path followed by `:<line>` (as compilers write `file:12:`) names the line too.
+pub fn names_place(target: &Target, message_without_path: &str) -> bool {
+    let lower = message_without_path.to_lowercase();
+    let path_then_line = lower
+        .split(':')
+        .nth(1)
+        .is_some_and(|part| !part.is_empty() && part.bytes().all(|byte| byte.is_ascii_digit()));
+    target.names_place.is_empty()
+        || path_then_line && target.names_place.contains(&"line")
+        || target.names_place.iter().any(|word| lower.contains(word))
 }
 
 fn mib(bytes: usize) -> f64 {
@@ -512,10 +532,11 @@ pub fn minimise_panic(target: &Target, path: &Path, input: &[u8], max_attempts: 
 }
 
 /// The report as a Markdown table row: target, inputs, accepted, refused, panics, hangs,
-/// blow-ups, errors without the file, slowest input, largest peak allocation, time.
+/// blow-ups, errors without the file, errors without a place in it, slowest input, largest
+/// peak allocation, time.
 pub fn markdown_row(report: &TargetReport) -> String {
     format!(
-        "| {} | {} | {} | {} | {} | {} | {} | {} | {:.1} ms | {:.2} MiB | {:.1} s |",
+        "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.1} ms | {:.2} MiB | {:.1} s |",
         report.name,
         report.inputs,
         report.accepted,
@@ -524,13 +545,14 @@ pub fn markdown_row(report: &TargetReport) -> String {
         report.count(FindingKind::Hang),
         report.count(FindingKind::Blowup),
         report.count(FindingKind::ErrorWithoutFile) + report.count(FindingKind::SeedRefused),
+        report.count(FindingKind::ErrorWithoutPlace),
         report.slowest.as_secs_f64() * 1e3,
         mib(report.largest_peak_bytes),
         report.elapsed.as_secs_f64(),
     )
 }
 
-pub const MARKDOWN_HEADER: &str = "| target | inputs | accepted | refused | panics | hangs | blow-ups | errors without the file (+ seeds refused) | slowest input | largest peak allocation | time |\n|---|---|---|---|---|---|---|---|---|---|---|";
+pub const MARKDOWN_HEADER: &str = "| target | inputs | accepted | refused | panics | hangs | blow-ups | errors without the file (+ seeds refused) | errors without the line or field | slowest input | largest peak allocation | time |\n|---|---|---|---|---|---|---|---|---|---|---|---|";
 
 #[cfg(test)]
 mod regressions;

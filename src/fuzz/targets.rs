@@ -34,6 +34,11 @@ pub struct Target {
     pub text: bool,
     /// Its errors must name the file (every file reader; not the message decoder, which has no file).
     pub names_file: bool,
+    /// Its errors must also say where in the file: at least one of these words (lower case)
+    /// outside the file's path, the units of its format (`line` of a text file, `element` or
+    /// `property` of a PLY header, `record` of a binary COLMAP file …). Empty: not checked
+    /// (message decoders).
+    pub names_place: &'static [&'static str],
     /// Allocation allowed per input byte (beyond a fixed base) before an input is a blow-up: 64
     /// for plain formats, more for compressed images (whose pixels legitimately take up to
     /// thousands of times the file's bytes).
@@ -55,6 +60,30 @@ impl Target {
         self
     }
 }
+
+// Where an error must say it is, per format (at least one of the words, in lower case, outside
+// the file's path; `asgreg fuzz` counts the errors that say none as "errors without the line or
+// field"). Text formats: the line. PLY: the header line, or the element, record and property of
+// the data. Binary COLMAP: the record and its field or byte offset. PFM and .flo: the header
+// (and its width/height/scale/tag field) or the byte offset of the data. EXIF of a photo: the tag, or the EXIF/XMP segment. CSV: the line and column.
+// TOML configs: the line and column of a syntax error, or the key (`section.key`) of a value.
+const TEXT_PLACES: &[&str] = &["line"];
+// Meshes: checked after reading, a vertex or face is named by its index (the PLY element's
+// record; in an OBJ the `v`/`f` line's number among its kind, from 0); "the mesh has no faces" is
+// about the whole file and has no place.
+const PLY_PLACES: &[&str] = &[
+    "line", "header", "element", "property", "record", "vertex ", "face ", "no faces",
+];
+const OBJ_PLACES: &[&str] = &["line", "vertex ", "face ", "no faces"];
+const BINARY_PLACES: &[&str] = &["record", "field", "byte"];
+const RASTER_PLACES: &[&str] = &["header", "width", "height", "scale", "tag", "byte"];
+
+const EXIF_PLACES: &[&str] = &["tag", "field", "exif", "xmp", "segment", "marker"];
+const CSV_PLACES: &[&str] = &["line", "column"];
+const CONFIG_PLACES: &[&str] = &["line", "column", "field", "`"];
+// Compressed images (PNG, JPEG through the `image` crate): the decoders report no position
+// ("Corrupt deflate stream", "Not enough bytes"), so their errors are not checked for a place;
+// they name the file and the decoder.
 
 /// Allocation per input byte of a compressed image: the loader's decoder limit (16384 bytes per
 /// file byte, `io::images`) and the f32 grey copy (4 bytes per pixel).
@@ -365,6 +394,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "mesh.ply",
             vec![excerpt_ply, box_ply_binary],
             true,
+            PLY_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -376,6 +406,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "mesh.ply",
             vec![box_ply_ascii],
             true,
+            PLY_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -387,6 +418,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "mesh.obj",
             vec![OBJ_SEED.as_bytes().to_vec()],
             true,
+            OBJ_PLACES,
             |path, _| {
                 crate::io::mesh_file::read_mesh(path)
                     .map(drop)
@@ -398,6 +430,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "cameras.txt",
             cameras_txt.to_vec(),
             true,
+            TEXT_PLACES,
             |path, _| read_cameras_txt(path).map(drop).map_err(display_error),
         ),
         file_target(
@@ -405,6 +438,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "images.txt",
             images_txt.to_vec(),
             true,
+            TEXT_PLACES,
             |path, _| read_images_txt(path).map(drop).map_err(display_error),
         ),
         file_target(
@@ -412,6 +446,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "cameras.bin",
             vec![cameras_bin],
             false,
+            BINARY_PLACES,
             |path, _| read_cameras_bin(path).map(drop).map_err(display_error),
         ),
         file_target(
@@ -419,6 +454,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "images.bin",
             vec![images_bin],
             false,
+            BINARY_PLACES,
             |path, _| {
                 read_image_records_bin(path)
                     .map(drop)
@@ -430,23 +466,39 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "points3D.bin",
             vec![points3d_bin],
             false,
+            BINARY_PLACES,
             |path, _| read_points3d_bin(path).map(drop).map_err(display_error),
         ),
-        file_target("pfm", "depth.pfm", vec![pfm], true, |path, _| {
-            crate::io::pfm::read_pfm(path)
-                .map(drop)
-                .map_err(display_error)
-        }),
-        file_target("flo", "flow.flo", vec![flo], false, |path, _| {
-            crate::io::flo::read_flo(path)
-                .map(drop)
-                .map_err(display_error)
-        }),
+        file_target(
+            "pfm",
+            "depth.pfm",
+            vec![pfm],
+            true,
+            RASTER_PLACES,
+            |path, _| {
+                crate::io::pfm::read_pfm(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
+        file_target(
+            "flo",
+            "flow.flo",
+            vec![flo],
+            false,
+            RASTER_PLACES,
+            |path, _| {
+                crate::io::flo::read_flo(path)
+                    .map(drop)
+                    .map_err(display_error)
+            },
+        ),
         file_target(
             "image-png",
             "photo.png",
             vec![png, png_rgb],
             false,
+            &[],
             |path, _| {
                 crate::io::images::read_image_size(path).map_err(display_error)?;
                 crate::io::images::load_gray(path)
@@ -461,6 +513,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "photo.jpg",
             vec![photo_jpg.clone(), small_jpg],
             false,
+            &[],
             |path, _| {
                 crate::io::images::read_image_size(path).map_err(display_error)?;
                 crate::io::images::load_gray(path)
@@ -474,6 +527,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "DJI_0025.JPG",
             vec![photo_jpg],
             false,
+            EXIF_PLACES,
             |path, _| {
                 crate::priors::jpeg::read_photo(path)
                     .map(drop)
@@ -485,6 +539,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "exif.csv",
             vec![EXIF_CSV_SEED.as_bytes().to_vec()],
             true,
+            CSV_PLACES,
             |path, _| {
                 crate::priors::exif_csv::read_exif_csv(path)
                     .map(drop)
@@ -496,10 +551,12 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "utm_offset.txt",
             vec![offset_txt],
             true,
-            |path, bytes| {
-                let text = std::str::from_utf8(bytes)
-                    .map_err(|_| format!("{}: not UTF-8 text", path.display()))?;
-                crate::priors::utm::LocalFrame::parse_file(path, text)
+            TEXT_PLACES,
+            |path, _| {
+                // As `asgreg priors --offset-file` reads it.
+                let text = crate::io::text::read_utf8(path)
+                    .map_err(|error| format!("{}: {error}", path.display()))?;
+                crate::priors::utm::LocalFrame::parse_file(path, &text)
                     .map(drop)
                     .map_err(display_error)
             },
@@ -509,6 +566,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             "pipeline.toml",
             configs,
             true,
+            CONFIG_PLACES,
             |path, _| {
                 crate::runtime::config::PipelineConfig::read(path)
                     .map(drop)
@@ -524,6 +582,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
             seeds,
             text: false,
             names_file: false,
+            names_place: &[],
             allocation_per_input_byte: 64,
             fixup: None,
             parse: |_, bytes| decode_and_use(bytes),
@@ -632,6 +691,7 @@ fn file_target(
     file_name: &'static str,
     seeds: Vec<Vec<u8>>,
     text: bool,
+    names_place: &'static [&'static str],
     parse: ParseFn,
 ) -> Target {
     Target {
@@ -640,6 +700,7 @@ fn file_target(
         seeds,
         text,
         names_file: true,
+        names_place,
         allocation_per_input_byte: 64,
         fixup: None,
         parse,

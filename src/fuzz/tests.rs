@@ -116,6 +116,7 @@ fn a_parser_that_allocates_for_a_count_it_read_is_a_blowup() {
         seeds: vec![vec![0, 0, 0, 1]],
         text: false,
         names_file: true,
+        names_place: &["line"],
         allocation_per_input_byte: 64,
         fixup: None,
         parse: |path, bytes| {
@@ -143,6 +144,7 @@ fn a_panic_and_an_error_without_the_file_are_found_and_the_panic_minimised() {
         seeds: vec![b"count 3\nabc\n".to_vec()],
         text: true,
         names_file: true,
+        names_place: &["line"],
         allocation_per_input_byte: 64,
         fixup: None,
         parse: |_, bytes| {
@@ -162,6 +164,10 @@ fn a_panic_and_an_error_without_the_file_are_found_and_the_panic_minimised() {
     assert!(report.count(FindingKind::Panic) > 0, "{report:?}");
     assert!(
         report.count(FindingKind::ErrorWithoutFile) > 0,
+        "{report:?}"
+    );
+    assert!(
+        report.count(FindingKind::ErrorWithoutPlace) > 0,
         "{report:?}"
     );
     let panic = report
@@ -191,4 +197,37 @@ fn the_same_seed_gives_the_same_inputs() {
         assert_eq!(input_for(target, 9, 17), input_for(target, 9, 17));
         assert_ne!(input_for(target, 9, 17), input_for(target, 10, 17));
     }
+}
+
+#[test]
+fn an_error_must_say_where_in_the_file_by_its_format_rule() {
+    let work = tempfile::tempdir_in(default_work_root()).unwrap();
+    let targets = all_targets(repo(), work.path()).unwrap();
+    for target in &targets {
+        // Image decoders report no position: their errors are not checked for a place.
+        let unplaced = !target.names_file || target.name.starts_with("image-");
+        assert_eq!(
+            unplaced,
+            target.names_place.is_empty(),
+            "{}: every file reader but the image decoders has a rule for where its errors point",
+            target.name
+        );
+    }
+    let text = targets
+        .iter()
+        .find(|t| t.name == "colmap-images-txt")
+        .unwrap();
+    // The message as the check sees it: the file's path taken out.
+    assert!(names_place(text, ": line 3: `x` is not a number"));
+    assert!(names_place(text, ":12: field QW: found x; a number"));
+    assert!(!names_place(text, ": not a number"));
+    assert!(!names_place(text, ": 12 fields"));
+    let ply = targets.iter().find(|t| t.name == "ply-binary").unwrap();
+    assert!(names_place(
+        ply,
+        ": element face, record 3, property vertex_indices: cut short"
+    ));
+    assert!(!names_place(ply, ": unexpected end of file"));
+    let message = targets.iter().find(|t| t.name == "msg-Frame").unwrap();
+    assert!(names_place(message, "anything"));
 }

@@ -26,7 +26,7 @@ pub enum FloError {
         #[source]
         source: std::io::Error,
     },
-    #[error("{path}: not a .flo file (magic {found} instead of 202021.25)")]
+    #[error("{path}: not a .flo file (the header's tag is {found} instead of 202021.25)")]
     BadMagic { path: PathBuf, found: f32 },
     #[error("{path}: the header's size {width_px} x {height_px} needs {expected_bytes} bytes, the file has {file_bytes}: the file is cut short or its width/height fields are damaged")]
     Truncated {
@@ -36,7 +36,11 @@ pub enum FloError {
         expected_bytes: u64,
         file_bytes: u64,
     },
-    #[error("{path}: bad .flo size {width} x {height}")]
+    #[error(
+        "{path}: the file ends within its 12-byte header (tag, width, height): a truncated file"
+    )]
+    ShortHeader { path: PathBuf },
+    #[error("{path}: bad .flo size in the header: width {width} x height {height}")]
     BadSize {
         path: PathBuf,
         width: i64,
@@ -53,7 +57,15 @@ pub fn read_flo(path: &Path) -> Result<FlowField, FloError> {
     let file = File::open(path).map_err(io_error)?;
     let mut reader = BufReader::new(file);
     let mut header = [0u8; 12];
-    reader.read_exact(&mut header).map_err(io_error)?;
+    reader.read_exact(&mut header).map_err(|source| {
+        if source.kind() == std::io::ErrorKind::UnexpectedEof {
+            FloError::ShortHeader {
+                path: path.to_path_buf(),
+            }
+        } else {
+            io_error(source)
+        }
+    })?;
     let magic = f32::from_le_bytes([header[0], header[1], header[2], header[3]]);
     if magic != FLO_MAGIC {
         return Err(FloError::BadMagic {

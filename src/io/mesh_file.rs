@@ -50,9 +50,11 @@ pub enum MeshIoError {
     /// The mesh cannot be written in the requested format.
     #[error("{}: cannot write the mesh: {message}", .path.display())]
     Unwritable { path: PathBuf, message: String },
-    #[error("{}: could not parse the OBJ file: {source}", .path.display())]
+    #[error("{}: could not parse the OBJ file at line {line}: {source}", .path.display())]
     Obj {
         path: PathBuf,
+        /// The line the parser stopped at.
+        line: usize,
         #[source]
         source: tobj::LoadError,
     },

@@ -39,13 +39,15 @@ pub fn read_obj(path: &Path) -> Result<Mesh, MeshIoError> {
         ignore_lines: true,
     };
     // Materials are not needed: the loader declines every .mtl file without touching the disk.
-    let (models, _materials) = tobj::load_obj_buf(
-        &mut std::io::BufReader::new(file),
-        &options,
-        |_material_path| Err(tobj::LoadError::OpenFileFailed),
-    )
+    // tobj reads the file line by line and stops at the line it cannot parse: counting the lines
+    // it consumed names that line in the error (tobj's own errors do not).
+    let mut reader = LineCounter::new(std::io::BufReader::new(file));
+    let (models, _materials) = tobj::load_obj_buf(&mut reader, &options, |_material_path| {
+        Err(tobj::LoadError::OpenFileFailed)
+    })
     .map_err(|source| MeshIoError::Obj {
         path: path.to_path_buf(),
+        line: reader.line(),
         source,
     })?;
 
@@ -73,6 +75,56 @@ pub fn read_obj(path: &Path) -> Result<Mesh, MeshIoError> {
         path: path.to_path_buf(),
         source,
     })
+}
+
+/// A reader that counts the lines its consumer has consumed, so that a parser that stops at a
+/// line can be told which one.
+struct LineCounter<R> {
+    inner: R,
+    newlines: usize,
+    last_byte: Option<u8>,
+}
+
+impl<R> LineCounter<R> {
+    fn new(inner: R) -> Self {
+        Self {
+            inner,
+            newlines: 0,
+            last_byte: None,
+        }
+    }
+
+    /// The (1-based) line of the last byte consumed: the line a line-by-line parser stopped at.
+    fn line(&self) -> usize {
+        self.newlines + 1 - usize::from(self.last_byte == Some(b'\n'))
+    }
+}
+
+impl<R: std::io::BufRead> std::io::Read for LineCounter<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let available = std::io::BufRead::fill_buf(self)?;
+        let count = available.len().min(buf.len());
+        buf[..count].copy_from_slice(&available[..count]);
+        std::io::BufRead::consume(self, count);
+        Ok(count)
+    }
+}
+
+impl<R: std::io::BufRead> std::io::BufRead for LineCounter<R> {
+    fn fill_buf(&mut self) -> std::io::Result<&[u8]> {
+        self.inner.fill_buf()
+    }
+
+    fn consume(&mut self, amount: usize) {
+        if let Ok(available) = self.inner.fill_buf() {
+            let consumed = &available[..amount.min(available.len())];
+            self.newlines += consumed.iter().filter(|&&byte| byte == b'\n').count();
+            if let Some(&last) = consumed.last() {
+                self.last_byte = Some(last);
+            }
+        }
+        self.inner.consume(amount);
+    }
 }
 
 /// Collects the normal of every vertex from the face corners that use it, and notices when the
@@ -289,9 +341,20 @@ mod tests {
         assert!(matches!(error, MeshIoError::Obj { .. }), "{error:?}");
         let message = error.to_string();
         assert!(
-            message.contains("broken.obj: could not parse the OBJ file"),
+            message.contains("broken.obj: could not parse the OBJ file at line 4: "),
             "{message}"
         );
         assert!(message.contains("out of bounds"), "{message}");
+        // A bad line in the middle is named, not the last line read ahead.
+        let path = write_obj(
+            &dir,
+            "middle.obj",
+            "v 0 0 0\nv 1 zero 0\nv 0 1 0\nf 1 2 3\nf 1 3 2\n",
+        );
+        let message = read_obj(&path).unwrap_err().to_string();
+        assert!(
+            message.contains("middle.obj: could not parse the OBJ file at line 2: "),
+            "{message}"
+        );
     }
 }

@@ -37,10 +37,10 @@ pub fn read_header<R: Read>(reader: &mut R) -> Result<JpegHeader, String> {
     let mut two = [0u8; 2];
     reader
         .read_exact(&mut two)
-        .map_err(|_| "the file is shorter than a JPEG's start marker".to_string())?;
+        .map_err(|_| "the file is shorter than a JPEG's start-of-image marker".to_string())?;
     if two != [0xFF, 0xD8] {
         return Err(format!(
-            "not a JPEG: it starts with bytes {:02X} {:02X}, a JPEG with FF D8",
+            "not a JPEG: its start-of-image marker (bytes 0–1) is {:02X} {:02X}, a JPEG's is FF D8",
             two[0], two[1]
         ));
     }
@@ -48,7 +48,7 @@ pub fn read_header<R: Read>(reader: &mut R) -> Result<JpegHeader, String> {
         let mut byte = [0u8; 1];
         reader
             .read_exact(&mut byte)
-            .map_err(|_| "the header ends before the image data (truncated file)".to_string())?;
+            .map_err(|_| "the header segments end before the image data (start-of-scan marker): a truncated file".to_string())?;
         if byte[0] != 0xFF {
             return Err(format!(
                 "expected a segment marker (FF), found {:02X}",

@@ -17,7 +17,12 @@
 //! `asgreg launch` starts each run with empty journals and removes them when the run is complete;
 //! `asgreg run` (threads, which never restart) keeps its own in a folder of its own under
 //! `state_dir`; stages started by hand continue the ones they find (delete them to start over).
-//! A line cut short by a crash is ignored.
+//! A last line cut short by a crash mid-write is tolerated: readers leave it out, and the writer
+//! that reopens the journal cuts it off (with a warning). Any other line that is not a journal
+//! line (a corrupt file), or a journal its permissions forbid reading, is an error that names the
+//! file and the line and says what to do ([`JournalError::needs_operator`]): the stage exits with
+//! [`super::EXIT_NEEDS_OPERATOR`] and `launch` gives up on it at once, naming the journal, instead
+//! of restarting it into the same error.
 //!
 //! The pose and change journals are written ahead: a result's line is appended before the
 //! result is published, so a crash between the two leaves a journaled result that the restarted
@@ -38,12 +43,48 @@ use super::config::PipelineConfig;
 
 #[derive(Debug, thiserror::Error)]
 pub enum JournalError {
-    #[error("{path}: cannot {action} the results journal: {source} (free space there, or set `state_dir` in the pipeline config to a writable folder)")]
+    #[error(
+        "{path}: cannot {action} the results journal: {source} ({})",
+        io_hint(action, source)
+    )]
     Io {
         path: PathBuf,
         action: &'static str,
         source: std::io::Error,
     },
+    /// A complete line that is not a journal line (a corrupt file, not a crash mid-write:
+    /// that leaves only the last line cut short, which is tolerated).
+    #[error("{path}: the results journal is damaged at line {line} ({detail}); a restart cannot mend it: move the file aside (or delete it) to replay the source from the start, which publishes its frames' results again")]
+    Damaged {
+        path: PathBuf,
+        line: usize,
+        detail: String,
+    },
+}
+
+impl JournalError {
+    /// True when restarting the stage cannot help: the journal is damaged or its permissions
+    /// forbid reading it; the operator has to act (the launcher then gives up on the stage at
+    /// once instead of restarting it into the same error).
+    pub fn needs_operator(&self) -> bool {
+        match self {
+            JournalError::Damaged { .. } => true,
+            JournalError::Io { source, .. } => {
+                source.kind() == std::io::ErrorKind::PermissionDenied
+            }
+        }
+    }
+}
+
+/// What to do about an I/O error on a journal.
+fn io_hint(action: &str, source: &std::io::Error) -> &'static str {
+    if source.kind() == std::io::ErrorKind::PermissionDenied {
+        "give the stages' user read and write permission on it, or move it aside to replay the source from the start"
+    } else if action == "read" {
+        "move it aside to replay the source from the start, or set `state_dir` in the pipeline config to another folder"
+    } else {
+        "free space there, or set `state_dir` in the pipeline config to a writable folder"
+    }
 }
 
 /// Which results a journal lists.
@@ -136,44 +177,131 @@ pub fn reset(path: &Path) -> Result<(), JournalError> {
     }
 }
 
-/// The frame ids a journal text lists under `header`, each with its payload (empty when the
-/// line has none; the first line of a frame wins); `None` when its header is another. Lines not
-/// ended by a newline (cut short by a crash) and unreadable lines are left out.
-fn parse(text: &str, header: &str) -> Option<BTreeMap<u64, String>> {
-    let mut lines = text.split_inclusive('\n');
-    if lines.next().map(str::trim_end) != Some(header) {
-        return None;
-    }
-    let mut entries = BTreeMap::new();
-    for line in lines.filter(|line| line.ends_with('\n')) {
-        let line = line.trim();
-        let (id, payload) = line.split_once(' ').unwrap_or((line, ""));
-        if let Ok(frame_id) = id.parse::<u64>() {
-            entries
-                .entry(frame_id)
-                .or_insert_with(|| payload.to_string());
-        }
-    }
-    Some(entries)
+/// What a journal's bytes say.
+#[derive(Debug, Default)]
+struct Parsed {
+    /// The frames listed, each with its payload (empty when the line has none; the first line
+    /// of a frame wins); `None` when the file is empty or its header is another run's.
+    entries: Option<BTreeMap<u64, String>>,
+    /// Bytes up to the end of the last complete line: a last line not ended by a newline (a
+    /// crash mid-write) is left out, and a writer cuts the file back to here.
+    good_len: usize,
 }
 
-/// The text of an open journal, at most its length when opened: a path that is not a regular
-/// file (e.g. `/dev/full`, which reads as endless zeros) reads as empty instead of forever.
-fn read_text(file: &mut std::fs::File) -> std::io::Result<String> {
+/// Parses a journal's bytes under `header`: a header line, then one `<frame id>[ <hex
+/// payload>]` line per result (empty lines are skipped). A last line without its newline (a
+/// crash mid-write, or mid-header) is left out; any other line that is not one is
+/// [`JournalError::Damaged`] (returned as line number and what is wrong).
+fn parse(bytes: &[u8], header: &str) -> Result<Parsed, (usize, String)> {
+    let good_len = bytes
+        .iter()
+        .rposition(|&byte| byte == b'\n')
+        .map_or(0, |at| at + 1);
+    let mut lines = bytes[..good_len].split_inclusive(|&byte| byte == b'\n');
+    let Some(first) = lines.next() else {
+        // Empty, or a header cut short by a crash: nothing listed yet.
+        if header.as_bytes().starts_with(bytes) {
+            return Ok(Parsed::default());
+        }
+        return Err((1, "the first line is not a journal header".to_string()));
+    };
+    let first = std::str::from_utf8(first)
+        .map_err(|_| (1, "the header is not text".to_string()))?
+        .trim_end();
+    if first != header {
+        if first.starts_with("# ") {
+            // Another run's journal.
+            return Ok(Parsed {
+                entries: None,
+                good_len,
+            });
+        }
+        return Err((1, "the first line is not a journal header".to_string()));
+    }
+    let mut entries = BTreeMap::new();
+    for (index, line) in lines.enumerate() {
+        let number = index + 2;
+        let line = std::str::from_utf8(line)
+            .map_err(|_| (number, "the line is not text".to_string()))?
+            .trim();
+        if line.is_empty() {
+            continue;
+        }
+        let (id, payload) = line.split_once(' ').unwrap_or((line, ""));
+        let frame_id = id
+            .parse::<u64>()
+            .map_err(|_| (number, format!("`{}` is not a frame id", clip(id))))?;
+        if payload.len() % 2 != 0 || !payload.bytes().all(|byte| byte.is_ascii_hexdigit()) {
+            return Err((number, format!("frame {frame_id}'s payload is not hex")));
+        }
+        entries
+            .entry(frame_id)
+            .or_insert_with(|| payload.to_string());
+    }
+    Ok(Parsed {
+        entries: Some(entries),
+        good_len,
+    })
+}
+
+/// At most 24 characters of a damaged field, for an error message.
+fn clip(text: &str) -> String {
+    let mut clipped: String = text.chars().take(24).collect();
+    if clipped.len() < text.len() {
+        clipped.push('…');
+    }
+    clipped
+}
+
+/// The bytes of an open journal, at most its length when opened: a path that is not a regular
+/// file (e.g. `/dev/full`, which reads as endless zeros) reads as empty instead of forever; a
+/// folder is an error (it would read as an empty journal: every frame replayed).
+fn read_bytes(file: &mut std::fs::File) -> std::io::Result<Vec<u8>> {
     let metadata = file.metadata()?;
+    if metadata.is_dir() {
+        return Err(std::io::Error::other("it is a folder, not a journal file"));
+    }
     let length = if metadata.is_file() {
         metadata.len()
     } else {
         0
     };
-    let mut text = String::new();
-    file.take(length).read_to_string(&mut text)?;
-    Ok(text)
+    let mut bytes = Vec::new();
+    file.take(length).read_to_end(&mut bytes)?;
+    Ok(bytes)
 }
 
-/// The frames a journal at `path` lists under `header`, with their payloads; empty when there is
-/// no journal or it belongs to another run.
-pub fn read_entries(path: &Path, header: &str) -> Result<BTreeMap<u64, String>, JournalError> {
+/// The bytes of the open journal at `path` and what they say under `header`.
+fn read_parsed(
+    file: &mut std::fs::File,
+    path: &Path,
+    header: &str,
+) -> Result<(Vec<u8>, Parsed), JournalError> {
+    let bytes = read_bytes(file).map_err(|source| JournalError::Io {
+        path: path.to_path_buf(),
+        action: "read",
+        source,
+    })?;
+    let parsed = parse(&bytes, header).map_err(|(line, detail)| JournalError::Damaged {
+        path: path.to_path_buf(),
+        line,
+        detail,
+    })?;
+    Ok((bytes, parsed))
+}
+
+/// What a journal file holds (a reader's view).
+#[derive(Debug, Default)]
+pub struct Contents {
+    /// The frames listed under the run's header, with their payloads.
+    pub entries: BTreeMap<u64, String>,
+    /// Bytes of a last line cut short by a crash mid-write (left out; 0 when none).
+    pub cut_bytes: usize,
+}
+
+/// Reads the journal at `path` under `header`: empty when there is no journal or it belongs
+/// to another run; a damaged one is an error naming the line.
+pub fn read(path: &Path, header: &str) -> Result<Contents, JournalError> {
     let io = |action: &'static str| {
         move |source| JournalError::Io {
             path: path.to_path_buf(),
@@ -183,17 +311,42 @@ pub fn read_entries(path: &Path, header: &str) -> Result<BTreeMap<u64, String>, 
     };
     let mut file = match std::fs::File::open(path) {
         Ok(file) => file,
-        Err(error) if error.kind() == std::io::ErrorKind::NotFound => return Ok(BTreeMap::new()),
+        Err(error) if error.kind() == std::io::ErrorKind::NotFound => {
+            return Ok(Contents::default())
+        }
         Err(source) => return Err(io("read")(source)),
     };
-    let text = read_text(&mut file).map_err(io("read"))?;
-    Ok(parse(&text, header).unwrap_or_default())
+    let (bytes, parsed) = read_parsed(&mut file, path, header)?;
+    Ok(Contents {
+        entries: parsed.entries.unwrap_or_default(),
+        cut_bytes: bytes.len() - parsed.good_len,
+    })
+}
+
+/// The frames a journal at `path` lists under `header`, with their payloads (see [`read`]).
+pub fn read_entries(path: &Path, header: &str) -> Result<BTreeMap<u64, String>, JournalError> {
+    Ok(read(path, header)?.entries)
 }
 
 /// The frames that have a published result, as the journal at `path` says (ingest's view);
 /// empty when there is no journal or it belongs to another run.
 pub fn read_published(path: &Path, header: &str) -> Result<BTreeSet<u64>, JournalError> {
     Ok(read_entries(path, header)?.into_keys().collect())
+}
+
+/// Reads every results journal of a configuration (the pose journal, and the change journal
+/// with change detection) and returns the first error: what the launcher names when a stage
+/// gave up on a journal.
+pub fn check(config: &PipelineConfig) -> Result<(), JournalError> {
+    let kinds: &[Kind] = if config.changes_enabled() {
+        &[Kind::Pose, Kind::Change]
+    } else {
+        &[Kind::Pose]
+    };
+    for &kind in kinds {
+        read(&path(config, kind), &header(config, kind))?;
+    }
+    Ok(())
 }
 
 /// The writer's side (verify for poses, fusion for change results).
@@ -270,21 +423,31 @@ impl Journal {
             .create(true)
             .open(path)
             .map_err(io("open"))?;
-        let text = read_text(&mut file).map_err(io("read"))?;
-        let published = match parse(&text, header) {
+        let (bytes, parsed) = read_parsed(&mut file, path, header)?;
+        let published = match parsed.entries {
             Some(published) => {
-                // Finish a line cut short by a crash, so the next id starts a line of its own.
-                if !text.ends_with('\n') {
-                    file.write_all(b"\n").map_err(io("append to"))?;
+                // Cut off a last line cut short by a crash, so the next id starts a line of
+                // its own (a cut `12 ab` finished with a newline would read as a damaged line).
+                if parsed.good_len < bytes.len() {
+                    tracing::warn!(
+                        "{}: the last line ({} bytes) was cut short by a crash mid-write; kept the {} complete lines before it",
+                        path.display(),
+                        bytes.len() - parsed.good_len,
+                        published.len()
+                    );
+                    file.set_len(parsed.good_len as u64)
+                        .map_err(io("truncate"))?;
                 }
                 published
             }
             None => {
-                if !text.is_empty() {
+                if parsed.good_len > 0 {
                     tracing::warn!(
                         "{}: results journal of another run (header differs); starting it over",
                         path.display()
                     );
+                }
+                if !bytes.is_empty() {
                     file.set_len(0).map_err(io("truncate"))?;
                     file.seek(SeekFrom::Start(0)).map_err(io("rewind"))?;
                 }
@@ -431,5 +594,97 @@ mod tests {
             error.contains("not-a-dir") && error.contains("state_dir"),
             "{error}"
         );
+    }
+
+    #[test]
+    fn a_last_line_cut_by_a_crash_is_left_out_and_cut_off_by_the_writer() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.change-journal");
+        std::fs::write(&path, "# h\n3 ab01\n5\n12 ab0").unwrap();
+        // The reader keeps the good prefix and says how much it left out.
+        let contents = read(&path, "# h").unwrap();
+        assert_eq!(contents.entries.keys().copied().collect::<Vec<_>>(), [3, 5]);
+        assert_eq!(contents.cut_bytes, 6);
+        // The writer cuts the partial line off (finishing it would make `12 ab0` a damaged
+        // line) and appends after the good prefix.
+        let (mut journal, entries) = Journal::open_with_payloads(&path, "# h").unwrap();
+        assert_eq!(entries.len(), 2);
+        journal.append_with(12, "ab01").unwrap();
+        drop(journal);
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            "# h\n3 ab01\n5\n12 ab01\n"
+        );
+        assert_eq!(read(&path, "# h").unwrap().cut_bytes, 0);
+        // A header cut short (a crash right after creating the journal) lists nothing.
+        std::fs::write(&path, "# ").unwrap();
+        assert!(read(&path, "# h").unwrap().entries.is_empty());
+        let (_, entries) = Journal::open(&path, "# h").unwrap();
+        assert!(entries.is_empty());
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "# h\n");
+    }
+
+    #[test]
+    fn a_damaged_journal_is_an_error_naming_the_file_and_the_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.results-journal");
+        let cases: [(&[u8], usize, &str); 5] = [
+            (b"# h\n1\nseven\n3\n", 3, "`seven` is not a frame id"),
+            (b"# h\n1 ab\n2 xyz1\n", 3, "payload is not hex"),
+            (b"# h\n1\n\xff\xfe2\n", 3, "not text"),
+            (b"\x00\x00\x00\n1\n", 1, "not a journal header"),
+            (b"\x00garbage", 1, "not a journal header"),
+        ];
+        for (bytes, line, detail) in cases {
+            std::fs::write(&path, bytes).unwrap();
+            for error in [
+                read(&path, "# h").unwrap_err(),
+                Journal::open(&path, "# h").err().unwrap(),
+            ] {
+                let message = error.to_string();
+                assert!(error.needs_operator(), "{message}");
+                assert!(
+                    message.contains(&path.display().to_string())
+                        && message.contains(&format!("at line {line} "))
+                        && message.contains(detail)
+                        && message.contains("move the file aside"),
+                    "{message}"
+                );
+            }
+            // The writer that could not open it left it as it was, for the operator.
+            assert_eq!(std::fs::read(&path).unwrap(), bytes);
+        }
+        // Another run's journal (a header of its own) is no damage: it is not this run's.
+        std::fs::write(&path, "# other run\nanything\n").unwrap();
+        assert!(read(&path, "# h").unwrap().entries.is_empty());
+    }
+
+    #[test]
+    fn an_unreadable_journal_is_an_error_naming_the_file_and_what_to_do() {
+        let dir = tempfile::tempdir().unwrap();
+        // A folder where the journal should be: it opens but cannot be read.
+        let path = dir.path().join("p.results-journal");
+        std::fs::create_dir(&path).unwrap();
+        let message = read(&path, "# h").unwrap_err().to_string();
+        assert!(
+            message.contains("p.results-journal")
+                && message.contains("cannot read")
+                && message.contains("move it aside"),
+            "{message}"
+        );
+        // Without read permission (only where permissions bind: not as root).
+        let path = dir.path().join("q.results-journal");
+        std::fs::write(&path, "# h\n1\n").unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o000)).unwrap();
+        if std::fs::File::open(&path).is_err() {
+            let error = read(&path, "# h").unwrap_err();
+            let message = error.to_string();
+            assert!(error.needs_operator(), "{message}");
+            assert!(
+                message.contains("q.results-journal") && message.contains("permission"),
+                "{message}"
+            );
+        }
     }
 }

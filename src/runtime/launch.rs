@@ -6,7 +6,10 @@
 //! not crash more than `launch.max_restarts` times within `launch.restart_window_s`
 //! ([`RestartIntensity`]). With zenoh and `launch.zenoh_router_listen`, the router is one more
 //! supervised process ([`start_router`]): restarted under the same intensity, the stages' zenoh
-//! clients reconnect to it by themselves, and it is stopped last.
+//! clients reconnect to it by themselves, and it is stopped last. A stage that exits with
+//! [`super::EXIT_NEEDS_OPERATOR`] (a damaged or unreadable results journal) is not restarted:
+//! the launch stops with that reason. The launcher holds the stage-only output topics open for
+//! the run ([`hold_outputs`]), so a stage killed mid-start never leaves one half made.
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
@@ -221,6 +224,13 @@ pub fn launch(
             return Err(error.into());
         }
     };
+    let _held = match hold_outputs(config, transport) {
+        Ok(held) => held,
+        Err(error) => {
+            stop_all(&mut processes, config);
+            return Err(error);
+        }
+    };
     for (stage, worker) in local_stages(config) {
         // A stage that cannot start stops those already started (router included): nothing is
         // left running behind an error.
@@ -257,6 +267,20 @@ pub fn launch(
             if status.success() && process.stage == "ingest" {
                 process.done = true;
                 continue;
+            }
+            if process.stage != ROUTER
+                && status.code() == Some(i32::from(super::EXIT_NEEDS_OPERATOR))
+            {
+                // A restart would meet the same error: give up now, naming it.
+                let reason = match super::journal::check(config) {
+                    Err(error) => error.to_string(),
+                    Ok(()) => "see its error above".to_string(),
+                };
+                failure = Some(RuntimeError::Launch(format!(
+                    "stage {} worker {} stopped on an error a restart cannot mend ({status}); giving up without restarting it: {reason}",
+                    process.stage, process.worker
+                )));
+                return false;
             }
             let in_window = match process.restarts.on_crash(Instant::now()) {
                 Ok(in_window) => in_window,
@@ -311,6 +335,33 @@ pub fn launch(
         super::journal::reset_all(config)?;
     }
     Ok(collected)
+}
+
+/// Opens (and the caller holds for the run, never sending) a publisher on each output topic that
+/// only one stage publishes and no stage or launcher subscribes to: the JSON results, change
+/// results and change set for outside consumers. Their services then live as long as the launch
+/// instead of being made again by each restarted verify or fusion; found by the soak: over
+/// iceoryx2, a fusion SIGKILLed while it was making `changeset/json` left the service half made
+/// (`HangsInCreation`), and every restart of fusion failed on it until the launch gave up.
+fn hold_outputs(
+    config: &PipelineConfig,
+    transport: &dyn Transport,
+) -> Result<Vec<Box<dyn crate::transport::Publisher>>, RuntimeError> {
+    let mut topics = vec![crate::transport::keys::RESULTS_JSON];
+    if config.changes_enabled() {
+        topics.extend([
+            crate::transport::keys::CHANGES_JSON,
+            crate::transport::keys::CHANGE_SET_JSON,
+        ]);
+    }
+    topics
+        .into_iter()
+        .map(|topic| {
+            transport
+                .publisher(topic)
+                .map_err(|error| RuntimeError::Launch(format!("cannot hold {topic} open: {error}")))
+        })
+        .collect()
 }
 
 /// Stops the stages gracefully, then the router (the stages hand their jobs back through it).

@@ -26,6 +26,11 @@ use collect::{Collected, Collector, Delivered};
 use config::PipelineConfig;
 use nodes::{NodeContext, NodeError};
 
+/// The exit status of a stage process that stopped on an error a restart cannot mend (a
+/// damaged or unreadable results journal): `launch` does not restart it (as systemd's
+/// `RestartPreventExitStatus`); 78 is sysexits' `EX_CONFIG`.
+pub const EXIT_NEEDS_OPERATOR: u8 = 78;
+
 #[derive(Debug, thiserror::Error)]
 pub enum RuntimeError {
     #[error(transparent)]

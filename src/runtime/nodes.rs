@@ -59,6 +59,14 @@ pub enum NodeError {
     Stopped { stage: &'static str, detail: String },
 }
 
+impl NodeError {
+    /// True when a restart of the stage cannot help ([`JournalError::needs_operator`]): the
+    /// stage process then exits with [`super::EXIT_NEEDS_OPERATOR`].
+    pub fn needs_operator(&self) -> bool {
+        matches!(self, NodeError::Journal(error) if error.needs_operator())
+    }
+}
+
 /// Set by SIGTERM or SIGINT in a stage process.
 static TERMINATION_REQUESTED: AtomicBool = AtomicBool::new(false);
 
@@ -214,7 +222,7 @@ impl Recovery {
             journal_read: Instant::now(),
             frame_count,
         };
-        recovery.read_journals()?;
+        recovery.read_journals(true)?;
         Ok(recovery)
     }
 
@@ -236,10 +244,21 @@ impl Recovery {
         }
     }
 
-    fn read_journals(&mut self) -> Result<(), JournalError> {
+    /// Reads the results journals; at the start, says when one ends in a line cut short (a crash
+    /// mid-write; later reads may meet a line being written).
+    fn read_journals(&mut self, at_start: bool) -> Result<(), JournalError> {
         let mut published = Vec::new();
         for (kind, path, header) in &self.journals {
-            for frame_id in journal::read_published(path, header)? {
+            let contents = journal::read(path, header)?;
+            if at_start && contents.cut_bytes > 0 {
+                tracing::warn!(
+                    "ingest: {}: the last line ({} bytes) was cut short by a crash mid-write; resuming from the {} complete lines before it",
+                    path.display(),
+                    contents.cut_bytes,
+                    contents.entries.len()
+                );
+            }
+            for frame_id in contents.entries.into_keys() {
                 published.push((*kind, frame_id));
             }
         }
@@ -253,7 +272,7 @@ impl Recovery {
     /// Takes the results and metrics that arrived; true when pose or verify restarted.
     fn poll(&mut self) -> Result<bool, NodeError> {
         if self.journal_read.elapsed() >= Duration::from_secs(1) {
-            self.read_journals()?;
+            self.read_journals(false)?;
         }
         let mut scratch = StageMetrics::default();
         let mut published = Vec::new();

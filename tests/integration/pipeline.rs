@@ -4,7 +4,7 @@
 //! verify and ingest mid-stream gives every frame exactly one result; a stage process rejects a message with a wrong schema version
 //! and lives on, and stops cleanly on SIGTERM with a plain (colourless) log.
 
-use std::io::{BufRead, BufReader};
+use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
@@ -304,6 +304,69 @@ fn sigkill_of_flow_render_verify_and_ingest_mid_stream_gives_one_result_per_fram
             "a frame was lost: {result}"
         );
     }
+}
+
+#[test]
+fn a_damaged_results_journal_stops_the_launch_at_once_naming_the_journal_and_line() {
+    // A corrupt line in the results journal mid-stream (not a crash mid-write): ingest, which
+    // reads the journal every second, stops with a status that says a restart cannot mend it,
+    // and the launcher gives up on it at once instead of restarting it into the same error.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path(), 10);
+    let state = dir.path().join("state");
+    let pipeline = unique("damaged");
+    let body = format!("state_dir = \"{}\"\n", state.display())
+        + &common(&pipeline, 1, "change = 0")
+            .replace("[transport]", "[source]\nrate_hz = 2.0\n\n[transport]");
+    let config = write_config(dir.path(), "damaged.toml", &scene, "iceoryx2", &body);
+    let out = dir.path().join("out");
+    let mut launcher = command(&["launch", path_str(&config), "--out", path_str(&out)])
+        .spawn()
+        .unwrap();
+    let stderr = launcher.stderr.take().unwrap();
+    let log = std::thread::spawn(move || {
+        let mut text = String::new();
+        for line in BufReader::new(stderr).lines() {
+            text.push_str(&line.unwrap());
+            text.push('\n');
+        }
+        text
+    });
+    let stdout = BufReader::new(launcher.stdout.take().unwrap());
+    let mut lines = stdout.lines();
+    for line in lines.by_ref() {
+        if line.unwrap().starts_with("frame ") {
+            break;
+        }
+    }
+    let journal = state.join(format!("{pipeline}.results-journal"));
+    std::fs::OpenOptions::new()
+        .append(true)
+        .open(&journal)
+        .unwrap()
+        .write_all(b"not a frame\n")
+        .unwrap();
+    let printed: Vec<String> = lines.map(|line| line.unwrap()).collect();
+    let status = launcher.wait().unwrap();
+    let log = log.join().unwrap();
+    assert!(!status.success(), "{log}");
+    let giving_up = log
+        .lines()
+        .find(|line| line.contains("giving up without restarting it"))
+        .unwrap_or_else(|| panic!("no giving up:\n{log}"));
+    assert!(
+        giving_up.contains("stage ingest worker 0")
+            && giving_up.contains(&journal.display().to_string())
+            && giving_up.contains("damaged at line")
+            && giving_up.contains("move the file aside"),
+        "{giving_up}"
+    );
+    assert_eq!(
+        log.matches("launch: ingest worker 0 pid").count(),
+        1,
+        "ingest was restarted:\n{log}"
+    );
+    assert!(printed.len() < 10, "{printed:?}");
 }
 
 #[test]
