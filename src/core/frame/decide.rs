@@ -40,17 +40,32 @@ pub fn decide_frame(
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) -> Decision {
+    let decisions = decide_centres(mesh, camera, outcomes, query, intrinsics, config, workspace);
+    choose_among_centres(mesh, decisions)
+        .unwrap_or_else(|| decide_centre(mesh, camera, &[], query, intrinsics, config, workspace))
+}
+
+/// Each centre's own decision (as [`decide_frame`] makes them before it chooses among them), in
+/// the search's order of centres: one decision when the outcomes are one group (or none).
+pub fn decide_centres(
+    mesh: &Mesh,
+    camera: &Camera,
+    outcomes: &[CoarseOutcome],
+    query: Option<ImageView<'_, f32>>,
+    intrinsics: IntrinsicsMode,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Vec<Decision> {
     let mut decide = |group: &[CoarseOutcome]| {
         decide_centre(mesh, camera, group, query, intrinsics, config, workspace)
     };
     if outcomes.len() <= config.coarse_pose_count {
-        return decide(outcomes);
+        return vec![decide(outcomes)];
     }
-    let decisions: Vec<Decision> = outcomes
+    outcomes
         .chunks(config.coarse_pose_count.max(1))
         .map(&mut decide)
-        .collect();
-    choose_among_centres(mesh, decisions).unwrap_or_else(|| decide(&[]))
+        .collect()
 }
 
 /// One centre's decision: the paper's check over its coarse outcomes, the refinement of the
@@ -107,7 +122,7 @@ fn decide_centre(
 /// photo supports two distinct poses and the frame is rejected ([`RejectionReason::Ambiguous`])
 /// rather than decided by a coin toss. When no centre is confirmed, the most confident one's
 /// rejection stands. `None` without decisions.
-fn choose_among_centres(mesh: &Mesh, mut decisions: Vec<Decision>) -> Option<Decision> {
+pub fn choose_among_centres(mesh: &Mesh, mut decisions: Vec<Decision>) -> Option<Decision> {
     decisions.sort_by(|a, b| {
         b.verdict
             .accepted()

@@ -492,6 +492,74 @@ mod tests {
         }
     }
 
+    /// Known pose, ideal query: a prior rolled 25° about its optical axis (and turned 10° in
+    /// heading, 6° in pitch), as the 104 px level's rotation noise often is once split into
+    /// heading, pitch and roll, is found by the default region (roll ±30°) and not by the
+    /// former ±15°, which left the truth outside the grid.
+    #[test]
+    fn the_search_reaches_a_prior_rolled_beyond_fifteen_degrees() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let default = RegistrationConfig::default();
+        let narrow = RegistrationConfig {
+            pose_search: PoseSearchConfig {
+                roll_half_range_deg: 15.0,
+                ..default.pose_search
+            },
+            ..default.clone()
+        };
+        let query = ideal_query(&mesh, &camera, &truth, &default);
+        let mut rasterizer = Rasterizer::new();
+        let mut reprojection = ReprojectionWorkspace::new();
+        // The prior: the truth turned back by (yaw, pitch, roll), so that the grid candidate
+        // (−yaw, ·, ·) of the prior is about the truth.
+        let prior = turned_pose(&truth, 10.0, 0.0, 0.0);
+        let tilt = turned_pose(&prior, 0.0, 6.0, 25.0);
+        let prior = Rigid3::new(tilt.rotation, -(tilt.rotation * prior.camera_center()));
+        let prior_delta_px = mutual_reprojection_error_px(
+            &mesh,
+            &camera,
+            &prior,
+            &camera,
+            &truth,
+            &mut reprojection,
+        )
+        .unwrap_or(f64::INFINITY);
+        assert!(prior_delta_px > 50.0, "{prior_delta_px} px");
+        let mut first_centre = |config: &RegistrationConfig| {
+            let outcome = search_pose(
+                &mesh,
+                &camera,
+                &prior,
+                query.view(),
+                config,
+                &mut rasterizer,
+                &mut CoarseView::default(),
+            )
+            .expect("the search is enabled by default");
+            let centre = outcome.centres[0];
+            let angle_deg = centre.rotation_angle_to_rad(&truth).to_degrees();
+            let delta_px = mutual_reprojection_error_px(
+                &mesh,
+                &camera,
+                &centre,
+                &camera,
+                &truth,
+                &mut reprojection,
+            )
+            .unwrap_or(f64::INFINITY);
+            println!(
+                "roll ±{}°: moved {}, first centre {angle_deg:.2}° / δ {delta_px:.2} px from the truth",
+                config.pose_search.roll_half_range_deg, outcome.moved
+            );
+            (angle_deg, delta_px)
+        };
+        let (angle_deg, delta_px) = first_centre(&default);
+        assert!(angle_deg < 2.0, "{angle_deg}°");
+        assert!(delta_px < 5.0, "{delta_px} px");
+        let (narrow_angle_deg, _) = first_centre(&narrow);
+        assert!(narrow_angle_deg > 2.0, "{narrow_angle_deg}°");
+    }
+
     /// With `keep_prior_centre` (the default), a search that moves keeps the prior as its second
     /// centre (its own coarse poses are tried beside the beam's); without, the beam is the only
     /// centre.
