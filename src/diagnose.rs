@@ -33,11 +33,10 @@ use crate::core::edge_align::{
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
 use crate::core::frame::{
-    choose_among_centres, correspond_view, decide_centres, decide_frame, lift_pixel,
-    query_features, query_gradient, refine_pose, render_coarse_view, render_views, solve_view,
-    CoarseOutcome, CoarseView, CorrespondWorkspace, Decision, FrameInput, IntrinsicsMode,
-    PoseRefinement, RefineWorkspace, RegistrationConfig, RegistrationError, ViewCorrespondences,
-    ViewRef,
+    correspond_view, decide_frame_and_centres, lift_pixel, query_features, query_gradient,
+    refine_pose, render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView,
+    CorrespondWorkspace, Decision, FrameInput, IntrinsicsMode, PoseRefinement, RefineWorkspace,
+    RegistrationConfig, RegistrationError, ViewCorrespondences, ViewRef,
 };
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
@@ -133,7 +132,7 @@ pub struct FrameDiagnosis {
     pub edge_bias: EdgeBiasDiagnosis,
 }
 
-/// One centre of the coarse poses: its own decision (as `core::frame::decide_centres` makes it)
+/// One centre of the coarse poses: its own decision (as `core::frame::decide_frame_and_centres` keeps it)
 /// against the truth.
 #[derive(Clone, Debug, Serialize)]
 pub struct CentreDiagnosis {
@@ -504,7 +503,14 @@ pub fn diagnose_query(
     // no pose error is left to bridge, and where solving from there ends.
     let (at_truth, _) = diagnose_view(&truth_view)?;
     let mut refine_workspace = RefineWorkspace::default();
-    let centre_decisions = decide_centres(
+    let (
+        Decision {
+            verdict,
+            refinement,
+            ..
+        },
+        centre_decisions,
+    ) = decide_frame_and_centres(
         mesh,
         camera,
         &outcomes,
@@ -512,6 +518,7 @@ pub fn diagnose_query(
         intrinsics,
         config,
         &mut refine_workspace,
+        true,
     );
     let centres: Vec<CentreDiagnosis> = centre_decisions
         .iter()
@@ -539,23 +546,6 @@ pub fn diagnose_query(
             }
         })
         .collect();
-    let Decision {
-        verdict,
-        refinement,
-        ..
-    } = match choose_among_centres(mesh, centre_decisions) {
-        Some(decision) => decision,
-        // Never: `decide_centres` makes at least one decision.
-        None => decide_frame(
-            mesh,
-            camera,
-            &outcomes,
-            Some(query),
-            intrinsics,
-            config,
-            &mut refine_workspace,
-        ),
-    };
     let verified_delta_px = match &refinement {
         Ok(r) => delta(&r.verified_camera, &r.verified_cam_from_world),
         Err(_) => verdict

@@ -40,14 +40,39 @@ pub fn decide_frame(
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) -> Decision {
-    let decisions = decide_centres(mesh, camera, outcomes, query, intrinsics, config, workspace);
-    choose_among_centres(mesh, decisions)
-        .unwrap_or_else(|| decide_centre(mesh, camera, &[], query, intrinsics, config, workspace))
+    decide_frame_and_centres(
+        mesh, camera, outcomes, query, intrinsics, config, workspace, false,
+    )
+    .0
 }
 
-/// Each centre's own decision (as [`decide_frame`] makes them before it chooses among them), in
-/// the search's order of centres: one decision when the outcomes are one group (or none).
-pub fn decide_centres(
+/// [`decide_frame`], and with `keep_centres` also each centre's own decision before the choice
+/// among them, in the search's order of centres (for the diagnosis; empty otherwise).
+#[allow(clippy::too_many_arguments)]
+pub fn decide_frame_and_centres(
+    mesh: &Mesh,
+    camera: &Camera,
+    outcomes: &[CoarseOutcome],
+    query: Option<ImageView<'_, f32>>,
+    intrinsics: IntrinsicsMode,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+    keep_centres: bool,
+) -> (Decision, Vec<Decision>) {
+    let decisions = decide_centres(mesh, camera, outcomes, query, intrinsics, config, workspace);
+    let kept = if keep_centres {
+        decisions.clone()
+    } else {
+        Vec::new()
+    };
+    let chosen = choose_among_centres(mesh, decisions)
+        .unwrap_or_else(|| decide_centre(mesh, camera, &[], query, intrinsics, config, workspace));
+    (chosen, kept)
+}
+
+/// Each centre's own decision, in the search's order of centres: one decision when the outcomes
+/// are one group (or none).
+fn decide_centres(
     mesh: &Mesh,
     camera: &Camera,
     outcomes: &[CoarseOutcome],
@@ -122,7 +147,7 @@ fn decide_centre(
 /// photo supports two distinct poses and the frame is rejected ([`RejectionReason::Ambiguous`])
 /// rather than decided by a coin toss. When no centre is confirmed, the most confident one's
 /// rejection stands. `None` without decisions.
-pub fn choose_among_centres(mesh: &Mesh, mut decisions: Vec<Decision>) -> Option<Decision> {
+fn choose_among_centres(mesh: &Mesh, mut decisions: Vec<Decision>) -> Option<Decision> {
     decisions.sort_by(|a, b| {
         b.verdict
             .accepted()
