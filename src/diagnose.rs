@@ -33,10 +33,10 @@ use crate::core::edge_align::{
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
 use crate::core::frame::{
-    correspond_view, decide_frame, lift_pixel, query_features, query_gradient, refine_pose,
-    render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView, CorrespondWorkspace,
-    Decision, FrameInput, IntrinsicsMode, PoseRefinement, RefineWorkspace, RegistrationConfig,
-    RegistrationError, ViewCorrespondences, ViewRef,
+    correspond_view, decide_frame_and_centres, lift_pixel, query_features, query_gradient,
+    refine_pose, render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView,
+    CorrespondWorkspace, Decision, FrameInput, IntrinsicsMode, PoseRefinement, RefineWorkspace,
+    RegistrationConfig, RegistrationError, ViewCorrespondences, ViewRef,
 };
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
@@ -125,8 +125,30 @@ pub struct FrameDiagnosis {
     pub best_delta_px: Option<f64>,
     /// The pose search against the truth (`None` when the search is off).
     pub search: Option<SearchDiagnosis>,
+    /// Each centre's own decision against the truth, in the search's order of centres (one
+    /// without the search), before verification across the centres chose among them.
+    pub centres: Vec<CentreDiagnosis>,
     /// Where the edge alignment's bias comes from, measured at the true pose.
     pub edge_bias: EdgeBiasDiagnosis,
+}
+
+/// One centre of the coarse poses: its own decision (as `core::frame::decide_frame_and_centres` keeps it)
+/// against the truth.
+#[derive(Clone, Debug, Serialize)]
+pub struct CentreDiagnosis {
+    /// δ(the centre, truth), px.
+    pub centre_delta_px: Option<f64>,
+    /// The smallest δ of its refined poses, px.
+    pub best_delta_px: Option<f64>,
+    pub accepted: bool,
+    pub reason: Option<String>,
+    pub confidence: f64,
+    /// δ of the pose its verification chose, before the refinement, px.
+    pub verified_delta_px: Option<f64>,
+    /// δ of its output (or would-be output) after the refinement, px.
+    pub output_delta_px: Option<f64>,
+    /// Edge support at its output pose (0..1).
+    pub edge_support: Option<f64>,
 }
 
 /// The edge alignment's bias at the true pose: each model edge sample of a rendering at the truth
@@ -481,11 +503,14 @@ pub fn diagnose_query(
     // no pose error is left to bridge, and where solving from there ends.
     let (at_truth, _) = diagnose_view(&truth_view)?;
     let mut refine_workspace = RefineWorkspace::default();
-    let Decision {
-        verdict,
-        refinement,
-        ..
-    } = decide_frame(
+    let (
+        Decision {
+            verdict,
+            refinement,
+            ..
+        },
+        centre_decisions,
+    ) = decide_frame_and_centres(
         mesh,
         camera,
         &outcomes,
@@ -493,7 +518,34 @@ pub fn diagnose_query(
         intrinsics,
         config,
         &mut refine_workspace,
+        true,
     );
+    let centres: Vec<CentreDiagnosis> = centre_decisions
+        .iter()
+        .zip(diagnoses.chunks(config.coarse_pose_count.max(1)))
+        .map(|(decision, views)| {
+            let verdict = &decision.verdict;
+            CentreDiagnosis {
+                centre_delta_px: views.first().and_then(|v| v.coarse_delta_px),
+                best_delta_px: views
+                    .iter()
+                    .filter_map(|v| v.hypothesis_delta_px)
+                    .min_by(f64::total_cmp),
+                accepted: verdict.accepted(),
+                reason: verdict.rejection().map(|r| r.to_string()),
+                confidence: verdict.confidence,
+                verified_delta_px: decision
+                    .refinement
+                    .as_ref()
+                    .ok()
+                    .and_then(|r| delta(&r.verified_camera, &r.verified_cam_from_world)),
+                output_delta_px: verdict
+                    .chosen()
+                    .and_then(|h| delta(&h.camera, &h.cam_from_world)),
+                edge_support: decision.refinement.as_ref().ok().map(|r| r.peak.at_pose),
+            }
+        })
+        .collect();
     let verified_delta_px = match &refinement {
         Ok(r) => delta(&r.verified_camera, &r.verified_cam_from_world),
         Err(_) => verdict
@@ -578,6 +630,7 @@ pub fn diagnose_query(
         aligned_from_truth_delta_px,
         best_delta_px,
         search,
+        centres,
         edge_bias,
     })
 }

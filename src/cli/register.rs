@@ -219,6 +219,10 @@ pub struct CoarseArgs {
     /// beam is the only centre unless the search is ambiguous).
     #[arg(long, default_value_t = PoseSearchConfig::default().keep_prior_centre, action = clap::ArgAction::Set)]
     pub keep_prior_centre: bool,
+    /// Pose search: roll (about the camera's optical axis) searched either side of the prior's,
+    /// degrees.
+    #[arg(long, default_value_t = PoseSearchConfig::default().roll_half_range_deg)]
+    pub search_roll_deg: f64,
 }
 
 impl Default for CoarseArgs {
@@ -241,6 +245,7 @@ impl Default for CoarseArgs {
             no_pose_search: false,
             screened_candidates: PoseSearchConfig::default().screened_candidates,
             keep_prior_centre: PoseSearchConfig::default().keep_prior_centre,
+            search_roll_deg: PoseSearchConfig::default().roll_half_range_deg,
         }
     }
 }
@@ -365,6 +370,7 @@ pub fn registration_config(
             enabled: !coarse.no_pose_search,
             screened_candidates: coarse.screened_candidates,
             keep_prior_centre: coarse.keep_prior_centre,
+            roll_half_range_deg: coarse.search_roll_deg,
             ..Default::default()
         },
         ..RegistrationConfig::default()

@@ -53,6 +53,14 @@ pub struct PoseSearchConfig {
     pub pitch_half_range_deg: f64,
     pub pitch_step_deg: f64,
     /// Roll (about the camera's optical axis) searched either side of the prior's, degrees.
+    /// The 104 px level's rotation noise (about 11.7° per camera axis on the block), expressed
+    /// as heading about world up, then pitch and roll, puts a third of the frames beyond ±15° of
+    /// roll (the camera looks down obliquely: a turn about its own y axis is part heading, part
+    /// roll); on `synth` block seed 1, 26 of 48 frames lie within the ±22.5° / ±15° grid, 45
+    /// within ±30° of roll, and all 8 frames rejected among the first 24 lay beyond ±15°. ±30°
+    /// (`--search-roll-deg 30`) raises block 104 px from 16/24 to 20/24 but gave a false accept
+    /// on the house at 30 px (docs/measurements.md, branch `reach4`): the default stays 15
+    /// until the verification rejects that pose.
     pub roll_half_range_deg: f64,
     pub roll_step_deg: f64,
     /// The model is rendered at headings this far apart (the parts in view change with the

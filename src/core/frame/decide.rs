@@ -43,20 +43,59 @@ pub fn decide_frame(
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) -> Decision {
+    decide_frame_and_centres(
+        mesh, camera, outcomes, query, intrinsics, config, workspace, false,
+    )
+    .0
+}
+
+/// [`decide_frame`], and with `keep_centres` also each centre's own decision before the choice
+/// among them, in the search's order of centres (for the diagnosis; empty otherwise).
+#[allow(clippy::too_many_arguments)]
+pub fn decide_frame_and_centres(
+    mesh: &Mesh,
+    camera: &Camera,
+    outcomes: &[CoarseOutcome],
+    query: Option<ImageView<'_, f32>>,
+    intrinsics: IntrinsicsMode,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+    keep_centres: bool,
+) -> (Decision, Vec<Decision>) {
+    let decisions = decide_centres(mesh, camera, outcomes, query, intrinsics, config, workspace);
+    let kept = if keep_centres {
+        decisions.clone()
+    } else {
+        Vec::new()
+    };
+    let refine_cpu_ms: f64 = decisions.iter().map(|d| d.refine_cpu_ms).sum();
+    let mut chosen = choose_among_centres(mesh, decisions)
+        .unwrap_or_else(|| decide_centre(mesh, camera, &[], query, intrinsics, config, workspace));
+    chosen.refine_cpu_ms = refine_cpu_ms;
+    (chosen, kept)
+}
+
+/// Each centre's own decision, in the search's order of centres: one decision when the outcomes
+/// are one group (or none).
+fn decide_centres(
+    mesh: &Mesh,
+    camera: &Camera,
+    outcomes: &[CoarseOutcome],
+    query: Option<ImageView<'_, f32>>,
+    intrinsics: IntrinsicsMode,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Vec<Decision> {
     let mut decide = |group: &[CoarseOutcome]| {
         decide_centre(mesh, camera, group, query, intrinsics, config, workspace)
     };
     if outcomes.len() <= config.coarse_pose_count {
-        return decide(outcomes);
+        return vec![decide(outcomes)];
     }
-    let decisions: Vec<Decision> = outcomes
+    outcomes
         .chunks(config.coarse_pose_count.max(1))
         .map(&mut decide)
-        .collect();
-    let refine_cpu_ms: f64 = decisions.iter().map(|d| d.refine_cpu_ms).sum();
-    let mut decision = choose_among_centres(mesh, decisions).unwrap_or_else(|| decide(&[]));
-    decision.refine_cpu_ms = refine_cpu_ms;
-    decision
+        .collect()
 }
 
 /// One centre's decision: the paper's check over its coarse outcomes, the refinement of the

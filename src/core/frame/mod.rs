@@ -41,7 +41,7 @@ pub use config::{
     IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError, UnknownIntrinsics,
 };
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
-pub use decide::{decide_frame, Decision};
+pub use decide::{decide_frame, decide_frame_and_centres, Decision};
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
 pub use search::{search_pose, Beam, PoseSearchOutcome};
