@@ -149,6 +149,12 @@ pub struct CentreDiagnosis {
     pub output_delta_px: Option<f64>,
     /// Edge support at its output pose (0..1).
     pub edge_support: Option<f64>,
+    /// Whether its refined poses passed the paper's plausibility check (agreement and
+    /// convergence); a pose that failed it can still be confirmed by the photo's edges.
+    pub check_passed: bool,
+    /// δ between its output (or would-be output) and the frame's, px: how far apart the centres'
+    /// poses are that verification across the centres compares.
+    pub apart_from_output_px: Option<f64>,
 }
 
 /// The edge alignment's bias at the true pose: each model edge sample of a rendering at the truth
@@ -520,6 +526,8 @@ pub fn diagnose_query(
         &mut refine_workspace,
         true,
     );
+    let verdict_output = verdict.chosen();
+    let mut apart_workspace = ReprojectionWorkspace::new();
     let centres: Vec<CentreDiagnosis> = centre_decisions
         .iter()
         .zip(diagnoses.chunks(config.coarse_pose_count.max(1)))
@@ -543,6 +551,19 @@ pub fn diagnose_query(
                     .chosen()
                     .and_then(|h| delta(&h.camera, &h.cam_from_world)),
                 edge_support: decision.refinement.as_ref().ok().map(|r| r.peak.at_pose),
+                check_passed: decision.evidence.check_passed,
+                apart_from_output_px: verdict.chosen().zip(verdict_output).and_then(
+                    |(own, out)| {
+                        mutual_reprojection_error_px(
+                            mesh,
+                            &own.camera,
+                            &own.cam_from_world,
+                            &out.camera,
+                            &out.cam_from_world,
+                            &mut apart_workspace,
+                        )
+                    },
+                ),
             }
         })
         .collect();

@@ -829,19 +829,20 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
     let _ = writeln!(
         out,
         "\n## Centres\n\nPer frame with more than one centre of coarse poses: each centre's own decision before \
-verification across the centres chose (δ px against the truth; support: edge support at its output).\n"
+verification across the centres chose (δ px against the truth; support: edge support at its output; check: the \
+paper's plausibility check of its refined poses; apart: δ from its output to the frame's, px).\n"
     );
     let _ = writeln!(
         out,
-        "| level | method | frame | centre | centre δ | best δ | verified δ | output δ | support | confidence | verdict |"
+        "| level | method | frame | centre | centre δ | best δ | verified δ | output δ | support | check | apart | confidence | verdict |"
     );
-    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for ((level, method), frames) in diagnoses {
         for (name, diagnosis) in frames.iter().filter(|(_, d)| d.centres.len() > 1) {
             for (index, centre) in diagnosis.centres.iter().enumerate() {
                 let _ = writeln!(
                     out,
-                    "| {level} | {method} | {name} | {index} | {} | {} | {} | {} | {} | {:.2} | {} |",
+                    "| {level} | {method} | {name} | {index} | {} | {} | {} | {} | {} | {} | {} | {:.2} | {} |",
                     px(centre.centre_delta_px),
                     px(centre.best_delta_px),
                     px(centre.verified_delta_px),
@@ -849,6 +850,8 @@ verification across the centres chose (δ px against the truth; support: edge su
                     centre
                         .edge_support
                         .map_or("–".to_string(), |v| format!("{:.0} %", 100.0 * v)),
+                    if centre.check_passed { "passed" } else { "failed" },
+                    px(centre.apart_from_output_px),
                     centre.confidence,
                     centre.reason.as_deref().unwrap_or("accepted"),
                 );

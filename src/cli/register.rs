@@ -223,6 +223,11 @@ pub struct CoarseArgs {
     /// degrees.
     #[arg(long, default_value_t = PoseSearchConfig::default().roll_half_range_deg)]
     pub search_roll_deg: f64,
+    /// Verification across the pose search's centres: two centres' confirmed poses count as one
+    /// only when they lie less than this share of the compatibility threshold apart; farther,
+    /// the frame is rejected as ambiguous (0..1; 1: the threshold itself).
+    #[arg(long, default_value_t = PoseSearchConfig::default().centre_agreement_share)]
+    pub centre_agreement_share: f64,
 }
 
 impl Default for CoarseArgs {
@@ -246,6 +251,7 @@ impl Default for CoarseArgs {
             screened_candidates: PoseSearchConfig::default().screened_candidates,
             keep_prior_centre: PoseSearchConfig::default().keep_prior_centre,
             search_roll_deg: PoseSearchConfig::default().roll_half_range_deg,
+            centre_agreement_share: PoseSearchConfig::default().centre_agreement_share,
         }
     }
 }
@@ -371,6 +377,7 @@ pub fn registration_config(
             screened_candidates: coarse.screened_candidates,
             keep_prior_centre: coarse.keep_prior_centre,
             roll_half_range_deg: coarse.search_roll_deg,
+            centre_agreement_share: coarse.centre_agreement_share,
             ..Default::default()
         },
         ..RegistrationConfig::default()

@@ -111,6 +111,17 @@ pub struct PoseSearchConfig {
     /// (issue #12). Costs a second set of coarse poses on the frames where the search moves.
     /// Default on (measured with the screening, see `screened_candidates`).
     pub keep_prior_centre: bool,
+    /// Verification across the centres: two centres' confirmed output poses are the same pose
+    /// (the more confident one is output) only when they lie less than this share of the
+    /// compatibility threshold (`verify.threshold_px`, the false-accept line) apart; farther apart
+    /// the photo confirms two distinct poses and the frame is rejected as ambiguous
+    /// (dimensionless, 0..1). At 0.5, whichever of the two confirmed poses is within half the
+    /// line of the truth, the output is within the line: the choice between two compatible
+    /// poses cannot make a false accept out of a correct one. At 1 (the earlier rule) two poses
+    /// 18–25 px apart counted as one, and the house at 30 px gave a false accept (view_010 with
+    /// roll ±30°: a centre's pose 8.4 px from the truth and another's 26.6 px, the latter output
+    /// on its higher edge support; docs/measurements.md, branch `reach5`).
+    pub centre_agreement_share: f64,
 }
 
 impl Default for PoseSearchConfig {
@@ -138,6 +149,7 @@ impl Default for PoseSearchConfig {
             ambiguity_ratio: 0.9,
             max_centres: 3,
             keep_prior_centre: true,
+            centre_agreement_share: 0.5,
         }
     }
 }
@@ -204,6 +216,15 @@ impl PoseSearchConfig {
                     "{} is fewer than the {} beams kept after the screening",
                     self.screened_candidates, self.beams
                 ),
+            );
+        }
+        if !(self.centre_agreement_share.is_finite()
+            && self.centre_agreement_share > 0.0
+            && self.centre_agreement_share <= 1.0)
+        {
+            return bad(
+                "centre_agreement_share",
+                format!("{} is not in (0, 1]", self.centre_agreement_share),
             );
         }
         if self.max_centres == 0 {
