@@ -214,6 +214,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let mut search_diagnoses: SearchDiagnoses = BTreeMap::new();
     let mut methods_seen: Vec<Method> = Vec::new();
     let mut search_ms: BTreeMap<(Level, &'static str), f64> = BTreeMap::new();
+    // The full-circle heading fallback's time and the frames it ran on.
+    let mut sweep_ms: BTreeMap<(Level, &'static str), (f64, usize)> = BTreeMap::new();
     // report.html: one row per frame run, the ASG rows with their overlays (the loader's working
     // camera, as registration saw the photo).
     let loader = FrameLoader::default();
@@ -272,6 +274,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     }),
                     total_ms: elapsed_ms,
                     search_ms: diagnosis.as_ref().map_or(0.0, |d| d.search_ms),
+                    heading_sweep_ms: 0.0,
                 };
                 if let Ok(diagnosis) = diagnosis {
                     search_diagnoses
@@ -313,6 +316,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             reason: diagnosis.verdict.rejection().map(|r| r.to_string()),
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
                             search_ms: 0.0,
+                            heading_sweep_ms: 0.0,
                         };
                         diagnoses
                             .entry((level, method.name()))
@@ -328,6 +332,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         reason: Some(reason),
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
                         search_ms: 0.0,
+                        heading_sweep_ms: 0.0,
                     },
                 }
             }
@@ -385,6 +390,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     reason: report.reason,
                     total_ms: report.timings.total_ms,
                     search_ms: report.timings.search_ms,
+                    heading_sweep_ms: report.timings.heading_sweep_ms,
                 }
             }
             Method::Icp(variant) => {
@@ -428,6 +434,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             }),
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
                             search_ms: 0.0,
+                            heading_sweep_ms: 0.0,
                         }
                     }
                     Err(reason) => FrameOutcome {
@@ -438,6 +445,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         reason: Some(reason),
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
                         search_ms: 0.0,
+                        heading_sweep_ms: 0.0,
                     },
                 }
             }
@@ -461,6 +469,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             outcome.search_ms / 1e3
         );
         *search_ms.entry((level, method.name())).or_insert(0.0) += outcome.search_ms;
+        let sweep = sweep_ms.entry((level, method.name())).or_insert((0.0, 0));
+        if outcome.heading_sweep_ms > 0.0 {
+            *sweep = (sweep.0 + outcome.heading_sweep_ms, sweep.1 + 1);
+        }
         if bar.is_hidden() {
             println!("{line}");
         } else {
@@ -621,6 +633,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 total_search_ms / frames.len().max(1) as f64 / 1e3,
                 total_ms / frames.len().max(1) as f64 / 1e3,
                 100.0 * total_search_ms / total_ms.max(1e-9)
+            );
+        }
+    }
+    for ((level, method), (total_sweep_ms, swept)) in &sweep_ms {
+        if let (Some(frames), true) = (results.get(&(*level, *method)), *swept > 0) {
+            let total_ms: f64 = frames.iter().map(|f| f.total_ms).sum();
+            println!(
+                "heading sweep (fallback), level {level} {method}: ran on {swept} of {} frames, {:.2} s per frame it ran on ({:.0} % of the level's time)",
+                frames.len(),
+                total_sweep_ms / *swept as f64 / 1e3,
+                100.0 * total_sweep_ms / total_ms.max(1e-9)
             );
         }
     }
@@ -1028,6 +1051,8 @@ struct FrameOutcome {
     total_ms: f64,
     /// The pose search's share of `total_ms` (0 when it did not run).
     search_ms: f64,
+    /// The full-circle heading fallback's share of `total_ms` (0 when it did not run).
+    heading_sweep_ms: f64,
 }
 
 fn results_markdown(

@@ -228,6 +228,10 @@ pub struct CoarseArgs {
     /// the frame is rejected as ambiguous (0..1; 1: the threshold itself).
     #[arg(long, default_value_t = PoseSearchConfig::default().centre_agreement_share)]
     pub centre_agreement_share: f64,
+    /// Pose search: when no pose is accepted, register the frame once more with headings swept
+    /// over the full circle at this step, degrees (0: no fallback).
+    #[arg(long, default_value_t = PoseSearchConfig::default().heading_sweep_step_deg)]
+    pub heading_sweep_deg: f64,
 }
 
 impl Default for CoarseArgs {
@@ -252,6 +256,7 @@ impl Default for CoarseArgs {
             keep_prior_centre: PoseSearchConfig::default().keep_prior_centre,
             search_roll_deg: PoseSearchConfig::default().roll_half_range_deg,
             centre_agreement_share: PoseSearchConfig::default().centre_agreement_share,
+            heading_sweep_deg: PoseSearchConfig::default().heading_sweep_step_deg,
         }
     }
 }
@@ -378,6 +383,7 @@ pub fn registration_config(
             keep_prior_centre: coarse.keep_prior_centre,
             roll_half_range_deg: coarse.search_roll_deg,
             centre_agreement_share: coarse.centre_agreement_share,
+            heading_sweep_step_deg: coarse.heading_sweep_deg,
             ..Default::default()
         },
         ..RegistrationConfig::default()
@@ -721,6 +727,7 @@ pub fn report_frame(
     let timings_ms = [
         ("query", t.query_ms),
         ("pose search", t.search_ms),
+        ("heading sweep (fallback)", t.heading_sweep_ms),
         ("render", t.render_ms),
         ("flow", t.flow_ms),
         ("pose", t.pose_ms),

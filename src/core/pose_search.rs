@@ -122,6 +122,12 @@ pub struct PoseSearchConfig {
     /// roll ±30°: a centre's pose 8.4 px from the truth and another's 26.6 px, the latter output
     /// on its higher edge support; docs/measurements.md, branch `reach5`).
     pub centre_agreement_share: f64,
+    /// The full-circle heading fallback (issue #12 item 1): when a frame's search region gave no
+    /// accepted pose, the frame is registered once more with headings swept over the full
+    /// circle at this step, degrees ([`PoseSearchConfig::heading_sweep`]); the region's other
+    /// settings stay. 0: no fallback (default: not yet measured on the synthetic levels, and a
+    /// rejected frame's time doubles; `register_query` runs it, the pipeline's stages do not).
+    pub heading_sweep_step_deg: f64,
 }
 
 impl Default for PoseSearchConfig {
@@ -150,6 +156,7 @@ impl Default for PoseSearchConfig {
             max_centres: 3,
             keep_prior_centre: true,
             centre_agreement_share: 0.5,
+            heading_sweep_step_deg: 0.0,
         }
     }
 }
@@ -227,10 +234,33 @@ impl PoseSearchConfig {
                 format!("{} is not in (0, 1]", self.centre_agreement_share),
             );
         }
+        if !(self.heading_sweep_step_deg.is_finite() && self.heading_sweep_step_deg >= 0.0) {
+            return bad(
+                "heading_sweep_step_deg",
+                format!(
+                    "{} is not a non-negative number",
+                    self.heading_sweep_step_deg
+                ),
+            );
+        }
         if self.max_centres == 0 {
             return bad("max_centres", "must be at least 1".into());
         }
         Ok(())
+    }
+
+    /// The region of the full-circle heading fallback: headings over the whole circle at
+    /// `heading_sweep_step_deg` (the flipped range is then part of it), the rest as `self`;
+    /// `None` when the fallback is off or the region already covers the circle.
+    pub fn heading_sweep(&self) -> Option<PoseSearchConfig> {
+        let covered = self.yaw_half_range_deg >= 180.0
+            || (self.include_flipped_heading && self.yaw_half_range_deg >= 90.0);
+        (self.enabled && self.heading_sweep_step_deg > 0.0 && !covered).then_some(Self {
+            yaw_half_range_deg: 180.0,
+            include_flipped_heading: false,
+            yaw_step_deg: self.heading_sweep_step_deg,
+            ..*self
+        })
     }
 
     /// The candidate headings relative to the prior's, degrees: the range around the prior and,

@@ -123,6 +123,10 @@ pub struct StageTimings {
     pub pose_ms: f64,
     /// Verification and the final refinement.
     pub verify_ms: f64,
+    /// The full-circle heading fallback's whole second registration, when it ran (part of
+    /// `total_ms`; the other fields are the first registration's).
+    #[serde(default)]
+    pub heading_sweep_ms: f64,
     pub total_ms: f64,
     /// CPU time of each step, ms: the process's CPU time during the step (all its threads),
     /// which is the step's own where one frame at a time runs in the process (`register`,
@@ -211,8 +215,64 @@ pub fn register_frame(
 }
 
 /// Registers a frame whose query gradient image (0..1, [`query_gradient`]) is already made:
-/// every step after "query". `config` must be valid.
+/// every step after "query". `config` must be valid. When no pose is accepted and the pose
+/// search's full-circle heading fallback is on
+/// ([`crate::core::pose_search::PoseSearchConfig::heading_sweep`]), the frame is registered once
+/// more with headings swept over the full circle, and that result counts when it is accepted.
 pub fn register_query(
+    mesh: &Mesh,
+    camera: &Camera,
+    intrinsics: IntrinsicsMode,
+    initial_cam_from_world: &Rigid3,
+    query: ImageView<'_, f32>,
+    config: &RegistrationConfig,
+    seed: u64,
+) -> Result<FrameResult, RegistrationError> {
+    let started = Instant::now();
+    let first = register_region(
+        mesh,
+        camera,
+        intrinsics,
+        initial_cam_from_world,
+        query,
+        config,
+        seed,
+    )?;
+    let Some(sweep) = config.pose_search.heading_sweep() else {
+        return Ok(first);
+    };
+    if first.verdict.accepted() {
+        return Ok(first);
+    }
+    let sweep_started = Instant::now();
+    let swept = RegistrationConfig {
+        pose_search: sweep,
+        ..config.clone()
+    };
+    let retry = register_region(
+        mesh,
+        camera,
+        intrinsics,
+        initial_cam_from_world,
+        query,
+        &swept,
+        seed,
+    );
+    let heading_sweep_ms = elapsed_ms(sweep_started);
+    let mut result = match retry {
+        Ok(retry) if retry.verdict.accepted() => FrameResult {
+            timings: first.timings,
+            ..retry
+        },
+        _ => first,
+    };
+    result.timings.heading_sweep_ms = heading_sweep_ms;
+    result.timings.total_ms = elapsed_ms(started);
+    Ok(result)
+}
+
+/// [`register_query`] within the pose search's region of `config` alone (no fallback).
+fn register_region(
     mesh: &Mesh,
     camera: &Camera,
     intrinsics: IntrinsicsMode,

@@ -125,6 +125,64 @@ fn ideal_query_recovers_the_true_pose_from_tens_of_pixels_off() {
     assert_eq!(again.verdict.decision, result.verdict.decision);
 }
 
+/// The full-circle heading fallback (issue #12 item 1): a prior whose heading is 100° off lies
+/// outside the search's region (±45° around the prior's heading and around its flip), so the
+/// frame is not registered at the truth; with the fallback (`heading_sweep_step_deg`) the second
+/// registration sweeps the whole circle and the accepted pose is the truth's to a few pixels.
+#[test]
+fn the_heading_sweep_recovers_a_prior_turned_a_hundred_degrees() {
+    use crate::core::pose_search::{turned_pose, PoseSearchConfig};
+    let (mesh, camera, truth, _) = house_and_poses();
+    let config = RegistrationConfig::default();
+    let query = ideal_query(&mesh, &camera, &truth, &config);
+    let turned = turned_pose(&truth, 100.0, 0.0, 0.0);
+    let centre = turned.camera_center() + Vector3::new(0.4, -0.3, 0.2);
+    let prior = Rigid3::new(turned.rotation, -(turned.rotation * centre));
+    let mut workspace = ReprojectionWorkspace::new();
+    let mut register = |config: &RegistrationConfig| {
+        let result = register_query(
+            &mesh,
+            &camera,
+            IntrinsicsMode::Known,
+            &prior,
+            query.view(),
+            config,
+            7,
+        )
+        .unwrap();
+        let delta_px = result.verdict.accepted_pose().map(|pose| {
+            mutual_reprojection_error_px(
+                &mesh,
+                &pose.camera,
+                &pose.cam_from_world,
+                &camera,
+                &truth,
+                &mut workspace,
+            )
+            .unwrap_or(f64::INFINITY)
+        });
+        println!(
+            "sweep step {}°: accepted δ {delta_px:?} px, sweep {:.0} ms of {:.0} ms",
+            config.pose_search.heading_sweep_step_deg,
+            result.timings.heading_sweep_ms,
+            result.timings.total_ms
+        );
+        (delta_px, result.timings.heading_sweep_ms)
+    };
+    let (without, _) = register(&config);
+    assert!(without.map_or(true, |d| d > 25.0), "{without:?}");
+    let swept = RegistrationConfig {
+        pose_search: PoseSearchConfig {
+            heading_sweep_step_deg: 4.0,
+            ..config.pose_search
+        },
+        ..config.clone()
+    };
+    let (with, sweep_ms) = register(&swept);
+    assert!(sweep_ms > 0.0);
+    assert!(with.is_some_and(|d| d < 5.0), "{with:?}");
+}
+
 #[test]
 fn depth_smoothing_averages_within_surfaces_and_keeps_edges_and_holes() {
     // Left half a wall at 10 m with ±0.1 m alternating noise, right half at 20 m, one hole.
