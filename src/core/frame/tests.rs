@@ -170,7 +170,7 @@ fn the_heading_sweep_recovers_a_prior_turned_a_hundred_degrees() {
         (delta_px, result.timings.heading_sweep_ms)
     };
     let (without, _) = register(&config);
-    assert!(without.map_or(true, |d| d > 25.0), "{without:?}");
+    assert!(without.is_none_or(|d| d > 25.0), "{without:?}");
     let swept = RegistrationConfig {
         pose_search: PoseSearchConfig {
             heading_sweep_step_deg: 4.0,
