@@ -229,15 +229,18 @@ pub fn register_query(
     seed: u64,
 ) -> Result<FrameResult, RegistrationError> {
     let started = Instant::now();
-    let first = register_region(
-        mesh,
-        camera,
-        intrinsics,
-        initial_cam_from_world,
-        query,
-        config,
-        seed,
-    )?;
+    let register = |config: &RegistrationConfig| {
+        register_region(
+            config,
+            mesh,
+            camera,
+            intrinsics,
+            initial_cam_from_world,
+            query,
+            seed,
+        )
+    };
+    let first = register(config)?;
     let Some(sweep) = config.pose_search.heading_sweep() else {
         return Ok(first);
     };
@@ -245,19 +248,10 @@ pub fn register_query(
         return Ok(first);
     }
     let sweep_started = Instant::now();
-    let swept = RegistrationConfig {
+    let retry = register(&RegistrationConfig {
         pose_search: sweep,
         ..config.clone()
-    };
-    let retry = register_region(
-        mesh,
-        camera,
-        intrinsics,
-        initial_cam_from_world,
-        query,
-        &swept,
-        seed,
-    );
+    });
     let heading_sweep_ms = elapsed_ms(sweep_started);
     let mut result = match retry {
         Ok(retry) if retry.verdict.accepted() => FrameResult {
@@ -273,12 +267,12 @@ pub fn register_query(
 
 /// [`register_query`] within the pose search's region of `config` alone (no fallback).
 fn register_region(
+    config: &RegistrationConfig,
     mesh: &Mesh,
     camera: &Camera,
     intrinsics: IntrinsicsMode,
     initial_cam_from_world: &Rigid3,
     query: ImageView<'_, f32>,
-    config: &RegistrationConfig,
     seed: u64,
 ) -> Result<FrameResult, RegistrationError> {
     let started = Instant::now();
