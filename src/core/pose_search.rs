@@ -59,8 +59,10 @@ pub struct PoseSearchConfig {
     /// roll); on `synth` block seed 1, 26 of 48 frames lie within the ±22.5° / ±15° grid, 45
     /// within ±30° of roll, and all 8 frames rejected among the first 24 lay beyond ±15°. ±30°
     /// (`--search-roll-deg 30`) raises block 104 px from 16/24 to 20/24 but gave a false accept
-    /// on the house at 30 px (docs/measurements.md, branch `reach4`): the default stays 15
-    /// until the verification rejects that pose.
+    /// on the house at 30 px (docs/measurements.md, branch `reach4`), which verification across
+    /// the centres now rejects (`centre_agreement_share`, branch `reach5`); the default stays 15
+    /// because ±30° loses a frame of the heading level (21/24 → 20/24: the level's tilt is
+    /// within 1°, so a wider roll only adds wrong candidates there).
     pub roll_half_range_deg: f64,
     pub roll_step_deg: f64,
     /// The model is rendered at headings this far apart (the parts in view change with the
