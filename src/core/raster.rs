@@ -286,6 +286,32 @@ impl Rasterizer {
         options: &RenderOptions,
         out: &mut RenderBuffers,
     ) {
+        self.render_passes(mesh, intrinsics, cam_from_world, options, out, true);
+    }
+
+    /// [`Rasterizer::render`] without the normals: depth and face index only (the very same
+    /// values), the normal map left all zero. For callers that read only where the surface is
+    /// (visible points, δ): the per-pixel normal pass is skipped.
+    pub fn render_depth_and_faces(
+        &mut self,
+        mesh: &Mesh,
+        intrinsics: &PinholeIntrinsics,
+        cam_from_world: &Rigid3,
+        options: &RenderOptions,
+        out: &mut RenderBuffers,
+    ) {
+        self.render_passes(mesh, intrinsics, cam_from_world, options, out, false);
+    }
+
+    fn render_passes(
+        &mut self,
+        mesh: &Mesh,
+        intrinsics: &PinholeIntrinsics,
+        cam_from_world: &Rigid3,
+        options: &RenderOptions,
+        out: &mut RenderBuffers,
+        with_normals: bool,
+    ) {
         let width = out.width_px();
         let height = out.height_px();
         out.depth_m.fill(0.0);
@@ -368,8 +394,9 @@ impl Rasterizer {
                 }
             });
 
-        let use_vertex_normals =
-            options.normal_source == NormalSource::Vertex && mesh.vertex_normals().is_some();
+        let use_vertex_normals = with_normals
+            && options.normal_source == NormalSource::Vertex
+            && mesh.vertex_normals().is_some();
         if let (true, Some(normals)) = (use_vertex_normals, mesh.vertex_normals()) {
             self.normals_cam.resize(slot_count, Vec3::ZERO);
             self.normals_cam
@@ -454,13 +481,15 @@ impl Rasterizer {
                 } else {
                     None
                 };
-                shade_band(
-                    &band_target,
-                    normal,
-                    vertices_cam,
-                    normal_source,
-                    &projector,
-                );
+                if with_normals {
+                    shade_band(
+                        &band_target,
+                        normal,
+                        vertices_cam,
+                        normal_source,
+                        &projector,
+                    );
+                }
                 for pixel in band_target.face_slot.iter_mut() {
                     if *pixel != NO_FACE {
                         *pixel = visible_faces[*pixel as usize].face_index;
@@ -885,6 +914,45 @@ mod tests {
         let mut out = RenderBuffers::new(100, 100);
         Rasterizer::new().render(mesh, &intrinsics, &Rigid3::identity(), options, &mut out);
         out
+    }
+
+    #[test]
+    fn depth_and_faces_without_normals_are_those_of_the_full_rendering() {
+        // Two cubes, one behind the other (occlusion), plus a plane through the camera (clipping).
+        let mut positions: Vec<Vector3<f64>> = Vec::new();
+        let mut faces: Vec<[u32; 3]> = Vec::new();
+        for mesh in [
+            cube(Vector3::new(0.3, 0.1, 5.0), 0.8),
+            cube(Vector3::new(-0.4, -0.2, 7.0), 1.5),
+        ] {
+            let base = positions.len() as u32;
+            positions.extend(mesh.positions_local_m().iter().map(|p| {
+                mesh.origin_m() + Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z))
+            }));
+            faces.extend(mesh.faces().iter().map(|f| f.map(|v| v + base)));
+        }
+        let mesh = Mesh::from_world(&positions, faces, None).unwrap();
+        let intrinsics = PinholeIntrinsics::centered(80.0, 120, 90);
+        let pose = Rigid3::new(
+            nalgebra::UnitQuaternion::from_euler_angles(0.05, -0.1, 0.2),
+            nalgebra::Vector3::new(0.1, -0.05, 0.3),
+        );
+        let options = RenderOptions::default();
+        let mut full = RenderBuffers::new(120, 90);
+        let mut rasterizer = Rasterizer::new();
+        rasterizer.render(&mesh, &intrinsics, &pose, &options, &mut full);
+        let mut geometry = RenderBuffers::new(120, 90);
+        // The same rasteriser, after a full rendering: nothing of it may leak into the next.
+        rasterizer.render_depth_and_faces(&mesh, &intrinsics, &pose, &options, &mut geometry);
+        assert!(full.valid_count() > 1000, "{}", full.valid_count());
+        assert_eq!(geometry.face_index().data(), full.face_index().data());
+        assert_eq!(geometry.depth_m().data(), full.depth_m().data());
+        assert!(geometry
+            .normal_cam()
+            .data()
+            .iter()
+            .all(|n| *n == Vec3::ZERO));
+        assert!(full.normal_cam().data().iter().any(|n| *n != Vec3::ZERO));
     }
 
     #[test]
