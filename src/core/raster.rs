@@ -181,6 +181,8 @@ pub struct Rasterizer {
     bins: Vec<Vec<Vec<u32>>>,
     /// Faces of the grid cells the frustum may see (`Mesh::grid`).
     visible_faces: Vec<VisibleFace>,
+    /// Depth and face index only ([`Rasterizer::depth_and_faces_only`]).
+    skip_normals: bool,
 }
 
 /// The viewing frustum as half-spaces in the camera frame, for culling grid cells: a point p is
@@ -271,13 +273,23 @@ impl Rasterizer {
         Self::default()
     }
 
+    /// A rasteriser whose renderings hold depth and face index only (the very values a full
+    /// rendering has), the normal map left all zero: for callers that read only where the
+    /// surface is (visible points, δ); the per-pixel normal pass is skipped.
+    pub fn depth_and_faces_only() -> Self {
+        Self {
+            skip_normals: true,
+            ..Self::default()
+        }
+    }
+
     /// Faces the last rendering's frustum culling kept (those of the grid cells it may see).
     pub fn visible_face_count(&self) -> usize {
         self.visible_faces.len()
     }
 
     /// Renders `mesh` seen from `cam_from_world` through `intrinsics` into `out`, which must already
-    /// have the image size.
+    /// have the image size (its normal map all zero from a [`Rasterizer::depth_and_faces_only`]).
     pub fn render(
         &mut self,
         mesh: &Mesh,
@@ -286,32 +298,7 @@ impl Rasterizer {
         options: &RenderOptions,
         out: &mut RenderBuffers,
     ) {
-        self.render_passes(mesh, intrinsics, cam_from_world, options, out, true);
-    }
-
-    /// [`Rasterizer::render`] without the normals: depth and face index only (the very same
-    /// values), the normal map left all zero. For callers that read only where the surface is
-    /// (visible points, δ): the per-pixel normal pass is skipped.
-    pub fn render_depth_and_faces(
-        &mut self,
-        mesh: &Mesh,
-        intrinsics: &PinholeIntrinsics,
-        cam_from_world: &Rigid3,
-        options: &RenderOptions,
-        out: &mut RenderBuffers,
-    ) {
-        self.render_passes(mesh, intrinsics, cam_from_world, options, out, false);
-    }
-
-    fn render_passes(
-        &mut self,
-        mesh: &Mesh,
-        intrinsics: &PinholeIntrinsics,
-        cam_from_world: &Rigid3,
-        options: &RenderOptions,
-        out: &mut RenderBuffers,
-        with_normals: bool,
-    ) {
+        let with_normals = !self.skip_normals;
         let width = out.width_px();
         let height = out.height_px();
         out.depth_m.fill(0.0);
@@ -942,8 +929,13 @@ mod tests {
         let mut rasterizer = Rasterizer::new();
         rasterizer.render(&mesh, &intrinsics, &pose, &options, &mut full);
         let mut geometry = RenderBuffers::new(120, 90);
-        // The same rasteriser, after a full rendering: nothing of it may leak into the next.
-        rasterizer.render_depth_and_faces(&mesh, &intrinsics, &pose, &options, &mut geometry);
+        Rasterizer::depth_and_faces_only().render(
+            &mesh,
+            &intrinsics,
+            &pose,
+            &options,
+            &mut geometry,
+        );
         assert!(full.valid_count() > 1000, "{}", full.valid_count());
         assert_eq!(geometry.face_index().data(), full.face_index().data());
         assert_eq!(geometry.depth_m().data(), full.depth_m().data());

@@ -72,12 +72,22 @@ impl ReprojectionOptions {
     }
 }
 
-/// What computing δ needs between calls: a rasteriser with its scratch and the render buffers.
-#[derive(Default)]
+/// What computing δ needs between calls: a rasteriser with its scratch (depth and faces only:
+/// visible points need no normals) and the render buffers.
 pub struct ReprojectionWorkspace {
     rasterizer: Rasterizer,
     buffers: RenderBuffers,
     options: ReprojectionOptions,
+}
+
+impl Default for ReprojectionWorkspace {
+    fn default() -> Self {
+        Self {
+            rasterizer: Rasterizer::depth_and_faces_only(),
+            buffers: RenderBuffers::default(),
+            options: ReprojectionOptions::default(),
+        }
+    }
 }
 
 impl ReprojectionWorkspace {
@@ -186,7 +196,7 @@ pub fn visible_points_into(
 ) {
     let buffers = &mut workspace.buffers;
     buffers.resize(camera.width_px as usize, camera.height_px as usize);
-    workspace.rasterizer.render_depth_and_faces(
+    workspace.rasterizer.render(
         mesh,
         &camera.intrinsics,
         cam_from_world,
