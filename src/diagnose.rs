@@ -519,6 +519,7 @@ pub fn diagnose_query(
         config,
         &mut refine_workspace,
         true,
+        &[],
     );
     let centres: Vec<CentreDiagnosis> = centre_decisions
         .iter()
