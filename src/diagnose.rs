@@ -525,6 +525,7 @@ pub fn diagnose_query(
         config,
         &mut refine_workspace,
         true,
+        &[],
     );
     let verdict_output = verdict.chosen();
     let mut apart_workspace = ReprojectionWorkspace::new();

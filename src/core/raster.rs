@@ -181,6 +181,8 @@ pub struct Rasterizer {
     bins: Vec<Vec<Vec<u32>>>,
     /// Faces of the grid cells the frustum may see (`Mesh::grid`).
     visible_faces: Vec<VisibleFace>,
+    /// Depth and face index only ([`Rasterizer::depth_and_faces_only`]).
+    skip_normals: bool,
 }
 
 /// The viewing frustum as half-spaces in the camera frame, for culling grid cells: a point p is
@@ -271,13 +273,23 @@ impl Rasterizer {
         Self::default()
     }
 
+    /// A rasteriser whose renderings hold depth and face index only (the very values a full
+    /// rendering has), the normal map left all zero: for callers that read only where the
+    /// surface is (visible points, δ); the per-pixel normal pass is skipped.
+    pub fn depth_and_faces_only() -> Self {
+        Self {
+            skip_normals: true,
+            ..Self::default()
+        }
+    }
+
     /// Faces the last rendering's frustum culling kept (those of the grid cells it may see).
     pub fn visible_face_count(&self) -> usize {
         self.visible_faces.len()
     }
 
     /// Renders `mesh` seen from `cam_from_world` through `intrinsics` into `out`, which must already
-    /// have the image size.
+    /// have the image size (its normal map all zero from a [`Rasterizer::depth_and_faces_only`]).
     pub fn render(
         &mut self,
         mesh: &Mesh,
@@ -286,6 +298,7 @@ impl Rasterizer {
         options: &RenderOptions,
         out: &mut RenderBuffers,
     ) {
+        let with_normals = !self.skip_normals;
         let width = out.width_px();
         let height = out.height_px();
         out.depth_m.fill(0.0);
@@ -368,8 +381,9 @@ impl Rasterizer {
                 }
             });
 
-        let use_vertex_normals =
-            options.normal_source == NormalSource::Vertex && mesh.vertex_normals().is_some();
+        let use_vertex_normals = with_normals
+            && options.normal_source == NormalSource::Vertex
+            && mesh.vertex_normals().is_some();
         if let (true, Some(normals)) = (use_vertex_normals, mesh.vertex_normals()) {
             self.normals_cam.resize(slot_count, Vec3::ZERO);
             self.normals_cam
@@ -454,13 +468,15 @@ impl Rasterizer {
                 } else {
                     None
                 };
-                shade_band(
-                    &band_target,
-                    normal,
-                    vertices_cam,
-                    normal_source,
-                    &projector,
-                );
+                if with_normals {
+                    shade_band(
+                        &band_target,
+                        normal,
+                        vertices_cam,
+                        normal_source,
+                        &projector,
+                    );
+                }
                 for pixel in band_target.face_slot.iter_mut() {
                     if *pixel != NO_FACE {
                         *pixel = visible_faces[*pixel as usize].face_index;
@@ -885,6 +901,50 @@ mod tests {
         let mut out = RenderBuffers::new(100, 100);
         Rasterizer::new().render(mesh, &intrinsics, &Rigid3::identity(), options, &mut out);
         out
+    }
+
+    #[test]
+    fn depth_and_faces_without_normals_are_those_of_the_full_rendering() {
+        // Two cubes, one behind the other (occlusion), plus a plane through the camera (clipping).
+        let mut positions: Vec<Vector3<f64>> = Vec::new();
+        let mut faces: Vec<[u32; 3]> = Vec::new();
+        for mesh in [
+            cube(Vector3::new(0.3, 0.1, 5.0), 0.8),
+            cube(Vector3::new(-0.4, -0.2, 7.0), 1.5),
+        ] {
+            let base = positions.len() as u32;
+            positions.extend(mesh.positions_local_m().iter().map(|p| {
+                mesh.origin_m() + Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z))
+            }));
+            faces.extend(mesh.faces().iter().map(|f| f.map(|v| v + base)));
+        }
+        let mesh = Mesh::from_world(&positions, faces, None).unwrap();
+        let intrinsics = PinholeIntrinsics::centered(80.0, 120, 90);
+        let pose = Rigid3::new(
+            nalgebra::UnitQuaternion::from_euler_angles(0.05, -0.1, 0.2),
+            nalgebra::Vector3::new(0.1, -0.05, 0.3),
+        );
+        let options = RenderOptions::default();
+        let mut full = RenderBuffers::new(120, 90);
+        let mut rasterizer = Rasterizer::new();
+        rasterizer.render(&mesh, &intrinsics, &pose, &options, &mut full);
+        let mut geometry = RenderBuffers::new(120, 90);
+        Rasterizer::depth_and_faces_only().render(
+            &mesh,
+            &intrinsics,
+            &pose,
+            &options,
+            &mut geometry,
+        );
+        assert!(full.valid_count() > 1000, "{}", full.valid_count());
+        assert_eq!(geometry.face_index().data(), full.face_index().data());
+        assert_eq!(geometry.depth_m().data(), full.depth_m().data());
+        assert!(geometry
+            .normal_cam()
+            .data()
+            .iter()
+            .all(|n| *n == Vec3::ZERO));
+        assert!(full.normal_cam().data().iter().any(|n| *n != Vec3::ZERO));
     }
 
     #[test]

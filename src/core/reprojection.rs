@@ -28,6 +28,7 @@
 //! and [`delta_between`] per pair.
 
 use nalgebra::{Vector2, Vector3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::camera::Camera;
@@ -71,12 +72,22 @@ impl ReprojectionOptions {
     }
 }
 
-/// What computing δ needs between calls: a rasteriser with its scratch and the render buffers.
-#[derive(Default)]
+/// What computing δ needs between calls: a rasteriser with its scratch (depth and faces only:
+/// visible points need no normals) and the render buffers.
 pub struct ReprojectionWorkspace {
     rasterizer: Rasterizer,
     buffers: RenderBuffers,
     options: ReprojectionOptions,
+}
+
+impl Default for ReprojectionWorkspace {
+    fn default() -> Self {
+        Self {
+            rasterizer: Rasterizer::depth_and_faces_only(),
+            buffers: RenderBuffers::default(),
+            options: ReprojectionOptions::default(),
+        }
+    }
 }
 
 impl ReprojectionWorkspace {
@@ -141,6 +152,28 @@ impl VisiblePoints {
     }
 }
 
+/// The visible points of each of `poses` (camera, cam_from_world), in order: one rendering each,
+/// the renderings in parallel (each thread with a workspace of `workspace`'s options). The sets
+/// are those [`visible_points`] gives one at a time.
+pub fn visible_points_of_poses(
+    mesh: &Mesh,
+    poses: &[(&Camera, &Rigid3)],
+    workspace: &ReprojectionWorkspace,
+) -> Vec<VisiblePoints> {
+    poses
+        .par_iter()
+        .map_init(
+            || ReprojectionWorkspace {
+                options: workspace.options,
+                ..ReprojectionWorkspace::default()
+            },
+            |thread_workspace, (camera, cam_from_world)| {
+                visible_points(mesh, camera, cam_from_world, thread_workspace)
+            },
+        )
+        .collect()
+}
+
 /// The visible points of a pose (one rendering).
 pub fn visible_points(
     mesh: &Mesh,
@@ -161,15 +194,8 @@ pub fn visible_points_into(
     workspace: &mut ReprojectionWorkspace,
     out: &mut VisiblePoints,
 ) {
-    out.camera = *camera;
-    out.cam_from_world = *cam_from_world;
-    out.points_world_m.clear();
-    out.projections_px.clear();
-    let width = camera.width_px as usize;
-    let height = camera.height_px as usize;
-    let stride = workspace.options.grid_stride_px.max(1);
     let buffers = &mut workspace.buffers;
-    buffers.resize(width, height);
+    buffers.resize(camera.width_px as usize, camera.height_px as usize);
     workspace.rasterizer.render(
         mesh,
         &camera.intrinsics,
@@ -177,6 +203,60 @@ pub fn visible_points_into(
         &workspace.options.render_options,
         buffers,
     );
+    sample_visible_points(
+        mesh,
+        camera,
+        cam_from_world,
+        buffers,
+        workspace.options.grid_stride_px,
+        out,
+    );
+}
+
+/// The visible points of a pose whose rendering is already made: `render` must be `mesh` rendered
+/// under `cam_from_world` through `camera`'s intrinsics at its size with `options.render_options`
+/// (as the coarse views are), and the set is then the very one [`visible_points`] gives.
+/// `None` when `render` does not have the camera's size.
+pub fn visible_points_from_render(
+    mesh: &Mesh,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    render: &RenderBuffers,
+    options: &ReprojectionOptions,
+) -> Option<VisiblePoints> {
+    if (render.width_px(), render.height_px())
+        != (camera.width_px as usize, camera.height_px as usize)
+    {
+        return None;
+    }
+    let mut visible = VisiblePoints::new(*camera, *cam_from_world);
+    sample_visible_points(
+        mesh,
+        camera,
+        cam_from_world,
+        render,
+        options.grid_stride_px,
+        &mut visible,
+    );
+    Some(visible)
+}
+
+/// The surface points a rendering shows at the pixel centres of the grid (every `stride_px`).
+fn sample_visible_points(
+    mesh: &Mesh,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    buffers: &RenderBuffers,
+    stride_px: usize,
+    out: &mut VisiblePoints,
+) {
+    out.camera = *camera;
+    out.cam_from_world = *cam_from_world;
+    out.points_world_m.clear();
+    out.projections_px.clear();
+    let width = buffers.width_px();
+    let height = buffers.height_px();
+    let stride = stride_px.max(1);
     let world_from_cam = cam_from_world.inverse();
     let (face_index, depth_m) = (buffers.face_index().data(), buffers.depth_m().data());
     let first = stride / 2;

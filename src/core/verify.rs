@@ -16,7 +16,11 @@ use serde::{Deserialize, Serialize};
 
 use super::camera::Camera;
 use super::mesh::Mesh;
-use super::reprojection::{delta_between, visible_points, ReprojectionWorkspace, VisiblePoints};
+use rayon::prelude::*;
+
+use super::reprojection::{
+    delta_between, visible_points_of_poses, ReprojectionWorkspace, VisiblePoints,
+};
 use super::rigid::Rigid3;
 
 /// Settings of the plausibility check.
@@ -298,12 +302,37 @@ impl Verdict {
     }
 }
 
+/// What the convergence test knows of the coarse poses: the camera they were rendered with, and
+/// the visible points of those whose renderings are at hand (taken from the coarse views'
+/// renderings, [`crate::core::reprojection::visible_points_from_render`]); the others are rendered
+/// again.
+#[derive(Clone, Copy, Debug)]
+pub struct CoarseVisibility<'a> {
+    pub camera: &'a Camera,
+    /// Visible point sets of coarse poses under `camera`, matched to a hypothesis by its coarse
+    /// pose (a set under another camera is not used).
+    pub given: &'a [VisiblePoints],
+}
+
 /// Runs the plausibility check over a frame's hypotheses. `coarse_camera` is the camera the coarse
 /// poses were rendered with; without it the convergence test is skipped.
 pub fn verify_hypotheses(
     mesh: &Mesh,
     hypotheses: &[PoseHypothesis],
     coarse_camera: Option<&Camera>,
+    config: &VerifyConfig,
+    workspace: &mut ReprojectionWorkspace,
+) -> Verdict {
+    let coarse = coarse_camera.map(|camera| CoarseVisibility { camera, given: &[] });
+    verify_hypotheses_with_coarse(mesh, hypotheses, coarse, config, workspace)
+}
+
+/// [`verify_hypotheses`], with the coarse poses' visible points that are already at hand: the
+/// same verdict, without rendering those coarse poses again.
+pub fn verify_hypotheses_with_coarse(
+    mesh: &Mesh,
+    hypotheses: &[PoseHypothesis],
+    coarse: Option<CoarseVisibility<'_>>,
     config: &VerifyConfig,
     workspace: &mut ReprojectionWorkspace,
 ) -> Verdict {
@@ -324,19 +353,26 @@ pub fn verify_hypotheses(
     };
     let threshold_px =
         config.compatible_fraction_of_long_side * f64::from(first.camera.longest_side_px());
-    let visible: Vec<VisiblePoints> = hypotheses
+    let poses: Vec<(&Camera, &Rigid3)> = hypotheses
         .iter()
-        .map(|h| visible_points(mesh, &h.camera, &h.cam_from_world, workspace))
+        .map(|h| (&h.camera, &h.cam_from_world))
         .collect();
+    let visible = visible_points_of_poses(mesh, &poses, workspace);
     let n = hypotheses.len();
     let mut delta_px = vec![f64::INFINITY; n * n];
+    let pairs: Vec<(usize, usize)> = (0..n)
+        .flat_map(|i| (i + 1..n).map(move |j| (i, j)))
+        .collect();
+    let pair_delta_px: Vec<f64> = pairs
+        .par_iter()
+        .map(|&(i, j)| delta_between(&visible[i], &visible[j]).unwrap_or(f64::INFINITY))
+        .collect();
     for i in 0..n {
         delta_px[i * n + i] = 0.0;
-        for j in i + 1..n {
-            let delta = delta_between(&visible[i], &visible[j]).unwrap_or(f64::INFINITY);
-            delta_px[i * n + j] = delta;
-            delta_px[j * n + i] = delta;
-        }
+    }
+    for (&(i, j), &delta) in pairs.iter().zip(&pair_delta_px) {
+        delta_px[i * n + j] = delta;
+        delta_px[j * n + i] = delta;
     }
     let component = largest_component(n, |i, j| delta_px[i * n + j] < threshold_px, hypotheses);
     let chosen = choose_output(&component, &delta_px, hypotheses, config.output);
@@ -355,15 +391,8 @@ pub fn verify_hypotheses(
     let direct_support = (0..n)
         .filter(|&i| delta_px[chosen * n + i] < threshold_px)
         .count();
-    let convergence_ratio = coarse_camera.and_then(|coarse_camera| {
-        convergence_ratio(
-            mesh,
-            hypotheses,
-            &component,
-            &delta_px,
-            coarse_camera,
-            workspace,
-        )
+    let convergence_ratio = coarse.and_then(|coarse| {
+        convergence_ratio(mesh, hypotheses, &component, &delta_px, coarse, workspace)
     });
     let rejection = if component.len() < config.min_component_size {
         Some(RejectionReason::NoAgreement {
@@ -447,28 +476,38 @@ fn convergence_ratio(
     hypotheses: &[PoseHypothesis],
     component: &[usize],
     delta_px: &[f64],
-    coarse_camera: &Camera,
-    workspace: &mut ReprojectionWorkspace,
+    coarse_poses: CoarseVisibility<'_>,
+    workspace: &ReprojectionWorkspace,
 ) -> Option<f64> {
     if component.len() < 2 {
         return None;
     }
     let n = hypotheses.len();
-    let coarse: Vec<VisiblePoints> = component
+    let given: Vec<Option<&VisiblePoints>> = component
         .iter()
         .map(|&i| {
-            visible_points(
-                mesh,
-                coarse_camera,
-                &hypotheses[i].coarse_cam_from_world,
-                workspace,
-            )
+            coarse_poses.given.iter().find(|points| {
+                points.camera() == coarse_poses.camera
+                    && *points.cam_from_world() == hypotheses[i].coarse_cam_from_world
+            })
         })
         .collect();
+    let missing: Vec<(&Camera, &Rigid3)> = component
+        .iter()
+        .zip(&given)
+        .filter(|(_, given)| given.is_none())
+        .map(|(&i, _)| (coarse_poses.camera, &hypotheses[i].coarse_cam_from_world))
+        .collect();
+    let rendered = visible_points_of_poses(mesh, &missing, workspace);
+    let mut rendered = rendered.iter();
+    let coarse: Vec<&VisiblePoints> = given
+        .iter()
+        .map(|given| given.or_else(|| rendered.next()))
+        .collect::<Option<_>>()?;
     let (mut refined_sum, mut coarse_sum, mut pairs) = (0.0, 0.0, 0usize);
     for a in 0..component.len() {
         for b in a + 1..component.len() {
-            let coarse_delta = delta_between(&coarse[a], &coarse[b])?;
+            let coarse_delta = delta_between(coarse[a], coarse[b])?;
             refined_sum += delta_px[component[a] * n + component[b]];
             coarse_sum += coarse_delta;
             pairs += 1;
@@ -582,6 +621,96 @@ mod tests {
         );
         assert!(verdict.accepted(), "{verdict:?}");
         assert!((verdict.convergence_ratio.unwrap() - 0.025).abs() < 1e-6);
+    }
+
+    /// The coarse poses' visible points taken from their renderings give the verdict of
+    /// rendering them again, to the bit; a set under another camera or pose is not used.
+    #[test]
+    fn coarse_points_from_the_views_renderings_give_the_same_verdict() {
+        use crate::core::raster::{Rasterizer, RenderBuffers};
+        use crate::core::reprojection::{visible_points_from_render, ReprojectionOptions};
+        let mesh = wall();
+        let camera = hypothesis(0.0, 1).camera;
+        let config = VerifyConfig::default();
+        let mut hypotheses: Vec<_> = (0..6).map(|i| hypothesis(0.3 * i as f64, 100)).collect();
+        for (i, h) in hypotheses.iter_mut().enumerate() {
+            h.cam_from_world.translation.x = 0.02 * i as f64;
+            h.cam_from_world.translation.y = 0.003 * (i * i) as f64;
+        }
+        let options = ReprojectionOptions::default();
+        let mut rasterizer = Rasterizer::new();
+        let mut given: Vec<VisiblePoints> = hypotheses[..5]
+            .iter()
+            .map(|h| {
+                // The coarse views are rendered with normals (their ASG).
+                let mut render = RenderBuffers::new(200, 100);
+                rasterizer.render(
+                    &mesh,
+                    &camera.intrinsics,
+                    &h.coarse_cam_from_world,
+                    &options.render_options,
+                    &mut render,
+                );
+                visible_points_from_render(
+                    &mesh,
+                    &camera,
+                    &h.coarse_cam_from_world,
+                    &render,
+                    &options,
+                )
+                .unwrap()
+            })
+            .collect();
+        // A decoy: the sixth coarse pose's points under another camera (must be rendered anew).
+        let other_camera = Camera::pinhole(200, 100, PinholeIntrinsics::centered(120.0, 200, 100));
+        let mut decoy_render = RenderBuffers::new(200, 100);
+        rasterizer.render(
+            &mesh,
+            &other_camera.intrinsics,
+            &hypotheses[5].coarse_cam_from_world,
+            &options.render_options,
+            &mut decoy_render,
+        );
+        given.push(
+            visible_points_from_render(
+                &mesh,
+                &other_camera,
+                &hypotheses[5].coarse_cam_from_world,
+                &decoy_render,
+                &options,
+            )
+            .unwrap(),
+        );
+        let rendered = verify_hypotheses(
+            &mesh,
+            &hypotheses,
+            Some(&camera),
+            &config,
+            &mut ReprojectionWorkspace::new(),
+        );
+        let from_views = verify_hypotheses_with_coarse(
+            &mesh,
+            &hypotheses,
+            Some(CoarseVisibility {
+                camera: &camera,
+                given: &given,
+            }),
+            &config,
+            &mut ReprojectionWorkspace::new(),
+        );
+        assert_eq!(rendered.component.len(), 6, "{rendered:?}");
+        let ratio = rendered.convergence_ratio.unwrap();
+        assert!(ratio > 0.01 && ratio < 0.9, "{ratio}");
+        assert_eq!(format!("{rendered:?}"), format!("{from_views:?}"));
+        // A rendering of the wrong size gives no points.
+        assert!(visible_points_from_render(
+            &mesh,
+            &camera,
+            &hypotheses[0].coarse_cam_from_world,
+            &RenderBuffers::new(100, 100),
+            &options,
+        )
+        .is_none());
     }
 
     #[test]

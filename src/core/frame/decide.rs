@@ -8,8 +8,13 @@ use crate::core::camera::Camera;
 use crate::core::confidence::{ConfidenceConfig, FrameEvidence};
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
-use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
-use crate::core::verify::{verify_hypotheses, PoseHypothesis, Rejection, RejectionReason, Verdict};
+use crate::core::reprojection::{
+    mutual_reprojection_error_px, ReprojectionWorkspace, VisiblePoints,
+};
+use crate::core::verify::{
+    verify_hypotheses_with_coarse, CoarseVisibility, PoseHypothesis, Rejection, RejectionReason,
+    Verdict,
+};
 
 /// A frame's decision: the verdict (with the refined pose when the refinement kept it) and what
 /// the refinement did.
@@ -44,13 +49,24 @@ pub fn decide_frame(
     workspace: &mut RefineWorkspace,
 ) -> Decision {
     decide_frame_and_centres(
-        mesh, camera, outcomes, query, intrinsics, config, workspace, false,
+        mesh,
+        camera,
+        outcomes,
+        query,
+        intrinsics,
+        config,
+        workspace,
+        false,
+        &[],
     )
     .0
 }
 
 /// [`decide_frame`], and with `keep_centres` also each centre's own decision before the choice
 /// among them, in the search's order of centres (for the diagnosis; empty otherwise).
+/// `coarse_points`: the coarse poses' visible points where they are at hand (made from the coarse
+/// views' own renderings in one process, [`crate::core::reprojection::visible_points_from_render`]):
+/// the same decision, without rendering those coarse poses again for the convergence test.
 #[allow(clippy::too_many_arguments)]
 pub fn decide_frame_and_centres(
     mesh: &Mesh,
@@ -61,8 +77,18 @@ pub fn decide_frame_and_centres(
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
     keep_centres: bool,
+    coarse_points: &[VisiblePoints],
 ) -> (Decision, Vec<Decision>) {
-    let decisions = decide_centres(mesh, camera, outcomes, query, intrinsics, config, workspace);
+    let decisions = decide_centres(
+        mesh,
+        camera,
+        outcomes,
+        query,
+        intrinsics,
+        config,
+        workspace,
+        coarse_points,
+    );
     let kept = if keep_centres {
         decisions.clone()
     } else {
@@ -72,7 +98,7 @@ pub fn decide_frame_and_centres(
     let mut chosen =
         choose_among_centres(mesh, decisions, config.pose_search.centre_agreement_share)
             .unwrap_or_else(|| {
-                decide_centre(mesh, camera, &[], query, intrinsics, config, workspace)
+                decide_centre(mesh, camera, &[], query, intrinsics, config, workspace, &[])
             });
     chosen.refine_cpu_ms = refine_cpu_ms;
     (chosen, kept)
@@ -80,6 +106,7 @@ pub fn decide_frame_and_centres(
 
 /// Each centre's own decision, in the search's order of centres: one decision when the outcomes
 /// are one group (or none).
+#[allow(clippy::too_many_arguments)]
 fn decide_centres(
     mesh: &Mesh,
     camera: &Camera,
@@ -88,9 +115,19 @@ fn decide_centres(
     intrinsics: IntrinsicsMode,
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
+    coarse_points: &[VisiblePoints],
 ) -> Vec<Decision> {
     let mut decide = |group: &[CoarseOutcome]| {
-        decide_centre(mesh, camera, group, query, intrinsics, config, workspace)
+        decide_centre(
+            mesh,
+            camera,
+            group,
+            query,
+            intrinsics,
+            config,
+            workspace,
+            coarse_points,
+        )
     };
     if outcomes.len() <= config.coarse_pose_count {
         return vec![decide(outcomes)];
@@ -103,6 +140,7 @@ fn decide_centres(
 
 /// One centre's decision: the paper's check over its coarse outcomes, the refinement of the
 /// chosen pose and the calibrated confidence.
+#[allow(clippy::too_many_arguments)]
 fn decide_centre(
     mesh: &Mesh,
     camera: &Camera,
@@ -111,15 +149,19 @@ fn decide_centre(
     intrinsics: IntrinsicsMode,
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
+    coarse_points: &[VisiblePoints],
 ) -> Decision {
     let hypotheses: Vec<PoseHypothesis> = outcomes
         .iter()
         .filter_map(|o| o.hypothesis.as_ref().ok().copied())
         .collect();
-    let mut verdict = verify_hypotheses(
+    let mut verdict = verify_hypotheses_with_coarse(
         mesh,
         &hypotheses,
-        Some(camera),
+        Some(CoarseVisibility {
+            camera,
+            given: coarse_points,
+        }),
         &config.verify,
         &mut ReprojectionWorkspace::new(),
     );

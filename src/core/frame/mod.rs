@@ -55,6 +55,7 @@ use super::confidence::FrameEvidence;
 use super::image::{Image, ImageView};
 use super::mesh::Mesh;
 use super::raster::{Rasterizer, RenderBuffers};
+use super::reprojection::{visible_points_from_render, ReprojectionOptions, VisiblePoints};
 use super::rigid::Rigid3;
 use super::verify::{PoseHypothesis, Verdict};
 
@@ -325,12 +326,36 @@ fn register_region(
     timings.cpu.pose = step_cpu_ms();
 
     let stage = Instant::now();
-    let Decision {
-        verdict,
-        refinement,
-        evidence,
-        refine_cpu_ms,
-    } = decide_frame(
+    // The convergence test's coarse poses are these views: their visible points come from the
+    // views' own renderings (when those were made with the options δ renders with) instead of
+    // rendering the coarse poses again.
+    let reprojection = ReprojectionOptions::default();
+    let coarse_points: Vec<VisiblePoints> = if config.render == reprojection.render_options {
+        views
+            .par_iter()
+            .filter_map(|view| {
+                visible_points_from_render(
+                    mesh,
+                    camera,
+                    &view.cam_from_world,
+                    &view.render,
+                    &reprojection,
+                )
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    drop(views);
+    let (
+        Decision {
+            verdict,
+            refinement,
+            evidence,
+            refine_cpu_ms,
+        },
+        _,
+    ) = decide_frame_and_centres(
         mesh,
         camera,
         &outcomes,
@@ -338,6 +363,8 @@ fn register_region(
         intrinsics,
         config,
         &mut RefineWorkspace::default(),
+        false,
+        &coarse_points,
     );
     timings.verify_ms = elapsed_ms(stage);
     timings.cpu.edge_align = refine_cpu_ms;

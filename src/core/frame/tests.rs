@@ -337,7 +337,14 @@ fn a_frame_registers_to_the_same_bits_twice_and_on_any_thread_count() {
     let first = result_bits(&register_on(2));
     let again = result_bits(&register_on(2));
     let one_thread = result_bits(&register_on(1));
+    // Three threads: the coarse views are rendered in batches of three (of two above, one at
+    // a time on one thread) and verification's renderings split differently.
+    let three_threads = result_bits(&register_on(3));
     assert!(first == again, "two runs differ:\n{first}\n---\n{again}");
+    assert!(
+        first == three_threads,
+        "2 threads vs 3:\n{first}\n---\n{three_threads}"
+    );
     assert!(
         first == one_thread,
         "2 threads vs 1:\n{first}\n---\n{one_thread}"

@@ -6,6 +6,7 @@
 
 use nalgebra::{UnitQuaternion, Vector3};
 use rand_distr::{Distribution, StandardNormal};
+use rayon::prelude::*;
 
 use super::search::{search_pose, PoseSearchOutcome};
 use super::{
@@ -96,9 +97,32 @@ pub fn render_views(
         })
         .collect();
     emit(view, poses.len());
-    for (coarse_index, pose) in poses.iter().enumerate().skip(1) {
-        render_coarse_view(mesh, camera, coarse_index, pose, config, rasterizer, view);
-        emit(view, poses.len());
+    // The other views are rendered a batch at a time, one view per thread (each rendering is
+    // parallel inside too, but its bands alone leave the threads waiting on each other), and
+    // handed to `emit` in coarse-pose order.
+    let batch_len = rayon::current_num_threads().max(1);
+    let mut batch: Vec<(Rasterizer, CoarseView)> = Vec::new();
+    for first in (1..poses.len()).step_by(batch_len) {
+        let indices = first..(first + batch_len).min(poses.len());
+        batch.resize_with(indices.len(), Default::default);
+        batch
+            .par_iter_mut()
+            .zip(indices)
+            .for_each(|((batch_rasterizer, out), coarse_index)| {
+                render_coarse_view(
+                    mesh,
+                    camera,
+                    coarse_index,
+                    &poses[coarse_index],
+                    config,
+                    batch_rasterizer,
+                    out,
+                );
+            });
+        for (_, rendered) in &mut batch {
+            std::mem::swap(view, rendered);
+            emit(view, poses.len());
+        }
     }
     Ok(RenderedViews {
         count: poses.len(),
