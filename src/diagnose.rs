@@ -27,8 +27,10 @@ use nalgebra::{Vector2, Vector3};
 use serde::Serialize;
 
 use crate::core::camera::{nearest_pixel, Camera};
+use crate::core::confidence::FrameEvidence;
 use crate::core::edge_align::{
     model_edge_samples, pose_jacobian_rows, search_ridge, AlignedParameters, EdgeKind, EdgeSample,
+    SupportPeak,
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
@@ -130,6 +132,14 @@ pub struct FrameDiagnosis {
     pub centres: Vec<CentreDiagnosis>,
     /// Where the edge alignment's bias comes from, measured at the true pose.
     pub edge_bias: EdgeBiasDiagnosis,
+    /// The photo's evidence for a correct pose: the edge support and its peak where the final
+    /// refinement started at the true pose ends (`None` when it failed).
+    pub truth_edges: Option<SupportPeak>,
+    /// The calibrated confidence that pose would get with every coarse pose agreeing and the
+    /// plausibility check passed: the most a correct pose can reach on this photo. Below the
+    /// accept threshold, verification cannot accept this frame however well the steps before it
+    /// do.
+    pub truth_best_confidence: Option<f64>,
 }
 
 /// One centre of the coarse poses: its own decision (as `core::frame::decide_frame_and_centres` keeps it)
@@ -602,7 +612,20 @@ pub fn diagnose_query(
             }
         }),
     };
-    let truth_support = from_truth.map(|r| r.verified.support_fraction());
+    let truth_support = from_truth.as_ref().map(|r| r.verified.support_fraction());
+    let truth_edges = from_truth.as_ref().map(|r| r.peak);
+    let truth_best_confidence = truth_edges.map(|peak| {
+        let coarse_poses = config.coarse_pose_count.max(1);
+        config.confidence.model.probability(&FrameEvidence {
+            check_passed: true,
+            coarse_poses,
+            hypotheses: coarse_poses,
+            component_size: coarse_poses,
+            direct_support: coarse_poses,
+            edges: Some(peak),
+            ..FrameEvidence::default()
+        })
+    });
     let best_delta_px = diagnoses
         .iter()
         .filter_map(|v| v.hypothesis_delta_px)
@@ -632,6 +655,8 @@ pub fn diagnose_query(
         search,
         centres,
         edge_bias,
+        truth_edges,
+        truth_best_confidence,
     })
 }
 

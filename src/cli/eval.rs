@@ -675,9 +675,10 @@ fn scene_batch_frame(
     }
 }
 
-/// The diagnosis tables: one row per (level, method), then one line per frame.
-fn diagnosis_markdown(
-    diagnoses: &BTreeMap<(Level, &str), Vec<(String, FrameDiagnosis)>>,
+/// The diagnosis tables: one row per (level, method), then one line per frame (`register
+/// --diagnose` keys its one cell by the run's name instead of a level).
+pub(super) fn diagnosis_markdown<K: std::fmt::Display + Ord>(
+    diagnoses: &BTreeMap<(K, &str), Vec<(String, FrameDiagnosis)>>,
 ) -> String {
     let px = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.2}"));
     let mut out = String::new();
@@ -784,18 +785,18 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
     let _ = writeln!(out, "\n## Frames\n");
     let _ = writeln!(
         out,
-        "| level | method | frame | verdict | corr. median | flow median | ≤2 px | hypotheses δ | oracle δ | best δ | verified δ | aligned δ | kept | output δ | edge support before → after |"
+        "| level | method | frame | verdict | corr. median | flow median | ≤2 px | hypotheses δ | oracle δ | best δ | verified δ | aligned δ | kept | output δ | edge support before → after | at truth: support, near, far (best confidence) |"
     );
     let _ = writeln!(
         out,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for ((level, method), frames) in diagnoses {
         for (name, diagnosis) in frames {
             let s = DiagnosisSummary::of(std::slice::from_ref(diagnosis));
             let _ = writeln!(
                 out,
-                "| {level} | {method} | {name} | {} | {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} |",
+                "| {level} | {method} | {name} | {} | {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                 if diagnosis.verdict.accepted() {
                     "accepted"
                 } else {
@@ -822,6 +823,15 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
                         100.0 * r.aligned.support_fraction()
                     ),
                     Err(why) => why.clone(),
+                },
+                match (diagnosis.truth_edges, diagnosis.truth_best_confidence) {
+                    (Some(peak), Some(confidence)) => format!(
+                        "{:.0} %, {:.0} %, {:.0} % ({confidence:.2})",
+                        100.0 * peak.at_pose,
+                        100.0 * peak.near,
+                        100.0 * peak.far
+                    ),
+                    _ => "–".to_string(),
                 },
             );
         }
@@ -860,11 +870,17 @@ verification across the centres chose (δ px against the truth; support: edge su
 
 /// Each frame's pose search against the truth, by (level, method): name, the verdict when the
 /// frame was registered too, the diagnosis.
-type SearchDiagnoses =
-    BTreeMap<(Level, &'static str), Vec<(String, Option<bool>, SearchDiagnosis)>>;
+type SearchDiagnoses = SearchDiagnosesBy<Level>;
+
+/// [`SearchDiagnoses`] keyed by anything shown in the level's column (`register --diagnose`: the
+/// run's name).
+pub(super) type SearchDiagnosesBy<K> =
+    BTreeMap<(K, &'static str), Vec<(String, Option<bool>, SearchDiagnosis)>>;
 
 /// The pose-search table of `eval --diagnose` / `--diagnose-search`: one line per frame.
-fn search_diagnosis_markdown(diagnoses: &SearchDiagnoses) -> String {
+pub(super) fn search_diagnosis_markdown<K: std::fmt::Display + Ord>(
+    diagnoses: &SearchDiagnosesBy<K>,
+) -> String {
     let px = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.2}"));
     let mut out = String::new();
     let _ = writeln!(
