@@ -262,10 +262,6 @@ pub struct CoarseArgs {
     /// lifted (0: every match is).
     #[arg(long, default_value_t = RegistrationConfig::default().lift_edge_margin_px)]
     pub lift_edge_margin_px: usize,
-    /// Matching: the rendering's blank pixels (no model surface) take no part in the flow (a
-    /// measurement switch for photos the model covers only in part; off by default).
-    #[arg(long)]
-    pub mask_blank_rendering: bool,
     /// Skip the final refinement (alignment of the chosen pose with the photo's edges).
     #[arg(long)]
     pub no_edge_align: bool,
@@ -323,7 +319,6 @@ impl Default for CoarseArgs {
             coarse_translation_fraction: defaults.coarse_translation_sigma_fraction,
             max_convergence_ratio: defaults.verify.max_convergence_ratio,
             lift_edge_margin_px: defaults.lift_edge_margin_px,
-            mask_blank_rendering: defaults.mask_blank_rendering,
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
             edge_starts: defaults.edge_align.starts,
@@ -441,7 +436,6 @@ pub fn registration_config(
         coarse_rotation_sigma_deg: coarse.coarse_rotation_deg,
         coarse_translation_sigma_fraction: coarse.coarse_translation_fraction,
         lift_edge_margin_px: coarse.lift_edge_margin_px,
-        mask_blank_rendering: coarse.mask_blank_rendering,
         verify: VerifyConfig {
             max_convergence_ratio: coarse.max_convergence_ratio,
             ..VerifyConfig::default()

@@ -107,14 +107,6 @@ pub struct RegistrationConfig {
     /// (a depth discontinuity, where the depth lookup picks foreground or background by chance)
     /// are not lifted; 0 lifts every match.
     pub lift_edge_margin_px: usize,
-    /// Matching: the rendering's blank pixels (no model surface) take no part in the flow (its
-    /// validity mask: they cost as much as leaving the image, and send no backward flow). Off by
-    /// default: on synthetic pairs with 30–55 px displacement the mask lost the true match
-    /// (`correspond_view`). A measurement switch for photos the model covers only in part
-    /// (Brighton: frames the mesh covers ≤ 60 % of gave no correspondence even at the true pose;
-    /// a zero descriptor is a cheaper match for most textured query pixels than an unrelated
-    /// textured one, so the blank draws the flow; docs/measurements.md, brighton1).
-    pub mask_blank_rendering: bool,
     /// Fewer consistent correspondences than this: the coarse pose gives no hypothesis.
     pub min_correspondences_per_pose: usize,
     pub pose: PoseEstimationConfig,
@@ -148,7 +140,6 @@ impl Default for RegistrationConfig {
             matching,
             max_correspondences_per_pose: 3000,
             lift_edge_margin_px: 0,
-            mask_blank_rendering: false,
             min_correspondences_per_pose: 30,
             pose: PoseEstimationConfig::default(),
             verify: VerifyConfig::default(),

@@ -9,7 +9,7 @@ use super::{CoarseView, RegistrationConfig, RegistrationError, ViewCorrespondenc
 use crate::core::camera::{nearest_pixel, Camera};
 use crate::core::dense_sift::DenseSiftWorkspace;
 use crate::core::flow_consistency::{match_rendering, MatchWorkspace, PixelMatches, QueryFeatures};
-use crate::core::image::{Image, ImageError, ImageView};
+use crate::core::image::{ImageError, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::raster::NO_FACE;
 use crate::core::reprojection::ray_plane_point_cam;
@@ -91,8 +91,6 @@ impl CoarseView {
 pub struct CorrespondWorkspace {
     matching: MatchWorkspace,
     matches: PixelMatches,
-    /// The rendering's model pixels (`RegistrationConfig::mask_blank_rendering`).
-    rendering_valid: Image<bool>,
 }
 
 /// The query's features for matching (dense SIFT and pyramid), once per frame.
@@ -113,30 +111,13 @@ pub fn correspond_view(
     config: &RegistrationConfig,
     workspace: &mut CorrespondWorkspace,
 ) -> Result<ViewCorrespondences, RegistrationError> {
-    // The validity mask is not passed by default: with it, SIFT flow lost the true match on every
-    // ASG pair with 30–55 px displacement (0 % of pixels within 2 px of the true flow, against
-    // 85–96 % without). Invalid pixels have zero ASG, and lifting drops matches that land on them.
-    let rendering_valid = if config.mask_blank_rendering {
-        let (width_px, height_px) = view.face_index.size();
-        workspace
-            .rendering_valid
-            .resize(width_px, height_px, false);
-        for (valid, &face) in workspace
-            .rendering_valid
-            .data_mut()
-            .iter_mut()
-            .zip(view.face_index.data())
-        {
-            *valid = face != NO_FACE;
-        }
-        Some(workspace.rendering_valid.view())
-    } else {
-        None
-    };
+    // The validity mask is not passed: with it, SIFT flow lost the true match on every ASG pair
+    // with 30–55 px displacement (0 % of pixels within 2 px of the true flow, against 85–96 %
+    // without). Invalid pixels have zero ASG, and lifting drops matches that land on them.
     match_rendering(
         query,
         view.asg,
-        rendering_valid,
+        None,
         &config.matching,
         &mut workspace.matching,
         &mut workspace.matches,
