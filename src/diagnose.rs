@@ -1089,6 +1089,21 @@ mod tests {
             "{summary:?}"
         );
         assert!(diagnosis.chosen_delta_px.unwrap() <= diagnosis.verified_delta_px.unwrap() + 1e-9);
+        // The photo's evidence for the true pose: on the ideal query its edges peak far above
+        // chance, and a fully agreed truth would be accepted (on Brighton's photos neither holds:
+        // support at the truth equals chance, docs/measurements.md, brighton1).
+        let truth_edges = diagnosis
+            .truth_edges
+            .expect("the alignment from the truth ran");
+        assert!(
+            truth_edges.at_pose > truth_edges.far + 0.2,
+            "{truth_edges:?}"
+        );
+        assert!(
+            diagnosis.truth_best_confidence.unwrap() >= config.confidence.accept_above,
+            "{:?} {truth_edges:?}",
+            diagnosis.truth_best_confidence
+        );
         let registered =
             register_query(&mesh, &camera, known, &initial, query.view(), &config, 7).unwrap();
         assert_eq!(registered.verdict, diagnosis.verdict);

@@ -168,7 +168,11 @@ fn diagnose_frames(
     for frame in frames {
         bar.inc(1);
         let Some(truth) = images.iter().find(|t| t.name == frame.name) else {
-            tracing::warn!("{}: not in {}, no diagnosis", frame.name, images_file.display());
+            tracing::warn!(
+                "{}: not in {}, no diagnosis",
+                frame.name,
+                images_file.display()
+            );
             continue;
         };
         let files = match frame.load_with(loader) {
@@ -186,10 +190,11 @@ fn diagnose_frames(
         ) {
             Ok(mut diagnosis) => {
                 if let Some(search) = diagnosis.search.take() {
-                    search_diagnoses
-                        .entry((RUN, "ASG"))
-                        .or_default()
-                        .push((frame.name.clone(), Some(diagnosis.verdict.accepted()), search));
+                    search_diagnoses.entry((RUN, "ASG")).or_default().push((
+                        frame.name.clone(),
+                        Some(diagnosis.verdict.accepted()),
+                        search,
+                    ));
                 }
                 diagnoses
                     .entry((RUN, "ASG"))
