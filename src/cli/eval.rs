@@ -785,18 +785,18 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
     let _ = writeln!(out, "\n## Frames\n");
     let _ = writeln!(
         out,
-        "| level | method | frame | verdict | corr. median | flow median | ≤2 px | hypotheses δ | oracle δ | best δ | verified δ | aligned δ | kept | output δ | edge support before → after | at truth: support, near, far (best confidence) |"
+        "| level | method | frame | verdict | corr. median | flow median | ≤2 px | hypotheses δ | oracle δ | best δ | verified δ | aligned δ | kept | output δ | edge support before → after | at truth: support, near, far (best confidence) | correlation at truth: pose, near, far; at output |"
     );
     let _ = writeln!(
         out,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for ((level, method), frames) in diagnoses {
         for (name, diagnosis) in frames {
             let s = DiagnosisSummary::of(std::slice::from_ref(diagnosis));
             let _ = writeln!(
                 out,
-                "| {level} | {method} | {name} | {} | {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                "| {level} | {method} | {name} | {} | {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                 if diagnosis.verdict.accepted() {
                     "accepted"
                 } else {
@@ -833,6 +833,14 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
                     ),
                     _ => "–".to_string(),
                 },
+                [diagnosis.truth_correlation, diagnosis.output_correlation]
+                    .iter()
+                    .map(|peak| peak.map_or("–".to_string(), |p| format!(
+                        "{:.3}, {:.3}, {:.3}",
+                        p.at_pose, p.near, p.far
+                    )))
+                    .collect::<Vec<_>>()
+                    .join("; "),
             );
         }
     }
