@@ -698,9 +698,10 @@ fn scene_batch_frame(
     }
 }
 
-/// The diagnosis tables: one row per (level, method), then one line per frame.
-fn diagnosis_markdown(
-    diagnoses: &BTreeMap<(Level, &str), Vec<(String, FrameDiagnosis)>>,
+/// The diagnosis tables: one row per (level, method), then one line per frame (`register
+/// --diagnose` keys its one cell by the run's name instead of a level).
+pub(super) fn diagnosis_markdown<K: std::fmt::Display + Ord>(
+    diagnoses: &BTreeMap<(K, &str), Vec<(String, FrameDiagnosis)>>,
 ) -> String {
     let px = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.2}"));
     let mut out = String::new();
@@ -807,18 +808,18 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
     let _ = writeln!(out, "\n## Frames\n");
     let _ = writeln!(
         out,
-        "| level | method | frame | verdict | corr. median | flow median | ≤2 px | hypotheses δ | oracle δ | best δ | verified δ | aligned δ | kept | output δ | edge support before → after |"
+        "| level | method | frame | verdict | corr. median | flow median | ≤2 px | hypotheses δ | oracle δ | best δ | verified δ | aligned δ | kept | output δ | edge support before → after | at truth: support, near, far (best confidence) | correlation at truth: pose, near, far; at output |"
     );
     let _ = writeln!(
         out,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for ((level, method), frames) in diagnoses {
         for (name, diagnosis) in frames {
             let s = DiagnosisSummary::of(std::slice::from_ref(diagnosis));
             let _ = writeln!(
                 out,
-                "| {level} | {method} | {name} | {} | {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} |",
+                "| {level} | {method} | {name} | {} | {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                 if diagnosis.verdict.accepted() {
                     "accepted"
                 } else {
@@ -846,6 +847,23 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
                     ),
                     Err(why) => why.clone(),
                 },
+                match (diagnosis.truth_edges, diagnosis.truth_best_confidence) {
+                    (Some(peak), Some(confidence)) => format!(
+                        "{:.0} %, {:.0} %, {:.0} % ({confidence:.2})",
+                        100.0 * peak.at_pose,
+                        100.0 * peak.near,
+                        100.0 * peak.far
+                    ),
+                    _ => "–".to_string(),
+                },
+                [diagnosis.truth_correlation, diagnosis.output_correlation]
+                    .iter()
+                    .map(|peak| peak.map_or("–".to_string(), |p| format!(
+                        "{:.3}, {:.3}, {:.3}",
+                        p.at_pose, p.near, p.far
+                    )))
+                    .collect::<Vec<_>>()
+                    .join("; "),
             );
         }
     }
@@ -886,11 +904,17 @@ paper's plausibility check of its refined poses; apart: δ from its output to th
 
 /// Each frame's pose search against the truth, by (level, method): name, the verdict when the
 /// frame was registered too, the diagnosis.
-type SearchDiagnoses =
-    BTreeMap<(Level, &'static str), Vec<(String, Option<bool>, SearchDiagnosis)>>;
+type SearchDiagnoses = SearchDiagnosesBy<Level>;
+
+/// [`SearchDiagnoses`] keyed by anything shown in the level's column (`register --diagnose`: the
+/// run's name).
+pub(super) type SearchDiagnosesBy<K> =
+    BTreeMap<(K, &'static str), Vec<(String, Option<bool>, SearchDiagnosis)>>;
 
 /// The pose-search table of `eval --diagnose` / `--diagnose-search`: one line per frame.
-fn search_diagnosis_markdown(diagnoses: &SearchDiagnoses) -> String {
+pub(super) fn search_diagnosis_markdown<K: std::fmt::Display + Ord>(
+    diagnoses: &SearchDiagnosesBy<K>,
+) -> String {
     let px = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.2}"));
     let mut out = String::new();
     let _ = writeln!(

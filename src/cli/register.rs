@@ -83,6 +83,12 @@ pub struct RegisterArgs {
     /// the output, report.json and report.html. For a data set with surveyed or SfM poses.
     #[arg(long, value_name = "MODEL")]
     pub truth: Option<PathBuf>,
+    /// With --truth: also run each frame's steps one by one against its true pose (the
+    /// diagnosis of `eval --diagnose`: flow and correspondence errors within 1/2/5 px, lifting,
+    /// solver and its oracle, choice, refinement, the pose search) and write diagnosis.md,
+    /// diagnosis.json (and search_diagnosis.md/json). Runs each frame a second time.
+    #[arg(long, requires = "truth")]
+    pub diagnose: bool,
 }
 
 /// A frame's mutual reprojection error δ to its true pose, px: under the initial pose and under
@@ -140,6 +146,90 @@ fn truth_deltas(
         }));
     }
     Ok(deltas)
+}
+
+/// `--diagnose`: each frame the truth holds run step by step against its true pose
+/// (`asgreg::diagnose`, as `eval --diagnose`), the tables written to `diagnosis.md` /
+/// `search_diagnosis.md` (and JSON) in the output folder and printed.
+fn diagnose_frames(
+    args: &RegisterArgs,
+    truth_path: &Path,
+    mesh: &asgreg::core::mesh::Mesh,
+    frames: &[BatchFrame],
+    config: &RegistrationConfig,
+    loader: &FrameLoader,
+) -> anyhow::Result<()> {
+    use asgreg::diagnose::{diagnose_frame, DiagnosisSummary, FrameDiagnosis};
+    let (images, images_file) = asgreg::io::colmap_model::read_images_at(truth_path)?;
+    const RUN: &str = "register";
+    let mut diagnoses: BTreeMap<(&str, &str), Vec<(String, FrameDiagnosis)>> = BTreeMap::new();
+    let mut search_diagnoses: super::eval::SearchDiagnosesBy<&str> = BTreeMap::new();
+    let bar = progress_bar(frames.len(), "diagnosing");
+    for frame in frames {
+        bar.inc(1);
+        let Some(truth) = images.iter().find(|t| t.name == frame.name) else {
+            tracing::warn!(
+                "{}: not in {}, no diagnosis",
+                frame.name,
+                images_file.display()
+            );
+            continue;
+        };
+        let files = match frame.load_with(loader) {
+            Ok(files) => files,
+            Err(error) => {
+                tracing::warn!("{}: no diagnosis: {error}", frame.name);
+                continue;
+            }
+        };
+        match diagnose_frame(
+            mesh,
+            &frame.input(&files, args.seed),
+            &truth.cam_from_world,
+            config,
+        ) {
+            Ok(mut diagnosis) => {
+                if let Some(search) = diagnosis.search.take() {
+                    search_diagnoses.entry((RUN, "ASG")).or_default().push((
+                        frame.name.clone(),
+                        Some(diagnosis.verdict.accepted()),
+                        search,
+                    ));
+                }
+                diagnoses
+                    .entry((RUN, "ASG"))
+                    .or_default()
+                    .push((frame.name.clone(), diagnosis));
+            }
+            Err(error) => tracing::warn!("{}: no diagnosis: {error}", frame.name),
+        }
+    }
+    bar.finish_and_clear();
+    let text = super::eval::diagnosis_markdown(&diagnoses);
+    let path = args.out.join("diagnosis.md");
+    std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
+    let json = serde_json::json!({
+        "truth": truth_path.display().to_string(),
+        "summary": DiagnosisSummary::of(diagnoses.values().flatten().map(|(_, d)| d)),
+        "frames": diagnoses.values().flatten().map(|(name, d)| serde_json::json!({"name": name, "diagnosis": d})).collect::<Vec<_>>(),
+    });
+    let path = args.out.join("diagnosis.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    println!("{text}");
+    if !search_diagnoses.is_empty() {
+        let text = super::eval::search_diagnosis_markdown(&search_diagnoses);
+        let path = args.out.join("search_diagnosis.md");
+        std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
+        let json = serde_json::json!({
+            "frames": search_diagnoses.values().flatten().map(|(name, accepted, d)| serde_json::json!({"name": name, "accepted": accepted, "search": d})).collect::<Vec<_>>(),
+        });
+        let path = args.out.join("search_diagnosis.json");
+        std::fs::write(&path, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        println!("{text}");
+    }
+    Ok(())
 }
 
 /// "mean M px, max X px (N frames)" of the values present, or "none".
@@ -499,6 +589,9 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
             delta_summary(deltas.iter().flatten().filter_map(|d| d.final_px)),
             delta_summary(deltas.iter().flatten().filter_map(|d| d.initial_px))
         );
+    }
+    if let (true, Some(truth)) = (args.diagnose, &args.truth) {
+        diagnose_frames(args, truth, &inputs.mesh, &frames, &config, &loader)?;
     }
     write_outputs(
         args,

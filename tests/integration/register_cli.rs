@@ -138,6 +138,7 @@ fn a_city_scene_registers_and_truth_gives_each_frame_its_delta() {
         path_str(&scene.join("initial/30")),
         "--truth",
         path_str(&scene.join("gt")),
+        "--diagnose",
         "--coarse-poses",
         "5",
         "--no-overlays",
@@ -145,6 +146,27 @@ fn a_city_scene_registers_and_truth_gives_each_frame_its_delta() {
         path_str(&out),
     ]);
     assert!(output.status.success(), "{}", stderr(&output));
+    // --diagnose: each frame run step by step against its true pose, with the truth's own
+    // evidence (the tables of `eval --diagnose`).
+    let diagnosis: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("diagnosis.json")).unwrap())
+            .unwrap();
+    let frames = diagnosis["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 2, "{diagnosis}");
+    for frame in frames {
+        let truth = &frame["diagnosis"]["truth_correlation"];
+        assert!(
+            truth["at_pose"].as_f64().unwrap() > truth["far"].as_f64().unwrap(),
+            "{frame}"
+        );
+        assert!(
+            frame["diagnosis"]["truth_best_confidence"].is_f64(),
+            "{frame}"
+        );
+    }
+    assert!(std::fs::read_to_string(out.join("diagnosis.md"))
+        .unwrap()
+        .contains("correlation at truth"));
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     let deltas = report["truth"]["delta_px"].as_array().unwrap();
