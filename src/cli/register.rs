@@ -284,6 +284,15 @@ pub struct CoarseArgs {
     /// turn (`edges-then-dense`).
     #[arg(long, value_enum, default_value_t = RefineMethodArg::Edges)]
     pub refine_method: RefineMethodArg,
+    /// Final refinement: which photo ridge on a sample's search line it is matched to: the
+    /// strongest (weighed with the distance, default) or the nearest (multiple-hypothesis moving
+    /// edges).
+    #[arg(long, value_enum, default_value_t = RidgeChoiceArg::Strongest)]
+    pub edge_ridge_choice: RidgeChoiceArg,
+    /// Final refinement: weigh each edge match by its distinctiveness (1 − second-best ridge's
+    /// score / best's on its search line).
+    #[arg(long)]
+    pub edge_distinct_weights: bool,
     /// Final refinement: do not estimate the model's edge rounding radius with the pose (by
     /// default it is: a smoothed, Poisson-like model rounds its edges, and the photo's edges lie
     /// where the sharp ones would).
@@ -338,6 +347,8 @@ impl Default for CoarseArgs {
             edge_starts: defaults.edge_align.starts,
             refine_method: RefineMethodArg::Edges,
             edge_check_levels: false,
+            edge_ridge_choice: RidgeChoiceArg::Strongest,
+            edge_distinct_weights: defaults.edge_align.distinct_weights,
             no_edge_rounding: !defaults.edge_align.estimate_rounding,
             edge_kinds: EdgeKindsArg::All,
             edge_rounding_kinds: EdgeKindsArg::All,
@@ -347,6 +358,22 @@ impl Default for CoarseArgs {
             search_roll_deg: PoseSearchConfig::default().roll_half_range_deg,
             centre_agreement_share: PoseSearchConfig::default().centre_agreement_share,
             heading_sweep_deg: PoseSearchConfig::default().heading_sweep_step_deg,
+        }
+    }
+}
+
+/// Which photo ridge the final refinement matches a model edge sample to.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RidgeChoiceArg {
+    Strongest,
+    Nearest,
+}
+
+impl From<RidgeChoiceArg> for asgreg::core::edge_align::RidgeChoice {
+    fn from(arg: RidgeChoiceArg) -> Self {
+        match arg {
+            RidgeChoiceArg::Strongest => Self::Strongest,
+            RidgeChoiceArg::Nearest => Self::Nearest,
         }
     }
 }
@@ -462,6 +489,8 @@ pub fn registration_config(
             starts: coarse.edge_starts,
             method: coarse.refine_method.into(),
             check_levels: coarse.edge_check_levels,
+            ridge_choice: coarse.edge_ridge_choice.into(),
+            distinct_weights: coarse.edge_distinct_weights,
             estimate_rounding: !coarse.no_edge_rounding,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),

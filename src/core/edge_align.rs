@@ -80,6 +80,27 @@ pub struct EdgeAlignConfig {
     pub method: RefineMethod,
     /// Settings of the dense alignment (used when `method` includes it).
     pub dense: crate::core::feature_align::DenseAlignConfig,
+    /// Which photo ridge on a sample's search line the alignment's steps match it to.
+    pub ridge_choice: RidgeChoice,
+    /// Weigh each match in the Gauss–Newton steps by its distinctiveness, `1 − s₂/s₁` (the
+    /// second-best ridge's score over the best's on the search line): a sample whose search line
+    /// crosses two ridges of similar strength (clutter, texture next to the edge) says little
+    /// about where its edge is.
+    pub distinct_weights: bool,
+}
+
+/// Which photo ridge on a search line a model edge sample is matched to.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum RidgeChoice {
+    /// The strongest, weighed down with the distance (a Gaussian prior of half the search
+    /// radius for the nearest).
+    #[default]
+    Strongest,
+    /// The nearest line-like ridge at least `min_query_ridge` strong (the multiple-hypothesis
+    /// moving edges of L. Vacchetti, V. Lepetit, P. Fua, "Combining edge and texture information
+    /// for real-time accurate 3D camera tracking", ISMAR 2004: each sample follows the
+    /// hypothesis closest to where the current pose puts it).
+    Nearest,
 }
 
 /// Which alignment the final refinement runs.
@@ -145,6 +166,8 @@ impl Default for EdgeAlignConfig {
             check_levels: false,
             method: RefineMethod::Edges,
             dense: crate::core::feature_align::DenseAlignConfig::default(),
+            ridge_choice: RidgeChoice::Strongest,
+            distinct_weights: false,
         }
     }
 }
@@ -502,6 +525,17 @@ pub fn blurred_query(query: ImageView<'_, f32>, radius_px: f64, out: &mut Image<
     );
 }
 
+/// The photo ridge a search line crosses: its signed distance along the normal, and how
+/// distinct it is from the other ridges on the line.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RidgeMatch {
+    /// Signed distance along the search normal from the sample's projection, px.
+    pub offset_px: f64,
+    /// `1 − s₂/s₁`: 1 when it is the only ridge on the line, 0 when another is as strong (scores
+    /// as [`RidgeChoice::Strongest`] weighs them, whichever ridge was chosen).
+    pub distinctiveness: f64,
+}
+
 /// Signed distance along `normal` from `at_px` to the photo ridge crossing the search line, px;
 /// `None` when no line-like ridge of at least `min_ridge` lies within `radius_px`. Among several
 /// the strongest wins, weighed down with the distance (a prior for the nearest).
@@ -512,6 +546,28 @@ pub fn search_ridge(
     radius_px: f64,
     min_ridge: f32,
 ) -> Option<f64> {
+    find_ridge(
+        query,
+        at_px,
+        normal,
+        radius_px,
+        min_ridge,
+        RidgeChoice::Strongest,
+    )
+    .map(|found| found.offset_px)
+}
+
+/// The photo ridge crossing the search line through `at_px` along `normal` within `radius_px`
+/// that `choice` picks among the line-like ridges of at least `min_ridge`, with its
+/// distinctiveness; `None` when there is none.
+pub fn find_ridge(
+    query: &ImageView<'_, f32>,
+    at_px: Vector2<f64>,
+    normal: Vector2<f64>,
+    radius_px: f64,
+    min_ridge: f32,
+    choice: RidgeChoice,
+) -> Option<RidgeMatch> {
     const STEP_PX: f64 = 0.5;
     let steps = (radius_px / STEP_PX).ceil() as i32 + 1;
     let mut values = [f32::NAN; 2 * 64 + 3];
@@ -524,7 +580,10 @@ pub fn search_ridge(
         *value = bilinear(query, at_px + normal * t).unwrap_or(f32::NAN);
     }
     let tangent = Vector2::new(-normal.y, normal.x);
+    // (score, offset) of the strongest and second-strongest ridges, and the nearest's offset.
     let mut best: Option<(f64, f64)> = None;
+    let mut second_score = 0.0_f64;
+    let mut nearest: Option<f64> = None;
     let width = 0.5 * radius_px;
     for index in 1..count - 1 {
         let (before, centre, after) = (values[index - 1], values[index], values[index + 1]);
@@ -554,11 +613,28 @@ pub fn search_ridge(
         // profile, which a blurred step's gradient magnitude is close to).
         let offset = t + log_parabola_peak(across_b, centre, across_a).clamp(-0.5, 0.5);
         let score = f64::from(centre) * (-(offset * offset) / (2.0 * width * width)).exp();
-        if best.is_none_or(|(best_score, _)| score > best_score) {
-            best = Some((score, offset));
+        match best {
+            Some((best_score, _)) if score <= best_score => second_score = second_score.max(score),
+            _ => {
+                if let Some((best_score, _)) = best {
+                    second_score = second_score.max(best_score);
+                }
+                best = Some((score, offset));
+            }
+        }
+        if nearest.is_none_or(|n: f64| offset.abs() < n.abs()) {
+            nearest = Some(offset);
         }
     }
-    best.map(|(_, offset)| offset)
+    let (best_score, strongest) = best?;
+    let offset_px = match choice {
+        RidgeChoice::Strongest => strongest,
+        RidgeChoice::Nearest => nearest.unwrap_or(strongest),
+    };
+    Some(RidgeMatch {
+        offset_px,
+        distinctiveness: (1.0 - second_score / best_score).clamp(0.0, 1.0),
+    })
 }
 
 /// Each sample of `samples` that projects into the image at `cam_from_world`, with its point in
@@ -827,8 +903,6 @@ pub fn align_level(
         search_radius_px: radius_px,
         ..LevelSummary::default()
     };
-    // (point in the camera frame, its projection px, search direction, offset to the ridge px,
-    // rounding direction in the camera frame).
     let mut matches: Vec<EdgeMatch> = Vec::with_capacity(samples.len());
     for _ in 0..config.iterations_per_level {
         matches.clear();
@@ -841,22 +915,35 @@ pub fn align_level(
             let Some(projected) = camera.project(&point_cam) else {
                 continue;
             };
-            if let Some(offset) = search_ridge(
+            if let Some(found) = find_ridge(
                 query,
                 projected,
                 sample.normal,
                 radius_px,
                 config.min_query_ridge,
+                config.ridge_choice,
             ) {
                 let rounding_cam = pose.rotation * sample.rounding_on(config.rounding_kinds);
-                matches.push((point_cam, projected, sample.normal, offset, rounding_cam));
+                let distinct_weight = if config.distinct_weights {
+                    found.distinctiveness
+                } else {
+                    1.0
+                };
+                matches.push(EdgeMatch {
+                    point_cam,
+                    projected,
+                    normal: sample.normal,
+                    offset_px: found.offset_px,
+                    rounding_cam,
+                    distinct_weight,
+                });
             }
         }
         summary.matched = matches.len();
         if matches.len() < config.min_samples {
             break;
         }
-        let mut magnitudes: Vec<f64> = matches.iter().map(|m| m.3.abs()).collect();
+        let mut magnitudes: Vec<f64> = matches.iter().map(|m| m.offset_px.abs()).collect();
         let middle = magnitudes.len() / 2;
         let (_, median, _) = magnitudes.select_nth_unstable_by(middle, f64::total_cmp);
         // Floor: the search quantises to sub-pixel, no finer than ~0.2 px.
@@ -866,12 +953,20 @@ pub fn align_level(
         let k = camera.intrinsics;
         let mut normal_matrix = Matrix8::zeros();
         let mut gradient = Vector8::zeros();
-        for (point_cam, projected, normal, offset, rounding_cam) in &matches {
+        for EdgeMatch {
+            point_cam,
+            projected,
+            normal,
+            offset_px: offset,
+            rounding_cam,
+            distinct_weight,
+        } in &matches
+        {
             let ratio = offset / tukey_c;
             if ratio.abs() >= 1.0 {
                 continue;
             }
-            let weight = (1.0 - ratio * ratio).powi(2);
+            let weight = (1.0 - ratio * ratio).powi(2) * distinct_weight;
             let (row_u, row_v) = pose_jacobian_rows(&k, point_cam);
             let mut g = Vector8::zeros();
             g.fixed_rows_mut::<6>(0)
@@ -913,7 +1008,19 @@ pub fn align_level(
     (camera, pose, summary)
 }
 
-type EdgeMatch = (Vector3<f64>, Vector2<f64>, Vector2<f64>, f64, Vector3<f64>);
+/// A model edge sample matched to a photo ridge in one step of [`align_level`].
+struct EdgeMatch {
+    point_cam: Vector3<f64>,
+    projected: Vector2<f64>,
+    /// Search direction (the sample's 2D normal).
+    normal: Vector2<f64>,
+    /// Offset to the photo ridge along `normal`, px.
+    offset_px: f64,
+    /// Rounding direction in the camera frame.
+    rounding_cam: Vector3<f64>,
+    /// The match's weight from its distinctiveness (1 unless `distinct_weights`).
+    distinct_weight: f64,
+}
 type Matrix8 = nalgebra::SMatrix<f64, 8, 8>;
 type Vector8 = nalgebra::SVector<f64, 8>;
 
@@ -1093,6 +1200,52 @@ mod tests {
             0.05
         )
         .is_none());
+    }
+
+    #[test]
+    fn two_ridges_on_a_line_the_choice_and_its_distinctiveness() {
+        // A weaker ridge 2 px to the right of the projection, a stronger one 5 px to the left.
+        let image = Image::from_fn(40, 20, |col, _| {
+            let x = col as f64 + 0.5;
+            let near = 0.5 * (-((x - 22.0) * (x - 22.0)) / 2.0).exp();
+            let far = (-((x - 15.0) * (x - 15.0)) / 2.0).exp();
+            near.max(far) as f32
+        });
+        let at = Vector2::new(20.0, 10.0);
+        let along_x = Vector2::new(1.0, 0.0);
+        let strongest = find_ridge(
+            &image.view(),
+            at,
+            along_x,
+            8.0,
+            0.05,
+            RidgeChoice::Strongest,
+        )
+        .expect("a ridge");
+        let nearest = find_ridge(&image.view(), at, along_x, 8.0, 0.05, RidgeChoice::Nearest)
+            .expect("a ridge");
+        assert!((strongest.offset_px + 5.0).abs() < 0.1, "{strongest:?}");
+        assert!((nearest.offset_px - 2.0).abs() < 0.1, "{nearest:?}");
+        // Scores weighed with the distance prior (σ = 4 px): 1·e^(−25/32) = 0.458 and
+        // 0.5·e^(−4/32) = 0.441: nearly as strong, so barely distinct, whichever was chosen.
+        let expected = 1.0 - (0.5 * (-4.0_f64 / 32.0).exp()) / (-25.0_f64 / 32.0).exp();
+        for found in [strongest, nearest] {
+            assert!(
+                (found.distinctiveness - expected).abs() < 0.03,
+                "{found:?} vs {expected}"
+            );
+        }
+        // Alone on its line a ridge is fully distinct.
+        let single = find_ridge(
+            &ridge_image(40, 20, 23.3).view(),
+            at,
+            along_x,
+            6.0,
+            0.05,
+            RidgeChoice::Nearest,
+        )
+        .expect("a ridge");
+        assert_eq!(single.distinctiveness, 1.0);
     }
 
     #[test]
