@@ -28,9 +28,10 @@ use serde::Serialize;
 
 use crate::core::camera::{nearest_pixel, Camera};
 use crate::core::confidence::FrameEvidence;
+use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
-    blurred_query, model_edge_samples, pose_jacobian_rows, search_ridge, AlignedParameters,
-    EdgeKind, EdgeSample, SupportPeak, SUPPORT_PEAK_SHIFTS_PX,
+    model_edge_samples, pose_jacobian_rows, search_ridge, AlignedParameters, EdgeKind, EdgeSample,
+    SupportPeak,
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
@@ -40,10 +41,10 @@ use crate::core::frame::{
     CorrespondWorkspace, Decision, FrameInput, IntrinsicsMode, PoseRefinement, RefineWorkspace,
     RegistrationConfig, RegistrationError, ViewCorrespondences, ViewRef,
 };
-use crate::core::image::{Image, ImageView};
+use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::pose_search::OrientedEdgeMap;
-use crate::core::raster::{Rasterizer, RenderBuffers, NO_FACE};
+use crate::core::raster::{Rasterizer, RenderBuffers};
 use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
 use crate::core::verify::Verdict;
@@ -140,85 +141,12 @@ pub struct FrameDiagnosis {
     /// accept threshold, verification cannot accept this frame however well the steps before it
     /// do.
     pub truth_best_confidence: Option<f64>,
-    /// A dense evidence that does not rest on the model's creases ([`correlation_peak`]), at the
-    /// true pose and at the output (or would-be output) pose: whether the photo could confirm a
-    /// pose where its edges cannot.
+    /// A dense evidence that does not rest on the model's creases
+    /// ([`crate::core::correlation::correlation_peak`]), at the true pose and at the output (or
+    /// would-be output) pose (the decision's own, [`FrameEvidence::correlation`]): whether the
+    /// photo confirms a pose where its edges cannot.
     pub truth_correlation: Option<CorrelationPeak>,
     pub output_correlation: Option<CorrelationPeak>,
-}
-
-/// How sharply the rendered ASG correlates with the query at a pose: the normalised
-/// cross-correlation of both (blurred, σ = 1 px) over the rendering's model pixels, at the pose and
-/// with the rendering shifted by [`SUPPORT_PEAK_SHIFTS_PX`] in eight directions (means), as
-/// `edge_align::support_peak` does for edges. A diagnosis, not (yet) evidence of the decision.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
-pub struct CorrelationPeak {
-    pub at_pose: f64,
-    pub near: f64,
-    pub far: f64,
-}
-
-/// [`CorrelationPeak`] of the rendering `asg` (model pixels: `face_index` not [`NO_FACE`])
-/// against `query` (same size); `None` without model pixels.
-pub fn correlation_peak(
-    asg: ImageView<'_, f32>,
-    face_index: ImageView<'_, u32>,
-    query: ImageView<'_, f32>,
-) -> Option<CorrelationPeak> {
-    let (width_px, height_px) = asg.size();
-    if query.size() != (width_px, height_px) || face_index.size() != (width_px, height_px) {
-        return None;
-    }
-    let (mut rendering, mut photo) = (Image::default(), Image::default());
-    blurred_query(asg, 4.0, &mut rendering);
-    blurred_query(query, 4.0, &mut photo);
-    let (rendering, photo, faces) = (rendering.data(), photo.data(), face_index.data());
-    let ncc = |dx: isize, dy: isize| -> Option<f64> {
-        let (mut n, mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0);
-        for y in 0..height_px {
-            let qy = y as isize + dy;
-            if qy < 0 || qy >= height_px as isize {
-                continue;
-            }
-            for x in 0..width_px {
-                let qx = x as isize + dx;
-                let pixel = y * width_px + x;
-                if qx < 0 || qx >= width_px as isize || faces[pixel] == NO_FACE {
-                    continue;
-                }
-                let a = f64::from(rendering[pixel]);
-                let b = f64::from(photo[qy as usize * width_px + qx as usize]);
-                n += 1.0;
-                sa += a;
-                sb += b;
-                saa += a * a;
-                sbb += b * b;
-                sab += a * b;
-            }
-        }
-        let var_a = saa - sa * sa / n;
-        let var_b = sbb - sb * sb / n;
-        (n > 0.0 && var_a > 0.0 && var_b > 0.0)
-            .then(|| (sab - sa * sb / n) / (var_a * var_b).sqrt())
-    };
-    let ring = |shift_px: f64| -> f64 {
-        let values: Vec<f64> = (0..8)
-            .filter_map(|direction| {
-                let angle = direction as f64 * std::f64::consts::FRAC_PI_4;
-                ncc(
-                    (shift_px * angle.cos()).round() as isize,
-                    (shift_px * angle.sin()).round() as isize,
-                )
-            })
-            .collect();
-        values.iter().sum::<f64>() / values.len().max(1) as f64
-    };
-    let [near_shift_px, far_shift_px] = SUPPORT_PEAK_SHIFTS_PX;
-    Some(CorrelationPeak {
-        at_pose: ncc(0, 0)?,
-        near: ring(near_shift_px),
-        far: ring(far_shift_px),
-    })
 }
 
 /// One centre of the coarse poses: its own decision (as `core::frame::decide_frame_and_centres` keeps it)
@@ -715,7 +643,8 @@ pub fn diagnose_query(
     };
     let truth_support = from_truth.as_ref().map(|r| r.verified.support_fraction());
     let truth_edges = from_truth.as_ref().map(|r| r.peak);
-    let truth_best_confidence = truth_edges.map(|peak| {
+    // Edges and correlation both where the alignment started at the truth ends.
+    let truth_best_confidence = from_truth.as_ref().map(|r| {
         let coarse_poses = config.coarse_pose_count.max(1);
         config.confidence.model.probability(&FrameEvidence {
             check_passed: true,
@@ -723,7 +652,8 @@ pub fn diagnose_query(
             hypotheses: coarse_poses,
             component_size: coarse_poses,
             direct_support: coarse_poses,
-            edges: Some(peak),
+            edges: Some(r.peak),
+            correlation: r.correlation,
             ..FrameEvidence::default()
         })
     });
@@ -743,28 +673,35 @@ pub fn diagnose_query(
             config,
         )
     });
+    let mut correlation_workspace = CorrelationWorkspace::default();
     let truth_correlation = correlation_peak(
         truth_view.asg.view(),
         truth_view.render.face_index().view(),
         query,
+        &mut correlation_workspace,
     );
-    let output_correlation = verdict.chosen().and_then(|chosen| {
-        let mut output_view = CoarseView::default();
-        render_coarse_view(
-            mesh,
-            &chosen.camera,
-            views.len() + 1,
-            &chosen.cam_from_world,
-            config,
-            &mut rasterizer,
-            &mut output_view,
-        );
-        correlation_peak(
-            output_view.asg.view(),
-            output_view.render.face_index().view(),
-            query,
-        )
-    });
+    // The decision's own where the refinement ran; rendered here where it did not.
+    let output_correlation = match &refinement {
+        Ok(r) => r.correlation,
+        Err(_) => verdict.chosen().and_then(|chosen| {
+            let mut output_view = CoarseView::default();
+            render_coarse_view(
+                mesh,
+                &chosen.camera,
+                views.len() + 1,
+                &chosen.cam_from_world,
+                config,
+                &mut rasterizer,
+                &mut output_view,
+            );
+            correlation_peak(
+                output_view.asg.view(),
+                output_view.render.face_index().view(),
+                query,
+                &mut correlation_workspace,
+            )
+        }),
+    };
     Ok(FrameDiagnosis {
         views: diagnoses,
         at_truth,

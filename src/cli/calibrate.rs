@@ -6,7 +6,9 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context};
-use asgreg::core::confidence::{features, fit_logistic, LogisticModel, FEATURE_NAMES};
+use asgreg::core::confidence::{
+    features, fit_logistic, ConfidenceConfig, LogisticModel, FEATURE_COUNT, FEATURE_NAMES,
+};
 use asgreg::eval::{calibration_bins, EvalFrame};
 use clap::Args;
 use serde::Deserialize;
@@ -28,6 +30,10 @@ pub struct CalibrateArgs {
     /// Write the fitted model and threshold here (JSON).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Leave these features out of the fit (their weight is 0), e.g. to measure on the same
+    /// frames whether a feature helps held out. Names as printed (`FEATURE_NAMES`).
+    #[arg(long, num_args = 1..)]
+    pub drop_feature: Vec<String>,
 }
 
 #[derive(Deserialize)]
@@ -97,6 +103,16 @@ fn load(paths: &[PathBuf]) -> anyhow::Result<Vec<Labelled>> {
 }
 
 pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
+    let mut kept = [true; FEATURE_COUNT];
+    for name in &args.drop_feature {
+        let Some(index) = FEATURE_NAMES.iter().position(|n| n == name) else {
+            bail!(
+                "--drop-feature {name}: no such feature (the features: {})",
+                FEATURE_NAMES.join(", ")
+            );
+        };
+        kept[index] = false;
+    }
     let per_file: Vec<Vec<Labelled>> = args
         .results
         .iter()
@@ -106,7 +122,7 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
     if train.is_empty() {
         bail!("the results files hold no frame with evidence and a pose; run `asgreg eval` (known or unknown K) to make some");
     }
-    let model = fit(&train, args.ridge)?;
+    let model = fit(&train, args.ridge, &kept)?;
     println!(
         "fitted on {} frames ({} correct); bias {:.3}",
         train.len(),
@@ -132,7 +148,7 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
                 .filter(|(i, _)| *i != held_out_index)
                 .flat_map(|(_, frames)| frames.iter())
                 .collect();
-            let Ok(partial) = fit(&others, args.ridge) else {
+            let Ok(partial) = fit(&others, args.ridge, &kept) else {
                 println!(
                     "\n{}: not held out (the other files have one class only)",
                     args.results[held_out_index].display()
@@ -161,6 +177,12 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
             args.max_false_accept_rate,
             &format!("validate {}", path.display()),
         );
+        report(
+            &frames,
+            &ConfidenceConfig::default().model,
+            args.max_false_accept_rate,
+            &format!("the default model on {}", path.display()),
+        );
     }
     println!("\nthreshold (the highest of the in-sample and held-out ones): {threshold:.2}");
     if let Some(out) = &args.out {
@@ -170,6 +192,7 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
             "features": FEATURE_NAMES,
             "fitted_on": args.results,
             "ridge": args.ridge,
+            "dropped_features": args.drop_feature,
             "max_false_accept_rate": args.max_false_accept_rate,
         });
         std::fs::write(out, serde_json::to_string_pretty(&json)?)
@@ -179,10 +202,25 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn fit(frames: &[&Labelled], ridge: f64) -> anyhow::Result<LogisticModel> {
+/// The model fitted on `frames` with the features not `kept` held at 0 (so their weight is 0).
+fn fit(
+    frames: &[&Labelled],
+    ridge: f64,
+    kept: &[bool; FEATURE_COUNT],
+) -> anyhow::Result<LogisticModel> {
     let samples: Vec<_> = frames
         .iter()
-        .filter_map(|l| l.frame.evidence.map(|e| (features(&e), l.correct)))
+        .filter_map(|l| {
+            l.frame.evidence.map(|e| {
+                let mut x = features(&e);
+                for (value, keep) in x.iter_mut().zip(kept) {
+                    if !keep {
+                        *value = 0.0;
+                    }
+                }
+                (x, l.correct)
+            })
+        })
         .collect();
     fit_logistic(&samples, ridge).context("fitting the confidence model")
 }

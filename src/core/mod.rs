@@ -5,6 +5,7 @@
 pub mod camera;
 pub mod change;
 pub mod confidence;
+pub mod correlation;
 pub mod dense_sift;
 pub mod edge_align;
 pub mod feature_align;

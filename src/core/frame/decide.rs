@@ -184,6 +184,7 @@ fn decide_centre(
         &verdict,
         outcomes.len(),
         refinement.as_ref().ok().map(|r| r.peak),
+        refinement.as_ref().ok().and_then(|r| r.correlation),
     );
     confirm(&mut verdict, &evidence, &config.confidence);
     Decision {

@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
+use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
     align_level, blurred_query, edge_evidence, model_edge_samples, sharpened_samples, support_peak,
     AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary, SupportPeak,
@@ -41,6 +42,11 @@ pub struct PoseRefinement {
     pub kept: bool,
     /// How sharply the edge support peaks at the output pose (aligned when kept, else verified).
     pub peak: SupportPeak,
+    /// The dense correlation of the rendering with the query at the output pose and its peak
+    /// ([`crate::core::correlation`]); `None` when the model shows no pixel there (or in files
+    /// written before it existed).
+    #[serde(default)]
+    pub correlation: Option<CorrelationPeak>,
     pub levels: Vec<LevelSummary>,
 }
 
@@ -60,6 +66,11 @@ pub struct RefineWorkspace {
     /// The dense alignment's blurred rendering and samples.
     blurred_asg: Image<f32>,
     dense: Vec<DenseSample>,
+    /// The rendering at the start pose (ASG and face index), kept for its correlation peak when
+    /// the alignment is not kept: a copy, not a second rendering.
+    start_asg: Image<f32>,
+    start_faces: Image<u32>,
+    correlation: CorrelationWorkspace,
 }
 
 /// Refines the verdict's chosen pose against `query` (the frame's query gradient image, 0..1) and
@@ -184,6 +195,11 @@ impl PoseRefinement {
             aligned,
             kept,
             peak: if kept { other.peak } else { self.peak },
+            correlation: if kept {
+                other.correlation
+            } else {
+                self.correlation
+            },
             levels: other.levels,
         }
     }
@@ -218,6 +234,9 @@ pub fn refine_pose(
         blurred,
         blurred_asg,
         dense,
+        start_asg,
+        start_faces,
+        correlation: correlation_workspace,
     } = workspace;
     let sample_at = |rasterizer: &mut Rasterizer,
                      view: &mut CoarseView,
@@ -230,6 +249,8 @@ pub fn refine_pose(
     sample_at(rasterizer, view, camera, start, samples);
     let verified = edge_evidence(samples, &query, camera, start, align);
     start_samples.clone_from(samples);
+    start_asg.clone_from(&view.asg);
+    start_faces.clone_from(view.render.face_index());
     if samples.len() < align.min_samples {
         return Err(format!(
             "the model shows only {} edge samples at the chosen pose (at least {} needed)",
@@ -352,10 +373,27 @@ pub fn refine_pose(
     std::mem::swap(samples, sharpened);
     let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
     let kept = aligned.support_fraction() > verified.support_fraction();
-    let peak = if kept {
-        support_peak(samples, &query, &aligned_camera, &pose, &aligned, align)
+    // The last rendering (`view`) is at the aligned pose; the start's was kept.
+    let (peak, correlation) = if kept {
+        (
+            support_peak(samples, &query, &aligned_camera, &pose, &aligned, align),
+            correlation_peak(
+                view.asg.view(),
+                view.render.face_index().view(),
+                query,
+                correlation_workspace,
+            ),
+        )
     } else {
-        support_peak(start_samples, &query, camera, start, &verified, align)
+        (
+            support_peak(start_samples, &query, camera, start, &verified, align),
+            correlation_peak(
+                start_asg.view(),
+                start_faces.view(),
+                query,
+                correlation_workspace,
+            ),
+        )
     };
     Ok(PoseRefinement {
         verified_camera: *camera,
@@ -367,6 +405,7 @@ pub fn refine_pose(
         aligned,
         kept,
         peak,
+        correlation,
         levels,
     })
 }
