@@ -587,9 +587,6 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     };
     write_report_html(&args.out.join(REPORT_HTML), &page)?;
     if args.diagnose {
-        let text = diagnosis_markdown(&diagnoses);
-        std::fs::write(args.out.join("diagnosis.md"), &text)
-            .with_context(|| format!("writing {}", args.out.join("diagnosis.md").display()))?;
         let json = serde_json::json!({
             "scene": args.scene,
             "query": format!("{:?}", args.query),
@@ -600,17 +597,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 "frames": frames.iter().map(|(name, d)| serde_json::json!({"name": name, "diagnosis": d})).collect::<Vec<_>>(),
             })).collect::<Vec<_>>(),
         });
-        std::fs::write(
-            args.out.join("diagnosis.json"),
-            serde_json::to_string_pretty(&json)?,
-        )
-        .with_context(|| format!("writing {}", args.out.join("diagnosis.json").display()))?;
-        println!("{text}");
+        write_diagnosis(
+            &args.out,
+            "diagnosis",
+            &diagnosis_markdown(&diagnoses),
+            &json,
+        )?;
     }
     if !search_diagnoses.is_empty() {
-        let text = search_diagnosis_markdown(&search_diagnoses);
-        let path = args.out.join("search_diagnosis.md");
-        std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
         let json = serde_json::json!({
             "scene": args.scene,
             "cells": search_diagnoses.iter().map(|((level, method), frames)| serde_json::json!({
@@ -619,10 +613,12 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 "frames": frames.iter().map(|(name, accepted, d)| serde_json::json!({"name": name, "accepted": accepted, "search": d})).collect::<Vec<_>>(),
             })).collect::<Vec<_>>(),
         });
-        let path = args.out.join("search_diagnosis.json");
-        std::fs::write(&path, serde_json::to_string_pretty(&json)?)
-            .with_context(|| format!("writing {}", path.display()))?;
-        println!("{text}");
+        write_diagnosis(
+            &args.out,
+            "search_diagnosis",
+            &search_diagnosis_markdown(&search_diagnoses),
+            &json,
+        )?;
     }
     println!("{table}");
     for ((level, method), total_search_ms) in &search_ms {
@@ -696,6 +692,23 @@ fn scene_batch_frame(
         intrinsics,
         initial_cam_from_world: initial.cam_from_world,
     }
+}
+
+/// Writes a diagnosis table to `<stem>.md` and its data to `<stem>.json` in `out`, then prints the
+/// table (`eval --diagnose`, `register --diagnose`).
+pub(super) fn write_diagnosis(
+    out: &Path,
+    stem: &str,
+    text: &str,
+    json: &serde_json::Value,
+) -> anyhow::Result<()> {
+    let path = out.join(format!("{stem}.md"));
+    std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+    let path = out.join(format!("{stem}.json"));
+    std::fs::write(&path, serde_json::to_string_pretty(json)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    println!("{text}");
+    Ok(())
 }
 
 /// The diagnosis tables: one row per (level, method), then one line per frame (`register

@@ -205,29 +205,27 @@ fn diagnose_frames(
         }
     }
     bar.finish_and_clear();
-    let text = super::eval::diagnosis_markdown(&diagnoses);
-    let path = args.out.join("diagnosis.md");
-    std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
     let json = serde_json::json!({
         "truth": truth_path.display().to_string(),
         "summary": DiagnosisSummary::of(diagnoses.values().flatten().map(|(_, d)| d)),
         "frames": diagnoses.values().flatten().map(|(name, d)| serde_json::json!({"name": name, "diagnosis": d})).collect::<Vec<_>>(),
     });
-    let path = args.out.join("diagnosis.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
-        .with_context(|| format!("writing {}", path.display()))?;
-    println!("{text}");
+    super::eval::write_diagnosis(
+        &args.out,
+        "diagnosis",
+        &super::eval::diagnosis_markdown(&diagnoses),
+        &json,
+    )?;
     if !search_diagnoses.is_empty() {
-        let text = super::eval::search_diagnosis_markdown(&search_diagnoses);
-        let path = args.out.join("search_diagnosis.md");
-        std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
         let json = serde_json::json!({
             "frames": search_diagnoses.values().flatten().map(|(name, accepted, d)| serde_json::json!({"name": name, "accepted": accepted, "search": d})).collect::<Vec<_>>(),
         });
-        let path = args.out.join("search_diagnosis.json");
-        std::fs::write(&path, serde_json::to_string_pretty(&json)?)
-            .with_context(|| format!("writing {}", path.display()))?;
-        println!("{text}");
+        super::eval::write_diagnosis(
+            &args.out,
+            "search_diagnosis",
+            &super::eval::search_diagnosis_markdown(&search_diagnoses),
+            &json,
+        )?;
     }
     Ok(())
 }

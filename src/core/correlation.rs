@@ -93,8 +93,9 @@ pub fn correlation_peak(
         (n > 0.0 && var_a > 0.0 && var_b > 0.0)
             .then(|| (sab - sa * sb / n) / (var_a * var_b).sqrt())
     };
+    // Mean NCC over the eight shifts that have one.
     let ring = |shift_px: f64| -> f64 {
-        let values: Vec<f64> = (0..8)
+        let (sum, count) = (0..8)
             .filter_map(|direction| {
                 let angle = direction as f64 * std::f64::consts::FRAC_PI_4;
                 ncc(
@@ -102,8 +103,10 @@ pub fn correlation_peak(
                     (shift_px * angle.sin()).round() as isize,
                 )
             })
-            .collect();
-        values.iter().sum::<f64>() / values.len().max(1) as f64
+            .fold((0.0, 0usize), |(sum, count), value| {
+                (sum + value, count + 1)
+            });
+        sum / count.max(1) as f64
     };
     let [near_shift_px, far_shift_px] = SUPPORT_PEAK_SHIFTS_PX;
     Some(CorrelationPeak {
