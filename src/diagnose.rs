@@ -35,11 +35,12 @@ use crate::core::edge_align::{
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
+use crate::core::frame::sweep::carried_pass;
 use crate::core::frame::{
     correspond_view, decide_frame_and_centres, lift_pixel, query_features, query_gradient,
     refine_pose, render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView,
-    CorrespondWorkspace, Decision, FrameInput, IntrinsicsMode, PoseRefinement, RefineWorkspace,
-    RegistrationConfig, RegistrationError, ViewCorrespondences, ViewRef,
+    CorrespondWorkspace, Decision, FrameInput, IntrinsicsMode, Pass, PoseRefinement,
+    RefineWorkspace, RegistrationConfig, RegistrationError, ViewCorrespondences, ViewRef,
 };
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
@@ -147,6 +148,33 @@ pub struct FrameDiagnosis {
     /// photo confirms a pose where its edges cannot.
     pub truth_correlation: Option<CorrelationPeak>,
     pub output_correlation: Option<CorrelationPeak>,
+    /// The full-circle heading fallback, when registration would run it (no pose accepted and
+    /// the fallback on): the retry diagnosed the same way, and which of the two registrations
+    /// the frame's result carries (`core::frame::carried_pass`, registration's own rule). The
+    /// fields above are the first pass's.
+    pub heading_sweep: Option<SweepDiagnosis>,
+}
+
+/// The heading fallback's retry against the truth.
+#[derive(Clone, Debug, Serialize)]
+pub struct SweepDiagnosis {
+    /// The retry's diagnosis (its own `heading_sweep` is `None`), or why it gave none.
+    pub retry: Result<Box<FrameDiagnosis>, String>,
+    pub carried: Pass,
+}
+
+impl FrameDiagnosis {
+    /// The diagnosis of the registration the frame's result carries: the retry's when the
+    /// fallback's is carried, else this one.
+    pub fn carried(&self) -> &FrameDiagnosis {
+        match &self.heading_sweep {
+            Some(SweepDiagnosis {
+                retry: Ok(retry),
+                carried: Pass::HeadingSweep,
+            }) => retry,
+            _ => self,
+        }
+    }
 }
 
 /// One centre of the coarse poses: its own decision (as `core::frame::decide_frame_and_centres` keeps it)
@@ -434,9 +462,52 @@ pub fn diagnose_frame(
 }
 
 /// As [`diagnose_frame`] for a frame whose query gradient image is already made (as
-/// `core::frame::register_query`). `config` must be valid.
+/// `core::frame::register_query`, with its full-circle heading fallback when that is on and no
+/// pose was accepted). `config` must be valid.
 #[allow(clippy::too_many_arguments)]
 pub fn diagnose_query(
+    mesh: &Mesh,
+    camera: &Camera,
+    intrinsics: IntrinsicsMode,
+    initial_cam_from_world: &Rigid3,
+    query: ImageView<'_, f32>,
+    truth: &Rigid3,
+    config: &RegistrationConfig,
+    seed: u64,
+) -> Result<FrameDiagnosis, RegistrationError> {
+    let diagnose = |config: &RegistrationConfig| {
+        diagnose_region(
+            mesh,
+            camera,
+            intrinsics,
+            initial_cam_from_world,
+            query,
+            truth,
+            config,
+            seed,
+        )
+    };
+    let mut first = diagnose(config)?;
+    let Some(sweep) = config.pose_search.heading_sweep() else {
+        return Ok(first);
+    };
+    if first.verdict.accepted() {
+        return Ok(first);
+    }
+    let retry = diagnose(&RegistrationConfig {
+        pose_search: sweep,
+        ..config.clone()
+    })
+    .map(Box::new)
+    .map_err(|error| error.to_string());
+    let carried = carried_pass(&first.verdict, retry.as_ref().ok().map(|r| &r.verdict));
+    first.heading_sweep = Some(SweepDiagnosis { retry, carried });
+    Ok(first)
+}
+
+/// [`diagnose_query`] within the pose search's region of `config` alone (no fallback).
+#[allow(clippy::too_many_arguments)]
+fn diagnose_region(
     mesh: &Mesh,
     camera: &Camera,
     intrinsics: IntrinsicsMode,
@@ -719,6 +790,7 @@ pub fn diagnose_query(
         truth_best_confidence,
         truth_correlation,
         output_correlation,
+        heading_sweep: None,
     })
 }
 

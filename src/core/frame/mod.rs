@@ -27,6 +27,7 @@ pub mod query;
 pub mod refine;
 pub mod search;
 pub mod solve;
+pub mod sweep;
 pub mod views;
 
 use std::time::Instant;
@@ -46,6 +47,7 @@ pub use query::{query_gradient, smooth_depth};
 pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
 pub use search::{search_pose, Beam, PoseSearchOutcome};
 pub use solve::solve_view;
+pub use sweep::{carried_pass, HeadingSweepOutcome, Pass, PassOutcome};
 pub use views::{
     coarse_poses, median_scene_depth_m, render_coarse_view, render_views, RenderedViews,
 };
@@ -174,6 +176,10 @@ pub struct FrameResult {
     /// What the decision rests on.
     pub evidence: FrameEvidence,
     pub timings: StageTimings,
+    /// When the full-circle heading fallback ran: both registrations' verdicts and which one
+    /// this result carries ([`sweep::carried_pass`]); `None` when it did not run.
+    #[serde(default)]
+    pub heading_sweep: Option<HeadingSweepOutcome>,
 }
 
 fn elapsed_ms(started: Instant) -> f64 {
@@ -219,7 +225,9 @@ pub fn register_frame(
 /// every step after "query". `config` must be valid. When no pose is accepted and the pose
 /// search's full-circle heading fallback is on
 /// ([`crate::core::pose_search::PoseSearchConfig::heading_sweep`]), the frame is registered once
-/// more with headings swept over the full circle, and that result counts when it is accepted.
+/// more with headings swept over the full circle; both outcomes are kept in
+/// [`FrameResult::heading_sweep`] and the result carries the one [`sweep::carried_pass`] chooses
+/// (an accepted retry; else the more confident rejection).
 pub fn register_query(
     mesh: &Mesh,
     camera: &Camera,
@@ -252,17 +260,34 @@ pub fn register_query(
     let retry = register(&RegistrationConfig {
         pose_search: sweep,
         ..config.clone()
-    });
-    let heading_sweep_ms = elapsed_ms(sweep_started);
-    let mut result = match retry {
-        Ok(retry) if retry.verdict.accepted() => FrameResult {
-            timings: first.timings,
-            ..retry
+    })
+    .map_err(|error| error.to_string());
+    let sweep_ms = elapsed_ms(sweep_started);
+    let carried = carried_pass(&first.verdict, retry.as_ref().ok().map(|r| &r.verdict));
+    let outcome = HeadingSweepOutcome {
+        first: PassOutcome {
+            verdict: first.verdict.clone(),
+            evidence: first.evidence,
         },
+        retry: retry
+            .as_ref()
+            .map(|r| PassOutcome {
+                verdict: r.verdict.clone(),
+                evidence: r.evidence,
+            })
+            .map_err(Clone::clone),
+        carried,
+        sweep_ms,
+    };
+    let timings = first.timings;
+    let mut result = match (carried, retry) {
+        (Pass::HeadingSweep, Ok(retry)) => retry,
         _ => first,
     };
-    result.timings.heading_sweep_ms = heading_sweep_ms;
+    result.timings = timings;
+    result.timings.heading_sweep_ms = sweep_ms;
     result.timings.total_ms = elapsed_ms(started);
+    result.heading_sweep = Some(outcome);
     Ok(result)
 }
 
@@ -376,6 +401,7 @@ fn register_region(
         refinement,
         evidence,
         timings,
+        heading_sweep: None,
     })
 }
 
