@@ -72,7 +72,7 @@ pub struct FrameReport {
     pub evidence: Option<FrameEvidence>,
     pub timings: StageTimings,
     /// When the full-circle heading fallback ran: both registrations, and which one the fields
-    /// above carry (`core::frame::carried_pass`).
+    /// above carry (`core::frame::decide_passes`).
     #[serde(default)]
     pub heading_sweep: Option<HeadingSweepReport>,
 }

@@ -35,7 +35,7 @@ use crate::core::edge_align::{
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
-use crate::core::frame::sweep::carried_pass;
+use crate::core::frame::sweep::{apply_passes_decision, decide_passes, sweep_needed, PassOutcome};
 use crate::core::frame::{
     correspond_view, decide_frame_and_centres, lift_pixel, query_features, query_gradient,
     refine_pose, render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView,
@@ -115,6 +115,8 @@ pub struct FrameDiagnosis {
     /// a refinement that re-renders at its current pose could reach at best).
     pub at_truth: ViewDiagnosis,
     pub verdict: Verdict,
+    /// What the verdict rests on (the decision's own).
+    pub evidence: FrameEvidence,
     /// δ(output or would-be output, truth), px (after the refinement).
     pub chosen_delta_px: Option<f64>,
     /// δ(the pose verification chose, truth), px: before the refinement.
@@ -150,7 +152,7 @@ pub struct FrameDiagnosis {
     pub output_correlation: Option<CorrelationPeak>,
     /// The full-circle heading fallback, when registration would run it (no pose accepted and
     /// the fallback on): the retry diagnosed the same way, and which of the two registrations
-    /// the frame's result carries (`core::frame::carried_pass`, registration's own rule). The
+    /// the frame's result carries (`core::frame::decide_passes`, registration's own rule). The
     /// fields above are the first pass's.
     pub heading_sweep: Option<SweepDiagnosis>,
 }
@@ -161,9 +163,19 @@ pub struct SweepDiagnosis {
     /// The retry's diagnosis (its own `heading_sweep` is `None`), or why it gave none.
     pub retry: Result<Box<FrameDiagnosis>, String>,
     pub carried: Pass,
+    /// The frame's verdict after the decision across the two registrations
+    /// (`core::frame::decide_passes`): the carried one's, or a rejection of it.
+    pub frame_verdict: Verdict,
 }
 
 impl FrameDiagnosis {
+    /// The frame's verdict, as registration decides it (after the heading fallback when it ran).
+    pub fn frame_verdict(&self) -> &Verdict {
+        self.heading_sweep
+            .as_ref()
+            .map_or(&self.verdict, |s| &s.frame_verdict)
+    }
+
     /// The diagnosis of the registration the frame's result carries: the retry's when the
     /// fallback's is carried, else this one.
     pub fn carried(&self) -> &FrameDiagnosis {
@@ -171,6 +183,7 @@ impl FrameDiagnosis {
             Some(SweepDiagnosis {
                 retry: Ok(retry),
                 carried: Pass::HeadingSweep,
+                ..
             }) => retry,
             _ => self,
         }
@@ -491,7 +504,7 @@ pub fn diagnose_query(
     let Some(sweep) = config.pose_search.heading_sweep() else {
         return Ok(first);
     };
-    if first.verdict.accepted() {
+    if !sweep_needed(&first.verdict, &first.evidence) {
         return Ok(first);
     }
     let retry = diagnose(&RegistrationConfig {
@@ -500,8 +513,26 @@ pub fn diagnose_query(
     })
     .map(Box::new)
     .map_err(|error| error.to_string());
-    let carried = carried_pass(&first.verdict, retry.as_ref().ok().map(|r| &r.verdict));
-    first.heading_sweep = Some(SweepDiagnosis { retry, carried });
+    let pass = |d: &FrameDiagnosis| PassOutcome {
+        verdict: d.verdict.clone(),
+        evidence: d.evidence,
+    };
+    let (carried, rejection) = decide_passes(
+        mesh,
+        &pass(&first),
+        retry.as_deref().ok().map(pass).as_ref(),
+        config.pose_search.centre_agreement_share,
+    );
+    let mut frame_verdict = match (carried, &retry) {
+        (Pass::HeadingSweep, Ok(retry)) => retry.verdict.clone(),
+        _ => first.verdict.clone(),
+    };
+    apply_passes_decision(&mut frame_verdict, rejection);
+    first.heading_sweep = Some(SweepDiagnosis {
+        retry,
+        carried,
+        frame_verdict,
+    });
     Ok(first)
 }
 
@@ -601,6 +632,7 @@ fn diagnose_region(
         Decision {
             verdict,
             refinement,
+            evidence,
             ..
         },
         centre_decisions,
@@ -777,6 +809,7 @@ fn diagnose_region(
         views: diagnoses,
         at_truth,
         verdict,
+        evidence,
         chosen_delta_px,
         verified_delta_px,
         refinement,

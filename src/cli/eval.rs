@@ -310,13 +310,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             &initial.name,
                             search_diagnoses.entry((level, method.name())).or_default(),
                         );
+                        let verdict = diagnosis.frame_verdict();
                         let carried = diagnosis.carried();
                         let outcome = FrameOutcome {
-                            accepted: carried.verdict.accepted(),
+                            accepted: verdict.accepted(),
                             final_delta_px: carried.chosen_delta_px,
-                            confidence: carried.verdict.confidence,
-                            evidence: None,
-                            reason: carried.verdict.rejection().map(|r| r.to_string()),
+                            confidence: verdict.confidence,
+                            evidence: Some(carried.evidence),
+                            reason: verdict.rejection().map(|r| r.to_string()),
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
                             search_ms: 0.0,
                             heading_sweep_ms: 0.0,
@@ -957,7 +958,7 @@ result carries (an accepted retry, else the more confident rejection).\n"
         );
         let _ = writeln!(
             out,
-            "| level | method | frame | first pass δ | first pass verdict (confidence) | retry's first centre δ | retry δ | retry verdict (confidence) | carried |\n|---|---|---|---|---|---|---|---|---|"
+            "| level | method | frame | first pass δ | first pass verdict (confidence) | retry's first centre δ | retry δ | retry verdict (confidence) | carried | the frame's verdict |\n|---|---|---|---|---|---|---|---|---|---|"
         );
         for (key, diagnosis, sweep) in &swept {
             let verdict = |p: &PassEval| {
@@ -977,7 +978,7 @@ result carries (an accepted retry, else the more confident rejection).\n"
                 .and_then(|s| s.retry.as_deref().ok());
             let _ = writeln!(
                 out,
-                "{key} | {} | {} | {} | {} | {} | {} |",
+                "{key} | {} | {} | {} | {} | {} | {} | {} |",
                 px(sweep.first.delta_px),
                 verdict(&sweep.first),
                 px(retry
@@ -992,6 +993,10 @@ result carries (an accepted retry, else the more confident rejection).\n"
                     verdict
                 ),
                 sweep.carried,
+                diagnosis
+                    .frame_verdict()
+                    .rejection()
+                    .map_or("accepted".to_string(), |r| r.to_string()),
             );
         }
     }
@@ -1286,7 +1291,7 @@ pose within {false_accept_px:.2} px of the truth.\n"
     );
     let _ = writeln!(
         out,
-        "| level | method | frame | initial δ | first pass δ | first pass verdict (confidence) | retry δ | retry verdict (confidence) | near | carried |\n|---|---|---|---|---|---|---|---|---|---|"
+        "| level | method | frame | initial δ | first pass δ | first pass verdict (confidence) | retry δ | retry verdict (confidence) | near | carried | the frame's verdict |\n|---|---|---|---|---|---|---|---|---|---|---|"
     );
     let px = |d: Option<f64>| d.map_or("–".to_string(), |d| format!("{d:.2}"));
     let verdict = |p: &PassEval| {
@@ -1310,7 +1315,7 @@ pose within {false_accept_px:.2} px of the truth.\n"
         near += usize::from(retry_near);
         let _ = writeln!(
             out,
-            "| {level} | {method} | {} | {:.1} | {} | {} | {} | {} | {} | {} |",
+            "| {level} | {method} | {} | {:.1} | {} | {} | {} | {} | {} | {} | {} |",
             frame.name,
             frame.initial_delta_px,
             px(sweep.first.delta_px),
@@ -1324,6 +1329,11 @@ pose within {false_accept_px:.2} px of the truth.\n"
             match sweep.carried {
                 Pass::First => "first pass",
                 Pass::HeadingSweep => "retry",
+            },
+            if frame.accepted {
+                "accepted".to_string()
+            } else {
+                frame.reason.clone().unwrap_or_else(|| "rejected".into())
             },
         );
     }

@@ -47,7 +47,9 @@ pub use query::{query_gradient, smooth_depth};
 pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
 pub use search::{search_pose, Beam, PoseSearchOutcome};
 pub use solve::solve_view;
-pub use sweep::{carried_pass, HeadingSweepOutcome, Pass, PassOutcome};
+pub use sweep::{
+    apply_passes_decision, decide_passes, sweep_needed, HeadingSweepOutcome, Pass, PassOutcome,
+};
 pub use views::{
     coarse_poses, median_scene_depth_m, render_coarse_view, render_views, RenderedViews,
 };
@@ -176,8 +178,9 @@ pub struct FrameResult {
     /// What the decision rests on.
     pub evidence: FrameEvidence,
     pub timings: StageTimings,
-    /// When the full-circle heading fallback ran: both registrations' verdicts and which one
-    /// this result carries ([`sweep::carried_pass`]); `None` when it did not run.
+    /// When the full-circle heading fallback ran: both registrations' own verdicts and which one
+    /// this result carries ([`sweep::decide_passes`], whose rejection, if any, `verdict` already
+    /// holds); `None` when it did not run.
     #[serde(default)]
     pub heading_sweep: Option<HeadingSweepOutcome>,
 }
@@ -222,12 +225,12 @@ pub fn register_frame(
 }
 
 /// Registers a frame whose query gradient image (0..1, [`query_gradient`]) is already made:
-/// every step after "query". `config` must be valid. When no pose is accepted and the pose
-/// search's full-circle heading fallback is on
-/// ([`crate::core::pose_search::PoseSearchConfig::heading_sweep`]), the frame is registered once
-/// more with headings swept over the full circle; both outcomes are kept in
-/// [`FrameResult::heading_sweep`] and the result carries the one [`sweep::carried_pass`] chooses
-/// (an accepted retry; else the more confident rejection).
+/// every step after "query". `config` must be valid. When the pose search's full-circle heading
+/// fallback is on ([`crate::core::pose_search::PoseSearchConfig::heading_sweep`]) and the first
+/// pass accepted nothing, or a pose only the photo's edges confirm ([`sweep::sweep_needed`]), the
+/// frame is registered once more with headings swept over the full circle; both outcomes are
+/// kept in [`FrameResult::heading_sweep`] and the frame is decided across them
+/// ([`sweep::decide_passes`]).
 pub fn register_query(
     mesh: &Mesh,
     camera: &Camera,
@@ -253,7 +256,7 @@ pub fn register_query(
     let Some(sweep) = config.pose_search.heading_sweep() else {
         return Ok(first);
     };
-    if first.verdict.accepted() {
+    if !sweep_needed(&first.verdict, &first.evidence) {
         return Ok(first);
     }
     let sweep_started = Instant::now();
@@ -263,31 +266,33 @@ pub fn register_query(
     })
     .map_err(|error| error.to_string());
     let sweep_ms = elapsed_ms(sweep_started);
-    let carried = carried_pass(&first.verdict, retry.as_ref().ok().map(|r| &r.verdict));
-    let outcome = HeadingSweepOutcome {
-        first: PassOutcome {
-            verdict: first.verdict.clone(),
-            evidence: first.evidence,
-        },
-        retry: retry
-            .as_ref()
-            .map(|r| PassOutcome {
-                verdict: r.verdict.clone(),
-                evidence: r.evidence,
-            })
-            .map_err(Clone::clone),
-        carried,
-        sweep_ms,
+    let pass = |result: &FrameResult| PassOutcome {
+        verdict: result.verdict.clone(),
+        evidence: result.evidence,
     };
+    let first_outcome = pass(&first);
+    let retry_outcome = retry.as_ref().map(pass).map_err(Clone::clone);
+    let (carried, rejection) = decide_passes(
+        mesh,
+        &first_outcome,
+        retry_outcome.as_ref().ok(),
+        config.pose_search.centre_agreement_share,
+    );
     let timings = first.timings;
     let mut result = match (carried, retry) {
         (Pass::HeadingSweep, Ok(retry)) => retry,
         _ => first,
     };
+    apply_passes_decision(&mut result.verdict, rejection);
     result.timings = timings;
     result.timings.heading_sweep_ms = sweep_ms;
     result.timings.total_ms = elapsed_ms(started);
-    result.heading_sweep = Some(outcome);
+    result.heading_sweep = Some(HeadingSweepOutcome {
+        first: first_outcome,
+        retry: retry_outcome,
+        carried,
+        sweep_ms,
+    });
     Ok(result)
 }
 

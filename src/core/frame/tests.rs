@@ -167,17 +167,20 @@ fn the_heading_sweep_recovers_a_prior_turned_a_hundred_degrees() {
             result.timings.heading_sweep_ms,
             result.timings.total_ms
         );
-        // Both registrations are kept beside each other, and the result carries the accepted one.
+        // Both registrations are kept beside each other, and the frame is decided across them.
         if let Some(sweep) = &result.heading_sweep {
             assert!(!sweep.first.verdict.accepted());
             let retry = sweep.retry.as_ref().unwrap();
-            assert_eq!(
-                sweep.carried,
-                carried_pass(&sweep.first.verdict, Some(&retry.verdict))
+            let (carried, rejection) = decide_passes(
+                &mesh,
+                &sweep.first,
+                Some(retry),
+                config.pose_search.centre_agreement_share,
             );
-            let carried = sweep.verdict(sweep.carried).unwrap();
-            assert_eq!(carried.decision, result.verdict.decision);
-            assert_eq!(carried.confidence, result.verdict.confidence);
+            assert_eq!(sweep.carried, carried);
+            let mut verdict = sweep.verdict(carried).unwrap().clone();
+            apply_passes_decision(&mut verdict, rejection);
+            assert_eq!(verdict.decision, result.verdict.decision);
         }
         (
             delta_px,
