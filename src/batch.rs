@@ -11,11 +11,13 @@ use serde::{Deserialize, Serialize};
 use crate::core::camera::Camera;
 use crate::core::confidence::FrameEvidence;
 use crate::core::frame::{
-    register_frame, FrameInput, IntrinsicsMode, PoseRefinement, RegistrationConfig, StageTimings,
+    register_frame, FrameInput, IntrinsicsMode, Pass, PoseRefinement, RegistrationConfig,
+    StageTimings,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::core::rigid::Rigid3;
+use crate::core::verify::Verdict;
 use crate::frame_files::{frame_seed, FrameFiles, FrameFilesError, FrameLoader};
 
 /// Where one frame's inputs are.
@@ -69,9 +71,51 @@ pub struct FrameReport {
     /// What the decision rests on (None when the frame was not registered).
     pub evidence: Option<FrameEvidence>,
     pub timings: StageTimings,
+    /// When the full-circle heading fallback ran: both registrations, and which one the fields
+    /// above carry (`core::frame::decide_passes`).
+    #[serde(default)]
+    pub heading_sweep: Option<HeadingSweepReport>,
 }
 
-/// The pose a rejected frame would have output.
+/// What the full-circle heading fallback did for a frame (`core::frame::HeadingSweepOutcome`
+/// with the frame's reported cameras).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct HeadingSweepReport {
+    pub first: PassReport,
+    /// The retry, or why it gave nothing.
+    pub retry: Result<PassReport, String>,
+    /// Which of the two the frame's result carries.
+    pub carried: Pass,
+    /// The retry's wall time, ms.
+    pub sweep_ms: f64,
+}
+
+/// One registration of a frame: its verdict and its output (or would-be output) pose.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PassReport {
+    pub accepted: bool,
+    pub confidence: f64,
+    /// Why it was not accepted.
+    pub reason: Option<String>,
+    /// Its output pose when accepted, else its would-be output (None without any).
+    pub pose: Option<RejectedCandidate>,
+}
+
+impl PassReport {
+    fn of(verdict: &Verdict, reported_camera: impl Fn(&Camera) -> Camera) -> Self {
+        Self {
+            accepted: verdict.accepted(),
+            confidence: verdict.confidence,
+            reason: verdict.rejection().map(|r| r.to_string()),
+            pose: verdict.chosen().map(|h| RejectedCandidate {
+                camera: reported_camera(&h.camera),
+                cam_from_world: h.cam_from_world,
+            }),
+        }
+    }
+}
+
+/// The pose a rejected frame would have output (or, in [`PassReport`], a registration's output).
 #[derive(Clone, Copy, Debug, Serialize, Deserialize)]
 pub struct RejectedCandidate {
     pub camera: Camera,
@@ -99,6 +143,7 @@ impl FrameReport {
             refinement: Err("the frame was not registered".to_string()),
             evidence: None,
             timings: StageTimings::default(),
+            heading_sweep: None,
         }
     }
 }
@@ -173,6 +218,20 @@ pub fn register_batch_frame_with(
     match register_frame(mesh, &frame.input(&files, seed), config) {
         Ok(result) => {
             let verdict = &result.verdict;
+            let reported = |camera: &Camera| frame.reported_camera(&files, camera);
+            let heading_sweep = result
+                .heading_sweep
+                .as_ref()
+                .map(|sweep| HeadingSweepReport {
+                    first: PassReport::of(&sweep.first.verdict, reported),
+                    retry: sweep
+                        .retry
+                        .as_ref()
+                        .map(|retry| PassReport::of(&retry.verdict, reported))
+                        .map_err(Clone::clone),
+                    carried: sweep.carried,
+                    sweep_ms: sweep.sweep_ms,
+                });
             let chosen = verdict.chosen();
             let accepted = verdict.accepted_pose();
             FrameReport {
@@ -202,6 +261,7 @@ pub fn register_batch_frame_with(
                 refinement: result.refinement,
                 evidence: Some(result.evidence),
                 timings: result.timings,
+                heading_sweep,
             }
         }
         Err(error) => FrameReport::failed(frame, format!("{}: {error}", frame.name)),

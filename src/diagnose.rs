@@ -35,11 +35,12 @@ use crate::core::edge_align::{
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
+use crate::core::frame::sweep::{apply_passes_decision, decide_passes, sweep_needed, PassOutcome};
 use crate::core::frame::{
     correspond_view, decide_frame_and_centres, lift_pixel, query_features, query_gradient,
     refine_pose, render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView,
-    CorrespondWorkspace, Decision, FrameInput, IntrinsicsMode, PoseRefinement, RefineWorkspace,
-    RegistrationConfig, RegistrationError, ViewCorrespondences, ViewRef,
+    CorrespondWorkspace, Decision, FrameInput, IntrinsicsMode, Pass, PoseRefinement,
+    RefineWorkspace, RegistrationConfig, RegistrationError, ViewCorrespondences, ViewRef,
 };
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
@@ -114,6 +115,8 @@ pub struct FrameDiagnosis {
     /// a refinement that re-renders at its current pose could reach at best).
     pub at_truth: ViewDiagnosis,
     pub verdict: Verdict,
+    /// What the verdict rests on (the decision's own).
+    pub evidence: FrameEvidence,
     /// δ(output or would-be output, truth), px (after the refinement).
     pub chosen_delta_px: Option<f64>,
     /// δ(the pose verification chose, truth), px: before the refinement.
@@ -147,6 +150,44 @@ pub struct FrameDiagnosis {
     /// photo confirms a pose where its edges cannot.
     pub truth_correlation: Option<CorrelationPeak>,
     pub output_correlation: Option<CorrelationPeak>,
+    /// The full-circle heading fallback, when registration would run it (no pose accepted and
+    /// the fallback on): the retry diagnosed the same way, and which of the two registrations
+    /// the frame's result carries (`core::frame::decide_passes`, registration's own rule). The
+    /// fields above are the first pass's.
+    pub heading_sweep: Option<SweepDiagnosis>,
+}
+
+/// The heading fallback's retry against the truth.
+#[derive(Clone, Debug, Serialize)]
+pub struct SweepDiagnosis {
+    /// The retry's diagnosis (its own `heading_sweep` is `None`), or why it gave none.
+    pub retry: Result<Box<FrameDiagnosis>, String>,
+    pub carried: Pass,
+    /// The frame's verdict after the decision across the two registrations
+    /// (`core::frame::decide_passes`): the carried one's, or a rejection of it.
+    pub frame_verdict: Verdict,
+}
+
+impl FrameDiagnosis {
+    /// The frame's verdict, as registration decides it (after the heading fallback when it ran).
+    pub fn frame_verdict(&self) -> &Verdict {
+        self.heading_sweep
+            .as_ref()
+            .map_or(&self.verdict, |s| &s.frame_verdict)
+    }
+
+    /// The diagnosis of the registration the frame's result carries: the retry's when the
+    /// fallback's is carried, else this one.
+    pub fn carried(&self) -> &FrameDiagnosis {
+        match &self.heading_sweep {
+            Some(SweepDiagnosis {
+                retry: Ok(retry),
+                carried: Pass::HeadingSweep,
+                ..
+            }) => retry,
+            _ => self,
+        }
+    }
 }
 
 /// One centre of the coarse poses: its own decision (as `core::frame::decide_frame_and_centres` keeps it)
@@ -434,9 +475,70 @@ pub fn diagnose_frame(
 }
 
 /// As [`diagnose_frame`] for a frame whose query gradient image is already made (as
-/// `core::frame::register_query`). `config` must be valid.
+/// `core::frame::register_query`, with its full-circle heading fallback when that is on and no
+/// pose was accepted). `config` must be valid.
 #[allow(clippy::too_many_arguments)]
 pub fn diagnose_query(
+    mesh: &Mesh,
+    camera: &Camera,
+    intrinsics: IntrinsicsMode,
+    initial_cam_from_world: &Rigid3,
+    query: ImageView<'_, f32>,
+    truth: &Rigid3,
+    config: &RegistrationConfig,
+    seed: u64,
+) -> Result<FrameDiagnosis, RegistrationError> {
+    let diagnose = |config: &RegistrationConfig| {
+        diagnose_region(
+            mesh,
+            camera,
+            intrinsics,
+            initial_cam_from_world,
+            query,
+            truth,
+            config,
+            seed,
+        )
+    };
+    let mut first = diagnose(config)?;
+    let Some(sweep) = config.pose_search.heading_sweep() else {
+        return Ok(first);
+    };
+    if !sweep_needed(&first.verdict, &first.evidence) {
+        return Ok(first);
+    }
+    let retry = diagnose(&RegistrationConfig {
+        pose_search: sweep,
+        ..config.clone()
+    })
+    .map(Box::new)
+    .map_err(|error| error.to_string());
+    let pass = |d: &FrameDiagnosis| PassOutcome {
+        verdict: d.verdict.clone(),
+        evidence: d.evidence,
+    };
+    let (carried, rejection) = decide_passes(
+        mesh,
+        &pass(&first),
+        retry.as_deref().ok().map(pass).as_ref(),
+        config.pose_search.centre_agreement_share,
+    );
+    let mut frame_verdict = match (carried, &retry) {
+        (Pass::HeadingSweep, Ok(retry)) => retry.verdict.clone(),
+        _ => first.verdict.clone(),
+    };
+    apply_passes_decision(&mut frame_verdict, rejection);
+    first.heading_sweep = Some(SweepDiagnosis {
+        retry,
+        carried,
+        frame_verdict,
+    });
+    Ok(first)
+}
+
+/// [`diagnose_query`] within the pose search's region of `config` alone (no fallback).
+#[allow(clippy::too_many_arguments)]
+fn diagnose_region(
     mesh: &Mesh,
     camera: &Camera,
     intrinsics: IntrinsicsMode,
@@ -530,6 +632,7 @@ pub fn diagnose_query(
         Decision {
             verdict,
             refinement,
+            evidence,
             ..
         },
         centre_decisions,
@@ -706,6 +809,7 @@ pub fn diagnose_query(
         views: diagnoses,
         at_truth,
         verdict,
+        evidence,
         chosen_delta_px,
         verified_delta_px,
         refinement,
@@ -719,6 +823,7 @@ pub fn diagnose_query(
         truth_best_confidence,
         truth_correlation,
         output_correlation,
+        heading_sweep: None,
     })
 }
 

@@ -6,6 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::core::confidence::FrameEvidence;
+use crate::core::frame::Pass;
 
 /// One frame of one evaluation run.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -23,6 +24,30 @@ pub struct EvalFrame {
     pub evidence: Option<FrameEvidence>,
     pub reason: Option<String>,
     pub total_ms: f64,
+    /// When the full-circle heading fallback ran: both registrations against the truth, and
+    /// which one the fields above are.
+    #[serde(default)]
+    pub heading_sweep: Option<SweepEval>,
+}
+
+/// The heading fallback's two registrations of an [`EvalFrame`].
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SweepEval {
+    pub first: PassEval,
+    /// None when the retry gave no result (an error, in `reason` of the frame's log).
+    pub retry: Option<PassEval>,
+    pub carried: Pass,
+    pub sweep_ms: f64,
+}
+
+/// One registration of a frame against the truth.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PassEval {
+    pub accepted: bool,
+    pub confidence: f64,
+    /// δ(its output or would-be output, P_gt), px.
+    pub delta_px: Option<f64>,
+    pub reason: Option<String>,
 }
 
 /// Statistics of one (level, method) cell.
@@ -136,6 +161,7 @@ mod tests {
             evidence: None,
             reason: None,
             total_ms: 100.0,
+            heading_sweep: None,
         }
     }
 

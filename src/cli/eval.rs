@@ -11,10 +11,15 @@ use anyhow::{bail, Context};
 use asgreg::baseline::icp::{
     register_depth_to_mesh, IcpConfig, IcpVariant, ICP_SUCCESS_THRESHOLD_PX,
 };
-use asgreg::batch::{register_batch_frame, BatchFrame, FrameReport};
+use asgreg::batch::{
+    register_batch_frame, BatchFrame, FrameReport, HeadingSweepReport, PassReport,
+    RejectedCandidate,
+};
 use asgreg::core::camera::Camera;
 use asgreg::core::confidence::FrameEvidence;
-use asgreg::core::frame::{FrameInput, IntrinsicsMode, RegistrationConfig, RegistrationError};
+use asgreg::core::frame::{
+    FrameInput, IntrinsicsMode, Pass, RegistrationConfig, RegistrationError,
+};
 use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::diagnose::{
@@ -22,7 +27,8 @@ use asgreg::diagnose::{
     ORACLE_MAX_ERROR_PX,
 };
 use asgreg::eval::{
-    calibration_bins, cell_stats, format_accuracy, CalibrationBin, CellStats, EvalFrame,
+    calibration_bins, cell_stats, format_accuracy, CalibrationBin, CellStats, EvalFrame, PassEval,
+    SweepEval,
 };
 use asgreg::frame_files::depth_path_for;
 use asgreg::io::colmap::{read_cameras_txt, read_images_txt, ImagePose};
@@ -275,6 +281,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     total_ms: elapsed_ms,
                     search_ms: diagnosis.as_ref().map_or(0.0, |d| d.search_ms),
                     heading_sweep_ms: 0.0,
+                    heading_sweep: None,
                 };
                 if let Ok(diagnosis) = diagnosis {
                     search_diagnoses
@@ -298,25 +305,23 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     |input| diagnose_frame(&mesh, input, &gt.cam_from_world, &config),
                 ) {
                     Ok(mut diagnosis) => {
-                        if let Some(search) = diagnosis.search.take() {
-                            search_diagnoses
-                                .entry((level, method.name()))
-                                .or_default()
-                                .push((
-                                    initial.name.clone(),
-                                    Some(diagnosis.verdict.accepted()),
-                                    search,
-                                ));
-                        }
+                        take_search_diagnoses(
+                            &mut diagnosis,
+                            &initial.name,
+                            search_diagnoses.entry((level, method.name())).or_default(),
+                        );
+                        let verdict = diagnosis.frame_verdict();
+                        let carried = diagnosis.carried();
                         let outcome = FrameOutcome {
-                            accepted: diagnosis.verdict.accepted(),
-                            final_delta_px: diagnosis.chosen_delta_px,
-                            confidence: diagnosis.verdict.confidence,
-                            evidence: None,
-                            reason: diagnosis.verdict.rejection().map(|r| r.to_string()),
+                            accepted: verdict.accepted(),
+                            final_delta_px: carried.chosen_delta_px,
+                            confidence: verdict.confidence,
+                            evidence: Some(carried.evidence),
+                            reason: verdict.rejection().map(|r| r.to_string()),
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
                             search_ms: 0.0,
                             heading_sweep_ms: 0.0,
+                            heading_sweep: sweep_eval_of_diagnosis(&diagnosis),
                         };
                         diagnoses
                             .entry((level, method.name()))
@@ -333,6 +338,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
                         search_ms: 0.0,
                         heading_sweep_ms: 0.0,
+                        heading_sweep: None,
                     },
                 }
             }
@@ -391,6 +397,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     total_ms: report.timings.total_ms,
                     search_ms: report.timings.search_ms,
                     heading_sweep_ms: report.timings.heading_sweep_ms,
+                    heading_sweep: report.heading_sweep.as_ref().map(|sweep| {
+                        sweep_eval(sweep, |pose| {
+                            mutual_reprojection_error_px(
+                                &mesh,
+                                &pose.camera,
+                                &pose.cam_from_world,
+                                &camera,
+                                &gt.cam_from_world,
+                                &mut workspace,
+                            )
+                        })
+                    }),
                 }
             }
             Method::Icp(variant) => {
@@ -435,6 +453,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             total_ms: started.elapsed().as_secs_f64() * 1e3,
                             search_ms: 0.0,
                             heading_sweep_ms: 0.0,
+                            heading_sweep: None,
                         }
                     }
                     Err(reason) => FrameOutcome {
@@ -446,6 +465,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         total_ms: started.elapsed().as_secs_f64() * 1e3,
                         search_ms: 0.0,
                         heading_sweep_ms: 0.0,
+                        heading_sweep: None,
                     },
                 }
             }
@@ -467,7 +487,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             },
             outcome.total_ms / 1e3,
             outcome.search_ms / 1e3
-        );
+        ) + &outcome
+            .heading_sweep
+            .as_ref()
+            .map_or(String::new(), |sweep| format!(" {}", sweep_line(sweep)));
         *search_ms.entry((level, method.name())).or_insert(0.0) += outcome.search_ms;
         let sweep = sweep_ms.entry((level, method.name())).or_insert((0.0, 0));
         if outcome.heading_sweep_ms > 0.0 {
@@ -509,6 +532,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 evidence: outcome.evidence,
                 reason: outcome.reason,
                 total_ms: outcome.total_ms,
+                heading_sweep: outcome.heading_sweep,
             });
     }
     bar.finish_and_clear();
@@ -534,6 +558,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         })
         .collect();
     table.push_str(&calibration_markdown(&calibration, false_accept_px));
+    table.push_str(&sweep_markdown(&results, false_accept_px));
     std::fs::write(args.out.join("results.md"), &table)
         .with_context(|| format!("writing {}", args.out.join("results.md").display()))?;
     let json = serde_json::json!({
@@ -828,7 +853,7 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for ((level, method), frames) in diagnoses {
-        for (name, diagnosis) in frames {
+        for (name, diagnosis) in with_retries(frames) {
             let s = DiagnosisSummary::of(std::slice::from_ref(diagnosis));
             let _ = writeln!(
                 out,
@@ -892,7 +917,10 @@ paper's plausibility check of its refined poses; apart: δ from its output to th
     );
     let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for ((level, method), frames) in diagnoses {
-        for (name, diagnosis) in frames.iter().filter(|(_, d)| d.centres.len() > 1) {
+        for (name, diagnosis) in with_retries(frames)
+            .into_iter()
+            .filter(|(_, d)| d.centres.len() > 1)
+        {
             for (index, centre) in diagnosis.centres.iter().enumerate() {
                 let _ = writeln!(
                     out,
@@ -912,7 +940,82 @@ paper's plausibility check of its refined poses; apart: δ from its output to th
             }
         }
     }
+    let swept: Vec<(String, &FrameDiagnosis, SweepEval)> = diagnoses
+        .iter()
+        .flat_map(|((level, method), frames)| {
+            frames.iter().filter_map(move |(name, d)| {
+                sweep_eval_of_diagnosis(d).map(|e| (format!("| {level} | {method} | {name}"), d, e))
+            })
+        })
+        .collect();
+    if !swept.is_empty() {
+        let _ = writeln!(
+            out,
+            "\n## Heading sweep (fallback)\n\nFrames whose first pass was not accepted, diagnosed once more with headings \
+swept over the full circle (rows \"(sweep)\" above): each registration's output (or would-be output) δ to the \
+truth, its verdict and confidence, the first centre's δ of the retry's search, and which registration the frame's \
+result carries (an accepted retry, else the more confident rejection).\n"
+        );
+        let _ = writeln!(
+            out,
+            "| level | method | frame | first pass δ | first pass verdict (confidence) | retry's first centre δ | retry δ | retry verdict (confidence) | carried | the frame's verdict |\n|---|---|---|---|---|---|---|---|---|---|"
+        );
+        for (key, diagnosis, sweep) in &swept {
+            let verdict = |p: &PassEval| {
+                format!(
+                    "{} ({:.2})",
+                    if p.accepted {
+                        "accepted".to_string()
+                    } else {
+                        p.reason.clone().unwrap_or_else(|| "rejected".into())
+                    },
+                    p.confidence
+                )
+            };
+            let retry = diagnosis
+                .heading_sweep
+                .as_ref()
+                .and_then(|s| s.retry.as_deref().ok());
+            let _ = writeln!(
+                out,
+                "{key} | {} | {} | {} | {} | {} | {} | {} |",
+                px(sweep.first.delta_px),
+                verdict(&sweep.first),
+                px(retry
+                    .and_then(|r| r.centres.first())
+                    .and_then(|c| c.centre_delta_px)),
+                px(sweep.retry.as_ref().and_then(|r| r.delta_px)),
+                sweep.retry.as_ref().map_or_else(
+                    || match diagnosis.heading_sweep.as_ref().map(|s| &s.retry) {
+                        Some(Err(why)) => format!("no result: {why}"),
+                        _ => "no result".to_string(),
+                    },
+                    verdict
+                ),
+                sweep.carried,
+                diagnosis
+                    .frame_verdict()
+                    .rejection()
+                    .map_or("accepted".to_string(), |r| r.to_string()),
+            );
+        }
+    }
     out
+}
+
+/// A cell's frames and, after each whose heading fallback ran, the retry as "<name> (sweep)".
+fn with_retries(frames: &[(String, FrameDiagnosis)]) -> Vec<(String, &FrameDiagnosis)> {
+    frames
+        .iter()
+        .flat_map(|(name, diagnosis)| {
+            let retry = diagnosis
+                .heading_sweep
+                .as_ref()
+                .and_then(|s| s.retry.as_deref().ok())
+                .map(|retry| (format!("{name} (sweep)"), retry));
+            std::iter::once((name.clone(), diagnosis)).chain(retry)
+        })
+        .collect()
 }
 
 /// Each frame's pose search against the truth, by (level, method): name, the verdict when the
@@ -1078,6 +1181,173 @@ Every frame with an output pose, accepted or not; correct = δ to ground truth �
     out
 }
 
+/// The heading fallback's two registrations against the truth (`delta`: δ of a pose to it).
+pub(super) fn sweep_eval(
+    sweep: &HeadingSweepReport,
+    mut delta: impl FnMut(&RejectedCandidate) -> Option<f64>,
+) -> SweepEval {
+    let mut pass = |report: &PassReport| PassEval {
+        accepted: report.accepted,
+        confidence: report.confidence,
+        delta_px: report.pose.as_ref().and_then(&mut delta),
+        reason: report.reason.clone(),
+    };
+    SweepEval {
+        first: pass(&sweep.first),
+        retry: sweep.retry.as_ref().ok().map(&mut pass),
+        carried: sweep.carried,
+        sweep_ms: sweep.sweep_ms,
+    }
+}
+
+/// [`SweepEval`] of a diagnosis whose fallback ran (its first pass and its retry, as diagnosed).
+pub(super) fn sweep_eval_of_diagnosis(diagnosis: &FrameDiagnosis) -> Option<SweepEval> {
+    let sweep = diagnosis.heading_sweep.as_ref()?;
+    let pass = |d: &FrameDiagnosis| PassEval {
+        accepted: d.verdict.accepted(),
+        confidence: d.verdict.confidence,
+        delta_px: d.chosen_delta_px,
+        reason: d.verdict.rejection().map(|r| r.to_string()),
+    };
+    Some(SweepEval {
+        first: pass(diagnosis),
+        retry: sweep.retry.as_deref().ok().map(pass),
+        carried: sweep.carried,
+        sweep_ms: 0.0,
+    })
+}
+
+/// A frame's search diagnoses moved into `into`: the first pass's, then the heading fallback's
+/// retry's as "<name> (sweep)".
+pub(super) fn take_search_diagnoses(
+    diagnosis: &mut FrameDiagnosis,
+    name: &str,
+    into: &mut Vec<(String, Option<bool>, SearchDiagnosis)>,
+) {
+    if let Some(search) = diagnosis.search.take() {
+        into.push((name.to_string(), Some(diagnosis.verdict.accepted()), search));
+    }
+    if let Some(Ok(retry)) = diagnosis.heading_sweep.as_mut().map(|s| s.retry.as_mut()) {
+        if let Some(search) = retry.search.take() {
+            into.push((
+                format!("{name} (sweep)"),
+                Some(retry.verdict.accepted()),
+                search,
+            ));
+        }
+    }
+}
+
+/// "a pass: δ D px, accepted|rejected (confidence C)".
+fn pass_text(pass: &PassEval) -> String {
+    format!(
+        "δ {} px, {} ({:.2})",
+        pass.delta_px.map_or("–".to_string(), |d| format!("{d:.1}")),
+        if pass.accepted {
+            "accepted"
+        } else {
+            "rejected"
+        },
+        pass.confidence
+    )
+}
+
+/// The heading fallback on a frame's log line.
+pub(super) fn sweep_line(sweep: &SweepEval) -> String {
+    format!(
+        "[heading sweep: first pass {}; retry {}; carried: {}]",
+        pass_text(&sweep.first),
+        sweep
+            .retry
+            .as_ref()
+            .map_or("gave no result".to_string(), pass_text),
+        sweep.carried
+    )
+}
+
+/// results.md's table of the heading fallback: one line per frame it ran on.
+fn sweep_markdown(
+    results: &BTreeMap<(Level, &'static str), Vec<EvalFrame>>,
+    false_accept_px: f64,
+) -> String {
+    let rows: Vec<(&Level, &str, &EvalFrame, &SweepEval)> = results
+        .iter()
+        .flat_map(|((level, method), frames)| {
+            frames
+                .iter()
+                .filter_map(move |f| f.heading_sweep.as_ref().map(|s| (level, *method, f, s)))
+        })
+        .collect();
+    if rows.is_empty() {
+        return String::new();
+    }
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "\n## Heading sweep (fallback)\n\nFrames the first pass did not accept, registered once more with headings over the \
+full circle: each registration's output (or would-be output) δ to the truth, its verdict and confidence, and \
+which one the frame's result carries (an accepted retry, else the more confident rejection). Near: the retry's \
+pose within {false_accept_px:.2} px of the truth.\n"
+    );
+    let _ = writeln!(
+        out,
+        "| level | method | frame | initial δ | first pass δ | first pass verdict (confidence) | retry δ | retry verdict (confidence) | near | carried | the frame's verdict |\n|---|---|---|---|---|---|---|---|---|---|---|"
+    );
+    let px = |d: Option<f64>| d.map_or("–".to_string(), |d| format!("{d:.2}"));
+    let verdict = |p: &PassEval| {
+        format!(
+            "{} ({:.2})",
+            if p.accepted {
+                "accepted".to_string()
+            } else {
+                p.reason.clone().unwrap_or_else(|| "rejected".into())
+            },
+            p.confidence
+        )
+    };
+    let mut near = 0;
+    for (level, method, frame, sweep) in &rows {
+        let retry_near = sweep
+            .retry
+            .as_ref()
+            .and_then(|r| r.delta_px)
+            .is_some_and(|d| d <= false_accept_px);
+        near += usize::from(retry_near);
+        let _ = writeln!(
+            out,
+            "| {level} | {method} | {} | {:.1} | {} | {} | {} | {} | {} | {} | {} |",
+            frame.name,
+            frame.initial_delta_px,
+            px(sweep.first.delta_px),
+            verdict(&sweep.first),
+            px(sweep.retry.as_ref().and_then(|r| r.delta_px)),
+            sweep
+                .retry
+                .as_ref()
+                .map_or("no result".to_string(), verdict),
+            if retry_near { "yes" } else { "no" },
+            match sweep.carried {
+                Pass::First => "first pass",
+                Pass::HeadingSweep => "retry",
+            },
+            if frame.accepted {
+                "accepted".to_string()
+            } else {
+                frame.reason.clone().unwrap_or_else(|| "rejected".into())
+            },
+        );
+    }
+    let _ = writeln!(
+        out,
+        "\nThe sweep ran on {} frames; its pose was near the truth on {near}, accepted on {}.",
+        rows.len(),
+        rows.iter()
+            .filter(|(_, _, _, s)| s.retry.as_ref().is_some_and(|r| r.accepted))
+            .count()
+    );
+    out
+}
+
 /// One frame's result under one method.
 struct FrameOutcome {
     accepted: bool,
@@ -1090,6 +1360,8 @@ struct FrameOutcome {
     search_ms: f64,
     /// The full-circle heading fallback's share of `total_ms` (0 when it did not run).
     heading_sweep_ms: f64,
+    /// The fallback's two registrations against the truth, when it ran.
+    heading_sweep: Option<SweepEval>,
 }
 
 fn results_markdown(

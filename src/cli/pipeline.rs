@@ -234,6 +234,9 @@ pub(super) fn synthetic_scene_with(
         changes,
         no_heading_level: true,
         triangles: 1_000_000,
+        heading_min_deg: asgreg::synth::initial::HeadingNoise::default().heading_min_deg,
+        heading_max_deg: asgreg::synth::initial::HeadingNoise::default().heading_max_deg,
+        heading_flip_every: asgreg::synth::initial::HeadingNoise::default().flip_every,
     };
     asgreg::synth::generate_scene(&args.config(), &scene)?;
     Ok(scene)

@@ -93,10 +93,14 @@ pub struct RegisterArgs {
 
 /// A frame's mutual reprojection error δ to its true pose, px: under the initial pose and under
 /// the accepted one.
-#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+#[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct TruthDelta {
     pub initial_px: Option<f64>,
     pub final_px: Option<f64>,
+    /// A rejected frame's would-be output (never a result).
+    pub rejected_candidate_px: Option<f64>,
+    /// When the heading fallback ran: both registrations against the truth.
+    pub heading_sweep: Option<asgreg::eval::SweepEval>,
 }
 
 /// δ of each frame's initial and accepted pose to the truth of `truth_path` (`None` for frames
@@ -127,6 +131,21 @@ fn truth_deltas(
                 cameras_file.display()
             )
         })?;
+        let mut delta_of = |pose: &asgreg::batch::RejectedCandidate| {
+            mutual_reprojection_error_px(
+                mesh,
+                &pose.camera,
+                &pose.cam_from_world,
+                camera,
+                &truth.cam_from_world,
+                &mut workspace,
+            )
+        };
+        let rejected_candidate_px = report.rejected_candidate.as_ref().and_then(&mut delta_of);
+        let heading_sweep = report
+            .heading_sweep
+            .as_ref()
+            .map(|sweep| super::eval::sweep_eval(sweep, &mut delta_of));
         let mut delta = |pose: &asgreg::core::rigid::Rigid3| {
             mutual_reprojection_error_px(
                 mesh,
@@ -143,6 +162,8 @@ fn truth_deltas(
                 .cam_from_world
                 .filter(|_| report.accepted)
                 .and_then(|pose| delta(&pose)),
+            rejected_candidate_px,
+            heading_sweep,
         }));
     }
     Ok(deltas)
@@ -189,13 +210,11 @@ fn diagnose_frames(
             config,
         ) {
             Ok(mut diagnosis) => {
-                if let Some(search) = diagnosis.search.take() {
-                    search_diagnoses.entry((RUN, "ASG")).or_default().push((
-                        frame.name.clone(),
-                        Some(diagnosis.verdict.accepted()),
-                        search,
-                    ));
-                }
+                super::eval::take_search_diagnoses(
+                    &mut diagnosis,
+                    &frame.name,
+                    search_diagnoses.entry((RUN, "ASG")).or_default(),
+                );
                 diagnoses
                     .entry((RUN, "ASG"))
                     .or_default()
@@ -600,7 +619,7 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
             let Some(delta) = delta else { continue };
             let show = |d: Option<f64>| d.map_or("-".to_string(), |d| format!("{d:.2} px"));
             println!(
-                "{}: {}, δ to the truth {} → {}",
+                "{}: {}, δ to the truth {} → {}{}",
                 report.name,
                 if report.accepted {
                     "accepted"
@@ -608,8 +627,16 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
                     "not accepted"
                 },
                 show(delta.initial_px),
-                show(delta.final_px)
+                show(delta.final_px.or(delta.rejected_candidate_px)),
+                if report.accepted {
+                    ""
+                } else {
+                    " (its rejected candidate)"
+                }
             );
+            if let Some(sweep) = &delta.heading_sweep {
+                println!("  {}", super::eval::sweep_line(sweep));
+            }
         }
         println!(
             "δ to the truth: accepted {}; initial (all frames) {}",
@@ -730,8 +757,8 @@ fn write_outputs(
         page_frames.push(report_frame(
             report,
             None,
-            delta.and_then(|d| d.initial_px),
-            delta.and_then(|d| d.final_px),
+            delta.as_ref().and_then(|d| d.initial_px),
+            delta.as_ref().and_then(|d| d.final_px),
             pictures,
         ));
     }
@@ -866,6 +893,27 @@ pub fn report_frame(
     ];
     if let Some(rms) = report.inlier_rms_px {
         details.push(("inlier RMS".to_string(), format!("{rms:.2} px")));
+    }
+    if let Some(sweep) = &report.heading_sweep {
+        let pass = |p: &asgreg::batch::PassReport| {
+            format!(
+                "{} ({:.2})",
+                if p.accepted { "accepted" } else { "rejected" },
+                p.confidence
+            )
+        };
+        details.push((
+            "heading sweep (fallback)".to_string(),
+            format!(
+                "first pass {}, retry {}; carried: {}",
+                pass(&sweep.first),
+                sweep
+                    .retry
+                    .as_ref()
+                    .map_or_else(|why| format!("failed ({why})"), pass),
+                sweep.carried
+            ),
+        ));
     }
     ReportFrame {
         name: report.name.clone(),

@@ -38,6 +38,15 @@ pub struct SynthArgs {
     /// fourth photo, pitch/roll within 1°, GPS-like centre noise).
     #[arg(long)]
     pub no_heading_level: bool,
+    /// The `heading` level's heading error range, degrees: ±U(min, max) (e.g. 60 and 180 for
+    /// priors outside the pose search's ±45° around the heading and its flip).
+    #[arg(long, default_value_t = asgreg::synth::initial::HeadingNoise::default().heading_min_deg)]
+    pub heading_min_deg: f64,
+    #[arg(long, default_value_t = asgreg::synth::initial::HeadingNoise::default().heading_max_deg)]
+    pub heading_max_deg: f64,
+    /// The `heading` level: every this many photos the heading is 180° off instead (0: never).
+    #[arg(long, default_value_t = asgreg::synth::initial::HeadingNoise::default().flip_every)]
+    pub heading_flip_every: usize,
     /// `--scene city`: triangles of the city mesh (10^7 for a district).
     #[arg(long, default_value_t = 1_000_000)]
     pub triangles: u64,
@@ -66,6 +75,12 @@ impl SynthArgs {
             initial_levels_px: self.levels.clone(),
             changes: self.changes,
             heading_level: !self.no_heading_level,
+            heading_noise: asgreg::synth::initial::HeadingNoise {
+                heading_min_deg: self.heading_min_deg,
+                heading_max_deg: self.heading_max_deg,
+                flip_every: self.heading_flip_every,
+                ..asgreg::synth::initial::HeadingNoise::default()
+            },
             ..SynthConfig::default()
         }
     }
@@ -147,6 +162,18 @@ fn print_city_summary(summary: &CitySceneSummary, out: &std::path::Path) {
 }
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
+    if !(args.heading_min_deg.is_finite()
+        && args.heading_max_deg.is_finite()
+        && 0.0 <= args.heading_min_deg
+        && args.heading_min_deg <= args.heading_max_deg
+        && args.heading_max_deg <= 180.0)
+    {
+        anyhow::bail!(
+            "--heading-min-deg {} / --heading-max-deg {}: need 0 ≤ min ≤ max ≤ 180",
+            args.heading_min_deg,
+            args.heading_max_deg
+        );
+    }
     if args.scene == SceneArg::City {
         let summary = generate_city_scene(&city_config(args), &args.out)?;
         print_city_summary(&summary, &args.out);

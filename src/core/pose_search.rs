@@ -125,9 +125,10 @@ pub struct PoseSearchConfig {
     /// on its higher edge support; docs/measurements.md, branch `reach5`).
     pub centre_agreement_share: f64,
     /// The full-circle heading fallback (issue #12 item 1): when a frame's search region gave no
-    /// accepted pose, the frame is registered once more with headings swept over the full
-    /// circle at this step, degrees ([`PoseSearchConfig::heading_sweep`]); the region's other
-    /// settings stay. 0: no fallback (default: not yet measured on the synthetic levels, and a
+    /// accepted pose, or one only the photo's edges confirm (the plausibility check failed), the
+    /// frame is registered once more with headings swept over the full circle at this step,
+    /// degrees ([`PoseSearchConfig::heading_sweep`]), and decided across both registrations
+    /// (`core::frame::sweep::decide_passes`); the region's other settings stay. 0: no fallback (default: not yet measured on the synthetic levels, and a
     /// rejected frame's time doubles; `register_query` runs it, the pipeline's stages do not).
     pub heading_sweep_step_deg: f64,
 }

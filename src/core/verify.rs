@@ -179,6 +179,12 @@ pub enum RejectionReason {
         /// δ between the two poses, px.
         apart_px: f64,
     },
+    /// The full-circle heading fallback's pose is confirmed by the photo's edges alone: its
+    /// coarse poses' refined poses did not pass the plausibility check. Over the whole circle
+    /// the search picks the pose whose edges fit best among many more look-alikes than in the
+    /// region the confidence was calibrated on, so its edge support no longer confirms it on
+    /// its own (`core::frame::sweep::decide_passes`).
+    SweepUnchecked { confidence: f64 },
 }
 
 impl std::fmt::Display for RejectionReason {
@@ -234,6 +240,10 @@ impl std::fmt::Display for RejectionReason {
             } => write!(
                 f,
                 "the photo confirms two distinct poses {apart_px:.0} px apart (confidence {confidence:.2} and {rival_confidence:.2}), from different headings of the pose search: give a better prior (heading) to register this frame"
+            ),
+            RejectionReason::SweepUnchecked { confidence } => write!(
+                f,
+                "the full-circle heading sweep's pose is confirmed by the photo's edges alone (confidence {confidence:.2}); its refined poses failed the plausibility check: give a better prior (heading) to register this frame"
             ),
         }
     }

@@ -215,35 +215,50 @@ fn choose_among_centres(
     });
     let mut decisions = decisions.into_iter();
     let mut chosen = decisions.next()?;
-    let Ok(pose) = chosen.verdict.decision.clone() else {
-        return Some(chosen);
-    };
+    let rivals: Vec<Verdict> = decisions.map(|d| d.verdict).collect();
+    if let Some(reason) = distinct_confirmed_rival(mesh, &chosen.verdict, &rivals, agreement_share)
+    {
+        reject(&mut chosen.verdict, reason);
+    }
+    Some(chosen)
+}
+
+/// When `chosen` is accepted and one of `others` confirms a pose at least `agreement_share` of
+/// the compatibility threshold away from it, the photo confirms two distinct poses:
+/// [`RejectionReason::Ambiguous`] (see [`choose_among_centres`]; also across the heading
+/// fallback's two registrations, [`super::sweep::decide_passes`]). `None` otherwise.
+pub(super) fn distinct_confirmed_rival(
+    mesh: &Mesh,
+    chosen: &Verdict,
+    others: &[Verdict],
+    agreement_share: f64,
+) -> Option<RejectionReason> {
+    let pose = chosen.accepted_pose()?;
     let mut workspace = ReprojectionWorkspace::new();
-    let rival = decisions.filter(|d| d.verdict.accepted()).find_map(|d| {
-        let other = d.verdict.chosen()?;
+    others.iter().filter(|v| v.accepted()).find_map(|other| {
+        let other_pose = other.chosen()?;
         let apart_px = mutual_reprojection_error_px(
             mesh,
             &pose.camera,
             &pose.cam_from_world,
-            &other.camera,
-            &other.cam_from_world,
+            &other_pose.camera,
+            &other_pose.cam_from_world,
             &mut workspace,
         )
         .unwrap_or(f64::INFINITY);
-        (apart_px >= agreement_share * chosen.verdict.threshold_px)
-            .then_some((d.verdict.confidence, apart_px))
-    });
-    if let Some((rival_confidence, apart_px)) = rival {
-        chosen.verdict.decision = Err(Rejection {
-            reason: RejectionReason::Ambiguous {
-                confidence: chosen.verdict.confidence,
-                rival_confidence,
-                apart_px,
-            },
-            candidate: Some(pose),
-        });
-    }
-    Some(chosen)
+        (apart_px >= agreement_share * chosen.threshold_px).then_some(RejectionReason::Ambiguous {
+            confidence: chosen.confidence,
+            rival_confidence: other.confidence,
+            apart_px,
+        })
+    })
+}
+
+/// Turns `verdict` into a rejection for `reason`, its pose (accepted or would-be) kept as the
+/// candidate.
+pub(super) fn reject(verdict: &mut Verdict, reason: RejectionReason) {
+    let candidate = verdict.chosen().copied();
+    verdict.decision = Err(Rejection { reason, candidate });
 }
 
 /// The accept decision on the calibrated confidence (issue #11 item 4): the verdict's confidence

@@ -27,6 +27,7 @@ pub mod query;
 pub mod refine;
 pub mod search;
 pub mod solve;
+pub mod sweep;
 pub mod views;
 
 use std::time::Instant;
@@ -46,6 +47,9 @@ pub use query::{query_gradient, smooth_depth};
 pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
 pub use search::{search_pose, Beam, PoseSearchOutcome};
 pub use solve::solve_view;
+pub use sweep::{
+    apply_passes_decision, decide_passes, sweep_needed, HeadingSweepOutcome, Pass, PassOutcome,
+};
 pub use views::{
     coarse_poses, median_scene_depth_m, render_coarse_view, render_views, RenderedViews,
 };
@@ -174,6 +178,11 @@ pub struct FrameResult {
     /// What the decision rests on.
     pub evidence: FrameEvidence,
     pub timings: StageTimings,
+    /// When the full-circle heading fallback ran: both registrations' own verdicts and which one
+    /// this result carries ([`sweep::decide_passes`], whose rejection, if any, `verdict` already
+    /// holds); `None` when it did not run.
+    #[serde(default)]
+    pub heading_sweep: Option<HeadingSweepOutcome>,
 }
 
 fn elapsed_ms(started: Instant) -> f64 {
@@ -216,10 +225,12 @@ pub fn register_frame(
 }
 
 /// Registers a frame whose query gradient image (0..1, [`query_gradient`]) is already made:
-/// every step after "query". `config` must be valid. When no pose is accepted and the pose
-/// search's full-circle heading fallback is on
-/// ([`crate::core::pose_search::PoseSearchConfig::heading_sweep`]), the frame is registered once
-/// more with headings swept over the full circle, and that result counts when it is accepted.
+/// every step after "query". `config` must be valid. When the pose search's full-circle heading
+/// fallback is on ([`crate::core::pose_search::PoseSearchConfig::heading_sweep`]) and the first
+/// pass accepted nothing, or a pose only the photo's edges confirm ([`sweep::sweep_needed`]), the
+/// frame is registered once more with headings swept over the full circle; both outcomes are
+/// kept in [`FrameResult::heading_sweep`] and the frame is decided across them
+/// ([`sweep::decide_passes`]).
 pub fn register_query(
     mesh: &Mesh,
     camera: &Camera,
@@ -245,24 +256,43 @@ pub fn register_query(
     let Some(sweep) = config.pose_search.heading_sweep() else {
         return Ok(first);
     };
-    if first.verdict.accepted() {
+    if !sweep_needed(&first.verdict, &first.evidence) {
         return Ok(first);
     }
     let sweep_started = Instant::now();
     let retry = register(&RegistrationConfig {
         pose_search: sweep,
         ..config.clone()
-    });
-    let heading_sweep_ms = elapsed_ms(sweep_started);
-    let mut result = match retry {
-        Ok(retry) if retry.verdict.accepted() => FrameResult {
-            timings: first.timings,
-            ..retry
-        },
+    })
+    .map_err(|error| error.to_string());
+    let sweep_ms = elapsed_ms(sweep_started);
+    let pass = |result: &FrameResult| PassOutcome {
+        verdict: result.verdict.clone(),
+        evidence: result.evidence,
+    };
+    let first_outcome = pass(&first);
+    let retry_outcome = retry.as_ref().map(pass).map_err(Clone::clone);
+    let (carried, rejection) = decide_passes(
+        mesh,
+        &first_outcome,
+        retry_outcome.as_ref().ok(),
+        config.pose_search.centre_agreement_share,
+    );
+    let timings = first.timings;
+    let mut result = match (carried, retry) {
+        (Pass::HeadingSweep, Ok(retry)) => retry,
         _ => first,
     };
-    result.timings.heading_sweep_ms = heading_sweep_ms;
+    apply_passes_decision(&mut result.verdict, rejection);
+    result.timings = timings;
+    result.timings.heading_sweep_ms = sweep_ms;
     result.timings.total_ms = elapsed_ms(started);
+    result.heading_sweep = Some(HeadingSweepOutcome {
+        first: first_outcome,
+        retry: retry_outcome,
+        carried,
+        sweep_ms,
+    });
     Ok(result)
 }
 
@@ -376,6 +406,7 @@ fn register_region(
         refinement,
         evidence,
         timings,
+        heading_sweep: None,
     })
 }
 

@@ -167,10 +167,30 @@ fn the_heading_sweep_recovers_a_prior_turned_a_hundred_degrees() {
             result.timings.heading_sweep_ms,
             result.timings.total_ms
         );
-        (delta_px, result.timings.heading_sweep_ms)
+        // Both registrations are kept beside each other, and the frame is decided across them.
+        if let Some(sweep) = &result.heading_sweep {
+            assert!(!sweep.first.verdict.accepted());
+            let retry = sweep.retry.as_ref().unwrap();
+            let (carried, rejection) = decide_passes(
+                &mesh,
+                &sweep.first,
+                Some(retry),
+                config.pose_search.centre_agreement_share,
+            );
+            assert_eq!(sweep.carried, carried);
+            let mut verdict = sweep.verdict(carried).unwrap().clone();
+            apply_passes_decision(&mut verdict, rejection);
+            assert_eq!(verdict.decision, result.verdict.decision);
+        }
+        (
+            delta_px,
+            result.timings.heading_sweep_ms,
+            result.heading_sweep,
+        )
     };
-    let (without, _) = register(&config);
+    let (without, _, no_sweep) = register(&config);
     assert!(without.is_none_or(|d| d > 25.0), "{without:?}");
+    assert!(no_sweep.is_none());
     let swept = RegistrationConfig {
         pose_search: PoseSearchConfig {
             heading_sweep_step_deg: 4.0,
@@ -178,9 +198,22 @@ fn the_heading_sweep_recovers_a_prior_turned_a_hundred_degrees() {
         },
         ..config.clone()
     };
-    let (with, sweep_ms) = register(&swept);
+    let (with, sweep_ms, sweep) = register(&swept);
     assert!(sweep_ms > 0.0);
     assert!(with.is_some_and(|d| d < 5.0), "{with:?}");
+    let sweep = sweep.unwrap();
+    assert_eq!(sweep.carried, Pass::HeadingSweep);
+    assert!(sweep.first.verdict.chosen().is_none_or(|first| {
+        mutual_reprojection_error_px(
+            &mesh,
+            &first.camera,
+            &first.cam_from_world,
+            &camera,
+            &truth,
+            &mut ReprojectionWorkspace::new(),
+        )
+        .is_none_or(|d| d > 25.0)
+    }));
 }
 
 #[test]
