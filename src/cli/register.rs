@@ -301,6 +301,10 @@ pub struct CoarseArgs {
     /// refinement's model-edge threshold) lies within its descriptor's support.
     #[arg(long)]
     pub flow_near_model_edges: bool,
+    /// Final refinement: the coarse levels (search radius above the evidence's 4 px) turn the
+    /// camera only; the fine levels estimate the whole pose.
+    #[arg(long)]
+    pub edge_coarse_rotation_only: bool,
     /// Final refinement: which model edges the estimated rounding is undone on.
     #[arg(long, value_enum, default_value_t = EdgeKindsArg::All)]
     pub edge_rounding_kinds: EdgeKindsArg,
@@ -354,6 +358,7 @@ impl Default for CoarseArgs {
             edge_distinct_weights: defaults.edge_align.distinct_weights,
             no_edge_rounding: !defaults.edge_align.estimate_rounding,
             flow_near_model_edges: defaults.matching.min_rendering_edge.is_some(),
+            edge_coarse_rotation_only: defaults.edge_align.coarse_rotation_only,
             edge_kinds: EdgeKindsArg::All,
             edge_rounding_kinds: EdgeKindsArg::All,
             no_pose_search: false,
@@ -501,6 +506,7 @@ pub fn registration_config(
             check_levels: coarse.edge_check_levels,
             ridge_choice: coarse.edge_ridge_choice.into(),
             distinct_weights: coarse.edge_distinct_weights,
+            coarse_rotation_only: coarse.edge_coarse_rotation_only,
             estimate_rounding: !coarse.no_edge_rounding,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),
