@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
 use asgreg::core::edge_align::{AlignedKinds, EdgeAlignConfig};
+use asgreg::core::flow_consistency::MatchConfig;
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig, UnknownIntrinsics};
 use asgreg::core::image::Image;
 use asgreg::core::pose_search::PoseSearchConfig;
@@ -315,6 +316,14 @@ pub struct CoarseArgs {
     /// where the sharp ones would).
     #[arg(long)]
     pub no_edge_rounding: bool,
+    /// Flow: a rendering pixel takes part only where a model edge (ASG at least the final
+    /// refinement's model-edge threshold) lies within its descriptor's support.
+    #[arg(long)]
+    pub flow_near_model_edges: bool,
+    /// Final refinement: the coarse levels (search radius above the evidence's 4 px) turn the
+    /// camera only; the fine levels estimate the whole pose.
+    #[arg(long)]
+    pub edge_coarse_rotation_only: bool,
     /// Final refinement: which model edges the estimated rounding is undone on.
     #[arg(long, value_enum, default_value_t = EdgeKindsArg::All)]
     pub edge_rounding_kinds: EdgeKindsArg,
@@ -367,6 +376,8 @@ impl Default for CoarseArgs {
             edge_ridge_choice: RidgeChoiceArg::Strongest,
             edge_distinct_weights: defaults.edge_align.distinct_weights,
             no_edge_rounding: !defaults.edge_align.estimate_rounding,
+            flow_near_model_edges: defaults.matching.min_rendering_edge.is_some(),
+            edge_coarse_rotation_only: defaults.edge_align.coarse_rotation_only,
             edge_kinds: EdgeKindsArg::All,
             edge_rounding_kinds: EdgeKindsArg::All,
             no_pose_search: false,
@@ -496,6 +507,12 @@ pub fn registration_config(
         coarse_rotation_sigma_deg: coarse.coarse_rotation_deg,
         coarse_translation_sigma_fraction: coarse.coarse_translation_fraction,
         lift_edge_margin_px: coarse.lift_edge_margin_px,
+        matching: MatchConfig {
+            min_rendering_edge: coarse
+                .flow_near_model_edges
+                .then_some(EdgeAlignConfig::default().min_model_ridge),
+            ..MatchConfig::default()
+        },
         verify: VerifyConfig {
             max_convergence_ratio: coarse.max_convergence_ratio,
             ..VerifyConfig::default()
@@ -508,6 +525,7 @@ pub fn registration_config(
             check_levels: coarse.edge_check_levels,
             ridge_choice: coarse.edge_ridge_choice.into(),
             distinct_weights: coarse.edge_distinct_weights,
+            coarse_rotation_only: coarse.edge_coarse_rotation_only,
             estimate_rounding: !coarse.no_edge_rounding,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),

@@ -87,6 +87,12 @@ pub struct EdgeAlignConfig {
     /// crosses two ridges of similar strength (clutter, texture next to the edge) says little
     /// about where its edge is.
     pub distinct_weights: bool,
+    /// Levels whose search radius exceeds `evidence_radius_px` (the coarse ones) turn the camera
+    /// only (3 DoF); the finer levels estimate everything. A wide search in a cluttered photo
+    /// matches many samples to the wrong ridges, and with six degrees of freedom the pose then
+    /// trades rotation against lateral translation (started at the truth of the house, the 16 px
+    /// level moved it 3–11° and 1–3 m); the pose search's beams are rotations too.
+    pub coarse_rotation_only: bool,
 }
 
 /// Which photo ridge on a search line a model edge sample is matched to.
@@ -168,6 +174,7 @@ impl Default for EdgeAlignConfig {
             dense: crate::core::feature_align::DenseAlignConfig::default(),
             ridge_choice: RidgeChoice::Strongest,
             distinct_weights: false,
+            coarse_rotation_only: false,
         }
     }
 }
@@ -904,6 +911,7 @@ pub fn align_level(
         ..LevelSummary::default()
     };
     let mut matches: Vec<EdgeMatch> = Vec::with_capacity(samples.len());
+    let rotation_only = config.coarse_rotation_only && radius_px > config.evidence_radius_px;
     for _ in 0..config.iterations_per_level {
         matches.clear();
         for sample in samples {
@@ -971,11 +979,13 @@ pub fn align_level(
             let mut g = Vector8::zeros();
             g.fixed_rows_mut::<6>(0)
                 .copy_from(&(row_u * normal.x + row_v * normal.y));
-            if parameters == AlignedParameters::PoseAndFocal {
+            if rotation_only {
+                g.fixed_rows_mut::<3>(3).fill(0.0);
+            } else if parameters == AlignedParameters::PoseAndFocal {
                 // u = fx·(1 + s)·x + skew·y + cx: du/ds = u − cx − skew·y ≈ u − cx.
                 g[6] = (projected.x - k.cx_px) * normal.x + (projected.y - k.cy_px) * normal.y;
             }
-            if config.estimate_rounding {
+            if config.estimate_rounding && !rotation_only {
                 // The point moves with ρ along the rounding direction: the translation's rows.
                 g[7] = (row_u.fixed_rows::<3>(3).dot(rounding_cam)) * normal.x
                     + (row_v.fixed_rows::<3>(3).dot(rounding_cam)) * normal.y;
@@ -993,12 +1003,12 @@ pub fn align_level(
             break;
         }
         pose = apply_pose_step(&pose, &step.fixed_rows::<6>(0).into_owned());
-        if parameters == AlignedParameters::PoseAndFocal {
+        if parameters == AlignedParameters::PoseAndFocal && !rotation_only {
             let scale = (1.0 + step[6]).clamp(0.8, 1.25);
             camera.intrinsics.fx_px *= scale;
             camera.intrinsics.fy_px *= scale;
         }
-        if config.estimate_rounding {
+        if config.estimate_rounding && !rotation_only {
             // A rounding radius is not negative (smoothing only rounds).
             *rounding_m = (*rounding_m + step[7]).max(0.0);
         }

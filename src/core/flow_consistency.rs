@@ -45,6 +45,13 @@ pub struct MatchConfig {
     /// Minimum mean gradient magnitude over a descriptor's support for a pixel to count as
     /// textured, intensity units per px (`0..=1` images). 0 lets every pixel take part.
     pub min_support_gradient: f32,
+    /// A rendering pixel takes part only where its descriptor's support (half-width
+    /// 2 × `dense_sift.cell_size_px`) holds a model edge: an ASG value at least this (ASG on the
+    /// rendering's 0..1 scale; the edge alignment's `EdgeAlignConfig::min_model_ridge`).
+    /// A noisy mesh gives its smooth surfaces a speckle of weak ASG that dense SIFT's
+    /// normalisation turns into random descriptors, matched to the photo's texture by chance.
+    /// `None`: every textured rendering pixel takes part (the paper).
+    pub min_rendering_edge: Option<f32>,
     /// Largest accepted `‖w_forward(p) + w_backward(p + w_forward(p))‖`, px.
     pub max_round_trip_error_px: f32,
 }
@@ -55,6 +62,7 @@ impl Default for MatchConfig {
             dense_sift: DenseSiftConfig::default(),
             sift_flow: SiftFlowConfig::default(),
             min_support_gradient: 0.002,
+            min_rendering_edge: None,
             max_round_trip_error_px: 1.0,
         }
     }
@@ -70,6 +78,14 @@ impl MatchConfig {
                 field: "min_support_gradient",
                 reason: format!("{} is not >= 0", self.min_support_gradient),
             });
+        }
+        if let Some(edge) = self.min_rendering_edge {
+            if !(edge.is_finite() && edge >= 0.0) {
+                return Err(FlowError::InvalidConfig {
+                    field: "min_rendering_edge",
+                    reason: format!("{edge} is not >= 0"),
+                });
+            }
         }
         if !(self.max_round_trip_error_px.is_finite() && self.max_round_trip_error_px >= 0.0) {
             return Err(FlowError::InvalidConfig {
@@ -128,6 +144,7 @@ pub struct MatchWorkspace {
     rendering_pyramid: SiftPyramid,
     query_textured: Image<bool>,
     rendering_participates: Image<bool>,
+    rendering_near_edge: Image<bool>,
     forward_cost: Image<f32>,
     backward_cost: Image<f32>,
 }
@@ -165,6 +182,31 @@ pub fn match_sift_images(
     workspace: &mut MatchWorkspace,
     out: &mut PixelMatches,
 ) -> Result<(), FlowError> {
+    match_sift_images_near_edges(
+        query_sift,
+        query_pyramid,
+        rendering_sift,
+        rendering_valid,
+        false,
+        config,
+        workspace,
+        out,
+    )
+}
+
+/// As [`match_sift_images`]; with `near_edges_only` the rendering pixels also have to be marked
+/// in `workspace.rendering_near_edge` (filled by the caller from the rendering's ASG).
+#[allow(clippy::too_many_arguments)]
+fn match_sift_images_near_edges(
+    query_sift: &DenseSiftImage,
+    query_pyramid: &SiftPyramid,
+    rendering_sift: &DenseSiftImage,
+    rendering_valid: Option<ImageView<'_, bool>>,
+    near_edges_only: bool,
+    config: &MatchConfig,
+    workspace: &mut MatchWorkspace,
+    out: &mut PixelMatches,
+) -> Result<(), FlowError> {
     let started = Instant::now();
     config.validate()?;
     let ws = workspace;
@@ -193,6 +235,21 @@ pub fn match_sift_images(
             .zip(valid.data())
         {
             *participates &= is_valid;
+        }
+    }
+    if near_edges_only {
+        ws.rendering_near_edge.view().check_size(
+            "rendering edge mask",
+            rendering_sift.width_px,
+            rendering_sift.height_px,
+        )?;
+        for (participates, &near_edge) in ws
+            .rendering_participates
+            .data_mut()
+            .iter_mut()
+            .zip(ws.rendering_near_edge.data())
+        {
+            *participates &= near_edge;
         }
     }
 
@@ -303,13 +360,22 @@ pub fn match_rendering(
         &mut workspace.sift_workspace,
         &mut rendering_sift,
     );
+    if let Some(min_edge) = config.min_rendering_edge {
+        near_model_edge_mask(
+            rendering,
+            min_edge,
+            2 * config.dense_sift.cell_size_px,
+            &mut workspace.rendering_near_edge,
+        );
+    }
     let dense_sift = started.elapsed();
     let result = sift_result.and_then(|()| {
-        match_sift_images(
+        match_sift_images_near_edges(
             &query.sift,
             &query.pyramid,
             &rendering_sift,
             rendering_valid,
+            config.min_rendering_edge.is_some(),
             config,
             workspace,
             out,
@@ -320,6 +386,59 @@ pub fn match_rendering(
     out.timings.dense_sift = dense_sift;
     out.timings.total = started.elapsed();
     Ok(())
+}
+
+/// `out[p]`: some pixel within `radius_px` (Chebyshev) of `p` has a value of at least
+/// `min_value` in `image`: a box dilation of the thresholded image, two separable passes of
+/// running counts (linear in the pixels whatever the radius).
+pub fn near_model_edge_mask(
+    image: ImageView<'_, f32>,
+    min_value: f32,
+    radius_px: usize,
+    out: &mut Image<bool>,
+) {
+    let (width, height) = image.size();
+    out.reset(width, height, false);
+    if width == 0 || height == 0 {
+        return;
+    }
+    // Horizontal pass: how many edge pixels within the radius along the row.
+    let mut row_counts = vec![0u32; width * height];
+    for row in 0..height {
+        let values = image.row(row);
+        let counts = &mut row_counts[row * width..(row + 1) * width];
+        let mut running = 0u32;
+        let is_edge = |col: usize| u32::from(values[col] >= min_value);
+        for col in 0..radius_px.min(width) {
+            running += is_edge(col);
+        }
+        for (col, count) in counts.iter_mut().enumerate() {
+            if col + radius_px < width {
+                running += is_edge(col + radius_px);
+            }
+            *count = running;
+            if col >= radius_px {
+                running -= is_edge(col - radius_px);
+            }
+        }
+    }
+    // Vertical pass over the row counts.
+    let mask = out.data_mut();
+    for col in 0..width {
+        let mut running = 0u32;
+        for row in 0..radius_px.min(height) {
+            running += row_counts[row * width + col];
+        }
+        for row in 0..height {
+            if row + radius_px < height {
+                running += row_counts[(row + radius_px) * width + col];
+            }
+            mask[row * width + col] = running > 0;
+            if row >= radius_px {
+                running -= row_counts[(row - radius_px) * width + col];
+            }
+        }
+    }
 }
 
 /// Matches one query against many renderings, in parallel over renderings (rayon), reusing one
@@ -411,6 +530,32 @@ mod tests {
     use crate::core::dense_sift::DenseSiftConfig;
     use crate::core::image::ImageError;
     use crate::core::sift_flow::test_support::*;
+
+    #[test]
+    fn the_near_edge_mask_is_the_box_dilation_of_the_edges() {
+        let (width, height) = (23usize, 17usize);
+        let texture = textured_image(width, height);
+        // Few pixels above 0.8: isolated edges; check against a brute-force dilation.
+        let image = ImageView::new(width, height, &texture).unwrap();
+        for radius in [0usize, 1, 2, 6, 30] {
+            let mut mask = Image::default();
+            near_model_edge_mask(image, 0.8, radius, &mut mask);
+            assert_eq!(mask.size(), (width, height));
+            let mut marked = 0;
+            for row in 0..height {
+                for col in 0..width {
+                    let expected = (row.saturating_sub(radius)..(row + radius + 1).min(height))
+                        .any(|r| {
+                            (col.saturating_sub(radius)..(col + radius + 1).min(width))
+                                .any(|c| texture[r * width + c] >= 0.8)
+                        });
+                    assert_eq!(mask.data()[row * width + col], expected, "({col}, {row}) r {radius}");
+                    marked += usize::from(expected);
+                }
+            }
+            assert!(marked > 0 && (radius >= 30 || marked < width * height), "r {radius}: {marked}");
+        }
+    }
 
     /// A deterministic textured image: hashed white noise smoothed by two 3×3 box passes (texture at
     /// the scale of a SIFT cell) plus a gentle ramp, values in 0..1.

@@ -824,6 +824,80 @@ mod tests {
         assert!(narrow_px > 2.0, "{narrow_px}");
     }
 
+    /// Coarse levels that turn the camera only (`coarse_rotation_only`): a coarse level leaves the
+    /// camera's centre (and the rounding) where it was and still turns the camera towards the
+    /// truth; the whole alignment brings a start about 17 px off (rotation and translation)
+    /// back to the truth on an ideal query, as the six-DoF coarse levels do.
+    #[test]
+    fn coarse_levels_that_turn_the_camera_only_keep_the_basin() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let start = off_by(&truth, 4.0);
+        let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
+        let align = EdgeAlignConfig {
+            coarse_rotation_only: true,
+            ..config.edge_align
+        };
+        let samples = edge_samples_at(&mesh, &camera, &start, &config);
+        let mut blurred = Image::default();
+        let coarse_radius_px = align.initial_search_radius_px;
+        assert!(coarse_radius_px > align.evidence_radius_px);
+        blurred_query(query.view(), coarse_radius_px, &mut blurred);
+        let mut rounding_m = 0.05;
+        let (_, turned, summary) = align_level(
+            &samples,
+            &blurred.view(),
+            &camera,
+            &start,
+            AlignedParameters::Pose,
+            coarse_radius_px,
+            &align,
+            &mut rounding_m,
+        );
+        assert!(summary.steps > 0, "{summary:?}");
+        // The camera turns about its own centre: the centre in the world stays.
+        let centre = |pose: &Rigid3| pose.inverse().translation;
+        assert!(
+            (centre(&turned) - centre(&start)).norm() < 1e-9,
+            "{} {}",
+            centre(&turned),
+            centre(&start)
+        );
+        assert_eq!(rounding_m, 0.05);
+        assert!(turned.rotation.angle_to(&start.rotation) > 1e-4);
+        assert!(delta(&turned) < delta(&start), "{} {}", delta(&turned), delta(&start));
+
+        let aligned_delta_px = |coarse_rotation_only: bool| {
+            let config = RegistrationConfig {
+                edge_align: EdgeAlignConfig {
+                    coarse_rotation_only,
+                    ..config.edge_align
+                },
+                ..config.clone()
+            };
+            let refinement = refine_pose(
+                &mesh,
+                &camera,
+                query.view(),
+                &start,
+                AlignedParameters::Pose,
+                &config,
+                &mut RefineWorkspace::default(),
+            )
+            .unwrap();
+            delta(&refinement.aligned_cam_from_world)
+        };
+        let (rotation_only_px, six_dof_px) = (aligned_delta_px(true), aligned_delta_px(false));
+        println!(
+            "start δ {:.2} px → coarse levels rotation only {rotation_only_px:.3} px, six DoF {six_dof_px:.3} px",
+            delta(&start)
+        );
+        assert!(delta(&start) > 15.0);
+        assert!(rotation_only_px < 0.3, "{rotation_only_px}");
+        assert!(six_dof_px < 0.3, "{six_dof_px}");
+    }
+
     /// Several starts: the chosen pose lies outside the alignment's basin, another refined pose
     /// of its group inside; with two starts the output is the truth, with one it is not. Starts
     /// closer than the final search radius to one already taken are skipped.

@@ -421,6 +421,7 @@ fn search_alignment(align: &EdgeAlignConfig) -> EdgeAlignConfig {
         estimate_rounding: false,
         rounding_kinds: AlignedKinds::All,
         aligned_kinds: AlignedKinds::All,
+        coarse_rotation_only: false,
         ..*align
     }
 }
