@@ -415,12 +415,7 @@ fn quick_report(pairs: &[Pair]) {
             });
         }
         let descriptors = first.descriptors.len() / 128;
-        for kernel in [
-            L1Kernel::Portable,
-            L1Kernel::Sse2,
-            L1Kernel::Avx2,
-            L1Kernel::Avx512,
-        ] {
+        for kernel in [L1Kernel::Portable, L1Kernel::Sse2, L1Kernel::Avx2] {
             let (elapsed, total) = time(|| {
                 let mut total = 0u64;
                 for pixel in 0..descriptors - 1 {

@@ -32,8 +32,6 @@ pub enum L1Kernel {
     Sse2,
     /// x86-64 AVX2 `vpsadbw` on 32-byte lanes (falls back to `Sse2` when absent).
     Avx2,
-    /// x86-64 AVX-512BW `vpsadbw` on 64-byte lanes (falls back to `Avx2` when absent).
-    Avx512,
 }
 
 /// Parameters of coarse-to-fine SIFT flow. Defaults are Ce Liu's reference (`SIFTflowc2f` demo):

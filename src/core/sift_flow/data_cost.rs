@@ -6,7 +6,7 @@
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
-use super::kernels::{l1_row_avx2, l1_row_avx512, l1_row_sse2, l1_window_avx2, l1_window_avx512};
+use super::kernels::{l1_row_avx2, l1_row_sse2, l1_window_avx2};
 use super::kernels::{l1_row_portable, resolve_kernel};
 use super::layout::{CostVolume, Layout};
 use super::simd::LANES;
@@ -177,29 +177,6 @@ unsafe fn fill_block_avx2(
     )
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512bw")]
-unsafe fn fill_block_avx512(
-    context: &DataRowContext,
-    layout: Layout,
-    block: usize,
-    out: &mut [super::simd::Lanes],
-) -> Box<[u32; COUNTED_BINS]> {
-    // SAFETY: this function runs only where the CPU has AVX-512F and AVX-512BW.
-    fill_block(
-        context,
-        layout,
-        block,
-        out,
-        |source, targets, out| unsafe { l1_row_avx512(source, targets, out) },
-        Some(
-            |source: &[u8], targets: &[u8], first, row_len, labels, out: &mut [u16]| unsafe {
-                l1_window_avx512(source, targets, first, row_len, labels, out)
-            },
-        ),
-    )
-}
-
 /// A kernel for whole windows inside the target: `(source, targets, first byte, bytes per target
 /// row, labels, out)`.
 type WindowKernel = fn(&[u8], &[u8], usize, usize, usize, &mut [u16]);
@@ -241,9 +218,6 @@ pub(super) fn compute_data_cost(
             #[cfg(target_arch = "x86_64")]
             // SAFETY: `resolve_kernel` returns Avx2 only when the CPU has AVX2.
             L1Kernel::Avx2 => unsafe { fill_block_avx2(&context, layout, block, out) },
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: `resolve_kernel` returns Avx512 only when the CPU has AVX-512F/BW.
-            L1Kernel::Avx512 => unsafe { fill_block_avx512(&context, layout, block, out) },
             #[cfg(target_arch = "x86_64")]
             L1Kernel::Sse2 => fill_block(&context, layout, block, out, l1_row_sse2, None),
             _ => fill_block(&context, layout, block, out, l1_row_portable, None),
