@@ -12,7 +12,8 @@
 //! first run with fresh buffers (as a process that flows once pays, page faults included) and the
 //! minimum of `FLOW_BENCH_REPEATS` (default 15) runs with reused buffers, in process CPU time
 //! (dense SIFT, whole flow) and wall time (the flow's own per-stage timings); with the EPE.
-//! `FLOW_BENCH_CONFIG='{"iterations": 8}'` replaces fields of the preset.
+//! `FLOW_BENCH_CONFIG='{"iterations": 8}'` replaces fields of the preset; `FLOW_BENCH_FRESH=1`
+//! gives every rerun fresh flow buffers (as a new workspace per view pays).
 
 use std::hint::black_box;
 use std::path::Path;
@@ -176,6 +177,7 @@ fn stages_report(pairs: &[Pair]) {
         Err(_) => SiftFlowConfig::fast(),
     };
     let ms = |duration: Duration| duration.as_secs_f64() * 1e3;
+    let fresh = std::env::var_os("FLOW_BENCH_FRESH").is_some();
     pool(1).install(|| {
         for pair in pairs {
             let mut sift_workspace = DenseSiftWorkspace::default();
@@ -186,6 +188,9 @@ fn stages_report(pairs: &[Pair]) {
             // [sift, flow cpu, total cpu, pyramid, data cost, bp (wall)] of each run.
             let mut runs: Vec<[Duration; 6]> = Vec::new();
             for _ in 0..=repeats {
+                if fresh {
+                    workspace = SiftFlowWorkspace::default();
+                }
                 let started = precise_process_cpu_time();
                 for (image, out) in [(&pair.first, &mut first), (&pair.second, &mut second)] {
                     compute_dense_sift(
