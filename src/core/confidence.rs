@@ -476,8 +476,8 @@ mod tests {
     #[test]
     fn the_default_cannot_accept_on_agreement_when_the_edges_are_at_chance() {
         let config = ConfidenceConfig::default();
-        let evidence = |component_size: usize, check_passed: bool, at_pose: f64, far: f64| {
-            FrameEvidence {
+        let evidence =
+            |component_size: usize, check_passed: bool, at_pose: f64, far: f64| FrameEvidence {
                 check_passed,
                 coarse_poses: 15,
                 hypotheses: 15,
@@ -494,14 +494,20 @@ mod tests {
                     image_uncertainty_px: 0.3,
                 }),
                 correlation: None,
-            }
-        };
+            };
         // Chance levels met so far: 3 % (an ideal query) to 29 % (Brighton's photos). At a chance
         // level near 50 % the support alone would pass (11.36 × 0.5 > 3.36 + logit 0.85).
         for chance in [0.03, 0.15, 0.3] {
-            let agreed = config.model.probability(&evidence(15, true, chance, chance));
-            let alone = config.model.probability(&evidence(1, false, chance, chance));
-            assert!((agreed - alone).abs() < 1e-12, "{chance}: {agreed} vs {alone}");
+            let agreed = config
+                .model
+                .probability(&evidence(15, true, chance, chance));
+            let alone = config
+                .model
+                .probability(&evidence(1, false, chance, chance));
+            assert!(
+                (agreed - alone).abs() < 1e-12,
+                "{chance}: {agreed} vs {alone}"
+            );
             assert!(agreed < config.accept_above, "{chance}: {agreed}");
         }
         let confirmed = config.model.probability(&evidence(15, true, 0.45, 0.05));

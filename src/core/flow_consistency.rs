@@ -549,11 +549,18 @@ mod tests {
                             (col.saturating_sub(radius)..(col + radius + 1).min(width))
                                 .any(|c| texture[r * width + c] >= 0.8)
                         });
-                    assert_eq!(mask.data()[row * width + col], expected, "({col}, {row}) r {radius}");
+                    assert_eq!(
+                        mask.data()[row * width + col],
+                        expected,
+                        "({col}, {row}) r {radius}"
+                    );
                     marked += usize::from(expected);
                 }
             }
-            assert!(marked > 0 && (radius >= 30 || marked < width * height), "r {radius}: {marked}");
+            assert!(
+                marked > 0 && (radius >= 30 || marked < width * height),
+                "r {radius}: {marked}"
+            );
         }
     }
 

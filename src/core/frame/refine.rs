@@ -866,7 +866,12 @@ mod tests {
         );
         assert_eq!(rounding_m, 0.05);
         assert!(turned.rotation.angle_to(&start.rotation) > 1e-4);
-        assert!(delta(&turned) < delta(&start), "{} {}", delta(&turned), delta(&start));
+        assert!(
+            delta(&turned) < delta(&start),
+            "{} {}",
+            delta(&turned),
+            delta(&start)
+        );
 
         let aligned_delta_px = |coarse_rotation_only: bool| {
             let config = RegistrationConfig {
