@@ -701,6 +701,9 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     if let BenchWhat::Mesh = args.what {
         return super::bench_mesh::bench_mesh(&args.out, args.triangles, args.frames);
     }
+    // Every run writes its summary into OUT: make it first (a given `--scene` made nothing there).
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating the output folder {}", args.out.display()))?;
     let scene = match &args.scene {
         Some(scene) => scene.clone(),
         None => default_scene(&args.out, args.frames)?,
