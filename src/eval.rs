@@ -50,6 +50,21 @@ pub struct PassEval {
     pub reason: Option<String>,
 }
 
+impl PassEval {
+    /// The verdict as tables print it: "accepted" or the reason, and the confidence.
+    pub fn verdict_text(&self) -> String {
+        format!(
+            "{} ({:.2})",
+            if self.accepted {
+                "accepted"
+            } else {
+                self.reason.as_deref().unwrap_or("rejected")
+            },
+            self.confidence
+        )
+    }
+}
+
 /// Statistics of one (level, method) cell.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CellStats {

@@ -961,17 +961,7 @@ result carries (an accepted retry, else the more confident rejection).\n"
             "| level | method | frame | first pass δ | first pass verdict (confidence) | retry's first centre δ | retry δ | retry verdict (confidence) | carried | the frame's verdict |\n|---|---|---|---|---|---|---|---|---|---|"
         );
         for (key, diagnosis, sweep) in &swept {
-            let verdict = |p: &PassEval| {
-                format!(
-                    "{} ({:.2})",
-                    if p.accepted {
-                        "accepted".to_string()
-                    } else {
-                        p.reason.clone().unwrap_or_else(|| "rejected".into())
-                    },
-                    p.confidence
-                )
-            };
+            let verdict = PassEval::verdict_text;
             let retry = diagnosis
                 .heading_sweep
                 .as_ref()
@@ -1294,17 +1284,7 @@ pose within {false_accept_px:.2} px of the truth.\n"
         "| level | method | frame | initial δ | first pass δ | first pass verdict (confidence) | retry δ | retry verdict (confidence) | near | carried | the frame's verdict |\n|---|---|---|---|---|---|---|---|---|---|---|"
     );
     let px = |d: Option<f64>| d.map_or("–".to_string(), |d| format!("{d:.2}"));
-    let verdict = |p: &PassEval| {
-        format!(
-            "{} ({:.2})",
-            if p.accepted {
-                "accepted".to_string()
-            } else {
-                p.reason.clone().unwrap_or_else(|| "rejected".into())
-            },
-            p.confidence
-        )
-    };
+    let verdict = PassEval::verdict_text;
     let mut near = 0;
     for (level, method, frame, sweep) in &rows {
         let retry_near = sweep
