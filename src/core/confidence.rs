@@ -175,9 +175,11 @@ impl Default for ConfidenceConfig {
     /// chance), so where the photo's edges are at chance the agreement adds nothing: the paper's
     /// check alone cannot accept. The threshold is the lowest at which no fold of
     /// leave-one-file-out (fitted on seven of the eight files, measured on the eighth) had a
-    /// false accept (the house seed 1 at 57/80 px needs 0.85). Held out on seed 3 (180 frames,
-    /// the four levels): 114 accepted, no false accept, where the previous default (fitted on
-    /// seed 1, block 80/104 and house 30/104, 0.9) accepted 122 with one 219 px off
+    /// false accept (the house seed 1 at 57/80 px needs 0.85). Measured by `eval` on seed 3
+    /// (first 24 images, four levels, 192 frames): 117 accepted, one false accept (house 104 px,
+    /// 298 px off), where the previous default (fitted on seed 1, block 80/104 and house 30/104,
+    /// 0.9) accepted 119 with one (219 px); re-deciding the stored evidence had promised none —
+    /// the confidence also chooses among the search's centres, so it changes the outputs
     /// (docs/measurements.md, "confidence refit with the agreement confirmed by the photo").
     /// The correlation features ([`crate::core::correlation`]) keep weight 0: held out they did
     /// not help (branch `corr`).
