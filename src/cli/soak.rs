@@ -84,6 +84,8 @@ struct Shared {
     /// The live process of each (stage, worker), as the launcher last started it.
     pids: Mutex<BTreeMap<(String, u32), u32>>,
     starts: AtomicUsize,
+    /// Every process the chaos killed, as (stage, worker) and pid.
+    killed: Mutex<Vec<((String, u32), u32)>>,
     results: AtomicUsize,
     change_results: AtomicUsize,
     done: AtomicBool,
@@ -260,6 +262,10 @@ struct Figures {
     kill_every_s: f64,
     kills: BTreeMap<String, usize>,
     restarts: usize,
+    /// Killed processes the launcher had not restarted when the run ended (their stage and
+    /// worker still had the killed pid): a kill in the last moments, while the pipeline was
+    /// already shutting down. Every other kill must be followed by a restart.
+    kills_not_restarted_at_end: usize,
     redone_jobs: u64,
     rss_warm_kib: u64,
     rss_end_kib: u64,
@@ -404,6 +410,9 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
                     if let Ok(mut kills) = kills.lock() {
                         *kills.entry(stage.clone()).or_default() += 1;
                     }
+                    if let Ok(mut killed) = shared.killed.lock() {
+                        killed.push(((stage.clone(), *worker), *pid));
+                    }
                 }
             }
         })
@@ -499,6 +508,13 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     let total_end = rss_end_kib + launcher_rss_end_kib;
     let rss_growth = total_end as f64 / total_warm.max(1) as f64 - 1.0;
     let kills = kills.lock().map(|k| k.clone()).unwrap_or_default();
+    let kills_not_restarted_at_end = match (shared.killed.lock(), shared.pids.lock()) {
+        (Ok(killed), Ok(pids)) => killed
+            .iter()
+            .filter(|(process, pid)| pids.get(process) == Some(pid))
+            .count(),
+        _ => 0,
+    };
     let redone_jobs: u64 = collected.metrics.values().map(|m| m.redispatched).sum();
 
     let mut failures = Vec::new();
@@ -602,6 +618,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
             .load(Ordering::SeqCst)
             .saturating_sub(initial_processes),
         kills,
+        kills_not_restarted_at_end,
         redone_jobs,
         rss_warm_kib: total_warm,
         rss_end_kib: total_end,
@@ -619,7 +636,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", json.display()))?;
     let total_kills: usize = figures.kills.values().sum();
     println!(
-        "soak figures: transport {} | frames {} | results {} (duplicated {}, missing {}, accepted {}) | change results {} (duplicated {}, missing {}, with a map {}; change set complete {}, {} objects) | {:.0} s | kills {total_kills} {:?} | restarts {} | redone jobs {} | RSS after warm-up {:.1} MiB, at the end {:.1} MiB ({:+.1} %; launcher {:.1} → {:.1} MiB) | resources before {:?} after {:?}",
+        "soak figures: transport {} | frames {} | results {} (duplicated {}, missing {}, accepted {}) | change results {} (duplicated {}, missing {}, with a map {}; change set complete {}, {} objects) | {:.0} s | kills {total_kills} {:?} (not restarted at the end {}) | restarts {} | redone jobs {} | RSS after warm-up {:.1} MiB, at the end {:.1} MiB ({:+.1} %; launcher {:.1} → {:.1} MiB) | resources before {:?} after {:?}",
         figures.transport,
         figures.frames,
         figures.results,
@@ -634,6 +651,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
         figures.change_set_objects,
         figures.wall_s,
         figures.kills,
+        figures.kills_not_restarted_at_end,
         figures.restarts,
         figures.redone_jobs,
         figures.rss_warm_kib as f64 / 1024.0,

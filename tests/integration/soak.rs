@@ -72,8 +72,15 @@ fn soak(dir: &Path, transport: &str, frames: usize, kill_every_s: f64, max_rss_g
         kills >= 2,
         "the chaos loop killed {kills} processes: {figures}"
     );
+    // Every kill is followed by a restart, but for one in the run's last moments (the launcher
+    // was already shutting down: a CI run had 47 kills and 46 restarts, nothing lost).
+    let not_restarted = figures["kills_not_restarted_at_end"].as_u64().unwrap();
     assert!(
-        figures["restarts"].as_u64().unwrap() >= kills,
+        not_restarted <= 1,
+        "{not_restarted} killed processes never restarted: {figures}"
+    );
+    assert!(
+        figures["restarts"].as_u64().unwrap() + not_restarted >= kills,
         "fewer restarts than kills: {figures}"
     );
     println!(
