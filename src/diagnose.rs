@@ -35,7 +35,7 @@ use crate::core::edge_align::{
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
-use crate::core::frame::sweep::{apply_passes_decision, decide_passes, sweep_needed, PassOutcome};
+use crate::core::frame::sweep::{apply_passes_decision, register_with_fallback, PassOutcome};
 use crate::core::frame::{
     correspond_view, decide_frame_and_centres, lift_pixel, query_features, query_gradient,
     refine_pose, render_coarse_view, render_views, solve_view, CoarseOutcome, CoarseView,
@@ -500,37 +500,23 @@ pub fn diagnose_query(
             seed,
         )
     };
-    let mut first = diagnose(config)?;
-    let Some(sweep) = config.pose_search.heading_sweep() else {
-        return Ok(first);
-    };
-    if !sweep_needed(&first.verdict, &first.evidence) {
-        return Ok(first);
-    }
-    let retry = diagnose(&RegistrationConfig {
-        pose_search: sweep,
-        ..config.clone()
-    })
-    .map(Box::new)
-    .map_err(|error| error.to_string());
     let pass = |d: &FrameDiagnosis| PassOutcome {
         verdict: d.verdict.clone(),
         evidence: d.evidence,
     };
-    let (carried, rejection) = decide_passes(
-        mesh,
-        &pass(&first),
-        retry.as_deref().ok().map(pass).as_ref(),
-        config.pose_search.centre_agreement_share,
-    );
-    let mut frame_verdict = match (carried, &retry) {
+    let run = register_with_fallback(mesh, config, diagnose, pass)?;
+    let mut first = run.first;
+    let Some(fallback) = run.fallback else {
+        return Ok(first);
+    };
+    let mut frame_verdict = match (fallback.outcome.carried, &fallback.retry) {
         (Pass::HeadingSweep, Ok(retry)) => retry.verdict.clone(),
         _ => first.verdict.clone(),
     };
-    apply_passes_decision(&mut frame_verdict, rejection);
+    apply_passes_decision(&mut frame_verdict, fallback.rejection);
     first.heading_sweep = Some(SweepDiagnosis {
-        retry,
-        carried,
+        retry: fallback.retry.map(Box::new),
+        carried: fallback.outcome.carried,
         frame_verdict,
     });
     Ok(first)
@@ -1205,6 +1191,54 @@ mod tests {
             &mut view,
         );
         view
+    }
+
+    /// With the heading fallback on, the diagnosis runs registration's own sequence
+    /// (`core::frame::register_with_fallback`): on a prior turned 100° the retry is diagnosed and
+    /// carried, and the frame's verdict is registration's, accepted at the truth.
+    #[test]
+    fn the_diagnosis_runs_the_heading_fallback_as_registration_does() {
+        use crate::core::frame::register_query;
+        use crate::core::pose_search::{turned_pose, PoseSearchConfig};
+        let (mesh, camera, truth, _) = house_and_poses();
+        let defaults = RegistrationConfig::default();
+        let config = RegistrationConfig {
+            pose_search: PoseSearchConfig {
+                heading_sweep_step_deg: 4.0,
+                ..defaults.pose_search
+            },
+            ..defaults
+        };
+        let query = truth_view(&mesh, &camera, &truth, &config).asg;
+        let turned = turned_pose(&truth, 100.0, 0.0, 0.0);
+        let centre = turned.camera_center() + nalgebra::Vector3::new(0.4, -0.3, 0.2);
+        let prior = Rigid3::new(turned.rotation, -(turned.rotation * centre));
+        let known = IntrinsicsMode::Known;
+        let diagnosis = diagnose_query(
+            &mesh,
+            &camera,
+            known,
+            &prior,
+            query.view(),
+            &truth,
+            &config,
+            7,
+        )
+        .unwrap();
+        let registered =
+            register_query(&mesh, &camera, known, &prior, query.view(), &config, 7).unwrap();
+        let sweep = diagnosis.heading_sweep.as_ref().expect("the fallback ran");
+        assert_eq!(sweep.carried, Pass::HeadingSweep);
+        assert!(sweep.retry.is_ok());
+        assert_eq!(
+            Some(sweep.carried),
+            registered.heading_sweep.as_ref().map(|s| s.carried)
+        );
+        assert!(diagnosis.frame_verdict().accepted());
+        assert_eq!(
+            diagnosis.frame_verdict().decision,
+            registered.verdict.decision
+        );
     }
 
     /// On the ideal query (the model's own ASG under the true pose) the error budget is small and

@@ -48,7 +48,8 @@ pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
 pub use search::{search_pose, Beam, PoseSearchOutcome};
 pub use solve::solve_view;
 pub use sweep::{
-    apply_passes_decision, decide_passes, sweep_needed, HeadingSweepOutcome, Pass, PassOutcome,
+    apply_passes_decision, decide_passes, register_with_fallback, sweep_needed, FallbackRun,
+    HeadingSweepOutcome, Pass, PassOutcome, WithFallback,
 };
 pub use views::{
     coarse_poses, median_scene_depth_m, render_coarse_view, render_views, RenderedViews,
@@ -252,47 +253,29 @@ pub fn register_query(
             seed,
         )
     };
-    let first = register(config)?;
-    let Some(sweep) = config.pose_search.heading_sweep() else {
-        return Ok(first);
-    };
-    if !sweep_needed(&first.verdict, &first.evidence) {
-        return Ok(first);
-    }
-    let sweep_started = Instant::now();
-    let retry = register(&RegistrationConfig {
-        pose_search: sweep,
-        ..config.clone()
-    })
-    .map_err(|error| error.to_string());
-    let sweep_ms = elapsed_ms(sweep_started);
     let pass = |result: &FrameResult| PassOutcome {
         verdict: result.verdict.clone(),
         evidence: result.evidence,
     };
-    let first_outcome = pass(&first);
-    let retry_outcome = retry.as_ref().map(pass).map_err(Clone::clone);
-    let (carried, rejection) = decide_passes(
-        mesh,
-        &first_outcome,
-        retry_outcome.as_ref().ok(),
-        config.pose_search.centre_agreement_share,
-    );
-    let timings = first.timings;
-    let mut result = match (carried, retry) {
+    let run = register_with_fallback(mesh, config, register, pass)?;
+    let Some(fallback) = run.fallback else {
+        return Ok(run.first);
+    };
+    let FallbackRun {
+        retry,
+        outcome,
+        rejection,
+    } = fallback;
+    let timings = run.first.timings;
+    let mut result = match (outcome.carried, retry) {
         (Pass::HeadingSweep, Ok(retry)) => retry,
-        _ => first,
+        _ => run.first,
     };
     apply_passes_decision(&mut result.verdict, rejection);
     result.timings = timings;
-    result.timings.heading_sweep_ms = sweep_ms;
+    result.timings.heading_sweep_ms = outcome.sweep_ms;
     result.timings.total_ms = elapsed_ms(started);
-    result.heading_sweep = Some(HeadingSweepOutcome {
-        first: first_outcome,
-        retry: retry_outcome,
-        carried,
-        sweep_ms,
-    });
+    result.heading_sweep = Some(outcome);
     Ok(result)
 }
 

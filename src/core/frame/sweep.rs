@@ -6,9 +6,12 @@
 //! right heading even when it was not accepted), and the decision across the two is made here,
 //! once, for registration and the diagnosis alike ([`decide_passes`]).
 
+use std::time::Instant;
+
 use serde::{Deserialize, Serialize};
 
 use super::decide::{distinct_confirmed_rival, reject};
+use super::RegistrationConfig;
 use crate::core::confidence::FrameEvidence;
 use crate::core::mesh::Mesh;
 use crate::core::verify::{RejectionReason, Verdict};
@@ -60,6 +63,79 @@ impl HeadingSweepOutcome {
             Pass::HeadingSweep => self.retry.as_ref().ok().map(|r| &r.verdict),
         }
     }
+}
+
+/// A frame registered with the fallback: its first pass and, when the fallback ran, the retry and
+/// the decision across the two.
+pub struct WithFallback<T> {
+    pub first: T,
+    /// `None` when the fallback is off or was not needed ([`sweep_needed`]).
+    pub fallback: Option<FallbackRun<T>>,
+}
+
+/// The fallback's retry and the decision across the passes.
+pub struct FallbackRun<T> {
+    /// The retry's registration, or why it gave none.
+    pub retry: Result<T, String>,
+    /// Both passes' outcomes, the carried pass and the retry's time.
+    pub outcome: HeadingSweepOutcome,
+    /// The rejection [`decide_passes`] gives the carried pass's verdict, if any
+    /// ([`apply_passes_decision`]).
+    pub rejection: Option<RejectionReason>,
+}
+
+/// The fallback's one sequence, for registration and its diagnosis alike: `register` within the
+/// pose search's region of `config`; when the fallback is on and [`sweep_needed`], `register`
+/// again with headings swept over the whole circle, and [`decide_passes`] across the two.
+/// `outcome` reads a registration's verdict and evidence. An error of the first pass is the
+/// frame's; an error of the retry is kept as its reason.
+pub fn register_with_fallback<T, E: std::fmt::Display>(
+    mesh: &Mesh,
+    config: &RegistrationConfig,
+    register: impl Fn(&RegistrationConfig) -> Result<T, E>,
+    outcome: impl Fn(&T) -> PassOutcome,
+) -> Result<WithFallback<T>, E> {
+    let first = register(config)?;
+    let first_outcome = outcome(&first);
+    let Some(sweep) = config.pose_search.heading_sweep() else {
+        return Ok(WithFallback {
+            first,
+            fallback: None,
+        });
+    };
+    if !sweep_needed(&first_outcome.verdict, &first_outcome.evidence) {
+        return Ok(WithFallback {
+            first,
+            fallback: None,
+        });
+    }
+    let sweep_started = Instant::now();
+    let retry = register(&RegistrationConfig {
+        pose_search: sweep,
+        ..config.clone()
+    })
+    .map_err(|error| error.to_string());
+    let sweep_ms = sweep_started.elapsed().as_secs_f64() * 1e3;
+    let retry_outcome = retry.as_ref().map(&outcome).map_err(Clone::clone);
+    let (carried, rejection) = decide_passes(
+        mesh,
+        &first_outcome,
+        retry_outcome.as_ref().ok(),
+        config.pose_search.centre_agreement_share,
+    );
+    Ok(WithFallback {
+        first,
+        fallback: Some(FallbackRun {
+            retry,
+            outcome: HeadingSweepOutcome {
+                first: first_outcome,
+                retry: retry_outcome,
+                carried,
+                sweep_ms,
+            },
+            rejection,
+        }),
+    })
 }
 
 /// Whether the fallback's retry runs after the first pass: when the first pass accepted nothing,
