@@ -439,6 +439,34 @@ mod tests {
         samples
     }
 
+    /// δ to `truth` of the final refinement (pose only) from `start` on `query`, with `config`
+    /// and its edge alignment set to `edge_align`, px.
+    fn aligned_from(
+        mesh: &Mesh,
+        camera: &Camera,
+        query: &Image<f32>,
+        start: &Rigid3,
+        truth: &Rigid3,
+        config: &RegistrationConfig,
+        edge_align: EdgeAlignConfig,
+    ) -> f64 {
+        let config = RegistrationConfig {
+            edge_align,
+            ..config.clone()
+        };
+        let refinement = refine_pose(
+            mesh,
+            camera,
+            query.view(),
+            start,
+            AlignedParameters::Pose,
+            &config,
+            &mut RefineWorkspace::default(),
+        )
+        .unwrap();
+        delta_px(mesh, camera, &refinement.aligned_cam_from_world, truth)
+    }
+
     /// δ between `pose` and `truth` (both with `camera`), px.
     fn delta_px(mesh: &Mesh, camera: &Camera, pose: &Rigid3, truth: &Rigid3) -> f64 {
         let mut workspace = ReprojectionWorkspace::new();
@@ -797,24 +825,11 @@ mod tests {
         let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
         let start_delta_px = delta(&start);
         let aligned_delta_px = |initial_search_radius_px: f64| {
-            let config = RegistrationConfig {
-                edge_align: EdgeAlignConfig {
-                    initial_search_radius_px,
-                    ..config.edge_align
-                },
-                ..config.clone()
+            let edge_align = EdgeAlignConfig {
+                initial_search_radius_px,
+                ..config.edge_align
             };
-            let refinement = refine_pose(
-                &mesh,
-                &camera,
-                query.view(),
-                &start,
-                AlignedParameters::Pose,
-                &config,
-                &mut RefineWorkspace::default(),
-            )
-            .unwrap();
-            delta(&refinement.aligned_cam_from_world)
+            aligned_from(&mesh, &camera, &query, &start, &truth, &config, edge_align)
         };
         let (wide_px, narrow_px) = (aligned_delta_px(16.0), aligned_delta_px(8.0));
         println!("start δ {start_delta_px:.2} px → first level 16 px: {wide_px:.3} px, 8 px: {narrow_px:.3} px");
@@ -874,24 +889,11 @@ mod tests {
         );
 
         let aligned_delta_px = |coarse_rotation_only: bool| {
-            let config = RegistrationConfig {
-                edge_align: EdgeAlignConfig {
-                    coarse_rotation_only,
-                    ..config.edge_align
-                },
-                ..config.clone()
+            let edge_align = EdgeAlignConfig {
+                coarse_rotation_only,
+                ..config.edge_align
             };
-            let refinement = refine_pose(
-                &mesh,
-                &camera,
-                query.view(),
-                &start,
-                AlignedParameters::Pose,
-                &config,
-                &mut RefineWorkspace::default(),
-            )
-            .unwrap();
-            delta(&refinement.aligned_cam_from_world)
+            aligned_from(&mesh, &camera, &query, &start, &truth, &config, edge_align)
         };
         let (rotation_only_px, six_dof_px) = (aligned_delta_px(true), aligned_delta_px(false));
         println!(
