@@ -145,6 +145,7 @@ pub struct MatchWorkspace {
     query_textured: Image<bool>,
     rendering_participates: Image<bool>,
     rendering_near_edge: Image<bool>,
+    near_edge_row_counts: Vec<u32>,
     forward_cost: Image<f32>,
     backward_cost: Image<f32>,
 }
@@ -365,6 +366,7 @@ pub fn match_rendering(
             rendering,
             min_edge,
             2 * config.dense_sift.cell_size_px,
+            &mut workspace.near_edge_row_counts,
             &mut workspace.rendering_near_edge,
         );
     }
@@ -390,11 +392,13 @@ pub fn match_rendering(
 
 /// `out[p]`: some pixel within `radius_px` (Chebyshev) of `p` has a value of at least
 /// `min_value` in `image`: a box dilation of the thresholded image, two separable passes of
-/// running counts (linear in the pixels whatever the radius).
+/// running counts (linear in the pixels whatever the radius); `row_counts` is the caller's
+/// scratch buffer (resized here).
 pub fn near_model_edge_mask(
     image: ImageView<'_, f32>,
     min_value: f32,
     radius_px: usize,
+    row_counts: &mut Vec<u32>,
     out: &mut Image<bool>,
 ) {
     let (width, height) = image.size();
@@ -403,7 +407,8 @@ pub fn near_model_edge_mask(
         return;
     }
     // Horizontal pass: how many edge pixels within the radius along the row.
-    let mut row_counts = vec![0u32; width * height];
+    row_counts.clear();
+    row_counts.resize(width * height, 0);
     for row in 0..height {
         let values = image.row(row);
         let counts = &mut row_counts[row * width..(row + 1) * width];
@@ -539,7 +544,7 @@ mod tests {
         let image = ImageView::new(width, height, &texture).unwrap();
         for radius in [0usize, 1, 2, 6, 30] {
             let mut mask = Image::default();
-            near_model_edge_mask(image, 0.8, radius, &mut mask);
+            near_model_edge_mask(image, 0.8, radius, &mut Vec::new(), &mut mask);
             assert_eq!(mask.size(), (width, height));
             let mut marked = 0;
             for row in 0..height {
