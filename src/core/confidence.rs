@@ -115,15 +115,18 @@ pub fn features(evidence: &FrameEvidence) -> [f64; FEATURE_COUNT] {
         Some(peak) => (peak.at_pose - peak.far, peak.at_pose - peak.near),
         None => (0.0, 0.0),
     };
+    let check_passed = f64::from(u8::from(evidence.check_passed));
+    // How far the photo's edges confirm the pose beyond chance: what the agreement is read by.
+    let confirmed = above_chance.max(0.0);
     [
         support,
         above_chance,
         component_share,
-        f64::from(u8::from(evidence.check_passed)),
+        check_passed,
         correlation_above_far,
         correlation_above_near,
-        component_share * above_chance.max(0.0),
-        f64::from(u8::from(evidence.check_passed)) * above_chance.max(0.0),
+        component_share * confirmed,
+        check_passed * confirmed,
     ]
 }
 
