@@ -77,9 +77,14 @@ pub struct ChangesArgs {
     /// Without --depth: fill holes from their (2r+1)² working neighbourhood when it agrees.
     #[arg(long, default_value_t = StereoConfig::default().fill_radius_px)]
     pub stereo_fill_radius_px: usize,
-    /// Without --depth: skip the left-right check against the first neighbour's own depth.
+    /// Without --depth: skip the left-right check against the neighbours' own depths.
     #[arg(long)]
     pub stereo_no_left_right: bool,
+    /// Without --depth: how many neighbours (the first ones) get a sweep back for the
+    /// left-right check; a depth stays when one of them confirms it (1: the first neighbour
+    /// only, the check before 2026-12-03).
+    #[arg(long, default_value_t = StereoConfig::default().consistency_neighbours)]
+    pub stereo_consistency_neighbours: usize,
     /// Without --depth: disparity error of the stereo depth, working pixels; sets the change
     /// threshold's stereo term σ_quad = σ_disparity / (f·B) per frame.
     #[arg(long, default_value_t = DEFAULT_DISPARITY_SIGMA_PX)]
@@ -145,6 +150,7 @@ impl ChangesArgs {
             stereo_min_texture: StereoConfig::default().min_texture,
             stereo_max_cost: StereoConfig::default().max_cost,
             stereo_no_left_right: false,
+            stereo_consistency_neighbours: StereoConfig::default().consistency_neighbours,
             stereo_keep_unconfirmed: StereoConfig::default().keep_unconfirmed,
             stereo_fill_radius_px: StereoConfig::default().fill_radius_px,
             stereo_disparity_sigma_px: DEFAULT_DISPARITY_SIGMA_PX,
@@ -169,6 +175,7 @@ impl ChangesArgs {
             min_texture: self.stereo_min_texture,
             max_cost: self.stereo_max_cost,
             left_right_check: !self.stereo_no_left_right,
+            consistency_neighbours: self.stereo_consistency_neighbours,
             keep_unconfirmed: self.stereo_keep_unconfirmed,
             fill_radius_px: self.stereo_fill_radius_px,
             ..StereoConfig::default()

@@ -104,6 +104,9 @@ pub struct EvalArgs {
     /// With --changes: `asgreg changes --edge-tolerance-px` (0: pixel by pixel).
     #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().edge_tolerance_px)]
     pub change_edge_tolerance_px: usize,
+    /// With --changes --depth-source stereo: `asgreg changes --stereo-consistency-neighbours`.
+    #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().consistency_neighbours)]
+    pub stereo_consistency_neighbours: usize,
 }
 
 /// Where `eval --changes` takes the photos' depth from.

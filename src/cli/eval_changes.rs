@@ -100,6 +100,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     );
     detect_args.limit = args.limit;
     detect_args.edge_tolerance_px = args.change_edge_tolerance_px;
+    detect_args.stereo_consistency_neighbours = args.stereo_consistency_neighbours;
     let report = detect_all(&detect_args)?;
 
     // Pixels.

@@ -205,6 +205,7 @@ pub fn launch(
 ) -> Result<Collected, RuntimeError> {
     // A new run: the results journals start empty (restarted stages resume from them).
     super::journal::reset_all(config)?;
+    reset_views(config)?;
     let window = Duration::from_secs_f64(config.launch.restart_window_s);
     let mut processes: Vec<Supervised> = Vec::new();
     if let Some(child) = router {
@@ -333,6 +334,7 @@ pub fn launch(
     if collected.frame_count.is_some() && collected.missing().is_empty() && changes_complete {
         // Complete: nothing to resume.
         super::journal::reset_all(config)?;
+        reset_views(config)?;
     }
     Ok(collected)
 }
@@ -443,6 +445,16 @@ fn terminate(child: &Child) -> std::io::Result<()> {
 /// The config file path as given, made absolute (stage processes may run elsewhere).
 pub fn absolute(path: &Path) -> PathBuf {
     std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf())
+}
+
+/// Starts a run over (or ends a complete one): verify's stereo views go with the journals.
+fn reset_views(config: &PipelineConfig) -> Result<(), RuntimeError> {
+    super::views::reset(config).map_err(|error| {
+        RuntimeError::Launch(format!(
+            "{}: cannot remove the stereo views of an earlier run: {error}",
+            super::views::dir(config).display()
+        ))
+    })
 }
 
 #[cfg(test)]

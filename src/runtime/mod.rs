@@ -1,8 +1,8 @@
 //! Wiring from a configuration (docs/design.md §5): the stage loops (`nodes`), work sharing with redo
 //! (`dispatch`), the bus wrappers (`bus`), the results collector and summary (`collect`), the
 //! one-process runner (`run_in_process`), the process supervisor (`launch`), the results
-//! journal that makes "has a result" survive a crash (`journal`) and the end-to-end acks that
-//! make a result lost in flight be sent again (`ack`).
+//! journal that makes "has a result" survive a crash (`journal`), verify's durable stereo views
+//! (`views`) and the end-to-end acks that make a result lost in flight be sent again (`ack`).
 
 pub mod ack;
 pub mod bus;
@@ -12,6 +12,7 @@ pub mod dispatch;
 pub mod journal;
 pub mod launch;
 pub mod nodes;
+pub mod views;
 
 #[cfg(test)]
 mod tests;

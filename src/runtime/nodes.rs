@@ -29,6 +29,7 @@ use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
 use super::config::{BackpressurePolicy, PipelineConfig};
 use super::dispatch::{Dispatcher, WorkerPort};
 use super::journal::{self, Journal, JournalError};
+use super::views::ViewStore;
 
 /// How long a loop waits for a message before checking the stop flag.
 const POLL: Duration = Duration::from_millis(20);
@@ -1070,6 +1071,16 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     } else {
         None
     };
+    // The stereo views accepted before a restart are neighbours again (runtime::views).
+    let mut views = changes.as_ref().map(|_| {
+        let (store, restored) = ViewStore::open_and_restore(config, &mut stage);
+        if restored > 0 {
+            tracing::info!(
+                "verify: {restored} stereo views of frames accepted before a restart restored"
+            );
+        }
+        store
+    });
     let mut fusion_told_end: Option<Instant> = None;
     let mut capture_times: HashMap<u64, u64> = HashMap::new();
     let mut stream_ended: Option<Instant> = None;
@@ -1165,6 +1176,10 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             }
             while let Ok(decided) = decided_rx.try_recv() {
                 produced.push(stage.conclude(decided));
+            }
+            // Durable before the results go out: a frame with both results is not sent again.
+            if let Some(views) = &mut views {
+                views.sync(&stage);
             }
             let mut change_captures = Vec::new();
             for mut result in produced {

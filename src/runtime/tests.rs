@@ -672,3 +672,120 @@ fn a_journal_that_cannot_be_written_recovers_when_it_can() {
     journal.append(3).unwrap();
     assert_eq!(read_published(&path, "# h"), [2, 3].into());
 }
+
+/// The journals of `config` cut back to the frames below `first_lost`, and verify's stereo views
+/// of those frames only: the state after verify (and with it the frames from `first_lost` on)
+/// crashed before it decided `first_lost`.
+fn cut_state_back_to(config: &PipelineConfig, first_lost: u64) {
+    for kind in [
+        journal::Kind::Pose,
+        journal::Kind::Change,
+        journal::Kind::PoseAcked,
+        journal::Kind::ChangeAcked,
+    ] {
+        let path = journal::path(config, kind);
+        let header = journal::header(config, kind);
+        let entries = journal::read_entries(&path, &header).unwrap();
+        journal::reset(&path).unwrap();
+        let (mut written, _) = journal::Journal::open(&path, &header).unwrap();
+        for (frame_id, payload) in entries.range(..first_lost) {
+            if payload.is_empty() {
+                written.append(*frame_id).unwrap();
+            } else {
+                written.append_with(*frame_id, payload).unwrap();
+            }
+        }
+    }
+    let views = views::dir(config);
+    for entry in std::fs::read_dir(&views).unwrap() {
+        let path = entry.unwrap().path();
+        let frame_id = path
+            .file_name()
+            .and_then(|name| name.to_str()?.strip_suffix(".view")?.parse::<u64>().ok());
+        if frame_id.is_some_and(|id| id >= first_lost) {
+            std::fs::remove_file(path).unwrap();
+        }
+    }
+}
+
+/// Without depth maps (stereo in the pipeline): verify crashes before it decides the stream's
+/// last frame with a stereo change map, after every frame before it had both its results out.
+/// The restarted pipeline sends only the frames from there on; the frames before are not
+/// registered again, yet the last frame gets the change map it got without the crash, from
+/// neighbours accepted before the restart (their photos and poses restored from the state
+/// folder, `runtime::views`). Without the durable views it would get "no depth: … stereo found
+/// none" (its stereo neighbours all come before it).
+#[test]
+fn a_frame_after_a_verify_restart_gets_its_stereo_change_map_from_frames_accepted_before() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let synth = SynthConfig {
+        seed: 2,
+        width_px: 240,
+        height_px: 132,
+        image_count: 9,
+        initial_levels_px: vec![8.0],
+        changes: true,
+        ..SynthConfig::default()
+    };
+    generate_scene(&synth, &scene).unwrap();
+    let mut config = PipelineConfig {
+        mesh: scene.join("model.ply"),
+        source: SourceConfig::scene(&scene, 8),
+        ..PipelineConfig::default()
+    };
+    config.registration.coarse_pose_count = 5;
+    config.backpressure.flow_jobs_queued = 10;
+    config.transport.pipeline = crate::transport::conformance::unique_pipeline("views");
+    config.timeouts.frame_timeout_s = 120.0;
+    config.state_dir = Some(dir.path().join("state"));
+    // Every frame may be every other's neighbour (nothing leaves the window during the stream).
+    config.stereo.window_frames = 10;
+    assert!(config.source.depth.is_none() && config.changes_enabled());
+
+    let (_, before) = run_stage_threads_on_crossbeam(&config);
+    let changes = before.changes_by_frame();
+    for change in &changes {
+        eprintln!(
+            "frame {} {}: {:?} {:?}",
+            change.frame_id, change.name, change.failure, change.counts
+        );
+    }
+    let last_mapped = changes
+        .iter()
+        .filter(|c| c.failure.is_none())
+        .map(|c| c.frame_id)
+        .max()
+        .expect("a frame with a stereo change map");
+    let kept_before = (0..last_mapped)
+        .filter(|id| views::dir(&config).join(format!("{id}.view")).exists())
+        .count();
+    assert!(
+        kept_before > 0,
+        "the views of the frames before it are on disk"
+    );
+
+    cut_state_back_to(&config, last_mapped);
+    let (_, after) = run_stage_threads_on_crossbeam(&config);
+    let redone: Vec<u64> = after.by_frame().iter().map(|r| r.frame_id).collect();
+    assert_eq!(
+        redone,
+        (last_mapped..9).collect::<Vec<_>>(),
+        "only the frames from the crash on are registered again"
+    );
+    let find = |collected: &collect::Collected| {
+        collected
+            .changes_by_frame()
+            .into_iter()
+            .find(|c| c.frame_id == last_mapped)
+            .cloned()
+            .expect("its change result")
+    };
+    let (was, now) = (find(&before), find(&after));
+    assert_eq!(now.failure, None, "a stereo change map after the restart");
+    assert_eq!(now.counts, was.counts);
+    assert_eq!(now.regions, was.regions);
+    let set = after.change_set.as_ref().expect("the final change set");
+    assert!(set.complete);
+    assert_eq!(set.frames_with_result, 9);
+}

@@ -402,6 +402,58 @@ impl<'m> VerifyStage<'m> {
         }
     }
 
+    /// The accepted frames kept as stereo views (references still waiting and neighbours a
+    /// waiting or coming frame may choose), oldest first.
+    pub fn stereo_view_ids(&self) -> Vec<u64> {
+        self.registered_views.keys().copied().collect()
+    }
+
+    /// A kept stereo view as a change job without neighbours (its frame, registered camera and
+    /// pose, and grey photo): what a restart of this stage needs to have the frame as a stereo
+    /// neighbour again (the runtime keeps it durable, [`VerifyStage::restore_stereo_view`]).
+    pub fn stereo_view(&self, frame_id: u64) -> Option<ChangeJob<'static>> {
+        let view = self.registered_views.get(&frame_id)?;
+        Some(ChangeJob {
+            meta: ChangeJobMeta {
+                info: view.info.clone(),
+                camera: view.camera,
+                cam_from_world: view.cam_from_world,
+                neighbours: Vec::new(),
+            },
+            depth_m: std::borrow::Cow::Owned(Vec::new()),
+            photo: std::borrow::Cow::Owned(view.photo.data().to_vec()),
+            neighbour_photos: std::borrow::Cow::Owned(Vec::new()),
+        })
+    }
+
+    /// After a restart: an accepted frame kept before it (from [`VerifyStage::stereo_view`])
+    /// is a stereo neighbour again; its own change job is not made again from it (a frame whose
+    /// change result is not out is sent again and decided again). A view the stage already has
+    /// is kept; a job whose photo is not its camera's size is an error.
+    pub fn restore_stereo_view(
+        &mut self,
+        frame_id: u64,
+        job: &ChangeJob<'_>,
+    ) -> Result<(), String> {
+        if !self.changes || self.registered_views.contains_key(&frame_id) {
+            return Ok(());
+        }
+        let photo = job
+            .photo()
+            .map_err(|error| error.to_string())?
+            .ok_or("it has no photo")?;
+        self.registered_views.insert(
+            frame_id,
+            RegisteredView {
+                info: job.meta.info.clone(),
+                camera: job.meta.camera,
+                cam_from_world: job.meta.cam_from_world,
+                photo: Arc::new(photo.to_image()),
+            },
+        );
+        Ok(())
+    }
+
     fn is_finished(&self, frame_id: u64) -> bool {
         frame_id < self.finished_below || self.finished_above.contains(&frame_id)
     }

@@ -18,9 +18,10 @@
 //! - holes where unsure: reference window untextured (grey std below `min_texture`), best cost
 //!   above `max_cost`, best at either end of the range, a second minimum (more than 2 planes away)
 //!   within `uniqueness_margin` of the best (flat or repetitive cost), and, with
-//!   `left_right_check`, pixels whose depth disagrees with the first neighbour's own depth (the
-//!   same sweep run from the neighbour against the reference) by more than
-//!   `consistency_planes` plane steps, or that the neighbour's depth cannot confirm;
+//!   `left_right_check`, pixels whose depth none of the first `consistency_neighbours`
+//!   neighbours' own depths (the same sweep run from each neighbour against the reference)
+//!   confirms within `consistency_planes` plane steps (a neighbour that does not see the point
+//!   cannot confirm it; another one may);
 //! - the working depth brought back to the reference's size: bilinear in inverse depth where the
 //!   four taps agree within 5 %, else the nearest tap.
 //!
@@ -72,12 +73,17 @@ pub struct StereoConfig {
     pub min_texture: f32,
     /// A second minimum more than 2 planes from the best must cost at least this much more.
     pub uniqueness_margin: f32,
-    /// Check each depth against the first neighbour's own depth (a second, one-pair sweep).
+    /// Check each depth against the neighbours' own depths (one-pair sweeps back from them).
     pub left_right_check: bool,
+    /// How many neighbours (the first ones) get a sweep back for that check: a depth stays when
+    /// one of them confirms it. 1 checks against the first neighbour only, which drops
+    /// everything that neighbour does not see (occluded there, or outside its photo) even where
+    /// the others match it (docs/measurements.md, issue #13, branch `change13`).
+    pub consistency_neighbours: usize,
     /// Tolerance of that check, in plane steps of inverse depth.
     pub consistency_planes: f32,
-    /// With the check: keep depths the neighbour cannot confirm (its own depth is a hole there)
-    /// and drop only those it contradicts.
+    /// With the check: keep depths no checked neighbour can confirm (their own depth is a hole
+    /// there, or the point leaves their photos) and drop only those they contradict.
     pub keep_unconfirmed: bool,
     /// Holes filled from their (2r+1)² working neighbourhood when at least half of it has depth
     /// that agrees (quartiles within 3 % in inverse depth): the median; 0 = no filling.
@@ -101,6 +107,7 @@ impl Default for StereoConfig {
             min_texture: 0.004,
             uniqueness_margin: 0.02,
             left_right_check: true,
+            consistency_neighbours: MAX_NEIGHBOURS,
             consistency_planes: 2.0,
             keep_unconfirmed: false,
             fill_radius_px: 2,
@@ -163,14 +170,15 @@ impl StereoConfig {
             ));
         }
         if self.best_k == 0
+            || self.consistency_neighbours == 0
             || !(self.max_cost > 0.0
                 && self.min_texture >= 0.0
                 && self.uniqueness_margin >= 0.0
                 && self.consistency_planes > 0.0)
         {
             return bad(format!(
-                "best_k {} must be ≥ 1, max_cost {} > 0, min_texture {} ≥ 0, uniqueness_margin {} ≥ 0, consistency_planes {} > 0",
-                self.best_k, self.max_cost, self.min_texture, self.uniqueness_margin, self.consistency_planes
+                "best_k {} and consistency_neighbours {} must be ≥ 1, max_cost {} > 0, min_texture {} ≥ 0, uniqueness_margin {} ≥ 0, consistency_planes {} > 0",
+                self.best_k, self.consistency_neighbours, self.max_cost, self.min_texture, self.uniqueness_margin, self.consistency_planes
             ));
         }
         if !(self.near_factor > 0.0 && self.near_factor <= 1.0 && self.far_factor >= 1.0) {
@@ -544,17 +552,23 @@ pub fn depth_from_neighbours(
     let neighbour_refs: Vec<&WorkingView> = neighbours_w.iter().collect();
     let mut sweep = plane_sweep(&reference_w, &neighbour_refs, range, config);
     if config.left_right_check {
-        let first = &neighbours_w[0];
-        let back = plane_sweep(
-            first,
-            &[&reference_w],
-            range,
-            &StereoConfig {
-                best_k: 1,
-                ..*config
-            },
-        );
-        left_right_check(&mut sweep, &reference_w, &back, first, config);
+        let checked = config.consistency_neighbours.clamp(1, neighbours_w.len());
+        let backs: Vec<(Sweep, &WorkingView)> = neighbours_w[..checked]
+            .iter()
+            .map(|neighbour| {
+                let back = plane_sweep(
+                    neighbour,
+                    &[&reference_w],
+                    range,
+                    &StereoConfig {
+                        best_k: 1,
+                        ..*config
+                    },
+                );
+                (back, neighbour)
+            })
+            .collect();
+        left_right_check(&mut sweep, &reference_w, &backs, config);
     }
     if config.fill_radius_px > 0 {
         fill_holes(&mut sweep.depth_m, config.fill_radius_px);
@@ -899,23 +913,30 @@ impl HoleReason {
     }
 }
 
-/// Keeps the depths of `sweep` that `neighbour`'s own depth (`back`) confirms: the point seen
-/// at the reference pixel lands in the neighbour at a pixel whose depth agrees within
-/// `consistency_planes` plane steps of inverse depth.
+/// Keeps the depths of `sweep` that one of the neighbours' own depths (`backs`: each one's sweep
+/// back against the reference) confirms: the point seen at the reference pixel lands in that
+/// neighbour at a pixel whose depth agrees within `consistency_planes` plane steps of inverse
+/// depth. A neighbour that does not see the point (occluded there, or it leaves its photo)
+/// cannot confirm it, but another can: the sweep's best-`k` cost already lets an occluded
+/// neighbour drop out, and the check must not undo that.
 fn left_right_check(
     sweep: &mut Sweep,
     reference: &WorkingView,
-    back: &Sweep,
-    neighbour: &WorkingView,
+    backs: &[(Sweep, &WorkingView)],
     config: &StereoConfig,
 ) {
     let w = sweep.depth_m.width_px();
-    let (nw, nh) = back.depth_m.size();
-    let n_from_r = neighbour
-        .cam_from_world
-        .compose(&reference.cam_from_world.inverse());
-    let tolerance = config.consistency_planes * back.inverse_step.max(sweep.inverse_step);
-    let back_depth = back.depth_m.data();
+    let checks: Vec<(Rigid3, f32)> = backs
+        .iter()
+        .map(|(back, neighbour)| {
+            (
+                neighbour
+                    .cam_from_world
+                    .compose(&reference.cam_from_world.inverse()),
+                config.consistency_planes * back.inverse_step.max(sweep.inverse_step),
+            )
+        })
+        .collect();
     let mut inconsistent = 0;
     for (index, depth) in sweep.depth_m.data_mut().iter_mut().enumerate() {
         if *depth <= 0.0 {
@@ -925,20 +946,28 @@ fn left_right_check(
             .intrinsics
             .pixel_to_normalized(pixel_center(index % w, index / w));
         let d = f64::from(*depth);
-        let point = n_from_r.transform_point(&Vector3::new(n.x * d, n.y * d, d));
-        let confirmed = neighbour
-            .intrinsics
-            .project(&point)
-            .and_then(|px| nearest_pixel(px, nw, nh))
-            .map(|(col, row)| back_depth[row * nw + col])
-            .is_some_and(|other| {
-                if other > 0.0 {
-                    (1.0 / point.z as f32 - 1.0 / other).abs() <= tolerance
-                } else {
-                    config.keep_unconfirmed
+        let in_reference = Vector3::new(n.x * d, n.y * d, d);
+        let mut confirmed = false;
+        let mut contradicted = false;
+        for ((back, neighbour), (n_from_r, tolerance)) in backs.iter().zip(&checks) {
+            let (nw, nh) = back.depth_m.size();
+            let point = n_from_r.transform_point(&in_reference);
+            let other = neighbour
+                .intrinsics
+                .project(&point)
+                .and_then(|px| nearest_pixel(px, nw, nh))
+                .map(|(col, row)| back.depth_m.data()[row * nw + col])
+                .filter(|other| *other > 0.0);
+            if let Some(other) = other {
+                if (1.0 / point.z as f32 - 1.0 / other).abs() <= *tolerance {
+                    confirmed = true;
+                    break;
                 }
-            });
-        if !confirmed {
+                contradicted = true;
+            }
+        }
+        let keep = confirmed || (config.keep_unconfirmed && !contradicted);
+        if !keep {
             *depth = 0.0;
             inconsistent += 1;
         }
