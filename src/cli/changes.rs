@@ -81,8 +81,8 @@ pub struct ChangesArgs {
     #[arg(long)]
     pub stereo_no_left_right: bool,
     /// Without --depth: how many neighbours (the first ones) get a sweep back for the
-    /// left-right check; a depth stays when one of them confirms it (1: the first neighbour
-    /// only, the check before 2026-12-03).
+    /// left-right check; a depth stays when one of them confirms it and none sees through it
+    /// (1: the first neighbour only, the default; see docs/measurements.md, branch `change13`).
     #[arg(long, default_value_t = StereoConfig::default().consistency_neighbours)]
     pub stereo_consistency_neighbours: usize,
     /// Without --depth: disparity error of the stereo depth, working pixels; sets the change

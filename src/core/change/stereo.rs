@@ -76,9 +76,11 @@ pub struct StereoConfig {
     /// Check each depth against the neighbours' own depths (one-pair sweeps back from them).
     pub left_right_check: bool,
     /// How many neighbours (the first ones) get a sweep back for that check: a depth stays when
-    /// one of them confirms it. 1 checks against the first neighbour only, which drops
-    /// everything that neighbour does not see (occluded there, or outside its photo) even where
-    /// the others match it (docs/measurements.md, issue #13, branch `change13`).
+    /// one of them confirms it and none sees through it. 1 checks against the first neighbour
+    /// only, which drops everything that neighbour does not see (occluded there, or outside its
+    /// photo) even where the others match it: the block's extension (docs/measurements.md, issue
+    /// #13, branch `change13`). More neighbours keep it and a third more depth, but gave one
+    /// more false `removed` object on the held-out block seed, so 1 stays the default.
     pub consistency_neighbours: usize,
     /// Tolerance of that check, in plane steps of inverse depth.
     pub consistency_planes: f32,
@@ -107,7 +109,7 @@ impl Default for StereoConfig {
             min_texture: 0.004,
             uniqueness_margin: 0.02,
             left_right_check: true,
-            consistency_neighbours: MAX_NEIGHBOURS,
+            consistency_neighbours: 1,
             consistency_planes: 2.0,
             keep_unconfirmed: false,
             fill_radius_px: 2,
@@ -916,9 +918,11 @@ impl HoleReason {
 /// Keeps the depths of `sweep` that one of the neighbours' own depths (`backs`: each one's sweep
 /// back against the reference) confirms: the point seen at the reference pixel lands in that
 /// neighbour at a pixel whose depth agrees within `consistency_planes` plane steps of inverse
-/// depth. A neighbour that does not see the point (occluded there, or it leaves its photo)
-/// cannot confirm it, but another can: the sweep's best-`k` cost already lets an occluded
-/// neighbour drop out, and the check must not undo that.
+/// depth, and no checked neighbour sees through it (its own depth farther than the point beyond
+/// the tolerance: a free-space violation). A neighbour that does not see the point (occluded
+/// there: its depth is nearer; or it leaves its photo) neither confirms nor vetoes it: the
+/// sweep's best-`k` cost already lets an occluded neighbour drop out, and the check must not undo
+/// that. With one neighbour this is the plain left-right check.
 fn left_right_check(
     sweep: &mut Sweep,
     reference: &WorkingView,
@@ -949,6 +953,7 @@ fn left_right_check(
         let in_reference = Vector3::new(n.x * d, n.y * d, d);
         let mut confirmed = false;
         let mut contradicted = false;
+        let mut seen_through = false;
         for ((back, neighbour), (n_from_r, tolerance)) in backs.iter().zip(&checks) {
             let (nw, nh) = back.depth_m.size();
             let point = n_from_r.transform_point(&in_reference);
@@ -959,14 +964,19 @@ fn left_right_check(
                 .map(|(col, row)| back.depth_m.data()[row * nw + col])
                 .filter(|other| *other > 0.0);
             if let Some(other) = other {
-                if (1.0 / point.z as f32 - 1.0 / other).abs() <= *tolerance {
+                // Inverse depths: the neighbour's surface farther than the point (it sees
+                // through where the point would be: a free-space violation) or nearer (the
+                // point is occluded there: no vote).
+                let excess = 1.0 / point.z as f32 - 1.0 / other;
+                if excess.abs() <= *tolerance {
                     confirmed = true;
-                    break;
+                } else {
+                    contradicted = true;
+                    seen_through |= excess > *tolerance;
                 }
-                contradicted = true;
             }
         }
-        let keep = confirmed || (config.keep_unconfirmed && !contradicted);
+        let keep = !seen_through && (confirmed || (config.keep_unconfirmed && !contradicted));
         if !keep {
             *depth = 0.0;
             inconsistent += 1;
