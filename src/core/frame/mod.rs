@@ -39,7 +39,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 pub use config::{
-    IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError, UnknownIntrinsics,
+    prior_gate_m, IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError,
+    UnknownIntrinsics, PRIOR_GATE_SIGMAS,
 };
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
 pub use decide::{decide_frame, decide_frame_and_centres, Decision};
@@ -371,6 +372,7 @@ fn register_region(
     ) = decide_frame_and_centres(
         mesh,
         camera,
+        initial_cam_from_world,
         &outcomes,
         Some(query),
         intrinsics,
