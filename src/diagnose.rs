@@ -625,7 +625,6 @@ fn diagnose_region(
     ) = decide_frame_and_centres(
         mesh,
         camera,
-        initial_cam_from_world,
         &outcomes,
         Some(query),
         intrinsics,

@@ -140,34 +140,6 @@ impl serde::Serialize for Level {
     }
 }
 
-/// The σ per axis, metres, of the camera-centre noise `synth` drew `level`'s priors with (its
-/// scene.json: a level's noise scale × metres per radian, or the heading level's GPS-like σ):
-/// eval passes it to registration as a ground station passes its GNSS's accuracy. `None` when
-/// the scene has no scene.json (not made by `synth`) or it does not name the level.
-fn scene_prior_position_sigma_m(scene: &Path, level: Level) -> anyhow::Result<Option<f64>> {
-    let path = scene.join("scene.json");
-    let Ok(text) = std::fs::read_to_string(&path) else {
-        return Ok(None);
-    };
-    let json: serde_json::Value = serde_json::from_str(&text)
-        .with_context(|| format!("{}: not JSON (as `asgreg synth` writes it)", path.display()))?;
-    let config = &json["config"];
-    let sigma_m = match level {
-        Level::Heading => config["heading_noise"]["position_sigma_m"].as_f64(),
-        Level::Px(px) => json["initial_levels"]
-            .as_array()
-            .and_then(|levels| {
-                levels
-                    .iter()
-                    .find(|l| l["target_px"].as_f64() == Some(f64::from(px)))
-            })
-            .and_then(|l| l["scale"].as_f64())
-            .zip(config["initial_metres_per_radian"].as_f64())
-            .map(|(scale, metres_per_radian)| scale * metres_per_radian),
-    };
-    Ok(sigma_m.filter(|s| s.is_finite() && *s > 0.0))
-}
-
 fn parse_level(text: &str) -> Result<Level, String> {
     if text == asgreg::synth::HEADING_LEVEL_DIR {
         return Ok(Level::Heading);
@@ -240,28 +212,6 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
 
-    // The prior's position accuracy per level, as the scene's priors were drawn (unless given).
-    let mut level_sigma_m: BTreeMap<Level, f64> = BTreeMap::new();
-    if args.coarse.prior_position_sigma_m.is_none() {
-        for &level in &args.levels {
-            match scene_prior_position_sigma_m(&args.scene, level)? {
-                Some(sigma_m) => {
-                    eprintln!("level {level}: the priors' camera centres were drawn with σ {sigma_m:.2} m per axis (scene.json): accepted poses must stay within {:.2} m of them", sigma_m * asgreg::core::frame::PRIOR_GATE_SIGMAS);
-                    level_sigma_m.insert(level, sigma_m);
-                }
-                None => eprintln!(
-                    "level {level}: scene.json does not say how the priors were drawn: the prior's position σ is the default {} m (--prior-position-sigma-m sets it)",
-                    RegistrationConfig::default().prior_position_sigma_m
-                ),
-            }
-        }
-    }
-    let level_config = |mut config: RegistrationConfig, level: Level| {
-        if let Some(sigma_m) = level_sigma_m.get(&level) {
-            config.prior_position_sigma_m = *sigma_m;
-        }
-        config
-    };
     let bar = progress_bar(jobs.len(), "evaluating");
     let mut workspace = ReprojectionWorkspace::new();
     let mut results: BTreeMap<(Level, &'static str), Vec<EvalFrame>> = BTreeMap::new();
@@ -302,7 +252,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         let mut asg_row = None;
         let outcome = match method {
             Method::Asg(intrinsics) if args.diagnose_search => {
-                let config = level_config(registration_config(query_mode, intrinsics, &args.coarse), level);
+                let config = registration_config(query_mode, intrinsics, &args.coarse);
                 let started = std::time::Instant::now();
                 let diagnosis = with_scene_frame(
                     &args.scene,
@@ -342,7 +292,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 outcome
             }
             Method::Asg(intrinsics) if args.diagnose => {
-                let config = level_config(registration_config(query_mode, intrinsics, &args.coarse), level);
+                let config = registration_config(query_mode, intrinsics, &args.coarse);
                 let started = std::time::Instant::now();
                 match with_scene_frame(
                     &args.scene,
@@ -393,7 +343,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 }
             }
             Method::Asg(intrinsics) => {
-                let config = level_config(registration_config(query_mode, intrinsics, &args.coarse), level);
+                let config = registration_config(query_mode, intrinsics, &args.coarse);
                 let (report, final_delta_px) = register_scene_frame(
                     &mesh,
                     &args.scene,

@@ -281,11 +281,6 @@ pub struct CoarseArgs {
     /// coarse poses' spread (1 or more turns the convergence test off).
     #[arg(long, default_value_t = RegistrationConfig::default().verify.max_convergence_ratio)]
     pub max_convergence_ratio: f64,
-    /// The prior's camera-centre accuracy, σ per axis in metres (a GNSS's): an accepted pose
-    /// whose camera lies more than 4.6 σ from the prior's is rejected as a look-alike elsewhere.
-    /// Default 3 m; `eval` defaults to the σ its scene's priors were drawn with (scene.json).
-    #[arg(long)]
-    pub prior_position_sigma_m: Option<f64>,
     /// Lifting: matches within this many px of a depth discontinuity of the rendering are not
     /// lifted (0: every match is).
     #[arg(long, default_value_t = RegistrationConfig::default().lift_edge_margin_px)]
@@ -372,7 +367,6 @@ impl Default for CoarseArgs {
             coarse_rotation_deg: defaults.coarse_rotation_sigma_deg,
             coarse_translation_fraction: defaults.coarse_translation_sigma_fraction,
             max_convergence_ratio: defaults.verify.max_convergence_ratio,
-            prior_position_sigma_m: None,
             lift_edge_margin_px: defaults.lift_edge_margin_px,
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
@@ -517,9 +511,6 @@ pub fn registration_config(
         coarse_rotation_sigma_deg: coarse.coarse_rotation_deg,
         coarse_translation_sigma_fraction: coarse.coarse_translation_fraction,
         lift_edge_margin_px: coarse.lift_edge_margin_px,
-        prior_position_sigma_m: coarse
-            .prior_position_sigma_m
-            .unwrap_or(RegistrationConfig::default().prior_position_sigma_m),
         matching: MatchConfig {
             min_rendering_edge: coarse
                 .flow_near_model_edges

@@ -185,15 +185,6 @@ pub enum RejectionReason {
     /// region the confidence was calibrated on, so its edge support no longer confirms it on
     /// its own (`core::frame::sweep::decide_passes`).
     SweepUnchecked { confidence: f64 },
-    /// The photo confirms the pose, but its camera centre lies `moved_m` from the prior's, beyond
-    /// what the prior's own position uncertainty allows (`max_m`,
-    /// [`crate::core::frame::prior_gate_m`]): a look-alike elsewhere (the model's house on
-    /// the photo's garage), not the camera the prior describes.
-    FarFromPrior {
-        confidence: f64,
-        moved_m: f64,
-        max_m: f64,
-    },
 }
 
 impl std::fmt::Display for RejectionReason {
@@ -253,14 +244,6 @@ impl std::fmt::Display for RejectionReason {
             RejectionReason::SweepUnchecked { confidence } => write!(
                 f,
                 "the full-circle heading sweep's pose is confirmed by the photo's edges alone (confidence {confidence:.2}); its refined poses failed the plausibility check: give a better prior (heading) to register this frame"
-            ),
-            RejectionReason::FarFromPrior {
-                confidence,
-                moved_m,
-                max_m,
-            } => write!(
-                f,
-                "the pose the photo confirms (confidence {confidence:.2}) puts the camera {moved_m:.1} m from the prior's position, more than the prior's uncertainty allows ({max_m:.1} m): a look-alike elsewhere in the model; if the prior's position is worse than that, give its accuracy (--prior-position-sigma-m)"
             ),
         }
     }

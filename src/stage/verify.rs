@@ -183,7 +183,6 @@ impl ReadyFrame {
         let decision = decide_frame(
             mesh,
             &frame.camera,
-            &frame.info.initial_cam_from_world,
             &outcomes,
             frame.query.as_ref().map(|query| query.view()),
             frame.intrinsics,

@@ -118,22 +118,6 @@ pub struct RegistrationConfig {
     /// The pose search before the coarse poses (step "search"): its region in degrees, its
     /// edge map's pyramid level and blur in px, how many beams, when a beam replaces the prior.
     pub pose_search: PoseSearchConfig,
-    /// How far the prior's camera centre may be from the true one: its standard deviation per
-    /// axis, metres (a GNSS's stated accuracy). An accepted pose whose camera lies beyond
-    /// [`prior_gate_m`] of the prior's is rejected ([`crate::core::verify::RejectionReason::FarFromPrior`]).
-    /// Default 3 m: twice a consumer drone's hover accuracy spec (±1.5 m horizontal), for a
-    /// barometric altitude; `asgreg eval` passes the σ its scene's priors were drawn with.
-    pub prior_position_sigma_m: f64,
-}
-
-/// How many σ of [`RegistrationConfig::prior_position_sigma_m`] a camera centre may move from
-/// the prior's: the radius holding 99.99 % of a 3-D Gaussian (√χ²₃(0.9999) = √21.11), so a
-/// correct pose is rejected for it once in ten thousand frames.
-pub const PRIOR_GATE_SIGMAS: f64 = 4.594;
-
-/// The largest distance, metres, between an accepted pose's camera centre and the prior's.
-pub fn prior_gate_m(config: &RegistrationConfig) -> f64 {
-    PRIOR_GATE_SIGMAS * config.prior_position_sigma_m
 }
 
 impl Default for RegistrationConfig {
@@ -162,7 +146,6 @@ impl Default for RegistrationConfig {
             edge_align: EdgeAlignConfig::default(),
             confidence: ConfidenceConfig::default(),
             pose_search: PoseSearchConfig::default(),
-            prior_position_sigma_m: 3.0,
         }
     }
 }
@@ -225,15 +208,6 @@ impl RegistrationConfig {
             if !(value.is_finite() && value >= 0.0) {
                 return bad(field, format!("{value} is not a non-negative number"));
             }
-        }
-        if !(self.prior_position_sigma_m.is_finite() && self.prior_position_sigma_m > 0.0) {
-            return bad(
-                "prior_position_sigma_m",
-                format!(
-                    "{} is not a positive number of metres (the prior position's σ per axis)",
-                    self.prior_position_sigma_m
-                ),
-            );
         }
         if !(self.query_depth_max_relative_step.is_finite()
             && self.query_depth_max_relative_step >= 0.0)

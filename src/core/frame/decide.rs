@@ -3,12 +3,11 @@
 //! chosen pose against the query ([`super::refine`]); the verdict carries the chosen pose itself.
 
 use super::refine::{refine_verdict, PoseRefinement, RefineWorkspace};
-use super::{prior_gate_m, process_cpu_ms, CoarseOutcome, IntrinsicsMode, RegistrationConfig};
+use super::{process_cpu_ms, CoarseOutcome, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::confidence::{ConfidenceConfig, FrameEvidence};
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
-use crate::core::rigid::Rigid3;
 use crate::core::reprojection::{
     mutual_reprojection_error_px, ReprojectionWorkspace, VisiblePoints,
 };
@@ -34,18 +33,15 @@ pub struct Decision {
 /// The verdict over a frame's coarse outcomes (in coarse order), then the final refinement of its
 /// chosen pose against `query` (the frame's query gradient image; `None` when it is not at hand,
 /// e.g. lost in the pipeline: the verdict is then unrefined). `camera` is the one the coarse
-/// poses were rendered with; `prior` the frame's initial pose (an accepted pose must keep its
-/// camera within [`prior_gate_m`] of the prior's).
+/// poses were rendered with.
 ///
 /// The outcomes come in groups of `config.coarse_pose_count`, one per centre of the pose search
 /// ([`super::render_views`]); each group is decided on its own (the paper's check, the refinement,
 /// the calibrated confidence), and then the groups against each other
 /// ([`choose_among_centres`]).
-#[allow(clippy::too_many_arguments)]
 pub fn decide_frame(
     mesh: &Mesh,
     camera: &Camera,
-    prior: &Rigid3,
     outcomes: &[CoarseOutcome],
     query: Option<ImageView<'_, f32>>,
     intrinsics: IntrinsicsMode,
@@ -55,7 +51,6 @@ pub fn decide_frame(
     decide_frame_and_centres(
         mesh,
         camera,
-        prior,
         outcomes,
         query,
         intrinsics,
@@ -76,7 +71,6 @@ pub fn decide_frame(
 pub fn decide_frame_and_centres(
     mesh: &Mesh,
     camera: &Camera,
-    prior: &Rigid3,
     outcomes: &[CoarseOutcome],
     query: Option<ImageView<'_, f32>>,
     intrinsics: IntrinsicsMode,
@@ -88,7 +82,6 @@ pub fn decide_frame_and_centres(
     let decisions = decide_centres(
         mesh,
         camera,
-        prior,
         outcomes,
         query,
         intrinsics,
@@ -105,17 +98,7 @@ pub fn decide_frame_and_centres(
     let mut chosen =
         choose_among_centres(mesh, decisions, config.pose_search.centre_agreement_share)
             .unwrap_or_else(|| {
-                decide_centre(
-                    mesh,
-                    camera,
-                    prior,
-                    &[],
-                    query,
-                    intrinsics,
-                    config,
-                    workspace,
-                    &[],
-                )
+                decide_centre(mesh, camera, &[], query, intrinsics, config, workspace, &[])
             });
     chosen.refine_cpu_ms = refine_cpu_ms;
     (chosen, kept)
@@ -127,7 +110,6 @@ pub fn decide_frame_and_centres(
 fn decide_centres(
     mesh: &Mesh,
     camera: &Camera,
-    prior: &Rigid3,
     outcomes: &[CoarseOutcome],
     query: Option<ImageView<'_, f32>>,
     intrinsics: IntrinsicsMode,
@@ -139,7 +121,6 @@ fn decide_centres(
         decide_centre(
             mesh,
             camera,
-            prior,
             group,
             query,
             intrinsics,
@@ -158,12 +139,11 @@ fn decide_centres(
 }
 
 /// One centre's decision: the paper's check over its coarse outcomes, the refinement of the
-/// chosen pose, the calibrated confidence and the prior's position gate.
+/// chosen pose and the calibrated confidence.
 #[allow(clippy::too_many_arguments)]
 fn decide_centre(
     mesh: &Mesh,
     camera: &Camera,
-    prior: &Rigid3,
     outcomes: &[CoarseOutcome],
     query: Option<ImageView<'_, f32>>,
     intrinsics: IntrinsicsMode,
@@ -207,7 +187,6 @@ fn decide_centre(
         refinement.as_ref().ok().and_then(|r| r.correlation),
     );
     confirm(&mut verdict, &evidence, &config.confidence);
-    gate_by_prior(&mut verdict, prior, prior_gate_m(config));
     Decision {
         verdict,
         refinement,
@@ -329,36 +308,12 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
     }
 }
 
-/// The prior's position gate: an accepted pose whose camera centre lies more than `max_m` from
-/// the prior's is rejected ([`RejectionReason::FarFromPrior`]). The photo's edges can confirm a
-/// look-alike (the model's house fitted onto the photo's garage, 8 m from the prior with a
-/// prior 1 m off: house seed 3, 104 px, view_009); the prior's position, which no other step
-/// reads once the coarse poses are drawn, rules it out.
-fn gate_by_prior(verdict: &mut Verdict, prior: &Rigid3, max_m: f64) {
-    let Some(pose) = verdict.accepted_pose() else {
-        return;
-    };
-    let moved_m = (pose.cam_from_world.camera_center() - prior.camera_center()).norm();
-    if moved_m > max_m {
-        let confidence = verdict.confidence;
-        reject(
-            verdict,
-            RejectionReason::FarFromPrior {
-                confidence,
-                moved_m,
-                max_m,
-            },
-        );
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use nalgebra::{UnitQuaternion, Vector3};
 
     use super::*;
     use crate::core::frame::tests::{house_and_poses, ideal_query};
-    use crate::core::frame::PRIOR_GATE_SIGMAS;
     use crate::core::rigid::Rigid3;
 
     /// Fifteen outcomes that all refined to `pose`, from coarse poses spread around it (so the
@@ -407,7 +362,6 @@ mod tests {
         let decision = decide_frame(
             &mesh,
             &camera,
-            &truth,
             &agreeing_outcomes(&camera, &wrong),
             Some(query.view()),
             IntrinsicsMode::Known,
@@ -434,7 +388,6 @@ mod tests {
         let decision = decide_frame(
             &mesh,
             &camera,
-            &truth,
             &agreeing_outcomes(&camera, &truth),
             Some(query.view()),
             IntrinsicsMode::Known,
@@ -443,58 +396,6 @@ mod tests {
         );
         assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
         assert!(decision.verdict.confidence >= config.confidence.accept_above);
-    }
-
-    /// The prior's position gate: the photo confirms the true pose (accepted from a prior whose
-    /// camera is 1 m off), but the same confirmed pose from a prior whose camera is 20 m away
-    /// (beyond 4.6 × the default σ of 3 m) is a look-alike the prior rules out: rejected with
-    /// the distance, its pose kept as the candidate. A prior σ that allows 20 m accepts it again.
-    #[test]
-    fn a_confirmed_pose_far_from_the_prior_is_rejected() {
-        let (mesh, camera, truth, _) = house_and_poses();
-        let config = RegistrationConfig::default();
-        let query = ideal_query(&mesh, &camera, &truth, &config);
-        let mut workspace = RefineWorkspace::default();
-        let prior_moved_m = |offset_m: Vector3<f64>| {
-            let centre = truth.camera_center() + offset_m;
-            Rigid3::new(truth.rotation, -(truth.rotation * centre))
-        };
-        let decide = |prior: &Rigid3, config: &RegistrationConfig, workspace: &mut _| {
-            decide_frame(
-                &mesh,
-                &camera,
-                prior,
-                &agreeing_outcomes(&camera, &truth),
-                Some(query.view()),
-                IntrinsicsMode::Known,
-                config,
-                workspace,
-            )
-        };
-        let near = decide(
-            &prior_moved_m(Vector3::new(0.6, -0.8, 0.0)),
-            &config,
-            &mut workspace,
-        );
-        assert!(near.verdict.accepted(), "{:?}", near.verdict.rejection());
-
-        let far_prior = prior_moved_m(Vector3::new(12.0, 16.0, 0.0));
-        let far = decide(&far_prior, &config, &mut workspace);
-        match far.verdict.rejection() {
-            Some(RejectionReason::FarFromPrior { moved_m, max_m, .. }) => {
-                assert!((moved_m - 20.0).abs() < 0.5, "{moved_m}");
-                assert!((max_m - PRIOR_GATE_SIGMAS * 3.0).abs() < 1e-9, "{max_m}");
-            }
-            other => panic!("expected FarFromPrior, got {other:?}"),
-        }
-        assert!(far.verdict.confidence >= config.confidence.accept_above);
-        assert!(far.verdict.chosen().is_some(), "the candidate is kept");
-
-        let loose = RegistrationConfig {
-            prior_position_sigma_m: 5.0,
-            ..config.clone()
-        };
-        assert!(decide(&far_prior, &loose, &mut workspace).verdict.accepted());
     }
 
     /// Verification across the pose search's centres: two groups of coarse outcomes, one agreeing
@@ -521,7 +422,6 @@ mod tests {
             let decision = decide_frame(
                 &mesh,
                 &camera,
-                &truth,
                 &grouped(first, second),
                 Some(query.view()),
                 IntrinsicsMode::Known,
@@ -547,7 +447,6 @@ mod tests {
         let decision = decide_frame(
             &mesh,
             &camera,
-            &truth,
             &grouped(&wrong, &truth),
             Some(both.view()),
             IntrinsicsMode::Known,
@@ -598,7 +497,6 @@ mod tests {
             decide_frame(
                 &mesh,
                 &camera,
-                &truth,
                 &outcomes,
                 Some(both.view()),
                 IntrinsicsMode::Known,

@@ -39,8 +39,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 pub use config::{
-    prior_gate_m, IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError,
-    UnknownIntrinsics, PRIOR_GATE_SIGMAS,
+    IntrinsicsMode, QueryMode, RegistrationConfig, RegistrationError, UnknownIntrinsics,
 };
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
 pub use decide::{decide_frame, decide_frame_and_centres, Decision};
@@ -372,7 +371,6 @@ fn register_region(
     ) = decide_frame_and_centres(
         mesh,
         camera,
-        initial_cam_from_world,
         &outcomes,
         Some(query),
         intrinsics,
