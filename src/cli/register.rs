@@ -500,6 +500,10 @@ pub fn registration_config(
     intrinsics: IntrinsicsArg,
     coarse: &CoarseArgs,
 ) -> RegistrationConfig {
+    // Every setting the command line does not name is the library's default: the nested
+    // structs too (`MatchConfig::default()` is the reference flow's schedule, not the one
+    // registration runs with).
+    let defaults = RegistrationConfig::default();
     RegistrationConfig {
         query_mode,
         unknown_intrinsics: intrinsics.unknown_intrinsics(),
@@ -511,11 +515,11 @@ pub fn registration_config(
             min_rendering_edge: coarse
                 .flow_near_model_edges
                 .then_some(EdgeAlignConfig::default().min_model_ridge),
-            ..MatchConfig::default()
+            ..defaults.matching.clone()
         },
         verify: VerifyConfig {
             max_convergence_ratio: coarse.max_convergence_ratio,
-            ..VerifyConfig::default()
+            ..defaults.verify
         },
         edge_align: EdgeAlignConfig {
             enabled: !coarse.no_edge_align,
@@ -529,7 +533,7 @@ pub fn registration_config(
             estimate_rounding: !coarse.no_edge_rounding,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),
-            ..EdgeAlignConfig::default()
+            ..defaults.edge_align
         },
         pose_search: PoseSearchConfig {
             enabled: !coarse.no_pose_search,
@@ -538,9 +542,9 @@ pub fn registration_config(
             roll_half_range_deg: coarse.search_roll_deg,
             centre_agreement_share: coarse.centre_agreement_share,
             heading_sweep_step_deg: coarse.heading_sweep_deg,
-            ..Default::default()
+            ..defaults.pose_search
         },
-        ..RegistrationConfig::default()
+        ..defaults
     }
 }
 
@@ -944,5 +948,23 @@ pub fn report_frame(
         timings_ms,
         details,
         pictures,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The command line's defaults are the library's, nested settings included: `register`,
+    /// `eval` and `demo` register a frame as the pipeline does (a `MatchConfig::default()` here
+    /// once ran the reference flow's 30/60/20 iterations instead of the registration's 4/20/4).
+    #[test]
+    fn the_command_line_defaults_are_the_library_defaults() {
+        let config = registration_config(
+            QueryMode::ImageGradient,
+            IntrinsicsArg::Known,
+            &CoarseArgs::default(),
+        );
+        assert_eq!(config, RegistrationConfig::default());
     }
 }
