@@ -209,7 +209,10 @@ fn hash_words(hash: &mut u64, words: impl Iterator<Item = u32>) {
 /// Hash of every bit of a rendering's outputs and of its ASG.
 fn render_hash(buffers: &RenderBuffers, asg: &Image<f32>) -> u64 {
     let mut hash = 0xcbf2_9ce4_8422_2325;
-    hash_words(&mut hash, buffers.depth_m().data().iter().map(|d| d.to_bits()));
+    hash_words(
+        &mut hash,
+        buffers.depth_m().data().iter().map(|d| d.to_bits()),
+    );
     hash_words(
         &mut hash,
         buffers
@@ -259,7 +262,11 @@ fn scene_bench(scene: &std::path::Path) {
     for (k, (camera, pose)) in views.iter().enumerate() {
         buffers.resize(camera.width_px as usize, camera.height_px as usize);
         full.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
-        asg_from_normals(buffers.normal_cam().view(), &AsgOptions::default(), &mut asg);
+        asg_from_normals(
+            buffers.normal_cam().view(),
+            &AsgOptions::default(),
+            &mut asg,
+        );
         valid += buffers.valid_count();
         let full_hash = render_hash(&buffers, &asg);
         geometry.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
@@ -287,7 +294,11 @@ fn scene_bench(scene: &std::path::Path) {
     });
     let asg_timing = cycle(&mut |camera, pose| {
         full.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
-        asg_from_normals(buffers.normal_cam().view(), &AsgOptions::default(), &mut asg);
+        asg_from_normals(
+            buffers.normal_cam().view(),
+            &AsgOptions::default(),
+            &mut asg,
+        );
     });
     let geometry_timing = cycle(&mut |camera, pose| {
         geometry.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
