@@ -182,27 +182,13 @@ struct PreparedFace {
     clipped: bool,
 }
 
-/// A face whose bounding box holds a single pixel centre, which it covers: depth-tested by the
-/// binning already (as [`draw_triangle`] would, [`TriangleSetup`]), so drawing it is one depth
-/// test. Most triangles of a dense mesh seen from afar are such.
-#[derive(Clone, Copy, Debug)]
-struct Fragment {
-    /// Pixel index within its band.
-    index: u32,
-    depth: f32,
-    slot: u32,
-    face_index: u32,
-}
-
 /// The binning of a chunk of the visible faces.
 #[derive(Debug, Default)]
 struct FaceChunk {
-    /// The chunk's faces that cover a pixel centre and are not fragments, in face order.
+    /// The chunk's faces that cover a pixel centre, in face order.
     prepared: Vec<PreparedFace>,
     /// `bands[band]`: positions in `prepared` of the faces that touch the band, ascending.
     bands: Vec<Vec<u32>>,
-    /// `fragments[band]`: the chunk's single-pixel faces in the band.
-    fragments: Vec<Vec<Fragment>>,
 }
 
 /// Scratch state reused between renderings; every buffer is sized by the grid cells the frustum
@@ -448,12 +434,7 @@ impl Rasterizer {
             .for_each(|(chunk_index, chunk)| {
                 chunk.bands.resize_with(band_count, Vec::new);
                 chunk.bands.truncate(band_count);
-                chunk.fragments.resize_with(band_count, Vec::new);
-                chunk.fragments.truncate(band_count);
                 for band in chunk.bands.iter_mut() {
-                    band.clear();
-                }
-                for band in chunk.fragments.iter_mut() {
                     band.clear();
                 }
                 chunk.prepared.clear();
@@ -462,40 +443,28 @@ impl Rasterizer {
                 for (slot, face) in (start..end).zip(&visible_faces[start..end]) {
                     let corners = face.corners.map(|v| vertices_cam[v as usize]);
                     let screen = face.corners.map(|v| vertices_screen[v as usize]);
-                    let Some(binned) =
-                        bin_face(&corners, &screen, &projector, options, width, height)
+                    let Some(pixel_box) =
+                        face_pixel_box(&corners, &screen, &projector, options, width, height)
                     else {
                         continue;
                     };
-                    match binned {
-                        Binned::Fragment { col, row, depth } => {
-                            chunk.fragments[row as usize / BAND_ROWS].push(Fragment {
-                                index: (row as usize % BAND_ROWS * width) as u32 + col,
-                                depth,
-                                slot: slot as u32,
-                                face_index: face.face_index,
-                            });
-                        }
-                        Binned::Face(pixel_box) => {
-                            let position = chunk.prepared.len() as u32;
-                            chunk.prepared.push(PreparedFace {
-                                screen,
-                                slot: slot as u32,
-                                face_index: face.face_index,
-                                cols: pixel_box.cols,
-                                rows: pixel_box.rows,
-                                clipped: pixel_box.clipped,
-                            });
-                            let [first_row, last_row] = pixel_box.rows.map(|r| r as usize);
-                            for band in chunk
-                                .bands
-                                .iter_mut()
-                                .take(last_row / BAND_ROWS + 1)
-                                .skip(first_row / BAND_ROWS)
-                            {
-                                band.push(position);
-                            }
-                        }
+                    let position = chunk.prepared.len() as u32;
+                    chunk.prepared.push(PreparedFace {
+                        screen,
+                        slot: slot as u32,
+                        face_index: face.face_index,
+                        cols: pixel_box.cols,
+                        rows: pixel_box.rows,
+                        clipped: pixel_box.clipped,
+                    });
+                    let [first_row, last_row] = pixel_box.rows.map(|r| r as usize);
+                    for band in chunk
+                        .bands
+                        .iter_mut()
+                        .take(last_row / BAND_ROWS + 1)
+                        .skip(first_row / BAND_ROWS)
+                    {
+                        band.push(position);
                     }
                 }
             });
@@ -538,16 +507,6 @@ impl Rasterizer {
                                 face.cols,
                                 face.rows,
                                 &mut band_target,
-                            );
-                        }
-                    }
-                    if let Some(fragments) = chunk.fragments.get(band) {
-                        for fragment in fragments {
-                            band_target.depth_test(
-                                fragment.index as usize,
-                                fragment.depth,
-                                fragment.slot,
-                                fragment.face_index,
                             );
                         }
                     }
@@ -616,25 +575,16 @@ struct PixelBox {
     clipped: bool,
 }
 
-/// What the binning makes of a face that covers a pixel centre.
-#[derive(Clone, Copy, Debug)]
-enum Binned {
-    /// Its bounding box holds one pixel centre, covered at this depth.
-    Fragment { col: u32, row: u32, depth: f32 },
-    /// Drawn by the band pass.
-    Face(PixelBox),
-}
-
-/// What the binning makes of a face, or `None` when it cannot be seen or covers no pixel centre.
-/// `screen` holds the corners' projections (valid for corners in front of the near plane).
-fn bin_face(
+/// The pixel box of a face, or `None` when it cannot be seen or covers no pixel centre. `screen`
+/// holds the corners' projections (valid for corners in front of the near plane).
+fn face_pixel_box(
     corners: &[Vec3; 3],
     screen: &[ScreenVertex; 3],
     projector: &Projector,
     options: &RenderOptions,
     width: usize,
     height: usize,
-) -> Option<Binned> {
+) -> Option<PixelBox> {
     let near = projector.near_m;
     let in_front = corners.iter().filter(|p| p.z >= near).count();
     if in_front == 0 {
@@ -688,26 +638,21 @@ fn bin_face(
         return None;
     }
     // A box around a single pixel centre (most sub-pixel triangles): test that centre now, with
-    // the arithmetic of `draw_triangle`, and keep the depth there instead of binning the face.
+    // the arithmetic `draw_triangle` uses, instead of binning a triangle that misses it.
     if in_front == 3 && first_row == last_row && first_col == last_col {
         let centre = Vec2::new(first_col + 0.5, first_row as f32 + 0.5);
         let setup = TriangleSetup::new(screen)?;
         let (w_start, inv_depth_start) = setup.at(centre);
-        let depth = setup.depth(&w_start, inv_depth_start, 0.0)?;
-        return Some(Binned::Fragment {
-            col: first_col as u32,
-            row: first_row as u32,
-            depth,
-        });
+        setup.depth(&w_start, inv_depth_start, 0.0)?;
     }
-    Some(Binned::Face(PixelBox {
+    Some(PixelBox {
         cols: [
             first_col.max(0.0) as u32,
             last_col.min(width as f32 - 1.0) as u32,
         ],
         rows: [first_row as u32, last_row as u32],
         clipped: in_front < 3,
-    }))
+    })
 }
 
 /// The columns and rows `[first, last]` of the pixel centres a projected triangle's bounding box
@@ -742,8 +687,7 @@ fn edge_function(a: Vec2, b: Vec2, p: Vec2) -> f32 {
 
 /// A projected triangle set up for depth testing: its edge functions and `1/z` are affine in the
 /// image, evaluated at the start of a run of columns and stepped along it. The one arithmetic of
-/// [`draw_triangle`]'s spans and of the binning's single-pixel fragments, so both give the same
-/// bits.
+/// [`draw_triangle`]'s spans and of the binning's single-pixel test, so both decide alike.
 struct TriangleSetup {
     /// Edge i is opposite corner i.
     edges: [(Vec2, Vec2); 3],
@@ -1387,14 +1331,7 @@ mod tests {
             for chunk in &r.bins {
                 prints.push((chunk.bands.as_ptr() as usize, chunk.bands.capacity()));
                 prints.push((chunk.prepared.as_ptr() as usize, chunk.prepared.capacity()));
-                prints.push((
-                    chunk.fragments.as_ptr() as usize,
-                    chunk.fragments.capacity(),
-                ));
                 for band in &chunk.bands {
-                    prints.push((band.as_ptr() as usize, band.capacity()));
-                }
-                for band in &chunk.fragments {
                     prints.push((band.as_ptr() as usize, band.capacity()));
                 }
             }
