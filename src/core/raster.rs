@@ -17,6 +17,8 @@
 //!   the camera sees, never the mesh's vertex count (a 10^7-triangle city seen by one camera);
 //! - binning drops faces whose bounding box holds no pixel centre, and tests the one centre of
 //!   boxes that hold exactly one (most triangles of a dense mesh seen from afar are sub-pixel);
+//!   each face it keeps is stored once, prepared (corners' projections, face index, pixel box),
+//!   in its chunk's list, which the band pass reads in order instead of gathering corners;
 //! - a pixel `(col, row)` is covered when its centre `(col + 0.5, row + 0.5)` lies inside the
 //!   projected triangle (see `camera.rs` for the convention); the depth pass steps affine edge
 //!   functions and `1/z` along each row (perspective-correct depth) and writes only depth and face
