@@ -7,15 +7,24 @@
 //! timing loop: median and minimum wall ms per frame, CPU ms per frame (all threads, from
 //! `/proc/self/stat`: the figure least disturbed by other load on a shared machine) and
 //! triangles per second. `cargo bench --bench render -- no_such_bench` prints only the summary.
+//!
+//! Scene mode: `RENDER_BENCH_SCENE=<folder of asgreg synth>` renders that scene's model at the
+//! poses of its `gt` and `initial/*` models instead (the meshes and poses a frame renders), and
+//! prints the CPU ms per rendering (full: depth, normals, face index; + ASG; depth and faces only)
+//! and a hash of every output bit per pose and in all (`RENDER_BENCH_HASHES=1` per pose), so that
+//! two builds can be checked to render the very same bits. Run it with `RAYON_NUM_THREADS=1` for
+//! the CPU of one rendering without the threads' overhead.
 
 use std::time::Instant;
 
-use asgreg::core::camera::PinholeIntrinsics;
+use asgreg::core::camera::{Camera, PinholeIntrinsics};
 use asgreg::core::image::Image;
 use asgreg::core::mesh::Mesh;
 use asgreg::core::raster::{Rasterizer, RenderBuffers, RenderOptions};
 use asgreg::core::rigid::Rigid3;
 use asgreg::core::shading::{asg_from_normals, AsgOptions};
+use asgreg::io::colmap::ColmapModel;
+use asgreg::io::mesh_file::read_mesh;
 use criterion::Criterion;
 use nalgebra::Vector3;
 
@@ -187,7 +196,133 @@ impl std::fmt::Display for Timing {
     }
 }
 
+/// FNV-1a over 32-bit words.
+fn hash_words(hash: &mut u64, words: impl Iterator<Item = u32>) {
+    for word in words {
+        for byte in word.to_le_bytes() {
+            *hash ^= u64::from(byte);
+            *hash = hash.wrapping_mul(0x100_0000_01b3);
+        }
+    }
+}
+
+/// Hash of every bit of a rendering's outputs and of its ASG.
+fn render_hash(buffers: &RenderBuffers, asg: &Image<f32>) -> u64 {
+    let mut hash = 0xcbf2_9ce4_8422_2325;
+    hash_words(
+        &mut hash,
+        buffers.depth_m().data().iter().map(|d| d.to_bits()),
+    );
+    hash_words(
+        &mut hash,
+        buffers
+            .normal_cam()
+            .data()
+            .iter()
+            .flat_map(|n| n.to_array().map(f32::to_bits)),
+    );
+    hash_words(&mut hash, buffers.face_index().data().iter().copied());
+    hash_words(&mut hash, asg.data().iter().map(|v| v.to_bits()));
+    hash
+}
+
+/// Scene mode (see the module doc): the synthetic scene's model at its ground-truth and initial
+/// poses.
+fn scene_bench(scene: &std::path::Path) {
+    let mesh = match read_mesh(&scene.join("model.ply")) {
+        Ok(mesh) => mesh,
+        Err(error) => panic!("{}: {error}", scene.display()),
+    };
+    let mut models = vec![scene.join("gt")];
+    if let Ok(levels) = std::fs::read_dir(scene.join("initial")) {
+        let mut levels: Vec<_> = levels.filter_map(|e| e.ok().map(|e| e.path())).collect();
+        levels.sort();
+        models.extend(levels);
+    }
+    let mut views = Vec::new();
+    for dir in &models {
+        let model = match ColmapModel::read_model(dir) {
+            Ok(model) => model,
+            Err(error) => panic!("{}: {error}", dir.display()),
+        };
+        for image in &model.images {
+            if let Some(camera) = model.camera_of(image) {
+                views.push((*camera, image.cam_from_world));
+            }
+        }
+    }
+    let per_pose = std::env::var_os("RENDER_BENCH_HASHES").is_some();
+    let options = RenderOptions::default();
+    let mut full = Rasterizer::new();
+    let mut geometry = Rasterizer::depth_and_faces_only();
+    let mut buffers = RenderBuffers::default();
+    let mut asg = Image::filled(0, 0, 0.0);
+    let mut all = 0xcbf2_9ce4_8422_2325u64;
+    let mut valid = 0usize;
+    for (k, (camera, pose)) in views.iter().enumerate() {
+        buffers.resize(camera.width_px as usize, camera.height_px as usize);
+        full.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
+        asg_from_normals(
+            buffers.normal_cam().view(),
+            &AsgOptions::default(),
+            &mut asg,
+        );
+        valid += buffers.valid_count();
+        let full_hash = render_hash(&buffers, &asg);
+        geometry.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
+        let geometry_hash = render_hash(&buffers, &asg);
+        hash_words(
+            &mut all,
+            [full_hash, geometry_hash]
+                .into_iter()
+                .flat_map(|h| [h as u32, (h >> 32) as u32]),
+        );
+        if per_pose {
+            println!("pose {k}: full {full_hash:016x}, depth+faces {geometry_hash:016x}");
+        }
+    }
+    let cycle = |f: &mut dyn FnMut(&Camera, &Rigid3)| {
+        let mut k = 0;
+        timing(3.0, || {
+            let (camera, pose) = &views[k % views.len()];
+            k += 1;
+            f(camera, pose);
+        })
+    };
+    let full_timing = cycle(&mut |camera, pose| {
+        full.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
+    });
+    let asg_timing = cycle(&mut |camera, pose| {
+        full.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
+        asg_from_normals(
+            buffers.normal_cam().view(),
+            &AsgOptions::default(),
+            &mut asg,
+        );
+    });
+    let geometry_timing = cycle(&mut |camera, pose| {
+        geometry.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
+    });
+    let (width, height) = (buffers.width_px(), buffers.height_px());
+    println!(
+        "scene {}: {} triangles, {} poses at {width}x{height}, {} rayon threads, coverage {:.0} %",
+        scene.display(),
+        mesh.face_count(),
+        views.len(),
+        rayon::current_num_threads(),
+        100.0 * valid as f64 / (views.len() * width * height).max(1) as f64
+    );
+    println!("  full rendering        {full_timing}");
+    println!("  full rendering + ASG  {asg_timing}");
+    println!("  depth and faces only  {geometry_timing}");
+    println!("  output hash (all poses, full and depth-only) {all:016x}");
+}
+
 fn main() {
+    if let Some(scene) = std::env::var_os("RENDER_BENCH_SCENE") {
+        scene_bench(std::path::Path::new(&scene));
+        return;
+    }
     let mesh = procedural_town();
     let pose = oblique_pose();
     let sizes = [(505usize, 275usize), (1920, 1080)];

@@ -17,6 +17,8 @@
 //!   the camera sees, never the mesh's vertex count (a 10^7-triangle city seen by one camera);
 //! - binning drops faces whose bounding box holds no pixel centre, and tests the one centre of
 //!   boxes that hold exactly one (most triangles of a dense mesh seen from afar are sub-pixel);
+//!   each face it keeps is stored once, prepared (corners' projections, face index, pixel box),
+//!   in its chunk's list, which the band pass reads in order instead of gathering corners;
 //! - a pixel `(col, row)` is covered when its centre `(col + 0.5, row + 0.5)` lies inside the
 //!   projected triangle (see `camera.rs` for the convention); the depth pass steps affine edge
 //!   functions and `1/z` along each row (perspective-correct depth) and writes only depth and face
@@ -164,6 +166,33 @@ struct VisibleFace {
     corners: [u32; 3],
 }
 
+/// A face the binning kept, with what drawing it needs read once: the draw pass then reads its
+/// chunk's prepared faces in order instead of gathering corners through two levels of indices.
+#[derive(Clone, Copy, Debug, Default)]
+struct PreparedFace {
+    /// Projections of the corners (meaningful when `clipped` is false).
+    screen: [ScreenVertex; 3],
+    /// Position in `visible_faces`.
+    slot: u32,
+    face_index: u32,
+    /// The pixel box `[first, last]` of columns and rows its bounding box covers, clamped to
+    /// the image (faces wholly in front of the near plane).
+    cols: [u32; 2],
+    rows: [u32; 2],
+    /// A corner lies behind the near plane: drawn by [`draw_clipped_face`] from its camera-frame
+    /// corners.
+    clipped: bool,
+}
+
+/// The binning of a chunk of the visible faces.
+#[derive(Debug, Default)]
+struct FaceChunk {
+    /// The chunk's faces that cover a pixel centre, in face order.
+    prepared: Vec<PreparedFace>,
+    /// `bands[band]`: positions in `prepared` of the faces that touch the band, ascending.
+    bands: Vec<Vec<u32>>,
+}
+
 /// Scratch state reused between renderings; every buffer is sized by the grid cells the frustum
 /// keeps, not by the mesh.
 #[derive(Default)]
@@ -176,9 +205,9 @@ pub struct Rasterizer {
     vertices_screen: Vec<ScreenVertex>,
     /// Camera-frame vertex normal of each slot (meshes with vertex normals).
     normals_cam: Vec<Vec3>,
-    /// `bins[chunk][band]`: faces (positions in `visible_faces`) of a chunk of the visible faces
-    /// that touch a band.
-    bins: Vec<Vec<Vec<u32>>>,
+    /// `bins[chunk]`: the faces of a chunk of the visible faces that cover a pixel centre,
+    /// prepared for drawing, and the ones of them that touch each band.
+    bins: Vec<FaceChunk>,
     /// Faces of the grid cells the frustum may see (`Mesh::grid`).
     visible_faces: Vec<VisibleFace>,
     /// Depth and face index only ([`Rasterizer::depth_and_faces_only`]).
@@ -396,7 +425,7 @@ impl Rasterizer {
         // pixel centre (most sub-pixel triangles of a dense mesh) are dropped here.
         let band_count = height.div_ceil(BAND_ROWS);
         let chunk_count = (rayon::current_num_threads() * 4).max(1);
-        self.bins.resize_with(chunk_count, Vec::new);
+        self.bins.resize_with(chunk_count, FaceChunk::default);
         let visible_faces = &self.visible_faces;
         let vertices_cam = &self.vertices_cam;
         let vertices_screen = &self.vertices_screen;
@@ -404,27 +433,40 @@ impl Rasterizer {
         self.bins
             .par_iter_mut()
             .enumerate()
-            .for_each(|(chunk_index, chunk_bins)| {
-                chunk_bins.resize_with(band_count, Vec::new);
-                chunk_bins.truncate(band_count);
-                for band in chunk_bins.iter_mut() {
+            .for_each(|(chunk_index, chunk)| {
+                chunk.bands.resize_with(band_count, Vec::new);
+                chunk.bands.truncate(band_count);
+                for band in chunk.bands.iter_mut() {
                     band.clear();
                 }
+                chunk.prepared.clear();
                 let start = (chunk_index * chunk_len).min(visible_faces.len());
                 let end = (start + chunk_len).min(visible_faces.len());
                 for (slot, face) in (start..end).zip(&visible_faces[start..end]) {
                     let corners = face.corners.map(|v| vertices_cam[v as usize]);
                     let screen = face.corners.map(|v| vertices_screen[v as usize]);
-                    if let Some((first_row, last_row)) =
-                        face_row_range(&corners, &screen, &projector, options, width, height)
+                    let Some(pixel_box) =
+                        face_pixel_box(&corners, &screen, &projector, options, width, height)
+                    else {
+                        continue;
+                    };
+                    let position = chunk.prepared.len() as u32;
+                    chunk.prepared.push(PreparedFace {
+                        screen,
+                        slot: slot as u32,
+                        face_index: face.face_index,
+                        cols: pixel_box.cols,
+                        rows: pixel_box.rows,
+                        clipped: pixel_box.clipped,
+                    });
+                    let [first_row, last_row] = pixel_box.rows.map(|r| r as usize);
+                    for band in chunk
+                        .bands
+                        .iter_mut()
+                        .take(last_row / BAND_ROWS + 1)
+                        .skip(first_row / BAND_ROWS)
                     {
-                        for band in chunk_bins
-                            .iter_mut()
-                            .take(last_row / BAND_ROWS + 1)
-                            .skip(first_row / BAND_ROWS)
-                        {
-                            band.push(slot as u32);
-                        }
+                        band.push(position);
                     }
                 }
             });
@@ -444,22 +486,30 @@ impl Rasterizer {
                     first_row: band * BAND_ROWS,
                     rows: depth.len() / width,
                     width,
+                    height,
                     depth,
                     face_slot: face_out,
                     visible_faces,
                 };
                 for chunk in bins {
-                    let Some(band_faces) = chunk.get(band) else {
+                    let Some(band_faces) = chunk.bands.get(band) else {
                         continue;
                     };
-                    for &slot in band_faces {
-                        let face = visible_faces[slot as usize];
-                        let corners = face.corners.map(|v| vertices_cam[v as usize]);
-                        if corners.iter().all(|c| c.z >= projector.near_m) {
-                            let screen = face.corners.map(|v| vertices_screen[v as usize]);
-                            draw_triangle(&screen, slot, &mut band_target);
+                    for &position in band_faces {
+                        let face = &chunk.prepared[position as usize];
+                        if face.clipped {
+                            let corners = visible_faces[face.slot as usize]
+                                .corners
+                                .map(|v| vertices_cam[v as usize]);
+                            draw_clipped_face(&corners, face, &projector, &mut band_target);
                         } else {
-                            draw_clipped_face(&corners, slot, &projector, &mut band_target);
+                            draw_triangle(
+                                &face.screen,
+                                face,
+                                face.cols,
+                                face.rows,
+                                &mut band_target,
+                            );
                         }
                     }
                 }
@@ -491,22 +541,52 @@ struct BandTarget<'a> {
     first_row: usize,
     rows: usize,
     width: usize,
+    /// The image's height.
+    height: usize,
     depth: &'a mut [f32],
     /// Position in `visible_faces` of each pixel's nearest face so far; [`NO_FACE`] where none.
     face_slot: &'a mut [u32],
     visible_faces: &'a [VisibleFace],
 }
 
-/// Rows `[first, last]` a face may cover, or `None` when it cannot be seen or covers no pixel
-/// centre. `screen` holds the corners' projections (valid for corners in front of the near plane).
-fn face_row_range(
+impl BandTarget<'_> {
+    /// Writes `depth` and `slot` at the band's pixel `index` if the face is the nearest so far;
+    /// on a tie the lower face index, whatever order faces come in.
+    #[inline(always)]
+    fn depth_test(&mut self, index: usize, depth: f32, slot: u32, face_index: u32) {
+        let current = self.face_slot[index];
+        if current != NO_FACE
+            && (depth > self.depth[index]
+                || (depth == self.depth[index]
+                    && face_index > self.visible_faces[current as usize].face_index))
+        {
+            return;
+        }
+        self.depth[index] = depth;
+        self.face_slot[index] = slot;
+    }
+}
+
+/// The pixels a face's bounding box may cover: columns and rows `[first, last]`, clamped to the
+/// image; `clipped` when a corner lies behind the near plane (then the box is the near-clipped
+/// polygon's, and its sub-triangles find their own columns when drawn).
+#[derive(Clone, Copy, Debug)]
+struct PixelBox {
+    cols: [u32; 2],
+    rows: [u32; 2],
+    clipped: bool,
+}
+
+/// The pixel box of a face, or `None` when it cannot be seen or covers no pixel centre. `screen`
+/// holds the corners' projections (valid for corners in front of the near plane).
+fn face_pixel_box(
     corners: &[Vec3; 3],
     screen: &[ScreenVertex; 3],
     projector: &Projector,
     options: &RenderOptions,
     width: usize,
     height: usize,
-) -> Option<(usize, usize)> {
+) -> Option<PixelBox> {
     let near = projector.near_m;
     let in_front = corners.iter().filter(|p| p.z >= near).count();
     if in_front == 0 {
@@ -560,14 +640,45 @@ fn face_row_range(
         return None;
     }
     // A box around a single pixel centre (most sub-pixel triangles): test that centre now, with
-    // the same arithmetic `draw_triangle` uses, instead of binning a triangle that misses it.
+    // the arithmetic `draw_triangle` uses, instead of binning a triangle that misses it.
     if in_front == 3 && first_row == last_row && first_col == last_col {
         let centre = Vec2::new(first_col + 0.5, first_row as f32 + 0.5);
-        if !triangle_covers(screen, centre) {
-            return None;
-        }
+        let setup = TriangleSetup::new(screen)?;
+        let (w_start, inv_depth_start) = setup.at(centre);
+        setup.depth(&w_start, inv_depth_start, 0.0)?;
     }
-    Some((first_row, last_row))
+    Some(PixelBox {
+        cols: [
+            first_col.max(0.0) as u32,
+            last_col.min(width as f32 - 1.0) as u32,
+        ],
+        rows: [first_row as u32, last_row as u32],
+        clipped: in_front < 3,
+    })
+}
+
+/// The columns and rows `[first, last]` of the pixel centres a projected triangle's bounding box
+/// holds, clamped to the image; `None` when there are none.
+fn triangle_pixel_box(
+    screen: &[ScreenVertex; 3],
+    width: usize,
+    height: usize,
+) -> Option<[[u32; 2]; 2]> {
+    let [p0, p1, p2] = screen.map(|s| s.position_px);
+    let min = p0.min(p1).min(p2);
+    let max = p0.max(p1).max(p2);
+    // Clamp before rounding so that the fast rounding never sees huge values.
+    let first_row = ceil_px((min.y - 0.5).max(-1.0)).max(0.0);
+    let last_row = floor_px((max.y - 0.5).min(height as f32)).min(height as f32 - 1.0);
+    let first_col = ceil_px((min.x - 0.5).max(-1.0)).max(0.0);
+    let last_col = floor_px((max.x - 0.5).min(width as f32)).min(width as f32 - 1.0);
+    if !(first_row <= last_row && first_col <= last_col) {
+        return None;
+    }
+    Some([
+        [first_col as u32, last_col as u32],
+        [first_row as u32, last_row as u32],
+    ])
 }
 
 /// Signed edge function: positive when `p` is left of `a → b` in image coordinates (y down).
@@ -576,18 +687,74 @@ fn edge_function(a: Vec2, b: Vec2, p: Vec2) -> f32 {
     (b.x - a.x) * (p.y - a.y) - (b.y - a.y) * (p.x - a.x)
 }
 
-/// Whether a projected triangle covers `point` (edges included), exactly as [`draw_triangle`]
-/// decides it at the first pixel of a row.
-fn triangle_covers(screen: &[ScreenVertex; 3], point: Vec2) -> bool {
-    let [p0, p1, p2] = screen.map(|s| s.position_px);
-    let signed_area = edge_function(p0, p1, p2);
-    if !signed_area.is_finite() || signed_area.abs() < 1e-12 {
-        return false;
+/// A projected triangle set up for depth testing: its edge functions and `1/z` are affine in the
+/// image, evaluated at the start of a run of columns and stepped along it. The one arithmetic of
+/// [`draw_triangle`]'s spans and of the binning's single-pixel test, so both decide alike.
+struct TriangleSetup {
+    /// Edge i is opposite corner i.
+    edges: [(Vec2, Vec2); 3],
+    orientation: f32,
+    /// Growth of each edge function per column.
+    step_x: [f32; 3],
+    /// `1/z` of each corner over the triangle's doubled area.
+    inv_depth: [f32; 3],
+    inv_depth_step_x: f32,
+}
+
+impl TriangleSetup {
+    /// `None` for degenerate (or non-finite) triangles, which cover nothing.
+    #[inline(always)]
+    fn new(screen: &[ScreenVertex; 3]) -> Option<Self> {
+        let [p0, p1, p2] = screen.map(|s| s.position_px);
+        let signed_area = edge_function(p0, p1, p2);
+        if !signed_area.is_finite() || signed_area.abs() < 1e-12 {
+            return None;
+        }
+        let orientation = signed_area.signum();
+        let inv_area = 1.0 / signed_area.abs();
+        let edges = [(p1, p2), (p2, p0), (p0, p1)];
+        let step_x = edges.map(|(a, b)| -(b.y - a.y) * orientation);
+        let inv_depth = screen.map(|s| s.inv_depth * inv_area);
+        let inv_depth_step_x =
+            step_x[0] * inv_depth[0] + step_x[1] * inv_depth[1] + step_x[2] * inv_depth[2];
+        Some(Self {
+            edges,
+            orientation,
+            step_x,
+            inv_depth,
+            inv_depth_step_x,
+        })
     }
-    let orientation = signed_area.signum();
-    [(p1, p2), (p2, p0), (p0, p1)]
-        .iter()
-        .all(|&(a, b)| edge_function(a, b, point) * orientation >= 0.0)
+
+    /// The edge functions (positive inside) and the `1/z` sum at the pixel centre `start`.
+    #[inline(always)]
+    fn at(&self, start: Vec2) -> ([f32; 3], f32) {
+        let w_start = self
+            .edges
+            .map(|(a, b)| edge_function(a, b, start) * self.orientation);
+        let inv_depth = &self.inv_depth;
+        let inv_depth_start =
+            w_start[0] * inv_depth[0] + w_start[1] * inv_depth[1] + w_start[2] * inv_depth[2];
+        (w_start, inv_depth_start)
+    }
+
+    /// The depth `offset` columns after a run's start (edges included), or `None` when the
+    /// pixel centre is outside or the depth is not positive.
+    #[inline(always)]
+    fn depth(&self, w_start: &[f32; 3], inv_depth_start: f32, offset: f32) -> Option<f32> {
+        let step_x = &self.step_x;
+        let w0 = w_start[0] + step_x[0] * offset;
+        let w1 = w_start[1] + step_x[1] * offset;
+        let w2 = w_start[2] + step_x[2] * offset;
+        if w0 < 0.0 || w1 < 0.0 || w2 < 0.0 {
+            return None;
+        }
+        let sum_inv_depth = inv_depth_start + self.inv_depth_step_x * offset;
+        if sum_inv_depth <= 0.0 {
+            return None;
+        }
+        Some(1.0 / sum_inv_depth)
+    }
 }
 
 /// `floor` for values whose integer part fits an `i32` (image coordinates), as `f32`. Inlined:
@@ -616,7 +783,7 @@ fn is_back_facing(corners: &[Vec3; 3]) -> bool {
 /// Clips a face that crosses the near plane (up to 4 corners) and draws the resulting triangles.
 fn draw_clipped_face(
     corners: &[Vec3; 3],
-    slot: u32,
+    face: &PreparedFace,
     projector: &Projector,
     target: &mut BandTarget,
 ) {
@@ -640,52 +807,44 @@ fn draw_clipped_face(
     }
     let screen = polygon.map(|p| projector.screen_vertex(p));
     for i in 1..count.saturating_sub(1) {
-        draw_triangle(&[screen[0], screen[i], screen[i + 1]], slot, target);
+        let triangle = [screen[0], screen[i], screen[i + 1]];
+        if let Some([cols, rows]) = triangle_pixel_box(&triangle, target.width, target.height) {
+            draw_triangle(&triangle, face, cols, rows, target);
+        }
     }
 }
 
 /// Depth-tests one projected triangle (entirely in front of the near plane) into the band:
-/// writes depth and the face's slot where it is nearest. Edge functions and `1/z` are affine in the
-/// image, so each row is evaluated once at its start and stepped along the row; the covered span
-/// of a row is solved from the three edge functions, so no time goes to pixels outside it.
-fn draw_triangle(screen: &[ScreenVertex; 3], slot: u32, target: &mut BandTarget) {
-    let face_index = target.visible_faces[slot as usize].face_index;
-    let [p0, p1, p2] = screen.map(|s| s.position_px);
-    let edge = edge_function;
-    let signed_area = edge(p0, p1, p2);
-    if !signed_area.is_finite() || signed_area.abs() < 1e-12 {
+/// writes depth and the face's slot where it is nearest. `cols` and `rows` are the pixel box of
+/// its bounding box in the image ([`triangle_pixel_box`]). Edge functions and `1/z` are affine in
+/// the image, so each row is evaluated once at its start and stepped along the row; the covered
+/// span of a row is solved from the three edge functions, so no time goes to pixels outside it.
+fn draw_triangle(
+    screen: &[ScreenVertex; 3],
+    face: &PreparedFace,
+    cols: [u32; 2],
+    rows: [u32; 2],
+    target: &mut BandTarget,
+) {
+    let (slot, face_index) = (face.slot, face.face_index);
+    let Some(setup) = TriangleSetup::new(screen) else {
         return;
-    }
-    let orientation = signed_area.signum();
-    let inv_area = 1.0 / signed_area.abs();
+    };
+    let step_x = setup.step_x;
 
-    let min = p0.min(p1).min(p2);
-    let max = p0.max(p1).max(p2);
-    let band_first = target.first_row as f32;
-    let band_last = (target.first_row + target.rows) as f32 - 1.0;
-    // Clamp before rounding so that the fast rounding never sees huge values.
-    let row_start = ceil_px((min.y - 0.5).max(band_first - 1.0)).max(band_first);
-    let row_end = floor_px((max.y - 0.5).min(band_last + 1.0)).min(band_last);
-    let col_start = ceil_px((min.x - 0.5).max(-1.0)).max(0.0);
-    let col_end = floor_px((max.x - 0.5).min(target.width as f32)).min(target.width as f32 - 1.0);
+    let row_start = (rows[0] as usize).max(target.first_row);
+    let row_end = (rows[1] as usize).min(target.first_row + target.rows - 1);
+    let (col_start, col_end) = (cols[0] as usize, cols[1] as usize);
     if !(row_start <= row_end && col_start <= col_end) {
         return;
     }
-    let (row_start, row_end) = (row_start as usize, row_end as usize);
-    let (col_start, col_end) = (col_start as usize, col_end as usize);
 
-    // Edge i is opposite corner i; its value grows by `step_x[i]` per column.
-    let edges = [(p1, p2), (p2, p0), (p0, p1)];
-    let step_x = edges.map(|(a, b)| -(b.y - a.y) * orientation);
-    let inv_depth = screen.map(|s| s.inv_depth * inv_area);
-    let inv_depth_step_x =
-        step_x[0] * inv_depth[0] + step_x[1] * inv_depth[1] + step_x[2] * inv_depth[2];
     let span_first = col_start as f32;
     let span_last = col_end as f32;
 
     for row in row_start..=row_end {
         let start = Vec2::new(col_start as f32 + 0.5, row as f32 + 0.5);
-        let w_start = edges.map(|(a, b)| edge(a, b, start) * orientation);
+        let (w_start, inv_depth_start) = setup.at(start);
         // Columns where every edge function is >= 0, widened by one column against rounding
         // (the per-pixel test below is exact with respect to the stepped values).
         // Narrow boxes (most triangles of a dense mesh) just test every pixel.
@@ -710,33 +869,11 @@ fn draw_triangle(screen: &[ScreenVertex; 3], slot: u32, target: &mut BandTarget)
         }
         let (first, last) = (first as usize, last as usize);
         let line = (row - target.first_row) * target.width;
-        let inv_depth_start =
-            w_start[0] * inv_depth[0] + w_start[1] * inv_depth[1] + w_start[2] * inv_depth[2];
         for col in first..=last {
             let offset = (col - col_start) as f32;
-            let w0 = w_start[0] + step_x[0] * offset;
-            let w1 = w_start[1] + step_x[1] * offset;
-            let w2 = w_start[2] + step_x[2] * offset;
-            if w0 < 0.0 || w1 < 0.0 || w2 < 0.0 {
-                continue;
+            if let Some(depth) = setup.depth(&w_start, inv_depth_start, offset) {
+                target.depth_test(line + col, depth, slot, face_index);
             }
-            let sum_inv_depth = inv_depth_start + inv_depth_step_x * offset;
-            if sum_inv_depth <= 0.0 {
-                continue;
-            }
-            let depth = 1.0 / sum_inv_depth;
-            let index = line + col;
-            // Nearest wins; on a tie the lower face index, whatever order faces come in.
-            let current = target.face_slot[index];
-            if current != NO_FACE
-                && (depth > target.depth[index]
-                    || (depth == target.depth[index]
-                        && face_index > target.visible_faces[current as usize].face_index))
-            {
-                continue;
-            }
-            target.depth[index] = depth;
-            target.face_slot[index] = slot;
         }
     }
 }
@@ -1194,8 +1331,9 @@ mod tests {
                 ),
             ];
             for chunk in &r.bins {
-                prints.push((chunk.as_ptr() as usize, chunk.capacity()));
-                for band in chunk {
+                prints.push((chunk.bands.as_ptr() as usize, chunk.bands.capacity()));
+                prints.push((chunk.prepared.as_ptr() as usize, chunk.prepared.capacity()));
+                for band in &chunk.bands {
                     prints.push((band.as_ptr() as usize, band.capacity()));
                 }
             }
