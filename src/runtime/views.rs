@@ -142,8 +142,9 @@ impl ViewStore {
     /// last call (a frame whose results are out is not sent again after a restart, so its view
     /// must be on disk by then).
     pub fn sync(&mut self, stage: &VerifyStage<'_>) {
-        let kept: BTreeSet<u64> = stage.stereo_view_ids().into_iter().collect();
-        for &frame_id in kept.difference(&self.on_disk.clone()) {
+        let kept: BTreeSet<u64> = stage.stereo_view_ids().collect();
+        let new: Vec<u64> = kept.difference(&self.on_disk).copied().collect();
+        for frame_id in new {
             let Some(job) = stage.stereo_view(frame_id) else {
                 continue;
             };
@@ -191,10 +192,5 @@ impl ViewStore {
             .and_then(|()| std::fs::write(&partial, &bytes))
             .and_then(|()| std::fs::rename(&partial, &path))
             .map_err(|error| error.to_string())
-    }
-
-    /// The frames whose views are in the folder.
-    pub fn frames(&self) -> &BTreeSet<u64> {
-        &self.on_disk
     }
 }

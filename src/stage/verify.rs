@@ -404,8 +404,8 @@ impl<'m> VerifyStage<'m> {
 
     /// The accepted frames kept as stereo views (references still waiting and neighbours a
     /// waiting or coming frame may choose), oldest first.
-    pub fn stereo_view_ids(&self) -> Vec<u64> {
-        self.registered_views.keys().copied().collect()
+    pub fn stereo_view_ids(&self) -> impl Iterator<Item = u64> + '_ {
+        self.registered_views.keys().copied()
     }
 
     /// A kept stereo view as a change job without neighbours (its frame, registered camera and
