@@ -251,6 +251,11 @@ fn scene_bench(scene: &std::path::Path) {
             }
         }
     }
+    assert!(
+        !views.is_empty(),
+        "{}: no posed image in gt/ or initial/*: nothing to render",
+        scene.display()
+    );
     let per_pose = std::env::var_os("RENDER_BENCH_HASHES").is_some();
     let options = RenderOptions::default();
     let mut full = Rasterizer::new();

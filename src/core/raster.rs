@@ -625,34 +625,18 @@ fn face_pixel_box(
     if !min.is_finite() || !max.is_finite() {
         return None;
     }
-    // Pixel centres at +0.5: covered columns/rows are ceil(min - 0.5) ..= floor(max - 0.5).
-    if max.x < 0.5 || max.y < 0.5 || min.x > width as f32 - 0.5 || min.y > height as f32 - 0.5 {
-        return None;
-    }
-    let first_col = ceil_px((min.x - 0.5).max(-1.0));
-    let last_col = floor_px((max.x - 0.5).min(width as f32));
-    if first_col.max(0.0) > last_col.min(width as f32 - 1.0) {
-        return None;
-    }
-    let first_row = ceil_px((min.y - 0.5).max(-1.0)).max(0.0) as usize;
-    let last_row = (floor_px((max.y - 0.5).min(height as f32)) as usize).min(height - 1);
-    if first_row > last_row {
-        return None;
-    }
+    let [cols, rows] = pixel_box(min, max, width, height)?;
     // A box around a single pixel centre (most sub-pixel triangles): test that centre now, with
     // the arithmetic `draw_triangle` uses, instead of binning a triangle that misses it.
-    if in_front == 3 && first_row == last_row && first_col == last_col {
-        let centre = Vec2::new(first_col + 0.5, first_row as f32 + 0.5);
+    if in_front == 3 && rows[0] == rows[1] && cols[0] == cols[1] {
+        let centre = Vec2::new(cols[0] as f32 + 0.5, rows[0] as f32 + 0.5);
         let setup = TriangleSetup::new(screen)?;
         let (w_start, inv_depth_start) = setup.at(centre);
         setup.depth(&w_start, inv_depth_start, 0.0)?;
     }
     Some(PixelBox {
-        cols: [
-            first_col.max(0.0) as u32,
-            last_col.min(width as f32 - 1.0) as u32,
-        ],
-        rows: [first_row as u32, last_row as u32],
+        cols,
+        rows,
         clipped: in_front < 3,
     })
 }
@@ -665,8 +649,16 @@ fn triangle_pixel_box(
     height: usize,
 ) -> Option<[[u32; 2]; 2]> {
     let [p0, p1, p2] = screen.map(|s| s.position_px);
-    let min = p0.min(p1).min(p2);
-    let max = p0.max(p1).max(p2);
+    pixel_box(p0.min(p1).min(p2), p0.max(p1).max(p2), width, height)
+}
+
+/// The columns and rows `[first, last]` of the pixel centres (at +0.5) inside the box
+/// `min ..= max`, clamped to the image: `ceil(min − 0.5) ..= floor(max − 0.5)`; `None` when the
+/// box holds no pixel centre of the image.
+fn pixel_box(min: Vec2, max: Vec2, width: usize, height: usize) -> Option<[[u32; 2]; 2]> {
+    if max.x < 0.5 || max.y < 0.5 || min.x > width as f32 - 0.5 || min.y > height as f32 - 0.5 {
+        return None;
+    }
     // Clamp before rounding so that the fast rounding never sees huge values.
     let first_row = ceil_px((min.y - 0.5).max(-1.0)).max(0.0);
     let last_row = floor_px((max.y - 0.5).min(height as f32)).min(height as f32 - 1.0);
