@@ -45,6 +45,25 @@ use super::register::{
     QueryArg, REPORT_HTML,
 };
 
+/// The scene model registration is given ([`EvalArgs::model`]).
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ModelArg {
+    Degraded,
+    Lod,
+    True,
+}
+
+impl ModelArg {
+    /// The model's file in a scene folder written by `asgreg synth`.
+    pub fn path(self, scene: &std::path::Path) -> PathBuf {
+        scene.join(match self {
+            ModelArg::Degraded => "model.ply",
+            ModelArg::Lod => "model_lod.ply",
+            ModelArg::True => "model_true.ply",
+        })
+    }
+}
+
 /// Width of eval's embedded overlays, px: a run has many frames (levels × methods).
 const EVAL_THUMBNAIL_WIDTH_PX: usize = 320;
 
@@ -53,6 +72,11 @@ pub struct EvalArgs {
     /// Scene folder: model.ply, images/, gt/, initial/<level>/images.txt, optionally depth/.
     #[arg(long)]
     pub scene: PathBuf,
+    /// Which of the scene's models registration is given: the degraded, Poisson-like mesh
+    /// (`model.ply`), the clean LoD2-like one (`model_lod.ply`: exact walls and roofs, no small
+    /// parts) or the exact geometry (`model_true.ply`, a reference).
+    #[arg(long, value_enum, default_value_t = ModelArg::Degraded)]
+    pub model: ModelArg,
     /// Output folder for results.md, results.json and results.svg.
     #[arg(long)]
     pub out: PathBuf,
@@ -178,7 +202,15 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     if args.changes {
         return super::eval_changes::run(args);
     }
-    let mesh = read_mesh(&args.scene.join("model.ply"))?;
+    let model_path = args.model.path(&args.scene);
+    if !model_path.is_file() {
+        bail!(
+            "{} does not exist: --model {:?} needs a scene written by this version of `asgreg synth` (run it again), or pass --model degraded",
+            model_path.display(),
+            args.model
+        );
+    }
+    let mesh = read_mesh(&model_path)?;
     let gt_cameras = read_cameras_txt(&args.scene.join("gt/cameras.txt"))?;
     let gt_images = read_images_txt(&args.scene.join("gt/images.txt"))?;
     let depth_dir = args.scene.join("depth");

@@ -5,7 +5,8 @@
 //! photos and a reconstructed mesh do, so registration on them is not made easy.
 //!
 //! Entry point: [`generate_scene`] with a [`SynthConfig`]; it writes
-//! `model.ply`, `model_true.ply`, `images/*.jpg`, `depth/*.pfm` (MVS-like), `depth_exact/*.pfm`
+//! `model.ply` (degraded, Poisson-like), `model_lod.ply` (clean, LoD2-like: the buildings' exact
+//! walls and roofs and the ground, without small parts), `model_true.ply`, `images/*.jpg`, `depth/*.pfm` (MVS-like), `depth_exact/*.pfm`
 //! (exact, for tests and comparisons), `gt/{cameras,images,points3D}.txt`,
 //! `initial/<level>/{cameras,images,points3D}.txt` and `scene.json`; with `changes`, also the
 //! change ground truth of `changes.rs` (`changes_gt/*.png`, `changes.json`).
@@ -424,7 +425,13 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         &sample_surface(model_scene, 0.1),
         1.0,
     ));
+    // A city model's view of the same world (issue #11: registration given a clean model): the
+    // main volumes' exact planar faces and the ground, without the small parts a Poisson mesh
+    // also loses, and without its rounding, noise and holes.
+    let lod_model =
+        model_scene.to_mesh(|t| matches!(t.part, PartKind::Building | PartKind::NearGround))?;
     write_mesh(&out_dir.join("model.ply"), &model)?;
+    write_mesh(&out_dir.join("model_lod.ply"), &lod_model)?;
     write_mesh(&out_dir.join("model_true.ply"), &true_model)?;
     let model_s = model_started.elapsed().as_secs_f64();
 
@@ -812,6 +819,7 @@ mod tests {
         let files = files_under(dir.path());
         let mut expected: Vec<PathBuf> = [
             "model.ply",
+            "model_lod.ply",
             "model_true.ply",
             "scene.json",
             "gt/cameras.txt",
@@ -843,6 +851,44 @@ mod tests {
         assert_eq!(gt.cameras[&1].width_px, 160);
         let model = crate::io::ply::read_ply(&dir.path().join("model.ply")).unwrap();
         assert_eq!(model.face_count(), summary.model_faces);
+        // The LoD-like model is a clean subset of the true geometry: every vertex exactly one of
+        // the true model's (no rounding, noise or warp), and fewer faces (no small parts).
+        let lod = crate::io::ply::read_ply(&dir.path().join("model_lod.ply")).unwrap();
+        let exact = crate::io::ply::read_ply(&dir.path().join("model_true.ply")).unwrap();
+        assert!(
+            lod.face_count() > 0 && lod.face_count() < exact.face_count(),
+            "{} LoD faces, {} true",
+            lod.face_count(),
+            exact.face_count()
+        );
+        let world = |mesh: &Mesh| -> Vec<nalgebra::Vector3<f64>> {
+            mesh.positions_local_m()
+                .iter()
+                .map(|p| {
+                    mesh.origin_m()
+                        + nalgebra::Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z))
+                })
+                .collect()
+        };
+        let cell = |p: &nalgebra::Vector3<f64>| p.map(|v| (v / 0.01).floor() as i64);
+        let mut true_cells: std::collections::HashMap<_, Vec<nalgebra::Vector3<f64>>> =
+            std::collections::HashMap::new();
+        for p in world(&exact) {
+            true_cells.entry(cell(&p)).or_default().push(p);
+        }
+        let on_true_vertex = |p: &nalgebra::Vector3<f64>| {
+            let c = cell(p);
+            (-1..=1).any(|i| {
+                (-1..=1).any(|j| {
+                    (-1..=1).any(|k| {
+                        true_cells
+                            .get(&(c + nalgebra::Vector3::new(i, j, k)))
+                            .is_some_and(|ps| ps.iter().any(|q| (q - p).norm() < 1e-3))
+                    })
+                })
+            })
+        };
+        assert!(world(&lod).iter().all(on_true_vertex));
         let depth = crate::io::pfm::read_pfm(&dir.path().join("depth/view_000.pfm")).unwrap();
         assert_eq!(depth.size(), (160, 88));
         let valid = crate::io::pfm::valid_depth_count(depth.view()) as f64 / (160.0 * 88.0);
