@@ -13,6 +13,7 @@ use asgreg::core::flow_consistency::MatchConfig;
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig, UnknownIntrinsics};
 use asgreg::core::image::Image;
 use asgreg::core::pose_search::PoseSearchConfig;
+use asgreg::core::shading::AsgOptions;
 use asgreg::core::verify::VerifyConfig;
 use asgreg::frame_files::{depth_path_for, FrameLoader, DEFAULT_WORKING_WIDTH_PX};
 use asgreg::io::colmap::{ColmapModel, ImagePose};
@@ -324,6 +325,11 @@ pub struct CoarseArgs {
     /// camera only; the fine levels estimate the whole pose.
     #[arg(long)]
     pub edge_coarse_rotation_only: bool,
+    /// Renderings: occlusion contours from the depth count as edges (a share of the nearer
+    /// depth, e.g. 0.1: two surfaces whose depths differ by more lie on two sides of a contour),
+    /// also where both surfaces have the same normal (a flat roof against the ground behind it).
+    #[arg(long, value_name = "DEPTH_RATIO")]
+    pub asg_occlusion_contours: Option<f32>,
     /// Final refinement: which model edges the estimated rounding is undone on.
     #[arg(long, value_enum, default_value_t = EdgeKindsArg::All)]
     pub edge_rounding_kinds: EdgeKindsArg,
@@ -378,6 +384,7 @@ impl Default for CoarseArgs {
             no_edge_rounding: !defaults.edge_align.estimate_rounding,
             flow_near_model_edges: defaults.matching.min_rendering_edge.is_some(),
             edge_coarse_rotation_only: defaults.edge_align.coarse_rotation_only,
+            asg_occlusion_contours: defaults.asg.occlusion_depth_ratio,
             edge_kinds: EdgeKindsArg::All,
             edge_rounding_kinds: EdgeKindsArg::All,
             no_pose_search: false,
@@ -520,6 +527,10 @@ pub fn registration_config(
         verify: VerifyConfig {
             max_convergence_ratio: coarse.max_convergence_ratio,
             ..defaults.verify
+        },
+        asg: AsgOptions {
+            occlusion_depth_ratio: coarse.asg_occlusion_contours,
+            ..defaults.asg
         },
         edge_align: EdgeAlignConfig {
             enabled: !coarse.no_edge_align,

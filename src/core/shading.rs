@@ -95,6 +95,12 @@ pub struct AsgOptions {
     pub derivative_filter: DerivativeFilter,
     /// How silhouettes (a surface pixel next to background) are treated.
     pub silhouette_mode: SilhouetteMode,
+    /// Occlusion contours from the rendering's depth ([`add_occlusion_contours`]): two surface
+    /// pixels whose depths differ by more than this share of the nearer one lie on two sides of
+    /// a contour, which then counts like a right-angled crease even where both surfaces have the
+    /// same normal (a flat roof in front of the ground). `None`: normals only (the paper's ASG).
+    #[serde(default)]
+    pub occlusion_depth_ratio: Option<f32>,
 }
 
 /// The normal a background pixel stands for in [`SilhouetteMode::BackgroundFacesCamera`].
@@ -146,6 +152,68 @@ pub fn asg_from_normals(normals: ImageView<'_, Vec3>, options: &AsgOptions, out:
                 let (derivative_x, derivative_y) = filter_3x3(&neighbourhood, &cross_weights);
                 *out_pixel = ASG_SCALE
                     * (derivative_x.length_squared() + derivative_y.length_squared()).sqrt();
+            }
+        });
+}
+
+/// Adds occlusion contours to an ASG image made by [`asg_from_normals`] from a rendering whose
+/// depth is `depth_m` (metres along the optical axis, 0 = no surface), in place. Why: ASG sees
+/// only normals, so where a surface occludes another with the same normal (a flat roof against
+/// the ground behind it, a wall in front of a parallel wall) it has no edge, though the photo
+/// has one (two surfaces, two materials and lights); a smoothed Poisson mesh hides this by
+/// rounding such edges into ridges, a clean city model (LoD2) does not.
+///
+/// Each stencil neighbour gets an indicator `c` (1 when its depth and the centre's differ by
+/// more than `depth_ratio` times the nearer one, 0 otherwise or without a surface); the
+/// indicator's derivative, weighted by √2 (the normal step of a right-angled crease), is added
+/// to the normals' derivative in quadrature: a contour alone gives the ASG of a right-angled
+/// crease on its two sides, and away from contours nothing changes. Background keeps its
+/// [`SilhouetteMode`] treatment.
+pub fn add_occlusion_contours(
+    depth_m: ImageView<'_, f32>,
+    depth_ratio: f32,
+    filter: DerivativeFilter,
+    asg: &mut Image<f32>,
+) {
+    let (width_px, height_px) = depth_m.size();
+    if depth_m.is_empty() || asg.size() != depth_m.size() {
+        return;
+    }
+    let depth = depth_m.data();
+    let cross_weights = filter.cross_weights();
+    let crease_weight_sq = 2.0 * ASG_SCALE * ASG_SCALE;
+    asg.data_mut()
+        .par_chunks_mut(width_px)
+        .enumerate()
+        .for_each(|(row, out_row)| {
+            let rows = neighbour_rows(row, height_px);
+            for (col, out_pixel) in out_row.iter_mut().enumerate() {
+                let centre = depth[row * width_px + col];
+                if !(centre.is_finite() && centre > 0.0) {
+                    continue;
+                }
+                let cols = neighbour_cols(col, width_px);
+                let mut across = [[0.0f32; 3]; 3];
+                let mut any = false;
+                for (kernel_row, &sample_row) in rows.iter().enumerate() {
+                    for (kernel_col, &sample_col) in cols.iter().enumerate() {
+                        let sample = depth[sample_row * width_px + sample_col];
+                        if sample.is_finite()
+                            && sample > 0.0
+                            && (sample - centre).abs() > depth_ratio * sample.min(centre)
+                        {
+                            across[kernel_row][kernel_col] = 1.0;
+                            any = true;
+                        }
+                    }
+                }
+                if !any {
+                    continue;
+                }
+                let (derivative_x, derivative_y) = filter_3x3(&across, &cross_weights);
+                let contour_sq =
+                    crease_weight_sq * (derivative_x * derivative_x + derivative_y * derivative_y);
+                *out_pixel = (*out_pixel * *out_pixel + contour_sq).sqrt();
             }
         });
 }
@@ -316,6 +384,7 @@ mod tests {
         let options = AsgOptions {
             derivative_filter: DerivativeFilter::CentralDifference,
             silhouette_mode: SilhouetteMode::BackgroundFacesCamera,
+            occlusion_depth_ratio: Some(0.1),
         };
         let json = serde_json::to_string(&options).unwrap();
         assert_eq!(serde_json::from_str::<AsgOptions>(&json).unwrap(), options);
@@ -342,6 +411,7 @@ mod tests {
                 let options = AsgOptions {
                     derivative_filter,
                     silhouette_mode,
+                    ..AsgOptions::default()
                 };
                 asg_from_normals(normals.view(), &options, &mut out);
                 assert!(out.data().iter().all(|&v| v == 0.0), "{options:?}: {out:?}");
@@ -380,6 +450,44 @@ mod tests {
         }
     }
 
+    /// A flat roof in front of the ground: both face up (the same normal), so the normals alone
+    /// give no edge; with the depths, the contour gets a right-angled crease's ASG on its two
+    /// sides and nothing else changes (a gently receding surface is not a contour).
+    #[test]
+    fn an_occlusion_contour_between_parallel_surfaces_is_an_edge_with_the_depth() {
+        let (width, height) = (12, 7);
+        let up = Vec3::new(0.0, -0.6, -0.8);
+        let normals = Image::filled(width, height, up);
+        // Roof at 20 m on columns < 6, ground at 30 m behind it; both recede by 1 % a row.
+        let depth = Image::from_fn(width, height, |col, row| {
+            (if col < 6 { 20.0 } else { 30.0 }) * (1.0 + 0.01 * row as f32)
+        });
+        for derivative_filter in FILTERS {
+            let options = AsgOptions {
+                derivative_filter,
+                occlusion_depth_ratio: Some(0.1),
+                ..AsgOptions::default()
+            };
+            let mut out = Image::filled(width, height, f32::NAN);
+            asg_from_normals(normals.view(), &options, &mut out);
+            assert!(out.data().iter().all(|&v| v == 0.0), "{out:?}");
+            add_occlusion_contours(depth.view(), 0.1, derivative_filter, &mut out);
+            // hx of the indicator = 1/2 on columns 5 and 6 → √2 · s · 1/2, as a crease whose
+            // normals differ by √2 (a right angle).
+            let expected = (std::f32::consts::PI / 3.0).sqrt() * 2f32.sqrt() * 0.5;
+            for row in 0..height {
+                for col in 0..width {
+                    let value = out.data()[row * width + col];
+                    let want = if col == 5 || col == 6 { expected } else { 0.0 };
+                    assert!(
+                        (value - want).abs() < 1e-6,
+                        "{derivative_filter:?} ({col}, {row}): {value} vs {want}"
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn silhouette_modes_differ_only_at_the_boundary_of_the_surface() {
         // A 4×4 patch of tilted surface in the middle of 10×10 background.
@@ -398,6 +506,7 @@ mod tests {
         let options = |silhouette_mode| AsgOptions {
             derivative_filter: DerivativeFilter::CentralDifference,
             silhouette_mode,
+            ..AsgOptions::default()
         };
         asg_from_normals(
             normals.view(),

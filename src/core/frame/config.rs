@@ -220,6 +220,16 @@ impl RegistrationConfig {
                 ),
             );
         }
+        if let Some(ratio) = self.asg.occlusion_depth_ratio {
+            if !(ratio.is_finite() && ratio > 0.0) {
+                return bad(
+                    "asg.occlusion_depth_ratio",
+                    format!(
+                        "{ratio} is not a positive number (a share of the nearer depth, e.g. 0.1)"
+                    ),
+                );
+            }
+        }
         if !(0.0..1.0).contains(&self.query_mixed_min_valid_share) {
             return bad(
                 "query_mixed_min_valid_share",

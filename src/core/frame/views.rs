@@ -17,7 +17,7 @@ use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::raster::{Rasterizer, RenderBuffers, NO_FACE};
 use crate::core::rigid::Rigid3;
-use crate::core::shading::{asg_from_normals, scale_to_percentile};
+use crate::core::shading::{add_occlusion_contours, asg_from_normals, scale_to_percentile};
 
 /// What [`render_views`] made.
 #[derive(Clone, Debug)]
@@ -199,5 +199,13 @@ pub fn render_coarse_view(
         &mut out.render,
     );
     asg_from_normals(out.render.normal_cam().view(), &config.asg, &mut out.asg);
+    if let Some(depth_ratio) = config.asg.occlusion_depth_ratio {
+        add_occlusion_contours(
+            out.render.depth_m().view(),
+            depth_ratio,
+            config.asg.derivative_filter,
+            &mut out.asg,
+        );
+    }
     scale_to_percentile(out.asg.data_mut(), GRADIENT_SCALE_PERCENTILE);
 }
