@@ -104,7 +104,7 @@ pub fn bench_mesh(out: &std::path::Path, triangles: u64, frames: usize) -> anyho
     // start 1.5° and 4 m away.
     let truth = poses[0];
     rasterizer.render(&mesh, &camera.intrinsics, &truth, &options, &mut render);
-    let photo = asg_display_image(&render);
+    let photo = asg_display_image(&render, None);
     let depth = render.depth_m().clone();
     let turn = UnitQuaternion::from_euler_angles(0.015, -0.01, 0.02);
     let initial = Rigid3::new(

@@ -74,7 +74,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     );
     let render_ms = started.elapsed().as_secs_f64() * 1e3;
     let asg_path = args.out.join(format!("{stem}_asg.png"));
-    save_gray_png(&asg_path, asg_display_image(&render).view())?;
+    save_gray_png(&asg_path, asg_display_image(&render, None).view())?;
     let photo_path = scene_dir.join("images").join(&first);
     let photo = load_gray(&photo_path)?;
     let mut gradient = Image::default();

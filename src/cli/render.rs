@@ -9,7 +9,7 @@ use asgreg::core::image::Image;
 use asgreg::core::mesh::Mesh;
 use asgreg::core::raster::{NormalSource, Rasterizer, RenderBuffers, RenderOptions};
 use asgreg::core::rigid::Rigid3;
-use asgreg::core::shading::{asg_from_normals, AsgOptions};
+use asgreg::core::shading::{add_occlusion_contours, asg_from_normals, AsgOptions};
 use asgreg::io::images::{save_gray_png, save_rgb_png};
 use asgreg::viz::normalize_for_display;
 
@@ -35,6 +35,9 @@ pub struct RenderArgs {
     /// Normals to shade with.
     #[arg(long, value_enum, default_value_t = NormalsArg::Vertex)]
     pub normals: NormalsArg,
+    /// ASG: add occlusion contours from the depth, as `register --asg-occlusion-contours` does.
+    #[arg(long, value_name = "DEPTH_RATIO")]
+    pub asg_occlusion_contours: Option<f32>,
     /// Output PNG.
     #[arg(long)]
     pub out: PathBuf,
@@ -78,16 +81,33 @@ pub fn render_view(
     buffers
 }
 
-/// The ASG image of a rendering, scaled to 0..1 for display.
-pub fn asg_display_image(render: &RenderBuffers) -> Image<f32> {
+/// The ASG image of a rendering, scaled to 0..1 for display; with `occlusion_depth_ratio`, its
+/// occlusion contours too ([`add_occlusion_contours`]).
+pub fn asg_display_image(render: &RenderBuffers, occlusion_depth_ratio: Option<f32>) -> Image<f32> {
+    let options = AsgOptions::default();
     let mut asg = Image::default();
-    asg_from_normals(render.normal_cam().view(), &AsgOptions::default(), &mut asg);
+    asg_from_normals(render.normal_cam().view(), &options, &mut asg);
+    if let Some(depth_ratio) = occlusion_depth_ratio {
+        add_occlusion_contours(
+            render.depth_m().view(),
+            depth_ratio,
+            options.derivative_filter,
+            &mut asg,
+        );
+    }
     normalize_for_display(asg.view())
 }
 
-pub fn write_render(render: &RenderBuffers, what: RenderWhat, out: &Path) -> anyhow::Result<()> {
+pub fn write_render(
+    render: &RenderBuffers,
+    what: RenderWhat,
+    occlusion_depth_ratio: Option<f32>,
+    out: &Path,
+) -> anyhow::Result<()> {
     match what {
-        RenderWhat::Asg => save_gray_png(out, asg_display_image(render).view())?,
+        RenderWhat::Asg => {
+            save_gray_png(out, asg_display_image(render, occlusion_depth_ratio).view())?
+        }
         RenderWhat::Normals => {
             let rgb = render.normal_cam().map(|n| {
                 if *n == glam::Vec3::ZERO {
@@ -118,7 +138,13 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
     let render = render_view(&inputs.mesh, camera, &image.cam_from_world, normal_source);
     let render_ms = started.elapsed().as_secs_f64() * 1e3;
-    write_render(&render, args.what, &args.out)
+    if let Some(ratio) = args.asg_occlusion_contours {
+        anyhow::ensure!(
+            ratio.is_finite() && ratio > 0.0,
+            "--asg-occlusion-contours {ratio}: give a positive share of the nearer depth, e.g. 0.1"
+        );
+    }
+    write_render(&render, args.what, args.asg_occlusion_contours, &args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
     let coverage = render.valid_count() as f64 / (render.width_px() * render.height_px()) as f64;
     println!(
