@@ -14,9 +14,6 @@
 //! (dense SIFT, whole flow) and wall time (the flow's own per-stage timings); with the EPE.
 //! `FLOW_BENCH_CONFIG='{"iterations": 8}'` replaces fields of the preset; `FLOW_BENCH_FRESH=1`
 //! gives every rerun fresh flow buffers (as a new workspace per view pays).
-//!
-//! `FLOW_BENCH_PAIR=1 cargo bench --bench flow` times both directions of a pair on one thread:
-//! two separate flows against the pair computed together (one data term read by both directions).
 
 use std::hint::black_box;
 use std::path::Path;
@@ -30,9 +27,8 @@ use asgreg::core::flow_consistency::{
 };
 use asgreg::core::image::{Image, ImageView};
 use asgreg::core::sift_flow::{
-    compute_sift_flow, compute_sift_flow_on_pyramids, compute_sift_flow_pair_on_pyramids,
-    descriptor_l1_distance, FlowField, L1Kernel, PairInput, SiftFlowConfig, SiftFlowWorkspace,
-    SiftPyramid, SubpixelRefinement,
+    compute_sift_flow, compute_sift_flow_on_pyramids, descriptor_l1_distance, FlowField, L1Kernel,
+    SiftFlowConfig, SiftFlowWorkspace, SiftPyramid, SubpixelRefinement,
 };
 use criterion::{BenchmarkId, Criterion};
 use rayon::prelude::*;
@@ -248,114 +244,6 @@ fn stages_report(pairs: &[Pair]) {
                     ms(run[5]),
                 );
             }
-        }
-    });
-}
-
-/// The two directions of a pair (fast preset, one thread, the consistency check's masks: textured
-/// pixels of each image take part): two separate flows against the pair computed together, alternating, CPU
-/// ms (min and median of `FLOW_BENCH_REPEATS` each) and the pair's own per-direction stage times.
-fn pair_report(pairs: &[Pair]) {
-    let repeats: usize = std::env::var("FLOW_BENCH_REPEATS")
-        .ok()
-        .and_then(|value| value.parse().ok())
-        .unwrap_or(15);
-    let config = SiftFlowConfig::fast();
-    let ms = |duration: Duration| duration.as_secs_f64() * 1e3;
-    pool(1).install(|| {
-        for pair in pairs {
-            let (first, second) = (sift(pair.first.view()), sift(pair.second.view()));
-            let [first_pyramid, second_pyramid] = [&first, &second].map(|image| {
-                let mut pyramid = SiftPyramid::default();
-                pyramid.build(image, &config).expect("pyramid");
-                pyramid
-            });
-            let (mut first_textured, mut second_textured) = (Image::default(), Image::default());
-            first.textured_mask(MatchConfig::default().min_support_gradient, &mut first_textured);
-            second.textured_mask(MatchConfig::default().min_support_gradient, &mut second_textured);
-            let mut workspaces = [SiftFlowWorkspace::default(), SiftFlowWorkspace::default()];
-            let mut flows = [FlowField::default(), FlowField::default()];
-            let mut costs = [Image::default(), Image::default()];
-            let (mut separate, mut together) = (Vec::new(), Vec::new());
-            let mut stages = Vec::new();
-            let mut identical = true;
-            for _ in 0..=repeats {
-                let started = precise_process_cpu_time();
-                let [forward_workspace, backward_workspace] = &mut workspaces;
-                let [forward_flow, backward_flow] = &mut flows;
-                let [forward_cost, backward_cost] = &mut costs;
-                compute_sift_flow_on_pyramids(
-                    (&first, &first_pyramid, Some(first_textured.view())),
-                    (&second, &second_pyramid, None),
-                    &config,
-                    forward_workspace,
-                    forward_flow,
-                    forward_cost,
-                )
-                .expect("forward flow");
-                compute_sift_flow_on_pyramids(
-                    (&second, &second_pyramid, Some(second_textured.view())),
-                    (&first, &first_pyramid, None),
-                    &config,
-                    backward_workspace,
-                    backward_flow,
-                    backward_cost,
-                )
-                .expect("backward flow");
-                separate.push(precise_process_cpu_time() - started);
-                let expected = (flows.clone(), costs.clone());
-                let started = precise_process_cpu_time();
-                let [forward_workspace, backward_workspace] = &mut workspaces;
-                let [forward_flow, backward_flow] = &mut flows;
-                let [forward_cost, backward_cost] = &mut costs;
-                let timings = compute_sift_flow_pair_on_pyramids(
-                    PairInput {
-                        sift: &first,
-                        pyramid: &first_pyramid,
-                        participates: Some(first_textured.view()),
-                        valid: None,
-                    },
-                    PairInput {
-                        sift: &second,
-                        pyramid: &second_pyramid,
-                        participates: Some(second_textured.view()),
-                        valid: None,
-                    },
-                    &config,
-                    [forward_workspace, backward_workspace],
-                    [forward_flow, backward_flow],
-                    [forward_cost, backward_cost],
-                )
-                .expect("pair flow");
-                together.push(precise_process_cpu_time() - started);
-                stages.push(timings.map(|timing| [timing.data_cost, timing.belief_propagation]));
-                identical &= (flows.clone(), costs.clone()) == expected;
-            }
-            let summary = |runs: &mut Vec<Duration>| {
-                runs.remove(0);
-                runs.sort();
-                (ms(runs[0]), ms(runs[runs.len() / 2]))
-            };
-            let (separate, together) = (summary(&mut separate), summary(&mut together));
-            let stage = |direction: usize, step: usize| {
-                stages[1..]
-                    .iter()
-                    .map(|run| run[direction][step])
-                    .min()
-                    .map_or(0.0, ms)
-            };
-            println!(
-                "{} both directions, fast preset, 1 thread, textured masks: separate flows CPU min {:.1} / median {:.1} ms; pair {:.1} / {:.1} ms; pair stages (min wall): forward data cost {:.1}, BP {:.1}, backward data cost {:.1}, BP {:.1} ms; identical {identical}",
-                pair.name,
-                separate.0,
-                separate.1,
-                together.0,
-                together.1,
-                stage(0, 0),
-                stage(0, 1),
-                stage(1, 0),
-                stage(1, 1),
-            );
         }
     });
 }
@@ -750,10 +638,6 @@ fn main() {
                 }
             });
         }
-        return;
-    }
-    if std::env::var_os("FLOW_BENCH_PAIR").is_some() {
-        pair_report(&pairs);
         return;
     }
     if std::env::var_os("FLOW_BENCH_STAGES").is_some() {

@@ -32,8 +32,8 @@ use crate::core::dense_sift::{
 };
 use crate::core::image::{Image, ImageView};
 use crate::core::sift_flow::{
-    compute_sift_flow_pair_on_pyramids, FlowError, FlowField, PairInput, SiftFlowConfig,
-    SiftFlowWorkspace, SiftPyramid,
+    compute_sift_flow_on_pyramids, FlowError, FlowField, SiftFlowConfig, SiftFlowWorkspace,
+    SiftPyramid,
 };
 
 /// Parameters of the two-way matching and of the consistency check.
@@ -258,35 +258,46 @@ fn match_sift_images_near_edges(
     ws.rendering_pyramid
         .build(rendering_sift, &config.sift_flow)?;
     let pyramid = pyramid_started.elapsed();
-    // Both directions in step: the backward data term reads the distances the forward one holds.
-    let flow_started = Instant::now();
-    let flow_timings = compute_sift_flow_pair_on_pyramids(
-        PairInput {
-            sift: query_sift,
-            pyramid: query_pyramid,
-            participates: Some(ws.query_textured.view()),
-            valid: None,
+    // The two directions are independent: run them side by side (rayon decides whether that
+    // uses a second thread).
+    let rendering_pyramid = &ws.rendering_pyramid;
+    let (query_textured, rendering_participates) = (&ws.query_textured, &ws.rendering_participates);
+    let (forward_workspace, backward_workspace) =
+        (&mut ws.flow_workspace, &mut ws.backward_flow_workspace);
+    let (forward_cost, backward_cost) = (&mut ws.forward_cost, &mut ws.backward_cost);
+    let (forward_out, backward_out) = (&mut out.forward, &mut out.backward);
+    let (forward_result, backward_result) = rayon::join(
+        || {
+            let started = Instant::now();
+            compute_sift_flow_on_pyramids(
+                (query_sift, query_pyramid, Some(query_textured.view())),
+                (rendering_sift, rendering_pyramid, rendering_valid),
+                &config.sift_flow,
+                forward_workspace,
+                forward_out,
+                forward_cost,
+            )
+            .map(|_| started.elapsed())
         },
-        PairInput {
-            sift: rendering_sift,
-            pyramid: &ws.rendering_pyramid,
-            participates: Some(ws.rendering_participates.view()),
-            valid: rendering_valid,
+        || {
+            let started = Instant::now();
+            compute_sift_flow_on_pyramids(
+                (
+                    rendering_sift,
+                    rendering_pyramid,
+                    Some(rendering_participates.view()),
+                ),
+                (query_sift, query_pyramid, None),
+                &config.sift_flow,
+                backward_workspace,
+                backward_out,
+                backward_cost,
+            )
+            .map(|_| started.elapsed())
         },
-        &config.sift_flow,
-        [&mut ws.flow_workspace, &mut ws.backward_flow_workspace],
-        [&mut out.forward, &mut out.backward],
-        [&mut ws.forward_cost, &mut ws.backward_cost],
-    )?;
-    let flow_time = flow_started.elapsed();
-    // The levels of the two directions interleave: each gets its own data term and belief
-    // propagation, and the rest of the pair's time is split evenly.
-    let own = |timings: &crate::core::sift_flow::SiftFlowTimings| {
-        timings.data_cost + timings.belief_propagation
-    };
-    let shared = flow_time.saturating_sub(own(&flow_timings[0]) + own(&flow_timings[1])) / 2;
-    let forward_flow = own(&flow_timings[0]) + shared;
-    let backward_flow = own(&flow_timings[1]) + shared;
+    );
+    let forward_flow = forward_result?;
+    let backward_flow = backward_result?;
 
     let consistency_started = Instant::now();
     collect_consistent_pairs(

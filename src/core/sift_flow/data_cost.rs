@@ -33,93 +33,6 @@ struct DataRowContext<'a> {
     target_mask: Option<&'a [bool]>,
     offsets: [&'a [i32]; 2],
     radius: usize,
-    mirror: Option<Mirror<'a>>,
-}
-
-/// The other direction's data term at the same level, for the backward flow of a pair to read
-/// distances from: the volume of the flow from this flow's target to its source, with that flow's
-/// offsets and masks. The cost of this source's pixel `q` at target pixel `p` is the L1 distance
-/// the other volume holds for its pixel `p` at displacement `q − p`, when that displacement lies in
-/// `p`'s window, `p` takes part there (its costs were computed) and `q` is valid there (the
-/// distance was not replaced by the outside mark); the volume must not be truncated.
-#[derive(Clone, Copy)]
-pub(super) struct Mirror<'a> {
-    pub(super) volume: &'a CostVolume,
-    pub(super) offsets: [&'a [i32]; 2],
-    pub(super) source_mask: Option<&'a [bool]>,
-    pub(super) target_mask: Option<&'a [bool]>,
-}
-
-/// The costs of pixel `(x, y)` (taking part, valid in the mirror) from the mirror's volume where it
-/// holds them, by `distance` elsewhere: the same values as computing every one.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn fill_pixel_from_mirror(
-    context: &DataRowContext,
-    mirror: &Mirror,
-    x: usize,
-    y: usize,
-    start_x: isize,
-    start_y: isize,
-    costs: &mut [u16],
-    distances: impl Fn(&[u8], &[u8], &mut [u16]),
-) {
-    let labels = 2 * context.radius + 1;
-    let window = labels * labels;
-    let radius = context.radius as isize;
-    let descriptor = context.source.descriptor(y * context.source.width_px + x);
-    let (target_width, target_height) = (context.target.width_px, context.target.height_px);
-    let layout = mirror.volume.layout;
-    debug_assert!(
-        layout.width == target_width
-            && layout.height == target_height
-            && mirror.volume.labels == labels
-    );
-    let mirror_costs = mirror.volume.costs();
-    for (label_v, cost_row) in costs.chunks_exact_mut(labels).enumerate() {
-        let target_y = start_y + label_v as isize;
-        if target_y < 0 || target_y >= target_height as isize {
-            cost_row.fill(OUTSIDE_COST);
-            continue;
-        }
-        let target_y = target_y as usize;
-        let (row_vector, lane) = layout.locate(0, target_y);
-        let mirror_v = y as isize - target_y as isize + radius;
-        for (label_u, cost) in cost_row.iter_mut().enumerate() {
-            let target_x = start_x + label_u as isize;
-            if target_x < 0 || target_x >= target_width as isize {
-                *cost = OUTSIDE_COST;
-                continue;
-            }
-            let target_x = target_x as usize;
-            let target = target_y * target_width + target_x;
-            if context.target_mask.is_some_and(|mask| !mask[target]) {
-                *cost = OUTSIDE_COST;
-                continue;
-            }
-            let mirror_u = x as isize - target_x as isize - mirror.offsets[0][target] as isize;
-            let mirror_v = mirror_v - mirror.offsets[1][target] as isize;
-            let mirror_u = mirror_u + radius;
-            let known = (0..labels as isize).contains(&mirror_u)
-                && (0..labels as isize).contains(&mirror_v)
-                && mirror.source_mask.is_none_or(|mask| mask[target]);
-            *cost = if known {
-                mirror_costs[(row_vector + target_x) * window
-                    + mirror_v as usize * labels
-                    + mirror_u as usize]
-                    .0[lane]
-            } else {
-                let mut distance = [0u16];
-                distances(
-                    descriptor,
-                    &context.target.descriptors
-                        [target * DESCRIPTOR_LEN..(target + 1) * DESCRIPTOR_LEN],
-                    &mut distance,
-                );
-                distance[0]
-            };
-        }
-    }
 }
 
 /// The costs of pixel `(x, y)`, index `label_v · labels + label_u`.
@@ -146,12 +59,6 @@ fn fill_pixel(
     let descriptor = context.source.descriptor(pixel);
     let start_x = x as isize + context.offsets[0][pixel] as isize - context.radius as isize;
     let start_y = y as isize + context.offsets[1][pixel] as isize - context.radius as isize;
-    if let Some(mirror) = &context.mirror {
-        if mirror.target_mask.is_none_or(|mask| mask[pixel]) {
-            fill_pixel_from_mirror(context, mirror, x, y, start_x, start_y, costs, distances);
-            return;
-        }
-    }
     if let Some(window_distances) = window_distances {
         let inside = start_x >= 0
             && start_y >= 0
@@ -226,14 +133,11 @@ fn fill_block(
     let mut histogram = Box::new([0u32; COUNTED_BINS]);
     let mut costs = [0u16; super::config::MAX_LABELS * super::config::MAX_LABELS];
     let costs = &mut costs[..window];
-    let rows = LANES.min(layout.height - block * LANES);
-    // Position by position (the 16 rows' pixels of one vector, `x = position - lane`): each
-    // position's vectors are written whole, and a mirror's reads of neighbouring rows fall in the
-    // same vectors of its volume.
-    for position in 0..layout.positions {
-        for lane in position.saturating_sub(layout.width - 1)..rows.min(position + 1) {
-            let (x, y) = (position - lane, block * LANES + lane);
+    for lane in 0..LANES.min(layout.height - block * LANES) {
+        let y = block * LANES + lane;
+        for x in 0..layout.width {
             fill_pixel(context, x, y, costs, distances, window_distances);
+            let position = x + lane;
             for (vector, &cost) in out[position * window..(position + 1) * window]
                 .iter_mut()
                 .zip(costs.iter())
@@ -280,8 +184,7 @@ type WindowKernel = fn(&[u8], &[u8], usize, usize, usize, &mut [u16]);
 /// Fills `volume` (resized to the source's size and `2 · radius + 1` labels per layer) with the
 /// costs of every source pixel against its window around `offsets`; candidates outside the target
 /// or on invalid target pixels cost the median of all matching costs (binned as the reference),
-/// and with `truncate` no cost exceeds it. Masked source pixels cost 0 everywhere. With a
-/// `mirror` (ignored with `truncate`), the distances it holds are read instead of computed.
+/// and with `truncate` no cost exceeds it. Masked source pixels cost 0 everywhere.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn compute_data_cost(
     source: &DenseSiftImage,
@@ -292,7 +195,6 @@ pub(super) fn compute_data_cost(
     radius: usize,
     truncate: bool,
     kernel: L1Kernel,
-    mirror: Option<Mirror>,
     volume: &mut CostVolume,
 ) {
     let labels = 2 * radius + 1;
@@ -306,7 +208,6 @@ pub(super) fn compute_data_cost(
         target_mask,
         offsets,
         radius,
-        mirror: mirror.filter(|_| !truncate),
     };
     let kernel = resolve_kernel(kernel);
     let histogram = volume
