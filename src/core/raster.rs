@@ -212,6 +212,8 @@ pub struct Rasterizer {
     visible_faces: Vec<VisibleFace>,
     /// Depth and face index only ([`Rasterizer::depth_and_faces_only`]).
     skip_normals: bool,
+    /// Renderings made so far ([`Rasterizer::renderings`]).
+    renderings: u64,
 }
 
 /// The viewing frustum as half-spaces in the camera frame, for culling grid cells: a point p is
@@ -313,6 +315,11 @@ impl Rasterizer {
     }
 
     /// Faces the last rendering's frustum culling kept (those of the grid cells it may see).
+    /// How many renderings this rasteriser has made (for tests that count what a step renders).
+    pub fn renderings(&self) -> u64 {
+        self.renderings
+    }
+
     pub fn visible_face_count(&self) -> usize {
         self.visible_faces.len()
     }
@@ -328,6 +335,7 @@ impl Rasterizer {
         out: &mut RenderBuffers,
     ) {
         let with_normals = !self.skip_normals;
+        self.renderings += 1;
         let width = out.width_px();
         let height = out.height_px();
         out.depth_m.fill(0.0);

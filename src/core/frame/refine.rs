@@ -238,15 +238,30 @@ pub fn refine_pose(
         start_faces,
         correlation: correlation_workspace,
     } = workspace;
+    // The camera and pose `view` holds the rendering of: a level that ends where the next
+    // sampling starts (the last level's check and the final sampling, a reverted level) is
+    // rendered once.
+    let mut rendered: Option<(Camera, Rigid3)> = None;
+    let render_at = |rasterizer: &mut Rasterizer,
+                     view: &mut CoarseView,
+                     camera: &Camera,
+                     pose: &Rigid3,
+                     rendered: &mut Option<(Camera, Rigid3)>| {
+        if *rendered != Some((*camera, *pose)) {
+            render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
+            *rendered = Some((*camera, *pose));
+        }
+    };
     let sample_at = |rasterizer: &mut Rasterizer,
                      view: &mut CoarseView,
                      camera: &Camera,
                      pose: &Rigid3,
-                     samples: &mut Vec<EdgeSample>| {
-        render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
+                     samples: &mut Vec<EdgeSample>,
+                     rendered: &mut Option<(Camera, Rigid3)>| {
+        render_at(rasterizer, view, camera, pose, rendered);
         model_edge_samples(view.asg.view(), &view.render, camera, pose, align, samples);
     };
-    sample_at(rasterizer, view, camera, start, samples);
+    sample_at(rasterizer, view, camera, start, samples, &mut rendered);
     let verified = edge_evidence(samples, &query, camera, start, align);
     start_samples.clone_from(samples);
     start_asg.clone_from(&view.asg);
@@ -302,7 +317,14 @@ pub fn refine_pose(
     };
     for (level, radius_px) in edge_radii_px.into_iter().enumerate() {
         if level > 0 {
-            sample_at(rasterizer, view, &aligned_camera, &pose, samples);
+            sample_at(
+                rasterizer,
+                view,
+                &aligned_camera,
+                &pose,
+                samples,
+                &mut rendered,
+            );
             let mut current = (aligned_camera, pose, rounding_m);
             check_level(samples, &mut current, &mut levels);
             (aligned_camera, pose, rounding_m) = current;
@@ -322,14 +344,21 @@ pub fn refine_pose(
         levels.push(summary);
     }
     if !levels.is_empty() {
-        sample_at(rasterizer, view, &aligned_camera, &pose, samples);
+        sample_at(
+            rasterizer,
+            view,
+            &aligned_camera,
+            &pose,
+            samples,
+            &mut rendered,
+        );
         let mut current = (aligned_camera, pose, rounding_m);
         check_level(samples, &mut current, &mut levels);
         (aligned_camera, pose, rounding_m) = current;
     }
     if align.method.runs_dense() && parameters == AlignedParameters::Pose {
         for sigma_px in align.dense.level_sigmas_px() {
-            render_coarse_view(mesh, &aligned_camera, 0, &pose, config, rasterizer, view);
+            render_at(rasterizer, view, &aligned_camera, &pose, &mut rendered);
             // `blurred_query` blurs with a quarter of its radius as σ.
             blurred_query(view.asg.view(), 4.0 * sigma_px, blurred_asg);
             dense_samples(
@@ -360,7 +389,14 @@ pub fn refine_pose(
             });
         }
     }
-    sample_at(rasterizer, view, &aligned_camera, &pose, samples);
+    sample_at(
+        rasterizer,
+        view,
+        &aligned_camera,
+        &pose,
+        samples,
+        &mut rendered,
+    );
     // Both poses measured the same way: with the estimated rounding undone.
     let verified = if rounding_m > 0.0 {
         sharpened_samples(start_samples, rounding_m, align.rounding_kinds, sharpened);
@@ -521,6 +557,45 @@ mod tests {
             assert!(
                 aligned_delta_px < bound_px,
                 "{method:?}: {aligned_delta_px}"
+            );
+        }
+    }
+
+    /// Each pose the refinement samples is rendered once: the start, the start of every level
+    /// after the first, the last level's end; the final sampling renders nothing new at the last
+    /// level's end (only a reverted last level's start is rendered again).
+    #[test]
+    fn refinement_renders_each_sampled_pose_once() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let start = Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006)) * truth.rotation,
+            truth.translation + Vector3::new(0.16, -0.1, 0.12),
+        );
+        for check_levels in [false, true] {
+            let mut config = RegistrationConfig::default();
+            config.edge_align.method = RefineMethod::Edges;
+            config.edge_align.check_levels = check_levels;
+            let query = ideal_query(&mesh, &camera, &truth, &config);
+            let mut workspace = RefineWorkspace::default();
+            let refinement = refine_pose(
+                &mesh,
+                &camera,
+                query.view(),
+                &start,
+                AlignedParameters::Pose,
+                &config,
+                &mut workspace,
+            )
+            .unwrap();
+            let levels = config.edge_align.level_radii_px().len() as u64;
+            assert!(levels >= 2);
+            assert_eq!(refinement.levels.len() as u64, levels);
+            // A reverted last level ends at a pose rendered before, but not the last one.
+            let last_reverted = refinement.levels.last().is_some_and(|level| level.reverted);
+            assert_eq!(
+                workspace.rasterizer.renderings(),
+                levels + 1 + u64::from(last_reverted),
+                "{check_levels}"
             );
         }
     }
