@@ -135,20 +135,16 @@ pub fn asg_from_normals(normals: ImageView<'_, Vec3>, options: &AsgOptions, out:
                     BACKGROUND_NORMAL_CAM
                 };
                 let cols = neighbour_cols(col, width_px);
-                let mut neighbourhood = [[centre_value; 3]; 3];
-                for (kernel_row, &sample_row) in rows.iter().enumerate() {
-                    for (kernel_col, &sample_col) in cols.iter().enumerate() {
-                        let sample = normals[sample_row * width_px + sample_col];
-                        neighbourhood[kernel_row][kernel_col] = if sample != Vec3::ZERO {
-                            sample
-                        } else {
-                            match silhouette_mode {
-                                SilhouetteMode::ValidOnly => centre_value,
-                                SilhouetteMode::BackgroundFacesCamera => BACKGROUND_NORMAL_CAM,
-                            }
-                        };
+                let neighbourhood = neighbourhood_3x3(normals, width_px, &rows, &cols, |sample| {
+                    if sample != Vec3::ZERO {
+                        sample
+                    } else {
+                        match silhouette_mode {
+                            SilhouetteMode::ValidOnly => centre_value,
+                            SilhouetteMode::BackgroundFacesCamera => BACKGROUND_NORMAL_CAM,
+                        }
                     }
-                }
+                });
                 let (derivative_x, derivative_y) = filter_3x3(&neighbourhood, &cross_weights);
                 *out_pixel = ASG_SCALE
                     * (derivative_x.length_squared() + derivative_y.length_squared()).sqrt();
@@ -193,21 +189,17 @@ pub fn add_occlusion_contours(
                     continue;
                 }
                 let cols = neighbour_cols(col, width_px);
-                let mut across = [[0.0f32; 3]; 3];
-                let mut any = false;
-                for (kernel_row, &sample_row) in rows.iter().enumerate() {
-                    for (kernel_col, &sample_col) in cols.iter().enumerate() {
-                        let sample = depth[sample_row * width_px + sample_col];
-                        if sample.is_finite()
-                            && sample > 0.0
-                            && (sample - centre).abs() > depth_ratio * sample.min(centre)
-                        {
-                            across[kernel_row][kernel_col] = 1.0;
-                            any = true;
-                        }
+                let across = neighbourhood_3x3(depth, width_px, &rows, &cols, |sample| {
+                    let contour = sample.is_finite()
+                        && sample > 0.0
+                        && (sample - centre).abs() > depth_ratio * sample.min(centre);
+                    if contour {
+                        1.0f32
+                    } else {
+                        0.0
                     }
-                }
-                if !any {
+                });
+                if across.iter().flatten().all(|&c| c == 0.0) {
                     continue;
                 }
                 let (derivative_x, derivative_y) = filter_3x3(&across, &cross_weights);
@@ -245,13 +237,7 @@ pub fn gradient_magnitude_with_filter(
             let rows = neighbour_rows(row, height_px);
             for (col, out_pixel) in out_row.iter_mut().enumerate() {
                 let cols = neighbour_cols(col, width_px);
-                let mut neighbourhood = [[0.0f32; 3]; 3];
-                for (kernel_row, &sample_row) in rows.iter().enumerate() {
-                    for (kernel_col, &sample_col) in cols.iter().enumerate() {
-                        neighbourhood[kernel_row][kernel_col] =
-                            pixels[sample_row * width_px + sample_col];
-                    }
-                }
+                let neighbourhood = neighbourhood_3x3(pixels, width_px, &rows, &cols, |v| v);
                 let (derivative_x, derivative_y) = filter_3x3(&neighbourhood, &cross_weights);
                 *out_pixel = derivative_x.hypot(derivative_y);
             }
@@ -326,6 +312,24 @@ pub fn normals_from_depth(
                 };
             }
         });
+}
+
+/// The 3×3 neighbourhood `[row][col]` at `rows × cols` of a row-major image `width_px` wide,
+/// each sample mapped by `value` (the stencil the derivative filters read).
+fn neighbourhood_3x3<T: Copy, U: Copy + Default>(
+    data: &[T],
+    width_px: usize,
+    rows: &[usize; 3],
+    cols: &[usize; 3],
+    mut value: impl FnMut(T) -> U,
+) -> [[U; 3]; 3] {
+    let mut out = [[U::default(); 3]; 3];
+    for (kernel_row, &sample_row) in rows.iter().enumerate() {
+        for (kernel_col, &sample_col) in cols.iter().enumerate() {
+            out[kernel_row][kernel_col] = value(data[sample_row * width_px + sample_col]);
+        }
+    }
+    out
 }
 
 /// Rows `[row - 1, row, row + 1]`, clamped to the image.
