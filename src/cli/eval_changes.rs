@@ -101,6 +101,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     detect_args.limit = args.limit;
     detect_args.edge_tolerance_px = args.change_edge_tolerance_px;
     detect_args.stereo_consistency_neighbours = args.stereo_consistency_neighbours;
+    detect_args.pose_sigma_px = args.change_pose_sigma_px;
+    detect_args.registration_report = args.change_registration_report.clone();
+    detect_args.stereo_relative_sigma = args.change_stereo_relative_sigma;
     let report = detect_all(&detect_args)?;
 
     // Pixels.
