@@ -111,7 +111,8 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().pose_sigma_px)]
     pub change_pose_sigma_px: f32,
     /// With --changes: `asgreg changes --registration-report` (each frame's u from the
-    /// registration that made --changes-poses).
+    /// registration that made --changes-poses); by default the report.json beside
+    /// --changes-poses when there is one.
     #[arg(long)]
     pub change_registration_report: Option<PathBuf>,
     /// With --changes --depth-source stereo: `asgreg changes --stereo-relative-sigma`.
