@@ -112,6 +112,20 @@ pub struct ChangesArgs {
     /// unchanged (MVS edge fattening, a pose a pixel off); 0: pixel by pixel.
     #[arg(long, default_value_t = ChangeConfig::default().edge_tolerance_px)]
     pub edge_tolerance_px: usize,
+    /// The poses' error as an image displacement u, px, for every frame: each pixel's
+    /// threshold gets the depth difference a pose u px off could cause (|∇ model depth|·u) in
+    /// quadrature; 0: exact poses (ground truth). A frame listed in --registration-report
+    /// takes its own u from there instead.
+    #[arg(long, default_value_t = ChangeConfig::default().pose_sigma_px)]
+    pub pose_sigma_px: f32,
+    /// The report.json of the `asgreg register` run that made --poses: each frame's u (see
+    /// --pose-sigma-px) is its registration's own uncertainty
+    /// (`core::change::pose_sigma_px_of_registration`).
+    #[arg(long)]
+    pub registration_report: Option<PathBuf>,
+    /// Without --depth: σ_rel of the stereo depth maps (--relative-sigma is the given maps').
+    #[arg(long, default_value_t = ChangeConfig::default().stereo_relative_sigma)]
+    pub stereo_relative_sigma: f32,
     /// Footprints closer than this are one object, metres.
     #[arg(long, default_value_t = FusionConfig::default().merge_distance_m)]
     pub merge_distance_m: f64,
@@ -161,6 +175,9 @@ impl ChangesArgs {
             relative_sigma: change.relative_sigma,
             model_sigma_m: change.model_sigma_m,
             edge_tolerance_px: change.edge_tolerance_px,
+            pose_sigma_px: change.pose_sigma_px,
+            registration_report: None,
+            stereo_relative_sigma: change.stereo_relative_sigma,
             merge_distance_m: fusion.merge_distance_m,
             min_frames: fusion.min_frames,
             limit: None,
@@ -197,6 +214,8 @@ impl ChangesArgs {
             relative_sigma: self.relative_sigma,
             model_sigma_m: self.model_sigma_m,
             edge_tolerance_px: self.edge_tolerance_px,
+            pose_sigma_px: self.pose_sigma_px,
+            stereo_relative_sigma: self.stereo_relative_sigma,
             ..ChangeConfig::default()
         }
     }
@@ -219,6 +238,8 @@ pub struct FrameChangeReport {
     pub regions: Vec<ChangeRegion>,
     /// Render + compare + regions, milliseconds.
     pub detect_ms: f64,
+    /// The pose error u the threshold allowed for (`--pose-sigma-px`, `--registration-report`).
+    pub pose_sigma_px: f32,
     /// How the frame's depth was computed, when by stereo.
     pub stereo: Option<FrameStereoReport>,
 }
@@ -283,6 +304,10 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
     }
     let fusion = args.fusion_config();
     let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
+    let registered_pose_sigmas = match &args.registration_report {
+        Some(path) => registration_pose_sigmas(path)?,
+        None => std::collections::HashMap::new(),
+    };
     let mut dirs = vec!["masks", "overlays"];
     if args.depth.is_none() {
         dirs.push("depth");
@@ -344,6 +369,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             counts: ClassCounts::default(),
             regions: Vec::new(),
             detect_ms: 0.0,
+            pose_sigma_px: 0.0,
             stereo: None,
         };
         let Some(camera) = inputs.cameras.get(&image.camera_id) else {
@@ -356,6 +382,13 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         };
         let image_path = args.images.join(&image.name);
         let mut loaded: Option<FrameFiles> = None;
+        let config = ChangeConfig {
+            pose_sigma_px: registered_pose_sigmas
+                .get(&image.name)
+                .copied()
+                .unwrap_or(config.pose_sigma_px),
+            ..config
+        };
         let (depth, stereo, frame_config) = match &args.depth {
             Some(depth_dir) => {
                 let depth_path = depth_path_for(depth_dir, &image.name);
@@ -397,10 +430,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
                         let path = stereo_depth_path(&args.out, &image.name);
                         write_pfm(&path, depth.view())
                             .with_context(|| format!("cannot write {}", path.display()))?;
-                        let frame_config = ChangeConfig {
-                            quadratic_sigma_per_m: report.quadratic_sigma_per_m as f32,
-                            ..config
-                        };
+                        let frame_config = config.for_stereo(report.quadratic_sigma_per_m as f32);
                         (depth, Some(report), frame_config)
                     }
                     Err(why) => {
@@ -497,6 +527,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             counts: changes.counts,
             regions: changes.regions,
             detect_ms,
+            pose_sigma_px: frame_config.pose_sigma_px,
             stereo,
         });
     }
@@ -541,6 +572,38 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         &report_page(args, &report, page_pictures),
     )?;
     Ok(report)
+}
+
+/// Each frame's pose error u (px) from the report.json of the `asgreg register` run that made
+/// the poses: `core::change::pose_sigma_px_of_registration` of its verify group's spread.
+fn registration_pose_sigmas(path: &Path) -> anyhow::Result<std::collections::HashMap<String, f32>> {
+    #[derive(serde::Deserialize)]
+    struct Report {
+        frames: Vec<Frame>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Frame {
+        name: String,
+        mean_delta_to_chosen_px: f64,
+    }
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read the registration report {}", path.display()))?;
+    let report: Report = serde_json::from_str(&text).with_context(|| {
+        format!(
+            "{} is not an `asgreg register` report.json (frames with name and mean_delta_to_chosen_px)",
+            path.display()
+        )
+    })?;
+    Ok(report
+        .frames
+        .into_iter()
+        .map(|f| {
+            (
+                f.name,
+                asgreg::core::change::pose_sigma_px_of_registration(f.mean_delta_to_chosen_px),
+            )
+        })
+        .collect())
 }
 
 /// Frame `index`'s depth by plane-sweep stereo against its nearest registered frames; the

@@ -131,6 +131,17 @@ pub struct EvalArgs {
     /// With --changes --depth-source stereo: `asgreg changes --stereo-consistency-neighbours`.
     #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().consistency_neighbours)]
     pub stereo_consistency_neighbours: usize,
+    /// With --changes: `asgreg changes --pose-sigma-px` (the poses' error u, px; 0 = exact).
+    #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().pose_sigma_px)]
+    pub change_pose_sigma_px: f32,
+    /// With --changes: `asgreg changes --registration-report` (each frame's u from the
+    /// registration that made --changes-poses); by default the report.json beside
+    /// --changes-poses when there is one.
+    #[arg(long)]
+    pub change_registration_report: Option<PathBuf>,
+    /// With --changes --depth-source stereo: `asgreg changes --stereo-relative-sigma`.
+    #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().stereo_relative_sigma)]
+    pub change_stereo_relative_sigma: f32,
 }
 
 /// Where `eval --changes` takes the photos' depth from.

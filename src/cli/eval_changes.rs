@@ -101,6 +101,20 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     detect_args.limit = args.limit;
     detect_args.edge_tolerance_px = args.change_edge_tolerance_px;
     detect_args.stereo_consistency_neighbours = args.stereo_consistency_neighbours;
+    detect_args.pose_sigma_px = args.change_pose_sigma_px;
+    // Registered poses: each frame's pose error from its registration (as the pipeline's change
+    // stage has it), from the report beside the poses unless one is named.
+    detect_args.registration_report = args.change_registration_report.clone().or_else(|| {
+        let beside = args.changes_poses.as_ref()?.parent()?.join("report.json");
+        beside.is_file().then_some(beside)
+    });
+    if let Some(report) = &detect_args.registration_report {
+        println!(
+            "pose error per frame from the registration report {}",
+            report.display()
+        );
+    }
+    detect_args.stereo_relative_sigma = args.change_stereo_relative_sigma;
     let report = detect_all(&detect_args)?;
 
     // Pixels.

@@ -1,5 +1,5 @@
 //! The wire types of the bus and the one place that encodes and decodes them (docs/design.md §5).
-//! `schemas/v5/` describes the same layout for subscribers in other languages.
+//! `schemas/v6/` describes the same layout for subscribers in other languages.
 //!
 //! Layout of every message (all integers little-endian):
 //! ```text
@@ -36,4 +36,6 @@ pub use wire::{decode, encode, same_body, DecodeError, EncodeError, Encoded, HEA
 /// v4: change detection (ChangeJob, ChangeResult, ChangeSet; FrameQuery carries the depth map).
 /// v5: depth in the pipeline (FrameQuery carries the grey photo; ChangeJob the photo and its
 /// stereo neighbours).
-pub const SCHEMA_VERSION: u16 = 5;
+/// v6: a ChangeJob's meta ends with the registered pose's error (`pose_sigma_px`) for the change
+/// threshold's pose term.
+pub const SCHEMA_VERSION: u16 = 6;

@@ -162,6 +162,7 @@ fn every_kind() -> Vec<Body<'static>> {
                     camera: info().camera,
                     cam_from_world: info().initial_cam_from_world,
                 }],
+                pose_sigma_px: 1.25,
             },
             depth_m: Cow::Owned(Vec::new()),
             photo: Cow::Owned(image.clone()),
@@ -423,7 +424,7 @@ fn pose_result_json_carries_header_and_result() {
 #[test]
 fn pose_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v5/pose_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v6/pose_result.schema.json")).unwrap();
     let keys = |value: &serde_json::Value| -> Vec<String> {
         let mut keys: Vec<String> = value.as_object().unwrap().keys().cloned().collect();
         keys.sort();
@@ -487,7 +488,7 @@ fn assert_matches_schema(json: &serde_json::Value, schema: &serde_json::Value) {
 #[test]
 fn change_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v5/change_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v6/change_result.schema.json")).unwrap();
     let json: serde_json::Value =
         serde_json::from_str(&change_result_json(&header(), &change_result_example())).unwrap();
     assert_eq!(json["schema_version"], SCHEMA_VERSION);
@@ -506,7 +507,7 @@ fn change_result_json_has_exactly_the_schema_properties() {
 #[test]
 fn change_set_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v5/change_set.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v6/change_set.schema.json")).unwrap();
     let set = every_kind()
         .into_iter()
         .find_map(|body| match body {

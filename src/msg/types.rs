@@ -286,6 +286,10 @@ pub struct ChangeJobMeta {
     pub cam_from_world: Rigid3,
     /// Without a depth map: the registered frames whose photos come with the job for stereo.
     pub neighbours: Vec<NeighbourMeta>,
+    /// The registered pose's error as an image displacement, px: the change threshold's pose
+    /// term (`core::change::ChangeConfig::pose_sigma_px`), from the registration's own
+    /// uncertainty (`core::change::pose_sigma_px_of_registration` of its verify group's spread).
+    pub pose_sigma_px: f64,
 }
 
 /// A registered frame of the stream sent with a change job as a stereo neighbour.
@@ -299,7 +303,7 @@ pub struct NeighbourMeta {
 }
 
 /// One frame's change detection (change workers, or verify for a frame without a pose →
-/// fusion → subscribers); also published as JSON (`schemas/v5/change_result.schema.json`).
+/// fusion → subscribers); also published as JSON (`schemas/v6/change_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeResult {
     pub frame_id: u64,
@@ -319,7 +323,7 @@ pub struct ChangeResult {
 
 /// The changes of every frame so far fused into objects (fusion → subscribers); published now
 /// and then while frames arrive and once, `complete`, when every frame has its change result.
-/// Also published as JSON (`schemas/v5/change_set.schema.json`).
+/// Also published as JSON (`schemas/v6/change_set.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeSet {
     /// Whether every frame of the stream has its change result (the final set).
@@ -569,7 +573,7 @@ pub struct StageTimesMs {
 }
 
 /// The one result of a frame (verify → subscribers); also published as JSON
-/// (`schemas/v5/pose_result.schema.json`).
+/// (`schemas/v6/pose_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseResult {
     pub frame_id: u64,

@@ -123,18 +123,20 @@ impl<'m> ChangeStage<'m> {
             change_ms: 0.0,
             change_worker: Some(self.worker_index),
         };
+        // The frame's own pose error (verify's measure of its registration) for the threshold.
+        let frame_config = ChangeConfig {
+            pose_sigma_px: meta.pose_sigma_px as f32,
+            ..self.config
+        };
         let detected = photo_depth(self.mesh, job, &self.stereo).and_then(|depth| {
             let (depth, config) = match &depth {
-                PhotoDepth::Given(depth) => (*depth, self.config),
+                PhotoDepth::Given(depth) => (*depth, frame_config),
                 PhotoDepth::Stereo {
                     depth_m,
                     quadratic_sigma_per_m,
                 } => (
                     depth_m.view(),
-                    ChangeConfig {
-                        quadratic_sigma_per_m: *quadratic_sigma_per_m as f32,
-                        ..self.config
-                    },
+                    frame_config.for_stereo(*quadratic_sigma_per_m as f32),
                 ),
             };
             detect_changes(

@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 use std::sync::Arc;
 
 use crate::core::camera::Camera;
+use crate::core::change::pose_sigma_px_of_registration;
 use crate::core::change::stereo::{choose_neighbours, NeighbourConfig, PosedCamera};
 use crate::core::frame::{
     decide_frame, CoarseOutcome, Decision, IntrinsicsMode, RefineWorkspace, RegistrationConfig,
@@ -48,6 +49,8 @@ struct RegisteredView {
     info: FrameInfo,
     camera: Camera,
     cam_from_world: crate::core::rigid::Rigid3,
+    /// The pose's error for the change threshold (`ChangeJobMeta::pose_sigma_px`).
+    pose_sigma_px: f64,
     photo: Arc<Image<f32>>,
 }
 
@@ -263,6 +266,9 @@ impl<'m> VerifyStage<'m> {
         if !self.changes {
             return;
         }
+        let pose_sigma_px = f64::from(pose_sigma_px_of_registration(
+            result.evidence.mean_delta_to_chosen_px,
+        ));
         let work = match decided {
             Some(decided) if result.accepted => {
                 if decided.depth_m.is_none() {
@@ -273,6 +279,7 @@ impl<'m> VerifyStage<'m> {
                                 info: decided.info,
                                 camera: decided.camera,
                                 cam_from_world: decided.cam_from_world,
+                                pose_sigma_px,
                                 photo: Arc::new(photo),
                             },
                         );
@@ -288,6 +295,7 @@ impl<'m> VerifyStage<'m> {
                             camera: decided.camera,
                             cam_from_world: decided.cam_from_world,
                             neighbours: Vec::new(),
+                            pose_sigma_px,
                         },
                         depth_m: std::borrow::Cow::Owned(
                             decided.depth_m.map(Image::into_data).unwrap_or_default(),
@@ -381,6 +389,7 @@ impl<'m> VerifyStage<'m> {
                             camera: reference.camera,
                             cam_from_world: reference.cam_from_world,
                             neighbours,
+                            pose_sigma_px: reference.pose_sigma_px,
                         },
                         depth_m: std::borrow::Cow::Owned(Vec::new()),
                         photo: std::borrow::Cow::Owned(reference.photo.data().to_vec()),
@@ -419,6 +428,7 @@ impl<'m> VerifyStage<'m> {
                 camera: view.camera,
                 cam_from_world: view.cam_from_world,
                 neighbours: Vec::new(),
+                pose_sigma_px: view.pose_sigma_px,
             },
             depth_m: std::borrow::Cow::Owned(Vec::new()),
             photo: std::borrow::Cow::Owned(view.photo.data().to_vec()),
@@ -448,6 +458,7 @@ impl<'m> VerifyStage<'m> {
                 info: job.meta.info.clone(),
                 camera: job.meta.camera,
                 cam_from_world: job.meta.cam_from_world,
+                pose_sigma_px: job.meta.pose_sigma_px,
                 photo: Arc::new(photo.to_image()),
             },
         );

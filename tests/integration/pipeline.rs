@@ -734,11 +734,18 @@ fn run_without_depth_gives_the_change_results_of_batch_stereo() {
         .collect();
     let mut images_txt = String::new();
     let mut accepted = Vec::new();
+    // Each frame's verify spread, from which both the pipeline and the batch take its pose
+    // error for the change threshold (`--registration-report`).
+    let mut spreads = Vec::new();
     for result in results(&out) {
         if result["accepted"] != true {
             continue;
         }
         let name = result["name"].as_str().unwrap().to_string();
+        spreads.push(serde_json::json!({
+            "name": name,
+            "mean_delta_to_chosen_px": result["evidence"]["mean_delta_to_chosen_px"],
+        }));
         let pose = &result["cam_from_world"];
         let q: Vec<f64> = pose["qvec_wxyz"]
             .as_array()
@@ -765,6 +772,12 @@ fn run_without_depth_gives_the_change_results_of_batch_stereo() {
     );
     let poses = dir.path().join("registered.txt");
     std::fs::write(&poses, images_txt).unwrap();
+    let registration_report = dir.path().join("registration.json");
+    std::fs::write(
+        &registration_report,
+        serde_json::json!({ "frames": spreads }).to_string(),
+    )
+    .unwrap();
     let batch_out = dir.path().join("batch");
     let output = asgreg(&[
         "changes",
@@ -776,6 +789,8 @@ fn run_without_depth_gives_the_change_results_of_batch_stereo() {
         path_str(&scene.join("gt/cameras.txt")),
         "--poses",
         path_str(&poses),
+        "--registration-report",
+        path_str(&registration_report),
         "--out",
         path_str(&batch_out),
     ]);

@@ -14,6 +14,15 @@
 //! from disparity: `σ_d = d²·σ_disparity / (f·B)`), zero for a given MVS depth map and set by a
 //! depth computed from a baseline. A pixel changes when `|Δ| > max(k·σ(d), Δ_min)`.
 //!
+//! The registered pose is not exact either: a pose whose image is `u` px off renders the model's
+//! depth of a pixel up to `u` px away, which differs from the right one by about `|∇d|·u` where
+//! the model's depth changes fast across the image (oblique surfaces, depth edges), and not at
+//! all on a surface facing the camera. That is a per-pixel term ([`pose_error_sigma_m`], from
+//! the model's rendered depth and the frame's `ChangeConfig::pose_sigma_px`), added in quadrature:
+//! `σ(p) = √((σ_model + σ_rel·d + σ_quad·d²)² + σ_pose(p)²)`. It is zero for exact (ground-truth)
+//! poses. A stereo depth map gets its own relative term ([`ChangeConfig::for_stereo`]): σ_rel is
+//! the error of an MVS map on a fixed pixel grid, the stereo map's error is σ_quad's.
+//!
 //! Pure functions; [`ChangeWorkspace`] keeps the rasteriser, its buffers and the labels, so a
 //! stream of frames allocates nothing per frame beyond the regions it returns.
 
@@ -134,7 +143,23 @@ pub struct ChangeConfig {
     /// window plus 2 px of edge noise, or the plane-sweep's 5-px window at half resolution
     /// (docs/measurements.md: 3 px left roof-edge bands on the block).
     pub edge_tolerance_px: usize,
+    /// The registered pose's error as an image displacement, px (u): each pixel's threshold
+    /// gets the depth difference a pose `u` px off could cause, [`pose_error_sigma_m`], in
+    /// quadrature. 0: the pose is exact (ground truth). Set per frame by the caller from the
+    /// registration's own uncertainty (`asgreg changes --pose-sigma-px`, the pipeline's
+    /// ChangeJob); at most [`MAX_POSE_SIGMA_PX`].
+    pub pose_sigma_px: f32,
+    /// σ_rel of a depth map computed by stereo ([`Self::for_stereo`]), in place of
+    /// `relative_sigma` (which is an MVS map's). 0: the plane sweep's error is its stereo term
+    /// σ_quad; under registered poses the pose term, not σ_rel, takes the pose's error
+    /// (docs/measurements.md, branch `change14`: the block's extension, 1–3 m in front of a wall
+    /// at 40 m, was under a 2.8 m threshold with σ_rel = 0.01).
+    pub stereo_relative_sigma: f32,
 }
+
+/// The largest [`ChangeConfig::pose_sigma_px`]: a pose that far off is no registration to
+/// detect changes under (the window of [`pose_error_sigma_m`] grows with it).
+pub const MAX_POSE_SIGMA_PX: f32 = 16.0;
 
 impl Default for ChangeConfig {
     fn default() -> Self {
@@ -149,6 +174,8 @@ impl Default for ChangeConfig {
             min_pixels: 25,
             min_extent_m: 2.0,
             edge_tolerance_px: 5,
+            pose_sigma_px: 0.0,
+            stereo_relative_sigma: 0.0,
         }
     }
 }
@@ -172,9 +199,16 @@ impl ChangeConfig {
         let bad = |what: String| Err(ChangeError::InvalidConfig(what));
         if !(self.model_sigma_m >= 0.0
             && self.relative_sigma >= 0.0
+            && self.stereo_relative_sigma >= 0.0
             && self.quadratic_sigma_per_m >= 0.0)
         {
             return bad("sigmas must be finite and ≥ 0".into());
+        }
+        if !(self.pose_sigma_px >= 0.0 && self.pose_sigma_px <= MAX_POSE_SIGMA_PX) {
+            return bad(format!(
+                "pose_sigma_px {} must be 0..={MAX_POSE_SIGMA_PX}",
+                self.pose_sigma_px
+            ));
         }
         if !(self.threshold_sigmas > 0.0 && self.min_difference_m >= 0.0) {
             return bad(format!(
@@ -196,12 +230,110 @@ impl ChangeConfig {
         Ok(())
     }
 
-    /// The depth difference above which a pixel at depth `depth_m` changes, metres.
+    /// The depth difference above which a pixel at depth `depth_m` changes under an exact
+    /// pose, metres.
     pub fn threshold_m(&self, depth_m: f32) -> f32 {
+        self.threshold_with_pose_m(depth_m, 0.0)
+    }
+
+    /// The depth difference above which a pixel at depth `depth_m` changes when the pose's
+    /// error alone could make its depths differ by `pose_sigma_m` ([`pose_error_sigma_m`]):
+    /// the depth terms and the pose term in quadrature, metres.
+    pub fn threshold_with_pose_m(&self, depth_m: f32, pose_sigma_m: f32) -> f32 {
         let sigma = self.model_sigma_m
             + self.relative_sigma * depth_m
             + self.quadratic_sigma_per_m * depth_m * depth_m;
+        let sigma = sigma.hypot(pose_sigma_m);
         (self.threshold_sigmas * sigma).max(self.min_difference_m)
+    }
+
+    /// The settings for a depth map computed by stereo with the stereo term
+    /// `quadratic_sigma_per_m` (σ_disparity / (f·B)): σ_rel becomes `stereo_relative_sigma`.
+    pub fn for_stereo(&self, quadratic_sigma_per_m: f32) -> Self {
+        Self {
+            quadratic_sigma_per_m,
+            relative_sigma: self.stereo_relative_sigma,
+            ..*self
+        }
+    }
+}
+
+/// The image displacement u (px, [`ChangeConfig::pose_sigma_px`]) to expect of a registered
+/// pose, from its registration's own evidence: verify's group spread, the mean δ between the
+/// chosen pose and the other refined poses that agree with it (`mean_delta_to_chosen_px`, the
+/// mean reprojection distance over the frame, the same unit as u). Each of those poses comes
+/// from its own coarse start, so it is a repeat of the registration; two repeats with
+/// independent errors of u each lie √2·u apart, so u = spread / √2. (Measured on `synth
+/// --changes` block seed 1, 48 registered frames: spread / √2 median 2.0 px, the true δ median
+/// 1.3 px, mean 1.7 px, correlation 0.70; the edge evidence's `image_uncertainty_px` is per px
+/// of edge noise and 10× below the true δ, verify's compatibility threshold (25 px) is a bound,
+/// not an error; docs/measurements.md, branch `change14`.) Clamped to 0..=[`MAX_POSE_SIGMA_PX`];
+/// a spread that is not a number gives the largest.
+pub fn pose_sigma_px_of_registration(mean_delta_to_chosen_px: f64) -> f32 {
+    if mean_delta_to_chosen_px.is_nan() {
+        return MAX_POSE_SIGMA_PX;
+    }
+    ((mean_delta_to_chosen_px / std::f64::consts::SQRT_2) as f32).clamp(0.0, MAX_POSE_SIGMA_PX)
+}
+
+/// Per pixel, the standard deviation (metres) of the model's rendered depth that a pose error
+/// moving the image by `pose_sigma_px` (u) causes: the depth of a pixel u px away instead of
+/// its own. Over the (2r+1)² window, r = ⌈u⌉, the largest difference between the pixel's model
+/// depth and another of the window, times u / r: `|∇d|·u` on a smooth surface (a linear depth
+/// changes by slope·r over r px), and the step (scaled by u / r) within u px of a depth edge.
+/// Pixels without model depth get 0 and are not counted in their neighbours' windows (sky, no
+/// surface: nothing to compare there). Written into `out` (resized); all zero when u = 0.
+pub fn pose_error_sigma_m(
+    model_depth_m: ImageView<'_, f32>,
+    pose_sigma_px: f32,
+    out: &mut Image<f32>,
+    scratch: &mut Vec<f32>,
+) {
+    let (w, h) = model_depth_m.size();
+    out.reset(w, h, 0.0);
+    if pose_sigma_px.is_nan() || pose_sigma_px <= 0.0 || w == 0 || h == 0 {
+        return;
+    }
+    let u = pose_sigma_px.min(MAX_POSE_SIGMA_PX);
+    let r = u.ceil() as usize;
+    let depth = model_depth_m.data();
+    let valid = |d: f32| d.is_finite() && d > 0.0;
+    // Separable window minimum and maximum of the valid depths (rows, then columns); `scratch`
+    // holds the rows' minima then their maxima.
+    scratch.clear();
+    scratch.resize(2 * w * h, 0.0);
+    let (row_min, row_max) = scratch.split_at_mut(w * h);
+    for row in 0..h {
+        for col in 0..w {
+            let (mut lo, mut hi) = (f32::INFINITY, 0.0f32);
+            for cc in col.saturating_sub(r)..(col + r + 1).min(w) {
+                let d = depth[row * w + cc];
+                if valid(d) {
+                    lo = lo.min(d);
+                    hi = hi.max(d);
+                }
+            }
+            row_min[row * w + col] = lo;
+            row_max[row * w + col] = hi;
+        }
+    }
+    let scale = u / r as f32;
+    let sigma = out.data_mut();
+    for row in 0..h {
+        for col in 0..w {
+            let index = row * w + col;
+            let d = depth[index];
+            if !valid(d) {
+                continue;
+            }
+            let (mut lo, mut hi) = (f32::INFINITY, 0.0f32);
+            for rr in row.saturating_sub(r)..(row + r + 1).min(h) {
+                lo = lo.min(row_min[rr * w + col]);
+                hi = hi.max(row_max[rr * w + col]);
+            }
+            // The pixel itself is valid, so lo ≤ d ≤ hi.
+            sigma[index] = scale * (hi - d).max(d - lo);
+        }
     }
 }
 
@@ -258,6 +390,8 @@ pub struct FrameChanges {
 pub struct ChangeWorkspace {
     rasterizer: Rasterizer,
     model: RenderBuffers,
+    pose_sigma_m: Image<f32>,
+    pose_scratch: Vec<f32>,
     scratch: Vec<u8>,
     labels: Vec<u32>,
     stack: Vec<usize>,
@@ -276,10 +410,12 @@ impl ChangeWorkspace {
 
 /// Per pixel class of `photo_depth_m` against `model_depth_m` (both metres along the optical
 /// axis, 0 = none), written into `classes` (resized), then each changed class opened by
-/// `config.opening_radius_px` (pixels it drops become `unchanged`).
+/// `config.opening_radius_px` (pixels it drops become `unchanged`). `pose_sigma_m`: the pose
+/// term of each pixel ([`pose_error_sigma_m`], same size); `None` for an exact pose.
 pub fn classify_pixels(
     photo_depth_m: ImageView<'_, f32>,
     model_depth_m: ImageView<'_, f32>,
+    pose_sigma_m: Option<ImageView<'_, f32>>,
     config: &ChangeConfig,
     classes: &mut Image<ChangeClass>,
     scratch: &mut Vec<u8>,
@@ -293,17 +429,29 @@ pub fn classify_pixels(
             model_height_px: h,
         });
     }
+    if let Some(pose_sigma_m) = pose_sigma_m {
+        if pose_sigma_m.size() != (w, h) {
+            return Err(ChangeError::SizeMismatch {
+                photo_width_px: pose_sigma_m.width_px(),
+                photo_height_px: pose_sigma_m.height_px(),
+                model_width_px: w,
+                model_height_px: h,
+            });
+        }
+    }
+    let pose_sigma = |index: usize| pose_sigma_m.map_or(0.0, |s| s.data()[index]);
     classes.reset(w, h, ChangeClass::Unknown);
-    for ((class, &dp), &dm) in classes
+    for (index, ((class, &dp), &dm)) in classes
         .data_mut()
         .iter_mut()
         .zip(photo_depth_m.data())
         .zip(model_depth_m.data())
+        .enumerate()
     {
-        *class = pixel_class(dp, dm, config);
+        *class = pixel_class(dp, dm, pose_sigma(index), config);
     }
     if config.edge_tolerance_px > 0 {
-        explain_by_nearby_model(classes, photo_depth_m, model_depth_m, config);
+        explain_by_nearby_model(classes, photo_depth_m, model_depth_m, &pose_sigma, config);
     }
     if config.opening_radius_px > 0 {
         for kind in [ChangeClass::Added, ChangeClass::Removed] {
@@ -313,12 +461,17 @@ pub fn classify_pixels(
     Ok(())
 }
 
-fn pixel_class(photo_m: f32, model_m: f32, config: &ChangeConfig) -> ChangeClass {
+fn pixel_class(
+    photo_m: f32,
+    model_m: f32,
+    pose_sigma_m: f32,
+    config: &ChangeConfig,
+) -> ChangeClass {
     if !(photo_m.is_finite() && photo_m > 0.0 && model_m.is_finite() && model_m > 0.0) {
         return ChangeClass::Unknown;
     }
     let difference = photo_m - model_m;
-    let threshold = config.threshold_m(photo_m.min(model_m));
+    let threshold = config.threshold_with_pose_m(photo_m.min(model_m), pose_sigma_m);
     if difference < -threshold {
         ChangeClass::Added
     } else if difference > threshold {
@@ -334,6 +487,7 @@ fn explain_by_nearby_model(
     classes: &mut Image<ChangeClass>,
     photo_depth_m: ImageView<'_, f32>,
     model_depth_m: ImageView<'_, f32>,
+    pose_sigma_m: &dyn Fn(usize) -> f32,
     config: &ChangeConfig,
 ) {
     let (w, h) = classes.size();
@@ -346,10 +500,13 @@ fn explain_by_nearby_model(
                 continue;
             }
             let dp = photo[index];
+            let pose_sigma = pose_sigma_m(index);
             let explained = (row.saturating_sub(r)..(row + r + 1).min(h)).any(|rr| {
                 (col.saturating_sub(r)..(col + r + 1).min(w)).any(|cc| {
                     let dm = model[rr * w + cc];
-                    dm.is_finite() && dm > 0.0 && (dp - dm).abs() <= config.threshold_m(dp.min(dm))
+                    dm.is_finite()
+                        && dm > 0.0
+                        && (dp - dm).abs() <= config.threshold_with_pose_m(dp.min(dm), pose_sigma)
                 })
             });
             if explained {
@@ -427,12 +584,14 @@ const CONTINUITY_M: f32 = 0.3;
 /// class with at least
 /// `config.min_pixels` pixels and `config.min_area_m2` of surface, measured in the model's
 /// frame through `cam_from_world` (world = the model's georeferenced frame). Pixels of regions
-/// that are too small become `unchanged` in `classes`.
+/// that are too small become `unchanged` in `classes`. `pose_sigma_m` as in [`classify_pixels`]
+/// (the regions' confidence).
 #[allow(clippy::too_many_arguments)]
 pub fn extract_regions(
     classes: &mut Image<ChangeClass>,
     photo_depth_m: ImageView<'_, f32>,
     model_depth_m: ImageView<'_, f32>,
+    pose_sigma_m: Option<ImageView<'_, f32>>,
     intrinsics: &PinholeIntrinsics,
     cam_from_world: &Rigid3,
     config: &ChangeConfig,
@@ -496,6 +655,7 @@ pub fn extract_regions(
             w,
             photo_depth_m.data(),
             model_depth_m.data(),
+            pose_sigma_m.map(|s| s.data()),
             intrinsics,
             &world_from_cam,
             pixel_area,
@@ -559,6 +719,7 @@ fn measure_region(
     width: usize,
     photo: &[f32],
     model: &[f32],
+    pose_sigma_m: Option<&[f32]>,
     intrinsics: &PinholeIntrinsics,
     world_from_cam: &Rigid3,
     pixel_area: f64,
@@ -593,7 +754,9 @@ fn measure_region(
         xy.push([p.x, p.y]);
         let difference = f64::from((dp - dm).abs());
         differences.push(difference);
-        let threshold = f64::from(config.threshold_m(dp.min(dm)));
+        let pose_sigma = pose_sigma_m.and_then(|s| s.get(index)).copied();
+        let threshold =
+            f64::from(config.threshold_with_pose_m(dp.min(dm), pose_sigma.unwrap_or(0.0)));
         confidence += (difference / threshold - 1.0).clamp(0.0, 1.0);
         let (col, row) = (index % width, index / width);
         bbox = [
@@ -650,9 +813,17 @@ pub fn detect_changes(
         &mut workspace.model,
     );
     let model_depth = workspace.model.depth_m().view();
+    pose_error_sigma_m(
+        model_depth,
+        config.pose_sigma_px,
+        &mut workspace.pose_sigma_m,
+        &mut workspace.pose_scratch,
+    );
+    let pose_sigma = (config.pose_sigma_px > 0.0).then(|| workspace.pose_sigma_m.view());
     classify_pixels(
         photo_depth_m,
         model_depth,
+        pose_sigma,
         config,
         classes,
         &mut workspace.scratch,
@@ -661,6 +832,7 @@ pub fn detect_changes(
         classes,
         photo_depth_m,
         model_depth,
+        pose_sigma,
         intrinsics,
         cam_from_world,
         config,
@@ -891,6 +1063,7 @@ pub(crate) mod tests {
             classify_pixels(
                 wrong.view(),
                 model_depth.view(),
+                None,
                 &ChangeConfig::default(),
                 &mut classes,
                 &mut Vec::new()
@@ -925,6 +1098,7 @@ pub(crate) mod tests {
             classify_pixels(
                 photo.view(),
                 model.view(),
+                None,
                 &config,
                 &mut classes,
                 &mut Vec::new(),
@@ -948,6 +1122,152 @@ pub(crate) mod tests {
         }
         // Farther than the tolerance from the model's foreground, the spread depth is a change.
         assert_eq!(count(&classify(2), ChangeClass::Added, 42..43), h);
+    }
+
+    #[test]
+    fn the_pose_term_is_slope_times_u_on_a_ramp_and_the_step_near_an_edge() {
+        // Columns 0..40: a ramp 10 m + 0.2 m per column; 40..: a wall at 5 m (a depth edge);
+        // row 0: no surface.
+        let (w, h) = (60usize, 20usize);
+        let model = Image::from_fn(w, h, |col, row| match (col, row) {
+            (_, 0) => 0.0f32,
+            (0..=39, _) => 10.0 + 0.2 * col as f32,
+            _ => 5.0,
+        });
+        let (mut sigma, mut scratch) = (Image::default(), Vec::new());
+        pose_error_sigma_m(model.view(), 0.0, &mut sigma, &mut scratch);
+        assert!(sigma.data().iter().all(|s| *s == 0.0));
+        pose_error_sigma_m(model.view(), 1.5, &mut sigma, &mut scratch);
+        let at = |col: usize, row: usize| sigma.data()[row * w + col];
+        // On the ramp: 0.2 m/px × 1.5 px.
+        assert!((at(20, 10) - 0.3).abs() < 1e-4, "{}", at(20, 10));
+        // Within ⌈u⌉ = 2 px of the edge the step (to 5 m from ~17.6 m) counts, scaled by u / r.
+        assert!(
+            (at(38, 10) - 0.75 * (17.6 - 5.0)).abs() < 1e-3,
+            "{}",
+            at(38, 10)
+        );
+        assert!(
+            (at(41, 10) - 0.75 * (17.8 - 5.0)).abs() < 1e-3,
+            "{}",
+            at(41, 10)
+        );
+        assert_eq!(at(43, 10), 0.0, "the wall faces the camera: no term");
+        // No surface: no term, and the sky above does not count in its neighbours' windows.
+        assert_eq!(at(20, 0), 0.0);
+        assert!((at(20, 1) - 0.3).abs() < 1e-4, "{}", at(20, 1));
+    }
+
+    #[test]
+    fn a_pose_a_few_pixels_off_along_a_depth_edge_is_no_change_with_the_pose_term() {
+        // An oblique camera on a 12 m high building; the photo's depth is the world's under the
+        // true pose (the model plus a new 4 × 3 × 5 m block on the ground), the
+        // model is rendered under a pose turned so that the image moves 4 px sideways.
+        let intrinsics = PinholeIntrinsics::centered(200.0, 200, 200);
+        let truth = Rigid3::look_at(
+            &Vector3::new(5.0, -30.0, 45.0),
+            &Vector3::new(0.0, 0.0, 4.0),
+            &Vector3::z(),
+        )
+        .expect("a valid look-at");
+        let building = |x0: f64, y0: f64, x1: f64, y1: f64, top: f64| {
+            let corner = |x, y, z| [x, y, z];
+            vec![
+                [
+                    corner(x0, y0, top),
+                    corner(x1, y0, top),
+                    corner(x1, y1, top),
+                    corner(x0, y1, top),
+                ],
+                [
+                    corner(x0, y0, 0.0),
+                    corner(x1, y0, 0.0),
+                    corner(x1, y0, top),
+                    corner(x0, y0, top),
+                ],
+                [
+                    corner(x1, y0, 0.0),
+                    corner(x1, y1, 0.0),
+                    corner(x1, y1, top),
+                    corner(x1, y0, top),
+                ],
+                [
+                    corner(x0, y1, 0.0),
+                    corner(x0, y0, 0.0),
+                    corner(x0, y0, top),
+                    corner(x0, y1, top),
+                ],
+            ]
+        };
+        let mut model_quads = vec![ground([0.0, 0.0])];
+        model_quads.extend(building(-6.0, -4.0, 6.0, 4.0, 12.0));
+        let mut world_quads = model_quads.clone();
+        world_quads.extend(building(-16.0, -16.0, -12.0, -13.0, 5.0));
+        let (model, world) = (mesh_of(&model_quads), mesh_of(&world_quads));
+        let photo_depth = depth_of(&world, &intrinsics, &truth);
+        let shift_px = 4.0;
+        let turn = nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(
+            0.0,
+            shift_px / intrinsics.fx_px,
+            0.0,
+        ));
+        let registered = Rigid3::new(turn * truth.rotation, turn * truth.translation);
+        let detect = |pose_sigma_px: f32| {
+            let config = ChangeConfig {
+                pose_sigma_px,
+                ..ChangeConfig::default()
+            };
+            let mut classes = Image::default();
+            detect_changes(
+                &model,
+                &intrinsics,
+                &registered,
+                photo_depth.view(),
+                &config,
+                &mut ChangeWorkspace::new(),
+                &mut classes,
+            )
+            .expect("sizes match")
+        };
+        let is_new_block = |r: &ChangeRegion| {
+            r.kind == ChangeKind::Added
+                && (r.centroid_m[0] + 14.0).abs() < 1.5
+                && (r.centroid_m[1] + 14.5).abs() < 1.5
+        };
+        let without = detect(0.0);
+        let false_without: Vec<_> = without
+            .regions
+            .iter()
+            .filter(|r| !is_new_block(r))
+            .collect();
+        assert!(
+            !false_without.is_empty(),
+            "without the pose term the building's edges seen 4 px off are changes: {:?}",
+            without.regions
+        );
+        let with = detect(shift_px as f32);
+        let false_with: Vec<_> = with.regions.iter().filter(|r| !is_new_block(r)).collect();
+        assert!(false_with.is_empty(), "{false_with:?}");
+        assert_eq!(
+            with.regions.iter().filter(|r| is_new_block(r)).count(),
+            1,
+            "the new block stays a change: {:?}",
+            with.regions
+        );
+    }
+
+    #[test]
+    fn a_registrations_spread_of_two_repeats_is_root_two_times_its_error() {
+        assert!((pose_sigma_px_of_registration(2.0 * std::f64::consts::SQRT_2) - 2.0).abs() < 1e-6);
+        assert_eq!(pose_sigma_px_of_registration(0.0), 0.0);
+        assert_eq!(pose_sigma_px_of_registration(1e9), MAX_POSE_SIGMA_PX);
+        assert_eq!(pose_sigma_px_of_registration(f64::NAN), MAX_POSE_SIGMA_PX);
+        assert!(ChangeConfig {
+            pose_sigma_px: MAX_POSE_SIGMA_PX + 1.0,
+            ..ChangeConfig::default()
+        }
+        .validate()
+        .is_err());
     }
 
     #[test]
