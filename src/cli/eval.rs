@@ -54,13 +54,22 @@ pub enum ModelArg {
 }
 
 impl ModelArg {
-    /// The model's file in a scene folder written by `asgreg synth`.
-    pub fn path(self, scene: &std::path::Path) -> PathBuf {
-        scene.join(match self {
+    /// The model's file in a scene folder written by `asgreg synth`; for the clean and the true
+    /// model an error that says what to do when the scene has none (written before they were).
+    pub fn path(self, scene: &std::path::Path) -> anyhow::Result<PathBuf> {
+        let path = scene.join(match self {
             ModelArg::Degraded => "model.ply",
             ModelArg::Lod => "model_lod.ply",
             ModelArg::True => "model_true.ply",
-        })
+        });
+        if self != ModelArg::Degraded && !path.is_file() {
+            bail!(
+                "{} does not exist: --model {} needs a scene written by this version of `asgreg synth` (run it again), or pass --model degraded",
+                path.display(),
+                format!("{self:?}").to_lowercase()
+            );
+        }
+        Ok(path)
     }
 }
 
@@ -213,14 +222,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     if args.changes {
         return super::eval_changes::run(args);
     }
-    let model_path = args.model.path(&args.scene);
-    if !model_path.is_file() {
-        bail!(
-            "{} does not exist: --model {:?} needs a scene written by this version of `asgreg synth` (run it again), or pass --model degraded",
-            model_path.display(),
-            args.model
-        );
-    }
+    let model_path = args.model.path(&args.scene)?;
     let mesh = read_mesh(&model_path)?;
     let gt_cameras = read_cameras_txt(&args.scene.join("gt/cameras.txt"))?;
     let gt_images = read_images_txt(&args.scene.join("gt/images.txt"))?;

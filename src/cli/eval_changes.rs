@@ -90,7 +90,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         .unwrap_or_else(|| scene.join("gt/images.txt"));
     let stereo = args.depth_source == DepthSourceArg::Stereo;
     let mut detect_args = ChangesArgs::with_defaults(
-        args.model.path(scene),
+        args.model.path(scene)?,
         scene.join("images"),
         scene.join("gt/cameras.txt"),
         poses.clone(),

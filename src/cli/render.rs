@@ -9,7 +9,7 @@ use asgreg::core::image::Image;
 use asgreg::core::mesh::Mesh;
 use asgreg::core::raster::{NormalSource, Rasterizer, RenderBuffers, RenderOptions};
 use asgreg::core::rigid::Rigid3;
-use asgreg::core::shading::{add_occlusion_contours, asg_from_normals, AsgOptions};
+use asgreg::core::shading::{asg_of_rendering, AsgOptions};
 use asgreg::io::images::{save_gray_png, save_rgb_png};
 use asgreg::viz::normalize_for_display;
 
@@ -81,20 +81,20 @@ pub fn render_view(
     buffers
 }
 
-/// The ASG image of a rendering, scaled to 0..1 for display; with `occlusion_depth_ratio`, its
-/// occlusion contours too ([`add_occlusion_contours`]).
+/// The ASG image of a rendering as registration computes it (`core::shading::asg_of_rendering`;
+/// with `occlusion_depth_ratio`, its occlusion contours too), scaled to 0..1 for display.
 pub fn asg_display_image(render: &RenderBuffers, occlusion_depth_ratio: Option<f32>) -> Image<f32> {
-    let options = AsgOptions::default();
+    let options = AsgOptions {
+        occlusion_depth_ratio,
+        ..AsgOptions::default()
+    };
     let mut asg = Image::default();
-    asg_from_normals(render.normal_cam().view(), &options, &mut asg);
-    if let Some(depth_ratio) = occlusion_depth_ratio {
-        add_occlusion_contours(
-            render.depth_m().view(),
-            depth_ratio,
-            options.derivative_filter,
-            &mut asg,
-        );
-    }
+    asg_of_rendering(
+        render.normal_cam().view(),
+        render.depth_m().view(),
+        &options,
+        &mut asg,
+    );
     normalize_for_display(asg.view())
 }
 

@@ -152,6 +152,21 @@ pub fn asg_from_normals(normals: ImageView<'_, Vec3>, options: &AsgOptions, out:
         });
 }
 
+/// The ASG of a rendering as registration sees it: [`asg_from_normals`] of its normals, and its
+/// occlusion contours from its depth when `options.occlusion_depth_ratio` asks for them
+/// ([`add_occlusion_contours`]). Into `out` (made the rendering's size).
+pub fn asg_of_rendering(
+    normals: ImageView<'_, Vec3>,
+    depth_m: ImageView<'_, f32>,
+    options: &AsgOptions,
+    out: &mut Image<f32>,
+) {
+    asg_from_normals(normals, options, out);
+    if let Some(depth_ratio) = options.occlusion_depth_ratio {
+        add_occlusion_contours(depth_m, depth_ratio, options.derivative_filter, out);
+    }
+}
+
 /// Adds occlusion contours to an ASG image made by [`asg_from_normals`] from a rendering whose
 /// depth is `depth_m` (metres along the optical axis, 0 = no surface), in place. Why: ASG sees
 /// only normals, so where a surface occludes another with the same normal (a flat roof against
@@ -172,6 +187,7 @@ pub fn add_occlusion_contours(
     asg: &mut Image<f32>,
 ) {
     let (width_px, height_px) = depth_m.size();
+    debug_assert_eq!(asg.size(), depth_m.size(), "an ASG and its rendering's depth");
     if depth_m.is_empty() || asg.size() != depth_m.size() {
         return;
     }

@@ -1170,34 +1170,15 @@ pub(crate) mod tests {
             &Vector3::z(),
         )
         .expect("a valid look-at");
+        // A box on the ground: its roof and a wall on every edge of its footprint.
         let building = |x0: f64, y0: f64, x1: f64, y1: f64, top: f64| {
-            let corner = |x, y, z| [x, y, z];
-            vec![
-                [
-                    corner(x0, y0, top),
-                    corner(x1, y0, top),
-                    corner(x1, y1, top),
-                    corner(x0, y1, top),
-                ],
-                [
-                    corner(x0, y0, 0.0),
-                    corner(x1, y0, 0.0),
-                    corner(x1, y0, top),
-                    corner(x0, y0, top),
-                ],
-                [
-                    corner(x1, y0, 0.0),
-                    corner(x1, y1, 0.0),
-                    corner(x1, y1, top),
-                    corner(x1, y0, top),
-                ],
-                [
-                    corner(x0, y1, 0.0),
-                    corner(x0, y0, 0.0),
-                    corner(x0, y0, top),
-                    corner(x0, y1, top),
-                ],
-            ]
+            let footprint = [[x0, y0], [x1, y0], [x1, y1], [x0, y1]];
+            let mut quads = vec![footprint.map(|[x, y]| [x, y, top])];
+            for (i, &[ax, ay]) in footprint.iter().enumerate() {
+                let [bx, by] = footprint[(i + 1) % 4];
+                quads.push([[ax, ay, 0.0], [bx, by, 0.0], [bx, by, top], [ax, ay, top]]);
+            }
+            quads
         };
         let mut model_quads = vec![ground([0.0, 0.0])];
         model_quads.extend(building(-6.0, -4.0, 6.0, 4.0, 12.0));

@@ -17,7 +17,7 @@ use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::raster::{Rasterizer, RenderBuffers, NO_FACE};
 use crate::core::rigid::Rigid3;
-use crate::core::shading::{add_occlusion_contours, asg_from_normals, scale_to_percentile};
+use crate::core::shading::{asg_of_rendering, scale_to_percentile};
 
 /// What [`render_views`] made.
 #[derive(Clone, Debug)]
@@ -198,14 +198,11 @@ pub fn render_coarse_view(
         &config.render,
         &mut out.render,
     );
-    asg_from_normals(out.render.normal_cam().view(), &config.asg, &mut out.asg);
-    if let Some(depth_ratio) = config.asg.occlusion_depth_ratio {
-        add_occlusion_contours(
-            out.render.depth_m().view(),
-            depth_ratio,
-            config.asg.derivative_filter,
-            &mut out.asg,
-        );
-    }
+    asg_of_rendering(
+        out.render.normal_cam().view(),
+        out.render.depth_m().view(),
+        &config.asg,
+        &mut out.asg,
+    );
     scale_to_percentile(out.asg.data_mut(), GRADIENT_SCALE_PERCENTILE);
 }
