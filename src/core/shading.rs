@@ -187,7 +187,11 @@ pub fn add_occlusion_contours(
     asg: &mut Image<f32>,
 ) {
     let (width_px, height_px) = depth_m.size();
-    debug_assert_eq!(asg.size(), depth_m.size(), "an ASG and its rendering's depth");
+    debug_assert_eq!(
+        asg.size(),
+        depth_m.size(),
+        "an ASG and its rendering's depth"
+    );
     if depth_m.is_empty() || asg.size() != depth_m.size() {
         return;
     }
