@@ -225,6 +225,11 @@ pub struct EdgeBiasDiagnosis {
     pub groups: Vec<EdgeBiasGroup>,
     /// The alignment started at the truth: where it ended, split (`None` when it did not run).
     pub from_truth: Option<PoseErrorSplit>,
+    /// The alignment started at the truth with fewer, finer levels: per first search radius
+    /// (px, finest first, up to the configured one), δ where it ended (px). A drift that already
+    /// appears with the finest level alone is the objective's (its minimum is off the truth); one
+    /// that appears only with the coarse levels is their wrong matches'.
+    pub from_truth_by_first_radius: Vec<(f64, Option<f64>)>,
 }
 
 /// One group of model edge samples at the true pose (see [`EdgeBiasDiagnosis`]).
@@ -700,6 +705,31 @@ fn diagnose_region(
     let aligned_from_truth_delta_px = from_truth
         .as_ref()
         .and_then(|r| delta(&r.aligned_camera, &r.aligned_cam_from_world));
+    let radii_px = config.edge_align.level_radii_px();
+    let from_truth_by_first_radius = radii_px
+        .iter()
+        .rev()
+        .map(|&radius_px| {
+            let delta_px = if Some(&radius_px) == radii_px.first() {
+                aligned_from_truth_delta_px
+            } else {
+                let mut finer = config.clone();
+                finer.edge_align.initial_search_radius_px = radius_px;
+                refine_pose(
+                    mesh,
+                    camera,
+                    query,
+                    truth,
+                    AlignedParameters::Pose,
+                    &finer,
+                    &mut refine_workspace,
+                )
+                .ok()
+                .and_then(|r| delta(&r.aligned_camera, &r.aligned_cam_from_world))
+            };
+            (radius_px, delta_px)
+        })
+        .collect();
     let mut truth_samples = Vec::new();
     model_edge_samples(
         truth_view.asg.view(),
@@ -729,6 +759,7 @@ fn diagnose_region(
                 rounding_m: r.rounding_m,
             }
         }),
+        from_truth_by_first_radius,
     };
     let truth_support = from_truth.as_ref().map(|r| r.verified.support_fraction());
     let truth_edges = from_truth.as_ref().map(|r| r.peak);
@@ -1058,6 +1089,9 @@ pub struct DiagnosisSummary {
     pub from_truth_along_axis_m: Option<f64>,
     pub from_truth_lateral_m: Option<f64>,
     pub from_truth_rounding_m: Option<f64>,
+    /// Means over frames of [`EdgeBiasDiagnosis::from_truth_by_first_radius`]: per first search
+    /// radius (px), the mean δ from the truth (px).
+    pub from_truth_by_first_radius: Vec<(f64, Option<f64>)>,
 }
 
 fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
@@ -1162,6 +1196,27 @@ impl DiagnosisSummary {
             from_truth_along_axis_m: mean(splits.iter().map(|s| s.along_axis_m)),
             from_truth_lateral_m: mean(splits.iter().map(|s| s.lateral_m)),
             from_truth_rounding_m: mean(splits.iter().map(|s| s.rounding_m)),
+            from_truth_by_first_radius: {
+                let mut radii_px: Vec<f64> = frames
+                    .iter()
+                    .flat_map(|f| f.edge_bias.from_truth_by_first_radius.iter().map(|r| r.0))
+                    .collect();
+                radii_px.sort_by(f64::total_cmp);
+                radii_px.dedup();
+                radii_px
+                    .into_iter()
+                    .map(|radius_px| {
+                        let deltas = frames.iter().flat_map(|f| {
+                            f.edge_bias
+                                .from_truth_by_first_radius
+                                .iter()
+                                .filter(move |r| r.0 == radius_px)
+                                .filter_map(|r| r.1)
+                        });
+                        (radius_px, mean(deltas))
+                    })
+                    .collect()
+            },
         }
     }
 }
