@@ -38,7 +38,8 @@ pub struct RenderedViews {
 /// The views come in groups of `config.coarse_pose_count`, one group per centre of the search
 /// (one centre unless the search was ambiguous, [`super::decide`] splits them the same way); a
 /// group's first view is its centre itself (the initial pose unless the search moved it). Each
-/// centre's rendering gives the scene depth that scales its coarse poses.
+/// centre's rendering gives the scene depth that scales its coarse poses and is its group's first
+/// view (each view is rendered once).
 #[allow(clippy::too_many_arguments)]
 pub fn render_views(
     mesh: &Mesh,
