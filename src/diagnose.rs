@@ -428,6 +428,10 @@ pub struct SearchDiagnosis {
     pub beams: Vec<SearchBeamDiagnosis>,
     /// δ of each centre of the coarse poses, px (best first, as the search ranked them).
     pub centres_delta_px: Vec<Option<f64>>,
+    /// δ of each centre to the first centre, px (0 for the first): how far apart the groups of
+    /// coarse poses start.
+    #[serde(default)]
+    pub centres_apart_px: Vec<Option<f64>>,
     pub moved: bool,
     /// Edge support at the true pose (0..1), measured as the search measures its beams'.
     pub truth_support: Option<f64>,
@@ -942,6 +946,20 @@ fn search_diagnosis(
             })
             .collect(),
         centres_delta_px: outcome.centres.iter().map(&mut delta).collect(),
+        centres_apart_px: outcome
+            .centres
+            .iter()
+            .map(|centre| {
+                mutual_reprojection_error_px(
+                    mesh,
+                    camera,
+                    centre,
+                    camera,
+                    &outcome.centres[0],
+                    &mut ReprojectionWorkspace::new(),
+                )
+            })
+            .collect(),
         moved: outcome.moved,
         truth_support,
         truth_grid_score: grid_score_at(

@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::core::confidence::FrameEvidence;
-use crate::core::frame::Pass;
+use crate::core::frame::{Pass, StageTimings};
 
 /// One frame of one evaluation run.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -28,6 +28,10 @@ pub struct EvalFrame {
     /// which one the fields above are.
     #[serde(default)]
     pub heading_sweep: Option<SweepEval>,
+    /// The registration's time per step and its number of coarse views (None for baselines
+    /// and frames that were not registered).
+    #[serde(default)]
+    pub timings: Option<StageTimings>,
 }
 
 /// The heading fallback's two registrations of an [`EvalFrame`].
@@ -177,6 +181,7 @@ mod tests {
             reason: None,
             total_ms: 100.0,
             heading_sweep: None,
+            timings: None,
         }
     }
 

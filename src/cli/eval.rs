@@ -18,7 +18,7 @@ use asgreg::batch::{
 use asgreg::core::camera::Camera;
 use asgreg::core::confidence::FrameEvidence;
 use asgreg::core::frame::{
-    FrameInput, IntrinsicsMode, Pass, RegistrationConfig, RegistrationError,
+    FrameInput, IntrinsicsMode, Pass, RegistrationConfig, RegistrationError, StageTimings,
 };
 use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
@@ -330,6 +330,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     search_ms: diagnosis.as_ref().map_or(0.0, |d| d.search_ms),
                     heading_sweep_ms: 0.0,
                     heading_sweep: None,
+                    timings: None,
                 };
                 if let Ok(diagnosis) = diagnosis {
                     search_diagnoses
@@ -370,6 +371,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             search_ms: 0.0,
                             heading_sweep_ms: 0.0,
                             heading_sweep: sweep_eval_of_diagnosis(&diagnosis),
+                            timings: None,
                         };
                         diagnoses
                             .entry((level, method.name()))
@@ -387,6 +389,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         search_ms: 0.0,
                         heading_sweep_ms: 0.0,
                         heading_sweep: None,
+                        timings: None,
                     },
                 }
             }
@@ -445,6 +448,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     total_ms: report.timings.total_ms,
                     search_ms: report.timings.search_ms,
                     heading_sweep_ms: report.timings.heading_sweep_ms,
+                    timings: Some(report.timings),
                     heading_sweep: report.heading_sweep.as_ref().map(|sweep| {
                         sweep_eval(sweep, |pose| {
                             mutual_reprojection_error_px(
@@ -502,6 +506,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                             search_ms: 0.0,
                             heading_sweep_ms: 0.0,
                             heading_sweep: None,
+                            timings: None,
                         }
                     }
                     Err(reason) => FrameOutcome {
@@ -514,6 +519,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         search_ms: 0.0,
                         heading_sweep_ms: 0.0,
                         heading_sweep: None,
+                        timings: None,
                     },
                 }
             }
@@ -581,6 +587,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 reason: outcome.reason,
                 total_ms: outcome.total_ms,
                 heading_sweep: outcome.heading_sweep,
+                timings: outcome.timings,
             });
     }
     bar.finish_and_clear();
@@ -1395,6 +1402,8 @@ struct FrameOutcome {
     heading_sweep_ms: f64,
     /// The fallback's two registrations against the truth, when it ran.
     heading_sweep: Option<SweepEval>,
+    /// The registration's time per step (None for baselines and the diagnoses).
+    timings: Option<StageTimings>,
 }
 
 fn results_markdown(

@@ -140,6 +140,10 @@ pub struct StageTimings {
     /// `render_cpu_ms` the search (`search_cpu_ms`).
     #[serde(default)]
     pub cpu: StepCpuMs,
+    /// The coarse views the times above were spent on (`coarse_pose_count` per centre of the
+    /// pose search): what render, flow and pose scale with.
+    #[serde(default)]
+    pub views: usize,
 }
 
 /// CPU time per step of a frame, ms (see [`StageTimings::cpu`]).
@@ -314,6 +318,7 @@ fn register_region(
         &mut |view, _| views.push(std::mem::take(view)),
     )?;
     timings.render_ms = elapsed_ms(stage);
+    timings.views = rendered.count;
     timings.search_ms = rendered.search.as_ref().map_or(0.0, |s| s.search_ms);
     timings.cpu.search = rendered.search.as_ref().map_or(0.0, |s| s.search_cpu_ms);
     timings.cpu.render = step_cpu_ms() - timings.cpu.search;

@@ -26,6 +26,9 @@ pub struct RenderedViews {
     pub count: usize,
     /// What the pose search found (`None` when it is disabled).
     pub search: Option<PoseSearchOutcome>,
+    /// The renderings made after the search: one per view (a centre's rendering, made first for
+    /// the scene depth that scales its coarse poses, is also its group's first view).
+    pub renderings: usize,
 }
 
 /// Searches for the centre of the coarse poses (step "search", on the frame's `query`), then
@@ -35,7 +38,8 @@ pub struct RenderedViews {
 /// The views come in groups of `config.coarse_pose_count`, one group per centre of the search
 /// (one centre unless the search was ambiguous, [`super::decide`] splits them the same way); a
 /// group's first view is its centre itself (the initial pose unless the search moved it). Each
-/// centre's rendering gives the scene depth that scales its coarse poses.
+/// centre's rendering gives the scene depth that scales its coarse poses and is its group's first
+/// view (each view is rendered once).
 #[allow(clippy::too_many_arguments)]
 pub fn render_views(
     mesh: &Mesh,
@@ -67,7 +71,9 @@ pub fn render_views(
     // prior's coarse poses are drawn with the frame's seed wherever it stands among the centres:
     // a prior kept beside a beam gets exactly the coarse poses it has without the search. The
     // first centre is rendered last, so that `view` holds it for the first `emit`.
+    // The other centres' renderings are kept: each is also its group's first coarse view.
     let mut median_depths_m = vec![0.0; centres.len()];
+    let mut centre_views: Vec<Option<CoarseView>> = vec![None; centres.len()];
     for index in (0..centres.len()).rev() {
         render_coarse_view(mesh, camera, 0, &centres[index], config, rasterizer, view);
         median_depths_m[index] = match median_scene_depth_m(&view.render) {
@@ -76,7 +82,11 @@ pub fn render_views(
             // A centre that sees no surface keeps the first centre's scale (filled below).
             None => f64::NAN,
         };
+        if index > 0 {
+            centre_views[index] = Some(std::mem::take(view));
+        }
     }
+    let mut renderings = centres.len();
     let first_depth_m = median_depths_m[0];
     let poses: Vec<Rigid3> = centres
         .iter()
@@ -100,24 +110,42 @@ pub fn render_views(
     // The other views are rendered a batch at a time, one view per thread (each rendering is
     // parallel inside too, but its bands alone leave the threads waiting on each other), and
     // handed to `emit` in coarse-pose order.
+    // A group's first view is its centre (`coarse_poses` starts with it), rendered above.
+    let count = config.coarse_pose_count.max(1);
     let batch_len = rayon::current_num_threads().max(1);
     let mut batch: Vec<(Rasterizer, CoarseView)> = Vec::new();
     for first in (1..poses.len()).step_by(batch_len) {
         let indices = first..(first + batch_len).min(poses.len());
         batch.resize_with(indices.len(), Default::default);
+        let mut rendered: Vec<Option<CoarseView>> = indices
+            .clone()
+            .map(|coarse_index| {
+                (coarse_index % count == 0)
+                    .then(|| centre_views.get_mut(coarse_index / count)?.take())
+                    .flatten()
+            })
+            .collect();
+        renderings += rendered.iter().filter(|view| view.is_none()).count();
         batch
             .par_iter_mut()
+            .zip(rendered.par_iter_mut())
             .zip(indices)
-            .for_each(|((batch_rasterizer, out), coarse_index)| {
-                render_coarse_view(
-                    mesh,
-                    camera,
-                    coarse_index,
-                    &poses[coarse_index],
-                    config,
-                    batch_rasterizer,
-                    out,
-                );
+            .for_each(|(((batch_rasterizer, out), centre_view), coarse_index)| {
+                match centre_view.take() {
+                    Some(centre_view) => {
+                        *out = centre_view;
+                        out.coarse_index = coarse_index;
+                    }
+                    None => render_coarse_view(
+                        mesh,
+                        camera,
+                        coarse_index,
+                        &poses[coarse_index],
+                        config,
+                        batch_rasterizer,
+                        out,
+                    ),
+                }
             });
         for (_, rendered) in &mut batch {
             std::mem::swap(view, rendered);
@@ -127,6 +155,7 @@ pub fn render_views(
     Ok(RenderedViews {
         count: poses.len(),
         search,
+        renderings,
     })
 }
 
@@ -205,4 +234,71 @@ pub fn render_coarse_view(
         &mut out.asg,
     );
     scale_to_percentile(out.asg.data_mut(), GRADIENT_SCALE_PERCENTILE);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::frame::tests::{house_and_poses, ideal_query};
+    use crate::core::pose_search::turned_pose;
+
+    /// A prior turned 30° from the truth: the search moves and keeps the prior as a second centre,
+    /// so the views come in two groups. Each view is the rendering of its own coarse pose, bit for
+    /// bit, and each is rendered once: the second centre's rendering for its scene depth is its
+    /// group's first view, not rendered again (one rendering more without that reuse).
+    #[test]
+    fn each_view_is_its_coarse_pose_rendered_once() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let prior = turned_pose(&truth, 30.0, 0.0, 0.0);
+        let mut views: Vec<CoarseView> = Vec::new();
+        let rendered = render_views(
+            &mesh,
+            &camera,
+            &prior,
+            query.view(),
+            &config,
+            7,
+            &mut Rasterizer::new(),
+            &mut CoarseView::default(),
+            &mut |view, _| views.push(view.clone()),
+        )
+        .expect("the house is in view");
+        let centres = rendered.search.as_ref().map_or(0, |s| s.centres.len());
+        assert_eq!(centres, 2);
+        assert_eq!(rendered.count, 2 * config.coarse_pose_count);
+        assert_eq!(views.len(), rendered.count);
+        assert_eq!(rendered.renderings, rendered.count);
+        let mut rasterizer = Rasterizer::new();
+        let mut fresh = CoarseView::default();
+        for (index, view) in views.iter().enumerate() {
+            assert_eq!(view.coarse_index, index);
+            render_coarse_view(
+                &mesh,
+                &camera,
+                index,
+                &view.cam_from_world,
+                &config,
+                &mut rasterizer,
+                &mut fresh,
+            );
+            assert_eq!(view.asg.data(), fresh.asg.data(), "view {index}");
+            assert_eq!(
+                view.render.depth_m().data(),
+                fresh.render.depth_m().data(),
+                "view {index}"
+            );
+            assert_eq!(
+                view.render.face_index().data(),
+                fresh.render.face_index().data(),
+                "view {index}"
+            );
+        }
+        let second_centre = &views[config.coarse_pose_count];
+        assert_eq!(
+            Some(second_centre.cam_from_world),
+            rendered.search.map(|s| s.centres[1])
+        );
+    }
 }
