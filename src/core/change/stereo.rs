@@ -617,18 +617,20 @@ pub fn depth_from_neighbours(
         fill_holes(&mut sweep.depth_m, config.fill_radius_px);
     }
     let best_k = config.best_k.min(neighbours_w.len());
-    let model_cost = if config.model_test_sigmas > 0.0 {
-        model_surface_costs(
+    let costs = if config.model_test_sigmas > 0.0 {
+        hypothesis_costs(
             &reference_w,
             &neighbour_refs,
+            sweep.depth_m.data(),
             model.depth_m().data(),
+            mesh,
             config,
         )
     } else {
         Vec::new()
     };
     let (plausible, model_test) =
-        model_test(&sweep, model.depth_m().data(), &model_cost, best_k, config);
+        model_test(&sweep, model.depth_m().data(), &costs, best_k, config);
     let valid = sweep.depth_m.data().iter().filter(|d| **d > 0.0).count();
     let centre = reference.cam_from_world.camera_center();
     let mean_baseline_m = neighbours
@@ -659,8 +661,6 @@ struct Sweep {
     inverse_near: f32,
     /// Inverse-depth step between planes, 1/m.
     inverse_step: f32,
-    /// Cost of each plane (plane-major: plane × pixels + pixel), NaN where no neighbour sees.
-    volume: Vec<f32>,
     holes: HoleCounts,
 }
 
@@ -668,20 +668,6 @@ impl Sweep {
     /// The plane (fractional) of a depth.
     fn plane_of(&self, depth_m: f32) -> f32 {
         (self.inverse_near - 1.0 / depth_m) / self.inverse_step
-    }
-
-    /// The least cost of pixel `index` over the planes within one step of `plane`; `None`
-    /// outside the swept range or where no neighbour sees it there.
-    fn cost_near(&self, index: usize, plane: f32) -> Option<f32> {
-        if !(plane.is_finite() && plane >= -0.5 && plane <= self.planes as f32 - 0.5) {
-            return None;
-        }
-        let centre = plane.round() as usize;
-        let pixels = self.depth_m.pixel_count();
-        (centre.saturating_sub(1)..(centre + 2).min(self.planes))
-            .map(|p| self.volume[p * pixels + index])
-            .filter(|c| c.is_finite())
-            .min_by(f32::total_cmp)
     }
 }
 
@@ -691,15 +677,16 @@ fn fisher_z(cost: f32) -> f32 {
 }
 
 /// The model test (see the module's method) on the working depth: per pixel whether the
-/// model's surface (`model_depth_m`, working size, 0 = no surface; its cost `model_cost` from
-/// [`model_surface_costs`]) explains the photos as well as the pixel's own depth, and the
-/// counts. The cost of the pixel's depth is the sweep's least within one plane step of it (its
-/// sub-plane estimate); the standard error of z for a mean over `best_k` neighbours' windows of
-/// n pixels is `1/√(best_k·(n − 3))`.
+/// model's surface (`model_depth_m`, working size, 0 = no surface) explains the photos as well
+/// as the pixel's own depth, from their costs on the same data ([`hypothesis_costs`]), and the
+/// counts. The standard error of z for a mean over `best_k` neighbours' windows of n pixels is
+/// `1/√(best_k·(n − 3))`. A pixel the test cannot judge (no neighbour has half a textured window
+/// on the model's visible surface) is plausible: its depth rests on texture off the model's
+/// surface, which says nothing against the model at the pixel.
 fn model_test(
     sweep: &Sweep,
     model_depth_m: &[f32],
-    model_cost: &[f32],
+    costs: &[Option<(f32, f32)>],
     best_k: usize,
     config: &StereoConfig,
 ) -> (Image<bool>, ModelTestCounts) {
@@ -712,7 +699,6 @@ fn model_test(
     let n = ((2 * config.window_radius_px + 1) * (2 * config.window_radius_px + 1)) as f32;
     let standard_error = 1.0 / (best_k.max(1) as f32 * (n - 3.0).max(1.0)).sqrt();
     let limit = config.model_test_sigmas * standard_error;
-
     for (index, (out, (&depth, &model))) in plausible
         .data_mut()
         .iter_mut()
@@ -722,18 +708,15 @@ fn model_test(
         if !(depth > 0.0 && model.is_finite() && model > 0.0) {
             continue;
         }
-        let (photo_plane, model_plane) = (sweep.plane_of(depth), sweep.plane_of(model));
-        let differing = (photo_plane - model_plane).abs() > 2.0;
+        let differing = (sweep.plane_of(depth) - sweep.plane_of(model)).abs() > 2.0;
         counts.differing += usize::from(differing);
-        let model_cost = model_cost.get(index).copied().filter(|c| c.is_finite());
-        let (Some(photo_cost), Some(model_cost)) =
-            (sweep.cost_near(index, photo_plane), model_cost)
-        else {
-            counts.untestable += usize::from(differing);
-            continue;
+        *out = match costs.get(index).copied().flatten() {
+            Some((photo_cost, model_cost)) => fisher_z(photo_cost) - fisher_z(model_cost) <= limit,
+            None => {
+                counts.untestable += usize::from(differing);
+                true
+            }
         };
-        *out = fisher_z(photo_cost) - fisher_z(model_cost) <= limit;
-
         counts.plausible += usize::from(differing && *out);
     }
     (plausible, counts)
@@ -953,45 +936,147 @@ fn plane_count(
         .clamp(config.min_planes, config.max_planes)
 }
 
-/// The cost of the model's own surface per reference pixel (working scale): each neighbour
-/// warped into the reference through the model's depth at every pixel (`model_depth_m`, 0 = no
-/// surface), not a fronto-parallel plane, so the model's slant and its depth edges are part of
-/// the hypothesis (a window across an occlusion edge sees each side at its own depth); the
-/// mean of the best `best_k` neighbours' `1 − ZNCC` as in the sweep. NaN where a window reaches
-/// a pixel without model surface or no neighbour sees it.
-fn model_surface_costs(
+/// Relative depth tolerance of the model's visibility in a neighbour ([`hypothesis_costs`]).
+const MODEL_VISIBILITY_TOLERANCE: f32 = 0.02;
+
+/// Per working pixel with a depth and a model surface, the costs of its two hypotheses on the
+/// same data: the photo's depth (the fronto-parallel plane at that depth, as in the sweep) and
+/// the model's surface (each neighbour warped through the model's depth at every window pixel,
+/// so the model's slant and its depth edges are part of it). Both ZNCCs run over the same
+/// window pixels: those on the model's surface whose model point the model itself lets the
+/// neighbour see (its depth rendered there not nearer by over 2 %), when they are at least half
+/// the window and textured; so texture off the model's surface (a curb behind an untextured roof
+/// that the sweep matched) or hidden from the neighbour does not decide between them. Then per
+/// hypothesis the mean of the best `best_k` neighbours' `1 − ZNCC`. `None`: no neighbour has
+/// such a window (untestable).
+fn hypothesis_costs(
     reference: &WorkingView,
     neighbours: &[&WorkingView],
+    depth_m: &[f32],
     model_depth_m: &[f32],
+    mesh: &Mesh,
     config: &StereoConfig,
-) -> Vec<f32> {
-    let pixels = reference.photo.data().len();
+) -> Vec<Option<(f32, f32)>> {
+    let (w, h) = reference.photo.size();
+    let pixels = w * h;
+    let r = config.window_radius_px as i64;
+    let least = ((2 * r + 1) * (2 * r + 1)) as f32 * 0.5;
+    let min_var = config.min_texture.max(1e-4).powi(2);
+    let world_from_reference = reference.cam_from_world.inverse();
+    let reference_data = reference.photo.data();
+    let mut rasterizer = Rasterizer::new();
     let warps: Vec<Option<PlaneWarp>> = neighbours
         .iter()
         .map(|n| plane_warp(reference, n))
         .collect();
-    let stats = reference_stats(&reference.photo, config);
-    let mut scratch = PlaneScratch {
-        samples: vec![[0.0; 4]; pixels],
-        tmp: vec![[0.0; 4]; pixels],
-        sums: vec![[0.0; 4]; pixels],
-        costs: vec![vec![f32::NAN; pixels]; neighbours.len()],
+    // Per neighbour and reference pixel: the model's sample there, where the model lets the
+    // neighbour see its point.
+    let model_samples: Vec<Vec<Option<f32>>> = neighbours
+        .iter()
+        .map(|neighbour| {
+            let (nw, nh) = neighbour.photo.size();
+            let mut seen = RenderBuffers::new(nw, nh);
+            rasterizer.render(
+                mesh,
+                &neighbour.intrinsics,
+                &neighbour.cam_from_world,
+                &RenderOptions::default(),
+                &mut seen,
+            );
+            let photo = neighbour.photo.view();
+            (0..pixels)
+                .map(|index| {
+                    let d = model_depth_m[index];
+                    if !(d.is_finite() && d > 0.0) {
+                        return None;
+                    }
+                    let n = reference
+                        .intrinsics
+                        .pixel_to_normalized(pixel_center(index % w, index / w));
+                    let d = f64::from(d);
+                    let point = neighbour.cam_from_world.transform_point(
+                        &world_from_reference.transform_point(&Vector3::new(n.x * d, n.y * d, d)),
+                    );
+                    let x = neighbour.intrinsics.project(&point)?;
+                    let (col, row) = nearest_pixel(x, nw, nh)?;
+                    let there = seen.depth_m().data()[row * nw + col];
+                    if !(there > 0.0
+                        && there >= point.z as f32 * (1.0 - MODEL_VISIBILITY_TOLERANCE))
+                    {
+                        return None;
+                    }
+                    bilinear(&photo, x)
+                })
+                .collect()
+        })
+        .collect();
+    let zncc = |n: f32, si: f32, sii: f32, sj: f32, sjj: f32, sij: f32| {
+        let (mi, mj) = (si / n, sj / n);
+        let (vi, vj) = (sii / n - mi * mi, sjj / n - mj * mj);
+        if vj < 1e-8 {
+            0.0
+        } else {
+            ((sij / n - mi * mj) / (vi * vj).sqrt()).clamp(-1.0, 1.0)
+        }
     };
-    let mut out = vec![f32::NAN; pixels];
-    plane_costs(
-        reference,
-        &stats,
-        neighbours,
-        &warps,
-        |index| {
-            let d = model_depth_m[index];
-            (d.is_finite() && d > 0.0).then(|| 1.0 / f64::from(d))
-        },
-        config,
-        &mut scratch,
-        &mut out,
-    );
-    out
+    let best_mean = |values: &mut Vec<f32>| {
+        values.sort_by(f32::total_cmp);
+        let used = config.best_k.min(values.len()).max(1);
+        values[..used].iter().sum::<f32>() / used as f32
+    };
+    (0..pixels)
+        .into_par_iter()
+        .map(|index| {
+            let depth = depth_m[index];
+            let model = model_depth_m[index];
+            if !(depth > 0.0 && model.is_finite() && model > 0.0) {
+                return None;
+            }
+            let (col, row) = ((index % w) as i64, (index / w) as i64);
+            let inverse = 1.0 / f64::from(depth);
+            let mut photo_costs = Vec::with_capacity(MAX_NEIGHBOURS);
+            let mut model_costs = Vec::with_capacity(MAX_NEIGHBOURS);
+            for ((neighbour, warp), samples) in neighbours.iter().zip(&warps).zip(&model_samples) {
+                let Some(warp) = warp else { continue };
+                let photo = neighbour.photo.view();
+                // n, Σi, Σi², Σa, Σa², Σia (model), Σb, Σb², Σib (photo).
+                let mut sum = [0.0f32; 9];
+                for rr in (row - r).max(0)..(row + r + 1).min(h as i64) {
+                    for cc in (col - r).max(0)..(col + r + 1).min(w as i64) {
+                        let q = rr as usize * w + cc as usize;
+                        let Some(a) = samples[q] else { continue };
+                        let Some(b) = warp
+                            .apply(pixel_center(cc as usize, rr as usize), inverse)
+                            .and_then(|x| bilinear(&photo, x))
+                        else {
+                            continue;
+                        };
+                        let i = reference_data[q];
+                        for (s, v) in
+                            sum.iter_mut()
+                                .zip([1.0, i, i * i, a, a * a, i * a, b, b * b, i * b])
+                        {
+                            *s += v;
+                        }
+                    }
+                }
+                let n = sum[0];
+                if n < least {
+                    continue;
+                }
+                let mean_i = sum[1] / n;
+                if sum[2] / n - mean_i * mean_i < min_var {
+                    continue;
+                }
+                model_costs.push(1.0 - zncc(n, sum[1], sum[2], sum[3], sum[4], sum[5]));
+                photo_costs.push(1.0 - zncc(n, sum[1], sum[2], sum[6], sum[7], sum[8]));
+            }
+            if model_costs.is_empty() {
+                return None;
+            }
+            Some((best_mean(&mut photo_costs), best_mean(&mut model_costs)))
+        })
+        .collect()
 }
 
 /// One plane sweep of `reference` against `neighbours` (working scale), winner-take-all with
@@ -1084,7 +1169,6 @@ fn plane_sweep(
         planes,
         inverse_near,
         inverse_step,
-        volume,
         holes,
     }
 }
@@ -1701,8 +1785,15 @@ mod tests {
                 added.push(index);
             }
         }
-        let model_cost = model_surface_costs(&reference_w, &refs, model_data, &config);
-        let (plausible, counts) = model_test(&sweep, model_data, &model_cost, 2, &config);
+        let costs = hypothesis_costs(
+            &reference_w,
+            &refs,
+            sweep.depth_m.data(),
+            model_data,
+            &model,
+            &config,
+        );
+        let (plausible, counts) = model_test(&sweep, model_data, &costs, 2, &config);
         let share = |pixels: &[usize]| {
             pixels.iter().filter(|&&i| plausible.data()[i]).count() as f64 / pixels.len() as f64
         };
@@ -1721,7 +1812,7 @@ mod tests {
             model_test_sigmas: 0.0,
             ..config
         };
-        let (none, _) = model_test(&sweep, model_data, &model_cost, 2, &off);
+        let (none, _) = model_test(&sweep, model_data, &costs, 2, &off);
         assert!(none.data().iter().all(|p| !p));
     }
 
