@@ -18,7 +18,7 @@ use asgreg::core::change::stereo::{
 };
 use asgreg::core::change::{
     classes_to_mask, detect_changes, ChangeClass, ChangeConfig, ChangeRegion, ChangeWorkspace,
-    ClassCounts,
+    ClassCounts, DepthEvidence,
 };
 use asgreg::core::image::Image;
 use asgreg::frame_files::{depth_path_for, FrameFiles, FrameLoader};
@@ -82,9 +82,19 @@ pub struct ChangesArgs {
     pub stereo_no_left_right: bool,
     /// Without --depth: how many neighbours (the first ones) get a sweep back for the
     /// left-right check; a depth stays when one of them confirms it and none sees through it
-    /// (1: the first neighbour only, the default; see docs/measurements.md, branch `change13`).
+    /// (default: all; 1: the first neighbour only, see docs/measurements.md, branches `change13`,
+    /// `change12`).
     #[arg(long, default_value_t = StereoConfig::default().consistency_neighbours)]
     pub stereo_consistency_neighbours: usize,
+    /// Without --depth: keep depths no neighbour confirms but one sees occluded (and none sees
+    /// through); off by default (a depth too far looks occluded too).
+    #[arg(long)]
+    pub stereo_keep_occluded: bool,
+    /// Without --depth: the model test's threshold, standard errors of Fisher's z: no change
+    /// where the sweep's cost at the photo's depth does not beat its cost at the model's depth
+    /// by more (0: no test).
+    #[arg(long, default_value_t = StereoConfig::default().model_test_sigmas)]
+    pub stereo_model_test_sigmas: f32,
     /// Without --depth: disparity error of the stereo depth, working pixels; sets the change
     /// threshold's stereo term σ_quad = σ_disparity / (f·B) per frame.
     #[arg(long, default_value_t = DEFAULT_DISPARITY_SIGMA_PX)]
@@ -166,6 +176,8 @@ impl ChangesArgs {
             stereo_no_left_right: false,
             stereo_consistency_neighbours: StereoConfig::default().consistency_neighbours,
             stereo_keep_unconfirmed: StereoConfig::default().keep_unconfirmed,
+            stereo_keep_occluded: StereoConfig::default().keep_occluded,
+            stereo_model_test_sigmas: StereoConfig::default().model_test_sigmas,
             stereo_fill_radius_px: StereoConfig::default().fill_radius_px,
             stereo_disparity_sigma_px: DEFAULT_DISPARITY_SIGMA_PX,
             out,
@@ -194,6 +206,8 @@ impl ChangesArgs {
             left_right_check: !self.stereo_no_left_right,
             consistency_neighbours: self.stereo_consistency_neighbours,
             keep_unconfirmed: self.stereo_keep_unconfirmed,
+            keep_occluded: self.stereo_keep_occluded,
+            model_test_sigmas: self.stereo_model_test_sigmas,
             fill_radius_px: self.stereo_fill_radius_px,
             ..StereoConfig::default()
         }
@@ -253,6 +267,9 @@ pub struct FrameStereoReport {
     pub mean_baseline_m: f64,
     pub valid_fraction: f64,
     pub holes: asgreg::core::change::stereo::HoleCounts,
+    /// Working pixels whose depth differs from the model's and of those the ones the model
+    /// test finds the model as plausible at (no change there) or cannot judge.
+    pub model_test: asgreg::core::change::stereo::ModelTestCounts,
     /// σ_quad used for this frame's change threshold, per metre.
     pub quadratic_sigma_per_m: f64,
     pub stereo_ms: f64,
@@ -389,7 +406,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
                 .unwrap_or(config.pose_sigma_px),
             ..config
         };
-        let (depth, stereo, frame_config) = match &args.depth {
+        let (depth, stereo, model_plausible, frame_config) = match &args.depth {
             Some(depth_dir) => {
                 let depth_path = depth_path_for(depth_dir, &image.name);
                 let mut files = match loader.load(
@@ -410,7 +427,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
                     continue;
                 };
                 loaded = Some(files);
-                (depth, None, config)
+                (depth, None, None, config)
             }
             None => {
                 if let Err(error) = &posed_frames[index] {
@@ -426,12 +443,12 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
                     index,
                     &stereo_config,
                 ) {
-                    Ok((depth, report)) => {
+                    Ok((depth, plausible, report)) => {
                         let path = stereo_depth_path(&args.out, &image.name);
                         write_pfm(&path, depth.view())
                             .with_context(|| format!("cannot write {}", path.display()))?;
                         let frame_config = config.for_stereo(report.quadratic_sigma_per_m as f32);
-                        (depth, Some(report), frame_config)
+                        (depth, Some(report), Some(plausible), frame_config)
                     }
                     Err(why) => {
                         tracing::warn!("{}: no change result: {why}", image.name);
@@ -451,6 +468,9 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             &files.camera.intrinsics,
             &image.cam_from_world,
             depth.view(),
+            &DepthEvidence {
+                model_plausible: model_plausible.as_ref().map(|m| m.view()),
+            },
             &frame_config,
             &mut workspace,
             &mut classes,
@@ -615,7 +635,7 @@ fn stereo_depth(
     cameras: &[Option<PosedCamera>],
     index: usize,
     config: &StereoConfig,
-) -> Result<(Image<f32>, FrameStereoReport), String> {
+) -> Result<(Image<f32>, Image<bool>, FrameStereoReport), String> {
     let name = &inputs.images[index].name;
     let (Some(reference), Ok(files)) = (&cameras[index], &frames[index]) else {
         return Err(format!("{name}: the photo could not be loaded"));
@@ -655,10 +675,13 @@ fn stereo_depth(
         .map_err(|e| format!("stereo depth: {e}"))?;
     let stereo_ms = started.elapsed().as_secs_f64() * 1e3;
     tracing::info!(
-        "{name}: stereo depth from {} neighbours, {} planes, {:.0} % valid in {stereo_ms:.0} ms",
+        "{name}: stereo depth from {} neighbours, {} planes, {:.0} % valid in {stereo_ms:.0} ms; {} px off the model, {} of them model-plausible, {} untestable",
         neighbours.len(),
         depth.planes,
-        100.0 * depth.valid_fraction
+        100.0 * depth.valid_fraction,
+        depth.model_test.differing,
+        depth.model_test.plausible,
+        depth.model_test.untestable
     );
     let report = FrameStereoReport {
         neighbours: chosen
@@ -670,10 +693,11 @@ fn stereo_depth(
         mean_baseline_m: depth.mean_baseline_m,
         valid_fraction: depth.valid_fraction,
         holes: depth.holes,
+        model_test: depth.model_test,
         quadratic_sigma_per_m: depth.quadratic_sigma_per_m(args.stereo_disparity_sigma_px),
         stereo_ms,
     };
-    Ok((depth.depth_m, report))
+    Ok((depth.depth_m, depth.model_plausible, report))
 }
 
 /// report.html of a change detection run: per frame the pixel counts, regions and time, the

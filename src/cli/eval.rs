@@ -140,6 +140,12 @@ pub struct EvalArgs {
     /// With --changes --depth-source stereo: `asgreg changes --stereo-consistency-neighbours`.
     #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().consistency_neighbours)]
     pub stereo_consistency_neighbours: usize,
+    /// With --changes --depth-source stereo: `asgreg changes --stereo-keep-occluded`.
+    #[arg(long)]
+    pub stereo_keep_occluded: bool,
+    /// With --changes --depth-source stereo: `asgreg changes --stereo-model-test-sigmas`.
+    #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().model_test_sigmas)]
+    pub stereo_model_test_sigmas: f32,
     /// With --changes: `asgreg changes --pose-sigma-px` (the poses' error u, px; 0 = exact).
     #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().pose_sigma_px)]
     pub change_pose_sigma_px: f32,

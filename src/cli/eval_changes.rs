@@ -101,6 +101,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     detect_args.limit = args.limit;
     detect_args.edge_tolerance_px = args.change_edge_tolerance_px;
     detect_args.stereo_consistency_neighbours = args.stereo_consistency_neighbours;
+    detect_args.stereo_keep_occluded = args.stereo_keep_occluded;
+    detect_args.stereo_model_test_sigmas = args.stereo_model_test_sigmas;
     detect_args.pose_sigma_px = args.change_pose_sigma_px;
     // Registered poses: each frame's pose error from its registration (as the pipeline's change
     // stage has it), from the report beside the poses unless one is named.

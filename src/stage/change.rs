@@ -7,7 +7,9 @@
 use std::time::Instant;
 
 use crate::core::change::stereo::{depth_from_neighbours, StereoConfig, StereoView};
-use crate::core::change::{detect_changes, ChangeClass, ChangeConfig, ChangeWorkspace};
+use crate::core::change::{
+    detect_changes, ChangeClass, ChangeConfig, ChangeWorkspace, DepthEvidence,
+};
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
 use crate::msg::{ChangeJob, ChangeResult};
@@ -29,6 +31,8 @@ pub enum PhotoDepth<'j> {
     /// σ_quad (per metre) of this frame's baseline.
     Stereo {
         depth_m: Image<f32>,
+        /// Where the sweep finds the model's depth as plausible as the photo's (no change).
+        model_plausible: Image<bool>,
         quadratic_sigma_per_m: f64,
     },
 }
@@ -78,6 +82,7 @@ pub fn photo_depth<'j>(
     Ok(PhotoDepth::Stereo {
         quadratic_sigma_per_m: depth.quadratic_sigma_per_m(stereo.disparity_sigma_px),
         depth_m: depth.depth_m,
+        model_plausible: depth.model_plausible,
     })
 }
 
@@ -129,13 +134,17 @@ impl<'m> ChangeStage<'m> {
             ..self.config
         };
         let detected = photo_depth(self.mesh, job, &self.stereo).and_then(|depth| {
-            let (depth, config) = match &depth {
-                PhotoDepth::Given(depth) => (*depth, frame_config),
+            let (depth, evidence, config) = match &depth {
+                PhotoDepth::Given(depth) => (*depth, DepthEvidence::default(), frame_config),
                 PhotoDepth::Stereo {
                     depth_m,
+                    model_plausible,
                     quadratic_sigma_per_m,
                 } => (
                     depth_m.view(),
+                    DepthEvidence {
+                        model_plausible: Some(model_plausible.view()),
+                    },
                     frame_config.for_stereo(*quadratic_sigma_per_m as f32),
                 ),
             };
@@ -144,6 +153,7 @@ impl<'m> ChangeStage<'m> {
                 &meta.camera.intrinsics,
                 &meta.cam_from_world,
                 depth,
+                &evidence,
                 &config,
                 &mut self.workspace,
                 &mut self.classes,

@@ -408,14 +408,25 @@ impl ChangeWorkspace {
     }
 }
 
+/// What the photo's depth rests on besides the depth values: where the photo's own data do not
+/// contradict the model (a stereo depth's model test, [`stereo::StereoDepth::model_plausible`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct DepthEvidence<'a> {
+    /// Pixels where the model's depth explains the photo as well as the photo's own depth
+    /// (within the matching noise): never a change. `None` for a given (MVS) depth map.
+    pub model_plausible: Option<ImageView<'a, bool>>,
+}
+
 /// Per pixel class of `photo_depth_m` against `model_depth_m` (both metres along the optical
 /// axis, 0 = none), written into `classes` (resized), then each changed class opened by
 /// `config.opening_radius_px` (pixels it drops become `unchanged`). `pose_sigma_m`: the pose
-/// term of each pixel ([`pose_error_sigma_m`], same size); `None` for an exact pose.
+/// term of each pixel ([`pose_error_sigma_m`], same size); `None` for an exact pose. Pixels
+/// `evidence` marks model-plausible are `unchanged` whatever their depth says.
 pub fn classify_pixels(
     photo_depth_m: ImageView<'_, f32>,
     model_depth_m: ImageView<'_, f32>,
     pose_sigma_m: Option<ImageView<'_, f32>>,
+    evidence: &DepthEvidence<'_>,
     config: &ChangeConfig,
     classes: &mut Image<ChangeClass>,
     scratch: &mut Vec<u8>,
@@ -439,6 +450,16 @@ pub fn classify_pixels(
             });
         }
     }
+    if let Some(plausible) = evidence.model_plausible {
+        if plausible.size() != (w, h) {
+            return Err(ChangeError::SizeMismatch {
+                photo_width_px: plausible.width_px(),
+                photo_height_px: plausible.height_px(),
+                model_width_px: w,
+                model_height_px: h,
+            });
+        }
+    }
     let pose_sigma = |index: usize| pose_sigma_m.map_or(0.0, |s| s.data()[index]);
     classes.reset(w, h, ChangeClass::Unknown);
     for (index, ((class, &dp), &dm)) in classes
@@ -449,6 +470,13 @@ pub fn classify_pixels(
         .enumerate()
     {
         *class = pixel_class(dp, dm, pose_sigma(index), config);
+    }
+    if let Some(plausible) = evidence.model_plausible {
+        for (class, &plausible) in classes.data_mut().iter_mut().zip(plausible.data()) {
+            if plausible && matches!(*class, ChangeClass::Added | ChangeClass::Removed) {
+                *class = ChangeClass::Unchanged;
+            }
+        }
     }
     if config.edge_tolerance_px > 0 {
         explain_by_nearby_model(classes, photo_depth_m, model_depth_m, &pose_sigma, config);
@@ -792,12 +820,15 @@ fn measure_region(
 
 /// One frame's changes: the model rendered under `cam_from_world` (world = the mesh's
 /// georeferenced frame) through `intrinsics` at the photo depth's size, compared with
-/// `photo_depth_m`; per-pixel classes in `classes`, regions in the result.
+/// `photo_depth_m` (and what it rests on, `evidence`); per-pixel classes in `classes`, regions
+/// in the result.
+#[allow(clippy::too_many_arguments)]
 pub fn detect_changes(
     mesh: &Mesh,
     intrinsics: &PinholeIntrinsics,
     cam_from_world: &Rigid3,
     photo_depth_m: ImageView<'_, f32>,
+    evidence: &DepthEvidence<'_>,
     config: &ChangeConfig,
     workspace: &mut ChangeWorkspace,
     classes: &mut Image<ChangeClass>,
@@ -824,6 +855,7 @@ pub fn detect_changes(
         photo_depth_m,
         model_depth,
         pose_sigma,
+        evidence,
         config,
         classes,
         &mut workspace.scratch,
@@ -961,6 +993,7 @@ pub(crate) mod tests {
             &intrinsics,
             &pose,
             photo_depth.view(),
+            &DepthEvidence::default(),
             &ChangeConfig::default(),
             &mut workspace,
             &mut classes,
@@ -1006,6 +1039,7 @@ pub(crate) mod tests {
             &intrinsics,
             &pose,
             photo_depth.view(),
+            &DepthEvidence::default(),
             &ChangeConfig::default(),
             &mut workspace,
             &mut classes,
@@ -1039,6 +1073,7 @@ pub(crate) mod tests {
             &intrinsics,
             &pose,
             photo_depth.view(),
+            &DepthEvidence::default(),
             &ChangeConfig::default(),
             &mut workspace,
             &mut classes,
@@ -1053,6 +1088,7 @@ pub(crate) mod tests {
             &intrinsics,
             &pose,
             wrong.view(),
+            &DepthEvidence::default(),
             &ChangeConfig::default(),
             &mut workspace,
             &mut classes,
@@ -1064,6 +1100,7 @@ pub(crate) mod tests {
                 wrong.view(),
                 model_depth.view(),
                 None,
+                &DepthEvidence::default(),
                 &ChangeConfig::default(),
                 &mut classes,
                 &mut Vec::new()
@@ -1099,6 +1136,7 @@ pub(crate) mod tests {
                 photo.view(),
                 model.view(),
                 None,
+                &DepthEvidence::default(),
                 &config,
                 &mut classes,
                 &mut Vec::new(),
@@ -1204,6 +1242,7 @@ pub(crate) mod tests {
                 &intrinsics,
                 &registered,
                 photo_depth.view(),
+                &DepthEvidence::default(),
                 &config,
                 &mut ChangeWorkspace::new(),
                 &mut classes,

@@ -18,10 +18,18 @@
 //! - holes where unsure: reference window untextured (grey std below `min_texture`), best cost
 //!   above `max_cost`, best at either end of the range, a second minimum (more than 2 planes away)
 //!   within `uniqueness_margin` of the best (flat or repetitive cost), and, with
-//!   `left_right_check`, pixels whose depth none of the first `consistency_neighbours`
-//!   neighbours' own depths (the same sweep run from each neighbour against the reference)
-//!   confirms within `consistency_planes` plane steps (a neighbour that does not see the point
-//!   cannot confirm it; another one may);
+//!   `left_right_check`, the geometric consistency check against the neighbours' own depths (the
+//!   same sweep run from each neighbour against the reference): a depth stays when one neighbour
+//!   confirms it within `consistency_planes` plane steps and none sees through it (its surface
+//!   farther than the point: free space violated); a neighbour whose surface is nearer sees the
+//!   point occluded and has no vote (the sweep's best-`k` cost lets that neighbour drop out, so
+//!   the check must not undo it), nor does one that sees a hole or whose photo the point leaves;
+//! - the model's depth as a hypothesis ([`StereoDepth::model_plausible`]): per pixel the sweep's
+//!   cost at the photo's depth against its cost at the model's depth, as correlations in Fisher's
+//!   z (`atanh ρ`, standard error `1/√(best_k·(n − 3))` for a window of n pixels); where the
+//!   photo's depth does not beat the model's by `model_test_sigmas` standard errors the data do not
+//!   contradict the model, and the change map reports no change there (a wrong far match on a
+//!   weakly textured or oblique surface: docs/measurements.md, branch `change12`);
 //! - the working depth brought back to the reference's size: bilinear in inverse depth where the
 //!   four taps agree within 5 %, else the nearest tap.
 //!
@@ -79,14 +87,25 @@ pub struct StereoConfig {
     /// one of them confirms it and none sees through it. 1 checks against the first neighbour
     /// only, which drops everything that neighbour does not see (occluded there, or outside its
     /// photo) even where the others match it: the block's extension (docs/measurements.md, issue
-    /// #13, branch `change13`). More neighbours keep it and a third more depth, but gave one
-    /// more false `removed` object on the held-out block seed, so 1 stays the default.
+    /// #13, branch `change13`). Default: all of them ([`MAX_NEIGHBOURS`], clamped to those
+    /// given): every neighbour the sweep's cost may rest on can confirm the depth (branch
+    /// `change12`; the false far matches that more confirmations let through are the model
+    /// test's, `model_test_sigmas`).
     pub consistency_neighbours: usize,
     /// Tolerance of that check, in plane steps of inverse depth.
     pub consistency_planes: f32,
     /// With the check: keep depths no checked neighbour can confirm (their own depth is a hole
     /// there, or the point leaves their photos) and drop only those they contradict.
     pub keep_unconfirmed: bool,
+    /// With the check: keep depths that no neighbour confirms but one sees occluded (its surface
+    /// nearer than the point) and none sees through. A depth too far (behind the true surface)
+    /// looks occluded to every neighbour that sees the true surface, so this keeps wrong far
+    /// matches as well as truly occluded points; off by default.
+    pub keep_occluded: bool,
+    /// The model test's threshold in standard errors of Fisher's z (see the module's method): a
+    /// pixel is [`StereoDepth::model_plausible`] unless the sweep's cost at its depth beats the
+    /// cost at the model's depth by more. 0 switches the test off (nothing is plausible).
+    pub model_test_sigmas: f32,
     /// Holes filled from their (2r+1)² working neighbourhood when at least half of it has depth
     /// that agrees (quartiles within 3 % in inverse depth): the median; 0 = no filling.
     pub fill_radius_px: usize,
@@ -109,9 +128,11 @@ impl Default for StereoConfig {
             min_texture: 0.004,
             uniqueness_margin: 0.02,
             left_right_check: true,
-            consistency_neighbours: 1,
+            consistency_neighbours: MAX_NEIGHBOURS,
             consistency_planes: 2.0,
             keep_unconfirmed: false,
+            keep_occluded: false,
+            model_test_sigmas: 3.0,
             fill_radius_px: 2,
             near_factor: 0.6,
             far_factor: 1.4,
@@ -176,6 +197,7 @@ impl StereoConfig {
             || !(self.max_cost > 0.0
                 && self.min_texture >= 0.0
                 && self.uniqueness_margin >= 0.0
+                && self.model_test_sigmas >= 0.0
                 && self.consistency_planes > 0.0)
         {
             return bad(format!(
@@ -210,8 +232,21 @@ pub struct HoleCounts {
     pub high_cost: usize,
     pub at_range_end: usize,
     pub ambiguous: usize,
-    /// Disagrees with (or is not confirmed by) the first neighbour's depth.
+    /// Not confirmed by any checked neighbour's depth, or seen through by one.
     pub inconsistent: usize,
+}
+
+/// What the model test found over the working depth map.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ModelTestCounts {
+    /// Pixels with a depth more than 2 plane steps from the model's (candidate changes).
+    pub differing: usize,
+    /// Of those, the ones whose cost at the model's depth is within the test's noise of the
+    /// cost at their own: the data do not contradict the model there.
+    pub plausible: usize,
+    /// Of those, the ones the test cannot judge (the model's depth outside the swept range or
+    /// seen by no neighbour there): left to the depth comparison.
+    pub untestable: usize,
 }
 
 /// A frame's depth from its neighbours and what it rests on.
@@ -231,6 +266,12 @@ pub struct StereoDepth {
     pub valid_fraction: f64,
     /// Holes of the working depth map by reason.
     pub holes: HoleCounts,
+    /// Per pixel at the reference photo's size: the sweep's cost at the model's depth is within
+    /// `model_test_sigmas` standard errors of its cost at the photo's depth, so the photo does
+    /// not contradict the model there (the change map reports no change at such pixels). All
+    /// false when the test is off, at holes and where the model has no surface.
+    pub model_plausible: Image<bool>,
+    pub model_test: ModelTestCounts,
 }
 
 impl StereoDepth {
@@ -575,6 +616,21 @@ pub fn depth_from_neighbours(
     if config.fill_radius_px > 0 {
         fill_holes(&mut sweep.depth_m, config.fill_radius_px);
     }
+    let best_k = config.best_k.min(neighbours_w.len());
+    let costs = if config.model_test_sigmas > 0.0 {
+        hypothesis_costs(
+            &reference_w,
+            &neighbour_refs,
+            sweep.depth_m.data(),
+            model.depth_m().data(),
+            mesh,
+            config,
+        )
+    } else {
+        Vec::new()
+    };
+    let (plausible, model_test) =
+        model_test(&sweep, model.depth_m().data(), &costs, best_k, config);
     let valid = sweep.depth_m.data().iter().filter(|d| **d > 0.0).count();
     let centre = reference.cam_from_world.camera_center();
     let mean_baseline_m = neighbours
@@ -585,6 +641,8 @@ pub fn depth_from_neighbours(
     let (w, h) = reference.photo.size();
     Ok(StereoDepth {
         depth_m: upsample_depth(sweep.depth_m.view(), w, h),
+        model_plausible: upsample_nearest(plausible.view(), w, h, false),
+        model_test,
         range,
         planes: sweep.planes,
         working_size_px: (ww, wh),
@@ -599,9 +657,86 @@ pub fn depth_from_neighbours(
 struct Sweep {
     depth_m: Image<f32>,
     planes: usize,
+    /// Inverse depth of plane 0 (the nearest), 1/m.
+    inverse_near: f32,
     /// Inverse-depth step between planes, 1/m.
     inverse_step: f32,
     holes: HoleCounts,
+}
+
+impl Sweep {
+    /// The plane (fractional) of a depth.
+    fn plane_of(&self, depth_m: f32) -> f32 {
+        (self.inverse_near - 1.0 / depth_m) / self.inverse_step
+    }
+}
+
+/// Fisher's z of a cost `1 − ρ` (ρ clamped to ±0.99).
+fn fisher_z(cost: f32) -> f32 {
+    (1.0 - cost).clamp(-0.99, 0.99).atanh()
+}
+
+/// The model test (see the module's method) on the working depth: per pixel whether the
+/// model's surface (`model_depth_m`, working size, 0 = no surface) explains the photos as well
+/// as the pixel's own depth, from their costs on the same data ([`hypothesis_costs`]), and the
+/// counts. The standard error of z for a mean over `best_k` neighbours' windows of n pixels is
+/// `1/√(best_k·(n − 3))`. A pixel the test cannot judge (no neighbour has half a textured window
+/// on the model's visible surface) is plausible: its depth rests on texture off the model's
+/// surface, which says nothing against the model at the pixel.
+fn model_test(
+    sweep: &Sweep,
+    model_depth_m: &[f32],
+    costs: &[Option<(f32, f32)>],
+    best_k: usize,
+    config: &StereoConfig,
+) -> (Image<bool>, ModelTestCounts) {
+    let (w, h) = sweep.depth_m.size();
+    let mut plausible = Image::filled(w, h, false);
+    let mut counts = ModelTestCounts::default();
+    if config.model_test_sigmas <= 0.0 {
+        return (plausible, counts);
+    }
+    let n = ((2 * config.window_radius_px + 1) * (2 * config.window_radius_px + 1)) as f32;
+    let standard_error = 1.0 / (best_k.max(1) as f32 * (n - 3.0).max(1.0)).sqrt();
+    let limit = config.model_test_sigmas * standard_error;
+    for (index, (out, (&depth, &model))) in plausible
+        .data_mut()
+        .iter_mut()
+        .zip(sweep.depth_m.data().iter().zip(model_depth_m))
+        .enumerate()
+    {
+        if !(depth > 0.0 && model.is_finite() && model > 0.0) {
+            continue;
+        }
+        let differing = (sweep.plane_of(depth) - sweep.plane_of(model)).abs() > 2.0;
+        counts.differing += usize::from(differing);
+        *out = match costs.get(index).copied().flatten() {
+            Some((photo_cost, model_cost)) => fisher_z(photo_cost) - fisher_z(model_cost) <= limit,
+            None => {
+                counts.untestable += usize::from(differing);
+                true
+            }
+        };
+        counts.plausible += usize::from(differing && *out);
+    }
+    (plausible, counts)
+}
+
+/// A working-scale mask at `width_px × height_px`: each pixel the value of the nearest working
+/// pixel (`outside` where there is none).
+fn upsample_nearest(
+    mask: ImageView<'_, bool>,
+    width_px: usize,
+    height_px: usize,
+    outside: bool,
+) -> Image<bool> {
+    let (lw, lh) = mask.size();
+    let (sx, sy) = (lw as f64 / width_px as f64, lh as f64 / height_px as f64);
+    Image::from_fn(width_px, height_px, |col, row| {
+        let centre = pixel_center(col, row);
+        nearest_pixel(Vector2::new(centre.x * sx, centre.y * sy), lw, lh)
+            .map_or(outside, |(c, r)| mask.data()[r * lw + c])
+    })
 }
 
 /// The plane homography of one neighbour in the form `x_n ~ A·x_r + q/d`: `A = K_n R K_r⁻¹`,
@@ -709,7 +844,7 @@ fn plane_costs(
     stats: &[Option<(f32, f32)>],
     neighbours: &[&WorkingView],
     warps: &[Option<PlaneWarp>],
-    inverse_depth: f64,
+    inverse_depth: impl Fn(usize) -> Option<f64>,
     config: &StereoConfig,
     scratch: &mut PlaneScratch,
     out: &mut [f32],
@@ -725,8 +860,8 @@ fn plane_costs(
         let photo = neighbour.photo.view();
         for (index, (out, &i)) in scratch.samples.iter_mut().zip(reference_data).enumerate() {
             let pixel = pixel_center(index % w, index / w);
-            let sample = warp
-                .apply(pixel, inverse_depth)
+            let sample = inverse_depth(index)
+                .and_then(|inverse| warp.apply(pixel, inverse))
                 .and_then(|x| bilinear(&photo, x));
             *out = match sample {
                 Some(j) => [j, j * j, j * i, 1.0],
@@ -801,6 +936,149 @@ fn plane_count(
         .clamp(config.min_planes, config.max_planes)
 }
 
+/// Relative depth tolerance of the model's visibility in a neighbour ([`hypothesis_costs`]).
+const MODEL_VISIBILITY_TOLERANCE: f32 = 0.02;
+
+/// Per working pixel with a depth and a model surface, the costs of its two hypotheses on the
+/// same data: the photo's depth (the fronto-parallel plane at that depth, as in the sweep) and
+/// the model's surface (each neighbour warped through the model's depth at every window pixel,
+/// so the model's slant and its depth edges are part of it). Both ZNCCs run over the same
+/// window pixels: those on the model's surface whose model point the model itself lets the
+/// neighbour see (its depth rendered there not nearer by over 2 %), when they are at least half
+/// the window and textured; so texture off the model's surface (a curb behind an untextured roof
+/// that the sweep matched) or hidden from the neighbour does not decide between them. Then per
+/// hypothesis the mean of the best `best_k` neighbours' `1 − ZNCC`. `None`: no neighbour has
+/// such a window (untestable).
+fn hypothesis_costs(
+    reference: &WorkingView,
+    neighbours: &[&WorkingView],
+    depth_m: &[f32],
+    model_depth_m: &[f32],
+    mesh: &Mesh,
+    config: &StereoConfig,
+) -> Vec<Option<(f32, f32)>> {
+    let (w, h) = reference.photo.size();
+    let pixels = w * h;
+    let r = config.window_radius_px as i64;
+    let least = ((2 * r + 1) * (2 * r + 1)) as f32 * 0.5;
+    let min_var = config.min_texture.max(1e-4).powi(2);
+    let world_from_reference = reference.cam_from_world.inverse();
+    let reference_data = reference.photo.data();
+    let mut rasterizer = Rasterizer::new();
+    let warps: Vec<Option<PlaneWarp>> = neighbours
+        .iter()
+        .map(|n| plane_warp(reference, n))
+        .collect();
+    // Per neighbour and reference pixel: the model's sample there, where the model lets the
+    // neighbour see its point.
+    let model_samples: Vec<Vec<Option<f32>>> = neighbours
+        .iter()
+        .map(|neighbour| {
+            let (nw, nh) = neighbour.photo.size();
+            let mut seen = RenderBuffers::new(nw, nh);
+            rasterizer.render(
+                mesh,
+                &neighbour.intrinsics,
+                &neighbour.cam_from_world,
+                &RenderOptions::default(),
+                &mut seen,
+            );
+            let photo = neighbour.photo.view();
+            (0..pixels)
+                .map(|index| {
+                    let d = model_depth_m[index];
+                    if !(d.is_finite() && d > 0.0) {
+                        return None;
+                    }
+                    let n = reference
+                        .intrinsics
+                        .pixel_to_normalized(pixel_center(index % w, index / w));
+                    let d = f64::from(d);
+                    let point = neighbour.cam_from_world.transform_point(
+                        &world_from_reference.transform_point(&Vector3::new(n.x * d, n.y * d, d)),
+                    );
+                    let x = neighbour.intrinsics.project(&point)?;
+                    let (col, row) = nearest_pixel(x, nw, nh)?;
+                    let there = seen.depth_m().data()[row * nw + col];
+                    if !(there > 0.0
+                        && there >= point.z as f32 * (1.0 - MODEL_VISIBILITY_TOLERANCE))
+                    {
+                        return None;
+                    }
+                    bilinear(&photo, x)
+                })
+                .collect()
+        })
+        .collect();
+    let zncc = |n: f32, si: f32, sii: f32, sj: f32, sjj: f32, sij: f32| {
+        let (mi, mj) = (si / n, sj / n);
+        let (vi, vj) = (sii / n - mi * mi, sjj / n - mj * mj);
+        if vj < 1e-8 {
+            0.0
+        } else {
+            ((sij / n - mi * mj) / (vi * vj).sqrt()).clamp(-1.0, 1.0)
+        }
+    };
+    let best_mean = |values: &mut Vec<f32>| {
+        values.sort_by(f32::total_cmp);
+        let used = config.best_k.min(values.len()).max(1);
+        values[..used].iter().sum::<f32>() / used as f32
+    };
+    (0..pixels)
+        .into_par_iter()
+        .map(|index| {
+            let depth = depth_m[index];
+            let model = model_depth_m[index];
+            if !(depth > 0.0 && model.is_finite() && model > 0.0) {
+                return None;
+            }
+            let (col, row) = ((index % w) as i64, (index / w) as i64);
+            let inverse = 1.0 / f64::from(depth);
+            let mut photo_costs = Vec::with_capacity(MAX_NEIGHBOURS);
+            let mut model_costs = Vec::with_capacity(MAX_NEIGHBOURS);
+            for ((neighbour, warp), samples) in neighbours.iter().zip(&warps).zip(&model_samples) {
+                let Some(warp) = warp else { continue };
+                let photo = neighbour.photo.view();
+                // n, Σi, Σi², Σa, Σa², Σia (model), Σb, Σb², Σib (photo).
+                let mut sum = [0.0f32; 9];
+                for rr in (row - r).max(0)..(row + r + 1).min(h as i64) {
+                    for cc in (col - r).max(0)..(col + r + 1).min(w as i64) {
+                        let q = rr as usize * w + cc as usize;
+                        let Some(a) = samples[q] else { continue };
+                        let Some(b) = warp
+                            .apply(pixel_center(cc as usize, rr as usize), inverse)
+                            .and_then(|x| bilinear(&photo, x))
+                        else {
+                            continue;
+                        };
+                        let i = reference_data[q];
+                        for (s, v) in
+                            sum.iter_mut()
+                                .zip([1.0, i, i * i, a, a * a, i * a, b, b * b, i * b])
+                        {
+                            *s += v;
+                        }
+                    }
+                }
+                let n = sum[0];
+                if n < least {
+                    continue;
+                }
+                let mean_i = sum[1] / n;
+                if sum[2] / n - mean_i * mean_i < min_var {
+                    continue;
+                }
+                model_costs.push(1.0 - zncc(n, sum[1], sum[2], sum[3], sum[4], sum[5]));
+                photo_costs.push(1.0 - zncc(n, sum[1], sum[2], sum[6], sum[7], sum[8]));
+            }
+            if model_costs.is_empty() {
+                return None;
+            }
+            Some((best_mean(&mut photo_costs), best_mean(&mut model_costs)))
+        })
+        .collect()
+}
+
 /// One plane sweep of `reference` against `neighbours` (working scale), winner-take-all with
 /// the hole tests except the left-right check.
 fn plane_sweep(
@@ -836,7 +1114,7 @@ fn plane_sweep(
                 &stats,
                 neighbours,
                 &warps,
-                f64::from(inverse_depth(plane as f32)),
+                |_| Some(f64::from(inverse_depth(plane as f32))),
                 config,
                 scratch,
                 out,
@@ -889,6 +1167,7 @@ fn plane_sweep(
     Sweep {
         depth_m,
         planes,
+        inverse_near,
         inverse_step,
         holes,
     }
@@ -922,7 +1201,8 @@ impl HoleReason {
 /// the tolerance: a free-space violation). A neighbour that does not see the point (occluded
 /// there: its depth is nearer; or it leaves its photo) neither confirms nor vetoes it: the
 /// sweep's best-`k` cost already lets an occluded neighbour drop out, and the check must not undo
-/// that. With one neighbour this is the plain left-right check.
+/// that. With `keep_occluded` a depth that one neighbour sees occluded and none sees through
+/// stays without a confirmation. With one neighbour this is the plain left-right check.
 fn left_right_check(
     sweep: &mut Sweep,
     reference: &WorkingView,
@@ -952,7 +1232,7 @@ fn left_right_check(
         let d = f64::from(*depth);
         let in_reference = Vector3::new(n.x * d, n.y * d, d);
         let mut confirmed = false;
-        let mut contradicted = false;
+        let mut occluded = false;
         let mut seen_through = false;
         for ((back, neighbour), (n_from_r, tolerance)) in backs.iter().zip(&checks) {
             let (nw, nh) = back.depth_m.size();
@@ -970,13 +1250,17 @@ fn left_right_check(
                 let excess = 1.0 / point.z as f32 - 1.0 / other;
                 if excess.abs() <= *tolerance {
                     confirmed = true;
+                } else if excess > *tolerance {
+                    seen_through = true;
                 } else {
-                    contradicted = true;
-                    seen_through |= excess > *tolerance;
+                    occluded = true;
                 }
             }
         }
-        let keep = !seen_through && (confirmed || (config.keep_unconfirmed && !contradicted));
+        let keep = !seen_through
+            && (confirmed
+                || (config.keep_occluded && occluded)
+                || (config.keep_unconfirmed && !occluded));
         if !keep {
             *depth = 0.0;
             inconsistent += 1;
@@ -1265,6 +1549,271 @@ mod tests {
             assert!(within[2] > 0.9, "within 5 %: {}", within[2]);
             assert!(valid > 0.5, "valid share {valid}");
         }
+    }
+
+    /// Ground and a 3 × 3 × 10 m tower at the origin: neighbours 5 m to either side see
+    /// different strips of ground behind it.
+    fn tower() -> Mesh {
+        let (x0, x1, y0, y1, z) = (-1.5, 1.5, -1.5, 1.5, 10.0);
+        mesh_of(&[
+            [
+                [-30.0, -30.0, 0.0],
+                [30.0, -30.0, 0.0],
+                [30.0, 30.0, 0.0],
+                [-30.0, 30.0, 0.0],
+            ],
+            [[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]],
+            [[x0, y0, 0.0], [x1, y0, 0.0], [x1, y0, z], [x0, y0, z]],
+            [[x1, y0, 0.0], [x1, y1, 0.0], [x1, y1, z], [x1, y0, z]],
+            [[x1, y1, 0.0], [x0, y1, 0.0], [x0, y1, z], [x1, y1, z]],
+            [[x0, y1, 0.0], [x0, y0, 0.0], [x0, y0, z], [x0, y1, z]],
+        ])
+    }
+
+    /// The reference pixels whose true point the first view of `others` sees occluded (its own
+    /// depth there nearer by over 5 %) and the second sees (within 2 %).
+    fn occluded_in_first_seen_in_second(
+        reference: &(PinholeIntrinsics, Rigid3, Image<f32>, Image<f32>),
+        others: [&(PinholeIntrinsics, Rigid3, Image<f32>, Image<f32>); 2],
+    ) -> Vec<usize> {
+        let world_from_ref = reference.1.inverse();
+        let depth_at = |view: &(PinholeIntrinsics, Rigid3, Image<f32>, Image<f32>),
+                        p: &Vector3<f64>| {
+            let in_view = view.1.transform_point(p);
+            let pixel = view.0.project(&in_view)?;
+            let (col, row) = nearest_pixel(pixel, WIDTH, HEIGHT)?;
+            let d = view.3.data()[row * WIDTH + col];
+            (d > 0.0).then_some((f64::from(d), in_view.z))
+        };
+        (0..WIDTH * HEIGHT)
+            .filter(|&index| {
+                let t = reference.3.data()[index];
+                if t <= 0.0 {
+                    return false;
+                }
+                let n = reference
+                    .0
+                    .pixel_to_normalized(pixel_center(index % WIDTH, index / WIDTH));
+                let d = f64::from(t);
+                let p = world_from_ref.transform_point(&Vector3::new(n.x * d, n.y * d, d));
+                let occluded = depth_at(others[0], &p).is_some_and(|(seen, z)| seen < 0.95 * z);
+                let seen =
+                    depth_at(others[1], &p).is_some_and(|(seen, z)| (seen - z).abs() < 0.02 * z);
+                occluded && seen
+            })
+            .collect()
+    }
+
+    /// The tower photographed from the reference (20 m south, 18 m up) and neighbours 5 m to
+    /// its right, 5 m to its left and 4 m to its left and 2 m up.
+    fn tower_rig() -> Rig {
+        let mesh = tower();
+        let eyes = [
+            [0.0, -20.0, 18.0],
+            [5.0, -20.0, 18.0],
+            [-5.0, -20.0, 18.0],
+            [-4.0, -18.5, 20.0],
+        ];
+        let views = eyes
+            .iter()
+            .enumerate()
+            .map(|(seed, eye)| {
+                let (k, pose) = camera_at(*eye);
+                let (photo, depth) = photo(&mesh, &k, &pose, None, seed as u64 + 20);
+                (k, pose, photo, depth)
+            })
+            .collect();
+        Rig { mesh, views }
+    }
+
+    #[test]
+    fn a_depth_the_first_neighbour_sees_occluded_stays_when_another_confirms_it() {
+        let rig = tower_rig();
+        let strip = occluded_in_first_seen_in_second(&rig.views[0], [&rig.views[1], &rig.views[2]]);
+        assert!(
+            strip.len() > 300,
+            "{} px occluded in the first neighbour only",
+            strip.len()
+        );
+        let share = |result: &StereoDepth| {
+            let truth = &rig.views[0].3;
+            let valid = strip
+                .iter()
+                .filter(|&&i| result.depth_m.data()[i] > 0.0)
+                .count();
+            let right = strip
+                .iter()
+                .filter(|&&i| {
+                    let (e, t) = (result.depth_m.data()[i], truth.data()[i]);
+                    e > 0.0 && (e - t).abs() < 0.05 * t
+                })
+                .count();
+            (
+                valid as f64 / strip.len() as f64,
+                right as f64 / valid.max(1) as f64,
+            )
+        };
+        let first_only = stereo(
+            &rig,
+            3,
+            &StereoConfig {
+                consistency_neighbours: 1,
+                ..StereoConfig::default()
+            },
+        );
+        let all = stereo(&rig, 3, &StereoConfig::default());
+        let (first_valid, _) = share(&first_only);
+        let (all_valid, all_right) = share(&all);
+        eprintln!(
+            "{} px occluded in the first neighbour: with depth {first_valid:.3} (first neighbour checks), {all_valid:.3} (all check; {all_right:.3} within 5 %); holes {:?} vs {:?}",
+            strip.len(),
+            first_only.holes,
+            all.holes
+        );
+        // The first neighbour's check deletes the strip (it sees the tower there) …
+        assert!(first_valid < 0.1, "{first_valid}");
+        // … the others confirm it, and its depths are right (the strip lies along the
+        // tower's silhouette: some windows straddle it).
+        assert!(all_valid > 0.5, "{all_valid}");
+        assert!(all_right > 0.85, "{all_right}");
+        // Elsewhere the depth is as good as before.
+        let (median, within, _) = errors(&all.depth_m, &rig.views[0].3);
+        assert!(median < 0.01 && within[2] > 0.9, "{median} {within:?}");
+    }
+
+    #[test]
+    fn the_model_test_keeps_a_new_tower_and_explains_a_wrong_far_depth_on_unchanged_ground() {
+        // The world has the 10 m tower, the model only the ground.
+        let rig = tower_rig();
+        let model = mesh_of(&[[
+            [-30.0, -30.0, 0.0],
+            [30.0, -30.0, 0.0],
+            [30.0, 30.0, 0.0],
+            [-30.0, 30.0, 0.0],
+        ]]);
+        let view = |i: usize| StereoView {
+            photo: rig.views[i].2.view(),
+            intrinsics: rig.views[i].0,
+            cam_from_world: rig.views[i].1,
+        };
+        let config = StereoConfig::default();
+        let others: Vec<StereoView> = (1..=3).map(view).collect();
+        let result =
+            depth_from_neighbours(&model, &view(0), &others, &config).expect("stereo depth");
+        let mut model_depth = RenderBuffers::new(WIDTH, HEIGHT);
+        Rasterizer::new().render(
+            &model,
+            &rig.views[0].0,
+            &rig.views[0].1,
+            &RenderOptions::default(),
+            &mut model_depth,
+        );
+        let truth = &rig.views[0].3;
+        // Pixels on the tower (true depth well in front of the model's ground: 10 working px of
+        // disparity or more from the nearest neighbour) and on the ground, with a stereo depth.
+        let (mut on_box, mut box_plausible, mut ground, mut ground_plausible) = (0, 0, 0, 0);
+        for (index, &t) in truth.data().iter().enumerate() {
+            let (e, m) = (
+                result.depth_m.data()[index],
+                model_depth.depth_m().data()[index],
+            );
+            if e <= 0.0 || m <= 0.0 {
+                continue;
+            }
+            let plausible = usize::from(result.model_plausible.data()[index]);
+            if t < 0.8 * m {
+                on_box += 1;
+                box_plausible += plausible;
+            } else if (t - m).abs() < 0.001 * m {
+                ground += 1;
+                ground_plausible += plausible;
+            }
+        }
+        eprintln!(
+            "tower: {box_plausible} of {on_box} px model-plausible; ground: {ground_plausible} of {ground}; {:?}",
+            result.model_test
+        );
+        assert!(on_box > 500 && ground > 2000, "{on_box} {ground}");
+        // A real change is not explained by the model …
+        assert!((box_plausible as f64) < 0.05 * on_box as f64);
+        // … the unchanged ground is.
+        assert!((ground_plausible as f64) > 0.95 * ground as f64);
+
+        // A wrong far depth on the ground (25 % too far, as block seed 2's false object): the
+        // sweep's cost there is no better than at the model's depth, so the model stays
+        // plausible; the tower's own depth beats the model's and stays a change. With the test
+        // off nothing is plausible.
+        let reference_w = working_view(&view(0), "reference", &config).expect("working view");
+        let neighbours_w: Vec<WorkingView> = others
+            .iter()
+            .map(|n| working_view(n, "neighbour", &config).expect("working view"))
+            .collect();
+        let (ww, wh) = reference_w.photo.size();
+        let mut model_w = RenderBuffers::new(ww, wh);
+        Rasterizer::new().render(
+            &model,
+            &reference_w.intrinsics,
+            &reference_w.cam_from_world,
+            &RenderOptions::default(),
+            &mut model_w,
+        );
+        let range = depth_range_from_model(model_w.depth_m().view(), &config, 1).expect("range");
+        let mut world_w = RenderBuffers::new(ww, wh);
+        Rasterizer::new().render(
+            &rig.mesh,
+            &reference_w.intrinsics,
+            &reference_w.cam_from_world,
+            &RenderOptions::default(),
+            &mut world_w,
+        );
+        let refs: Vec<&WorkingView> = neighbours_w.iter().collect();
+        let mut sweep = plane_sweep(&reference_w, &refs, range, &config);
+        let model_data = model_w.depth_m().data();
+        let world_data = world_w.depth_m().data();
+        let mut wrong = Vec::new();
+        let mut added = Vec::new();
+        for (index, depth) in sweep.depth_m.data_mut().iter_mut().enumerate() {
+            let m = model_data[index];
+            if *depth <= 0.0 || m <= 0.0 {
+                continue;
+            }
+            if (*depth - m).abs() < 0.01 * m && 1.25 * m < 0.95 * range.far_m {
+                *depth = 1.25 * m;
+                wrong.push(index);
+            } else if *depth < 0.8 * m && (*depth - world_data[index]).abs() < 0.02 * *depth {
+                // The tower, at its right depth.
+                added.push(index);
+            }
+        }
+        let costs = hypothesis_costs(
+            &reference_w,
+            &refs,
+            sweep.depth_m.data(),
+            model_data,
+            &model,
+            &config,
+        );
+        let (plausible, counts) = model_test(&sweep, model_data, &costs, 2, &config);
+        let share = |pixels: &[usize]| {
+            pixels.iter().filter(|&&i| plausible.data()[i]).count() as f64 / pixels.len() as f64
+        };
+        eprintln!(
+            "{} wrong far px: {:.3} plausible; {} added px: {:.3} plausible; {counts:?}",
+            wrong.len(),
+            share(&wrong),
+            added.len(),
+            share(&added)
+        );
+        assert!(wrong.len() > 500 && added.len() > 100);
+        assert!(share(&wrong) > 0.98, "{}", share(&wrong));
+        assert!(share(&added) < 0.05, "{}", share(&added));
+        assert!(counts.differing >= wrong.len() + added.len());
+        let off = StereoConfig {
+            model_test_sigmas: 0.0,
+            ..config
+        };
+        let (none, _) = model_test(&sweep, model_data, &costs, 2, &off);
+        assert!(none.data().iter().all(|p| !p));
     }
 
     #[test]
