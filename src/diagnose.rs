@@ -30,8 +30,8 @@ use crate::core::camera::{nearest_pixel, Camera};
 use crate::core::confidence::FrameEvidence;
 use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
-    model_edge_samples, pose_jacobian_rows, search_ridge, AlignedParameters, EdgeKind, EdgeSample,
-    SupportPeak,
+    model_edge_samples, pose_jacobian_rows, search_ridge, supported_edge_observability,
+    AlignedParameters, EdgeKind, EdgeSample, SupportPeak,
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
@@ -230,6 +230,11 @@ pub struct EdgeBiasDiagnosis {
     /// appears with the finest level alone is the objective's (its minimum is off the truth); one
     /// that appears only with the coarse levels is their wrong matches'.
     pub from_truth_by_first_radius: Vec<(f64, Option<f64>)>,
+    /// How well the photo-supported model edges at the truth see each direction of pose motion
+    /// ([`crate::core::edge_align::edge_observability`]): px of edge motion per px of model
+    /// motion, ascending (empty when unknown). An edge error of ε px moves the pose along the
+    /// least seen direction by ε / its figure px of δ.
+    pub observability_at_truth: Vec<f64>,
 }
 
 /// One group of model edge samples at the true pose (see [`EdgeBiasDiagnosis`]).
@@ -764,6 +769,15 @@ fn diagnose_region(
             }
         }),
         from_truth_by_first_radius,
+        observability_at_truth: supported_edge_observability(
+            &truth_samples,
+            &query,
+            &truth_view.render,
+            camera,
+            truth,
+            &config.edge_align,
+        )
+        .map_or_else(Vec::new, |figures| figures.iter().copied().collect()),
     };
     let truth_support = from_truth.as_ref().map(|r| r.verified.support_fraction());
     let truth_edges = from_truth.as_ref().map(|r| r.peak);
@@ -1110,6 +1124,10 @@ pub struct DiagnosisSummary {
     /// Means over frames of [`EdgeBiasDiagnosis::from_truth_by_first_radius`]: per first search
     /// radius (px), the mean δ from the truth (px).
     pub from_truth_by_first_radius: Vec<(f64, Option<f64>)>,
+    /// Means over frames of the least and the most seen direction's
+    /// [`EdgeBiasDiagnosis::observability_at_truth`] (px of edge motion per px of model motion).
+    pub observability_least: Option<f64>,
+    pub observability_most: Option<f64>,
 }
 
 fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
@@ -1214,6 +1232,16 @@ impl DiagnosisSummary {
             from_truth_along_axis_m: mean(splits.iter().map(|s| s.along_axis_m)),
             from_truth_lateral_m: mean(splits.iter().map(|s| s.lateral_m)),
             from_truth_rounding_m: mean(splits.iter().map(|s| s.rounding_m)),
+            observability_least: mean(
+                frames
+                    .iter()
+                    .filter_map(|f| f.edge_bias.observability_at_truth.first().copied()),
+            ),
+            observability_most: mean(
+                frames
+                    .iter()
+                    .filter_map(|f| f.edge_bias.observability_at_truth.last().copied()),
+            ),
             from_truth_by_first_radius: {
                 let mut radii_px: Vec<f64> = frames
                     .iter()

@@ -888,14 +888,14 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
     }
     let _ = writeln!(
         out,
-        "\n| level | method | from truth δ | axial part δ | lateral + rotation δ | axial error | lateral error | rounding | from truth δ by first search radius |\n|---|---|---|---|---|---|---|---|---|"
+        "\n| level | method | from truth δ | axial part δ | lateral + rotation δ | axial error | lateral error | rounding | from truth δ by first search radius | edges at the truth: px per px of model motion, least / most seen direction |\n|---|---|---|---|---|---|---|---|---|---|"
     );
     for ((level, method), frames) in diagnoses {
         let s = DiagnosisSummary::of(frames.iter().map(|(_, d)| d));
         let m = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.3} m"));
         let _ = writeln!(
             out,
-            "| {level} | {method} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {level} | {method} | {} | {} | {} | {} | {} | {} | {} | {} / {} |",
             px(s.aligned_from_truth_delta_px),
             px(s.from_truth_along_axis_delta_px),
             px(s.from_truth_lateral_and_rotation_delta_px),
@@ -907,6 +907,8 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
                 .map(|(radius_px, delta_px)| format!("{radius_px:.0} px: {}", px(*delta_px)))
                 .collect::<Vec<_>>()
                 .join(", "),
+            px(s.observability_least),
+            px(s.observability_most),
         );
     }
     let _ = writeln!(out, "\n## Frames\n");

@@ -24,7 +24,7 @@
 //! the one it started from. Preconditions: a pinhole camera (distortion is not modelled here), the
 //! query and the rendering on the camera's pixel grid (COLMAP convention, centres at +0.5).
 
-use nalgebra::{UnitQuaternion, Vector2, Vector3, Vector6};
+use nalgebra::{Matrix6, UnitQuaternion, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::camera::{nearest_pixel, pixel_center, Camera, PinholeIntrinsics, MIN_DEPTH_M};
@@ -1018,6 +1018,107 @@ pub fn align_level(
     (camera, pose, summary)
 }
 
+/// The image-motion metric of a rendering's visible model: the mean over its surface pixels
+/// (every `stride_px`-th row and column) of `JᵀJ`, `J` the 2 × 6 Jacobian of the pixel's
+/// projection for the pose perturbation of [`pose_jacobian_rows`]; `ξᵀ M ξ` is then the mean
+/// squared image motion of the model's visible points under a small step `ξ` (about δ², the
+/// evaluation's measure). `None` when the rendering shows no surface.
+pub fn image_motion_metric(
+    render: &RenderBuffers,
+    camera: &Camera,
+    stride_px: usize,
+) -> Option<Matrix6<f64>> {
+    let depth_m = render.depth_m().view();
+    let faces = render.face_index().view();
+    let (width_px, height_px) = depth_m.size();
+    let stride_px = stride_px.max(1);
+    let mut metric = Matrix6::zeros();
+    let mut count = 0usize;
+    for row in (stride_px / 2..height_px).step_by(stride_px) {
+        for col in (stride_px / 2..width_px).step_by(stride_px) {
+            let depth = depth_m.data()[row * width_px + col];
+            if faces.data()[row * width_px + col] == super::raster::NO_FACE || depth <= 0.0 {
+                continue;
+            }
+            let Some(ray) = camera.unproject(pixel_center(col, row)) else {
+                continue;
+            };
+            let (row_u, row_v) = pose_jacobian_rows(&camera.intrinsics, &(ray * f64::from(depth)));
+            metric += row_u * row_u.transpose() + row_v * row_v.transpose();
+            count += 1;
+        }
+    }
+    (count > 0).then(|| metric / count as f64)
+}
+
+/// How well a pose's edges see each direction of pose motion: the generalized eigenvalues λ of
+/// the edge samples' Gauss–Newton `information` (`Σ gᵀg` of the 1-D residuals along the normals,
+/// over `samples` samples) against the model's image-motion `metric` ([`image_motion_metric`]),
+/// as `√(λ / samples)`: along each eigen-direction, scaled to move the visible model by 1 px
+/// RMS, how far the edges move along their normals (px RMS), ascending. A direction with a small
+/// figure moves the model (the ground, the far side) while its edges barely move: an edge error
+/// of ε px shifts the pose along it by ε / figure px of δ. `None` when the metric is singular or
+/// there are no samples.
+pub fn edge_observability(
+    information: &Matrix6<f64>,
+    samples: usize,
+    metric: &Matrix6<f64>,
+) -> Option<Vector6<f64>> {
+    if samples == 0 {
+        return None;
+    }
+    // Rotation (rad) and translation (m) differ in scale by orders of magnitude; a relative
+    // floor keeps the factorisation of a near-singular metric (a planar view) stable.
+    let floor = metric.diagonal().max() * 1e-12;
+    let lower = (metric + Matrix6::identity() * floor).cholesky()?.l();
+    let lower_inverse = lower.try_inverse()?;
+    let whitened = lower_inverse * information * lower_inverse.transpose();
+    let eigenvalues =
+        nalgebra::SymmetricEigen::new((whitened + whitened.transpose()) * 0.5).eigenvalues;
+    let mut figures: Vec<f64> = eigenvalues
+        .iter()
+        .map(|lambda| (lambda.max(0.0) / samples as f64).sqrt())
+        .collect();
+    figures.sort_by(f64::total_cmp);
+    Some(Vector6::from_vec(figures))
+}
+
+/// [`edge_observability`] of the pose `cam_from_world` from its model edge `samples` that a photo
+/// ridge supports (within `support_px`, as the evidence counts them) and the model's
+/// `render` at that pose.
+pub fn supported_edge_observability(
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    render: &RenderBuffers,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    config: &EdgeAlignConfig,
+) -> Option<Vector6<f64>> {
+    let mut information = Matrix6::<f64>::zeros();
+    let mut supported = 0usize;
+    for_each_ridge(
+        samples,
+        query,
+        camera,
+        cam_from_world,
+        config,
+        |sample, point_cam, offset| {
+            if offset.is_some_and(|offset| offset.abs() <= config.support_px) {
+                let (row_u, row_v) = pose_jacobian_rows(&camera.intrinsics, point_cam);
+                let row = row_u * sample.normal.x + row_v * sample.normal.y;
+                information += row * row.transpose();
+                supported += 1;
+            }
+        },
+    );
+    let metric = image_motion_metric(render, camera, MOTION_METRIC_STRIDE_PX)?;
+    edge_observability(&information, supported, &metric)
+}
+
+/// Every how many pixels (rows and columns) a rendering's surface is sampled for its image-motion
+/// metric: ~2,000 points at 505×275.
+const MOTION_METRIC_STRIDE_PX: usize = 8;
+
 /// A model edge sample matched to a photo ridge in one step of [`align_level`].
 struct EdgeMatch {
     point_cam: Vector3<f64>,
@@ -1177,6 +1278,32 @@ mod tests {
             let d = col as f64 + 0.5 - line_x_px;
             (-(d * d) / 2.0).exp() as f32
         })
+    }
+
+    /// Known directions `v` with `vᵀMv = 1` and `vᵀHv = λ` (an information matrix against a
+    /// metric, neither diagonal): the observability figures are `√(λ / samples)`, ascending.
+    #[test]
+    fn edge_observability_is_the_edge_motion_per_px_of_model_motion() {
+        let basis = Matrix6::from_fn(|row, col| {
+            if row == col {
+                1.0 + row as f64
+            } else {
+                0.1 * (row as f64 - col as f64)
+            }
+        });
+        let inverse = basis.try_inverse().unwrap();
+        let metric = inverse.transpose() * inverse;
+        let samples = 100;
+        let per_px = [1.0, 0.9, 0.5, 0.3, 0.1, 0.05];
+        let lambdas = Vector6::from_iterator(per_px.iter().map(|e| e * e * samples as f64));
+        let information = inverse.transpose() * Matrix6::from_diagonal(&lambdas) * inverse;
+        let figures = edge_observability(&information, samples, &metric).unwrap();
+        let expected = Vector6::new(0.05, 0.1, 0.3, 0.5, 0.9, 1.0);
+        assert!(
+            (figures - expected).norm() < 1e-9,
+            "{figures} vs {expected}"
+        );
+        assert_eq!(edge_observability(&information, 0, &metric), None);
     }
 
     #[test]
