@@ -802,23 +802,11 @@ pub fn image_uncertainty_px(
     config: &EdgeAlignConfig,
 ) -> f64 {
     let intrinsics = &camera.intrinsics;
-    let mut information = nalgebra::Matrix6::<f64>::zeros();
-    let mut depths_m: Vec<f64> = Vec::with_capacity(samples.len());
-    for_each_ridge(
-        samples,
-        query,
-        camera,
-        cam_from_world,
-        config,
-        |sample, point_cam, offset| {
-            depths_m.push(point_cam.z);
-            if offset.is_some_and(|offset| offset.abs() <= config.support_px) {
-                let (row_u, row_v) = pose_jacobian_rows(intrinsics, point_cam);
-                let row = row_u * sample.normal.x + row_v * sample.normal.y;
-                information += row * row.transpose();
-            }
-        },
-    );
+    let SupportedInformation {
+        information,
+        mut depths_m,
+        ..
+    } = supported_information(samples, query, camera, cam_from_world, config);
     if depths_m.is_empty() {
         return UNBOUNDED_IMAGE_UNCERTAINTY_PX;
     }
@@ -1094,8 +1082,36 @@ pub fn supported_edge_observability(
     cam_from_world: &Rigid3,
     config: &EdgeAlignConfig,
 ) -> Option<Vector6<f64>> {
-    let mut information = Matrix6::<f64>::zeros();
-    let mut supported = 0usize;
+    let SupportedInformation {
+        information,
+        supported,
+        ..
+    } = supported_information(samples, query, camera, cam_from_world, config);
+    let metric = image_motion_metric(render, camera, MOTION_METRIC_STRIDE_PX)?;
+    edge_observability(&information, supported, &metric)
+}
+
+/// The Gauss–Newton information `Σ gᵀg` of the 1-D edge residuals of the samples a photo ridge
+/// supports (within `support_px`), how many they are, and the depths of all samples that
+/// project: what [`image_uncertainty_px`] and [`supported_edge_observability`] start from.
+struct SupportedInformation {
+    information: Matrix6<f64>,
+    supported: usize,
+    depths_m: Vec<f64>,
+}
+
+fn supported_information(
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    config: &EdgeAlignConfig,
+) -> SupportedInformation {
+    let mut out = SupportedInformation {
+        information: Matrix6::zeros(),
+        supported: 0,
+        depths_m: Vec::with_capacity(samples.len()),
+    };
     for_each_ridge(
         samples,
         query,
@@ -1103,16 +1119,16 @@ pub fn supported_edge_observability(
         cam_from_world,
         config,
         |sample, point_cam, offset| {
+            out.depths_m.push(point_cam.z);
             if offset.is_some_and(|offset| offset.abs() <= config.support_px) {
                 let (row_u, row_v) = pose_jacobian_rows(&camera.intrinsics, point_cam);
                 let row = row_u * sample.normal.x + row_v * sample.normal.y;
-                information += row * row.transpose();
-                supported += 1;
+                out.information += row * row.transpose();
+                out.supported += 1;
             }
         },
     );
-    let metric = image_motion_metric(render, camera, MOTION_METRIC_STRIDE_PX)?;
-    edge_observability(&information, supported, &metric)
+    out
 }
 
 /// Every how many pixels (rows and columns) a rendering's surface is sampled for its image-motion
