@@ -1290,6 +1290,11 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             metrics.max_queue_depth = metrics.max_queue_depth.max(stage.pending_frames() as u64);
             reporter.tick(&metrics, false);
         }
+        // The acknowledgements that arrived while the last pass ran are journaled too (a
+        // restart would otherwise send those results again); best effort while stopping.
+        if let Err(error) = acks.take(&mut results_ack, &mut metrics) {
+            tracing::debug!("verify: the last acknowledgements: {error}");
+        }
         // The change recovery's subscriptions (metrics, changes) go first: the other stages' last
         // metrics must not wait on a queue this stage no longer reads.
         drop(changes);
@@ -1658,6 +1663,11 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
             }
         }
         reporter.tick(&metrics, false);
+    }
+    // The acknowledgements that arrived while the last pass ran are journaled too (best effort
+    // while stopping).
+    if let Err(error) = acks.take(&mut changes_ack, &mut metrics) {
+        tracing::debug!("fusion: the last acknowledgements: {error}");
     }
     reporter.tick(&metrics, true);
     Ok(metrics)
