@@ -455,6 +455,35 @@ mod tests {
     use crate::core::frame::tests::{house_and_poses, ideal_query, view_at};
     use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
+    /// The pose-only refinement of `camera` at `start` on `query` (it must run).
+    fn refined(
+        mesh: &Mesh,
+        camera: &Camera,
+        query: &Image<f32>,
+        start: &Rigid3,
+        config: &RegistrationConfig,
+        workspace: &mut RefineWorkspace,
+    ) -> PoseRefinement {
+        refine_pose(
+            mesh,
+            camera,
+            query.view(),
+            start,
+            AlignedParameters::Pose,
+            config,
+            workspace,
+        )
+        .unwrap()
+    }
+
+    /// A start a few pixels off `truth` (0.8° and 0.2 m on the test house).
+    fn few_px_off(truth: &Rigid3) -> Rigid3 {
+        Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006)) * truth.rotation,
+            truth.translation + Vector3::new(0.16, -0.1, 0.12),
+        )
+    }
+
     /// The model edge samples of a rendering at `pose` (as the refinement takes them).
     fn edge_samples_at(
         mesh: &Mesh,
@@ -490,16 +519,14 @@ mod tests {
             edge_align,
             ..config.clone()
         };
-        let refinement = refine_pose(
+        let refinement = refined(
             mesh,
             camera,
-            query.view(),
+            query,
             start,
-            AlignedParameters::Pose,
             &config,
             &mut RefineWorkspace::default(),
-        )
-        .unwrap();
+        );
         delta_px(mesh, camera, &refinement.aligned_cam_from_world, truth)
     }
 
@@ -517,10 +544,7 @@ mod tests {
     fn dense_alignment_and_checked_levels_recover_the_true_pose_on_an_ideal_query() {
         let (mesh, camera, truth, _) = house_and_poses();
         let mut workspace = RefineWorkspace::default();
-        let start = Rigid3::new(
-            UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006)) * truth.rotation,
-            truth.translation + Vector3::new(0.16, -0.1, 0.12),
-        );
+        let start = few_px_off(&truth);
         let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
         for (method, check_levels) in [
             (RefineMethod::Dense, false),
@@ -532,16 +556,7 @@ mod tests {
             config.edge_align.check_levels = check_levels;
             config.edge_align.dense.iterations_per_level = 20;
             let query = ideal_query(&mesh, &camera, &truth, &config);
-            let refinement = refine_pose(
-                &mesh,
-                &camera,
-                query.view(),
-                &start,
-                AlignedParameters::Pose,
-                &config,
-                &mut workspace,
-            )
-            .unwrap();
+            let refinement = refined(&mesh, &camera, &query, &start, &config, &mut workspace);
             let aligned_delta_px = delta(&refinement.aligned_cam_from_world);
             println!(
                 "{method:?} (levels checked: {check_levels}): δ {:.2} px → {aligned_delta_px:.3} px",
@@ -567,26 +582,14 @@ mod tests {
     #[test]
     fn refinement_renders_each_sampled_pose_once() {
         let (mesh, camera, truth, _) = house_and_poses();
-        let start = Rigid3::new(
-            UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006)) * truth.rotation,
-            truth.translation + Vector3::new(0.16, -0.1, 0.12),
-        );
+        let start = few_px_off(&truth);
         for check_levels in [false, true] {
             let mut config = RegistrationConfig::default();
             config.edge_align.method = RefineMethod::Edges;
             config.edge_align.check_levels = check_levels;
             let query = ideal_query(&mesh, &camera, &truth, &config);
             let mut workspace = RefineWorkspace::default();
-            let refinement = refine_pose(
-                &mesh,
-                &camera,
-                query.view(),
-                &start,
-                AlignedParameters::Pose,
-                &config,
-                &mut workspace,
-            )
-            .unwrap();
+            let refinement = refined(&mesh, &camera, &query, &start, &config, &mut workspace);
             let levels = config.edge_align.level_radii_px().len() as u64;
             assert!(levels >= 2);
             assert_eq!(refinement.levels.len() as u64, levels);
@@ -606,22 +609,10 @@ mod tests {
         let config = RegistrationConfig::default();
         let mut workspace = RefineWorkspace::default();
         let query = ideal_query(&mesh, &camera, &truth, &config);
-        let start = Rigid3::new(
-            UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006)) * truth.rotation,
-            truth.translation + Vector3::new(0.16, -0.1, 0.12),
-        );
+        let start = few_px_off(&truth);
         let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
         let start_delta_px = delta(&start);
-        let refinement = refine_pose(
-            &mesh,
-            &camera,
-            query.view(),
-            &start,
-            AlignedParameters::Pose,
-            &config,
-            &mut workspace,
-        )
-        .unwrap();
+        let refinement = refined(&mesh, &camera, &query, &start, &config, &mut workspace);
         let aligned_delta_px = delta(&refinement.aligned_cam_from_world);
         println!(
             "ideal query: δ {start_delta_px:.2} px → {aligned_delta_px:.3} px; support {:.2} → {:.2}",
@@ -639,16 +630,7 @@ mod tests {
             "{refinement:?}"
         );
 
-        let from_truth = refine_pose(
-            &mesh,
-            &camera,
-            query.view(),
-            &truth,
-            AlignedParameters::Pose,
-            &config,
-            &mut workspace,
-        )
-        .unwrap();
+        let from_truth = refined(&mesh, &camera, &query, &truth, &config, &mut workspace);
         let stays_px = delta(&from_truth.aligned_cam_from_world);
         assert!(stays_px < 0.2, "{stays_px}");
     }
@@ -709,16 +691,14 @@ mod tests {
         let mut config = RegistrationConfig::default();
         config.edge_align.estimate_rounding = true;
         let query = ideal_query(&mesh, &camera, &truth, &config);
-        let refinement = refine_pose(
+        let refinement = refined(
             &mesh,
             &camera,
-            query.view(),
+            &query,
             &truth,
-            AlignedParameters::Pose,
             &config,
             &mut RefineWorkspace::default(),
-        )
-        .unwrap();
+        );
         let stays_px = mutual_reprojection_error_px(
             &mesh,
             &camera,
