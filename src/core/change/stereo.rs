@@ -1405,7 +1405,13 @@ mod tests {
 
     /// Ground (60 × 60 m) and a 6 × 4 × 4 m box at the origin.
     fn scene() -> Mesh {
-        let (x0, x1, y0, y1, z) = (-3.0, 3.0, -2.0, 2.0, 4.0);
+        ground_and_box(6.0, 4.0, 4.0)
+    }
+
+    /// Ground (60 × 60 m) and a box `size_x_m` × `size_y_m` × `height_m` centred at the origin.
+    fn ground_and_box(size_x_m: f64, size_y_m: f64, height_m: f64) -> Mesh {
+        let (x0, x1) = (-size_x_m / 2.0, size_x_m / 2.0);
+        let (y0, y1, z) = (-size_y_m / 2.0, size_y_m / 2.0, height_m);
         mesh_of(&[
             [
                 [-30.0, -30.0, 0.0],
@@ -1554,20 +1560,7 @@ mod tests {
     /// Ground and a 3 × 3 × 10 m tower at the origin: neighbours 5 m to either side see
     /// different strips of ground behind it.
     fn tower() -> Mesh {
-        let (x0, x1, y0, y1, z) = (-1.5, 1.5, -1.5, 1.5, 10.0);
-        mesh_of(&[
-            [
-                [-30.0, -30.0, 0.0],
-                [30.0, -30.0, 0.0],
-                [30.0, 30.0, 0.0],
-                [-30.0, 30.0, 0.0],
-            ],
-            [[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]],
-            [[x0, y0, 0.0], [x1, y0, 0.0], [x1, y0, z], [x0, y0, z]],
-            [[x1, y0, 0.0], [x1, y1, 0.0], [x1, y1, z], [x1, y0, z]],
-            [[x1, y1, 0.0], [x0, y1, 0.0], [x0, y1, z], [x1, y1, z]],
-            [[x0, y1, 0.0], [x0, y0, 0.0], [x0, y0, z], [x0, y1, z]],
-        ])
+        ground_and_box(3.0, 3.0, 10.0)
     }
 
     /// The reference pixels whose true point the first view of `others` sees occluded (its own
