@@ -8,13 +8,14 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
+use asgreg::core::confidence::ConfidenceConfig;
 use asgreg::core::edge_align::{AlignedKinds, EdgeAlignConfig};
 use asgreg::core::flow_consistency::MatchConfig;
 use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig, UnknownIntrinsics};
 use asgreg::core::image::Image;
 use asgreg::core::pose_search::PoseSearchConfig;
 use asgreg::core::shading::AsgOptions;
-use asgreg::core::verify::VerifyConfig;
+use asgreg::core::verify::{OutputChoice, VerifyConfig};
 use asgreg::frame_files::{depth_path_for, FrameLoader, DEFAULT_WORKING_WIDTH_PX};
 use asgreg::io::colmap::{ColmapModel, ImagePose};
 use asgreg::io::colmap_model::write_model_dir;
@@ -363,6 +364,39 @@ pub struct CoarseArgs {
     /// over the full circle at this step, degrees (0: no fallback).
     #[arg(long, default_value_t = PoseSearchConfig::default().heading_sweep_step_deg)]
     pub heading_sweep_deg: f64,
+    /// Which pose of the agreeing refined poses verification outputs (and the final refinement
+    /// starts from).
+    #[arg(long, value_enum, default_value_t = VerifyOutputArg::Medoid)]
+    pub verify_output: VerifyOutputArg,
+    /// Accept a pose only when the visible model could move at most this much (δ, px) per px of
+    /// edge noise given the photo's edges that support it (the δ uncertainty).
+    #[arg(long, default_value_t = ConfidenceConfig::default().max_delta_uncertainty_px)]
+    pub max_delta_uncertainty_px: f64,
+    /// Accept a pose only when moving it 12 px (δ) along the direction its edges see least loses
+    /// at least this share of its edge support above chance (0..1; 0: no such test).
+    #[arg(long, default_value_t = ConfidenceConfig::default().min_least_seen_drop)]
+    pub min_least_seen_drop: f64,
+}
+
+/// Which pose of the agreeing refined poses a frame outputs.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum VerifyOutputArg {
+    /// The paper's rule: the largest RANSAC consensus.
+    Consensus,
+    /// The member with the smallest total δ to the others.
+    Medoid,
+    /// The members' mean pose.
+    Mean,
+}
+
+impl From<VerifyOutputArg> for OutputChoice {
+    fn from(arg: VerifyOutputArg) -> Self {
+        match arg {
+            VerifyOutputArg::Consensus => Self::LargestConsensus,
+            VerifyOutputArg::Medoid => Self::Medoid,
+            VerifyOutputArg::Mean => Self::Mean,
+        }
+    }
 }
 
 impl Default for CoarseArgs {
@@ -393,6 +427,9 @@ impl Default for CoarseArgs {
             search_roll_deg: PoseSearchConfig::default().roll_half_range_deg,
             centre_agreement_share: PoseSearchConfig::default().centre_agreement_share,
             heading_sweep_deg: PoseSearchConfig::default().heading_sweep_step_deg,
+            verify_output: VerifyOutputArg::Medoid,
+            max_delta_uncertainty_px: ConfidenceConfig::default().max_delta_uncertainty_px,
+            min_least_seen_drop: ConfidenceConfig::default().min_least_seen_drop,
         }
     }
 }
@@ -526,7 +563,13 @@ pub fn registration_config(
         },
         verify: VerifyConfig {
             max_convergence_ratio: coarse.max_convergence_ratio,
+            output: coarse.verify_output.into(),
             ..defaults.verify
+        },
+        confidence: ConfidenceConfig {
+            max_delta_uncertainty_px: coarse.max_delta_uncertainty_px,
+            min_least_seen_drop: coarse.min_least_seen_drop,
+            ..defaults.confidence
         },
         asg: AsgOptions {
             occlusion_depth_ratio: coarse.asg_occlusion_contours,

@@ -733,6 +733,32 @@ pub struct SupportPeak {
     /// direction free; results written before it existed read as 0).
     #[serde(default)]
     pub image_uncertainty_px: f64,
+    /// [`delta_uncertainty_px`] at the pose: the visible model's expected motion (δ) per px of
+    /// edge noise given the supported edges ([`UNBOUNDED_IMAGE_UNCERTAINTY_PX`] when a direction
+    /// is free or the model's rendering was not at hand; results written before it existed read
+    /// as 0).
+    #[serde(default)]
+    pub delta_uncertainty_px: f64,
+    /// Mean share supported at the two poses the direction the edges see least
+    /// ([`least_seen_step`]) reaches when the visible model moves by `near_shift_px` (and by
+    /// `far_shift_px`, next) either way; 0 without the model's rendering (or in older files).
+    #[serde(default)]
+    pub least_seen_near: f64,
+    #[serde(default)]
+    pub least_seen_far: f64,
+}
+
+impl SupportPeak {
+    /// The share of the support above chance (`at_pose − far`) lost where the least seen
+    /// direction moves the model by the far ring's shift: 1 when the support there is at
+    /// chance, 0 (or less) when it is as high as at the pose. 0 without support above chance.
+    pub fn least_seen_drop(&self) -> f64 {
+        let above_chance = self.at_pose - self.far;
+        if above_chance <= 0.0 {
+            return 0.0;
+        }
+        (self.at_pose - self.least_seen_far) / above_chance
+    }
 }
 
 /// Image shifts of [`support_peak`]'s two rings, px: the near one just beyond the final search
@@ -749,6 +775,7 @@ pub fn support_peak(
     camera: &Camera,
     cam_from_world: &Rigid3,
     at_pose: &EdgeEvidence,
+    model_metric: Option<&Matrix6<f64>>,
     config: &EdgeAlignConfig,
 ) -> SupportPeak {
     let focal_px = 0.5 * (camera.intrinsics.fx_px + camera.intrinsics.fy_px);
@@ -772,13 +799,35 @@ pub fn support_peak(
         total / 8.0
     };
     let [near_shift_px, far_shift_px] = SUPPORT_PEAK_SHIFTS_PX;
+    let supported = supported_information(samples, query, camera, cam_from_world, config);
+    let delta_uncertainty_px = model_metric.map_or(UNBOUNDED_IMAGE_UNCERTAINTY_PX, |metric| {
+        delta_uncertainty_px(&supported.information, metric)
+    });
+    // Support where the least seen direction moves the model by each ring's shift (both ways).
+    let least_seen =
+        model_metric.and_then(|metric| least_seen_step(&supported.information, metric));
+    let along_least_seen = |shift_px: f64| {
+        least_seen.map_or(0.0, |step| {
+            [1.0, -1.0]
+                .iter()
+                .map(|sign| {
+                    let moved = apply_pose_step(cam_from_world, &(step * (sign * shift_px)));
+                    edge_evidence(samples, query, camera, &moved, config).support_fraction()
+                })
+                .sum::<f64>()
+                / 2.0
+        })
+    };
     SupportPeak {
         at_pose: at_pose.support_fraction(),
         near: ring(near_shift_px),
         far: ring(far_shift_px),
         near_shift_px,
         far_shift_px,
-        image_uncertainty_px: image_uncertainty_px(samples, query, camera, cam_from_world, config),
+        least_seen_near: along_least_seen(near_shift_px),
+        least_seen_far: along_least_seen(far_shift_px),
+        image_uncertainty_px: image_uncertainty_of(supported, camera),
+        delta_uncertainty_px,
     }
 }
 
@@ -801,12 +850,20 @@ pub fn image_uncertainty_px(
     cam_from_world: &Rigid3,
     config: &EdgeAlignConfig,
 ) -> f64 {
+    image_uncertainty_of(
+        supported_information(samples, query, camera, cam_from_world, config),
+        camera,
+    )
+}
+
+/// [`image_uncertainty_px`] from the supported edges' information.
+fn image_uncertainty_of(supported: SupportedInformation, camera: &Camera) -> f64 {
     let intrinsics = &camera.intrinsics;
     let SupportedInformation {
         information,
         mut depths_m,
         ..
-    } = supported_information(samples, query, camera, cam_from_world, config);
+    } = supported;
     if depths_m.is_empty() {
         return UNBOUNDED_IMAGE_UNCERTAINTY_PX;
     }
@@ -1055,20 +1112,66 @@ pub fn edge_observability(
     if samples == 0 {
         return None;
     }
-    // Rotation (rad) and translation (m) differ in scale by orders of magnitude; a relative
-    // floor keeps the factorisation of a near-singular metric (a planar view) stable.
-    let floor = metric.diagonal().max() * 1e-12;
-    let lower = (metric + Matrix6::identity() * floor).cholesky()?.l();
-    let lower_inverse = lower.try_inverse()?;
-    let whitened = lower_inverse * information * lower_inverse.transpose();
-    let eigenvalues =
-        nalgebra::SymmetricEigen::new((whitened + whitened.transpose()) * 0.5).eigenvalues;
+    let eigenvalues = generalized_eigenvalues(information, metric)?;
     let mut figures: Vec<f64> = eigenvalues
         .iter()
         .map(|lambda| (lambda.max(0.0) / samples as f64).sqrt())
         .collect();
     figures.sort_by(f64::total_cmp);
     Some(Vector6::from_vec(figures))
+}
+
+/// The generalized eigenvalues λ of `information` against `metric` (`information v = λ metric v`):
+/// per eigen-direction scaled to move the visible model by 1 px RMS, the information the edges
+/// hold about it. `None` when the metric cannot be factorised.
+fn generalized_eigenvalues(
+    information: &Matrix6<f64>,
+    metric: &Matrix6<f64>,
+) -> Option<Vector6<f64>> {
+    // Rotation (rad) and translation (m) differ in scale by orders of magnitude; a relative
+    // floor keeps the factorisation of a near-singular metric (a planar view) stable.
+    let floor = metric.diagonal().max() * 1e-12;
+    let lower = (metric + Matrix6::identity() * floor).cholesky()?.l();
+    let lower_inverse = lower.try_inverse()?;
+    let whitened = lower_inverse * information * lower_inverse.transpose();
+    Some(nalgebra::SymmetricEigen::new((whitened + whitened.transpose()) * 0.5).eigenvalues)
+}
+
+/// The direction of pose motion the edges see least: the step `ξ` (as [`apply_pose_step`] takes
+/// it) of the smallest generalized eigenvalue of `information` against `metric`, scaled so that
+/// it moves the visible model by 1 px RMS (`ξᵀ M ξ = 1`). `None` when the metric cannot be
+/// factorised.
+pub fn least_seen_step(information: &Matrix6<f64>, metric: &Matrix6<f64>) -> Option<Vector6<f64>> {
+    let floor = metric.diagonal().max() * 1e-12;
+    let lower = (metric + Matrix6::identity() * floor).cholesky()?.l();
+    let lower_inverse = lower.try_inverse()?;
+    let whitened = lower_inverse * information * lower_inverse.transpose();
+    let eigen = nalgebra::SymmetricEigen::new((whitened + whitened.transpose()) * 0.5);
+    let least = eigen.eigenvalues.imin();
+    Some(lower_inverse.transpose() * eigen.eigenvectors.column(least))
+}
+
+/// How firmly the photo's edges fix the evaluation's own measure: the expected δ, px RMS, of the
+/// visible model (its image-motion `metric`, [`image_motion_metric`]) under the pose covariance
+/// that the supported edges' Gauss–Newton `information` gives with 1 px of noise per sample,
+/// `√tr(M Σ)` = `√Σ 1/λ` over the generalized eigenvalues. Unlike [`image_uncertainty_px`] (a
+/// fronto-parallel grid at the edges' median depth) it weighs the model where it is: the near
+/// ground of a low view, which an orbit about the building moves most while its edges barely
+/// move. [`UNBOUNDED_IMAGE_UNCERTAINTY_PX`] when a direction is free or the metric is singular.
+pub fn delta_uncertainty_px(information: &Matrix6<f64>, metric: &Matrix6<f64>) -> f64 {
+    let Some(eigenvalues) = generalized_eigenvalues(information, metric) else {
+        return UNBOUNDED_IMAGE_UNCERTAINTY_PX;
+    };
+    let largest = eigenvalues.max();
+    if largest <= 0.0 || eigenvalues.min() <= largest * 1e-12 {
+        return UNBOUNDED_IMAGE_UNCERTAINTY_PX;
+    }
+    eigenvalues
+        .iter()
+        .map(|lambda| 1.0 / lambda)
+        .sum::<f64>()
+        .sqrt()
+        .min(UNBOUNDED_IMAGE_UNCERTAINTY_PX)
 }
 
 /// [`edge_observability`] of the pose `cam_from_world` from its model edge `samples` that a photo
@@ -1133,7 +1236,7 @@ fn supported_information(
 
 /// Every how many pixels (rows and columns) a rendering's surface is sampled for its image-motion
 /// metric: ~2,000 points at 505×275.
-const MOTION_METRIC_STRIDE_PX: usize = 8;
+pub const MOTION_METRIC_STRIDE_PX: usize = 8;
 
 /// A model edge sample matched to a photo ridge in one step of [`align_level`].
 struct EdgeMatch {
@@ -1320,6 +1423,27 @@ mod tests {
             "{figures} vs {expected}"
         );
         assert_eq!(edge_observability(&information, 0, &metric), None);
+        // The expected δ under the covariance is √tr(M Σ): dominated by the least seen direction.
+        let expected_delta_px = per_px
+            .iter()
+            .map(|e| 1.0 / (e * e * samples as f64))
+            .sum::<f64>()
+            .sqrt();
+        let trace_px = (metric * information.try_inverse().unwrap()).trace().sqrt();
+        let delta_px = delta_uncertainty_px(&information, &metric);
+        assert!((delta_px - expected_delta_px).abs() < 1e-9 * expected_delta_px);
+        assert!(
+            (delta_px - trace_px).abs() < 1e-6 * trace_px,
+            "{delta_px} vs {trace_px}"
+        );
+        // A direction the edges do not see at all leaves δ unbounded.
+        let blind = inverse.transpose()
+            * Matrix6::from_diagonal(&Vector6::new(100.0, 81.0, 25.0, 9.0, 1.0, 0.0))
+            * inverse;
+        assert_eq!(
+            delta_uncertainty_px(&blind, &metric),
+            UNBOUNDED_IMAGE_UNCERTAINTY_PX
+        );
     }
 
     #[test]

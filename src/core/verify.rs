@@ -65,6 +65,11 @@ pub enum OutputChoice {
     /// cluster of biased matches wins it; the medoid is the pose the others agree with.
     #[default]
     Medoid,
+    /// The component's mean pose (rotation: the normalised sum of the members' sign-aligned
+    /// quaternions; camera centre: the members' mean), with the medoid's camera and consensus.
+    /// The members come from different coarse poses and so from different flows; where their
+    /// errors are independent the mean averages them, the medoid keeps one member's error.
+    Mean,
 }
 
 impl Default for VerifyConfig {
@@ -164,12 +169,24 @@ pub enum RejectionReason {
         edge_support_chance: f64,
     },
     /// The pose's edge support is high but comes from edges that do not fix it (a sliver of the
-    /// model, parallel lines): the frame's image could move `image_uncertainty_px` per px of
-    /// edge noise ([`crate::core::edge_align::image_uncertainty_px`]), more than `max_px`.
+    /// model, parallel lines, a building seen from a low orbit): the frame's image could move
+    /// `image_uncertainty_px` per px of edge noise
+    /// ([`crate::core::edge_align::image_uncertainty_px`]), more than `max_px`, or the visible
+    /// model `delta_uncertainty_px` ([`crate::core::edge_align::delta_uncertainty_px`]), more
+    /// than `max_delta_px`.
     Unconstrained {
         confidence: f64,
         image_uncertainty_px: f64,
         max_px: f64,
+        #[serde(default)]
+        delta_uncertainty_px: f64,
+        #[serde(default)]
+        max_delta_px: f64,
+        /// [`crate::core::edge_align::SupportPeak::least_seen_drop`] and its minimum.
+        #[serde(default)]
+        least_seen_drop: f64,
+        #[serde(default)]
+        min_least_seen_drop: f64,
     },
     /// The photo confirms two distinct poses, from different centres of the pose search: the
     /// frame cannot be decided without a better prior (never a coin toss).
@@ -229,9 +246,15 @@ impl std::fmt::Display for RejectionReason {
                 confidence,
                 image_uncertainty_px,
                 max_px,
+                delta_uncertainty_px,
+                max_delta_px,
+                least_seen_drop,
+                min_least_seen_drop,
             } => write!(
                 f,
-                "the photo's edges that support the pose (confidence {confidence:.2}) do not fix it: the frame could move {image_uncertainty_px:.1} px per px of edge noise (at most {max_px:.1} allowed); too little of the model is in view, or only parallel edges"
+                "the photo's edges that support the pose (confidence {confidence:.2}) do not fix it: per px of edge noise the frame could move {image_uncertainty_px:.1} px (at most {max_px:.1} allowed) and the visible model {delta_uncertainty_px:.2} px (at most {max_delta_px:.2}); moved 12 px along the direction the edges see least, the pose keeps {:.0} % of its support above chance (at most {:.0} % allowed); too little of the model is in view, only parallel edges, or a building seen from low down whose edges barely move as the camera orbits it",
+                100.0 * (1.0 - least_seen_drop),
+                100.0 * (1.0 - min_least_seen_drop)
             ),
             RejectionReason::Ambiguous {
                 confidence,
@@ -422,12 +445,16 @@ pub fn verify_hypotheses_with_coarse(
                 max_ratio: config.max_convergence_ratio,
             })
     };
+    let output = match config.output {
+        OutputChoice::Mean => mean_of_component(&component, hypotheses, chosen),
+        OutputChoice::LargestConsensus | OutputChoice::Medoid => hypotheses[chosen],
+    };
     Verdict {
         decision: match rejection {
-            None => Ok(hypotheses[chosen]),
+            None => Ok(output),
             Some(reason) => Err(Rejection {
                 reason,
-                candidate: Some(hypotheses[chosen]),
+                candidate: Some(output),
             }),
         },
         component,
@@ -466,7 +493,7 @@ fn choose_output(
             .copied()
             .max_by(|&a, &b| by_consensus(a, b))
             .unwrap_or(0),
-        OutputChoice::Medoid => component
+        OutputChoice::Medoid | OutputChoice::Mean => component
             .iter()
             .map(|&a| {
                 let total_delta_px: f64 = component.iter().map(|&b| delta_px[a * n + b]).sum();
@@ -477,6 +504,36 @@ fn choose_output(
             })
             .map_or(0, |(chosen, _)| chosen),
     }
+}
+
+/// [`OutputChoice::Mean`]: `hypotheses[chosen]` with the mean pose of the `component`'s members.
+fn mean_of_component(
+    component: &[usize],
+    hypotheses: &[PoseHypothesis],
+    chosen: usize,
+) -> PoseHypothesis {
+    let mut output = hypotheses[chosen];
+    if component.len() < 2 {
+        return output;
+    }
+    let reference = output.cam_from_world.rotation.coords;
+    let mut rotation_sum = nalgebra::Vector4::zeros();
+    let mut centre_sum = nalgebra::Vector3::zeros();
+    for &member in component {
+        let pose = &hypotheses[member].cam_from_world;
+        let coords = pose.rotation.coords;
+        rotation_sum += if coords.dot(&reference) < 0.0 {
+            -coords
+        } else {
+            coords
+        };
+        centre_sum += pose.camera_center();
+    }
+    let rotation =
+        nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::from(rotation_sum));
+    let centre = centre_sum / component.len() as f64;
+    output.cam_from_world = Rigid3::new(rotation, -(rotation * centre));
+    output
 }
 
 /// Mean pairwise δ of the component's refined poses over the mean pairwise δ of their coarse
@@ -866,6 +923,49 @@ mod tests {
         // (4 + 2 + 2 + 4) / 4 px: the medoid is tighter with the group, so more confident.
         assert!((medoid.mean_delta_to_chosen_px - 3.0).abs() < 1e-6);
         assert!(medoid.confidence > paper.confidence);
+    }
+
+    #[test]
+    fn the_mean_output_averages_the_members_errors() {
+        // Members 0.1–0.7 m either side of a pose at x = 1 m, each also turned by its own small
+        // angle; their errors cancel in the mean, which no single member has.
+        let offsets_m = [-0.7, -0.3, -0.1, 0.2, 0.4, 0.5];
+        let hypotheses: Vec<_> = offsets_m
+            .iter()
+            .map(|offset_m| {
+                let mut member = hypothesis(1.0 + offset_m, 100);
+                member.cam_from_world.rotation =
+                    UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.01 * offset_m, 0.0));
+                member
+            })
+            .collect();
+        let verdict = verify_hypotheses(
+            &wall(),
+            &hypotheses,
+            None,
+            &VerifyConfig {
+                output: OutputChoice::Mean,
+                ..VerifyConfig::default()
+            },
+            &mut ReprojectionWorkspace::new(),
+        );
+        assert!(verdict.accepted(), "{verdict:?}");
+        assert_eq!(verdict.component.len(), offsets_m.len());
+        let output = verdict.chosen().unwrap();
+        let centre = output.cam_from_world.camera_center();
+        let expected_x_m = -1.0; // camera centre of translation (1, 0, 0) with no rotation
+        assert!((centre.x - expected_x_m).abs() < 1e-3, "{centre}");
+        assert!(output.cam_from_world.rotation.angle() < 1e-4);
+        // The medoid is one of the members, 0.1 m or more off.
+        let medoid = verify_hypotheses(
+            &wall(),
+            &hypotheses,
+            None,
+            &VerifyConfig::default(),
+            &mut ReprojectionWorkspace::new(),
+        );
+        let medoid_x_m = medoid.chosen().unwrap().cam_from_world.camera_center().x;
+        assert!((medoid_x_m - expected_x_m).abs() > 0.05, "{medoid_x_m}");
     }
 
     #[test]

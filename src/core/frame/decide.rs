@@ -264,17 +264,27 @@ pub(super) fn reject(verdict: &mut Verdict, reason: RejectionReason) {
 /// The accept decision on the calibrated confidence (issue #11 item 4): the verdict's confidence
 /// becomes the model's probability that the output pose is correct, and the frame is accepted
 /// exactly when it reaches the threshold and the supporting edges fix the pose (their image
-/// uncertainty is within `max_image_uncertainty_px`). A pose the refined poses agreed on but the
+/// uncertainty is within `max_image_uncertainty_px`, the visible model's within
+/// `max_delta_uncertainty_px`). A pose the refined poses agreed on but the
 /// photo's edges do not confirm is rejected ([`RejectionReason::NotConfirmed`]), one they
 /// confirm without fixing it too ([`RejectionReason::Unconstrained`]); a pose the photo
 /// confirms is accepted even when the agreement test failed (its reason is then moot).
 fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceConfig) {
     let confidence = config.model.probability(evidence);
     verdict.confidence = confidence;
-    let image_uncertainty_px = evidence
-        .edges
-        .map_or(f64::INFINITY, |peak| peak.image_uncertainty_px);
-    let fixed = image_uncertainty_px <= config.max_image_uncertainty_px;
+    let (image_uncertainty_px, delta_uncertainty_px, least_seen_drop) =
+        evidence
+            .edges
+            .map_or((f64::INFINITY, f64::INFINITY, 0.0), |peak| {
+                (
+                    peak.image_uncertainty_px,
+                    peak.delta_uncertainty_px,
+                    peak.least_seen_drop(),
+                )
+            });
+    let fixed = image_uncertainty_px <= config.max_image_uncertainty_px
+        && delta_uncertainty_px <= config.max_delta_uncertainty_px
+        && least_seen_drop >= config.min_least_seen_drop;
     let confirmed = confidence >= config.accept_above && fixed;
     match &verdict.decision {
         Ok(chosen) if !confirmed => {
@@ -283,6 +293,10 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
                     confidence,
                     image_uncertainty_px,
                     max_px: config.max_image_uncertainty_px,
+                    delta_uncertainty_px,
+                    max_delta_px: config.max_delta_uncertainty_px,
+                    least_seen_drop,
+                    min_least_seen_drop: config.min_least_seen_drop,
                 }
             } else {
                 let (edge_support, edge_support_chance) = evidence

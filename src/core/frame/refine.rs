@@ -9,8 +9,9 @@ use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
-    align_level, blurred_query, edge_evidence, model_edge_samples, sharpened_samples, support_peak,
-    AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary, SupportPeak,
+    align_level, blurred_query, edge_evidence, image_motion_metric, model_edge_samples,
+    sharpened_samples, support_peak, AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample,
+    LevelSummary, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
 use crate::core::feature_align::{align_dense_level, dense_samples, DenseSample};
 use crate::core::image::{Image, ImageView};
@@ -263,6 +264,7 @@ pub fn refine_pose(
     };
     sample_at(rasterizer, view, camera, start, samples, &mut rendered);
     let verified = edge_evidence(samples, &query, camera, start, align);
+    let start_metric = image_motion_metric(&view.render, camera, MOTION_METRIC_STRIDE_PX);
     start_samples.clone_from(samples);
     start_asg.clone_from(&view.asg);
     start_faces.clone_from(view.render.face_index());
@@ -412,7 +414,16 @@ pub fn refine_pose(
     // The last rendering (`view`) is at the aligned pose; the start's was kept.
     let (peak, correlation) = if kept {
         (
-            support_peak(samples, &query, &aligned_camera, &pose, &aligned, align),
+            support_peak(
+                samples,
+                &query,
+                &aligned_camera,
+                &pose,
+                &aligned,
+                image_motion_metric(&view.render, &aligned_camera, MOTION_METRIC_STRIDE_PX)
+                    .as_ref(),
+                align,
+            ),
             correlation_peak(
                 view.asg.view(),
                 view.render.face_index().view(),
@@ -422,7 +433,15 @@ pub fn refine_pose(
         )
     } else {
         (
-            support_peak(start_samples, &query, camera, start, &verified, align),
+            support_peak(
+                start_samples,
+                &query,
+                camera,
+                start,
+                &verified,
+                start_metric.as_ref(),
+                align,
+            ),
             correlation_peak(
                 start_asg.view(),
                 start_faces.view(),
