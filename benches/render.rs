@@ -341,6 +341,15 @@ fn main() {
         let mut group = criterion.benchmark_group(format!("render_{width}x{height}"));
         group.bench_function("rasterise", |b| b.iter(|| frame.render(&mesh, &pose)));
         group.bench_function("asg", |b| b.iter(|| frame.asg()));
+        // Depth and face index only (verify's visible points, δ): the binning and the depth
+        // pass without the normals, the part of a rendering that sub-pixel faces dominate.
+        let mut depth_only = Frame {
+            rasterizer: Rasterizer::depth_and_faces_only(),
+            ..Frame::new(width, height)
+        };
+        group.bench_function("depth_and_faces_only", |b| {
+            b.iter(|| depth_only.render(&mesh, &pose))
+        });
         group.bench_function("rasterise+asg", |b| {
             b.iter(|| {
                 frame.render(&mesh, &pose);

@@ -12,6 +12,8 @@ static ALLOCATOR: asgreg::fuzz::alloc_guard::GuardedAllocator =
     asgreg::fuzz::alloc_guard::GuardedAllocator;
 
 fn main() -> std::process::ExitCode {
+    // Freed buffers stay in the heap for the next frame (no page faults); results unchanged.
+    asgreg::runtime::heap::keep_freed_memory();
     let args = cli::Cli::parse();
     cli::init_logging(args.verbose);
     match cli::run(args) {

@@ -203,6 +203,9 @@ pub struct Rasterizer {
     vertices_cam: Vec<Vec3>,
     /// Projection of each slot; meaningful only for vertices in front of the near plane.
     vertices_screen: Vec<ScreenVertex>,
+    /// Whether each slot lies in front of the near plane (camera z ≥ near): the binning's test
+    /// of a face's corners reads these bytes, not the camera-frame corners.
+    vertices_in_front: Vec<bool>,
     /// Camera-frame vertex normal of each slot (meshes with vertex normals).
     normals_cam: Vec<Vec3>,
     /// `bins[chunk]`: the faces of a chunk of the visible faces that cover a pixel centre,
@@ -407,13 +410,16 @@ impl Rasterizer {
         self.vertices_cam.resize(slot_count, Vec3::ZERO);
         self.vertices_screen
             .resize(slot_count, ScreenVertex::default());
+        self.vertices_in_front.resize(slot_count, false);
         self.vertices_cam
             .par_iter_mut()
             .zip(self.vertices_screen.par_iter_mut())
+            .zip(self.vertices_in_front.par_iter_mut())
             .zip(self.visible_vertices.par_iter())
-            .for_each(|((cam, screen), &v)| {
+            .for_each(|(((cam, screen), in_front), &v)| {
                 *cam = rotation_f32 * positions[v as usize] + translation_f32;
-                if cam.z >= projector.near_m {
+                *in_front = cam.z >= projector.near_m;
+                if *in_front {
                     *screen = projector.screen_vertex(*cam);
                 }
             });
@@ -437,6 +443,7 @@ impl Rasterizer {
         let visible_faces = &self.visible_faces;
         let vertices_cam = &self.vertices_cam;
         let vertices_screen = &self.vertices_screen;
+        let vertices_in_front = &self.vertices_in_front;
         let chunk_len = visible_faces.len().div_ceil(chunk_count).max(1);
         self.bins
             .par_iter_mut()
@@ -451,11 +458,19 @@ impl Rasterizer {
                 let start = (chunk_index * chunk_len).min(visible_faces.len());
                 let end = (start + chunk_len).min(visible_faces.len());
                 for (slot, face) in (start..end).zip(&visible_faces[start..end]) {
-                    let corners = face.corners.map(|v| vertices_cam[v as usize]);
                     let screen = face.corners.map(|v| vertices_screen[v as usize]);
-                    let Some(pixel_box) =
-                        face_pixel_box(&corners, &screen, &projector, options, width, height)
-                    else {
+                    let [in_front_0, in_front_1, in_front_2] =
+                        face.corners.map(|v| vertices_in_front[v as usize]);
+                    // Most faces: wholly in front, no culling; the camera-frame corners are
+                    // read only for the others.
+                    let pixel_box =
+                        if in_front_0 & in_front_1 & in_front_2 & !options.cull_back_faces {
+                            screen_pixel_box(&screen, width, height)
+                        } else {
+                            let corners = face.corners.map(|v| vertices_cam[v as usize]);
+                            face_pixel_box(&corners, &screen, &projector, options, width, height)
+                        };
+                    let Some(pixel_box) = pixel_box else {
                         continue;
                     };
                     let position = chunk.prepared.len() as u32;
@@ -603,40 +618,57 @@ fn face_pixel_box(
     if options.cull_back_faces && is_back_facing(corners) {
         return None;
     }
+    if in_front == 3 {
+        return screen_pixel_box(screen, width, height);
+    }
+    // Project the near-clipped polygon: its corners are the in-front vertices and the
+    // crossings of the near plane.
     let mut min = Vec2::splat(f32::INFINITY);
     let mut max = Vec2::splat(f32::NEG_INFINITY);
-    if in_front == 3 {
-        for s in screen {
-            min = min.min(s.position_px);
-            max = max.max(s.position_px);
+    let mut extend = |p: Vec3| {
+        let s = projector.project(p);
+        min = min.min(s);
+        max = max.max(s);
+    };
+    for i in 0..3 {
+        let a = corners[i];
+        let b = corners[(i + 1) % 3];
+        if a.z >= near {
+            extend(a);
         }
-    } else {
-        // Project the near-clipped polygon: its corners are the in-front vertices and the
-        // crossings of the near plane.
-        let mut extend = |p: Vec3| {
-            let s = projector.project(p);
-            min = min.min(s);
-            max = max.max(s);
-        };
-        for i in 0..3 {
-            let a = corners[i];
-            let b = corners[(i + 1) % 3];
-            if a.z >= near {
-                extend(a);
-            }
-            if (a.z >= near) != (b.z >= near) {
-                let t = (near - a.z) / (b.z - a.z);
-                extend(a + (b - a) * t);
-            }
+        if (a.z >= near) != (b.z >= near) {
+            let t = (near - a.z) / (b.z - a.z);
+            extend(a + (b - a) * t);
         }
     }
     if !min.is_finite() || !max.is_finite() {
         return None;
     }
     let [cols, rows] = pixel_box(min, max, width, height)?;
+    Some(PixelBox {
+        cols,
+        rows,
+        clipped: true,
+    })
+}
+
+/// [`face_pixel_box`] of a face wholly in front of the near plane, from its corners'
+/// projections alone (the binning's common case).
+#[inline(always)]
+fn screen_pixel_box(screen: &[ScreenVertex; 3], width: usize, height: usize) -> Option<PixelBox> {
+    let mut min = Vec2::splat(f32::INFINITY);
+    let mut max = Vec2::splat(f32::NEG_INFINITY);
+    for s in screen {
+        min = min.min(s.position_px);
+        max = max.max(s.position_px);
+    }
+    if !(min.is_finite() & max.is_finite()) {
+        return None;
+    }
+    let [cols, rows] = pixel_box(min, max, width, height)?;
     // A box around a single pixel centre (most sub-pixel triangles): test that centre now, with
     // the arithmetic `draw_triangle` uses, instead of binning a triangle that misses it.
-    if in_front == 3 && rows[0] == rows[1] && cols[0] == cols[1] {
+    if (rows[0] == rows[1]) & (cols[0] == cols[1]) {
         let centre = Vec2::new(cols[0] as f32 + 0.5, rows[0] as f32 + 0.5);
         let setup = TriangleSetup::new(screen)?;
         let (w_start, inv_depth_start) = setup.at(centre);
@@ -645,7 +677,7 @@ fn face_pixel_box(
     Some(PixelBox {
         cols,
         rows,
-        clipped: in_front < 3,
+        clipped: false,
     })
 }
 
@@ -663,16 +695,26 @@ fn triangle_pixel_box(
 /// The columns and rows `[first, last]` of the pixel centres (at +0.5) inside the box
 /// `min ..= max`, clamped to the image: `ceil(min − 0.5) ..= floor(max − 0.5)`; `None` when the
 /// box holds no pixel centre of the image.
+#[inline(always)]
 fn pixel_box(min: Vec2, max: Vec2, width: usize, height: usize) -> Option<[[u32; 2]; 2]> {
-    if max.x < 0.5 || max.y < 0.5 || min.x > width as f32 - 0.5 || min.y > height as f32 - 0.5 {
+    let (width_f, height_f) = (width as f32, height as f32);
+    if (max.x < 0.5) | (max.y < 0.5) | (min.x > width_f - 0.5) | (min.y > height_f - 0.5) {
         return None;
     }
-    // Clamp before rounding so that the fast rounding never sees huge values.
-    let first_row = ceil_px((min.y - 0.5).max(-1.0)).max(0.0);
-    let last_row = floor_px((max.y - 0.5).min(height as f32)).min(height as f32 - 1.0);
-    let first_col = ceil_px((min.x - 0.5).max(-1.0)).max(0.0);
-    let last_col = floor_px((max.x - 0.5).min(width as f32)).min(width as f32 - 1.0);
-    if !(first_row <= last_row && first_col <= last_col) {
+    // Clamp before rounding so that the fast rounding never sees huge values (nor NaN: the
+    // clamps return the bound then); the four roundings in one go, `ceil(x) = −floor(−x)`.
+    // The results are whole numbers within the image, so integers hold them exactly.
+    let [minus_first_col, minus_first_row, last_col, last_row] = floor_px4([
+        -(min.x - 0.5).max(-1.0),
+        -(min.y - 0.5).max(-1.0),
+        (max.x - 0.5).min(width_f),
+        (max.y - 0.5).min(height_f),
+    ]);
+    let first_row = (-minus_first_row).max(0);
+    let last_row = last_row.min(height as i32 - 1);
+    let first_col = (-minus_first_col).max(0);
+    let last_col = last_col.min(width as i32 - 1);
+    if !((first_row <= last_row) & (first_col <= last_col)) {
         return None;
     }
     Some([
@@ -707,7 +749,7 @@ impl TriangleSetup {
     fn new(screen: &[ScreenVertex; 3]) -> Option<Self> {
         let [p0, p1, p2] = screen.map(|s| s.position_px);
         let signed_area = edge_function(p0, p1, p2);
-        if !signed_area.is_finite() || signed_area.abs() < 1e-12 {
+        if !signed_area.is_finite() | (signed_area.abs() < 1e-12) {
             return None;
         }
         let orientation = signed_area.signum();
@@ -746,7 +788,7 @@ impl TriangleSetup {
         let w0 = w_start[0] + step_x[0] * offset;
         let w1 = w_start[1] + step_x[1] * offset;
         let w2 = w_start[2] + step_x[2] * offset;
-        if w0 < 0.0 || w1 < 0.0 || w2 < 0.0 {
+        if (w0 < 0.0) | (w1 < 0.0) | (w2 < 0.0) {
             return None;
         }
         let sum_inv_depth = inv_depth_start + self.inv_depth_step_x * offset;
@@ -766,6 +808,33 @@ fn floor_px(x: f32) -> f32 {
         truncated - 1.0
     } else {
         truncated
+    }
+}
+
+/// [`floor_px`] of four values at once (finite, integer parts within `i32`), as integers: the
+/// same truncate-and-correct arithmetic, so the same whole numbers.
+#[inline(always)]
+fn floor_px4(x: [f32; 4]) -> [i32; 4] {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{
+            __m128i, _mm_add_epi32, _mm_castps_si128, _mm_cmpgt_ps, _mm_cvtepi32_ps,
+            _mm_cvttps_epi32, _mm_setr_ps,
+        };
+        // SAFETY: SSE2 is part of the x86-64 baseline, so these instructions always exist;
+        // `__m128i` and `[i32; 4]` have the same size, and every bit pattern is valid for both.
+        unsafe {
+            let v = _mm_setr_ps(x[0], x[1], x[2], x[3]);
+            let truncated = _mm_cvttps_epi32(v);
+            // All ones (−1) in the lanes where truncation went up, i.e. below zero.
+            let above = _mm_castps_si128(_mm_cmpgt_ps(_mm_cvtepi32_ps(truncated), v));
+            let floored: __m128i = _mm_add_epi32(truncated, above);
+            std::mem::transmute::<__m128i, [i32; 4]>(floored)
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        x.map(|v| floor_px(v) as i32)
     }
 }
 
@@ -940,6 +1009,20 @@ fn shade_band(
 mod tests {
     use super::*;
     use nalgebra::Vector3;
+
+    #[test]
+    fn four_floors_at_once_are_the_scalar_floors() {
+        let mut values = vec![
+            0.0f32, -0.0, 0.5, -0.5, 1.0, -1.0, 504.999, 505.0, -1e-7, 1e-7,
+        ];
+        values.extend((0..2000).map(|k| (k as f32 - 1000.0) * 0.2537));
+        for quad in values.chunks(4) {
+            let mut x = [0.0f32; 4];
+            x[..quad.len()].copy_from_slice(quad);
+            assert_eq!(floor_px4(x), x.map(|v| floor_px(v) as i32), "{x:?}");
+            assert_eq!(floor_px4(x), x.map(|v| v.floor() as i32), "{x:?}");
+        }
+    }
 
     /// A 2 m × 2 m square in the plane z = 5 m (world = camera), facing the camera.
     fn square_facing_camera() -> Mesh {
@@ -1319,6 +1402,10 @@ mod tests {
                 (
                     r.vertices_screen.as_ptr() as usize,
                     r.vertices_screen.capacity(),
+                ),
+                (
+                    r.vertices_in_front.as_ptr() as usize,
+                    r.vertices_in_front.capacity(),
                 ),
                 (r.bins.as_ptr() as usize, r.bins.capacity()),
                 (

@@ -2,13 +2,15 @@
 //! (`dispatch`), the bus wrappers (`bus`), the results collector and summary (`collect`), the
 //! one-process runner (`run_in_process`), the process supervisor (`launch`), the results
 //! journal that makes "has a result" survive a crash (`journal`), verify's durable stereo views
-//! (`views`) and the end-to-end acks that make a result lost in flight be sent again (`ack`).
+//! (`views`), the end-to-end acks that make a result lost in flight be sent again (`ack`) and the
+//! process's heap settings (`heap`).
 
 pub mod ack;
 pub mod bus;
 pub mod collect;
 pub mod config;
 pub mod dispatch;
+pub mod heap;
 pub mod journal;
 pub mod launch;
 pub mod nodes;
