@@ -68,6 +68,22 @@ pub struct ChangesArgs {
     /// Without --depth: least grey standard deviation of a window (0..1 grey).
     #[arg(long, default_value_t = StereoConfig::default().min_texture)]
     pub stereo_min_texture: f32,
+    /// Without --depth: the texture test against the photo's noise, one-sided normal quantile of
+    /// its χ² test over the window and over its centre (3.09: p = 0.001; 0: no test).
+    #[arg(long, default_value_t = StereoConfig::default().sweep_texture_z)]
+    pub stereo_sweep_texture_z: f32,
+    /// Without --depth: half side of the centre window of that test, working pixels (0: the
+    /// whole window only).
+    #[arg(long, default_value_t = StereoConfig::default().centre_radius_px)]
+    pub stereo_centre_radius_px: usize,
+    /// Without --depth: the model test's texture test against the photo's noise (normal
+    /// quantile; 0: min_texture only).
+    #[arg(long, default_value_t = StereoConfig::default().model_test_texture_z)]
+    pub stereo_model_test_texture_z: f32,
+    /// Without --depth: the model test judges a pixel on its own model surface only, this far
+    /// (working px) from the model's depth edges (0: the whole visible window, as before).
+    #[arg(long, default_value_t = StereoConfig::default().model_test_edge_px)]
+    pub stereo_model_test_edge_px: usize,
     /// Without --depth: largest accepted cost 1 − ZNCC.
     #[arg(long, default_value_t = StereoConfig::default().max_cost)]
     pub stereo_max_cost: f32,
@@ -133,6 +149,11 @@ pub struct ChangesArgs {
     /// (`core::change::pose_sigma_px_of_registration`).
     #[arg(long)]
     pub registration_report: Option<PathBuf>,
+    /// Keep the registration's u (--pose-sigma-px, --registration-report) instead of measuring
+    /// it per frame from the depth maps (the shift that aligns the model's rendered depth with
+    /// the photo's, `core::change::depth_misalignment`; registered poses only).
+    #[arg(long)]
+    pub no_pose_sigma_from_depth: bool,
     /// Without --depth: σ_rel of the stereo depth maps (--relative-sigma is the given maps').
     #[arg(long, default_value_t = ChangeConfig::default().stereo_relative_sigma)]
     pub stereo_relative_sigma: f32,
@@ -172,6 +193,10 @@ impl ChangesArgs {
             stereo_window_radius_px: StereoConfig::default().window_radius_px,
             stereo_uniqueness_margin: StereoConfig::default().uniqueness_margin,
             stereo_min_texture: StereoConfig::default().min_texture,
+            stereo_sweep_texture_z: StereoConfig::default().sweep_texture_z,
+            stereo_model_test_texture_z: StereoConfig::default().model_test_texture_z,
+            stereo_model_test_edge_px: StereoConfig::default().model_test_edge_px,
+            stereo_centre_radius_px: StereoConfig::default().centre_radius_px,
             stereo_max_cost: StereoConfig::default().max_cost,
             stereo_no_left_right: false,
             stereo_consistency_neighbours: StereoConfig::default().consistency_neighbours,
@@ -189,6 +214,7 @@ impl ChangesArgs {
             edge_tolerance_px: change.edge_tolerance_px,
             pose_sigma_px: change.pose_sigma_px,
             registration_report: None,
+            no_pose_sigma_from_depth: false,
             stereo_relative_sigma: change.stereo_relative_sigma,
             merge_distance_m: fusion.merge_distance_m,
             min_frames: fusion.min_frames,
@@ -202,6 +228,10 @@ impl ChangesArgs {
             window_radius_px: self.stereo_window_radius_px,
             uniqueness_margin: self.stereo_uniqueness_margin,
             min_texture: self.stereo_min_texture,
+            sweep_texture_z: self.stereo_sweep_texture_z,
+            model_test_texture_z: self.stereo_model_test_texture_z,
+            model_test_edge_px: self.stereo_model_test_edge_px,
+            centre_radius_px: self.stereo_centre_radius_px,
             max_cost: self.stereo_max_cost,
             left_right_check: !self.stereo_no_left_right,
             consistency_neighbours: self.stereo_consistency_neighbours,
@@ -230,6 +260,7 @@ impl ChangesArgs {
             edge_tolerance_px: self.edge_tolerance_px,
             pose_sigma_px: self.pose_sigma_px,
             stereo_relative_sigma: self.stereo_relative_sigma,
+            pose_sigma_from_depth: !self.no_pose_sigma_from_depth,
             ..ChangeConfig::default()
         }
     }
@@ -535,11 +566,12 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         )?);
         page_pictures.push((image.name.clone(), pictures));
         tracing::info!(
-            "{}: {} regions ({} added, {} removed px) in {detect_ms:.1} ms",
+            "{}: {} regions ({} added, {} removed px, u {:.1} px) in {detect_ms:.1} ms",
             image.name,
             changes.regions.len(),
             changes.counts.added,
-            changes.counts.removed
+            changes.counts.removed,
+            changes.pose_sigma_px
         );
         frames.push(FrameChangeReport {
             name: image.name.clone(),
@@ -547,7 +579,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             counts: changes.counts,
             regions: changes.regions,
             detect_ms,
-            pose_sigma_px: frame_config.pose_sigma_px,
+            pose_sigma_px: changes.pose_sigma_px,
             stereo,
         });
     }

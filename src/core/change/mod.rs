@@ -155,6 +155,13 @@ pub struct ChangeConfig {
     /// (docs/measurements.md, branch `change14`: the block's extension, 1–3 m in front of a wall
     /// at 40 m, was under a 2.8 m threshold with σ_rel = 0.01).
     pub stereo_relative_sigma: f32,
+    /// Under a registered pose (`pose_sigma_px` > 0), take u from the data instead: the image
+    /// shift that best aligns the model's rendered depth with the photo's depth
+    /// ([`depth_misalignment`]), its length. The registration's spread says 2–7 px on frames
+    /// that are under 1 px off and 3–5 px on frames 15–17 px off (block seed 2,
+    /// docs/measurements.md, branch `change13`); the depth maps themselves show how far the
+    /// model lies from the photo. Ground-truth poses (u = 0) are not touched.
+    pub pose_sigma_from_depth: bool,
 }
 
 /// The largest [`ChangeConfig::pose_sigma_px`]: a pose that far off is no registration to
@@ -176,6 +183,7 @@ impl Default for ChangeConfig {
             edge_tolerance_px: 5,
             pose_sigma_px: 0.0,
             stereo_relative_sigma: 0.0,
+            pose_sigma_from_depth: true,
         }
     }
 }
@@ -337,6 +345,175 @@ pub fn pose_error_sigma_m(
     }
 }
 
+/// Relative depth difference at which [`depth_misalignment`]'s cost saturates: a depth edge
+/// (a building against the ground behind it, 5–50 %) counts fully, and the gradual change of an
+/// oblique surface (0.2–0.5 % per px at 40–100 m) in proportion.
+const ALIGNMENT_TRUNCATION: f32 = 0.1;
+
+/// Least share of the sampled photo depths a shift must still compare for
+/// [`depth_misalignment`] to consider it (a shift that pushes most of the model out of the
+/// image compares too little to be told from the others).
+const ALIGNMENT_MIN_SHARE: f32 = 0.5;
+
+/// How well the model's rendered depth lines up with the photo's depth under image shifts.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DepthAlignment {
+    /// The shift (col, row), px, at which the model's depth best matches the photo's: the
+    /// photo's pixel x sees what the model renders at x + shift (sub-pixel by parabolas).
+    pub shift_px: [f32; 2],
+    /// Its mean truncated relative depth difference, and at no shift.
+    pub cost: f32,
+    pub cost_at_zero: f32,
+    /// Photo depths compared at no shift.
+    pub samples: usize,
+    /// The best shift lies on the searched square's border: the misalignment may be larger.
+    pub at_border: bool,
+}
+
+impl DepthAlignment {
+    /// The shift's length, px.
+    pub fn length_px(&self) -> f32 {
+        self.shift_px[0].hypot(self.shift_px[1])
+    }
+}
+
+/// The image shift within ±`max_shift_px` that best aligns `model_depth_m` (the model rendered
+/// under the frame's pose) with `photo_depth_m` (0 = hole): on a grid of every `stride_px`-th
+/// pixel with a photo depth, the mean of `min(|p − m| / m, 0.1)` between the photo's depth p at
+/// x and the model's m at x + shift, shifts by 2 px over the square; then on every pixel the
+/// best's eight neighbours and a parabola through each axis's neighbours. A pose a few pixels off moves the model's
+/// depth edges that far from the photo's, so the shift measures the pose's error as an image
+/// displacement where it matters for the comparison, independently of the registration's own
+/// account of it; changed objects are a minority of the pixels and do not move the minimum.
+/// A translation stands for the whole frame: a rotation about the optical axis or parallax
+/// between near and far surfaces leaves part of the error unmeasured. `None` when fewer than 100
+/// photo depths fall on the model.
+pub fn depth_misalignment(
+    model_depth_m: ImageView<'_, f32>,
+    photo_depth_m: ImageView<'_, f32>,
+    max_shift_px: usize,
+    stride_px: usize,
+) -> Option<DepthAlignment> {
+    let (w, h) = photo_depth_m.size();
+    if model_depth_m.size() != (w, h) || w == 0 || h == 0 {
+        return None;
+    }
+    let (photo, model) = (photo_depth_m.data(), model_depth_m.data());
+    let valid = |d: f32| d.is_finite() && d > 0.0;
+    let samples_every = |stride: usize| -> Vec<(usize, usize, f32)> {
+        (0..h)
+            .step_by(stride)
+            .flat_map(|row| (0..w).step_by(stride).map(move |col| (col, row)))
+            .filter_map(|(col, row)| {
+                let p = photo[row * w + col];
+                valid(p).then_some((col, row, p))
+            })
+            .collect()
+    };
+    let on_model = |samples: &[(usize, usize, f32)]| {
+        samples
+            .iter()
+            .filter(|(col, row, _)| valid(model[row * w + col]))
+            .count()
+    };
+    let cost = |samples: &[(usize, usize, f32)], least: usize, dx: i64, dy: i64| -> f32 {
+        let (mut sum, mut count) = (0.0f32, 0usize);
+        for &(col, row, p) in samples {
+            let (c, r) = (col as i64 + dx, row as i64 + dy);
+            if c < 0 || r < 0 || c >= w as i64 || r >= h as i64 {
+                continue;
+            }
+            let m = model[r as usize * w + c as usize];
+            if valid(m) {
+                sum += ((p - m).abs() / m).min(ALIGNMENT_TRUNCATION);
+                count += 1;
+            }
+        }
+        if count < least.max(1) {
+            f32::INFINITY
+        } else {
+            sum / count as f32
+        }
+    };
+    // The square by 2 px on a sparse grid (`stride_px`), then the best's neighbours and the
+    // parabolas on every pixel: a grid of stride 2 cannot place an edge to better than 2 px.
+    let coarse = samples_every(stride_px.max(1));
+    let coarse_least = (on_model(&coarse) as f32 * ALIGNMENT_MIN_SHARE) as usize;
+    let all = samples_every(1);
+    let at_zero = on_model(&all);
+    if at_zero < 100 {
+        return None;
+    }
+    let least = (at_zero as f32 * ALIGNMENT_MIN_SHARE) as usize;
+    let s = max_shift_px as i64;
+    let mut coarse_best = (0i64, 0i64, cost(&coarse, coarse_least, 0, 0));
+    for dy in (-s..=s).step_by(2) {
+        for dx in (-s..=s).step_by(2) {
+            let c = cost(&coarse, coarse_least, dx, dy);
+            if c < coarse_best.2 {
+                coarse_best = (dx, dy, c);
+            }
+        }
+    }
+    let fine = |dx: i64, dy: i64| cost(&all, least, dx, dy);
+    let cost_at_zero = fine(0, 0);
+    let (cx, cy) = (coarse_best.0, coarse_best.1);
+    let mut best = (cx, cy, fine(cx, cy));
+    for dy in (cy - 1).max(-s)..=(cy + 1).min(s) {
+        for dx in (cx - 1).max(-s)..=(cx + 1).min(s) {
+            let c = fine(dx, dy);
+            if c < best.2 {
+                best = (dx, dy, c);
+            }
+        }
+    }
+    let (bx, by, bc) = best;
+    let refine = |before: f32, after: f32| -> f32 {
+        let curvature = before + after - 2.0 * bc;
+        if before.is_finite() && after.is_finite() && curvature > 0.0 {
+            (0.5 * (before - after) / curvature).clamp(-0.5, 0.5)
+        } else {
+            0.0
+        }
+    };
+    let ox = refine(fine(bx - 1, by), fine(bx + 1, by));
+    let oy = refine(fine(bx, by - 1), fine(bx, by + 1));
+    Some(DepthAlignment {
+        shift_px: [bx as f32 + ox, by as f32 + oy],
+        cost: bc.min(cost_at_zero),
+        cost_at_zero,
+        samples: at_zero,
+        at_border: bx.abs() >= s || by.abs() >= s,
+    })
+}
+
+/// The pose error u (px) a frame's change map allows for under [`ChangeConfig`]: the
+/// registration's `pose_sigma_px` as given, or with `pose_sigma_from_depth` (and a registered
+/// pose, u > 0) the length of [`depth_misalignment`]'s shift, searched up to
+/// [`MAX_POSE_SIGMA_PX`] (the largest u where the best shift is at the border or cannot be
+/// measured: the pose is at least that far off).
+pub fn frame_pose_sigma_px(
+    config: &ChangeConfig,
+    model_depth_m: ImageView<'_, f32>,
+    photo_depth_m: ImageView<'_, f32>,
+) -> f32 {
+    if !(config.pose_sigma_from_depth && config.pose_sigma_px > 0.0) {
+        return config.pose_sigma_px;
+    }
+    match depth_misalignment(
+        model_depth_m,
+        photo_depth_m,
+        MAX_POSE_SIGMA_PX as usize,
+        ALIGNMENT_STRIDE_PX,
+    ) {
+        Some(alignment) if !alignment.at_border => alignment.length_px().min(MAX_POSE_SIGMA_PX),
+        _ => MAX_POSE_SIGMA_PX,
+    }
+}
+
+/// Sampling stride of [`frame_pose_sigma_px`]'s coarse search, px (a quarter of the pixels).
+const ALIGNMENT_STRIDE_PX: usize = 2;
+
 /// One changed region of one frame.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeRegion {
@@ -383,6 +560,8 @@ pub struct ClassCounts {
 pub struct FrameChanges {
     pub counts: ClassCounts,
     pub regions: Vec<ChangeRegion>,
+    /// The pose error u the threshold allowed for, px ([`frame_pose_sigma_px`]).
+    pub pose_sigma_px: f32,
 }
 
 /// Reusable buffers of change detection.
@@ -844,13 +1023,18 @@ pub fn detect_changes(
         &mut workspace.model,
     );
     let model_depth = workspace.model.depth_m().view();
+    let pose_sigma_px = frame_pose_sigma_px(config, model_depth, photo_depth_m);
+    let config = &ChangeConfig {
+        pose_sigma_px,
+        ..*config
+    };
     pose_error_sigma_m(
         model_depth,
-        config.pose_sigma_px,
+        pose_sigma_px,
         &mut workspace.pose_sigma_m,
         &mut workspace.pose_scratch,
     );
-    let pose_sigma = (config.pose_sigma_px > 0.0).then(|| workspace.pose_sigma_m.view());
+    let pose_sigma = (pose_sigma_px > 0.0).then(|| workspace.pose_sigma_m.view());
     classify_pixels(
         photo_depth_m,
         model_depth,
@@ -874,6 +1058,7 @@ pub fn detect_changes(
     Ok(FrameChanges {
         counts: class_counts(classes.view()),
         regions,
+        pose_sigma_px,
     })
 }
 
@@ -1301,5 +1486,93 @@ pub(crate) mod tests {
             assert_eq!(ChangeClass::from_mask_value(class.mask_value()), class);
             assert_eq!(ChangeClass::from(u8::from(class)), class);
         }
+    }
+
+    /// A city-like model depth, 240×160 px: an oblique ground (60 m at the top row, 0.1 m
+    /// nearer a row) with six buildings 8–20 m in front of it.
+    fn city_depth(col: i64, row: i64) -> f32 {
+        let ground = 60.0 - 0.1 * row as f32;
+        let mut d = ground;
+        for (k, (c0, r0)) in [
+            (20, 20),
+            (90, 30),
+            (160, 15),
+            (40, 100),
+            (120, 90),
+            (190, 110),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            if (c0..c0 + 30).contains(&col) && (r0..r0 + 25).contains(&row) {
+                d = ground - 8.0 - 2.0 * k as f32;
+            }
+        }
+        d
+    }
+
+    #[test]
+    fn the_depth_misalignment_is_the_shift_between_the_model_and_the_photo() {
+        let (w, h) = (240usize, 160usize);
+        let model = Image::from_fn(w, h, |col, row| city_depth(col as i64, row as i64));
+        for shift in [(3i64, -2i64), (0, 0), (-7, 5)] {
+            // The photo's pixel x sees what the model renders at x + shift, with a new
+            // 25 × 25 px building the model lacks, holes on every 7th pixel and a 0.5 % error.
+            let photo = Image::from_fn(w, h, |col, row| {
+                if (col * 3 + row * 5) % 7 == 0 {
+                    return 0.0;
+                }
+                let (c, r) = (col as i64 + shift.0, row as i64 + shift.1);
+                let d = if (200..225).contains(&col) && (40..65).contains(&row) {
+                    40.0
+                } else {
+                    city_depth(c, r)
+                };
+                d * (1.0 + 0.005 * (((col * 7 + row * 13) % 11) as f32 / 5.0 - 1.0))
+            });
+            let found = depth_misalignment(model.view(), photo.view(), 16, 2)
+                .expect("enough depth to align");
+            let [dx, dy] = found.shift_px;
+            assert!(
+                (dx - shift.0 as f32).abs() < 0.35 && (dy - shift.1 as f32).abs() < 0.35,
+                "true {shift:?}, found ({dx}, {dy})"
+            );
+            assert!(!found.at_border);
+            assert!(found.cost <= found.cost_at_zero);
+        }
+        // Beyond the search: the best shift lies on the border.
+        let far = Image::from_fn(w, h, |col, row| city_depth(col as i64 + 20, row as i64));
+        let found = depth_misalignment(model.view(), far.view(), 8, 2).expect("enough depth");
+        assert!(found.at_border, "{found:?}");
+        // No photo depth on the model: nothing to measure.
+        let empty = Image::filled(w, h, 0.0f32);
+        assert!(depth_misalignment(model.view(), empty.view(), 8, 2).is_none());
+    }
+
+    #[test]
+    fn the_frame_pose_sigma_comes_from_the_depths_only_under_registered_poses() {
+        let (w, h) = (240usize, 160usize);
+        let model = Image::from_fn(w, h, |col, row| city_depth(col as i64, row as i64));
+        let photo = Image::from_fn(w, h, |col, row| city_depth(col as i64 + 4, row as i64 - 3));
+        let registered = ChangeConfig {
+            pose_sigma_px: 9.0,
+            ..ChangeConfig::default()
+        };
+        let u = frame_pose_sigma_px(&registered, model.view(), photo.view());
+        assert!((u - 5.0).abs() < 0.3, "u {u}");
+        let kept = ChangeConfig {
+            pose_sigma_from_depth: false,
+            ..registered
+        };
+        assert_eq!(frame_pose_sigma_px(&kept, model.view(), photo.view()), 9.0);
+        // Ground truth (u = 0) stays exact whatever the depths say.
+        let truth = ChangeConfig::default();
+        assert_eq!(frame_pose_sigma_px(&truth, model.view(), photo.view()), 0.0);
+        // Unmeasurable: the largest u.
+        let empty = Image::filled(w, h, 0.0f32);
+        assert_eq!(
+            frame_pose_sigma_px(&registered, model.view(), empty.view()),
+            MAX_POSE_SIGMA_PX
+        );
     }
 }

@@ -15,7 +15,9 @@
 //! - per plane the mean of the best `best_k` neighbour costs (a neighbour that sees the pixel
 //!   occluded drops out), then winner-take-all over the planes with a parabola through the best
 //!   plane and its two neighbours (sub-plane);
-//! - holes where unsure: reference window untextured (grey std below `min_texture`), best cost
+//! - holes where unsure: reference window untextured (grey std below `min_texture`, or with
+//!   `sweep_texture_z` its variance, or its centre's, not significantly above the photo's
+//!   noise; off by default), best cost
 //!   above `max_cost`, best at either end of the range, a second minimum (more than 2 planes away)
 //!   within `uniqueness_margin` of the best (flat or repetitive cost), and, with
 //!   `left_right_check`, the geometric consistency check against the neighbours' own depths (the
@@ -29,7 +31,10 @@
 //!   z (`atanh ρ`, standard error `1/√(best_k·(n − 3))` for a window of n pixels); where the
 //!   photo's depth does not beat the model's by `model_test_sigmas` standard errors the data do not
 //!   contradict the model, and the change map reports no change there (a wrong far match on a
-//!   weakly textured or oblique surface: docs/measurements.md, branch `change12`);
+//!   weakly textured or oblique surface: docs/measurements.md, branch `change12`); both are
+//!   scored on the window pixels of the centre's own model surface away from the model's depth
+//!   edges (`model_test_edge_px`): a far match resting on texture across the model's edge (a
+//!   curb behind a flat roof) is untestable, which counts as plausible (branch `change13`);
 //! - the working depth brought back to the reference's size: bilinear in inverse depth where the
 //!   four taps agree within 5 %, else the nearest tap.
 //!
@@ -79,6 +84,34 @@ pub struct StereoConfig {
     pub max_cost: f32,
     /// Least grey standard deviation of the reference window (0..1 grey).
     pub min_texture: f32,
+    /// The sweep's texture test against the photo's own noise ([`texture_is_significant`]): a
+    /// window's grey variance must exceed the noise's (σ from [`noise_sigma`] of the working
+    /// reference) at this one-sided normal quantile of the χ² test (3.09: p = 0.001), over the
+    /// whole window and over its centre ((2·`centre_radius_px`+1)²), else the pixel is a hole.
+    /// 0 (default) switches it off: measured on the `synth --changes` scenes it loses a true
+    /// object on block seed 1 and on house seed 1 and two thirds of block seed 2's true
+    /// `removed` pixels, and leaves most of the roof-edge band it was meant for (the curb's light
+    /// blurs 1–2 px into the roof, so the centre is textured; docs/measurements.md, `change13`).
+    pub sweep_texture_z: f32,
+    /// Half side of the centre window of that test, working pixels (0: the whole window only).
+    pub centre_radius_px: usize,
+    /// The model test's texture test: the window pixels it compares the two hypotheses on must
+    /// have a grey variance significantly above the photo's noise at this normal quantile
+    /// (3.09: p = 0.001), else that neighbour cannot judge the pixel; 0 (default): `min_texture`
+    /// only. Measured with the surface restriction (`model_test_edge_px`): 3.09 changes no
+    /// object on the six stereo cells and lowers the true `removed` pixels' recall (block seed 2
+    /// 0.28 → 0.21; docs/measurements.md, branch `change13`).
+    pub model_test_texture_z: f32,
+    /// With `model_test_edge_px` > 0 the model test judges a pixel only on window pixels of its
+    /// own model surface (model depth within 5 % of the centre's) that lie at least this many
+    /// working pixels from a depth edge of the model ([`near_model_edge`]; their grey is blurred
+    /// across the edge: a roof pixel next to its edge holds light of the curb behind it), at
+    /// least 9 of them. Texture across the model's edge is the other surface's: on a flat roof
+    /// whose only texture was the curb behind its edge, the curb matched a far plane and the
+    /// model lost (block seed 2, branch `change13`); without that texture the pixel is
+    /// untestable, which counts as model-plausible. 0: the window pixels the model lets the
+    /// neighbour see, at least half the window (branch `change12`).
+    pub model_test_edge_px: usize,
     /// A second minimum more than 2 planes from the best must cost at least this much more.
     pub uniqueness_margin: f32,
     /// Check each depth against the neighbours' own depths (one-pair sweeps back from them).
@@ -126,6 +159,10 @@ impl Default for StereoConfig {
             best_k: 2,
             max_cost: 0.5,
             min_texture: 0.004,
+            sweep_texture_z: 0.0,
+            centre_radius_px: 1,
+            model_test_texture_z: 0.0,
+            model_test_edge_px: 1,
             uniqueness_margin: 0.02,
             left_right_check: true,
             consistency_neighbours: MAX_NEIGHBOURS,
@@ -196,13 +233,17 @@ impl StereoConfig {
             || self.consistency_neighbours == 0
             || !(self.max_cost > 0.0
                 && self.min_texture >= 0.0
+                && self.sweep_texture_z >= 0.0
+                && self.model_test_texture_z >= 0.0
+                && self.model_test_edge_px <= 8
+                && self.centre_radius_px <= self.window_radius_px
                 && self.uniqueness_margin >= 0.0
                 && self.model_test_sigmas >= 0.0
                 && self.consistency_planes > 0.0)
         {
             return bad(format!(
-                "best_k {} and consistency_neighbours {} must be ≥ 1, max_cost {} > 0, min_texture {} ≥ 0, uniqueness_margin {} ≥ 0, consistency_planes {} > 0",
-                self.best_k, self.consistency_neighbours, self.max_cost, self.min_texture, self.uniqueness_margin, self.consistency_planes
+                "best_k {} and consistency_neighbours {} must be ≥ 1, max_cost {} > 0, min_texture {} ≥ 0, sweep_texture_z {} and model_test_texture_z {} ≥ 0, centre_radius_px {} ≤ window_radius_px, model_test_edge_px {} ≤ 8, uniqueness_margin {} ≥ 0, consistency_planes {} > 0",
+                self.best_k, self.consistency_neighbours, self.max_cost, self.min_texture, self.sweep_texture_z, self.model_test_texture_z, self.centre_radius_px, self.model_test_edge_px, self.uniqueness_margin, self.consistency_planes
             ));
         }
         if !(self.near_factor > 0.0 && self.near_factor <= 1.0 && self.far_factor >= 1.0) {
@@ -807,8 +848,64 @@ fn box_sums(
     }
 }
 
+/// The grey noise's standard deviation of an image, robustly: the median absolute response of
+/// the 3×3 kernel `[1 −2 1; −2 4 −2; 1 −2 1]` (it cancels constant, linear and bilinear grey
+/// levels, so smooth shading does not count; for white noise of σ its response has standard
+/// deviation 6σ), over 0.6745 (the median of |N(0, 1)|). The median keeps edges and texture
+/// from counting in full: where they touch a share s of the pixels it reads the noise's
+/// `0.5 / (1 − s)` quantile instead of its median (s = 6 %: about 7 % too high). Pixels an area downsampling averaged are no longer
+/// independent, which lowers the estimate slightly; 0 for an image under 3×3.
+pub fn noise_sigma(image: ImageView<'_, f32>) -> f32 {
+    let (w, h) = image.size();
+    if w < 3 || h < 3 {
+        return 0.0;
+    }
+    let data = image.data();
+    let at = |col: usize, row: usize| data[row * w + col];
+    let mut responses: Vec<f32> = Vec::with_capacity((w - 2) * (h - 2));
+    for row in 1..h - 1 {
+        for col in 1..w - 1 {
+            let corners = at(col - 1, row - 1)
+                + at(col + 1, row - 1)
+                + at(col - 1, row + 1)
+                + at(col + 1, row + 1);
+            let sides = at(col, row - 1) + at(col, row + 1) + at(col - 1, row) + at(col + 1, row);
+            responses.push((corners - 2.0 * sides + 4.0 * at(col, row)).abs());
+        }
+    }
+    let middle = responses.len() / 2;
+    let (_, median, _) = responses.select_nth_unstable_by(middle, f32::total_cmp);
+    *median / (0.6745 * 6.0)
+}
+
+/// The `z` upper quantile of the χ² distribution with `dof` degrees of freedom (Wilson–Hilferty:
+/// `dof·(1 − 2/(9·dof) + z·√(2/(9·dof)))³`; within 1 % of the exact quantile from 4 dof at
+/// p = 0.001). `z` is the standard normal quantile (3.09 for p = 0.001).
+pub fn chi_square_quantile(dof: f64, z: f64) -> f64 {
+    if dof <= 0.0 {
+        return 0.0;
+    }
+    let a = 2.0 / (9.0 * dof);
+    dof * (1.0 - a + z * a.sqrt()).max(0.0).powi(3)
+}
+
+/// Whether a window of `count` grey values with (population) variance `variance` holds texture
+/// beyond noise of standard deviation `noise_sigma`: the χ² test of `count·variance/σ²` (χ² with
+/// `count − 1` degrees of freedom for pure noise) at the normal quantile `z`. With `z` = 3.09
+/// pure noise passes once in a thousand windows.
+pub fn texture_is_significant(variance: f32, count: usize, noise_sigma: f32, z: f32) -> bool {
+    if count < 2 {
+        return false;
+    }
+    let noise_var = f64::from(noise_sigma).powi(2);
+    count as f64 * f64::from(variance)
+        >= chi_square_quantile((count - 1) as f64, f64::from(z)) * noise_var
+}
+
 /// Per reference pixel: window mean and standard deviation of the grey values; `None` where the
-/// window leaves the image or is untextured.
+/// window leaves the image or is untextured: its standard deviation below `min_texture`, or,
+/// with `sweep_texture_z` > 0, the window's or its centre's variance not significantly above the
+/// photo's noise ([`texture_is_significant`]).
 fn reference_stats(photo: &Image<f32>, config: &StereoConfig) -> Vec<Option<(f32, f32)>> {
     let (w, h) = photo.size();
     let r = config.window_radius_px;
@@ -817,6 +914,19 @@ fn reference_stats(photo: &Image<f32>, config: &StereoConfig) -> Vec<Option<(f32
     let mut tmp = vec![[0.0; 4]; w * h];
     let mut sums = vec![[0.0; 4]; w * h];
     box_sums(&src, w, h, r, &mut tmp, &mut sums);
+    let significance = (config.sweep_texture_z > 0.0).then(|| {
+        let sigma = noise_sigma(photo.view());
+        let rc = config.centre_radius_px;
+        let mut centre = vec![[0.0; 4]; w * h];
+        if rc > 0 {
+            box_sums(&src, w, h, rc, &mut tmp, &mut centre);
+        }
+        (sigma, rc, centre)
+    });
+    let variance = |s: [f32; 4], count: f32| {
+        let mean = s[0] / count;
+        (s[1] / count - mean * mean).max(0.0)
+    };
     (0..w * h)
         .map(|index| {
             let (col, row) = (index % w, index / w);
@@ -824,8 +934,24 @@ fn reference_stats(photo: &Image<f32>, config: &StereoConfig) -> Vec<Option<(f32
                 return None;
             }
             let mean = sums[index][0] / n;
-            let std = (sums[index][1] / n - mean * mean).max(0.0).sqrt();
-            (std >= config.min_texture.max(1e-4)).then_some((mean, std))
+            let var = variance(sums[index], n);
+            let std = var.sqrt();
+            if std < config.min_texture.max(1e-4) {
+                return None;
+            }
+            if let Some((sigma, rc, centre)) = &significance {
+                let z = config.sweep_texture_z;
+                if !texture_is_significant(var, n as usize, *sigma, z) {
+                    return None;
+                }
+                let nc = (2 * rc + 1) * (2 * rc + 1);
+                if *rc > 0
+                    && !texture_is_significant(variance(centre[index], nc as f32), nc, *sigma, z)
+                {
+                    return None;
+                }
+            }
+            Some((mean, std))
         })
         .collect()
 }
@@ -944,8 +1070,10 @@ const MODEL_VISIBILITY_TOLERANCE: f32 = 0.02;
 /// the model's surface (each neighbour warped through the model's depth at every window pixel,
 /// so the model's slant and its depth edges are part of it). Both ZNCCs run over the same
 /// window pixels: those on the model's surface whose model point the model itself lets the
-/// neighbour see (its depth rendered there not nearer by over 2 %), when they are at least half
-/// the window and textured; so texture off the model's surface (a curb behind an untextured roof
+/// neighbour see (its depth rendered there not nearer by over 2 %) and, with
+/// `model_test_edge_px`, that are on the centre's own model surface and that far from a depth
+/// edge of the model ([`near_model_edge`]), when they are enough (half the window, or 9) and
+/// textured (`min_texture`, and above the photo's noise with `model_test_texture_z`); so texture off the model's surface (a curb behind an untextured roof
 /// that the sweep matched) or hidden from the neighbour does not decide between them. Then per
 /// hypothesis the mean of the best `best_k` neighbours' `1 − ZNCC`. `None`: no neighbour has
 /// such a window (untestable).
@@ -960,8 +1088,14 @@ fn hypothesis_costs(
     let (w, h) = reference.photo.size();
     let pixels = w * h;
     let r = config.window_radius_px as i64;
-    let least = ((2 * r + 1) * (2 * r + 1)) as f32 * 0.5;
+    let least = if config.model_test_edge_px > 0 {
+        MODEL_TEST_LEAST_PIXELS
+    } else {
+        ((2 * r + 1) * (2 * r + 1)) as f32 * 0.5
+    };
     let min_var = config.min_texture.max(1e-4).powi(2);
+    let noise = noise_sigma(reference.photo.view());
+    let near_edge = near_model_edge(model_depth_m, w, h, config.model_test_edge_px);
     let world_from_reference = reference.cam_from_world.inverse();
     let reference_data = reference.photo.data();
     let mut rasterizer = Rasterizer::new();
@@ -1044,6 +1178,12 @@ fn hypothesis_costs(
                 for rr in (row - r).max(0)..(row + r + 1).min(h as i64) {
                     for cc in (col - r).max(0)..(col + r + 1).min(w as i64) {
                         let q = rr as usize * w + cc as usize;
+                        if near_edge[q]
+                            || (config.model_test_edge_px > 0
+                                && (model_depth_m[q] - model).abs() > MODEL_EDGE_JUMP * model)
+                        {
+                            continue;
+                        }
                         let Some(a) = samples[q] else { continue };
                         let Some(b) = warp
                             .apply(pixel_center(cc as usize, rr as usize), inverse)
@@ -1065,7 +1205,16 @@ fn hypothesis_costs(
                     continue;
                 }
                 let mean_i = sum[1] / n;
-                if sum[2] / n - mean_i * mean_i < min_var {
+                let var_i = sum[2] / n - mean_i * mean_i;
+                if var_i < min_var
+                    || (config.model_test_texture_z > 0.0
+                        && !texture_is_significant(
+                            var_i,
+                            n as usize,
+                            noise,
+                            config.model_test_texture_z,
+                        ))
+                {
                     continue;
                 }
                 model_costs.push(1.0 - zncc(n, sum[1], sum[2], sum[3], sum[4], sum[5]));
@@ -1078,6 +1227,45 @@ fn hypothesis_costs(
         })
         .collect()
 }
+
+/// Per pixel of a `w × h` model depth (0 or not finite: no surface), whether a depth edge of
+/// the model lies within `radius` px: some depth of the (2·radius+1)² window differs from the
+/// pixel's by over 5 %, or the window holds a pixel without surface. All false for radius 0.
+fn near_model_edge(model_depth_m: &[f32], w: usize, h: usize, radius: usize) -> Vec<bool> {
+    let mut out = vec![false; w * h];
+    if radius == 0 {
+        return out;
+    }
+    let valid = |d: f32| d.is_finite() && d > 0.0;
+    for row in 0..h {
+        for col in 0..w {
+            let d = model_depth_m[row * w + col];
+            if !valid(d) {
+                continue;
+            }
+            let mut edge = false;
+            'window: for rr in row.saturating_sub(radius)..(row + radius + 1).min(h) {
+                for cc in col.saturating_sub(radius)..(col + radius + 1).min(w) {
+                    let e = model_depth_m[rr * w + cc];
+                    if !valid(e) || (e - d).abs() > MODEL_EDGE_JUMP * d {
+                        edge = true;
+                        break 'window;
+                    }
+                }
+            }
+            out[row * w + col] = edge;
+        }
+    }
+    out
+}
+
+/// Relative depth jump of the model that [`near_model_edge`] calls an edge, and the most a
+/// window pixel's model depth may differ from the centre's to be on its surface.
+const MODEL_EDGE_JUMP: f32 = 0.05;
+
+/// Least window pixels of the centre's own model surface for the model test to judge it (with
+/// `model_test_edge_px` > 0): a 3 × 3 window's worth.
+const MODEL_TEST_LEAST_PIXELS: f32 = 9.0;
 
 /// One plane sweep of `reference` against `neighbours` (working scale), winner-take-all with
 /// the hole tests except the left-right check.
@@ -1924,5 +2112,130 @@ mod tests {
             depth_from_neighbours(&rig.mesh, &view, &[view], &config),
             Err(StereoError::InvalidConfig(_))
         ));
+    }
+
+    /// Grey noise of standard deviation `sigma` (Box–Muller on a seeded generator).
+    fn gaussian_noise(width_px: usize, height_px: usize, sigma: f32, seed: u64) -> Image<f32> {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        Image::from_fn(width_px, height_px, |_, _| {
+            let (a, b): (f32, f32) = (rng.random_range(1e-7..1.0), rng.random());
+            sigma * (-2.0 * a.ln()).sqrt() * (std::f32::consts::TAU * b).cos()
+        })
+    }
+
+    #[test]
+    fn the_noise_estimate_recovers_the_noise_of_a_shaded_image_with_edges() {
+        let sigma = 0.01;
+        let noise = gaussian_noise(200, 150, sigma, 7);
+        // Smooth shading (a ramp and a bilinear term the kernel cancels) and step edges that
+        // touch 6 % of the pixels: the median must see through both (it moves up by about 7 %).
+        let image = Image::from_fn(200, 150, |col, row| {
+            let shading =
+                0.3 + 0.001 * col as f32 + 0.0005 * row as f32 + 2e-5 * (col * row) as f32;
+            let edge = if row % 50 == 0 && col % 10 < 5 {
+                0.2
+            } else {
+                0.0
+            };
+            shading + edge + noise.data()[row * 200 + col]
+        });
+        let estimate = noise_sigma(image.view());
+        assert!(
+            (estimate - sigma).abs() < 0.12 * sigma,
+            "estimated {estimate}, true {sigma}"
+        );
+        let clean = Image::from_fn(200, 150, |col, row| 0.3 + 0.001 * (col + row) as f32);
+        assert!(noise_sigma(clean.view()) < 1e-4);
+        assert_eq!(noise_sigma(Image::filled(2, 5, 0.5f32).view()), 0.0);
+    }
+
+    #[test]
+    fn the_chi_square_quantile_is_within_two_percent_of_the_tables() {
+        // χ² upper 0.001 quantiles (tables): 8 dof 26.12, 24 dof 51.18; 0.05 (z 1.645): 8 dof
+        // 15.51.
+        for (dof, z, table) in [(8.0, 3.09, 26.12), (24.0, 3.09, 51.18), (8.0, 1.645, 15.51)] {
+            let q = chi_square_quantile(dof, z);
+            assert!(
+                (q - table).abs() < 0.02 * table,
+                "{dof} dof, z {z}: {q} vs {table}"
+            );
+        }
+        assert_eq!(chi_square_quantile(0.0, 3.09), 0.0);
+    }
+
+    #[test]
+    fn pure_noise_windows_are_untextured_and_a_faint_edge_is_texture() {
+        let sigma = 0.005;
+        let noise = gaussian_noise(300, 300, sigma, 3);
+        let (mut passed, mut windows) = (0, 0);
+        for row in (1..299).step_by(3) {
+            for col in (1..299).step_by(3) {
+                let values: Vec<f32> = (row - 1..=row + 1)
+                    .flat_map(|r| (col - 1..=col + 1).map(move |c| (r, c)))
+                    .map(|(r, c)| noise.data()[r * 300 + c])
+                    .collect();
+                let mean = values.iter().sum::<f32>() / 9.0;
+                let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f32>() / 9.0;
+                passed += usize::from(texture_is_significant(var, 9, sigma, 3.09));
+                windows += 1;
+            }
+        }
+        // p = 0.001 by construction: under 0.5 % of 9801 windows.
+        assert!(
+            passed * 200 < windows,
+            "{passed} of {windows} noise windows passed"
+        );
+        // A 3×3 window with one column 4σ brighter: variance (2/9)·16σ² ≈ 3.6σ² against a limit
+        // of about 2.9σ².
+        let step = 4.0 * sigma;
+        let var = (1.0 / 3.0) * (2.0 / 3.0) * step * step;
+        assert!(texture_is_significant(var, 9, sigma, 3.09));
+        assert!(!texture_is_significant(var, 9, sigma, 5.0));
+        assert!(!texture_is_significant(1.0, 1, sigma, 3.09));
+    }
+
+    #[test]
+    fn a_window_whose_only_texture_lies_off_its_centre_is_untextured() {
+        // A flat grey roof (noise only) below a textured curb band (rows 0..10): the windows
+        // of rows 11–12 reach the band, their centres do not.
+        let sigma = 0.005;
+        let noise = gaussian_noise(60, 40, sigma, 11);
+        let photo = Image::from_fn(60, 40, |col, row| {
+            let band = if row < 10 {
+                0.1 * ((col / 2) % 2) as f32
+            } else {
+                0.0
+            };
+            0.4 + band + noise.data()[row * 60 + col]
+        });
+        let with = reference_stats(
+            &photo,
+            &StereoConfig {
+                sweep_texture_z: 3.09,
+                ..StereoConfig::default()
+            },
+        );
+        let without = reference_stats(&photo, &StereoConfig::default());
+        let at = |stats: &[Option<(f32, f32)>], col: usize, row: usize| stats[row * 60 + col];
+        for col in 5..55 {
+            // Old test: the band (row 9) makes row 11's window textured.
+            assert!(at(&without, col, 11).is_some());
+            // New: the centre of row 11 (rows 10–12) and of row 12 hold noise only.
+            assert!(at(&with, col, 11).is_none() && at(&with, col, 12).is_none());
+            // The band's own rows keep their texture.
+            assert!(at(&with, col, 5).is_some());
+        }
+        let flat = (12..35)
+            .flat_map(|row| (2..58).map(move |col| (col, row)))
+            .filter(|&(col, row)| at(&with, col, row).is_some())
+            .count();
+        assert!(flat <= 5, "{flat} noise-only windows kept");
+        // Without the test most noise-only windows pass `min_texture` (σ 0.005 > 0.004).
+        let flat_without = (12..35)
+            .flat_map(|row| (2..58).map(move |col| (col, row)))
+            .filter(|&(col, row)| at(&without, col, row).is_some())
+            .count();
+        assert!(flat_without > 23 * 56 / 2, "{flat_without} of {}", 23 * 56);
     }
 }
