@@ -1128,13 +1128,25 @@ fn generalized_eigenvalues(
     information: &Matrix6<f64>,
     metric: &Matrix6<f64>,
 ) -> Option<Vector6<f64>> {
+    generalized_eigen(information, metric).map(|(eigen, _)| eigen.eigenvalues)
+}
+
+/// The eigen-decomposition of `information` whitened by `metric` (`L⁻¹ I L⁻ᵀ`, `metric = L Lᵀ`)
+/// and `L⁻¹`: an eigenvector `u` is the pose step `L⁻ᵀ u` of the generalized problem.
+fn generalized_eigen(
+    information: &Matrix6<f64>,
+    metric: &Matrix6<f64>,
+) -> Option<(nalgebra::SymmetricEigen<f64, nalgebra::U6>, Matrix6<f64>)> {
     // Rotation (rad) and translation (m) differ in scale by orders of magnitude; a relative
     // floor keeps the factorisation of a near-singular metric (a planar view) stable.
     let floor = metric.diagonal().max() * 1e-12;
     let lower = (metric + Matrix6::identity() * floor).cholesky()?.l();
     let lower_inverse = lower.try_inverse()?;
     let whitened = lower_inverse * information * lower_inverse.transpose();
-    Some(nalgebra::SymmetricEigen::new((whitened + whitened.transpose()) * 0.5).eigenvalues)
+    Some((
+        nalgebra::SymmetricEigen::new((whitened + whitened.transpose()) * 0.5),
+        lower_inverse,
+    ))
 }
 
 /// The direction of pose motion the edges see least: the step `ξ` (as [`apply_pose_step`] takes
@@ -1142,11 +1154,7 @@ fn generalized_eigenvalues(
 /// it moves the visible model by 1 px RMS (`ξᵀ M ξ = 1`). `None` when the metric cannot be
 /// factorised.
 pub fn least_seen_step(information: &Matrix6<f64>, metric: &Matrix6<f64>) -> Option<Vector6<f64>> {
-    let floor = metric.diagonal().max() * 1e-12;
-    let lower = (metric + Matrix6::identity() * floor).cholesky()?.l();
-    let lower_inverse = lower.try_inverse()?;
-    let whitened = lower_inverse * information * lower_inverse.transpose();
-    let eigen = nalgebra::SymmetricEigen::new((whitened + whitened.transpose()) * 0.5);
+    let (eigen, lower_inverse) = generalized_eigen(information, metric)?;
     let least = eigen.eigenvalues.imin();
     Some(lower_inverse.transpose() * eigen.eigenvectors.column(least))
 }
@@ -1436,6 +1444,11 @@ mod tests {
             (delta_px - trace_px).abs() < 1e-6 * trace_px,
             "{delta_px} vs {trace_px}"
         );
+        // The least seen step moves the model by 1 px RMS and the edges by the least figure.
+        let step = least_seen_step(&information, &metric).unwrap();
+        assert!(((step.transpose() * metric * step)[0] - 1.0).abs() < 1e-9);
+        let edge_motion_px = ((step.transpose() * information * step)[0] / samples as f64).sqrt();
+        assert!((edge_motion_px - 0.05).abs() < 1e-9, "{edge_motion_px}");
         // A direction the edges do not see at all leaves δ unbounded.
         let blind = inverse.transpose()
             * Matrix6::from_diagonal(&Vector6::new(100.0, 81.0, 25.0, 9.0, 1.0, 0.0))
