@@ -225,36 +225,30 @@ pub struct ConfidenceConfigError {
 
 impl ConfidenceConfig {
     pub fn validate(&self) -> Result<(), ConfidenceConfigError> {
-        if !(0.0..=1.0).contains(&self.accept_above) {
-            return Err(ConfidenceConfigError {
-                field: "accept_above",
-                why: format!("{} is not within 0..1", self.accept_above),
-            });
-        }
-        if self.max_image_uncertainty_px.is_nan() || self.max_image_uncertainty_px <= 0.0 {
-            return Err(ConfidenceConfigError {
-                field: "max_image_uncertainty_px",
-                why: format!(
-                    "{} px is not a positive number of pixels",
-                    self.max_image_uncertainty_px
-                ),
-            });
-        }
-        if self.max_delta_uncertainty_px.is_nan() || self.max_delta_uncertainty_px <= 0.0 {
-            return Err(ConfidenceConfigError {
-                field: "max_delta_uncertainty_px",
-                why: format!(
-                    "{} px is not a positive number of pixels",
-                    self.max_delta_uncertainty_px
-                ),
-            });
-        }
-        if !(0.0..=1.0).contains(&self.min_least_seen_drop) {
-            return Err(ConfidenceConfigError {
-                field: "min_least_seen_drop",
-                why: format!("{} is not within 0..1", self.min_least_seen_drop),
-            });
-        }
+        let share = |field: &'static str, value: f64| {
+            if (0.0..=1.0).contains(&value) {
+                Ok(())
+            } else {
+                Err(ConfidenceConfigError {
+                    field,
+                    why: format!("{value} is not within 0..1"),
+                })
+            }
+        };
+        let positive_px = |field: &'static str, value: f64| {
+            if value > 0.0 {
+                Ok(())
+            } else {
+                Err(ConfidenceConfigError {
+                    field,
+                    why: format!("{value} px is not a positive number of pixels"),
+                })
+            }
+        };
+        share("accept_above", self.accept_above)?;
+        positive_px("max_image_uncertainty_px", self.max_image_uncertainty_px)?;
+        positive_px("max_delta_uncertainty_px", self.max_delta_uncertainty_px)?;
+        share("min_least_seen_drop", self.min_least_seen_drop)?;
         if !(self.model.bias.is_finite() && self.model.weights.iter().all(|w| w.is_finite())) {
             return Err(ConfidenceConfigError {
                 field: "model",
