@@ -154,6 +154,12 @@ pub struct ChangesArgs {
     /// the photo's, `core::change::depth_misalignment`; registered poses only).
     #[arg(long)]
     pub no_pose_sigma_from_depth: bool,
+    /// Without --depth: keep the stereo term σ_quad of the disparity error alone under
+    /// registered poses instead of raising it to the stereo map's own inverse-depth spread
+    /// against the model (`core::change::inverse_depth_spread_per_m`: the neighbours' pose
+    /// errors are disparity errors too).
+    #[arg(long)]
+    pub no_stereo_sigma_from_depth: bool,
     /// Without --depth: σ_rel of the stereo depth maps (--relative-sigma is the given maps').
     #[arg(long, default_value_t = ChangeConfig::default().stereo_relative_sigma)]
     pub stereo_relative_sigma: f32,
@@ -215,6 +221,7 @@ impl ChangesArgs {
             pose_sigma_px: change.pose_sigma_px,
             registration_report: None,
             no_pose_sigma_from_depth: false,
+            no_stereo_sigma_from_depth: false,
             stereo_relative_sigma: change.stereo_relative_sigma,
             merge_distance_m: fusion.merge_distance_m,
             min_frames: fusion.min_frames,
@@ -261,6 +268,7 @@ impl ChangesArgs {
             pose_sigma_px: self.pose_sigma_px,
             stereo_relative_sigma: self.stereo_relative_sigma,
             pose_sigma_from_depth: !self.no_pose_sigma_from_depth,
+            stereo_sigma_from_depth: !self.no_stereo_sigma_from_depth,
             ..ChangeConfig::default()
         }
     }
@@ -285,6 +293,9 @@ pub struct FrameChangeReport {
     pub detect_ms: f64,
     /// The pose error u the threshold allowed for (`--pose-sigma-px`, `--registration-report`).
     pub pose_sigma_px: f32,
+    /// The stereo term σ_quad the threshold used, per metre (0: given depth;
+    /// `core::change::frame_quadratic_sigma_per_m`).
+    pub quadratic_sigma_per_m: f32,
     /// How the frame's depth was computed, when by stereo.
     pub stereo: Option<FrameStereoReport>,
 }
@@ -418,6 +429,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             regions: Vec::new(),
             detect_ms: 0.0,
             pose_sigma_px: 0.0,
+            quadratic_sigma_per_m: 0.0,
             stereo: None,
         };
         let Some(camera) = inputs.cameras.get(&image.camera_id) else {
@@ -580,6 +592,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             regions: changes.regions,
             detect_ms,
             pose_sigma_px: changes.pose_sigma_px,
+            quadratic_sigma_per_m: changes.quadratic_sigma_per_m,
             stereo,
         });
     }

@@ -169,6 +169,9 @@ pub struct EvalArgs {
     /// With --changes: `asgreg changes --no-pose-sigma-from-depth`.
     #[arg(long)]
     pub change_no_pose_sigma_from_depth: bool,
+    /// With --changes --depth-source stereo: `asgreg changes --no-stereo-sigma-from-depth`.
+    #[arg(long)]
+    pub change_no_stereo_sigma_from_depth: bool,
     /// With --changes --depth-source stereo: `asgreg changes --stereo-relative-sigma`.
     #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().stereo_relative_sigma)]
     pub change_stereo_relative_sigma: f32,

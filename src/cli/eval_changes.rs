@@ -109,6 +109,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     detect_args.stereo_model_test_edge_px = args.stereo_model_test_edge_px;
     detect_args.pose_sigma_px = args.change_pose_sigma_px;
     detect_args.no_pose_sigma_from_depth = args.change_no_pose_sigma_from_depth;
+    detect_args.no_stereo_sigma_from_depth = args.change_no_stereo_sigma_from_depth;
     // Registered poses: each frame's pose error from its registration (as the pipeline's change
     // stage has it), from the report beside the poses unless one is named.
     detect_args.registration_report = args.change_registration_report.clone().or_else(|| {

@@ -22,6 +22,9 @@
 //! `σ(p) = √((σ_model + σ_rel·d + σ_quad·d²)² + σ_pose(p)²)`. It is zero for exact (ground-truth)
 //! poses. A stereo depth map gets its own relative term ([`ChangeConfig::for_stereo`]): σ_rel is
 //! the error of an MVS map on a fixed pixel grid, the stereo map's error is σ_quad's.
+//! Under registered poses the stereo neighbours' poses are off too, which is a disparity error:
+//! σ_quad becomes at least the stereo map's own spread against the model in inverse depth
+//! ([`frame_quadratic_sigma_per_m`]).
 //!
 //! Pure functions; [`ChangeWorkspace`] keeps the rasteriser, its buffers and the labels, so a
 //! stream of frames allocates nothing per frame beyond the regions it returns.
@@ -162,6 +165,14 @@ pub struct ChangeConfig {
     /// docs/measurements.md, branch `change13`); the depth maps themselves show how far the
     /// model lies from the photo. Ground-truth poses (u = 0) are not touched.
     pub pose_sigma_from_depth: bool,
+    /// Under a registered pose (`pose_sigma_px` > 0) with a stereo depth map
+    /// (`quadratic_sigma_per_m` > 0), raise σ_quad to the stereo map's own inverse-depth spread
+    /// against the model ([`inverse_depth_spread_per_m`]): the neighbours' registered poses are
+    /// off too, and their error relative to the frame's is a disparity error the prior σ_quad
+    /// (σ_disparity / (f·B), ground-truth neighbours) does not hold (block seed 2,
+    /// docs/measurements.md, branch `change15`: the false objects' frames all have a
+    /// neighbour 3–11 px off there). Ground-truth poses and given depth maps are not touched.
+    pub stereo_sigma_from_depth: bool,
 }
 
 /// The largest [`ChangeConfig::pose_sigma_px`]: a pose that far off is no registration to
@@ -184,6 +195,7 @@ impl Default for ChangeConfig {
             pose_sigma_px: 0.0,
             stereo_relative_sigma: 0.0,
             pose_sigma_from_depth: true,
+            stereo_sigma_from_depth: true,
         }
     }
 }
@@ -514,6 +526,53 @@ pub fn frame_pose_sigma_px(
 /// Sampling stride of [`frame_pose_sigma_px`]'s coarse search, px (a quarter of the pixels).
 const ALIGNMENT_STRIDE_PX: usize = 2;
 
+/// Median absolute deviation to the standard deviation of a normal distribution.
+const MAD_TO_SIGMA: f32 = 1.4826;
+
+/// The photo depth's spread against the model's in inverse depth, per metre: 1.4826 × the
+/// median of `|1/p − 1/m|` over the pixels where both have a depth (about zero, so a bias
+/// counts). A stereo depth's error is a disparity error, constant in inverse depth:
+/// `1/p − 1/m = ε_disparity / (f·B)`, so this is σ_quad ([`ChangeConfig::quadratic_sigma_per_m`])
+/// as the data show it, whatever makes the disparities wrong (matching noise, the neighbours'
+/// pose errors) and without knowing f or B. Changed objects and the pose's misplaced depth
+/// edges are a minority of the pixels and do not move the median. `None` when fewer than 100
+/// pixels compare.
+pub fn inverse_depth_spread_per_m(
+    model_depth_m: ImageView<'_, f32>,
+    photo_depth_m: ImageView<'_, f32>,
+) -> Option<f32> {
+    if model_depth_m.size() != photo_depth_m.size() {
+        return None;
+    }
+    let valid = |d: f32| d.is_finite() && d > 0.0;
+    let mut differences: Vec<f64> = model_depth_m
+        .data()
+        .iter()
+        .zip(photo_depth_m.data())
+        .filter(|(&m, &p)| valid(m) && valid(p))
+        .map(|(&m, &p)| f64::from((1.0 / p - 1.0 / m).abs()))
+        .collect();
+    if differences.len() < 100 {
+        return None;
+    }
+    Some(MAD_TO_SIGMA * quantile(&mut differences, 0.5) as f32)
+}
+
+/// The stereo term σ_quad a frame's change map uses under [`ChangeConfig`]: the configured one,
+/// or with `stereo_sigma_from_depth` under a registered pose and a stereo depth map the larger
+/// of it and [`inverse_depth_spread_per_m`].
+pub fn frame_quadratic_sigma_per_m(
+    config: &ChangeConfig,
+    model_depth_m: ImageView<'_, f32>,
+    photo_depth_m: ImageView<'_, f32>,
+) -> f32 {
+    let prior = config.quadratic_sigma_per_m;
+    if !(config.stereo_sigma_from_depth && config.pose_sigma_px > 0.0 && prior > 0.0) {
+        return prior;
+    }
+    inverse_depth_spread_per_m(model_depth_m, photo_depth_m).map_or(prior, |s| s.max(prior))
+}
+
 /// One changed region of one frame.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeRegion {
@@ -562,6 +621,8 @@ pub struct FrameChanges {
     pub regions: Vec<ChangeRegion>,
     /// The pose error u the threshold allowed for, px ([`frame_pose_sigma_px`]).
     pub pose_sigma_px: f32,
+    /// The stereo term σ_quad the threshold used, per metre ([`frame_quadratic_sigma_per_m`]).
+    pub quadratic_sigma_per_m: f32,
 }
 
 /// Reusable buffers of change detection.
@@ -1024,8 +1085,10 @@ pub fn detect_changes(
     );
     let model_depth = workspace.model.depth_m().view();
     let pose_sigma_px = frame_pose_sigma_px(config, model_depth, photo_depth_m);
+    let quadratic_sigma_per_m = frame_quadratic_sigma_per_m(config, model_depth, photo_depth_m);
     let config = &ChangeConfig {
         pose_sigma_px,
+        quadratic_sigma_per_m,
         ..*config
     };
     pose_error_sigma_m(
@@ -1059,6 +1122,7 @@ pub fn detect_changes(
         counts: class_counts(classes.view()),
         regions,
         pose_sigma_px,
+        quadratic_sigma_per_m,
     })
 }
 
@@ -1573,6 +1637,84 @@ pub(crate) mod tests {
         assert_eq!(
             frame_pose_sigma_px(&registered, model.view(), empty.view()),
             MAX_POSE_SIGMA_PX
+        );
+    }
+
+    #[test]
+    fn the_stereo_term_is_the_inverse_depth_spread_under_registered_poses_with_stereo_depth() {
+        let (w, h) = (240usize, 160usize);
+        let model = Image::from_fn(w, h, |col, row| city_depth(col as i64, row as i64));
+        // A disparity error: normal in inverse depth with σ = 4e-4 per metre (Box–Muller of a
+        // fixed sequence), on a photo whose new 40 × 40 px building (7 % of the pixels) the
+        // model lacks, with holes on every 5th pixel.
+        let sigma = 4e-4f32;
+        let mut state = 12345u64;
+        let mut uniform = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let photo = Image::from_fn(w, h, |col, row| {
+            let normal =
+                (-2.0 * uniform().ln()).sqrt() * (2.0 * std::f64::consts::PI * uniform()).cos();
+            if (col + 2 * row) % 5 == 0 {
+                return 0.0;
+            }
+            let m = if (180..220).contains(&col) && (100..140).contains(&row) {
+                30.0
+            } else {
+                city_depth(col as i64, row as i64)
+            };
+            1.0 / (1.0 / m + sigma * normal as f32)
+        });
+        let spread = inverse_depth_spread_per_m(model.view(), photo.view()).expect("depths");
+        assert!(
+            (spread / sigma - 1.0).abs() < 0.1,
+            "spread {spread} for σ {sigma}"
+        );
+        // Registered pose and stereo depth: the larger of the prior and the measured spread.
+        let registered_stereo = ChangeConfig {
+            pose_sigma_px: 2.0,
+            quadratic_sigma_per_m: 1e-4,
+            ..ChangeConfig::default()
+        };
+        let used = frame_quadratic_sigma_per_m(&registered_stereo, model.view(), photo.view());
+        assert_eq!(used, spread);
+        let confident = ChangeConfig {
+            quadratic_sigma_per_m: 1e-3,
+            ..registered_stereo
+        };
+        assert_eq!(
+            frame_quadratic_sigma_per_m(&confident, model.view(), photo.view()),
+            1e-3
+        );
+        // Ground-truth poses, a given (MVS) depth map, the switch off: the prior as it is.
+        for prior_only in [
+            ChangeConfig {
+                pose_sigma_px: 0.0,
+                ..registered_stereo
+            },
+            ChangeConfig {
+                quadratic_sigma_per_m: 0.0,
+                ..registered_stereo
+            },
+            ChangeConfig {
+                stereo_sigma_from_depth: false,
+                ..registered_stereo
+            },
+        ] {
+            assert_eq!(
+                frame_quadratic_sigma_per_m(&prior_only, model.view(), photo.view()),
+                prior_only.quadratic_sigma_per_m
+            );
+        }
+        // Nothing to compare: the prior.
+        let empty = Image::filled(w, h, 0.0f32);
+        assert!(inverse_depth_spread_per_m(model.view(), empty.view()).is_none());
+        assert_eq!(
+            frame_quadratic_sigma_per_m(&registered_stereo, model.view(), empty.view()),
+            1e-4
         );
     }
 }
