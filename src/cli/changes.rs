@@ -53,68 +53,8 @@ pub struct ChangesArgs {
     /// registered frames (written to OUT/depth/).
     #[arg(long)]
     pub depth: Option<PathBuf>,
-    /// Without --depth: neighbour frames per stereo depth map (1–4).
-    #[arg(long, default_value_t = NeighbourConfig::default().count)]
-    pub stereo_neighbours: usize,
-    /// Without --depth: integer downsampling of the photos for the plane sweep (1 = full size).
-    #[arg(long, default_value_t = StereoConfig::default().downsample)]
-    pub stereo_downsample: usize,
-    /// Without --depth: half side of the ZNCC window, working pixels.
-    #[arg(long, default_value_t = StereoConfig::default().window_radius_px)]
-    pub stereo_window_radius_px: usize,
-    /// Without --depth: a second cost minimum must be this much above the best (1 − ZNCC).
-    #[arg(long, default_value_t = StereoConfig::default().uniqueness_margin)]
-    pub stereo_uniqueness_margin: f32,
-    /// Without --depth: least grey standard deviation of a window (0..1 grey).
-    #[arg(long, default_value_t = StereoConfig::default().min_texture)]
-    pub stereo_min_texture: f32,
-    /// Without --depth: the texture test against the photo's noise, one-sided normal quantile of
-    /// its χ² test over the window and over its centre (3.09: p = 0.001; 0: no test).
-    #[arg(long, default_value_t = StereoConfig::default().sweep_texture_z)]
-    pub stereo_sweep_texture_z: f32,
-    /// Without --depth: half side of the centre window of that test, working pixels (0: the
-    /// whole window only).
-    #[arg(long, default_value_t = StereoConfig::default().centre_radius_px)]
-    pub stereo_centre_radius_px: usize,
-    /// Without --depth: the model test's texture test against the photo's noise (normal
-    /// quantile; 0: min_texture only).
-    #[arg(long, default_value_t = StereoConfig::default().model_test_texture_z)]
-    pub stereo_model_test_texture_z: f32,
-    /// Without --depth: the model test judges a pixel on its own model surface only, this far
-    /// (working px) from the model's depth edges (0: the whole visible window, as before).
-    #[arg(long, default_value_t = StereoConfig::default().model_test_edge_px)]
-    pub stereo_model_test_edge_px: usize,
-    /// Without --depth: largest accepted cost 1 − ZNCC.
-    #[arg(long, default_value_t = StereoConfig::default().max_cost)]
-    pub stereo_max_cost: f32,
-    /// Without --depth: keep depths the left-right check cannot confirm (drop only contradicted).
-    #[arg(long)]
-    pub stereo_keep_unconfirmed: bool,
-    /// Without --depth: fill holes from their (2r+1)² working neighbourhood when it agrees.
-    #[arg(long, default_value_t = StereoConfig::default().fill_radius_px)]
-    pub stereo_fill_radius_px: usize,
-    /// Without --depth: skip the left-right check against the neighbours' own depths.
-    #[arg(long)]
-    pub stereo_no_left_right: bool,
-    /// Without --depth: how many neighbours (the first ones) get a sweep back for the
-    /// left-right check; a depth stays when one of them confirms it and none sees through it
-    /// (default: all; 1: the first neighbour only, see docs/measurements.md, branches `change13`,
-    /// `change12`).
-    #[arg(long, default_value_t = StereoConfig::default().consistency_neighbours)]
-    pub stereo_consistency_neighbours: usize,
-    /// Without --depth: keep depths no neighbour confirms but one sees occluded (and none sees
-    /// through); off by default (a depth too far looks occluded too).
-    #[arg(long)]
-    pub stereo_keep_occluded: bool,
-    /// Without --depth: the model test's threshold, standard errors of Fisher's z: no change
-    /// where the sweep's cost at the photo's depth does not beat its cost at the model's depth
-    /// by more (0: no test).
-    #[arg(long, default_value_t = StereoConfig::default().model_test_sigmas)]
-    pub stereo_model_test_sigmas: f32,
-    /// Without --depth: disparity error of the stereo depth, working pixels; sets the change
-    /// threshold's stereo term σ_quad = σ_disparity / (f·B) per frame.
-    #[arg(long, default_value_t = DEFAULT_DISPARITY_SIGMA_PX)]
-    pub stereo_disparity_sigma_px: f64,
+    #[command(flatten)]
+    pub stereo: StereoArgs,
     /// Output folder (created): masks/, overlays/, changes.geojson, report.json.
     #[arg(long)]
     pub out: PathBuf,
@@ -154,15 +94,6 @@ pub struct ChangesArgs {
     /// the photo's, `core::change::depth_misalignment`; registered poses only).
     #[arg(long)]
     pub no_pose_sigma_from_depth: bool,
-    /// Without --depth: keep the stereo term σ_quad of the disparity error alone under
-    /// registered poses instead of raising it to the stereo map's own inverse-depth spread
-    /// against the model (`core::change::inverse_depth_spread_per_m`: the neighbours' pose
-    /// errors are disparity errors too).
-    #[arg(long)]
-    pub no_stereo_sigma_from_depth: bool,
-    /// Without --depth: σ_rel of the stereo depth maps (--relative-sigma is the given maps').
-    #[arg(long, default_value_t = ChangeConfig::default().stereo_relative_sigma)]
-    pub stereo_relative_sigma: f32,
     /// Footprints closer than this are one object, metres.
     #[arg(long, default_value_t = FusionConfig::default().merge_distance_m)]
     pub merge_distance_m: f64,
@@ -176,59 +107,113 @@ pub struct ChangesArgs {
 
 pub use asgreg::core::change::stereo::DEFAULT_DISPARITY_SIGMA_PX;
 
-impl ChangesArgs {
-    /// The same settings with every other option at its default.
-    pub fn with_defaults(
-        mesh: PathBuf,
-        images: PathBuf,
-        cameras: PathBuf,
-        poses: PathBuf,
-        depth: Option<PathBuf>,
-        out: PathBuf,
-    ) -> Self {
+/// The stereo depth's settings (`changes` without `--depth`, `eval --changes --depth-source
+/// stereo`): one declaration flattened into both commands, so their flags and defaults are the
+/// same.
+#[derive(clap::Args, Debug, Clone, PartialEq)]
+pub struct StereoArgs {
+    /// Stereo depth: neighbour frames per stereo depth map (1–4).
+    #[arg(long, default_value_t = NeighbourConfig::default().count)]
+    pub stereo_neighbours: usize,
+    /// Stereo depth: integer downsampling of the photos for the plane sweep (1 = full size).
+    #[arg(long, default_value_t = StereoConfig::default().downsample)]
+    pub stereo_downsample: usize,
+    /// Stereo depth: half side of the ZNCC window, working pixels.
+    #[arg(long, default_value_t = StereoConfig::default().window_radius_px)]
+    pub stereo_window_radius_px: usize,
+    /// Stereo depth: a second cost minimum must be this much above the best (1 − ZNCC).
+    #[arg(long, default_value_t = StereoConfig::default().uniqueness_margin)]
+    pub stereo_uniqueness_margin: f32,
+    /// Stereo depth: least grey standard deviation of a window (0..1 grey).
+    #[arg(long, default_value_t = StereoConfig::default().min_texture)]
+    pub stereo_min_texture: f32,
+    /// Stereo depth: the texture test against the photo's noise, one-sided normal quantile of
+    /// its χ² test over the window and over its centre (3.09: p = 0.001; 0: no test).
+    #[arg(long, default_value_t = StereoConfig::default().sweep_texture_z)]
+    pub stereo_sweep_texture_z: f32,
+    /// Stereo depth: half side of the centre window of that test, working pixels (0: the
+    /// whole window only).
+    #[arg(long, default_value_t = StereoConfig::default().centre_radius_px)]
+    pub stereo_centre_radius_px: usize,
+    /// Stereo depth: the model test's texture test against the photo's noise (normal
+    /// quantile; 0: min_texture only).
+    #[arg(long, default_value_t = StereoConfig::default().model_test_texture_z)]
+    pub stereo_model_test_texture_z: f32,
+    /// Stereo depth: the model test judges a pixel on its own model surface only, this far
+    /// (working px) from the model's depth edges (0: the whole visible window, as before).
+    #[arg(long, default_value_t = StereoConfig::default().model_test_edge_px)]
+    pub stereo_model_test_edge_px: usize,
+    /// Stereo depth: largest accepted cost 1 − ZNCC.
+    #[arg(long, default_value_t = StereoConfig::default().max_cost)]
+    pub stereo_max_cost: f32,
+    /// Stereo depth: keep depths the left-right check cannot confirm (drop only contradicted).
+    #[arg(long)]
+    pub stereo_keep_unconfirmed: bool,
+    /// Stereo depth: fill holes from their (2r+1)² working neighbourhood when it agrees.
+    #[arg(long, default_value_t = StereoConfig::default().fill_radius_px)]
+    pub stereo_fill_radius_px: usize,
+    /// Stereo depth: skip the left-right check against the neighbours' own depths.
+    #[arg(long)]
+    pub stereo_no_left_right: bool,
+    /// Stereo depth: how many neighbours (the first ones) get a sweep back for the
+    /// left-right check; a depth stays when one of them confirms it and none sees through it
+    /// (default: all; 1: the first neighbour only, see docs/measurements.md, branches `change13`,
+    /// `change12`).
+    #[arg(long, default_value_t = StereoConfig::default().consistency_neighbours)]
+    pub stereo_consistency_neighbours: usize,
+    /// Stereo depth: keep depths no neighbour confirms but one sees occluded (and none sees
+    /// through); off by default (a depth too far looks occluded too).
+    #[arg(long)]
+    pub stereo_keep_occluded: bool,
+    /// Stereo depth: the model test's threshold, standard errors of Fisher's z: no change
+    /// where the sweep's cost at the photo's depth does not beat its cost at the model's depth
+    /// by more (0: no test).
+    #[arg(long, default_value_t = StereoConfig::default().model_test_sigmas)]
+    pub stereo_model_test_sigmas: f32,
+    /// Stereo depth: disparity error of the stereo depth, working pixels; sets the change
+    /// threshold's stereo term σ_quad = σ_disparity / (f·B) per frame.
+    #[arg(long, default_value_t = DEFAULT_DISPARITY_SIGMA_PX)]
+    pub stereo_disparity_sigma_px: f64,
+    /// Stereo depth: keep the stereo term σ_quad of the disparity error alone under
+    /// registered poses instead of raising it to the stereo map's own inverse-depth spread
+    /// against the model (`core::change::inverse_depth_spread_per_m`: the neighbours' pose
+    /// errors are disparity errors too).
+    #[arg(long, alias = "change-no-stereo-sigma-from-depth")]
+    pub no_stereo_sigma_from_depth: bool,
+    /// Stereo depth: σ_rel of the stereo depth maps (--relative-sigma is the given maps').
+    #[arg(long, alias = "change-stereo-relative-sigma", default_value_t = ChangeConfig::default().stereo_relative_sigma)]
+    pub stereo_relative_sigma: f32,
+}
+
+impl Default for StereoArgs {
+    fn default() -> Self {
+        let stereo = StereoConfig::default();
         let change = ChangeConfig::default();
-        let fusion = FusionConfig::default();
         Self {
-            mesh,
-            images,
-            cameras,
-            poses,
-            depth,
             stereo_neighbours: NeighbourConfig::default().count,
-            stereo_downsample: StereoConfig::default().downsample,
-            stereo_window_radius_px: StereoConfig::default().window_radius_px,
-            stereo_uniqueness_margin: StereoConfig::default().uniqueness_margin,
-            stereo_min_texture: StereoConfig::default().min_texture,
-            stereo_sweep_texture_z: StereoConfig::default().sweep_texture_z,
-            stereo_model_test_texture_z: StereoConfig::default().model_test_texture_z,
-            stereo_model_test_edge_px: StereoConfig::default().model_test_edge_px,
-            stereo_centre_radius_px: StereoConfig::default().centre_radius_px,
-            stereo_max_cost: StereoConfig::default().max_cost,
-            stereo_no_left_right: false,
-            stereo_consistency_neighbours: StereoConfig::default().consistency_neighbours,
-            stereo_keep_unconfirmed: StereoConfig::default().keep_unconfirmed,
-            stereo_keep_occluded: StereoConfig::default().keep_occluded,
-            stereo_model_test_sigmas: StereoConfig::default().model_test_sigmas,
-            stereo_fill_radius_px: StereoConfig::default().fill_radius_px,
+            stereo_downsample: stereo.downsample,
+            stereo_window_radius_px: stereo.window_radius_px,
+            stereo_uniqueness_margin: stereo.uniqueness_margin,
+            stereo_min_texture: stereo.min_texture,
+            stereo_sweep_texture_z: stereo.sweep_texture_z,
+            stereo_centre_radius_px: stereo.centre_radius_px,
+            stereo_model_test_texture_z: stereo.model_test_texture_z,
+            stereo_model_test_edge_px: stereo.model_test_edge_px,
+            stereo_max_cost: stereo.max_cost,
+            stereo_keep_unconfirmed: stereo.keep_unconfirmed,
+            stereo_fill_radius_px: stereo.fill_radius_px,
+            stereo_no_left_right: !stereo.left_right_check,
+            stereo_consistency_neighbours: stereo.consistency_neighbours,
+            stereo_keep_occluded: stereo.keep_occluded,
+            stereo_model_test_sigmas: stereo.model_test_sigmas,
             stereo_disparity_sigma_px: DEFAULT_DISPARITY_SIGMA_PX,
-            out,
-            min_area_m2: change.min_area_m2,
-            min_extent_m: change.min_extent_m,
-            threshold_sigmas: change.threshold_sigmas,
-            relative_sigma: change.relative_sigma,
-            model_sigma_m: change.model_sigma_m,
-            edge_tolerance_px: change.edge_tolerance_px,
-            pose_sigma_px: change.pose_sigma_px,
-            registration_report: None,
-            no_pose_sigma_from_depth: false,
-            no_stereo_sigma_from_depth: false,
+            no_stereo_sigma_from_depth: !change.stereo_sigma_from_depth,
             stereo_relative_sigma: change.stereo_relative_sigma,
-            merge_distance_m: fusion.merge_distance_m,
-            min_frames: fusion.min_frames,
-            limit: None,
         }
     }
+}
 
+impl StereoArgs {
     pub fn stereo_config(&self) -> StereoConfig {
         StereoConfig {
             downsample: self.stereo_downsample,
@@ -256,6 +241,42 @@ impl ChangesArgs {
             ..NeighbourConfig::default()
         }
     }
+}
+
+impl ChangesArgs {
+    /// The same settings with every other option at its default.
+    pub fn with_defaults(
+        mesh: PathBuf,
+        images: PathBuf,
+        cameras: PathBuf,
+        poses: PathBuf,
+        depth: Option<PathBuf>,
+        out: PathBuf,
+    ) -> Self {
+        let change = ChangeConfig::default();
+        let fusion = FusionConfig::default();
+        Self {
+            mesh,
+            images,
+            cameras,
+            poses,
+            depth,
+            stereo: StereoArgs::default(),
+            out,
+            min_area_m2: change.min_area_m2,
+            min_extent_m: change.min_extent_m,
+            threshold_sigmas: change.threshold_sigmas,
+            relative_sigma: change.relative_sigma,
+            model_sigma_m: change.model_sigma_m,
+            edge_tolerance_px: change.edge_tolerance_px,
+            pose_sigma_px: change.pose_sigma_px,
+            registration_report: None,
+            no_pose_sigma_from_depth: false,
+            merge_distance_m: fusion.merge_distance_m,
+            min_frames: fusion.min_frames,
+            limit: None,
+        }
+    }
 
     pub fn change_config(&self) -> ChangeConfig {
         ChangeConfig {
@@ -266,9 +287,9 @@ impl ChangesArgs {
             model_sigma_m: self.model_sigma_m,
             edge_tolerance_px: self.edge_tolerance_px,
             pose_sigma_px: self.pose_sigma_px,
-            stereo_relative_sigma: self.stereo_relative_sigma,
+            stereo_relative_sigma: self.stereo.stereo_relative_sigma,
             pose_sigma_from_depth: !self.no_pose_sigma_from_depth,
-            stereo_sigma_from_depth: !self.no_stereo_sigma_from_depth,
+            stereo_sigma_from_depth: !self.stereo.no_stereo_sigma_from_depth,
             ..ChangeConfig::default()
         }
     }
@@ -349,15 +370,16 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
     config
         .validate()
         .context("check --min-area-m2, --threshold-sigmas, --relative-sigma, --model-sigma-m")?;
-    let stereo_config = args.stereo_config();
+    let stereo_config = args.stereo.stereo_config();
     if args.depth.is_none() {
         stereo_config
             .validate()
             .context("check the --stereo-* options")?;
         anyhow::ensure!(
-            (1..=asgreg::core::change::stereo::MAX_NEIGHBOURS).contains(&args.stereo_neighbours),
+            (1..=asgreg::core::change::stereo::MAX_NEIGHBOURS)
+                .contains(&args.stereo.stereo_neighbours),
             "--stereo-neighbours {} must be 1..={}",
-            args.stereo_neighbours,
+            args.stereo.stereo_neighbours,
             asgreg::core::change::stereo::MAX_NEIGHBOURS
         );
     }
@@ -695,7 +717,7 @@ fn stereo_depth(
         &inputs.mesh,
         reference,
         &candidates,
-        &args.neighbour_config(),
+        &args.stereo.neighbour_config(),
     )
     .map_err(|error| format!("{error}: give --depth or more frames"))?
     .into_iter()
@@ -739,7 +761,7 @@ fn stereo_depth(
         valid_fraction: depth.valid_fraction,
         holes: depth.holes,
         model_test: depth.model_test,
-        quadratic_sigma_per_m: depth.quadratic_sigma_per_m(args.stereo_disparity_sigma_px),
+        quadratic_sigma_per_m: depth.quadratic_sigma_per_m(args.stereo.stereo_disparity_sigma_px),
         stereo_ms,
     };
     Ok((depth.depth_m, depth.model_plausible, report))
@@ -875,4 +897,99 @@ pub fn run(args: &ChangesArgs) -> anyhow::Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::super::{Cli, Command};
+    use super::StereoArgs;
+
+    /// Every stereo flag, each away from its default.
+    const STEREO_FLAGS: [&str; 24] = [
+        "--stereo-neighbours",
+        "2",
+        "--stereo-downsample",
+        "3",
+        "--stereo-window-radius-px",
+        "3",
+        "--stereo-uniqueness-margin",
+        "0.05",
+        "--stereo-min-texture",
+        "0.01",
+        "--stereo-sweep-texture-z",
+        "3.09",
+        "--stereo-model-test-texture-z",
+        "3.09",
+        "--stereo-model-test-edge-px",
+        "0",
+        "--stereo-consistency-neighbours",
+        "1",
+        "--stereo-keep-occluded",
+        "--stereo-no-left-right",
+        "--no-stereo-sigma-from-depth",
+        "--stereo-relative-sigma",
+        "0.01",
+        "--stereo-keep-unconfirmed",
+    ];
+
+    fn stereo_of(args: &[&str]) -> StereoArgs {
+        let cli = Cli::try_parse_from(args).unwrap_or_else(|e| panic!("{args:?}: {e}"));
+        match cli.command {
+            Command::Changes(changes) => changes.stereo,
+            Command::Eval(eval) => eval.stereo,
+            other => panic!("parsed as {other:?}"),
+        }
+    }
+
+    #[test]
+    fn changes_and_eval_accept_the_same_stereo_flags_with_the_same_defaults() {
+        let changes = [
+            "asgreg",
+            "changes",
+            "--mesh",
+            "m.ply",
+            "--images",
+            "i",
+            "--cameras",
+            "c.txt",
+            "--poses",
+            "p.txt",
+            "--out",
+            "o",
+        ];
+        let eval = ["asgreg", "eval", "--scene", "s", "--out", "o", "--changes"];
+        // Defaults: the library's.
+        assert_eq!(stereo_of(&changes), StereoArgs::default());
+        assert_eq!(stereo_of(&eval), StereoArgs::default());
+        // Every flag, both commands, the same values.
+        let with = |base: &[&'static str]| -> Vec<&'static str> {
+            base.iter().chain(STEREO_FLAGS.iter()).copied().collect()
+        };
+        let from_changes = stereo_of(&with(&changes));
+        let from_eval = stereo_of(&with(&eval));
+        assert_eq!(from_changes, from_eval);
+        assert_ne!(from_changes, StereoArgs::default());
+        assert_eq!(from_changes.stereo_neighbours, 2);
+        assert_eq!(from_changes.stereo_consistency_neighbours, 1);
+        assert!(from_changes.stereo_keep_occluded && from_changes.no_stereo_sigma_from_depth);
+        let config = from_eval.stereo_config();
+        assert_eq!(config.downsample, 3);
+        assert!(!config.left_right_check && config.keep_unconfirmed);
+        // eval's former names stay accepted.
+        let old = stereo_of(
+            &eval
+                .iter()
+                .chain(&[
+                    "--change-stereo-relative-sigma",
+                    "0.02",
+                    "--change-no-stereo-sigma-from-depth",
+                ])
+                .copied()
+                .collect::<Vec<_>>(),
+        );
+        assert_eq!(old.stereo_relative_sigma, 0.02);
+        assert!(old.no_stereo_sigma_from_depth);
+    }
 }

@@ -137,27 +137,6 @@ pub struct EvalArgs {
     /// With --changes: `asgreg changes --edge-tolerance-px` (0: pixel by pixel).
     #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().edge_tolerance_px)]
     pub change_edge_tolerance_px: usize,
-    /// With --changes --depth-source stereo: `asgreg changes --stereo-consistency-neighbours`.
-    #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().consistency_neighbours)]
-    pub stereo_consistency_neighbours: usize,
-    /// With --changes --depth-source stereo: `asgreg changes --stereo-keep-occluded`.
-    #[arg(long)]
-    pub stereo_keep_occluded: bool,
-    /// With --changes --depth-source stereo: `asgreg changes --stereo-model-test-sigmas`.
-    #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().model_test_sigmas)]
-    pub stereo_model_test_sigmas: f32,
-    /// With --changes --depth-source stereo: `asgreg changes --stereo-sweep-texture-z`.
-    #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().sweep_texture_z)]
-    pub stereo_sweep_texture_z: f32,
-    /// With --changes --depth-source stereo: `asgreg changes --stereo-model-test-texture-z`.
-    #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().model_test_texture_z)]
-    pub stereo_model_test_texture_z: f32,
-    /// With --changes --depth-source stereo: `asgreg changes --stereo-model-test-edge-px`.
-    #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().model_test_edge_px)]
-    pub stereo_model_test_edge_px: usize,
-    /// With --changes --depth-source stereo: `asgreg changes --stereo-centre-radius-px`.
-    #[arg(long, default_value_t = asgreg::core::change::stereo::StereoConfig::default().centre_radius_px)]
-    pub stereo_centre_radius_px: usize,
     /// With --changes: `asgreg changes --pose-sigma-px` (the poses' error u, px; 0 = exact).
     #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().pose_sigma_px)]
     pub change_pose_sigma_px: f32,
@@ -169,12 +148,9 @@ pub struct EvalArgs {
     /// With --changes: `asgreg changes --no-pose-sigma-from-depth`.
     #[arg(long)]
     pub change_no_pose_sigma_from_depth: bool,
-    /// With --changes --depth-source stereo: `asgreg changes --no-stereo-sigma-from-depth`.
-    #[arg(long)]
-    pub change_no_stereo_sigma_from_depth: bool,
-    /// With --changes --depth-source stereo: `asgreg changes --stereo-relative-sigma`.
-    #[arg(long, default_value_t = asgreg::core::change::ChangeConfig::default().stereo_relative_sigma)]
-    pub change_stereo_relative_sigma: f32,
+    /// With --changes --depth-source stereo: the stereo depth's settings, as `asgreg changes`'s.
+    #[command(flatten)]
+    pub stereo: super::changes::StereoArgs,
 }
 
 /// Where `eval --changes` takes the photos' depth from.

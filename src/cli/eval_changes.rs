@@ -100,16 +100,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     );
     detect_args.limit = args.limit;
     detect_args.edge_tolerance_px = args.change_edge_tolerance_px;
-    detect_args.stereo_consistency_neighbours = args.stereo_consistency_neighbours;
-    detect_args.stereo_keep_occluded = args.stereo_keep_occluded;
-    detect_args.stereo_model_test_sigmas = args.stereo_model_test_sigmas;
-    detect_args.stereo_sweep_texture_z = args.stereo_sweep_texture_z;
-    detect_args.stereo_centre_radius_px = args.stereo_centre_radius_px;
-    detect_args.stereo_model_test_texture_z = args.stereo_model_test_texture_z;
-    detect_args.stereo_model_test_edge_px = args.stereo_model_test_edge_px;
+    detect_args.stereo = args.stereo.clone();
     detect_args.pose_sigma_px = args.change_pose_sigma_px;
     detect_args.no_pose_sigma_from_depth = args.change_no_pose_sigma_from_depth;
-    detect_args.no_stereo_sigma_from_depth = args.change_no_stereo_sigma_from_depth;
     // Registered poses: each frame's pose error from its registration (as the pipeline's change
     // stage has it), from the report beside the poses unless one is named.
     detect_args.registration_report = args.change_registration_report.clone().or_else(|| {
@@ -122,7 +115,6 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             report.display()
         );
     }
-    detect_args.stereo_relative_sigma = args.change_stereo_relative_sigma;
     let report = detect_all(&detect_args)?;
 
     // Pixels.
