@@ -106,6 +106,16 @@ fn oblique_pose() -> Rigid3 {
     }
 }
 
+/// The same view from four times as far: most triangles cover less than a pixel, as in a
+/// frame's renderings of a dense mesh (the synthetic block), so the binning dominates.
+fn far_oblique_pose() -> Rigid3 {
+    let eye = Vector3::new(-1000.0, -1000.0, 1000.0);
+    match Rigid3::look_at(&eye, &Vector3::new(0.0, 0.0, 0.0), &Vector3::z()) {
+        Some(pose) => pose,
+        None => panic!("look_at failed"),
+    }
+}
+
 struct Frame {
     rasterizer: Rasterizer,
     buffers: RenderBuffers,
@@ -349,6 +359,11 @@ fn main() {
         };
         group.bench_function("depth_and_faces_only", |b| {
             b.iter(|| depth_only.render(&mesh, &pose))
+        });
+        // The same from far away: sub-pixel faces, nearly all time in the binning.
+        let far_pose = far_oblique_pose();
+        group.bench_function("depth_and_faces_only_far", |b| {
+            b.iter(|| depth_only.render(&mesh, &far_pose))
         });
         group.bench_function("rasterise+asg", |b| {
             b.iter(|| {

@@ -17,6 +17,8 @@
 //!   the camera sees, never the mesh's vertex count (a 10^7-triangle city seen by one camera);
 //! - binning drops faces whose bounding box holds no pixel centre, and tests the one centre of
 //!   boxes that hold exactly one (most triangles of a dense mesh seen from afar are sub-pixel);
+//!   where the CPU has AVX2 (detected at run time) eight faces' boxes and single-centre tests go
+//!   at once, one face per lane, with the scalar path's very operations (the same bits);
 //!   each face it keeps is stored once, prepared (corners' projections, face index, pixel box),
 //!   in its chunk's list, which the band pass reads in order instead of gathering corners;
 //! - a pixel `(col, row)` is covered when its centre `(col + 0.5, row + 0.5)` lies inside the
@@ -151,8 +153,10 @@ impl RenderBuffers {
     }
 }
 
-/// A vertex projected to the image: pixel position and `1 / z` (z in metres), f32.
+/// A vertex projected to the image: pixel position and `1 / z` (z in metres), f32. Three floats
+/// in this order (`repr(C)`): the binning's AVX2 gathers read them as floats.
 #[derive(Clone, Copy, Debug, Default)]
+#[repr(C)]
 struct ScreenVertex {
     position_px: Vec2,
     inv_depth: f32,
@@ -191,6 +195,38 @@ struct FaceChunk {
     prepared: Vec<PreparedFace>,
     /// `bands[band]`: positions in `prepared` of the faces that touch the band, ascending.
     bands: Vec<Vec<u32>>,
+}
+
+impl FaceChunk {
+    /// Keeps a face the binning found covering a pixel centre: prepared, and listed in the bands
+    /// its rows touch.
+    #[inline(always)]
+    fn keep(
+        &mut self,
+        slot: usize,
+        face: &VisibleFace,
+        pixel_box: PixelBox,
+        vertices_screen: &[ScreenVertex],
+    ) {
+        let position = self.prepared.len() as u32;
+        self.prepared.push(PreparedFace {
+            screen: face.corners.map(|v| vertices_screen[v as usize]),
+            slot: slot as u32,
+            face_index: face.face_index,
+            cols: pixel_box.cols,
+            rows: pixel_box.rows,
+            clipped: pixel_box.clipped,
+        });
+        let [first_row, last_row] = pixel_box.rows.map(|r| r as usize);
+        for band in self
+            .bands
+            .iter_mut()
+            .take(last_row / BAND_ROWS + 1)
+            .skip(first_row / BAND_ROWS)
+        {
+            band.push(position);
+        }
+    }
 }
 
 /// Scratch state reused between renderings; every buffer is sized by the grid cells the frustum
@@ -445,6 +481,12 @@ impl Rasterizer {
         let vertices_screen = &self.vertices_screen;
         let vertices_in_front = &self.vertices_in_front;
         let chunk_len = visible_faces.len().div_ceil(chunk_count).max(1);
+        // Eight faces at a time where the CPU has AVX2 (the same arithmetic lane by lane, so the
+        // same boxes); the gathers address the projections as floats through i32 offsets.
+        #[cfg(target_arch = "x86_64")]
+        let eight_at_once = !options.cull_back_faces
+            && slot_count <= i32::MAX as usize / 3
+            && std::arch::is_x86_feature_detected!("avx2");
         self.bins
             .par_iter_mut()
             .enumerate()
@@ -457,39 +499,53 @@ impl Rasterizer {
                 chunk.prepared.clear();
                 let start = (chunk_index * chunk_len).min(visible_faces.len());
                 let end = (start + chunk_len).min(visible_faces.len());
-                for (slot, face) in (start..end).zip(&visible_faces[start..end]) {
+                let scalar_box = |face: &VisibleFace| {
                     let screen = face.corners.map(|v| vertices_screen[v as usize]);
                     let [in_front_0, in_front_1, in_front_2] =
                         face.corners.map(|v| vertices_in_front[v as usize]);
                     // Most faces: wholly in front, no culling; the camera-frame corners are
                     // read only for the others.
-                    let pixel_box =
-                        if in_front_0 & in_front_1 & in_front_2 & !options.cull_back_faces {
-                            screen_pixel_box(&screen, width, height)
-                        } else {
-                            let corners = face.corners.map(|v| vertices_cam[v as usize]);
-                            face_pixel_box(&corners, &screen, &projector, options, width, height)
+                    if in_front_0 & in_front_1 & in_front_2 & !options.cull_back_faces {
+                        screen_pixel_box(&screen, width, height)
+                    } else {
+                        let corners = face.corners.map(|v| vertices_cam[v as usize]);
+                        face_pixel_box(&corners, &screen, &projector, options, width, height)
+                    }
+                };
+                let mut slot = start;
+                #[cfg(target_arch = "x86_64")]
+                if eight_at_once {
+                    while slot + 8 <= end {
+                        let faces: &[VisibleFace; 8] = visible_faces[slot..slot + 8]
+                            .try_into()
+                            .unwrap_or_else(|_| unreachable!("a slice of eight"));
+                        // SAFETY: `eight_at_once` only when the CPU has AVX2 and every slot's
+                        // float offset fits an i32.
+                        let boxes = unsafe {
+                            eight_screen_pixel_boxes_avx2(
+                                faces,
+                                vertices_screen,
+                                vertices_in_front,
+                                width,
+                                height,
+                            )
                         };
-                    let Some(pixel_box) = pixel_box else {
-                        continue;
-                    };
-                    let position = chunk.prepared.len() as u32;
-                    chunk.prepared.push(PreparedFace {
-                        screen,
-                        slot: slot as u32,
-                        face_index: face.face_index,
-                        cols: pixel_box.cols,
-                        rows: pixel_box.rows,
-                        clipped: pixel_box.clipped,
-                    });
-                    let [first_row, last_row] = pixel_box.rows.map(|r| r as usize);
-                    for band in chunk
-                        .bands
-                        .iter_mut()
-                        .take(last_row / BAND_ROWS + 1)
-                        .skip(first_row / BAND_ROWS)
-                    {
-                        band.push(position);
+                        for (lane, face) in faces.iter().enumerate() {
+                            let pixel_box = if boxes.scalar & (1 << lane) != 0 {
+                                scalar_box(face)
+                            } else {
+                                boxes.pixel_box(lane)
+                            };
+                            if let Some(pixel_box) = pixel_box {
+                                chunk.keep(slot + lane, face, pixel_box, vertices_screen);
+                            }
+                        }
+                        slot += 8;
+                    }
+                }
+                for (slot, face) in (slot..end).zip(&visible_faces[slot..end]) {
+                    if let Some(pixel_box) = scalar_box(face) {
+                        chunk.keep(slot, face, pixel_box, vertices_screen);
                     }
                 }
             });
@@ -838,6 +894,209 @@ fn floor_px4(x: [f32; 4]) -> [i32; 4] {
     }
 }
 
+/// The pixel boxes of eight consecutive faces ([`eight_screen_pixel_boxes_avx2`]).
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy, Debug, Default)]
+struct EightBoxes {
+    /// Bit `lane`: the face needs the scalar path (a corner behind the near plane, or a
+    /// projection that is not finite); its box below is meaningless.
+    scalar: u8,
+    /// Bit `lane`: the face covers a pixel centre, within the box below.
+    kept: u8,
+    first_col: [i32; 8],
+    last_col: [i32; 8],
+    first_row: [i32; 8],
+    last_row: [i32; 8],
+}
+
+#[cfg(target_arch = "x86_64")]
+impl EightBoxes {
+    /// The box of a lane the vector path decided ([`screen_pixel_box`]'s answer for it).
+    #[inline(always)]
+    fn pixel_box(&self, lane: usize) -> Option<PixelBox> {
+        (self.kept & (1 << lane) != 0).then(|| PixelBox {
+            cols: [self.first_col[lane] as u32, self.last_col[lane] as u32],
+            rows: [self.first_row[lane] as u32, self.last_row[lane] as u32],
+            clipped: false,
+        })
+    }
+}
+
+/// [`screen_pixel_box`] of eight faces at once, one face per AVX2 lane: the same f32
+/// operations in the same order (no fused multiply-adds), so the same boxes and the same
+/// single-pixel decisions. Faces with a corner behind the near plane, or with a corner's
+/// projection not finite (where `min`/`max` would treat NaN differently), are left to the
+/// scalar path (`scalar` bits).
+///
+/// # Safety
+/// The CPU must have AVX2, and `3 * vertices_screen.len()` must fit an `i32`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn eight_screen_pixel_boxes_avx2(
+    faces: &[VisibleFace; 8],
+    vertices_screen: &[ScreenVertex],
+    vertices_in_front: &[bool],
+    width: usize,
+    height: usize,
+) -> EightBoxes {
+    use std::arch::x86_64::*;
+    const _: () = assert!(std::mem::size_of::<ScreenVertex>() == 3 * std::mem::size_of::<f32>());
+
+    let mut offsets = [[0i32; 8]; 3];
+    let mut scalar = 0u8;
+    for (lane, face) in faces.iter().enumerate() {
+        let mut in_front = true;
+        for (corner, &v) in face.corners.iter().enumerate() {
+            // Indexing checks every corner against the slot count (the same length as
+            // `vertices_screen`), so the gathers below stay inside the projections.
+            in_front &= vertices_in_front[v as usize];
+            offsets[corner][lane] = 3 * v as i32;
+        }
+        scalar |= u8::from(!in_front) << lane;
+    }
+    let mut out = EightBoxes {
+        scalar,
+        ..EightBoxes::default()
+    };
+    // SAFETY: AVX2 is present (the caller's contract); every offset addresses a float of
+    // `vertices_screen` (checked above, `ScreenVertex` is three floats, `repr(C)`); the stores
+    // write the 8-lane arrays of `out`, unaligned.
+    unsafe {
+        let base = vertices_screen.as_ptr() as *const f32;
+        let sign = _mm256_set1_ps(-0.0);
+        let infinity = _mm256_set1_ps(f32::INFINITY);
+        let half = _mm256_set1_ps(0.5);
+        let zero = _mm256_setzero_ps();
+        let mut x = [zero; 3];
+        let mut y = [zero; 3];
+        let mut inv_depth = [zero; 3];
+        let mut finite = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
+        for corner in 0..3 {
+            let offset = _mm256_loadu_si256(offsets[corner].as_ptr() as *const __m256i);
+            x[corner] = _mm256_i32gather_ps::<4>(base, offset);
+            y[corner] = _mm256_i32gather_ps::<4>(base.add(1), offset);
+            inv_depth[corner] = _mm256_i32gather_ps::<4>(base.add(2), offset);
+            for v in [x[corner], y[corner]] {
+                finite = _mm256_and_ps(
+                    finite,
+                    _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_andnot_ps(sign, v), infinity),
+                );
+            }
+        }
+        out.scalar |= !(_mm256_movemask_ps(finite) as u8);
+
+        // The bounding box (all corners finite in the lanes that count, so min/max are exact).
+        let min_x = _mm256_min_ps(_mm256_min_ps(x[0], x[1]), x[2]);
+        let min_y = _mm256_min_ps(_mm256_min_ps(y[0], y[1]), y[2]);
+        let max_x = _mm256_max_ps(_mm256_max_ps(x[0], x[1]), x[2]);
+        let max_y = _mm256_max_ps(_mm256_max_ps(y[0], y[1]), y[2]);
+
+        // `pixel_box`.
+        let (width_f, height_f) = (width as f32, height as f32);
+        let outside = _mm256_or_ps(
+            _mm256_or_ps(
+                _mm256_cmp_ps::<_CMP_LT_OQ>(max_x, half),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(max_y, half),
+            ),
+            _mm256_or_ps(
+                _mm256_cmp_ps::<_CMP_GT_OQ>(min_x, _mm256_set1_ps(width_f - 0.5)),
+                _mm256_cmp_ps::<_CMP_GT_OQ>(min_y, _mm256_set1_ps(height_f - 0.5)),
+            ),
+        );
+        let floor = |v: __m256| {
+            let truncated = _mm256_cvttps_epi32(v);
+            let above = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_GT_OQ>(
+                _mm256_cvtepi32_ps(truncated),
+                v,
+            ));
+            _mm256_add_epi32(truncated, above)
+        };
+        let minus_one = _mm256_set1_ps(-1.0);
+        let negate = |v: __m256| _mm256_xor_ps(v, sign);
+        let minus_first_col = floor(negate(_mm256_max_ps(_mm256_sub_ps(min_x, half), minus_one)));
+        let minus_first_row = floor(negate(_mm256_max_ps(_mm256_sub_ps(min_y, half), minus_one)));
+        let last_col = floor(_mm256_min_ps(
+            _mm256_sub_ps(max_x, half),
+            _mm256_set1_ps(width_f),
+        ));
+        let last_row = floor(_mm256_min_ps(
+            _mm256_sub_ps(max_y, half),
+            _mm256_set1_ps(height_f),
+        ));
+        let zero_i = _mm256_setzero_si256();
+        let first_col = _mm256_max_epi32(_mm256_sub_epi32(zero_i, minus_first_col), zero_i);
+        let first_row = _mm256_max_epi32(_mm256_sub_epi32(zero_i, minus_first_row), zero_i);
+        let last_col = _mm256_min_epi32(last_col, _mm256_set1_epi32(width as i32 - 1));
+        let last_row = _mm256_min_epi32(last_row, _mm256_set1_epi32(height as i32 - 1));
+        let empty = _mm256_or_si256(
+            _mm256_cmpgt_epi32(first_row, last_row),
+            _mm256_cmpgt_epi32(first_col, last_col),
+        );
+        let mut rejected = _mm256_or_ps(outside, _mm256_castsi256_ps(empty));
+
+        // A box around a single pixel centre: `TriangleSetup::new`, `at` and `depth(…, 0.0)`.
+        let single = _mm256_andnot_ps(
+            rejected,
+            _mm256_castsi256_ps(_mm256_and_si256(
+                _mm256_cmpeq_epi32(first_row, last_row),
+                _mm256_cmpeq_epi32(first_col, last_col),
+            )),
+        );
+        if _mm256_movemask_ps(single) != 0 {
+            let edge_function = |ax: __m256, ay: __m256, bx: __m256, by: __m256, px, py| {
+                _mm256_sub_ps(
+                    _mm256_mul_ps(_mm256_sub_ps(bx, ax), _mm256_sub_ps(py, ay)),
+                    _mm256_mul_ps(_mm256_sub_ps(by, ay), _mm256_sub_ps(px, ax)),
+                )
+            };
+            let signed_area = edge_function(x[0], y[0], x[1], y[1], x[2], y[2]);
+            let area = _mm256_andnot_ps(sign, signed_area);
+            let degenerate = _mm256_or_ps(
+                _mm256_cmp_ps::<_CMP_NLT_UQ>(area, infinity),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(area, _mm256_set1_ps(1e-12)),
+            );
+            let orientation = _mm256_or_ps(_mm256_set1_ps(1.0), _mm256_and_ps(signed_area, sign));
+            let inv_area = _mm256_div_ps(_mm256_set1_ps(1.0), area);
+            let centre_x = _mm256_add_ps(_mm256_cvtepi32_ps(first_col), half);
+            let centre_y = _mm256_add_ps(_mm256_cvtepi32_ps(first_row), half);
+            let edges = [(1, 2), (2, 0), (0, 1)];
+            let mut w = [zero; 3];
+            let mut step_x = [zero; 3];
+            let mut inv_depth_scaled = [zero; 3];
+            for (i, &(a, b)) in edges.iter().enumerate() {
+                step_x[i] = _mm256_mul_ps(negate(_mm256_sub_ps(y[b], y[a])), orientation);
+                w[i] = _mm256_mul_ps(
+                    edge_function(x[a], y[a], x[b], y[b], centre_x, centre_y),
+                    orientation,
+                );
+                inv_depth_scaled[i] = _mm256_mul_ps(inv_depth[i], inv_area);
+            }
+            let dot = |a: &[__m256; 3], b: &[__m256; 3]| {
+                _mm256_add_ps(
+                    _mm256_add_ps(_mm256_mul_ps(a[0], b[0]), _mm256_mul_ps(a[1], b[1])),
+                    _mm256_mul_ps(a[2], b[2]),
+                )
+            };
+            let inv_depth_step_x = dot(&step_x, &inv_depth_scaled);
+            let inv_depth_start = dot(&w, &inv_depth_scaled);
+            let mut miss = degenerate;
+            for i in 0..3 {
+                let at_offset = _mm256_add_ps(w[i], _mm256_mul_ps(step_x[i], zero));
+                miss = _mm256_or_ps(miss, _mm256_cmp_ps::<_CMP_LT_OQ>(at_offset, zero));
+            }
+            let sum = _mm256_add_ps(inv_depth_start, _mm256_mul_ps(inv_depth_step_x, zero));
+            miss = _mm256_or_ps(miss, _mm256_cmp_ps::<_CMP_LE_OQ>(sum, zero));
+            rejected = _mm256_or_ps(rejected, _mm256_and_ps(single, miss));
+        }
+        out.kept = !(_mm256_movemask_ps(rejected) as u8) & !out.scalar;
+        _mm256_storeu_si256(out.first_col.as_mut_ptr() as *mut __m256i, first_col);
+        _mm256_storeu_si256(out.last_col.as_mut_ptr() as *mut __m256i, last_col);
+        _mm256_storeu_si256(out.first_row.as_mut_ptr() as *mut __m256i, first_row);
+        _mm256_storeu_si256(out.last_row.as_mut_ptr() as *mut __m256i, last_row);
+    }
+    out
+}
+
 /// `ceil` counterpart of [`floor_px`].
 #[inline(always)]
 fn ceil_px(x: f32) -> f32 {
@@ -1022,6 +1281,92 @@ mod tests {
             assert_eq!(floor_px4(x), x.map(|v| floor_px(v) as i32), "{x:?}");
             assert_eq!(floor_px4(x), x.map(|v| v.floor() as i32), "{x:?}");
         }
+    }
+
+    /// The binning's eight-at-once boxes are the scalar path's, face by face: sub-pixel faces
+    /// (hits and misses of their one centre), faces across the border and outside, slivers,
+    /// degenerate, huge and non-finite projections, corners behind the near plane.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn eight_boxes_at_once_are_the_scalar_boxes() {
+        use rand::{Rng, SeedableRng};
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let (width, height) = (505usize, 275usize);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let special = [
+            f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            1e30,
+            -1e30,
+            0.5,
+            505.5,
+        ];
+        let mut vertices = Vec::new();
+        let mut in_front = Vec::new();
+        for k in 0..6000 {
+            let centre = Vec2::new(
+                rng.random_range(-20.0..width as f32 + 20.0),
+                rng.random_range(-20.0..height as f32 + 20.0),
+            );
+            // Triangles of a few tenths of a pixel to tens of pixels, a few with corners on
+            // pixel centres or edges, or not finite.
+            let size = [0.3f32, 1.0, 3.0, 40.0][k % 4];
+            for corner in 0..3 {
+                let mut position = centre
+                    + Vec2::new(rng.random_range(-size..size), rng.random_range(-size..size));
+                if k % 3 == 0 {
+                    position = (position * 2.0).round() * 0.5;
+                }
+                if rng.random_range(0..100) == 0 {
+                    position.x = special[rng.random_range(0..special.len())];
+                }
+                if k % 97 == 0 && corner == 1 {
+                    position = vertices
+                        .last()
+                        .map_or(position, |v: &ScreenVertex| v.position_px);
+                }
+                vertices.push(ScreenVertex {
+                    position_px: position,
+                    inv_depth: rng.random_range(-0.05..1.0),
+                });
+                in_front.push(rng.random_range(0..50) != 0);
+            }
+        }
+        let faces: Vec<VisibleFace> = (0..vertices.len() as u32 / 3)
+            .map(|f| VisibleFace {
+                face_index: f,
+                corners: [3 * f, 3 * f + 1, 3 * f + 2],
+            })
+            .collect();
+        let (mut kept, mut scalar) = (0, 0);
+        for eight in faces.chunks_exact(8) {
+            let eight: &[VisibleFace; 8] = eight.try_into().expect("eight faces");
+            // SAFETY: AVX2 was detected above; 3 × 18 000 slots fit an i32.
+            let boxes = unsafe {
+                eight_screen_pixel_boxes_avx2(eight, &vertices, &in_front, width, height)
+            };
+            for (lane, face) in eight.iter().enumerate() {
+                if boxes.scalar & (1 << lane) != 0 {
+                    scalar += 1;
+                    continue;
+                }
+                let screen = face.corners.map(|v| vertices[v as usize]);
+                let expected = screen_pixel_box(&screen, width, height);
+                let got = boxes.pixel_box(lane);
+                kept += usize::from(got.is_some());
+                assert_eq!(
+                    got.map(|b| (b.cols, b.rows, b.clipped)),
+                    expected.map(|b| (b.cols, b.rows, b.clipped)),
+                    "face {} {screen:?}",
+                    face.face_index
+                );
+            }
+        }
+        // Both paths and both answers were exercised.
+        assert!(kept > 1000 && scalar > 100, "kept {kept}, scalar {scalar}");
     }
 
     /// A 2 m × 2 m square in the plane z = 5 m (world = camera), facing the camera.
