@@ -326,6 +326,11 @@ pub struct CoarseArgs {
     /// camera only; the fine levels estimate the whole pose.
     #[arg(long)]
     pub edge_coarse_rotation_only: bool,
+    /// Final refinement: what decides whether the aligned pose replaces the verified one: a
+    /// higher edge support (default), that and a correlation with the photo not lower, or a
+    /// higher correlation alone.
+    #[arg(long, value_enum, default_value_t = KeepRuleArg::Support)]
+    pub edge_keep: KeepRuleArg,
     /// Renderings: occlusion contours from the depth count as edges (a share of the nearer
     /// depth, e.g. 0.1: two surfaces whose depths differ by more lie on two sides of a contour),
     /// also where both surfaces have the same normal (a flat roof against the ground behind it).
@@ -418,6 +423,7 @@ impl Default for CoarseArgs {
             no_edge_rounding: !defaults.edge_align.estimate_rounding,
             flow_near_model_edges: defaults.matching.min_rendering_edge.is_some(),
             edge_coarse_rotation_only: defaults.edge_align.coarse_rotation_only,
+            edge_keep: KeepRuleArg::Support,
             asg_occlusion_contours: defaults.asg.occlusion_depth_ratio,
             edge_kinds: EdgeKindsArg::All,
             edge_rounding_kinds: EdgeKindsArg::All,
@@ -430,6 +436,24 @@ impl Default for CoarseArgs {
             verify_output: VerifyOutputArg::Medoid,
             max_delta_uncertainty_px: ConfidenceConfig::default().max_delta_uncertainty_px,
             min_least_seen_drop: ConfidenceConfig::default().min_least_seen_drop,
+        }
+    }
+}
+
+/// What decides whether the final refinement's aligned pose is kept.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum KeepRuleArg {
+    Support,
+    SupportAndCorrelation,
+    Correlation,
+}
+
+impl From<KeepRuleArg> for asgreg::core::edge_align::KeepRule {
+    fn from(arg: KeepRuleArg) -> Self {
+        match arg {
+            KeepRuleArg::Support => Self::Support,
+            KeepRuleArg::SupportAndCorrelation => Self::SupportAndCorrelation,
+            KeepRuleArg::Correlation => Self::Correlation,
         }
     }
 }
@@ -584,6 +608,7 @@ pub fn registration_config(
             ridge_choice: coarse.edge_ridge_choice.into(),
             distinct_weights: coarse.edge_distinct_weights,
             coarse_rotation_only: coarse.edge_coarse_rotation_only,
+            keep_rule: coarse.edge_keep.into(),
             estimate_rounding: !coarse.no_edge_rounding,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),

@@ -93,6 +93,50 @@ pub struct EdgeAlignConfig {
     /// trades rotation against lateral translation (started at the truth of the house, the 16 px
     /// level moved it 3–11° and 1–3 m); the pose search's beams are rotations too.
     pub coarse_rotation_only: bool,
+    /// What decides whether the aligned pose replaces the one the alignment started from.
+    pub keep_rule: KeepRule,
+}
+
+/// What decides whether the final refinement's aligned pose replaces the verified one it started
+/// from. The edge support alone is biased where the model is simpler than the world (a clean
+/// model without eaves, a photo full of edges the model lacks): more samples land on some photo
+/// ridge at a pose a few px off than at the truth (`eval --diagnose`, "at truth" support below
+/// the aligned pose's on the clean house). The dense correlation of the rendering with the photo
+/// ([`crate::core::correlation`]) weighs the whole rendering against the whole photo instead.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum KeepRule {
+    /// Kept when its edge support is higher.
+    #[default]
+    Support,
+    /// Kept when its edge support is higher and its correlation with the photo not lower.
+    SupportAndCorrelation,
+    /// Kept when its correlation with the photo is higher.
+    Correlation,
+}
+
+impl KeepRule {
+    /// Whether the aligned pose is kept, from both poses' edge support shares and correlations
+    /// (`None`: the model shows no pixel, or either image is constant there).
+    pub fn keeps(self, support: (f64, f64), correlation: (Option<f64>, Option<f64>)) -> bool {
+        let (verified_support, aligned_support) = support;
+        let support_rises = aligned_support > verified_support;
+        let correlation_rises = |strictly: bool| match correlation {
+            (Some(verified), Some(aligned)) => {
+                if strictly {
+                    aligned > verified
+                } else {
+                    aligned >= verified
+                }
+            }
+            (None, Some(_)) => true,
+            (_, None) => false,
+        };
+        match self {
+            Self::Support => support_rises,
+            Self::SupportAndCorrelation => support_rises && correlation_rises(false),
+            Self::Correlation => correlation_rises(true),
+        }
+    }
 }
 
 /// Which photo ridge on a search line a model edge sample is matched to.
@@ -175,6 +219,7 @@ impl Default for EdgeAlignConfig {
             ridge_choice: RidgeChoice::Strongest,
             distinct_weights: false,
             coarse_rotation_only: false,
+            keep_rule: KeepRule::Support,
         }
     }
 }
@@ -1605,5 +1650,26 @@ mod tests {
             assert!((numeric.x - row_u[axis]).abs() < 1e-2 * (1.0 + row_u[axis].abs()));
             assert!((numeric.y - row_v[axis]).abs() < 1e-2 * (1.0 + row_v[axis].abs()));
         }
+    }
+
+    /// The keep rules: support alone follows the support; the correlation vetoes a pose it
+    /// correlates worse with; the correlation alone follows the correlation; a pose without
+    /// correlation (no model pixel) is never kept by a rule that reads it.
+    #[test]
+    fn keep_rules_read_support_and_correlation() {
+        let rises = (0.5, 0.7);
+        let falls = (0.7, 0.5);
+        let better = (Some(0.3), Some(0.4));
+        let worse = (Some(0.4), Some(0.3));
+        assert!(KeepRule::Support.keeps(rises, worse));
+        assert!(!KeepRule::Support.keeps(falls, better));
+        assert!(KeepRule::SupportAndCorrelation.keeps(rises, better));
+        assert!(KeepRule::SupportAndCorrelation.keeps(rises, (Some(0.4), Some(0.4))));
+        assert!(!KeepRule::SupportAndCorrelation.keeps(rises, worse));
+        assert!(!KeepRule::SupportAndCorrelation.keeps(falls, better));
+        assert!(KeepRule::Correlation.keeps(falls, better));
+        assert!(!KeepRule::Correlation.keeps(rises, worse));
+        assert!(!KeepRule::Correlation.keeps(rises, (Some(0.4), None)));
+        assert!(KeepRule::Correlation.keeps(falls, (None, Some(0.1))));
     }
 }

@@ -410,8 +410,26 @@ pub fn refine_pose(
     sharpened_samples(samples, rounding_m, align.rounding_kinds, sharpened);
     std::mem::swap(samples, sharpened);
     let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
-    let kept = aligned.support_fraction() > verified.support_fraction();
     // The last rendering (`view`) is at the aligned pose; the start's was kept.
+    let aligned_correlation = correlation_peak(
+        view.asg.view(),
+        view.render.face_index().view(),
+        query,
+        correlation_workspace,
+    );
+    let verified_correlation = correlation_peak(
+        start_asg.view(),
+        start_faces.view(),
+        query,
+        correlation_workspace,
+    );
+    let kept = align.keep_rule.keeps(
+        (verified.support_fraction(), aligned.support_fraction()),
+        (
+            verified_correlation.map(|peak| peak.at_pose),
+            aligned_correlation.map(|peak| peak.at_pose),
+        ),
+    );
     let (peak, correlation) = if kept {
         (
             support_peak(
@@ -424,12 +442,7 @@ pub fn refine_pose(
                     .as_ref(),
                 align,
             ),
-            correlation_peak(
-                view.asg.view(),
-                view.render.face_index().view(),
-                query,
-                correlation_workspace,
-            ),
+            aligned_correlation,
         )
     } else {
         (
@@ -442,12 +455,7 @@ pub fn refine_pose(
                 start_metric.as_ref(),
                 align,
             ),
-            correlation_peak(
-                start_asg.view(),
-                start_faces.view(),
-                query,
-                correlation_workspace,
-            ),
+            verified_correlation,
         )
     };
     Ok(PoseRefinement {
