@@ -131,7 +131,13 @@ impl Resources {
             .map(|entries| {
                 entries
                     .filter_map(Result::ok)
-                    .filter(|e| e.file_name().to_string_lossy().starts_with("iox2_"))
+                    .filter(|e| {
+                        // iceoryx2's machine-wide management segment (`…global_mgmt`) is made by
+                        // the first iceoryx2 node on the machine and kept by design: on a fresh
+                        // machine a soak went 0 → 1 by it alone (a later one: 1 → 1).
+                        let name = e.file_name().to_string_lossy().into_owned();
+                        name.starts_with("iox2_") && !name.ends_with(".global_mgmt")
+                    })
                     .count()
             })
             .unwrap_or(0)
