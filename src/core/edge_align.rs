@@ -115,6 +115,11 @@ pub enum KeepRule {
 }
 
 impl KeepRule {
+    /// Whether [`KeepRule::keeps`] reads the correlations (else they need not be computed).
+    pub fn reads_correlation(self) -> bool {
+        self != Self::Support
+    }
+
     /// Whether the aligned pose is kept, from both poses' edge support shares and correlations
     /// (`None`: the model shows no pixel, or either image is constant there).
     pub fn keeps(self, support: (f64, f64), correlation: (Option<f64>, Option<f64>)) -> bool {
@@ -1671,5 +1676,9 @@ mod tests {
         assert!(!KeepRule::Correlation.keeps(rises, worse));
         assert!(!KeepRule::Correlation.keeps(rises, (Some(0.4), None)));
         assert!(KeepRule::Correlation.keeps(falls, (None, Some(0.1))));
+        // Only the support rule decides without the correlations.
+        assert!(!KeepRule::Support.reads_correlation());
+        assert!(KeepRule::SupportAndCorrelation.reads_correlation());
+        assert!(KeepRule::Correlation.reads_correlation());
     }
 }

@@ -410,52 +410,59 @@ pub fn refine_pose(
     sharpened_samples(samples, rounding_m, align.rounding_kinds, sharpened);
     std::mem::swap(samples, sharpened);
     let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
-    // The last rendering (`view`) is at the aligned pose; the start's was kept.
-    let aligned_correlation = correlation_peak(
-        view.asg.view(),
-        view.render.face_index().view(),
-        query,
-        correlation_workspace,
-    );
-    let verified_correlation = correlation_peak(
-        start_asg.view(),
-        start_faces.view(),
-        query,
-        correlation_workspace,
-    );
-    let kept = align.keep_rule.keeps(
-        (verified.support_fraction(), aligned.support_fraction()),
-        (
-            verified_correlation.map(|peak| peak.at_pose),
-            aligned_correlation.map(|peak| peak.at_pose),
-        ),
-    );
-    let (peak, correlation) = if kept {
-        (
-            support_peak(
-                samples,
-                &query,
-                &aligned_camera,
-                &pose,
-                &aligned,
-                image_motion_metric(&view.render, &aligned_camera, MOTION_METRIC_STRIDE_PX)
-                    .as_ref(),
-                align,
+    // The last rendering (`view`) is at the aligned pose; the start's was kept. The output's
+    // correlation is reported; the other pose's is computed only when the keep rule reads it.
+    let mut correlation_of = |at_aligned: bool| {
+        if at_aligned {
+            correlation_peak(
+                view.asg.view(),
+                view.render.face_index().view(),
+                query,
+                correlation_workspace,
+            )
+        } else {
+            correlation_peak(
+                start_asg.view(),
+                start_faces.view(),
+                query,
+                correlation_workspace,
+            )
+        }
+    };
+    let support = (verified.support_fraction(), aligned.support_fraction());
+    let (kept, correlation) = if align.keep_rule.reads_correlation() {
+        let (at_verified, at_aligned) = (correlation_of(false), correlation_of(true));
+        let kept = align.keep_rule.keeps(
+            support,
+            (
+                at_verified.map(|peak| peak.at_pose),
+                at_aligned.map(|peak| peak.at_pose),
             ),
-            aligned_correlation,
+        );
+        (kept, if kept { at_aligned } else { at_verified })
+    } else {
+        let kept = align.keep_rule.keeps(support, (None, None));
+        (kept, correlation_of(kept))
+    };
+    let peak = if kept {
+        support_peak(
+            samples,
+            &query,
+            &aligned_camera,
+            &pose,
+            &aligned,
+            image_motion_metric(&view.render, &aligned_camera, MOTION_METRIC_STRIDE_PX).as_ref(),
+            align,
         )
     } else {
-        (
-            support_peak(
-                start_samples,
-                &query,
-                camera,
-                start,
-                &verified,
-                start_metric.as_ref(),
-                align,
-            ),
-            verified_correlation,
+        support_peak(
+            start_samples,
+            &query,
+            camera,
+            start,
+            &verified,
+            start_metric.as_ref(),
+            align,
         )
     };
     Ok(PoseRefinement {
