@@ -293,6 +293,13 @@ pub struct CoarseArgs {
     /// Final refinement: search half-length of its first level, px (levels halve it down to 2).
     #[arg(long, default_value_t = RegistrationConfig::default().edge_align.initial_search_radius_px)]
     pub edge_search_px: f64,
+    /// Final refinement: also align from the chosen pose with only the levels from this search
+    /// half-length down, px, its end kept as --edge-short-schedule-rule says (0: one schedule).
+    #[arg(long, default_value_t = RegistrationConfig::default().edge_align.short_schedule_radius_px)]
+    pub edge_short_schedule_px: f64,
+    /// Final refinement: what decides whether the short schedule's end replaces the full one's.
+    #[arg(long, value_enum, default_value_t = KeepRuleArg::SupportAndCorrelation)]
+    pub edge_short_schedule_rule: KeepRuleArg,
     /// Final refinement: how many starting poses (the chosen one and other refined poses of its
     /// agreeing group); the aligned pose with the most edge support wins.
     #[arg(long, default_value_t = RegistrationConfig::default().edge_align.starts)]
@@ -416,6 +423,8 @@ impl Default for CoarseArgs {
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
             edge_starts: defaults.edge_align.starts,
+            edge_short_schedule_px: defaults.edge_align.short_schedule_radius_px,
+            edge_short_schedule_rule: KeepRuleArg::SupportAndCorrelation,
             refine_method: RefineMethodArg::Edges,
             edge_check_levels: false,
             edge_ridge_choice: RidgeChoiceArg::Strongest,
@@ -603,6 +612,8 @@ pub fn registration_config(
             enabled: !coarse.no_edge_align,
             initial_search_radius_px: coarse.edge_search_px,
             starts: coarse.edge_starts,
+            short_schedule_radius_px: coarse.edge_short_schedule_px,
+            short_schedule_rule: coarse.edge_short_schedule_rule.into(),
             method: coarse.refine_method.into(),
             check_levels: coarse.edge_check_levels,
             ridge_choice: coarse.edge_ridge_choice.into(),

@@ -55,7 +55,8 @@
 //! ports are not `Send`); each port has its own iceoryx2 node, dropped with it.
 
 use std::collections::{HashMap, HashSet};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use ::iceoryx2::config::Config;
@@ -339,6 +340,8 @@ impl Transport for Iceoryx2Transport {
             .map_err(|error| open_error(format!("could not create the notifier port: {error}")))?;
         let iceoryx = self.iceoryx.clone();
         let checks_done = AtomicU64::new(0);
+        let lossy = Arc::new(AtomicBool::new(false));
+        let lossy_in_handler = Arc::clone(&lossy);
         let publisher = data
             .publisher_builder()
             .initial_max_slice_len(self.config.max_message_bytes.div_ceil(8).max(1))
@@ -346,8 +349,11 @@ impl Transport for Iceoryx2Transport {
             .max_loaned_samples(PUBLISHER_MAX_LOANED)
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
             .set_backpressure_handler(move |info: &BackpressureInfo| {
-                // Keep retrying (lossless), but look for dead subscribers every DEAD_PEER_CHECK
-                // of one blocked send.
+                // A lossy send skips a full queue; a lossless one keeps retrying, but looks for
+                // dead subscribers every DEAD_PEER_CHECK of one blocked send.
+                if lossy_in_handler.load(Ordering::Relaxed) {
+                    return BackpressureAction::DiscardData;
+                }
                 if info.retries == 0 {
                     checks_done.store(0, Ordering::Relaxed);
                 } else {
@@ -366,6 +372,7 @@ impl Transport for Iceoryx2Transport {
             max_message_bytes: self.config.max_message_bytes,
             iceoryx: self.iceoryx.clone(),
             id: publisher.id().value(),
+            lossy,
             confirmed: HashSet::new(),
             unconfirmed: HashMap::new(),
             publisher,
@@ -432,6 +439,9 @@ struct Iceoryx2Publisher {
     iceoryx: Config,
     /// This publisher's iceoryx2 id, as subscribers acknowledge it.
     id: u128,
+    /// Set for the duration of a lossy send: the backpressure handler then discards the sample
+    /// for a subscriber whose queue is full instead of retrying.
+    lossy: Arc<AtomicBool>,
     /// Subscribers that have attached to this publisher.
     confirmed: HashSet<u128>,
     /// Subscribers that have not (yet): how many messages each may hold from this publisher.
@@ -563,10 +573,34 @@ impl Publisher for Iceoryx2Publisher {
         len: usize,
         write: &mut dyn FnMut(&mut [u8]),
     ) -> Result<(), TransportError> {
-        super::check_message_size(BACKEND, &self.topic, len, self.max_message_bytes)?;
         // A subscriber that has not attached must not be sent a message its full queue would
         // drop: wait for it as for a full queue.
+        super::check_message_size(BACKEND, &self.topic, len, self.max_message_bytes)?;
         self.wait_for_attachments(|queue| queue.saturating_sub(1), None)?;
+        self.deliver(len, write)
+    }
+
+    /// Never waits: neither for a subscriber to attach nor for room in a full queue (the
+    /// backpressure handler discards the sample for that subscriber). Before this override the
+    /// default `send` waited for ever on a subscriber that does not read.
+    fn send_lossy(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
+        super::check_message_size(BACKEND, &self.topic, bytes.len(), self.max_message_bytes)?;
+        self.lossy.store(true, Ordering::Relaxed);
+        let sent = self.deliver(bytes.len(), &mut |buffer| buffer.copy_from_slice(bytes));
+        self.lossy.store(false, Ordering::Relaxed);
+        sent
+    }
+}
+
+impl Iceoryx2Publisher {
+    /// Loans a sample, lets `write` fill it and sends it (the backpressure handler decides what a
+    /// full queue does); counts it against every subscriber not yet attached, lossy or not: a
+    /// later lossless send must wait for such a subscriber whose queue it may have filled.
+    fn deliver(
+        &mut self,
+        len: usize,
+        write: &mut dyn FnMut(&mut [u8]),
+    ) -> Result<(), TransportError> {
         let words = len.div_ceil(8);
         let mut sample = self.publisher.loan_slice_uninit(words).map_err(|error| {
             self.send_error(format!("could not loan a sample of {len} bytes: {error}"))

@@ -126,8 +126,9 @@ pub trait Publisher {
         self.send_with(bytes.len(), &mut |buffer| buffer.copy_from_slice(bytes))
     }
     /// Sends best effort (metrics): never waits for a full subscriber queue; a subscriber whose
-    /// queue is full misses the message. The default is `send` (iceoryx2 and zenoh never wait
-    /// here); crossbeam, whose `send` blocks a full queue, overrides it.
+    /// queue is full misses the message. The default is `send` (zenoh's, which waits at most its
+    /// `blocked_send_limit_ms` on a congested link); crossbeam and iceoryx2, whose `send` waits
+    /// for a full queue, override it.
     fn send_lossy(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
         self.send(bytes)
     }

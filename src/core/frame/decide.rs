@@ -268,7 +268,9 @@ pub(super) fn reject(verdict: &mut Verdict, reason: RejectionReason) {
 /// `max_delta_uncertainty_px`). A pose the refined poses agreed on but the
 /// photo's edges do not confirm is rejected ([`RejectionReason::NotConfirmed`]), one they
 /// confirm without fixing it too ([`RejectionReason::Unconstrained`]); a pose the photo
-/// confirms is accepted even when the agreement test failed (its reason is then moot).
+/// confirms is accepted even when the agreement test failed (its reason is then moot), unless
+/// most of the frame's refined poses lie outside its agreeing group
+/// ([`overruled_by_the_frame`]): then the check's rejection stands.
 fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceConfig) {
     let confidence = config.model.probability(evidence);
     verdict.confidence = confidence;
@@ -317,9 +319,19 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
         Err(Rejection {
             candidate: Some(chosen),
             ..
-        }) if confirmed => verdict.decision = Ok(*chosen),
+        }) if confirmed && !overruled_by_the_frame(evidence) => verdict.decision = Ok(*chosen),
         _ => {}
     }
+}
+
+/// Whether a pose the plausibility check rejected is held rejected whatever its photo evidence:
+/// its agreeing group is not a majority of the frame's refined poses. The photo's edges confirm
+/// a pose in any basin where the model's outline fits (the clean house's near-symmetric ends:
+/// a pose 51 px off with 66 % edge support against 25 % chance, docs/measurements.md); when the
+/// check failed and most of the frame's own flow-based poses point elsewhere, the frame's
+/// evidence contradicts itself and the edges alone do not decide it.
+fn overruled_by_the_frame(evidence: &FrameEvidence) -> bool {
+    !evidence.check_passed && 2 * evidence.component_size <= evidence.hypotheses
 }
 
 #[cfg(test)]
@@ -410,6 +422,94 @@ mod tests {
         );
         assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
         assert!(decision.verdict.confidence >= config.confidence.accept_above);
+    }
+
+    /// A pose the check rejects (its group did not converge) but the photo confirms is accepted
+    /// when its group is most of the frame's refined poses, and stays rejected when most of them
+    /// lie elsewhere.
+    #[test]
+    fn a_checked_out_pose_is_accepted_on_the_photo_only_with_most_poses_in_its_group() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let mut workspace = RefineWorkspace::default();
+        // Four refined poses on the truth that stayed at their coarse poses (not converged).
+        let mut outcomes: Vec<CoarseOutcome> = agreeing_outcomes(&camera, &truth)
+            .into_iter()
+            .take(4)
+            .map(|mut outcome| {
+                if let Ok(hypothesis) = outcome.hypothesis.as_mut() {
+                    hypothesis.cam_from_world = hypothesis.coarse_cam_from_world;
+                }
+                outcome
+            })
+            .collect();
+        // Refined poses that agree with nothing: each turned its own way, far apart.
+        let strays = |count: usize| -> Vec<CoarseOutcome> {
+            (0..count)
+                .map(|i| {
+                    let angle = i as f64 * std::f64::consts::TAU / count as f64;
+                    let turn = UnitQuaternion::from_scaled_axis(Vector3::new(
+                        0.2 * angle.cos(),
+                        0.2 * angle.sin(),
+                        0.0,
+                    ));
+                    let pose = Rigid3::new(turn * truth.rotation, turn * truth.translation);
+                    let mut outcome = agreeing_outcomes(&camera, &pose).remove(0);
+                    outcome.coarse_index = 4 + i;
+                    outcome
+                })
+                .collect()
+        };
+        let decide = |outcomes: &[CoarseOutcome], workspace: &mut RefineWorkspace| {
+            decide_frame(
+                &mesh,
+                &camera,
+                outcomes,
+                Some(query.view()),
+                IntrinsicsMode::Known,
+                &config,
+                workspace,
+            )
+        };
+        let mut majority = outcomes.clone();
+        majority.extend(strays(2));
+        let decision = decide(&majority, &mut workspace);
+        assert!(!decision.evidence.check_passed, "{:?}", decision.evidence);
+        assert_eq!(
+            (
+                decision.evidence.component_size,
+                decision.evidence.hypotheses
+            ),
+            (4, 6)
+        );
+        assert!(
+            decision.verdict.accepted(),
+            "{:?} {:?}",
+            decision.verdict.rejection(),
+            decision.evidence
+        );
+
+        outcomes.extend(strays(5));
+        let decision = decide(&outcomes, &mut workspace);
+        assert_eq!(
+            (
+                decision.evidence.component_size,
+                decision.evidence.hypotheses
+            ),
+            (4, 9)
+        );
+        assert!(
+            decision.verdict.confidence >= config.confidence.accept_above,
+            "the photo confirms it: {} {:?}",
+            decision.verdict.confidence,
+            decision.evidence
+        );
+        assert!(
+            !decision.verdict.accepted(),
+            "most refined poses disagree: {:?}",
+            decision.evidence
+        );
     }
 
     /// Verification across the pose search's centres: two groups of coarse outcomes, one agreeing

@@ -78,7 +78,8 @@ pub struct RefineWorkspace {
 /// writes the aligned pose into the verdict when it is kept. With `edge_align.starts` > 1 the
 /// alignment also starts from other refined poses of the chosen pose's agreeing `group` (see
 /// [`other_starts`]) and the output with the highest edge support wins: one more basin of the
-/// same objective per start. `Err` says why nothing was tried.
+/// same objective per start; so does the second, shorter schedule from the chosen pose
+/// ([`EdgeAlignConfig::short_schedule_radius_px`]). `Err` says why nothing was tried.
 pub fn refine_verdict(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
@@ -99,12 +100,30 @@ pub fn refine_verdict(
         IntrinsicsMode::Known => AlignedParameters::Pose,
         IntrinsicsMode::Unknown => AlignedParameters::PoseAndFocal,
     };
-    let mut refine_from = |camera: &Camera, start: &Rigid3| {
+    let mut refine_from = |camera: &Camera, start: &Rigid3, config: &RegistrationConfig| {
         refine_pose(mesh, camera, query, start, parameters, config, workspace)
     };
-    let mut refinement = refine_from(&chosen.camera, &chosen.cam_from_world)?;
+    let mut refinement = refine_from(&chosen.camera, &chosen.cam_from_world, config)?;
+    if let Some(short) = align.short_schedule() {
+        let short_config = RegistrationConfig {
+            edge_align: short,
+            ..config.clone()
+        };
+        if let Ok(other) = refine_from(&chosen.camera, &chosen.cam_from_world, &short_config) {
+            let replaces = align.short_schedule_rule.keeps(
+                (refinement.output_support(), other.output_support()),
+                (
+                    refinement.correlation.map(|peak| peak.at_pose),
+                    other.correlation.map(|peak| peak.at_pose),
+                ),
+            );
+            if replaces {
+                refinement = refinement.replaced_by(other);
+            }
+        }
+    }
     for start in other_starts(mesh, chosen, group, align) {
-        let Ok(other) = refine_from(&start.camera, &start.cam_from_world) else {
+        let Ok(other) = refine_from(&start.camera, &start.cam_from_world, config) else {
             continue;
         };
         if other.output_support() > refinement.output_support() {

@@ -164,6 +164,39 @@ fn messages_outlive_a_publisher_that_leaves_at_once() {
     });
 }
 
+/// Metrics are sent lossy: a subscriber that never reads (its queue of 2 full, never attached)
+/// must not hold the sender up. Before the backend had its own `send_lossy` this waited for ever.
+#[test]
+fn a_lossy_send_never_waits_for_a_subscriber_that_does_not_read() {
+    let config = small_config("lossy");
+    let transport = transport(config.clone());
+    let mut subscriber = transport.subscriber("m").unwrap();
+    let (done, finished) = std::sync::mpsc::channel();
+    // Not a scoped thread: a send that waits for ever must fail the test, not hang it.
+    let sender = std::thread::spawn(move || {
+        let mut publisher = self::transport(config).publisher("m").unwrap();
+        assert!(publisher.wait_for_subscriber(WAIT).unwrap());
+        for sequence in 0..20u8 {
+            publisher.send_lossy(&[sequence; 64]).unwrap();
+        }
+        done.send(()).unwrap();
+        // A lossless send afterwards still reaches the subscriber once it reads.
+        publisher.send(&[99; 64]).unwrap();
+    });
+    assert!(
+        finished.recv_timeout(WAIT).is_ok(),
+        "20 lossy sends to a full queue did not return within {WAIT:?}"
+    );
+    // The queue kept the first messages and dropped the rest; the lossless one comes last.
+    let mut got = Vec::new();
+    while got.last() != Some(&99) {
+        got.push(receive(subscriber.as_mut())[0]);
+    }
+    assert!(got.len() >= 2 && got.len() < 21, "{got:?}");
+    assert!(got.windows(2).all(|pair| pair[0] < pair[1]), "{got:?}");
+    sender.join().unwrap();
+}
+
 // ---- Dead processes: a child process of this test binary, SIGKILLed. ----
 
 const CHILD_ENV: &str = "ASGREG_IOX2_TEST_CHILD";
