@@ -301,7 +301,8 @@ pub struct CoarseArgs {
     #[arg(long, value_enum, default_value_t = KeepRuleArg::SupportAndCorrelation)]
     pub edge_short_schedule_rule: KeepRuleArg,
     /// Final refinement: how many starting poses (the chosen one and other refined poses of its
-    /// agreeing group); the aligned pose with the most edge support wins.
+    /// agreeing group); the other starts run the short schedule and win as its rule says (without
+    /// one: the full schedule, and the most edge support wins).
     #[arg(long, default_value_t = RegistrationConfig::default().edge_align.starts)]
     pub edge_starts: usize,
     /// Final refinement: undo a level whose result lowers the edge support.

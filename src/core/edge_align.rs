@@ -67,9 +67,12 @@ pub struct EdgeAlignConfig {
     pub aligned_kinds: AlignedKinds,
     /// Starting poses of the final refinement: the chosen pose and up to `starts − 1` other
     /// refined poses of its agreeing group (largest consensus first, each at least
-    /// `final_search_radius_px` from the starts before it); the aligned pose with the highest
-    /// edge support wins. 1: the chosen pose only (the default: with 3 starts the block at 30 px
-    /// gained, the house lost — its support peaks away from the truth; docs/measurements.md).
+    /// `final_search_radius_px` from the starts before it). With a short schedule
+    /// (`short_schedule_radius_px`) the other starts run it and their end replaces the output as
+    /// `short_schedule_rule` says; without one they run the full schedule and the highest edge
+    /// support wins. 1: the chosen pose only (the default: with 3 starts and no short schedule
+    /// the block at 30 px gained, the house lost — its support peaks away from the truth; with
+    /// the short schedule, measured in docs/measurements.md, sixteenth session).
     pub starts: usize,
     /// After each level, keep its result only when the edge support (measured as the evidence
     /// is, fine, with the current rounding undone) is not lower than at the level's start;

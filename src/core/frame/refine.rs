@@ -104,29 +104,39 @@ pub fn refine_verdict(
         refine_pose(mesh, camera, query, start, parameters, config, workspace)
     };
     let mut refinement = refine_from(&chosen.camera, &chosen.cam_from_world, config)?;
-    if let Some(short) = align.short_schedule() {
-        let short_config = RegistrationConfig {
-            edge_align: short,
-            ..config.clone()
-        };
-        if let Ok(other) = refine_from(&chosen.camera, &chosen.cam_from_world, &short_config) {
-            let replaces = align.short_schedule_rule.keeps(
-                (refinement.output_support(), other.output_support()),
-                (
-                    refinement.correlation.map(|peak| peak.at_pose),
-                    other.correlation.map(|peak| peak.at_pose),
-                ),
-            );
-            if replaces {
+    let short_config = align.short_schedule().map(|short| RegistrationConfig {
+        edge_align: short,
+        ..config.clone()
+    });
+    let short_rule_keeps = |current: &PoseRefinement, other: &PoseRefinement| {
+        align.short_schedule_rule.keeps(
+            (current.output_support(), other.output_support()),
+            (
+                current.correlation.map(|peak| peak.at_pose),
+                other.correlation.map(|peak| peak.at_pose),
+            ),
+        )
+    };
+    if let Some(short_config) = &short_config {
+        if let Ok(other) = refine_from(&chosen.camera, &chosen.cam_from_world, short_config) {
+            if short_rule_keeps(&refinement, &other) {
                 refinement = refinement.replaced_by(other);
             }
         }
     }
     for start in other_starts(mesh, chosen, group, align) {
-        let Ok(other) = refine_from(&start.camera, &start.cam_from_world, config) else {
+        // With a short schedule the other starts run it (they are other good starts, where the
+        // coarse level would drift) and replace the output only as the short schedule's rule
+        // says; without one, the full schedule and the higher edge support.
+        let other_config = short_config.as_ref().unwrap_or(config);
+        let Ok(other) = refine_from(&start.camera, &start.cam_from_world, other_config) else {
             continue;
         };
-        if other.output_support() > refinement.output_support() {
+        let replaces = match short_config {
+            Some(_) => short_rule_keeps(&refinement, &other),
+            None => other.output_support() > refinement.output_support(),
+        };
+        if replaces {
             refinement = refinement.replaced_by(other);
         }
     }
