@@ -100,13 +100,14 @@ pub struct EdgeAlignConfig {
     /// What decides whether the aligned pose replaces the one the alignment started from.
     pub keep_rule: KeepRule,
     /// The first search radius of a second, shorter schedule from the same start, px (0: none):
-    /// the alignment also runs with only the levels from this radius down, and the output with
-    /// the higher edge support wins. The coarse levels are needed to reach a start several px
+    /// the alignment also runs with only the levels from this radius down, and its end replaces
+    /// the full schedule's as `short_schedule_rule` says. The coarse levels are needed to reach a start several px
     /// off, but on a model simpler than the world they also drift from a good one (started at
-    /// the truth of the clean house, the schedule from 16 px ends 7.3 px off, from 8 px 1.2 px):
+    /// the truth of the clean house s1, the schedule from 16 px ends 7.46 px off on average over
+    /// 24 frames, from 8 px 3.51 px, from 4 px 0.92 px):
     /// the two schedules end in different basins exactly when the coarse level moved the pose
-    /// by more than the fine levels can tell apart. Which end is output: `short_schedule_rule`.
-    /// Default 8 px (docs/measurements.md, fifteenth session: LoD house seed 2 at 30 px 4.35 →
+    /// by more than the fine levels can tell apart.
+    /// Default 8 px (docs/measurements.md, sixteenth session: LoD house seed 2 at 30 px 4.35 →
     /// 1.88 px mean δ, the blocks unchanged).
     pub short_schedule_radius_px: f64,
     /// What decides whether the short schedule's end replaces the full schedule's (the full

@@ -573,9 +573,9 @@ impl Publisher for Iceoryx2Publisher {
         len: usize,
         write: &mut dyn FnMut(&mut [u8]),
     ) -> Result<(), TransportError> {
+        super::check_message_size(BACKEND, &self.topic, len, self.max_message_bytes)?;
         // A subscriber that has not attached must not be sent a message its full queue would
         // drop: wait for it as for a full queue.
-        super::check_message_size(BACKEND, &self.topic, len, self.max_message_bytes)?;
         self.wait_for_attachments(|queue| queue.saturating_sub(1), None)?;
         self.deliver(len, write)
     }

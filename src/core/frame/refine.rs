@@ -75,11 +75,12 @@ pub struct RefineWorkspace {
 }
 
 /// Refines the verdict's chosen pose against `query` (the frame's query gradient image, 0..1) and
-/// writes the aligned pose into the verdict when it is kept. With `edge_align.starts` > 1 the
-/// alignment also starts from other refined poses of the chosen pose's agreeing `group` (see
-/// [`other_starts`]) and the output with the highest edge support wins: one more basin of the
-/// same objective per start; so does the second, shorter schedule from the chosen pose
-/// ([`EdgeAlignConfig::short_schedule_radius_px`]). `Err` says why nothing was tried.
+/// writes the aligned pose into the verdict when it is kept. With a second, shorter schedule
+/// ([`EdgeAlignConfig::short_schedule_radius_px`]) the alignment also runs it from the chosen
+/// pose, and with `edge_align.starts` > 1 from other refined poses of the chosen pose's agreeing
+/// `group` (see [`other_starts`]): one more basin of the same objective per run. Each end
+/// replaces the output as `short_schedule_rule` says (without a short schedule the other
+/// starts run the full one and the highest edge support wins). `Err` says why nothing was tried.
 pub fn refine_verdict(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
