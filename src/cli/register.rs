@@ -305,6 +305,11 @@ pub struct CoarseArgs {
     /// one: the full schedule, and the most edge support wins).
     #[arg(long, default_value_t = RegistrationConfig::default().edge_align.starts)]
     pub edge_starts: usize,
+    /// Final refinement: with several centres of the pose search, each centre's refinement also
+    /// starts from the other centres' outputs within its reach (`--edge-centre-starts false`:
+    /// each centre on its own).
+    #[arg(long, default_value_t = RegistrationConfig::default().edge_align.centre_starts, action = clap::ArgAction::Set)]
+    pub edge_centre_starts: bool,
     /// Final refinement: undo a level whose result lowers the edge support.
     #[arg(long)]
     pub edge_check_levels: bool,
@@ -424,6 +429,7 @@ impl Default for CoarseArgs {
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
             edge_starts: defaults.edge_align.starts,
+            edge_centre_starts: defaults.edge_align.centre_starts,
             edge_short_schedule_px: defaults.edge_align.short_schedule_radius_px,
             edge_short_schedule_rule: KeepRuleArg::SupportAndCorrelation,
             refine_method: RefineMethodArg::Edges,
@@ -613,6 +619,7 @@ pub fn registration_config(
             enabled: !coarse.no_edge_align,
             initial_search_radius_px: coarse.edge_search_px,
             starts: coarse.edge_starts,
+            centre_starts: coarse.edge_centre_starts,
             short_schedule_radius_px: coarse.edge_short_schedule_px,
             short_schedule_rule: coarse.edge_short_schedule_rule.into(),
             method: coarse.refine_method.into(),

@@ -2,7 +2,7 @@
 //! a frame's coarse outcomes (paper §3.4, docs/design.md §2 step 7) and the final refinement of the
 //! chosen pose against the query ([`super::refine`]); the verdict carries the chosen pose itself.
 
-use super::refine::{refine_verdict, PoseRefinement, RefineWorkspace};
+use super::refine::{refine_from_other_centres, refine_verdict, PoseRefinement, RefineWorkspace};
 use super::{process_cpu_ms, CoarseOutcome, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::confidence::{ConfidenceConfig, FrameEvidence};
@@ -105,7 +105,9 @@ pub fn decide_frame_and_centres(
 }
 
 /// Each centre's own decision, in the search's order of centres: one decision when the outcomes
-/// are one group (or none).
+/// are one group (or none). Each centre is checked and refined on its own; with
+/// `edge_align.centre_starts` the refinements then also start from each other's outputs
+/// ([`refine_from_other_centres`]), and only then is each confirmed on its evidence.
 #[allow(clippy::too_many_arguments)]
 fn decide_centres(
     mesh: &Mesh,
@@ -117,25 +119,93 @@ fn decide_centres(
     workspace: &mut RefineWorkspace,
     coarse_points: &[VisiblePoints],
 ) -> Vec<Decision> {
-    let mut decide = |group: &[CoarseOutcome]| {
-        decide_centre(
-            mesh,
-            camera,
-            group,
-            query,
-            intrinsics,
-            config,
-            workspace,
-            coarse_points,
-        )
+    let groups: Vec<&[CoarseOutcome]> = if outcomes.len() <= config.coarse_pose_count {
+        vec![outcomes]
+    } else {
+        outcomes.chunks(config.coarse_pose_count.max(1)).collect()
     };
-    if outcomes.len() <= config.coarse_pose_count {
-        return vec![decide(outcomes)];
+    let mut centres: Vec<RefinedCentre> = groups
+        .into_iter()
+        .map(|group| {
+            refine_centre(
+                mesh,
+                camera,
+                group,
+                query,
+                intrinsics,
+                config,
+                workspace,
+                coarse_points,
+            )
+        })
+        .collect();
+    if let Some(query) = query.filter(|_| config.edge_align.centre_starts && centres.len() > 1) {
+        let outputs: Vec<Option<PoseHypothesis>> = centres
+            .iter()
+            .map(|centre| {
+                centre
+                    .refinement
+                    .as_ref()
+                    .ok()
+                    .and_then(|_| centre.verdict.chosen().copied())
+            })
+            .collect();
+        for (index, centre) in centres.iter_mut().enumerate() {
+            let Ok(refinement) = centre.refinement.as_mut() else {
+                continue;
+            };
+            let others: Vec<PoseHypothesis> = outputs
+                .iter()
+                .enumerate()
+                .filter(|&(other, _)| other != index)
+                .filter_map(|(_, output)| *output)
+                .collect();
+            let started_ms = process_cpu_ms();
+            refine_from_other_centres(
+                mesh,
+                query,
+                intrinsics,
+                &others,
+                refinement,
+                &mut centre.verdict,
+                config,
+                workspace,
+            );
+            centre.refine_cpu_ms += process_cpu_ms() - started_ms;
+        }
     }
-    outcomes
-        .chunks(config.coarse_pose_count.max(1))
-        .map(&mut decide)
+    centres
+        .into_iter()
+        .map(|centre| centre.confirmed(&config.confidence))
         .collect()
+}
+
+/// A centre after the paper's check and the refinement, before the confirmation.
+struct RefinedCentre {
+    verdict: Verdict,
+    refinement: Result<PoseRefinement, String>,
+    /// How many coarse outcomes the centre had.
+    outcomes: usize,
+    refine_cpu_ms: f64,
+}
+
+impl RefinedCentre {
+    /// The centre's decision: the calibrated confidence on its evidence, and the accept.
+    fn confirmed(mut self, config: &ConfidenceConfig) -> Decision {
+        let evidence = FrameEvidence::new(
+            &self.verdict,
+            self.outcomes,
+            self.refinement.as_ref().ok().map(|r| r.peak),
+            self.refinement.as_ref().ok().and_then(|r| r.correlation),
+        );
+        confirm(&mut self.verdict, &evidence, config);
+        Decision {
+            verdict: self.verdict,
+            refinement: self.refinement,
+            evidence,
+            refine_cpu_ms: self.refine_cpu_ms,
+        }
+    }
 }
 
 /// One centre's decision: the paper's check over its coarse outcomes, the refinement of the
@@ -151,6 +221,31 @@ fn decide_centre(
     workspace: &mut RefineWorkspace,
     coarse_points: &[VisiblePoints],
 ) -> Decision {
+    refine_centre(
+        mesh,
+        camera,
+        outcomes,
+        query,
+        intrinsics,
+        config,
+        workspace,
+        coarse_points,
+    )
+    .confirmed(&config.confidence)
+}
+
+/// One centre's paper check over its coarse outcomes and the refinement of the chosen pose.
+#[allow(clippy::too_many_arguments)]
+fn refine_centre(
+    mesh: &Mesh,
+    camera: &Camera,
+    outcomes: &[CoarseOutcome],
+    query: Option<ImageView<'_, f32>>,
+    intrinsics: IntrinsicsMode,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+    coarse_points: &[VisiblePoints],
+) -> RefinedCentre {
     let hypotheses: Vec<PoseHypothesis> = outcomes
         .iter()
         .filter_map(|o| o.hypothesis.as_ref().ok().copied())
@@ -179,19 +274,11 @@ fn decide_centre(
         ),
         None => Err("the frame's query is not at hand".to_string()),
     };
-    let refine_cpu_ms = process_cpu_ms() - refine_started_ms;
-    let evidence = FrameEvidence::new(
-        &verdict,
-        outcomes.len(),
-        refinement.as_ref().ok().map(|r| r.peak),
-        refinement.as_ref().ok().and_then(|r| r.correlation),
-    );
-    confirm(&mut verdict, &evidence, &config.confidence);
-    Decision {
+    RefinedCentre {
         verdict,
         refinement,
-        evidence,
-        refine_cpu_ms,
+        outcomes: outcomes.len(),
+        refine_cpu_ms: process_cpu_ms() - refine_started_ms,
     }
 }
 

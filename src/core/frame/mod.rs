@@ -44,7 +44,9 @@ pub use config::{
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
 pub use decide::{decide_frame, decide_frame_and_centres, Decision};
 pub use query::{query_gradient, smooth_depth};
-pub use refine::{refine_pose, refine_verdict, PoseRefinement, RefineWorkspace};
+pub use refine::{
+    refine_from_other_centres, refine_pose, refine_verdict, PoseRefinement, RefineWorkspace,
+};
 pub use search::{search_pose, Beam, PoseSearchOutcome};
 pub use solve::solve_view;
 pub use sweep::{
