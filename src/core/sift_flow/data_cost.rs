@@ -267,3 +267,193 @@ crate::core::dense_sift::multiversioned! {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::super::kernels::l1_distance_portable;
+    use super::*;
+
+    /// A pseudo-random sequence (an LCG) for test data.
+    struct Sequence(u64);
+
+    impl Sequence {
+        fn next(&mut self, modulus: u64) -> u64 {
+            self.0 = self
+                .0
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (self.0 >> 33) % modulus
+        }
+    }
+
+    fn descriptors(width: usize, height: usize, sequence: &mut Sequence) -> DenseSiftImage {
+        DenseSiftImage {
+            width_px: width,
+            height_px: height,
+            descriptors: (0..width * height * DESCRIPTOR_LEN)
+                .map(|_| sequence.next(256) as u8)
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    /// The data term computed the straightforward way, pixel by pixel in row-major order: costs,
+    /// the median of every third cost binned by 32, outside candidates (and with `truncate` costs
+    /// above it) set to it. Index `pixel · labels² + label_v · labels + label_u`.
+    #[allow(clippy::too_many_arguments)]
+    fn straightforward_costs(
+        source: &DenseSiftImage,
+        source_mask: Option<&[bool]>,
+        target: &DenseSiftImage,
+        target_mask: Option<&[bool]>,
+        offsets: [&[i32]; 2],
+        radius: usize,
+        truncate: bool,
+    ) -> Vec<u16> {
+        let labels = 2 * radius + 1;
+        let mut costs = Vec::new();
+        for y in 0..source.height_px {
+            for x in 0..source.width_px {
+                let pixel = y * source.width_px + x;
+                for label_v in 0..labels {
+                    for label_u in 0..labels {
+                        if source_mask.is_some_and(|mask| !mask[pixel]) {
+                            costs.push(0);
+                            continue;
+                        }
+                        let target_x =
+                            (x + label_u) as isize + offsets[0][pixel] as isize - radius as isize;
+                        let target_y =
+                            (y + label_v) as isize + offsets[1][pixel] as isize - radius as isize;
+                        let inside = (0..target.width_px as isize).contains(&target_x)
+                            && (0..target.height_px as isize).contains(&target_y);
+                        let target_pixel = inside
+                            .then(|| target_y as usize * target.width_px + target_x as usize)
+                            .filter(|&pixel| target_mask.is_none_or(|mask| mask[pixel]));
+                        let Some(target_pixel) = target_pixel else {
+                            costs.push(OUTSIDE_COST);
+                            continue;
+                        };
+                        costs.push(l1_distance_portable(
+                            source.descriptor(pixel),
+                            target.descriptor(target_pixel),
+                        ) as u16);
+                    }
+                }
+            }
+        }
+        let mut bins = vec![0u64; COST_HISTOGRAM_BINS];
+        for &cost in costs
+            .iter()
+            .step_by(3)
+            .filter(|&&cost| cost != OUTSIDE_COST)
+        {
+            bins[((cost / COST_HISTOGRAM_BIN) as usize).min(COST_HISTOGRAM_BINS - 1)] += 1;
+        }
+        let total: u64 = bins.iter().sum();
+        let mut cumulative = 0;
+        let median_bin = bins
+            .iter()
+            .position(|&count| {
+                cumulative += count;
+                2 * cumulative >= total
+            })
+            .unwrap_or(0);
+        let default_cost = median_bin.max(1) as u16 * COST_HISTOGRAM_BIN;
+        for cost in &mut costs {
+            if *cost == OUTSIDE_COST || (truncate && *cost > default_cost) {
+                *cost = default_cost;
+            }
+        }
+        costs
+    }
+
+    /// Every kernel's volume holds the straightforward costs at every pixel's lanes and 0 in every
+    /// padding lane: widths under and over 16, heights with a partial block of rows, windows
+    /// reaching outside the target, masks on both sides, truncated or not. It fails when a pixel is
+    /// skipped or written to another lane, or a sample of the median is lost.
+    #[test]
+    fn the_volume_is_the_straightforward_costs_and_median() {
+        let mut sequence = Sequence(17);
+        let mut volume = CostVolume::default();
+        for (width, height, radius) in
+            [(37, 21, 2), (5, 40, 1), (20, 16, 4), (1, 3, 2), (70, 33, 3)]
+        {
+            let source = descriptors(width, height, &mut sequence);
+            let target = descriptors(width + 3, height.saturating_sub(2).max(1), &mut sequence);
+            let offsets: [Vec<i32>; 2] = std::array::from_fn(|_| {
+                (0..width * height)
+                    .map(|_| sequence.next(13) as i32 - 6)
+                    .collect()
+            });
+            let source_mask: Vec<bool> =
+                (0..width * height).map(|_| sequence.next(9) != 0).collect();
+            let target_mask: Vec<bool> = (0..target.width_px * target.height_px)
+                .map(|_| sequence.next(7) != 0)
+                .collect();
+            for masked in [false, true] {
+                for truncate in [false, true] {
+                    let (source_mask, target_mask) = if masked {
+                        (Some(&source_mask[..]), Some(&target_mask[..]))
+                    } else {
+                        (None, None)
+                    };
+                    let offsets = [&offsets[0][..], &offsets[1][..]];
+                    let expected = straightforward_costs(
+                        &source,
+                        source_mask,
+                        &target,
+                        target_mask,
+                        offsets,
+                        radius,
+                        truncate,
+                    );
+                    for kernel in [L1Kernel::Portable, L1Kernel::Sse2, L1Kernel::Avx2] {
+                        compute_data_cost(
+                            &source,
+                            source_mask,
+                            &target,
+                            target_mask,
+                            offsets,
+                            radius,
+                            truncate,
+                            kernel,
+                            &mut volume,
+                        );
+                        let labels = 2 * radius + 1;
+                        let case = format!(
+                            "{width}x{height}, radius {radius}, masked {masked}, truncate {truncate}, {kernel:?}"
+                        );
+                        let layout = volume.layout;
+                        let mut pixel_lanes = vec![false; layout.vectors() * LANES];
+                        layout.for_each_pixel(|x, y, vector, lane| {
+                            pixel_lanes[vector * LANES + lane] = true;
+                            let pixel = y * width + x;
+                            for label in 0..labels * labels {
+                                assert_eq!(
+                                    volume.cost(x, y, label % labels, label / labels),
+                                    expected[pixel * labels * labels + label],
+                                    "{case}: pixel ({x}, {y}), label {label}"
+                                );
+                            }
+                        });
+                        for (index, costs) in
+                            volume.costs().chunks_exact(labels * labels).enumerate()
+                        {
+                            for (lane, &is_pixel) in
+                                pixel_lanes[index * LANES..][..LANES].iter().enumerate()
+                            {
+                                if !is_pixel {
+                                    assert!(
+                                        costs.iter().all(|vector| vector.0[lane] == 0),
+                                        "{case}: padding lane {lane} of position {index}"
+                                    );
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
