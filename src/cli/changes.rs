@@ -120,7 +120,7 @@ pub struct StereoArgs {
     /// spread against the model's) and keep the best --stereo-neighbours of them, so a frame is
     /// not matched against a neighbour whose registered pose is pixels off relative to it
     /// (`core::change::stereo::rank_by_model_agreement`; 0 or not above --stereo-neighbours:
-    /// off, the nearest; at most 12).
+    /// off, the nearest; at most 12; each candidate costs a plane sweep).
     #[arg(long, default_value_t = NeighbourConfig::default().candidates)]
     pub stereo_candidates: usize,
     /// Stereo depth: integer downsampling of the photos for the plane sweep (1 = full size).
@@ -935,7 +935,7 @@ mod tests {
         "--stereo-neighbours",
         "2",
         "--stereo-candidates",
-        "6",
+        "9",
         "--stereo-downsample",
         "3",
         "--stereo-window-radius-px",
@@ -998,7 +998,7 @@ mod tests {
         assert_eq!(from_changes, from_eval);
         assert_ne!(from_changes, StereoArgs::default());
         assert_eq!(from_changes.stereo_neighbours, 2);
-        assert_eq!(from_changes.neighbour_config().candidates, 6);
+        assert_eq!(from_changes.neighbour_config().candidates, 9);
         assert_eq!(from_changes.stereo_consistency_neighbours, 1);
         assert!(from_changes.stereo_keep_occluded && from_changes.no_stereo_sigma_from_depth);
         let config = from_eval.stereo_config();

@@ -351,7 +351,8 @@ pub struct NeighbourConfig {
     /// nearest this many qualifying frames are each swept against the reference alone and the
     /// `count` whose depth agrees best with the model's are kept, so a frame is not matched
     /// against a neighbour whose registered pose is pixels off relative to it. At most
-    /// [`MAX_CANDIDATES`]; 0 (default) or not above `count`: off, the nearest `count`.
+    /// [`MAX_CANDIDATES`]; 0 or not above `count`: off, the nearest `count`. Default 6 (twice
+    /// `count`; docs/measurements.md, branch `change17`).
     pub candidates: usize,
 }
 
@@ -362,7 +363,7 @@ impl Default for NeighbourConfig {
             max_axis_angle_deg: 40.0,
             min_baseline_ratio: 0.03,
             max_baseline_ratio: 0.6,
-            candidates: 0,
+            candidates: 6,
         }
     }
 }
@@ -2294,7 +2295,10 @@ mod tests {
             sweep: StereoConfig::default(),
         };
         // Nearest first, the wrong one is chosen.
-        let nearest = NeighbourConfig::default();
+        let nearest = NeighbourConfig {
+            candidates: 0,
+            ..NeighbourConfig::default()
+        };
         let plain = choose_neighbours(&rig.mesh, &reference, &candidates, &nearest, Some(&ranking))
             .expect("neighbours");
         assert_eq!(plain.chosen, vec![0, 2, 1]);
