@@ -13,8 +13,8 @@ use std::time::Instant;
 use anyhow::Context;
 use asgreg::core::change::fusion::{fuse_regions, FusedChange, FusionConfig};
 use asgreg::core::change::stereo::{
-    choose_neighbours, depth_from_neighbours, NeighbourConfig, PosedCamera, StereoConfig,
-    StereoView,
+    choose_neighbours, depth_from_neighbours, NeighbourConfig, PosedCamera, RankingPhotos,
+    StereoConfig, StereoView,
 };
 use asgreg::core::change::{
     classes_to_mask, detect_changes, ChangeClass, ChangeConfig, ChangeRegion, ChangeWorkspace,
@@ -115,6 +115,14 @@ pub struct StereoArgs {
     /// Stereo depth: neighbour frames per stereo depth map (1–4).
     #[arg(long, default_value_t = NeighbourConfig::default().count)]
     pub stereo_neighbours: usize,
+    /// Stereo depth: rank this many candidate neighbours (the nearest qualifying frames) by their
+    /// agreement with the model (each swept against the frame alone, its depth's inverse-depth
+    /// spread against the model's) and keep the best --stereo-neighbours of them, so a frame is
+    /// not matched against a neighbour whose registered pose is pixels off relative to it
+    /// (`core::change::stereo::rank_by_model_agreement`; 0 or not above --stereo-neighbours:
+    /// off, the nearest; at most 12; each candidate costs a plane sweep).
+    #[arg(long, default_value_t = NeighbourConfig::default().candidates)]
+    pub stereo_candidates: usize,
     /// Stereo depth: integer downsampling of the photos for the plane sweep (1 = full size).
     #[arg(long, default_value_t = StereoConfig::default().downsample)]
     pub stereo_downsample: usize,
@@ -191,6 +199,7 @@ impl Default for StereoArgs {
         let change = ChangeConfig::default();
         Self {
             stereo_neighbours: NeighbourConfig::default().count,
+            stereo_candidates: NeighbourConfig::default().candidates,
             stereo_downsample: stereo.downsample,
             stereo_window_radius_px: stereo.window_radius_px,
             stereo_uniqueness_margin: stereo.uniqueness_margin,
@@ -238,6 +247,7 @@ impl StereoArgs {
     pub fn neighbour_config(&self) -> NeighbourConfig {
         NeighbourConfig {
             count: self.stereo_neighbours,
+            candidates: self.stereo_candidates,
             ..NeighbourConfig::default()
         }
     }
@@ -325,6 +335,10 @@ pub struct FrameChangeReport {
 #[derive(Clone, Debug, Serialize)]
 pub struct FrameStereoReport {
     pub neighbours: Vec<String>,
+    /// With --stereo-candidates: every candidate ranked, best first, with its stereo depth's
+    /// inverse-depth spread against the model (per metre; null: no depth to compare).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub ranked_candidates: Vec<(String, Option<f32>)>,
     pub planes: usize,
     pub working_size_px: (usize, usize),
     pub mean_baseline_m: f64,
@@ -375,13 +389,10 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         stereo_config
             .validate()
             .context("check the --stereo-* options")?;
-        anyhow::ensure!(
-            (1..=asgreg::core::change::stereo::MAX_NEIGHBOURS)
-                .contains(&args.stereo.stereo_neighbours),
-            "--stereo-neighbours {} must be 1..={}",
-            args.stereo.stereo_neighbours,
-            asgreg::core::change::stereo::MAX_NEIGHBOURS
-        );
+        args.stereo
+            .neighbour_config()
+            .validate()
+            .context("check --stereo-neighbours and --stereo-candidates")?;
     }
     let fusion = args.fusion_config();
     let inputs = load_posed_inputs(&args.mesh, &args.cameras, &args.poses)?;
@@ -713,16 +724,28 @@ fn stereo_depth(
         .filter(|(other, _)| *other != index)
         .filter_map(|(other, camera)| camera.map(|c| (other, c)))
         .unzip();
-    let chosen: Vec<usize> = choose_neighbours(
+    let photos = RankingPhotos {
+        reference: files.photo.view(),
+        candidates: candidate_index
+            .iter()
+            .map(|&k| frames[k].as_ref().ok().map(|f| f.photo.view()))
+            .collect(),
+        sweep: *config,
+    };
+    let choice = choose_neighbours(
         &inputs.mesh,
         reference,
         &candidates,
         &args.stereo.neighbour_config(),
+        Some(&photos),
     )
-    .map_err(|error| format!("{error}: give --depth or more frames"))?
-    .into_iter()
-    .map(|k| candidate_index[k])
-    .collect();
+    .map_err(|error| format!("{error}: give --depth or more frames"))?;
+    let chosen: Vec<usize> = choice.chosen.iter().map(|&k| candidate_index[k]).collect();
+    let ranked_candidates: Vec<(String, Option<f32>)> = choice
+        .ranked
+        .iter()
+        .map(|&(k, score)| (inputs.images[candidate_index[k]].name.clone(), score))
+        .collect();
     let view = |k: usize| -> Option<StereoView<'_>> {
         let files = frames[k].as_ref().ok()?;
         Some(StereoView {
@@ -755,6 +778,7 @@ fn stereo_depth(
             .iter()
             .map(|&k| inputs.images[k].name.clone())
             .collect(),
+        ranked_candidates,
         planes: depth.planes,
         working_size_px: depth.working_size_px,
         mean_baseline_m: depth.mean_baseline_m,
@@ -907,9 +931,11 @@ mod tests {
     use super::StereoArgs;
 
     /// Every stereo flag, each away from its default.
-    const STEREO_FLAGS: [&str; 24] = [
+    const STEREO_FLAGS: [&str; 26] = [
         "--stereo-neighbours",
         "2",
+        "--stereo-candidates",
+        "9",
         "--stereo-downsample",
         "3",
         "--stereo-window-radius-px",
@@ -972,6 +998,7 @@ mod tests {
         assert_eq!(from_changes, from_eval);
         assert_ne!(from_changes, StereoArgs::default());
         assert_eq!(from_changes.stereo_neighbours, 2);
+        assert_eq!(from_changes.neighbour_config().candidates, 9);
         assert_eq!(from_changes.stereo_consistency_neighbours, 1);
         assert!(from_changes.stereo_keep_occluded && from_changes.no_stereo_sigma_from_depth);
         let config = from_eval.stereo_config();

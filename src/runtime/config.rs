@@ -429,6 +429,10 @@ impl PipelineConfig {
             .sweep
             .validate()
             .map_err(|e| invalid("stereo.sweep", e.to_string()))?;
+        self.stereo
+            .neighbours
+            .validate()
+            .map_err(|e| invalid("stereo.neighbours", e.to_string()))?;
         let count = self.stereo.neighbours.count;
         let sigma_ok =
             self.stereo.disparity_sigma_px.is_finite() && self.stereo.disparity_sigma_px > 0.0;

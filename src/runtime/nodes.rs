@@ -1066,7 +1066,11 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     // With change detection: accepted frames' change jobs go to the change workers, the other
     // frames' change results (why there is none) and the end of the stream to fusion.
     let mut changes = if config.changes_enabled() {
-        stage = stage.with_changes(config.stereo.neighbours, config.stereo.window_frames);
+        stage = stage.with_changes(
+            config.stereo.neighbours,
+            config.stereo.sweep,
+            config.stereo.window_frames,
+        );
         Some(ChangeRecovery::open(ctx)?)
     } else {
         None

@@ -10,7 +10,9 @@ use std::sync::Arc;
 
 use crate::core::camera::Camera;
 use crate::core::change::pose_sigma_px_of_registration;
-use crate::core::change::stereo::{choose_neighbours, NeighbourConfig, PosedCamera};
+use crate::core::change::stereo::{
+    choose_neighbours, NeighbourConfig, PosedCamera, RankingPhotos, StereoConfig,
+};
 use crate::core::frame::{
     decide_frame, CoarseOutcome, Decision, IntrinsicsMode, RefineWorkspace, RegistrationConfig,
 };
@@ -121,6 +123,9 @@ pub struct VerifyStage<'m> {
     changes: bool,
     /// Stereo neighbours: how they are chosen, and the window (frames before and after).
     neighbour_config: NeighbourConfig,
+    /// The change stage's plane sweep, for ranking candidate neighbours by their agreement with
+    /// the model (`NeighbourConfig::candidates`).
+    sweep_config: StereoConfig,
     window_frames: u64,
     /// Accepted frames with a photo and no depth map (stereo references and neighbours) within
     /// the window of a frame still waiting.
@@ -215,6 +220,7 @@ impl<'m> VerifyStage<'m> {
             late_messages: 0,
             changes: false,
             neighbour_config: NeighbourConfig::default(),
+            sweep_config: StereoConfig::default(),
             window_frames: 0,
             registered_views: BTreeMap::new(),
             stereo_waiting: BTreeSet::new(),
@@ -250,11 +256,18 @@ impl<'m> VerifyStage<'m> {
 
     /// Makes every decided frame also give its change work (`change_work`). A frame without a
     /// depth map gets stereo neighbours: the accepted frames within `window_frames` of it (before
-    /// and after) chosen by `core::change::stereo::choose_neighbours`; its change job waits until
-    /// the frames after it are decided.
-    pub fn with_changes(mut self, neighbours: NeighbourConfig, window_frames: u64) -> Self {
+    /// and after) chosen by `core::change::stereo::choose_neighbours` (ranked with `sweep`, the
+    /// change stage's plane sweep, when `neighbours.candidates` asks for it); its change job
+    /// waits until the frames after it are decided.
+    pub fn with_changes(
+        mut self,
+        neighbours: NeighbourConfig,
+        sweep: StereoConfig,
+        window_frames: u64,
+    ) -> Self {
         self.changes = true;
         self.neighbour_config = neighbours;
+        self.sweep_config = sweep;
         self.window_frames = window_frames;
         self
     }
@@ -360,15 +373,25 @@ impl<'m> VerifyStage<'m> {
             .map(|(id, view)| (*id, view))
             .collect();
         let posed: Vec<PosedCamera> = candidates.iter().map(|(_, v)| v.posed()).collect();
+        let photos = RankingPhotos {
+            reference: reference.photo.view(),
+            candidates: candidates
+                .iter()
+                .map(|(_, v)| Some(v.photo.view()))
+                .collect(),
+            sweep: self.sweep_config,
+        };
         match choose_neighbours(
             self.mesh,
             &reference.posed(),
             &posed,
             &self.neighbour_config,
+            Some(&photos),
         ) {
-            Ok(chosen) => {
+            Ok(choice) => {
                 let mut neighbour_photos = Vec::new();
-                let neighbours = chosen
+                let neighbours = choice
+                    .chosen
                     .iter()
                     .map(|&k| {
                         let (id, view) = candidates[k];

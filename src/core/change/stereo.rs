@@ -58,6 +58,9 @@ use crate::core::undistort::resize_area;
 /// Most neighbours one reference is compared with.
 pub const MAX_NEIGHBOURS: usize = 4;
 
+/// Most candidate neighbours [`choose_neighbours`] ranks by their agreement with the model.
+pub const MAX_CANDIDATES: usize = 12;
+
 /// One frame as stereo sees it: its grey photo (0..1) through a pinhole camera at a pose.
 #[derive(Clone, Copy, Debug)]
 pub struct StereoView<'a> {
@@ -344,6 +347,13 @@ pub struct NeighbourConfig {
     pub min_baseline_ratio: f64,
     /// Largest baseline as a share of the scene depth (a longer one sees another picture).
     pub max_baseline_ratio: f64,
+    /// Candidates ranked by their agreement with the model ([`rank_by_model_agreement`]): the
+    /// nearest this many qualifying frames are each swept against the reference alone and the
+    /// `count` whose depth agrees best with the model's are kept, so a frame is not matched
+    /// against a neighbour whose registered pose is pixels off relative to it. At most
+    /// [`MAX_CANDIDATES`]; 0 or not above `count`: off, the nearest `count`. Default 6 (twice
+    /// `count`; docs/measurements.md, branch `change17`).
+    pub candidates: usize,
 }
 
 impl Default for NeighbourConfig {
@@ -353,7 +363,25 @@ impl Default for NeighbourConfig {
             max_axis_angle_deg: 40.0,
             min_baseline_ratio: 0.03,
             max_baseline_ratio: 0.6,
+            candidates: 6,
         }
+    }
+}
+
+impl NeighbourConfig {
+    pub fn validate(&self) -> Result<(), StereoError> {
+        if !(1..=MAX_NEIGHBOURS).contains(&self.count) || self.candidates > MAX_CANDIDATES {
+            return Err(StereoError::InvalidConfig(format!(
+                "neighbours' count {} must be 1..={MAX_NEIGHBOURS} and candidates {} at most {MAX_CANDIDATES}",
+                self.count, self.candidates
+            )));
+        }
+        Ok(())
+    }
+
+    /// Whether the neighbours are chosen among more candidates by their agreement with the model.
+    pub fn ranks(&self) -> bool {
+        self.candidates > self.count
     }
 }
 
@@ -367,6 +395,23 @@ pub fn select_neighbours(
     scene_depth_m: f64,
     candidates: &[PosedCamera],
     config: &NeighbourConfig,
+) -> Vec<usize> {
+    nearest_qualifying(
+        reference,
+        scene_depth_m,
+        candidates,
+        config,
+        config.count.min(MAX_NEIGHBOURS),
+    )
+}
+
+/// The `take` nearest candidates that qualify as [`select_neighbours`] says, nearest first.
+fn nearest_qualifying(
+    reference: &PosedCamera,
+    scene_depth_m: f64,
+    candidates: &[PosedCamera],
+    config: &NeighbourConfig,
+    take: usize,
 ) -> Vec<usize> {
     let world_from_ref = reference.cam_from_world.inverse();
     let centre = reference.cam_from_world.camera_center();
@@ -425,23 +470,100 @@ pub fn select_neighbours(
     chosen.sort_by(|a, b| a.0.total_cmp(&b.0));
     chosen
         .into_iter()
-        .take(config.count.min(MAX_NEIGHBOURS))
+        .take(take)
         .map(|(_, index)| index)
         .collect()
 }
 
-/// The reference's stereo neighbours among `candidates` (indices, nearest first), the one choice
-/// of batch (`asgreg changes`) and pipeline (verify, from the registered frames of the stream):
-/// [`scene_depth_m`] under the reference, then [`select_neighbours`]; an error when the model is
-/// not in view or no candidate qualifies.
+/// What ranking candidate neighbours by their agreement with the model needs
+/// ([`choose_neighbours`] with [`NeighbourConfig::candidates`]): the photos and the sweep.
+#[derive(Clone, Debug)]
+pub struct RankingPhotos<'a> {
+    /// The reference's grey photo (its camera's size).
+    pub reference: ImageView<'a, f32>,
+    /// Per candidate (the same indices as the candidates): its grey photo, `None` when there is
+    /// none (such a candidate is ranked last).
+    pub candidates: Vec<Option<ImageView<'a, f32>>>,
+    /// The plane sweep of the stereo depth (the ranking sweeps each candidate alone with it,
+    /// without the left-right check, the model test or the hole filling).
+    pub sweep: StereoConfig,
+}
+
+/// The reference's stereo neighbours among `candidates`, the one choice of batch (`asgreg
+/// changes`, `eval --changes`) and pipeline (verify, from the registered frames of the stream).
+#[derive(Clone, Debug, PartialEq)]
+pub struct NeighbourChoice {
+    /// Indices into the candidates, nearest camera centre first.
+    pub chosen: Vec<usize>,
+    /// With ranking ([`NeighbourConfig::candidates`]): every candidate ranked, best first, with
+    /// its [`model_agreement_per_m`] (`None`: no depth to compare); empty without.
+    pub ranked: Vec<(usize, Option<f32>)>,
+}
+
+/// The reference's stereo neighbours among `candidates` (indices, nearest first):
+/// [`scene_depth_m`] under the reference, then [`select_neighbours`]; with
+/// [`NeighbourConfig::candidates`] above `count` and the photos, the nearest `candidates`
+/// qualifying frames ranked by [`rank_by_model_agreement`] and the best `count` kept. An error
+/// when the model is not in view or no candidate qualifies.
 pub fn choose_neighbours(
     mesh: &Mesh,
     reference: &PosedCamera,
     candidates: &[PosedCamera],
     config: &NeighbourConfig,
-) -> Result<Vec<usize>, StereoError> {
+    photos: Option<&RankingPhotos<'_>>,
+) -> Result<NeighbourChoice, StereoError> {
+    config.validate()?;
     let scene_depth = scene_depth_m(mesh, reference).ok_or(StereoError::ModelNotInView)?;
-    let chosen = select_neighbours(reference, scene_depth, candidates, config);
+    let choice = match photos {
+        Some(photos) if config.ranks() => {
+            let nearest = nearest_qualifying(
+                reference,
+                scene_depth,
+                candidates,
+                config,
+                config.candidates,
+            );
+            let views: Vec<Option<StereoView<'_>>> = nearest
+                .iter()
+                .map(|&k| {
+                    photos
+                        .candidates
+                        .get(k)
+                        .copied()
+                        .flatten()
+                        .map(|photo| StereoView {
+                            photo,
+                            intrinsics: candidates[k].intrinsics,
+                            cam_from_world: candidates[k].cam_from_world,
+                        })
+                })
+                .collect();
+            let reference_view = StereoView {
+                photo: photos.reference,
+                intrinsics: reference.intrinsics,
+                cam_from_world: reference.cam_from_world,
+            };
+            let ranked = rank_by_model_agreement(mesh, &reference_view, &views, &photos.sweep);
+            let mut kept: Vec<usize> = ranked
+                .iter()
+                .take(config.count)
+                .map(|&(position, _)| position)
+                .collect();
+            kept.sort_unstable();
+            NeighbourChoice {
+                chosen: kept.into_iter().map(|position| nearest[position]).collect(),
+                ranked: ranked
+                    .into_iter()
+                    .map(|(position, score)| (nearest[position], score))
+                    .collect(),
+            }
+        }
+        _ => NeighbourChoice {
+            chosen: select_neighbours(reference, scene_depth, candidates, config),
+            ranked: Vec::new(),
+        },
+    };
+    let chosen = &choice.chosen;
     if chosen.is_empty() {
         return Err(StereoError::NoNeighbour {
             min_baseline_m: config.min_baseline_ratio * scene_depth,
@@ -451,7 +573,70 @@ pub fn choose_neighbours(
             candidates: candidates.len(),
         });
     }
-    Ok(chosen)
+    Ok(choice)
+}
+
+/// How far a candidate neighbour's stereo depth lies from the model, per metre of inverse depth:
+/// the reference swept against `candidate` alone (`sweep` without the left-right check, the model
+/// test or the hole filling) and [`super::inverse_depth_spread_per_m`] of that depth against
+/// `model_depth_m` (the model rendered under the reference's pose at the photo's size). Under a
+/// relative pose error between the two frames the epipolar geometry is wrong and every disparity
+/// with it, which shows as a spread in inverse depth; a changed object or an occlusion is a
+/// minority of the pixels and does not move the median. `None` when the sweep fails or leaves
+/// too few pixels to compare.
+pub fn model_agreement_per_m(
+    mesh: &Mesh,
+    reference: &StereoView<'_>,
+    candidate: &StereoView<'_>,
+    model_depth_m: ImageView<'_, f32>,
+    sweep: &StereoConfig,
+) -> Option<f32> {
+    let config = StereoConfig {
+        left_right_check: false,
+        model_test_sigmas: 0.0,
+        fill_radius_px: 0,
+        ..*sweep
+    };
+    let depth =
+        depth_from_neighbours(mesh, reference, std::slice::from_ref(candidate), &config).ok()?;
+    super::inverse_depth_spread_per_m(model_depth_m, depth.depth_m.view())
+}
+
+/// Candidate neighbours ranked by their agreement with the model ([`model_agreement_per_m`]),
+/// best (smallest spread) first; a candidate without a photo or a score comes last, ties keep
+/// the given order. Returns positions in `candidates` with their scores.
+pub fn rank_by_model_agreement(
+    mesh: &Mesh,
+    reference: &StereoView<'_>,
+    candidates: &[Option<StereoView<'_>>],
+    sweep: &StereoConfig,
+) -> Vec<(usize, Option<f32>)> {
+    let (w, h) = reference.photo.size();
+    let mut model = RenderBuffers::new(w, h);
+    Rasterizer::new().render(
+        mesh,
+        &reference.intrinsics,
+        &reference.cam_from_world,
+        &RenderOptions::default(),
+        &mut model,
+    );
+    let mut ranked: Vec<(usize, Option<f32>)> = candidates
+        .par_iter()
+        .enumerate()
+        .map(|(position, candidate)| {
+            let score = candidate.as_ref().and_then(|candidate| {
+                model_agreement_per_m(mesh, reference, candidate, model.depth_m().view(), sweep)
+            });
+            (position, score)
+        })
+        .collect();
+    ranked.sort_by(|a, b| match (a.1, b.1) {
+        (Some(x), Some(y)) => x.total_cmp(&y).then(a.0.cmp(&b.0)),
+        (Some(_), None) => std::cmp::Ordering::Less,
+        (None, Some(_)) => std::cmp::Ordering::Greater,
+        (None, None) => a.0.cmp(&b.0),
+    });
+    ranked
 }
 
 /// Median depth of the model under `camera`'s pose, rendered at a quarter of its size (the
@@ -2075,6 +2260,86 @@ mod tests {
             select_neighbours(&reference, depth, &candidates, &two),
             vec![2, 5]
         );
+    }
+
+    #[test]
+    fn a_candidate_with_a_wrong_pose_is_ranked_below_the_correctly_posed_ones() {
+        let rig = rig(None);
+        // The nearest candidate: photographed where it is, but registered 1.2° off in yaw
+        // (about 4 px at the reference's scale, along the epipolar lines: a disparity error).
+        let eye = [1.0, -21.5, 18.5];
+        let (k, true_pose) = camera_at(eye);
+        let (wrong_photo, _) = photo(&rig.mesh, &k, &true_pose, None, 20);
+        let yaw = Rigid3::new(
+            nalgebra::UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 1.2f64.to_radians()),
+            Vector3::zeros(),
+        );
+        let wrong_pose = yaw.compose(&true_pose);
+        assert!((wrong_pose.camera_center() - true_pose.camera_center()).norm() < 1e-9);
+        let posed = |intrinsics: PinholeIntrinsics, pose: Rigid3| PosedCamera {
+            intrinsics,
+            width_px: WIDTH,
+            height_px: HEIGHT,
+            cam_from_world: pose,
+        };
+        let reference = posed(rig.views[0].0, rig.views[0].1);
+        let mut candidates = vec![posed(k, wrong_pose)];
+        let mut photos = vec![Some(wrong_photo.view())];
+        for view in &rig.views[1..] {
+            candidates.push(posed(view.0, view.1));
+            photos.push(Some(view.2.view()));
+        }
+        let ranking = RankingPhotos {
+            reference: rig.views[0].2.view(),
+            candidates: photos,
+            sweep: StereoConfig::default(),
+        };
+        // Nearest first, the wrong one is chosen.
+        let nearest = NeighbourConfig {
+            candidates: 0,
+            ..NeighbourConfig::default()
+        };
+        let plain = choose_neighbours(&rig.mesh, &reference, &candidates, &nearest, Some(&ranking))
+            .expect("neighbours");
+        assert_eq!(plain.chosen, vec![0, 2, 1]);
+        assert!(plain.ranked.is_empty());
+        // Ranked among four candidates, it is last and the three correctly posed ones are kept.
+        let ranked_config = NeighbourConfig {
+            candidates: 4,
+            ..NeighbourConfig::default()
+        };
+        let ranked = choose_neighbours(
+            &rig.mesh,
+            &reference,
+            &candidates,
+            &ranked_config,
+            Some(&ranking),
+        )
+        .expect("neighbours");
+        eprintln!("ranked: {:?}", ranked.ranked);
+        assert_eq!(ranked.chosen, vec![2, 1, 3]);
+        assert_eq!(ranked.ranked.len(), 4);
+        assert_eq!(ranked.ranked[3].0, 0);
+        let score = |k: usize| ranked.ranked[k].1.expect("a score");
+        assert!(
+            score(3) > 2.0 * score(2),
+            "the wrong pose's spread {} against the worst right one's {}",
+            score(3),
+            score(2)
+        );
+        // Without photos there is nothing to rank: the nearest.
+        let unranked = choose_neighbours(&rig.mesh, &reference, &candidates, &ranked_config, None)
+            .expect("neighbours");
+        assert_eq!(unranked.chosen, vec![0, 2, 1]);
+        // Too many candidates is an error that names them.
+        let too_many = NeighbourConfig {
+            candidates: MAX_CANDIDATES + 1,
+            ..NeighbourConfig::default()
+        };
+        assert!(matches!(
+            choose_neighbours(&rig.mesh, &reference, &candidates, &too_many, None),
+            Err(StereoError::InvalidConfig(_))
+        ));
     }
 
     #[test]
