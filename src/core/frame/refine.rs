@@ -3,6 +3,7 @@
 //! than the verified pose's; both are reported. Runs after verification, on the output pose of
 //! an accepted frame and on the would-be pose of a rejected one.
 
+use nalgebra::Matrix6;
 use serde::{Deserialize, Serialize};
 
 use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
@@ -56,8 +57,11 @@ pub struct PoseRefinement {
 pub struct RefineWorkspace {
     rasterizer: Rasterizer,
     view: CoarseView,
+    /// The camera and pose `view` holds the rendering of (for the mesh and render settings of the
+    /// refinement in progress): a pose sampled again is not rendered again.
+    rendered: Option<(Camera, Rigid3)>,
     samples: Vec<EdgeSample>,
-    /// The samples at the start pose, kept for its support peak when the alignment is not kept.
+    /// The start pose's samples with a run's estimated rounding undone.
     start_samples: Vec<EdgeSample>,
     /// Samples with the estimated rounding undone.
     sharpened: Vec<EdgeSample>,
@@ -67,11 +71,31 @@ pub struct RefineWorkspace {
     /// The dense alignment's blurred rendering and samples.
     blurred_asg: Image<f32>,
     dense: Vec<DenseSample>,
-    /// The rendering at the start pose (ASG and face index), kept for its correlation peak when
-    /// the alignment is not kept: a copy, not a second rendering.
-    start_asg: Image<f32>,
-    start_faces: Image<u32>,
     correlation: CorrelationWorkspace,
+}
+
+/// A start pose of the alignment evaluated once ([`evaluate_start`]): what every run of the
+/// alignment from it ([`align_from_start`]) reads of it. None of it depends on the schedule (the
+/// search radii, the only settings the short schedule changes), so the full and the short
+/// schedule from the same pose share it: one rendering of the start, not one per run.
+struct EvaluatedStart {
+    camera: Camera,
+    cam_from_world: Rigid3,
+    /// The model edge samples at the start.
+    samples: Vec<EdgeSample>,
+    /// The evidence of the start with no rounding undone.
+    verified: EdgeEvidence,
+    /// The image-motion metric of the start's rendering.
+    metric: Option<Matrix6<f64>>,
+    /// The rendering at the start (ASG and face index), kept for its correlation peak when the
+    /// alignment is not kept: a copy, not a second rendering.
+    asg: Image<f32>,
+    faces: Image<u32>,
+    /// The start's correlation peak once a run has computed it.
+    correlation: Option<Option<CorrelationPeak>>,
+    /// The start's support peak once a run has computed it, with the rounding (m) that run had
+    /// undone from the samples (the peak depends on it).
+    peak: Option<(f64, SupportPeak)>,
 }
 
 /// Refines the verdict's chosen pose against `query` (the frame's query gradient image, 0..1) and
@@ -98,22 +122,35 @@ pub fn refine_verdict(
         return Err("verification chose no pose".into());
     };
     let parameters = aligned_parameters(intrinsics);
-    let mut refinement = refine_pose(
+    let mut chosen_start = evaluate_start(
         mesh,
         &chosen.camera,
         query,
         &chosen.cam_from_world,
-        parameters,
         config,
         workspace,
     )?;
-    let starts = align
-        .short_schedule()
-        .is_some()
-        .then_some(*chosen)
-        .into_iter()
-        .chain(other_starts(mesh, chosen, group, align));
-    for start in starts {
+    let mut refinement = align_from_start(
+        mesh,
+        query,
+        &mut chosen_start,
+        parameters,
+        config,
+        workspace,
+    );
+    if align.short_schedule().is_some() {
+        // The short schedule from the chosen pose: its start is the full schedule's.
+        refined_from_evaluated_start(
+            mesh,
+            query,
+            parameters,
+            &mut chosen_start,
+            &mut refinement,
+            config,
+            workspace,
+        );
+    }
+    for start in other_starts(mesh, chosen, group, align) {
         refined_from_start(
             mesh,
             query,
@@ -193,12 +230,44 @@ fn aligned_parameters(intrinsics: IntrinsicsMode) -> AlignedParameters {
 /// objective): with a short schedule ([`EdgeAlignConfig::short_schedule`]) that schedule runs,
 /// and its end replaces the output as `short_schedule_rule` says (the coarse levels would drift
 /// from a good start); without one the full schedule runs and the higher edge support wins.
-/// A run that fails leaves `refinement` as it was.
+/// A start that cannot be evaluated leaves `refinement` as it was.
 fn refined_from_start(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
     parameters: AlignedParameters,
     start: &PoseHypothesis,
+    refinement: &mut PoseRefinement,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) {
+    let Ok(mut evaluated) = evaluate_start(
+        mesh,
+        &start.camera,
+        query,
+        &start.cam_from_world,
+        config,
+        workspace,
+    ) else {
+        return;
+    };
+    refined_from_evaluated_start(
+        mesh,
+        query,
+        parameters,
+        &mut evaluated,
+        refinement,
+        config,
+        workspace,
+    );
+}
+
+/// [`refined_from_start`] from a start already evaluated (the chosen pose, whose full schedule
+/// ran from the same evaluation).
+fn refined_from_evaluated_start(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    parameters: AlignedParameters,
+    start: &mut EvaluatedStart,
     refinement: &mut PoseRefinement,
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
@@ -209,17 +278,7 @@ fn refined_from_start(
         ..config.clone()
     });
     let run_config = short_config.as_ref().unwrap_or(config);
-    let Ok(other) = refine_pose(
-        mesh,
-        &start.camera,
-        query,
-        &start.cam_from_world,
-        parameters,
-        run_config,
-        workspace,
-    ) else {
-        return;
-    };
+    let other = align_from_start(mesh, query, start, parameters, run_config, workspace);
     let replaces = match short_config {
         Some(_) => align.short_schedule_rule.keeps(
             (refinement.output_support(), other.output_support()),
@@ -332,7 +391,8 @@ impl PoseRefinement {
     }
 }
 
-/// Aligns `camera` at `start` with the photo's edges, coarse to fine, re-rendering at each level.
+/// Aligns `camera` at `start` with the photo's edges, coarse to fine, re-rendering at each level:
+/// the start evaluated ([`evaluate_start`]), then aligned from ([`align_from_start`]).
 pub fn refine_pose(
     mesh: &Mesh,
     camera: &Camera,
@@ -342,6 +402,29 @@ pub fn refine_pose(
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) -> Result<PoseRefinement, String> {
+    let mut evaluated = evaluate_start(mesh, camera, query, start, config, workspace)?;
+    Ok(align_from_start(
+        mesh,
+        query,
+        &mut evaluated,
+        parameters,
+        config,
+        workspace,
+    ))
+}
+
+/// Renders `camera` at `start` (`workspace`'s view then holds it) and evaluates it: its model
+/// edge samples, their evidence and the image-motion metric. `Err` when the query and the camera
+/// differ in size or the model shows too few edge samples there. Reads none of the schedule's
+/// settings (the search radii).
+fn evaluate_start(
+    mesh: &Mesh,
+    camera: &Camera,
+    query: ImageView<'_, f32>,
+    start: &Rigid3,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Result<EvaluatedStart, String> {
     let align = &config.edge_align;
     let (width_px, height_px) = (camera.width_px as usize, camera.height_px as usize);
     if query.size() != (width_px, height_px) {
@@ -354,6 +437,60 @@ pub fn refine_pose(
     let RefineWorkspace {
         rasterizer,
         view,
+        rendered,
+        ..
+    } = workspace;
+    render_coarse_view(mesh, camera, 0, start, config, rasterizer, view);
+    *rendered = Some((*camera, *start));
+    let mut samples = Vec::new();
+    model_edge_samples(
+        view.asg.view(),
+        &view.render,
+        camera,
+        start,
+        align,
+        &mut samples,
+    );
+    if samples.len() < align.min_samples {
+        return Err(format!(
+            "the model shows only {} edge samples at the chosen pose (at least {} needed)",
+            samples.len(),
+            align.min_samples
+        ));
+    }
+    let verified = edge_evidence(&samples, &query, camera, start, align);
+    let metric = image_motion_metric(&view.render, camera, MOTION_METRIC_STRIDE_PX);
+    Ok(EvaluatedStart {
+        camera: *camera,
+        cam_from_world: *start,
+        samples,
+        verified,
+        metric,
+        asg: view.asg.clone(),
+        faces: view.render.face_index().clone(),
+        correlation: None,
+        peak: None,
+    })
+}
+
+/// Aligns from an evaluated `start` with the schedule of `config` (its search radii), coarse to
+/// fine, re-rendering at each level. The start's correlation and support peak, computed only
+/// when this run needs them, are kept in `evaluated` for the next run from it.
+fn align_from_start(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    evaluated: &mut EvaluatedStart,
+    parameters: AlignedParameters,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> PoseRefinement {
+    let align = &config.edge_align;
+    let (camera, start) = (evaluated.camera, evaluated.cam_from_world);
+    let (camera, start) = (&camera, &start);
+    let RefineWorkspace {
+        rasterizer,
+        view,
+        rendered,
         samples,
         start_samples,
         sharpened,
@@ -361,14 +498,8 @@ pub fn refine_pose(
         blurred,
         blurred_asg,
         dense,
-        start_asg,
-        start_faces,
         correlation: correlation_workspace,
     } = workspace;
-    // The camera and pose `view` holds the rendering of: a level that ends where the next
-    // sampling starts (the last level's check and the final sampling, a reverted level) is
-    // rendered once.
-    let mut rendered: Option<(Camera, Rigid3)> = None;
     let render_at = |rasterizer: &mut Rasterizer,
                      view: &mut CoarseView,
                      camera: &Camera,
@@ -388,19 +519,7 @@ pub fn refine_pose(
         render_at(rasterizer, view, camera, pose, rendered);
         model_edge_samples(view.asg.view(), &view.render, camera, pose, align, samples);
     };
-    sample_at(rasterizer, view, camera, start, samples, &mut rendered);
-    let verified = edge_evidence(samples, &query, camera, start, align);
-    let start_metric = image_motion_metric(&view.render, camera, MOTION_METRIC_STRIDE_PX);
-    start_samples.clone_from(samples);
-    start_asg.clone_from(&view.asg);
-    start_faces.clone_from(view.render.face_index());
-    if samples.len() < align.min_samples {
-        return Err(format!(
-            "the model shows only {} edge samples at the chosen pose (at least {} needed)",
-            samples.len(),
-            align.min_samples
-        ));
-    }
+    samples.clone_from(&evaluated.samples);
     let mut pose = *start;
     let mut aligned_camera = *camera;
     let mut levels = Vec::new();
@@ -445,14 +564,7 @@ pub fn refine_pose(
     };
     for (level, radius_px) in edge_radii_px.into_iter().enumerate() {
         if level > 0 {
-            sample_at(
-                rasterizer,
-                view,
-                &aligned_camera,
-                &pose,
-                samples,
-                &mut rendered,
-            );
+            sample_at(rasterizer, view, &aligned_camera, &pose, samples, rendered);
             let mut current = (aligned_camera, pose, rounding_m);
             check_level(samples, &mut current, &mut levels);
             (aligned_camera, pose, rounding_m) = current;
@@ -472,21 +584,14 @@ pub fn refine_pose(
         levels.push(summary);
     }
     if !levels.is_empty() {
-        sample_at(
-            rasterizer,
-            view,
-            &aligned_camera,
-            &pose,
-            samples,
-            &mut rendered,
-        );
+        sample_at(rasterizer, view, &aligned_camera, &pose, samples, rendered);
         let mut current = (aligned_camera, pose, rounding_m);
         check_level(samples, &mut current, &mut levels);
         (aligned_camera, pose, rounding_m) = current;
     }
     if align.method.runs_dense() && parameters == AlignedParameters::Pose {
         for sigma_px in align.dense.level_sigmas_px() {
-            render_at(rasterizer, view, &aligned_camera, &pose, &mut rendered);
+            render_at(rasterizer, view, &aligned_camera, &pose, rendered);
             // `blurred_query` blurs with a quarter of its radius as σ.
             blurred_query(view.asg.view(), 4.0 * sigma_px, blurred_asg);
             dense_samples(
@@ -517,21 +622,19 @@ pub fn refine_pose(
             });
         }
     }
-    sample_at(
-        rasterizer,
-        view,
-        &aligned_camera,
-        &pose,
-        samples,
-        &mut rendered,
-    );
+    sample_at(rasterizer, view, &aligned_camera, &pose, samples, rendered);
     // Both poses measured the same way: with the estimated rounding undone.
-    let verified = if rounding_m > 0.0 {
-        sharpened_samples(start_samples, rounding_m, align.rounding_kinds, sharpened);
-        std::mem::swap(start_samples, sharpened);
-        edge_evidence(start_samples, &query, camera, start, align)
+    let (start_samples, verified) = if rounding_m > 0.0 {
+        sharpened_samples(
+            &evaluated.samples,
+            rounding_m,
+            align.rounding_kinds,
+            start_samples,
+        );
+        let verified = edge_evidence(start_samples, &query, camera, start, align);
+        (start_samples.as_slice(), verified)
     } else {
-        verified
+        (evaluated.samples.as_slice(), evaluated.verified)
     };
     sharpened_samples(samples, rounding_m, align.rounding_kinds, sharpened);
     std::mem::swap(samples, sharpened);
@@ -547,12 +650,14 @@ pub fn refine_pose(
                 correlation_workspace,
             )
         } else {
-            correlation_peak(
-                start_asg.view(),
-                start_faces.view(),
-                query,
-                correlation_workspace,
-            )
+            *evaluated.correlation.get_or_insert_with(|| {
+                correlation_peak(
+                    evaluated.asg.view(),
+                    evaluated.faces.view(),
+                    query,
+                    correlation_workspace,
+                )
+            })
         }
     };
     let support = (verified.support_fraction(), aligned.support_fraction());
@@ -581,17 +686,26 @@ pub fn refine_pose(
             align,
         )
     } else {
-        support_peak(
-            start_samples,
-            &query,
-            camera,
-            start,
-            &verified,
-            start_metric.as_ref(),
-            align,
-        )
+        match evaluated.peak {
+            Some((peak_rounding_m, peak)) if peak_rounding_m.to_bits() == rounding_m.to_bits() => {
+                peak
+            }
+            _ => {
+                let peak = support_peak(
+                    start_samples,
+                    &query,
+                    camera,
+                    start,
+                    &verified,
+                    evaluated.metric.as_ref(),
+                    align,
+                );
+                evaluated.peak = Some((rounding_m, peak));
+                peak
+            }
+        }
     };
-    Ok(PoseRefinement {
+    PoseRefinement {
         verified_camera: *camera,
         verified_cam_from_world: *start,
         aligned_cam_from_world: pose,
@@ -603,7 +717,7 @@ pub fn refine_pose(
         peak,
         correlation,
         levels,
-    })
+    }
 }
 
 #[cfg(test)]
@@ -611,7 +725,7 @@ mod tests {
     use nalgebra::{UnitQuaternion, Vector3};
 
     use super::*;
-    use crate::core::edge_align::RefineMethod;
+    use crate::core::edge_align::{KeepRule, RefineMethod};
     use crate::core::frame::tests::{house_and_poses, ideal_query, view_at};
     use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
@@ -1272,5 +1386,112 @@ mod tests {
         assert!(apart(&beyond_reach) >= config.edge_align.initial_search_radius_px);
         assert_eq!(with_near_px, delta(&near.cam_from_world));
         assert_eq!(with_beyond_px, own_px);
+    }
+
+    /// The refinement of a verdict reuses the chosen pose's evaluation (its rendering, samples,
+    /// evidence, metric, and its support peak and correlation when read) for the short schedule
+    /// from that pose: bit for bit the refinement of independent runs ([`refine_pose`], each
+    /// evaluating its start afresh, as before the reuse), with fewer renderings. Several keep
+    /// rules and with and without the rounding estimate, from a start a few pixels off.
+    #[test]
+    fn the_start_evaluated_once_gives_the_refinement_of_independent_runs() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let base = RegistrationConfig::default();
+        let query = ideal_query(&mesh, &camera, &truth, &base);
+        let chosen = PoseHypothesis {
+            camera,
+            cam_from_world: few_px_off(&truth),
+            consensus: 90,
+            inlier_rms_px: 1.0,
+            correspondence_count: 100,
+            coarse_cam_from_world: few_px_off(&truth),
+        };
+        let other = PoseHypothesis {
+            cam_from_world: off_by(&truth, 1.0),
+            consensus: 80,
+            ..chosen
+        };
+        for (estimate_rounding, keep_rule) in [
+            (true, KeepRule::Support),
+            (false, KeepRule::Support),
+            (true, KeepRule::SupportAndCorrelation),
+            (false, KeepRule::Correlation),
+        ] {
+            let config = RegistrationConfig {
+                edge_align: EdgeAlignConfig {
+                    estimate_rounding,
+                    keep_rule,
+                    ..base.edge_align
+                },
+                ..base.clone()
+            };
+            let align = &config.edge_align;
+            let group = [chosen, other];
+            let mut verdict = crate::core::verify::verify_hypotheses(
+                &mesh,
+                &[chosen],
+                Some(&camera),
+                &config.verify,
+                &mut ReprojectionWorkspace::new(),
+            );
+            let mut workspace = RefineWorkspace::default();
+            let refinement = refine_verdict(
+                &mesh,
+                query.view(),
+                IntrinsicsMode::Known,
+                &group,
+                &mut verdict,
+                &config,
+                &mut workspace,
+            )
+            .unwrap();
+            // The reference: each run from its own, freshly evaluated start.
+            let mut reference_workspace = RefineWorkspace::default();
+            let mut reference = refined(
+                &mesh,
+                &camera,
+                &query,
+                &chosen.cam_from_world,
+                &config,
+                &mut reference_workspace,
+            );
+            let short_config = RegistrationConfig {
+                edge_align: align.short_schedule().unwrap(),
+                ..config.clone()
+            };
+            let starts = std::iter::once(chosen).chain(other_starts(&mesh, &chosen, &group, align));
+            for start in starts {
+                let run = refined(
+                    &mesh,
+                    &camera,
+                    &query,
+                    &start.cam_from_world,
+                    &short_config,
+                    &mut reference_workspace,
+                );
+                if align.short_schedule_rule.keeps(
+                    (reference.output_support(), run.output_support()),
+                    (
+                        reference.correlation.map(|peak| peak.at_pose),
+                        run.correlation.map(|peak| peak.at_pose),
+                    ),
+                ) {
+                    reference = reference.clone().replaced_by(run);
+                }
+            }
+            let (renderings, independent_renderings) = (
+                workspace.rasterizer.renderings(),
+                reference_workspace.rasterizer.renderings(),
+            );
+            println!(
+                "rounding {estimate_rounding}, {keep_rule:?}: {renderings} renderings, \
+                 {independent_renderings} independently"
+            );
+            // Debug prints every float exactly (shortest round trip).
+            assert_eq!(format!("{refinement:?}"), format!("{reference:?}"));
+            assert_eq!(refinement, reference);
+            // The chosen pose is rendered once for both schedules.
+            assert!(renderings < independent_renderings);
+        }
     }
 }
