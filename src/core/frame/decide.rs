@@ -98,7 +98,8 @@ pub fn decide_frame_and_centres(
     let mut chosen =
         choose_among_centres(mesh, decisions, config.pose_search.centre_agreement_share)
             .unwrap_or_else(|| {
-                decide_centre(mesh, camera, &[], query, intrinsics, config, workspace, &[])
+                refine_centre(mesh, camera, &[], query, intrinsics, config, workspace, &[])
+                    .confirmed(&config.confidence)
             });
     chosen.refine_cpu_ms = refine_cpu_ms;
     (chosen, kept)
@@ -206,32 +207,6 @@ impl RefinedCentre {
             refine_cpu_ms: self.refine_cpu_ms,
         }
     }
-}
-
-/// One centre's decision: the paper's check over its coarse outcomes, the refinement of the
-/// chosen pose and the calibrated confidence.
-#[allow(clippy::too_many_arguments)]
-fn decide_centre(
-    mesh: &Mesh,
-    camera: &Camera,
-    outcomes: &[CoarseOutcome],
-    query: Option<ImageView<'_, f32>>,
-    intrinsics: IntrinsicsMode,
-    config: &RegistrationConfig,
-    workspace: &mut RefineWorkspace,
-    coarse_points: &[VisiblePoints],
-) -> Decision {
-    refine_centre(
-        mesh,
-        camera,
-        outcomes,
-        query,
-        intrinsics,
-        config,
-        workspace,
-        coarse_points,
-    )
-    .confirmed(&config.confidence)
 }
 
 /// One centre's paper check over its coarse outcomes and the refinement of the chosen pose.

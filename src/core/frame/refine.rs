@@ -758,6 +758,34 @@ mod tests {
         )
     }
 
+    /// A refined pose of `camera` at `pose` with `consensus` inliers (as a coarse view's).
+    fn hypothesis_at(camera: Camera, pose: Rigid3, consensus: usize) -> PoseHypothesis {
+        PoseHypothesis {
+            camera,
+            cam_from_world: pose,
+            consensus,
+            inlier_rms_px: 1.0,
+            correspondence_count: 100,
+            coarse_cam_from_world: pose,
+        }
+    }
+
+    /// Verification's verdict over the single hypothesis `chosen`.
+    fn verdict_of(
+        mesh: &Mesh,
+        camera: &Camera,
+        chosen: &[PoseHypothesis],
+        config: &RegistrationConfig,
+    ) -> Verdict {
+        crate::core::verify::verify_hypotheses(
+            mesh,
+            chosen,
+            Some(camera),
+            &config.verify,
+            &mut ReprojectionWorkspace::new(),
+        )
+    }
+
     /// The model edge samples of a rendering at `pose` (as the refinement takes them).
     fn edge_samples_at(
         mesh: &Mesh,
@@ -1242,14 +1270,7 @@ mod tests {
         let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
         let query = ideal_query(&mesh, &camera, &truth, &config);
-        let hypothesis = |pose: Rigid3, consensus: usize| PoseHypothesis {
-            camera,
-            cam_from_world: pose,
-            consensus,
-            inlier_rms_px: 1.0,
-            correspondence_count: 100,
-            coarse_cam_from_world: pose,
-        };
+        let hypothesis = |pose: Rigid3, consensus: usize| hypothesis_at(camera, pose, consensus);
         let far = hypothesis(off_by(&truth, -8.0), 90);
         let near = hypothesis(off_by(&truth, 1.0), 80);
         let beside_far = hypothesis(off_by(&truth, -8.02), 95);
@@ -1264,13 +1285,7 @@ mod tests {
                 ..config.clone()
             };
             let starts = other_starts(&mesh, &far, &group, &config.edge_align);
-            let mut verdict = crate::core::verify::verify_hypotheses(
-                &mesh,
-                &[far],
-                Some(&camera),
-                &config.verify,
-                &mut ReprojectionWorkspace::new(),
-            );
+            let mut verdict = verdict_of(&mesh, &camera, &[far], &config);
             let refinement = refine_verdict(
                 &mesh,
                 query.view(),
@@ -1316,24 +1331,11 @@ mod tests {
             ..base
         };
         let query = ideal_query(&mesh, &camera, &truth, &config);
-        let hypothesis = |pose: Rigid3| PoseHypothesis {
-            camera,
-            cam_from_world: pose,
-            consensus: 90,
-            inlier_rms_px: 1.0,
-            correspondence_count: 100,
-            coarse_cam_from_world: pose,
-        };
+        let hypothesis = |pose: Rigid3| hypothesis_at(camera, pose, 90);
         let own = hypothesis(off_by(&truth, -2.0));
         let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
         let output_delta_px = |others: &[PoseHypothesis]| {
-            let mut verdict = crate::core::verify::verify_hypotheses(
-                &mesh,
-                &[own],
-                Some(&camera),
-                &config.verify,
-                &mut ReprojectionWorkspace::new(),
-            );
+            let mut verdict = verdict_of(&mesh, &camera, &[own], &config);
             let mut workspace = RefineWorkspace::default();
             let mut refinement = refine_verdict(
                 &mesh,
@@ -1398,14 +1400,7 @@ mod tests {
         let (mesh, camera, truth, _) = house_and_poses();
         let base = RegistrationConfig::default();
         let query = ideal_query(&mesh, &camera, &truth, &base);
-        let chosen = PoseHypothesis {
-            camera,
-            cam_from_world: few_px_off(&truth),
-            consensus: 90,
-            inlier_rms_px: 1.0,
-            correspondence_count: 100,
-            coarse_cam_from_world: few_px_off(&truth),
-        };
+        let chosen = hypothesis_at(camera, few_px_off(&truth), 90);
         let other = PoseHypothesis {
             cam_from_world: off_by(&truth, 1.0),
             consensus: 80,
@@ -1427,13 +1422,7 @@ mod tests {
             };
             let align = &config.edge_align;
             let group = [chosen, other];
-            let mut verdict = crate::core::verify::verify_hypotheses(
-                &mesh,
-                &[chosen],
-                Some(&camera),
-                &config.verify,
-                &mut ReprojectionWorkspace::new(),
-            );
+            let mut verdict = verdict_of(&mesh, &camera, &[chosen], &config);
             let mut workspace = RefineWorkspace::default();
             let refinement = refine_verdict(
                 &mesh,
