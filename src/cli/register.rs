@@ -394,6 +394,10 @@ pub struct CoarseArgs {
     /// at least this share of its edge support above chance (0..1; 0: no such test).
     #[arg(long, default_value_t = ConfidenceConfig::default().min_least_seen_drop)]
     pub min_least_seen_drop: f64,
+    /// Accept a pose the plausibility check rejected on the photo's evidence only when its edge
+    /// support exceeds chance by at least this share (0..1; 0: off, the default).
+    #[arg(long, default_value_t = ConfidenceConfig::default().min_overrule_margin)]
+    pub min_overrule_margin: f64,
 }
 
 /// Which pose of the agreeing refined poses a frame outputs.
@@ -452,6 +456,7 @@ impl Default for CoarseArgs {
             verify_output: VerifyOutputArg::Medoid,
             max_delta_uncertainty_px: ConfidenceConfig::default().max_delta_uncertainty_px,
             min_least_seen_drop: ConfidenceConfig::default().min_least_seen_drop,
+            min_overrule_margin: ConfidenceConfig::default().min_overrule_margin,
         }
     }
 }
@@ -609,6 +614,7 @@ pub fn registration_config(
         confidence: ConfidenceConfig {
             max_delta_uncertainty_px: coarse.max_delta_uncertainty_px,
             min_least_seen_drop: coarse.min_least_seen_drop,
+            min_overrule_margin: coarse.min_overrule_margin,
             ..defaults.confidence
         },
         asg: AsgOptions {

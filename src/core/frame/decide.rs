@@ -332,7 +332,8 @@ pub(super) fn reject(verdict: &mut Verdict, reason: RejectionReason) {
 /// confirm without fixing it too ([`RejectionReason::Unconstrained`]); a pose the photo
 /// confirms is accepted even when the agreement test failed (its reason is then moot), unless
 /// most of the frame's refined poses lie outside its agreeing group
-/// ([`overruled_by_the_frame`]): then the check's rejection stands.
+/// ([`overruled_by_the_frame`]) or its edge support exceeds chance by less than
+/// `min_overrule_margin`: then the check's rejection stands.
 fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceConfig) {
     let confidence = config.model.probability(evidence);
     verdict.confidence = confidence;
@@ -381,9 +382,20 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
         Err(Rejection {
             candidate: Some(chosen),
             ..
-        }) if confirmed && !overruled_by_the_frame(evidence) => verdict.decision = Ok(*chosen),
+        }) if confirmed
+            && !overruled_by_the_frame(evidence)
+            && support_margin(evidence) >= config.min_overrule_margin =>
+        {
+            verdict.decision = Ok(*chosen)
+        }
         _ => {}
     }
+}
+
+/// The edge support's excess over chance at the output pose (`at_pose − far`; 0 without edge
+/// evidence): what [`ConfidenceConfig::min_overrule_margin`] bounds.
+fn support_margin(evidence: &FrameEvidence) -> f64 {
+    evidence.edges.map_or(0.0, |peak| peak.at_pose - peak.far)
 }
 
 /// Whether a pose the plausibility check rejected is held rejected whatever its photo evidence:
@@ -488,7 +500,7 @@ mod tests {
 
     /// A pose the check rejects (its group did not converge) but the photo confirms is accepted
     /// when its group is most of the frame's refined poses, and stays rejected when most of them
-    /// lie elsewhere.
+    /// lie elsewhere, or when its edge support exceeds chance by less than the configured margin.
     #[test]
     fn a_checked_out_pose_is_accepted_on_the_photo_only_with_most_poses_in_its_group() {
         let (mesh, camera, truth, _) = house_and_poses();
@@ -551,6 +563,26 @@ mod tests {
             decision.verdict.rejection(),
             decision.evidence
         );
+        // ... unless its edge support's margin over chance is below `min_overrule_margin`.
+        let margin = support_margin(&decision.evidence);
+        let strict = RegistrationConfig {
+            confidence: ConfidenceConfig {
+                min_overrule_margin: (margin + 0.01).min(1.0),
+                ..config.confidence.clone()
+            },
+            ..config.clone()
+        };
+        let held = decide_frame(
+            &mesh,
+            &camera,
+            &majority,
+            Some(query.view()),
+            IntrinsicsMode::Known,
+            &strict,
+            &mut workspace,
+        );
+        assert!(margin > 0.3 && margin < 0.99, "{margin}");
+        assert!(!held.verdict.accepted(), "{:?}", held.evidence);
 
         outcomes.extend(strays(5));
         let decision = decide(&outcomes, &mut workspace);
