@@ -568,7 +568,7 @@ mod tests {
         let strict = RegistrationConfig {
             confidence: ConfidenceConfig {
                 min_overrule_margin: (margin + 0.01).min(1.0),
-                ..config.confidence.clone()
+                ..config.confidence
             },
             ..config.clone()
         };
