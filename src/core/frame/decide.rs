@@ -141,44 +141,58 @@ fn decide_centres(
         })
         .collect();
     if let Some(query) = query.filter(|_| config.edge_align.centre_starts && centres.len() > 1) {
-        let outputs: Vec<Option<PoseHypothesis>> = centres
-            .iter()
-            .map(|centre| {
-                centre
-                    .refinement
-                    .as_ref()
-                    .ok()
-                    .and_then(|_| centre.verdict.chosen().copied())
-            })
-            .collect();
-        for (index, centre) in centres.iter_mut().enumerate() {
-            let Ok(refinement) = centre.refinement.as_mut() else {
-                continue;
-            };
-            let others: Vec<PoseHypothesis> = outputs
-                .iter()
-                .enumerate()
-                .filter(|&(other, _)| other != index)
-                .filter_map(|(_, output)| *output)
-                .collect();
-            let started_ms = process_cpu_ms();
-            refine_from_other_centres(
-                mesh,
-                query,
-                intrinsics,
-                &others,
-                refinement,
-                &mut centre.verdict,
-                config,
-                workspace,
-            );
-            centre.refine_cpu_ms += process_cpu_ms() - started_ms;
-        }
+        start_from_each_others_outputs(mesh, query, intrinsics, &mut centres, config, workspace);
     }
     centres
         .into_iter()
         .map(|centre| centre.confirmed(&config.confidence))
         .collect()
+}
+
+/// Each refined centre's refinement continued from the other centres' outputs
+/// ([`refine_from_other_centres`]); the outputs are taken before any centre moves, so the order
+/// of the centres does not matter. A centre without a refinement neither starts nor lends a start.
+fn start_from_each_others_outputs(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    intrinsics: IntrinsicsMode,
+    centres: &mut [RefinedCentre],
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) {
+    let outputs: Vec<Option<PoseHypothesis>> = centres
+        .iter()
+        .map(|centre| {
+            centre
+                .refinement
+                .as_ref()
+                .ok()
+                .and_then(|_| centre.verdict.chosen().copied())
+        })
+        .collect();
+    for (index, centre) in centres.iter_mut().enumerate() {
+        let Ok(refinement) = centre.refinement.as_mut() else {
+            continue;
+        };
+        let others: Vec<PoseHypothesis> = outputs
+            .iter()
+            .enumerate()
+            .filter(|&(other, _)| other != index)
+            .filter_map(|(_, output)| *output)
+            .collect();
+        let started_ms = process_cpu_ms();
+        refine_from_other_centres(
+            mesh,
+            query,
+            intrinsics,
+            &others,
+            refinement,
+            &mut centre.verdict,
+            config,
+            workspace,
+        );
+        centre.refine_cpu_ms += process_cpu_ms() - started_ms;
+    }
 }
 
 /// A centre after the paper's check and the refinement, before the confirmation.

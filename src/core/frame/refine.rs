@@ -770,7 +770,7 @@ mod tests {
         }
     }
 
-    /// Verification's verdict over the single hypothesis `chosen`.
+    /// Verification's verdict over the hypotheses `chosen`.
     fn verdict_of(
         mesh: &Mesh,
         camera: &Camera,
