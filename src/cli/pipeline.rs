@@ -626,14 +626,26 @@ pub(super) fn launch_pipeline(
             return Err(error.into());
         }
     };
-    Ok(launch(
+    let collected = launch(
         config,
         transport.as_ref(),
         &command,
         router,
         on_started,
         on_result,
-    )?)
+    );
+    drop(transport);
+    if config.backend == Backend::Iceoryx2 {
+        // What killed stages left that their successors' cleanups could not remove.
+        match transport::clean_stale_resources_after_exit() {
+            Ok(0) => {}
+            Ok(cleaned) => eprintln!(
+                "launch: cleaned the shared-memory resources of {cleaned} dead process(es)"
+            ),
+            Err(error) => eprintln!("launch: {error}"),
+        }
+    }
+    Ok(collected?)
 }
 
 #[derive(clap::Args, Debug)]

@@ -49,7 +49,9 @@
 //!   its nodes behind; its subscribers would still count as ready and, worse, their full queues
 //!   would block lossless publishers forever. [`clean_stale_resources`] removes every dead
 //!   node's resources; it runs in [`Iceoryx2Transport::new`], and a publisher that has waited
-//!   [`DEAD_PEER_CHECK`] on a subscriber runs it too, so a killed subscriber releases it.
+//!   [`DEAD_PEER_CHECK`] on a subscriber runs it too, so a killed subscriber releases it. What
+//!   iceoryx2's own cleanup cannot remove (a node killed while being created or half removed
+//!   by a cleanup that was itself killed) is removed by file ([`leftovers`]).
 //!
 //! Ports are created on the thread that calls `publisher()`/`subscriber()` (iceoryx2's `ipc`
 //! ports are not `Send`); each port has its own iceoryx2 node, dropped with it.
@@ -108,6 +110,9 @@ pub const LINGER: Duration = Duration::from_secs(5);
 pub const DEAD_PEER_CHECK: Duration = Duration::from_secs(1);
 /// How long the cleanup waits for another process that is cleaning up the same dead node.
 const CLEANUP_WAIT: Duration = Duration::from_millis(100);
+/// How old a node directory without a monitor token must be before it counts as left by a
+/// process killed while creating the node (creation writes the token right after the details).
+const UNBORN_MIN_AGE: Duration = Duration::from_secs(5);
 
 /// The user header of every message: its length in bytes (the `[u64]` payload is padded).
 #[derive(Debug, Default, Clone, Copy, ZeroCopySend)]
@@ -177,31 +182,89 @@ pub fn clean_stale_resources() -> Result<usize, TransportError> {
 }
 
 fn clean_stale_resources_with(config: &Config) -> Result<usize, TransportError> {
+    let layout = leftovers::Layout::of(config);
     let mut removed = 0;
-    let mut failed = 0;
-    Node::<ipc::Service>::list(config, |state| {
-        if let NodeState::Dead(dead) = state {
+    let mut half_removed = HashSet::new();
+    let mut failed = Vec::new();
+    for_each_dead_node(config, &mut |dead| {
+        let id = *dead.id();
+        let details_gone = dead.details().is_none();
+        match dead.blocking_remove_stale_resources(CLEANUP_WAIT) {
+            Ok(()) => removed += 1,
+            // See `leftovers`: its tags are removed below and the cleanup tried once more.
+            Err(_) if details_gone => {
+                half_removed.insert(id.value());
+            }
+            Err(error) => failed.push((id, error)),
+        }
+    })?;
+    let mut retry = HashSet::new();
+    for &id in &half_removed {
+        match leftovers::remove_tags_of_half_removed(&layout, id) {
+            Ok(_) => {
+                retry.insert(id);
+            }
+            Err(error) => tracing::warn!(
+                "{BACKEND}: could not remove the tags left by dead node {id}: {error}"
+            ),
+        }
+    }
+    if !retry.is_empty() {
+        for_each_dead_node(config, &mut |dead| {
             let id = *dead.id();
-            match dead.blocking_remove_stale_resources(CLEANUP_WAIT) {
-                Ok(()) => removed += 1,
-                Err(error) => {
-                    failed += 1;
-                    tracing::warn!(
-                        "{BACKEND}: could not remove the resources of dead node {id:?}: {error:?}"
-                    );
+            if retry.contains(&id.value()) {
+                match dead.blocking_remove_stale_resources(CLEANUP_WAIT) {
+                    Ok(()) => removed += 1,
+                    Err(error) => failed.push((id, error)),
                 }
             }
+        })?;
+    }
+    match leftovers::remove_unborn_nodes(&layout, UNBORN_MIN_AGE) {
+        Ok(unborn) => removed += unborn.removed,
+        Err(error) => tracing::warn!(
+            "{BACKEND}: could not remove the files of nodes killed while being created: {error}"
+        ),
+    }
+    for (id, error) in &failed {
+        tracing::warn!("{BACKEND}: could not remove the resources of dead node {id:?}: {error:?}");
+    }
+    if !failed.is_empty() {
+        tracing::warn!("{BACKEND}: {} dead node(s) left in place", failed.len());
+    }
+    Ok(removed)
+}
+
+/// As [`clean_stale_resources`], for a launcher whose processes have all exited: a node killed
+/// while being created less than [`UNBORN_MIN_AGE`] ago is waited for, not left behind.
+pub fn clean_stale_resources_after_exit() -> Result<usize, TransportError> {
+    let config = Config::global_config();
+    let mut removed = clean_stale_resources_with(config)?;
+    if let Ok(leftovers::Unborn {
+        next_in: Some(wait),
+        ..
+    }) = leftovers::remove_unborn_nodes(&leftovers::Layout::of(config), UNBORN_MIN_AGE)
+    {
+        std::thread::sleep(wait);
+        removed += clean_stale_resources_with(config)?;
+    }
+    Ok(removed)
+}
+
+fn for_each_dead_node(
+    config: &Config,
+    each: &mut dyn FnMut(::iceoryx2::node::DeadNodeView<ipc::Service>),
+) -> Result<(), TransportError> {
+    Node::<ipc::Service>::list(config, |state| {
+        if let NodeState::Dead(dead) = state {
+            each(dead);
         }
         CallbackProgression::Continue
     })
     .map_err(|error| TransportError::Setup {
         backend: BACKEND,
         detail: format!("could not list the nodes to find dead ones: {error:?}"),
-    })?;
-    if failed > 0 {
-        tracing::warn!("{BACKEND}: {failed} dead node(s) left in place");
-    }
-    Ok(removed)
+    })
 }
 
 /// Cleanup from inside a waiting publisher: errors are only logged.
@@ -780,6 +843,8 @@ impl Subscriber for Iceoryx2Subscriber {
         }
     }
 }
+
+mod leftovers;
 
 #[cfg(test)]
 mod conformance {

@@ -201,3 +201,9 @@ pub fn open(
 pub fn clean_stale_resources() -> Result<usize, TransportError> {
     iceoryx2::clean_stale_resources()
 }
+
+/// As [`clean_stale_resources`], once every process of a pipeline has exited (a launcher's
+/// last step).
+pub fn clean_stale_resources_after_exit() -> Result<usize, TransportError> {
+    iceoryx2::clean_stale_resources_after_exit()
+}
