@@ -91,6 +91,9 @@ struct Shared {
     done: AtomicBool,
 }
 
+/// How long the counts of [`Resources`] may take to return to where they were after a run.
+const RESOURCES_SETTLE: Duration = Duration::from_secs(10);
+
 /// Counts of what a run must give back: iceoryx2's shared memory and files, this process's
 /// descriptors (files, pipes) and sockets, TCP connections of the router's port.
 /// `launcher_runtime_fds` (epoll/eventfd: zenoh's process-wide async runtime, started once and
@@ -486,9 +489,16 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     let _ = chaos.join();
     let _ = sampler.join();
     let collected = outcome?;
-    // The launcher's transport is closed; give the kernel a moment to close the sockets.
-    std::thread::sleep(Duration::from_millis(500));
-    let after = Resources::now(backend == Backend::Iceoryx2, router_port);
+    // The launcher's transport is closed; the kernel closes sockets and the last stage processes
+    // finish exiting a moment later. A leak is what is still there after RESOURCES_SETTLE.
+    let settle_from = Instant::now();
+    let after = loop {
+        std::thread::sleep(Duration::from_millis(250));
+        let now = Resources::now(backend == Backend::Iceoryx2, router_port);
+        if now == before || settle_from.elapsed() >= RESOURCES_SETTLE {
+            break now;
+        }
+    };
 
     let samples = samples.lock().map(|s| s.clone()).unwrap_or_default();
     let window = |from: f64, to: f64| -> (u64, u64) {
