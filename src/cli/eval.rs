@@ -975,9 +975,12 @@ paper's plausibility check of its refined poses; apart: δ from its output to th
     );
     let _ = writeln!(
         out,
-        "| level | method | frame | centre | centre δ | best δ | verified δ | output δ | support | check | apart | confidence | verdict |"
+        "| level | method | frame | centre | centre δ | best δ | verified δ | output δ | support | correlation | median matched | median supported | support ½ | check | apart | confidence | verdict |"
     );
-    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(
+        out,
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
     for ((level, method), frames) in diagnoses {
         for (name, diagnosis) in with_retries(frames)
             .into_iter()
@@ -986,7 +989,7 @@ paper's plausibility check of its refined poses; apart: δ from its output to th
             for (index, centre) in diagnosis.centres.iter().enumerate() {
                 let _ = writeln!(
                     out,
-                    "| {level} | {method} | {name} | {index} | {} | {} | {} | {} | {} | {} | {} | {:.2} | {} |",
+                    "| {level} | {method} | {name} | {index} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.2} | {} |",
                     px(centre.centre_delta_px),
                     px(centre.best_delta_px),
                     px(centre.verified_delta_px),
@@ -994,6 +997,19 @@ paper's plausibility check of its refined poses; apart: δ from its output to th
                     centre
                         .edge_support
                         .map_or("–".to_string(), |v| format!("{:.0} %", 100.0 * v)),
+                    centre
+                        .correlation
+                        .map_or("–".to_string(), |v| format!("{v:.3}")),
+                    centre
+                        .evidence
+                        .map_or("–".to_string(), |e| format!("{:.2}", e.median_distance_px)),
+                    centre
+                        .evidence
+                        .map_or("–".to_string(), |e| format!("{:.2}", e.supported_median_px)),
+                    centre.evidence.map_or("–".to_string(), |e| format!(
+                        "{:.0} %",
+                        100.0 * e.tight_support_fraction()
+                    )),
                     if centre.check_passed { "passed" } else { "failed" },
                     px(centre.apart_from_output_px),
                     centre.confidence,
