@@ -970,8 +970,10 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
     let _ = writeln!(
         out,
         "\n## Centres\n\nPer frame with more than one centre of coarse poses: each centre's own decision before \
-verification across the centres chose (δ px against the truth; support: edge support at its output; check: the \
-paper's plausibility check of its refined poses; apart: δ from its output to the frame's, px).\n"
+verification across the centres chose (δ px against the truth; support: edge support at its output; correlation: \
+the dense correlation there; median matched / supported: median distance, px, of the model edge samples matched within the \
+evidence radius / supported within `support_px` to their photo ridges; support ½: the share within half of `support_px`; \
+check: the paper's plausibility check of its refined poses; apart: δ from its output to the frame's, px).\n"
     );
     let _ = writeln!(
         out,

@@ -330,7 +330,7 @@ impl PoseRefinement {
         self.output_evidence().support_fraction()
     }
 
-    /// Whether `other`'s end (another start's run, [`refined_from_evaluated_start`]) replaces
+    /// Whether `other`'s end (another start's run of the alignment) replaces
     /// this refinement's output: as `align.short_schedule_rule` says; without a short schedule
     /// the higher edge support wins. The one statement of the rule.
     pub fn is_replaced_by(&self, other: &PoseRefinement, align: &EdgeAlignConfig) -> bool {
