@@ -31,7 +31,7 @@ use crate::core::confidence::FrameEvidence;
 use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
     model_edge_samples, pose_jacobian_rows, search_ridge, supported_edge_observability,
-    AlignedParameters, EdgeKind, EdgeSample, SupportPeak,
+    AlignedParameters, EdgeEvidence, EdgeKind, EdgeSample, SupportPeak,
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
@@ -207,6 +207,11 @@ pub struct CentreDiagnosis {
     pub output_delta_px: Option<f64>,
     /// Edge support at its output pose (0..1).
     pub edge_support: Option<f64>,
+    /// The dense correlation of the rendering with the query at its output pose.
+    pub correlation: Option<f64>,
+    /// Its output pose's edge evidence (precision witnesses: the median distance of the matched
+    /// and of the supported samples to their photo ridges, the support at half the radius).
+    pub evidence: Option<EdgeEvidence>,
     /// Whether its refined poses passed the paper's plausibility check (agreement and
     /// convergence); a pose that failed it can still be confirmed by the photo's edges.
     pub check_passed: bool,
@@ -672,6 +677,17 @@ fn diagnose_region(
                     .chosen()
                     .and_then(|h| delta(&h.camera, &h.cam_from_world)),
                 edge_support: decision.refinement.as_ref().ok().map(|r| r.peak.at_pose),
+                correlation: decision
+                    .refinement
+                    .as_ref()
+                    .ok()
+                    .and_then(|r| r.correlation)
+                    .map(|peak| peak.at_pose),
+                evidence: decision
+                    .refinement
+                    .as_ref()
+                    .ok()
+                    .map(PoseRefinement::output_evidence),
                 check_passed: decision.evidence.check_passed,
                 apart_from_output_px: verdict.chosen().zip(verdict_output).and_then(
                     |(own, out)| {

@@ -970,14 +970,19 @@ axial and lateral translation errors, and the rounding radius it estimated.\n"
     let _ = writeln!(
         out,
         "\n## Centres\n\nPer frame with more than one centre of coarse poses: each centre's own decision before \
-verification across the centres chose (δ px against the truth; support: edge support at its output; check: the \
-paper's plausibility check of its refined poses; apart: δ from its output to the frame's, px).\n"
+verification across the centres chose (δ px against the truth; support: edge support at its output; correlation: \
+the dense correlation there; median matched / supported: median distance, px, of the model edge samples matched within the \
+evidence radius / supported within `support_px` to their photo ridges; support ½: the share within half of `support_px`; \
+check: the paper's plausibility check of its refined poses; apart: δ from its output to the frame's, px).\n"
     );
     let _ = writeln!(
         out,
-        "| level | method | frame | centre | centre δ | best δ | verified δ | output δ | support | check | apart | confidence | verdict |"
+        "| level | method | frame | centre | centre δ | best δ | verified δ | output δ | support | correlation | median matched | median supported | support ½ | check | apart | confidence | verdict |"
     );
-    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(
+        out,
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
     for ((level, method), frames) in diagnoses {
         for (name, diagnosis) in with_retries(frames)
             .into_iter()
@@ -986,7 +991,7 @@ paper's plausibility check of its refined poses; apart: δ from its output to th
             for (index, centre) in diagnosis.centres.iter().enumerate() {
                 let _ = writeln!(
                     out,
-                    "| {level} | {method} | {name} | {index} | {} | {} | {} | {} | {} | {} | {} | {:.2} | {} |",
+                    "| {level} | {method} | {name} | {index} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.2} | {} |",
                     px(centre.centre_delta_px),
                     px(centre.best_delta_px),
                     px(centre.verified_delta_px),
@@ -994,6 +999,19 @@ paper's plausibility check of its refined poses; apart: δ from its output to th
                     centre
                         .edge_support
                         .map_or("–".to_string(), |v| format!("{:.0} %", 100.0 * v)),
+                    centre
+                        .correlation
+                        .map_or("–".to_string(), |v| format!("{v:.3}")),
+                    centre
+                        .evidence
+                        .map_or("–".to_string(), |e| format!("{:.2}", e.median_distance_px)),
+                    centre
+                        .evidence
+                        .map_or("–".to_string(), |e| format!("{:.2}", e.supported_median_px)),
+                    centre.evidence.map_or("–".to_string(), |e| format!(
+                        "{:.0} %",
+                        100.0 * e.tight_support_fraction()
+                    )),
                     if centre.check_passed { "passed" } else { "failed" },
                     px(centre.apart_from_output_px),
                     centre.confidence,

@@ -279,17 +279,7 @@ fn refined_from_evaluated_start(
     });
     let run_config = short_config.as_ref().unwrap_or(config);
     let other = align_from_start(mesh, query, start, parameters, run_config, workspace);
-    let replaces = match short_config {
-        Some(_) => align.short_schedule_rule.keeps(
-            (refinement.output_support(), other.output_support()),
-            (
-                refinement.correlation.map(|peak| peak.at_pose),
-                other.correlation.map(|peak| peak.at_pose),
-            ),
-        ),
-        None => other.output_support() > refinement.output_support(),
-    };
-    if replaces {
+    if refinement.is_replaced_by(&other, align) {
         *refinement = refinement.clone().replaced_by(other);
     }
 }
@@ -337,10 +327,31 @@ fn other_starts(
 impl PoseRefinement {
     /// The edge support of the pose this refinement outputs (aligned when kept, else verified).
     pub fn output_support(&self) -> f64 {
+        self.output_evidence().support_fraction()
+    }
+
+    /// Whether `other`'s end (another start's run of the alignment) replaces
+    /// this refinement's output: as `align.short_schedule_rule` says; without a short schedule
+    /// the higher edge support wins. The one statement of the rule.
+    pub fn is_replaced_by(&self, other: &PoseRefinement, align: &EdgeAlignConfig) -> bool {
+        if align.short_schedule().is_none() {
+            return other.output_support() > self.output_support();
+        }
+        align.short_schedule_rule.keeps(
+            (self.output_support(), other.output_support()),
+            (
+                self.correlation.map(|peak| peak.at_pose),
+                other.correlation.map(|peak| peak.at_pose),
+            ),
+        )
+    }
+
+    /// The evidence of the pose this refinement outputs (aligned when kept, else verified).
+    pub fn output_evidence(&self) -> EdgeEvidence {
         if self.kept {
-            self.aligned.support_fraction()
+            self.aligned
         } else {
-            self.verified.support_fraction()
+            self.verified
         }
     }
 
@@ -1458,13 +1469,7 @@ mod tests {
                     &short_config,
                     &mut reference_workspace,
                 );
-                if align.short_schedule_rule.keeps(
-                    (reference.output_support(), run.output_support()),
-                    (
-                        reference.correlation.map(|peak| peak.at_pose),
-                        run.correlation.map(|peak| peak.at_pose),
-                    ),
-                ) {
+                if reference.is_replaced_by(&run, align) {
                     reference = reference.clone().replaced_by(run);
                 }
             }
