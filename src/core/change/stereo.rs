@@ -503,11 +503,44 @@ pub struct NeighbourChoice {
     pub ranked: Vec<(usize, Option<f32>)>,
 }
 
-/// The reference's stereo neighbours among `candidates` (indices, nearest first):
-/// [`scene_depth_m`] under the reference, then [`select_neighbours`]; with
-/// [`NeighbourConfig::candidates`] above `count` and the photos, the nearest `candidates`
-/// qualifying frames ranked by [`rank_by_model_agreement`] and the best `count` kept. An error
-/// when the model is not in view or no candidate qualifies.
+/// The frames [`choose_neighbours`] chooses the reference's neighbours among (indices into
+/// `candidates`, nearest camera centre first): [`scene_depth_m`] under the reference, then the
+/// nearest qualifying frames as [`select_neighbours`] says, `candidates` of them with ranking
+/// ([`NeighbourConfig::ranks`]), else `count`. The pipeline's verify sends these with a frame's
+/// change job and the change worker chooses among them (the ranking's sweeps are its work, not
+/// verify's); `choose_neighbours` of these alone chooses as of all. An error when the model is
+/// not in view or no candidate qualifies.
+pub fn neighbour_candidates(
+    mesh: &Mesh,
+    reference: &PosedCamera,
+    candidates: &[PosedCamera],
+    config: &NeighbourConfig,
+) -> Result<Vec<usize>, StereoError> {
+    config.validate()?;
+    let scene_depth = scene_depth_m(mesh, reference).ok_or(StereoError::ModelNotInView)?;
+    let take = if config.ranks() {
+        config.candidates
+    } else {
+        config.count
+    };
+    let nearest = nearest_qualifying(reference, scene_depth, candidates, config, take);
+    if nearest.is_empty() {
+        return Err(StereoError::NoNeighbour {
+            min_baseline_m: config.min_baseline_ratio * scene_depth,
+            max_baseline_m: config.max_baseline_ratio * scene_depth,
+            scene_depth_m: scene_depth,
+            max_axis_angle_deg: config.max_axis_angle_deg,
+            candidates: candidates.len(),
+        });
+    }
+    Ok(nearest)
+}
+
+/// The reference's stereo neighbours among `candidates` (indices, nearest first): its
+/// [`neighbour_candidates`]; with [`NeighbourConfig::candidates`] above `count` and the photos,
+/// those ranked by [`rank_by_model_agreement`] and the best `count` kept, else the nearest
+/// `count` ([`select_neighbours`]). An error when the model is not in view or no candidate
+/// qualifies.
 pub fn choose_neighbours(
     mesh: &Mesh,
     reference: &PosedCamera,
@@ -515,17 +548,9 @@ pub fn choose_neighbours(
     config: &NeighbourConfig,
     photos: Option<&RankingPhotos<'_>>,
 ) -> Result<NeighbourChoice, StereoError> {
-    config.validate()?;
-    let scene_depth = scene_depth_m(mesh, reference).ok_or(StereoError::ModelNotInView)?;
-    let choice = match photos {
+    let nearest = neighbour_candidates(mesh, reference, candidates, config)?;
+    Ok(match photos {
         Some(photos) if config.ranks() => {
-            let nearest = nearest_qualifying(
-                reference,
-                scene_depth,
-                candidates,
-                config,
-                config.candidates,
-            );
             let views: Vec<Option<StereoView<'_>>> = nearest
                 .iter()
                 .map(|&k| {
@@ -562,21 +587,10 @@ pub fn choose_neighbours(
             }
         }
         _ => NeighbourChoice {
-            chosen: select_neighbours(reference, scene_depth, candidates, config),
+            chosen: nearest.into_iter().take(config.count).collect(),
             ranked: Vec::new(),
         },
-    };
-    let chosen = &choice.chosen;
-    if chosen.is_empty() {
-        return Err(StereoError::NoNeighbour {
-            min_baseline_m: config.min_baseline_ratio * scene_depth,
-            max_baseline_m: config.max_baseline_ratio * scene_depth,
-            scene_depth_m: scene_depth,
-            max_axis_angle_deg: config.max_axis_angle_deg,
-            candidates: candidates.len(),
-        });
-    }
-    Ok(choice)
+    })
 }
 
 /// How far a candidate neighbour's stereo depth lies from the model, per metre of inverse depth:
@@ -2448,6 +2462,37 @@ mod tests {
             "the wrong pose's spread {} against the worst right one's {}",
             score(3),
             score(2)
+        );
+        // Chosen among its candidates alone (what verify sends the change worker), the same.
+        let among = neighbour_candidates(&rig.mesh, &reference, &candidates, &ranked_config)
+            .expect("candidates");
+        assert_eq!(among, vec![0, 2, 1, 3]);
+        let sent = RankingPhotos {
+            reference: ranking.reference,
+            candidates: among.iter().map(|&k| ranking.candidates[k]).collect(),
+            sweep: ranking.sweep,
+        };
+        let sent_cameras: Vec<PosedCamera> = among.iter().map(|&k| candidates[k]).collect();
+        let there = choose_neighbours(
+            &rig.mesh,
+            &reference,
+            &sent_cameras,
+            &ranked_config,
+            Some(&sent),
+        )
+        .expect("neighbours");
+        let back = |k: &usize| among[*k];
+        assert_eq!(
+            there.chosen.iter().map(back).collect::<Vec<_>>(),
+            ranked.chosen
+        );
+        assert_eq!(
+            there
+                .ranked
+                .iter()
+                .map(|(k, score)| (among[*k], *score))
+                .collect::<Vec<_>>(),
+            ranked.ranked
         );
         // Without photos there is nothing to rank: the nearest.
         let unranked = choose_neighbours(&rig.mesh, &reference, &candidates, &ranked_config, None)
