@@ -213,7 +213,8 @@ impl FrameQuery<'_> {
 
 /// An accepted frame's change detection job (verify → change workers, dispatched): the
 /// registered camera and pose and the photo's depth map; without a depth map, the grey photo
-/// and its stereo neighbours (registered frames of the stream chosen by verify) with theirs.
+/// and its candidate stereo neighbours (registered frames of the stream; verify sends them, the
+/// change worker chooses the neighbours among them) with theirs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ChangeJob<'a> {
     pub meta: ChangeJobMeta,
@@ -284,7 +285,9 @@ pub struct ChangeJobMeta {
     pub camera: Camera,
     /// The registered pose (the frame's PoseResult).
     pub cam_from_world: Rigid3,
-    /// Without a depth map: the registered frames whose photos come with the job for stereo.
+    /// Without a depth map: the registered frames whose photos come with the job for stereo, the
+    /// candidates the change worker chooses the neighbours among
+    /// (`core::change::stereo::neighbour_candidates`, nearest first).
     pub neighbours: Vec<NeighbourMeta>,
     /// The registered pose's error as an image displacement, px: the change threshold's pose
     /// term (`core::change::ChangeConfig::pose_sigma_px`), from the registration's own
@@ -292,7 +295,7 @@ pub struct ChangeJobMeta {
     pub pose_sigma_px: f64,
 }
 
-/// A registered frame of the stream sent with a change job as a stereo neighbour.
+/// A registered frame of the stream sent with a change job as a candidate stereo neighbour.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct NeighbourMeta {
     pub frame_id: u64,

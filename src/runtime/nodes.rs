@@ -1086,11 +1086,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     // With change detection: accepted frames' change jobs go to the change workers, the other
     // frames' change results (why there is none) and the end of the stream to fusion.
     let mut changes = if config.changes_enabled() {
-        stage = stage.with_changes(
-            config.stereo.neighbours,
-            config.stereo.sweep,
-            config.stereo.window_frames,
-        );
+        stage = stage.with_changes(config.stereo.neighbours, config.stereo.window_frames);
         Some(ChangeRecovery::open(ctx)?)
     } else {
         None
@@ -1333,6 +1329,7 @@ pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     let mut fusion = Outbox::open(ctx.transport, keys::FUSION_IN)?;
     fusion.wait_for_reader("fusion", ctx.startup())?;
     let stereo = StereoDepthSettings {
+        neighbours: ctx.config.stereo.neighbours,
         sweep: ctx.config.stereo.sweep,
         disparity_sigma_px: ctx.config.stereo.disparity_sigma_px,
     };

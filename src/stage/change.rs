@@ -1,12 +1,18 @@
 //! Stage "change": an accepted frame's ChangeJob (registered camera and pose, the photo's depth
-//! map, or without one the photo and its registered stereo neighbours) becomes its ChangeResult
+//! map, or without one the photo and its candidate stereo neighbours) becomes its ChangeResult
 //! by the change detection of one frame (`core::change::detect_changes`, the same function
 //! `asgreg changes` calls). Runs as N workers, dispatched like flow. [`photo_depth`] is the one
-//! place that decides where a frame's depth comes from.
+//! place that decides where a frame's depth comes from; it also chooses the stereo neighbours
+//! among the candidates verify sent (`core::change::stereo::choose_neighbours`, as `asgreg
+//! changes` does), because ranking them by their agreement with the model sweeps each one: work
+//! that scales with the change workers instead of holding up verify's poses.
 
 use std::time::Instant;
 
-use crate::core::change::stereo::{depth_from_neighbours, StereoConfig, StereoView};
+use crate::core::change::stereo::{
+    choose_neighbours, depth_from_neighbours, NeighbourConfig, PosedCamera, RankingPhotos,
+    StereoConfig, StereoView,
+};
 use crate::core::change::{
     detect_changes, ChangeClass, ChangeConfig, ChangeWorkspace, DepthEvidence,
 };
@@ -19,6 +25,8 @@ use super::elapsed_ms;
 /// How the change stage computes the depth of a frame without a given depth map.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct StereoDepthSettings {
+    /// How the neighbours are chosen among the candidates that come with the job.
+    pub neighbours: NeighbourConfig,
     pub sweep: StereoConfig,
     /// Disparity error of the stereo depth, working pixels (the threshold's stereo term).
     pub disparity_sigma_px: f64,
@@ -40,7 +48,8 @@ pub enum PhotoDepth<'j> {
 /// The depth map a frame's change map compares with the model: the given one (MVS, as
 /// `asgreg changes --depth`) when the frame carries it; otherwise plane-sweep stereo
 /// (`core::change::stereo::depth_from_neighbours`, as `asgreg changes` without `--depth`) of the
-/// frame's photo against the registered neighbours verify sent with it.
+/// frame's photo against the neighbours chosen (`choose_neighbours`, ranked when
+/// `stereo.neighbours` asks for it) among the registered candidates verify sent with it.
 pub fn photo_depth<'j>(
     mesh: &Mesh,
     job: &'j ChangeJob,
@@ -69,12 +78,44 @@ pub fn photo_depth<'j>(
         intrinsics: job.meta.camera.intrinsics,
         cam_from_world: job.meta.cam_from_world,
     };
-    let views: Vec<StereoView<'_>> = neighbours
+    let posed = |intrinsics, photo: &ImageView<'_, f32>, cam_from_world| PosedCamera {
+        intrinsics,
+        width_px: photo.width_px(),
+        height_px: photo.height_px(),
+        cam_from_world,
+    };
+    let candidates: Vec<PosedCamera> = neighbours
         .iter()
-        .map(|(meta, photo)| StereoView {
-            photo: *photo,
-            intrinsics: meta.camera.intrinsics,
-            cam_from_world: meta.cam_from_world,
+        .map(|(meta, photo)| posed(meta.camera.intrinsics, photo, meta.cam_from_world))
+        .collect();
+    let photos = RankingPhotos {
+        reference: photo,
+        candidates: neighbours.iter().map(|(_, photo)| Some(*photo)).collect(),
+        sweep: stereo.sweep,
+    };
+    let choice = choose_neighbours(
+        mesh,
+        &posed(job.meta.camera.intrinsics, &photo, job.meta.cam_from_world),
+        &candidates,
+        &stereo.neighbours,
+        Some(&photos),
+    )
+    .map_err(|error| {
+        format!(
+            "no depth: the source has no depth map for this frame and stereo chose no neighbour among the {} candidates sent: {error}",
+            candidates.len()
+        )
+    })?;
+    let views: Vec<StereoView<'_>> = choice
+        .chosen
+        .iter()
+        .map(|&k| {
+            let (meta, photo) = &neighbours[k];
+            StereoView {
+                photo: *photo,
+                intrinsics: meta.camera.intrinsics,
+                cam_from_world: meta.cam_from_world,
+            }
         })
         .collect();
     let depth = depth_from_neighbours(mesh, &reference, &views, &stereo.sweep)

@@ -10,9 +10,7 @@ use std::sync::Arc;
 
 use crate::core::camera::Camera;
 use crate::core::change::pose_sigma_px_of_registration;
-use crate::core::change::stereo::{
-    choose_neighbours, NeighbourConfig, PosedCamera, RankingPhotos, StereoConfig,
-};
+use crate::core::change::stereo::{neighbour_candidates, NeighbourConfig, PosedCamera};
 use crate::core::frame::{
     decide_frame, CoarseOutcome, Decision, IntrinsicsMode, RefineWorkspace, RegistrationConfig,
 };
@@ -123,9 +121,6 @@ pub struct VerifyStage<'m> {
     changes: bool,
     /// Stereo neighbours: how they are chosen, and the window (frames before and after).
     neighbour_config: NeighbourConfig,
-    /// The change stage's plane sweep, for ranking candidate neighbours by their agreement with
-    /// the model (`NeighbourConfig::candidates`).
-    sweep_config: StereoConfig,
     window_frames: u64,
     /// Accepted frames with a photo and no depth map (stereo references and neighbours) within
     /// the window of a frame still waiting.
@@ -220,7 +215,6 @@ impl<'m> VerifyStage<'m> {
             late_messages: 0,
             changes: false,
             neighbour_config: NeighbourConfig::default(),
-            sweep_config: StereoConfig::default(),
             window_frames: 0,
             registered_views: BTreeMap::new(),
             stereo_waiting: BTreeSet::new(),
@@ -255,19 +249,14 @@ impl<'m> VerifyStage<'m> {
     }
 
     /// Makes every decided frame also give its change work (`change_work`). A frame without a
-    /// depth map gets stereo neighbours: the accepted frames within `window_frames` of it (before
-    /// and after) chosen by `core::change::stereo::choose_neighbours` (ranked with `sweep`, the
-    /// change stage's plane sweep, when `neighbours.candidates` asks for it); its change job
-    /// waits until the frames after it are decided.
-    pub fn with_changes(
-        mut self,
-        neighbours: NeighbourConfig,
-        sweep: StereoConfig,
-        window_frames: u64,
-    ) -> Self {
+    /// depth map gets candidate stereo neighbours: those of the accepted frames within
+    /// `window_frames` of it (before and after) that `core::change::stereo::neighbour_candidates`
+    /// gives (the nearest that qualify, as many as `neighbours.candidates` when it ranks); the
+    /// change worker chooses among them (`stage::change::photo_depth`), so the ranking's sweeps
+    /// do not hold up the poses here. Its change job waits until the frames after it are decided.
+    pub fn with_changes(mut self, neighbours: NeighbourConfig, window_frames: u64) -> Self {
         self.changes = true;
         self.neighbour_config = neighbours;
-        self.sweep_config = sweep;
         self.window_frames = window_frames;
         self
     }
@@ -328,9 +317,9 @@ impl<'m> VerifyStage<'m> {
     }
 
     /// The change jobs of the frames waiting for stereo neighbours whose window is decided (the
-    /// `window_frames` frames after them, or the end of the stream): each with the neighbours
-    /// chosen among the accepted frames within the window, or, when there is none, its change
-    /// result saying why. Frames no waiting frame can use are forgotten.
+    /// `window_frames` frames after them, or the end of the stream): each with its candidate
+    /// neighbours among the accepted frames within the window (the change worker chooses among
+    /// them), or, when there is none, its change result saying why. Frames no waiting frame can use are forgotten.
     pub fn release_stereo_jobs(&mut self) {
         let window = self.window_frames;
         let last = self.stream_frame_count.map(|count| count.saturating_sub(1));
@@ -373,25 +362,15 @@ impl<'m> VerifyStage<'m> {
             .map(|(id, view)| (*id, view))
             .collect();
         let posed: Vec<PosedCamera> = candidates.iter().map(|(_, v)| v.posed()).collect();
-        let photos = RankingPhotos {
-            reference: reference.photo.view(),
-            candidates: candidates
-                .iter()
-                .map(|(_, v)| Some(v.photo.view()))
-                .collect(),
-            sweep: self.sweep_config,
-        };
-        match choose_neighbours(
+        match neighbour_candidates(
             self.mesh,
             &reference.posed(),
             &posed,
             &self.neighbour_config,
-            Some(&photos),
         ) {
-            Ok(choice) => {
+            Ok(nearest) => {
                 let mut neighbour_photos = Vec::new();
-                let neighbours = choice
-                    .chosen
+                let neighbours = nearest
                     .iter()
                     .map(|&k| {
                         let (id, view) = candidates[k];

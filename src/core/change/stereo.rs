@@ -1,7 +1,10 @@
 //! Depth for a registered frame without offline MVS (issue #13 item 1): plane-sweep stereo of the
 //! frame against 1–4 already registered neighbour frames, so change detection runs on a live
 //! camera feed. One entry point, [`depth_from_neighbours`] (the batch `changes` and the pipeline
-//! call it); [`select_neighbours`] picks the neighbours among registered frames.
+//! call it); [`choose_neighbours`] picks the neighbours among registered frames. What the sweep
+//! computes of the reference alone is a [`PreparedReference`]: the ranking of candidate
+//! neighbours sweeps one reference against each candidate, and prepares it once
+//! ([`depth_from_prepared`]; `depth_from_neighbours` prepares and sweeps).
 //!
 //! Method, at a working scale (`downsample`, default 2: 505×275 → 253×138):
 //! - fronto-parallel planes of the reference camera sampled uniformly in inverse depth over a
@@ -500,11 +503,44 @@ pub struct NeighbourChoice {
     pub ranked: Vec<(usize, Option<f32>)>,
 }
 
-/// The reference's stereo neighbours among `candidates` (indices, nearest first):
-/// [`scene_depth_m`] under the reference, then [`select_neighbours`]; with
-/// [`NeighbourConfig::candidates`] above `count` and the photos, the nearest `candidates`
-/// qualifying frames ranked by [`rank_by_model_agreement`] and the best `count` kept. An error
-/// when the model is not in view or no candidate qualifies.
+/// The frames [`choose_neighbours`] chooses the reference's neighbours among (indices into
+/// `candidates`, nearest camera centre first): [`scene_depth_m`] under the reference, then the
+/// nearest qualifying frames as [`select_neighbours`] says, `candidates` of them with ranking
+/// ([`NeighbourConfig::ranks`]), else `count`. The pipeline's verify sends these with a frame's
+/// change job and the change worker chooses among them (the ranking's sweeps are its work, not
+/// verify's); `choose_neighbours` of these alone chooses as of all. An error when the model is
+/// not in view or no candidate qualifies.
+pub fn neighbour_candidates(
+    mesh: &Mesh,
+    reference: &PosedCamera,
+    candidates: &[PosedCamera],
+    config: &NeighbourConfig,
+) -> Result<Vec<usize>, StereoError> {
+    config.validate()?;
+    let scene_depth = scene_depth_m(mesh, reference).ok_or(StereoError::ModelNotInView)?;
+    let take = if config.ranks() {
+        config.candidates
+    } else {
+        config.count
+    };
+    let nearest = nearest_qualifying(reference, scene_depth, candidates, config, take);
+    if nearest.is_empty() {
+        return Err(StereoError::NoNeighbour {
+            min_baseline_m: config.min_baseline_ratio * scene_depth,
+            max_baseline_m: config.max_baseline_ratio * scene_depth,
+            scene_depth_m: scene_depth,
+            max_axis_angle_deg: config.max_axis_angle_deg,
+            candidates: candidates.len(),
+        });
+    }
+    Ok(nearest)
+}
+
+/// The reference's stereo neighbours among `candidates` (indices, nearest first): its
+/// [`neighbour_candidates`]; with [`NeighbourConfig::candidates`] above `count` and the photos,
+/// those ranked by [`rank_by_model_agreement`] and the best `count` kept, else the nearest
+/// `count` ([`select_neighbours`]). An error when the model is not in view or no candidate
+/// qualifies.
 pub fn choose_neighbours(
     mesh: &Mesh,
     reference: &PosedCamera,
@@ -512,17 +548,9 @@ pub fn choose_neighbours(
     config: &NeighbourConfig,
     photos: Option<&RankingPhotos<'_>>,
 ) -> Result<NeighbourChoice, StereoError> {
-    config.validate()?;
-    let scene_depth = scene_depth_m(mesh, reference).ok_or(StereoError::ModelNotInView)?;
-    let choice = match photos {
+    let nearest = neighbour_candidates(mesh, reference, candidates, config)?;
+    Ok(match photos {
         Some(photos) if config.ranks() => {
-            let nearest = nearest_qualifying(
-                reference,
-                scene_depth,
-                candidates,
-                config,
-                config.candidates,
-            );
             let views: Vec<Option<StereoView<'_>>> = nearest
                 .iter()
                 .map(|&k| {
@@ -559,26 +587,16 @@ pub fn choose_neighbours(
             }
         }
         _ => NeighbourChoice {
-            chosen: select_neighbours(reference, scene_depth, candidates, config),
+            chosen: nearest.into_iter().take(config.count).collect(),
             ranked: Vec::new(),
         },
-    };
-    let chosen = &choice.chosen;
-    if chosen.is_empty() {
-        return Err(StereoError::NoNeighbour {
-            min_baseline_m: config.min_baseline_ratio * scene_depth,
-            max_baseline_m: config.max_baseline_ratio * scene_depth,
-            scene_depth_m: scene_depth,
-            max_axis_angle_deg: config.max_axis_angle_deg,
-            candidates: candidates.len(),
-        });
-    }
-    Ok(choice)
+    })
 }
 
 /// How far a candidate neighbour's stereo depth lies from the model, per metre of inverse depth:
-/// the reference swept against `candidate` alone (`sweep` without the left-right check, the model
-/// test or the hole filling) and [`super::inverse_depth_spread_per_m`] of that depth against
+/// the reference (`prepared` with `sweep`, or a config alike in what the preparation reads)
+/// swept against `candidate` alone (`sweep` without the left-right check, the model test or the
+/// hole filling) and [`super::inverse_depth_spread_per_m`] of that depth against
 /// `model_depth_m` (the model rendered under the reference's pose at the photo's size). Under a
 /// relative pose error between the two frames the epipolar geometry is wrong and every disparity
 /// with it, which shows as a spread in inverse depth; a changed object or an occlusion is a
@@ -586,7 +604,7 @@ pub fn choose_neighbours(
 /// too few pixels to compare.
 pub fn model_agreement_per_m(
     mesh: &Mesh,
-    reference: &StereoView<'_>,
+    prepared: &PreparedReference<'_>,
     candidate: &StereoView<'_>,
     model_depth_m: ImageView<'_, f32>,
     sweep: &StereoConfig,
@@ -598,13 +616,15 @@ pub fn model_agreement_per_m(
         ..*sweep
     };
     let depth =
-        depth_from_neighbours(mesh, reference, std::slice::from_ref(candidate), &config).ok()?;
+        depth_from_prepared(mesh, prepared, std::slice::from_ref(candidate), &config).ok()?;
     super::inverse_depth_spread_per_m(model_depth_m, depth.depth_m.view())
 }
 
 /// Candidate neighbours ranked by their agreement with the model ([`model_agreement_per_m`]),
 /// best (smallest spread) first; a candidate without a photo or a score comes last, ties keep
-/// the given order. Returns positions in `candidates` with their scores.
+/// the given order. Returns positions in `candidates` with their scores. The reference is
+/// prepared once for all candidates ([`PreparedReference`]); when it cannot be (its photo too
+/// small, no model surface) no candidate has a score.
 pub fn rank_by_model_agreement(
     mesh: &Mesh,
     reference: &StereoView<'_>,
@@ -620,13 +640,24 @@ pub fn rank_by_model_agreement(
         &RenderOptions::default(),
         &mut model,
     );
+    let prepared = PreparedReference::new(mesh, reference, sweep).ok();
     let mut ranked: Vec<(usize, Option<f32>)> = candidates
         .par_iter()
         .enumerate()
         .map(|(position, candidate)| {
-            let score = candidate.as_ref().and_then(|candidate| {
-                model_agreement_per_m(mesh, reference, candidate, model.depth_m().view(), sweep)
-            });
+            let score =
+                candidate
+                    .as_ref()
+                    .zip(prepared.as_ref())
+                    .and_then(|(candidate, prepared)| {
+                        model_agreement_per_m(
+                            mesh,
+                            prepared,
+                            candidate,
+                            model.depth_m().view(),
+                            sweep,
+                        )
+                    });
             (position, score)
         })
         .collect();
@@ -786,9 +817,93 @@ fn working_view(
 /// Least share of the reference's pixels on the model for a depth range.
 const MIN_MODEL_SHARE: f64 = 0.01;
 
+/// What [`depth_from_neighbours`] computes of the reference alone, whichever its neighbours:
+/// the working view of its photo, the model's depth under its pose at the working scale, the
+/// depth range swept and the reference windows' statistics. Ranking candidate neighbours
+/// ([`rank_by_model_agreement`]) sweeps the same reference against each candidate in turn;
+/// prepared once, each candidate's sweep ([`depth_from_prepared`]) does only its own work, with
+/// the same result as [`depth_from_neighbours`] bit for bit.
+pub struct PreparedReference<'a> {
+    view: StereoView<'a>,
+    working: WorkingView,
+    model: RenderBuffers,
+    range: DepthRange,
+    stats: Vec<Option<(f32, f32)>>,
+    reads: PreparationFields,
+}
+
+/// The [`StereoConfig`] fields a [`PreparedReference`] reads (the working scale, the window and
+/// its texture tests, the range's factors): a sweep may use a prepared reference only with the
+/// same values.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct PreparationFields {
+    downsample: usize,
+    window_radius_px: usize,
+    min_texture: f32,
+    sweep_texture_z: f32,
+    centre_radius_px: usize,
+    near_factor: f32,
+    far_factor: f32,
+}
+
+impl PreparationFields {
+    fn of(config: &StereoConfig) -> Self {
+        Self {
+            downsample: config.downsample,
+            window_radius_px: config.window_radius_px,
+            min_texture: config.min_texture,
+            sweep_texture_z: config.sweep_texture_z,
+            centre_radius_px: config.centre_radius_px,
+            near_factor: config.near_factor,
+            far_factor: config.far_factor,
+        }
+    }
+}
+
+impl<'a> PreparedReference<'a> {
+    /// The reference prepared for sweeps with `config` (or any config with the same working
+    /// scale, window, texture tests and range factors); an error when its photo is too small or
+    /// the model shows too little surface under its pose for a depth range.
+    pub fn new(
+        mesh: &Mesh,
+        reference: &StereoView<'a>,
+        config: &StereoConfig,
+    ) -> Result<Self, StereoError> {
+        config.validate()?;
+        let working = working_view(reference, "reference", config)?;
+        let (ww, wh) = working.photo.size();
+        let mut model = RenderBuffers::new(ww, wh);
+        Rasterizer::new().render(
+            mesh,
+            &working.intrinsics,
+            &working.cam_from_world,
+            &RenderOptions::default(),
+            &mut model,
+        );
+        let min_pixels = ((ww * wh) as f64 * MIN_MODEL_SHARE).ceil() as usize;
+        let range = depth_range_from_model(model.depth_m().view(), config, min_pixels)
+            .ok_or(StereoError::NoModelSurface { min_pixels })?;
+        let stats = reference_stats(&working.photo, config);
+        Ok(Self {
+            view: *reference,
+            working,
+            model,
+            range,
+            stats,
+            reads: PreparationFields::of(config),
+        })
+    }
+
+    /// The depth range the sweeps of this reference cover.
+    pub fn range(&self) -> DepthRange {
+        self.range
+    }
+}
+
 /// The reference frame's depth from its neighbours (1..=4 registered frames that see the same
 /// scene), with holes where unsure; see the module's method. `mesh` is the model in the poses'
-/// world frame: its depth under the reference pose sets the range swept.
+/// world frame: its depth under the reference pose sets the range swept. Prepares the reference
+/// ([`PreparedReference`]) and sweeps ([`depth_from_prepared`]).
 pub fn depth_from_neighbours(
     mesh: &Mesh,
     reference: &StereoView<'_>,
@@ -801,25 +916,43 @@ pub fn depth_from_neighbours(
             count: neighbours.len(),
         });
     }
-    let reference_w = working_view(reference, "reference", config)?;
+    let prepared = PreparedReference::new(mesh, reference, config)?;
+    depth_from_prepared(mesh, &prepared, neighbours, config)
+}
+
+/// [`depth_from_neighbours`] of a prepared reference: the same depth, without preparing the
+/// reference again. An error when `config` differs from the one the reference was prepared
+/// with in a field the preparation reads.
+pub fn depth_from_prepared(
+    mesh: &Mesh,
+    prepared: &PreparedReference<'_>,
+    neighbours: &[StereoView<'_>],
+    config: &StereoConfig,
+) -> Result<StereoDepth, StereoError> {
+    config.validate()?;
+    if PreparationFields::of(config) != prepared.reads {
+        return Err(StereoError::InvalidConfig(format!(
+            "the reference was prepared with {:?}, the sweep asks for {:?}",
+            prepared.reads,
+            PreparationFields::of(config)
+        )));
+    }
+    if neighbours.is_empty() || neighbours.len() > MAX_NEIGHBOURS {
+        return Err(StereoError::NeighbourCount {
+            count: neighbours.len(),
+        });
+    }
+    let reference = &prepared.view;
+    let reference_w = &prepared.working;
     let neighbours_w = neighbours
         .iter()
         .map(|n| working_view(n, "neighbour", config))
         .collect::<Result<Vec<_>, _>>()?;
     let (ww, wh) = reference_w.photo.size();
-    let mut model = RenderBuffers::new(ww, wh);
-    Rasterizer::new().render(
-        mesh,
-        &reference_w.intrinsics,
-        &reference_w.cam_from_world,
-        &RenderOptions::default(),
-        &mut model,
-    );
-    let min_pixels = ((ww * wh) as f64 * MIN_MODEL_SHARE).ceil() as usize;
-    let range = depth_range_from_model(model.depth_m().view(), config, min_pixels)
-        .ok_or(StereoError::NoModelSurface { min_pixels })?;
+    let model = &prepared.model;
+    let range = prepared.range;
     let neighbour_refs: Vec<&WorkingView> = neighbours_w.iter().collect();
-    let mut sweep = plane_sweep(&reference_w, &neighbour_refs, range, config);
+    let mut sweep = plane_sweep(reference_w, &prepared.stats, &neighbour_refs, range, config);
     if config.left_right_check {
         let checked = config.consistency_neighbours.clamp(1, neighbours_w.len());
         let backs: Vec<(Sweep, &WorkingView)> = neighbours_w[..checked]
@@ -827,7 +960,8 @@ pub fn depth_from_neighbours(
             .map(|neighbour| {
                 let back = plane_sweep(
                     neighbour,
-                    &[&reference_w],
+                    &reference_stats(&neighbour.photo, config),
+                    &[reference_w],
                     range,
                     &StereoConfig {
                         best_k: 1,
@@ -837,7 +971,7 @@ pub fn depth_from_neighbours(
                 (back, neighbour)
             })
             .collect();
-        left_right_check(&mut sweep, &reference_w, &backs, config);
+        left_right_check(&mut sweep, reference_w, &backs, config);
     }
     if config.fill_radius_px > 0 {
         fill_holes(&mut sweep.depth_m, config.fill_radius_px);
@@ -845,7 +979,7 @@ pub fn depth_from_neighbours(
     let best_k = config.best_k.min(neighbours_w.len());
     let costs = if config.model_test_sigmas > 0.0 {
         hypothesis_costs(
-            &reference_w,
+            reference_w,
             &neighbour_refs,
             sweep.depth_m.data(),
             model.depth_m().data(),
@@ -1453,9 +1587,11 @@ const MODEL_EDGE_JUMP: f32 = 0.05;
 const MODEL_TEST_LEAST_PIXELS: f32 = 9.0;
 
 /// One plane sweep of `reference` against `neighbours` (working scale), winner-take-all with
-/// the hole tests except the left-right check.
+/// the hole tests except the left-right check; `stats` are the reference's windows
+/// ([`reference_stats`]).
 fn plane_sweep(
     reference: &WorkingView,
+    stats: &[Option<(f32, f32)>],
     neighbours: &[&WorkingView],
     range: DepthRange,
     config: &StereoConfig,
@@ -1472,7 +1608,6 @@ fn plane_sweep(
     let inverse_step = (inverse_near - inverse_far) / (planes - 1) as f32;
     // Plane i at inverse depth 1/near − i·step: plane 0 nearest.
     let inverse_depth = |plane: f32| inverse_near - plane * inverse_step;
-    let stats = reference_stats(&reference.photo, config);
     let mut volume = vec![f32::NAN; planes * pixels];
     volume.par_chunks_mut(pixels).enumerate().for_each_init(
         || PlaneScratch {
@@ -1484,7 +1619,7 @@ fn plane_sweep(
         |scratch, (plane, out)| {
             plane_costs(
                 reference,
-                &stats,
+                stats,
                 neighbours,
                 &warps,
                 |_| Some(f64::from(inverse_depth(plane as f32))),
@@ -2133,7 +2268,8 @@ mod tests {
             &mut world_w,
         );
         let refs: Vec<&WorkingView> = neighbours_w.iter().collect();
-        let mut sweep = plane_sweep(&reference_w, &refs, range, &config);
+        let stats = reference_stats(&reference_w.photo, &config);
+        let mut sweep = plane_sweep(&reference_w, &stats, &refs, range, &config);
         let model_data = model_w.depth_m().data();
         let world_data = world_w.depth_m().data();
         let mut wrong = Vec::new();
@@ -2327,6 +2463,37 @@ mod tests {
             score(3),
             score(2)
         );
+        // Chosen among its candidates alone (what verify sends the change worker), the same.
+        let among = neighbour_candidates(&rig.mesh, &reference, &candidates, &ranked_config)
+            .expect("candidates");
+        assert_eq!(among, vec![0, 2, 1, 3]);
+        let sent = RankingPhotos {
+            reference: ranking.reference,
+            candidates: among.iter().map(|&k| ranking.candidates[k]).collect(),
+            sweep: ranking.sweep,
+        };
+        let sent_cameras: Vec<PosedCamera> = among.iter().map(|&k| candidates[k]).collect();
+        let there = choose_neighbours(
+            &rig.mesh,
+            &reference,
+            &sent_cameras,
+            &ranked_config,
+            Some(&sent),
+        )
+        .expect("neighbours");
+        let back = |k: &usize| among[*k];
+        assert_eq!(
+            there.chosen.iter().map(back).collect::<Vec<_>>(),
+            ranked.chosen
+        );
+        assert_eq!(
+            there
+                .ranked
+                .iter()
+                .map(|(k, score)| (among[*k], *score))
+                .collect::<Vec<_>>(),
+            ranked.ranked
+        );
         // Without photos there is nothing to rank: the nearest.
         let unranked = choose_neighbours(&rig.mesh, &reference, &candidates, &ranked_config, None)
             .expect("neighbours");
@@ -2338,6 +2505,58 @@ mod tests {
         };
         assert!(matches!(
             choose_neighbours(&rig.mesh, &reference, &candidates, &too_many, None),
+            Err(StereoError::InvalidConfig(_))
+        ));
+    }
+
+    /// A reference prepared once and swept against one neighbour set after another (as the
+    /// ranking sweeps each candidate) gives each set's depth bit for bit as
+    /// `depth_from_neighbours` does, which prepares it afresh; a sweep whose config differs in
+    /// what the preparation read is refused.
+    #[test]
+    fn a_prepared_reference_gives_the_same_depth_as_preparing_it_for_each_sweep() {
+        let rig = rig(None);
+        let view = |i: usize| StereoView {
+            photo: rig.views[i].2.view(),
+            intrinsics: rig.views[i].0,
+            cam_from_world: rig.views[i].1,
+        };
+        let full = StereoConfig::default();
+        let ranking = StereoConfig {
+            left_right_check: false,
+            model_test_sigmas: 0.0,
+            fill_radius_px: 0,
+            ..full
+        };
+        let prepared = PreparedReference::new(&rig.mesh, &view(0), &full).expect("prepared");
+        for (config, sets) in [
+            (ranking, vec![vec![1], vec![2], vec![3]]),
+            (full, vec![vec![2], vec![1, 2, 3], vec![3, 1]]),
+        ] {
+            for set in sets {
+                let neighbours: Vec<StereoView> = set.iter().map(|&i| view(i)).collect();
+                let fresh = depth_from_neighbours(&rig.mesh, &view(0), &neighbours, &config)
+                    .expect("stereo depth");
+                let reused = depth_from_prepared(&rig.mesh, &prepared, &neighbours, &config)
+                    .expect("stereo depth");
+                let bits = |d: &StereoDepth| -> Vec<u32> {
+                    d.depth_m.data().iter().map(|v| v.to_bits()).collect()
+                };
+                assert!(
+                    fresh.valid_fraction > 0.3,
+                    "{set:?}: {}",
+                    fresh.valid_fraction
+                );
+                assert_eq!(bits(&fresh), bits(&reused), "{set:?}");
+                assert_eq!(fresh, reused, "{set:?}");
+            }
+        }
+        let coarser = StereoConfig {
+            downsample: 1,
+            ..full
+        };
+        assert!(matches!(
+            depth_from_prepared(&rig.mesh, &prepared, &[view(1)], &coarser),
             Err(StereoError::InvalidConfig(_))
         ));
     }
