@@ -731,6 +731,7 @@ fn stereo_depth(
             .map(|&k| frames[k].as_ref().ok().map(|f| f.photo.view()))
             .collect(),
         sweep: *config,
+        prepared: None,
     };
     let choice = choose_neighbours(
         &inputs.mesh,

@@ -10,8 +10,8 @@
 use std::time::Instant;
 
 use crate::core::change::stereo::{
-    choose_neighbours, depth_from_neighbours, NeighbourConfig, PosedCamera, RankingPhotos,
-    StereoConfig, StereoView,
+    choose_neighbours, depth_from_neighbours, depth_from_prepared, NeighbourConfig, PosedCamera,
+    PreparedReference, RankingPhotos, StereoConfig, StereoView,
 };
 use crate::core::change::{
     detect_changes, ChangeClass, ChangeConfig, ChangeWorkspace, DepthEvidence,
@@ -88,10 +88,14 @@ pub fn photo_depth<'j>(
         .iter()
         .map(|(meta, photo)| posed(meta.camera.intrinsics, photo, meta.cam_from_world))
         .collect();
+    // Prepared once: for the ranking's sweep of every candidate and the final sweep. When it
+    // cannot be, `depth_from_neighbours` below meets (and reports) the same reason.
+    let prepared = PreparedReference::new(mesh, &reference, &stereo.sweep).ok();
     let photos = RankingPhotos {
         reference: photo,
         candidates: neighbours.iter().map(|(_, photo)| Some(*photo)).collect(),
         sweep: stereo.sweep,
+        prepared: prepared.as_ref(),
     };
     let choice = choose_neighbours(
         mesh,
@@ -118,8 +122,11 @@ pub fn photo_depth<'j>(
             }
         })
         .collect();
-    let depth = depth_from_neighbours(mesh, &reference, &views, &stereo.sweep)
-        .map_err(|error| format!("stereo depth: {error}"))?;
+    let depth = match &prepared {
+        Some(prepared) => depth_from_prepared(mesh, prepared, &views, &stereo.sweep),
+        None => depth_from_neighbours(mesh, &reference, &views, &stereo.sweep),
+    }
+    .map_err(|error| format!("stereo depth: {error}"))?;
     Ok(PhotoDepth::Stereo {
         quadratic_sigma_per_m: depth.quadratic_sigma_per_m(stereo.disparity_sigma_px),
         depth_m: depth.depth_m,

@@ -490,6 +490,9 @@ pub struct RankingPhotos<'a> {
     /// The plane sweep of the stereo depth (the ranking sweeps each candidate alone with it,
     /// without the left-right check, the model test or the hole filling).
     pub sweep: StereoConfig,
+    /// The reference prepared with `sweep`, when the caller made it to sweep the chosen
+    /// neighbours with it afterwards (the change worker); `None`: the ranking prepares it.
+    pub prepared: Option<&'a PreparedReference<'a>>,
 }
 
 /// The reference's stereo neighbours among `candidates`, the one choice of batch (`asgreg
@@ -571,7 +574,13 @@ pub fn choose_neighbours(
                 intrinsics: reference.intrinsics,
                 cam_from_world: reference.cam_from_world,
             };
-            let ranked = rank_by_model_agreement(mesh, &reference_view, &views, &photos.sweep);
+            let ranked = rank_by_model_agreement(
+                mesh,
+                &reference_view,
+                &views,
+                &photos.sweep,
+                photos.prepared,
+            );
             let mut kept: Vec<usize> = ranked
                 .iter()
                 .take(config.count)
@@ -623,13 +632,14 @@ pub fn model_agreement_per_m(
 /// Candidate neighbours ranked by their agreement with the model ([`model_agreement_per_m`]),
 /// best (smallest spread) first; a candidate without a photo or a score comes last, ties keep
 /// the given order. Returns positions in `candidates` with their scores. The reference is
-/// prepared once for all candidates ([`PreparedReference`]); when it cannot be (its photo too
-/// small, no model surface) no candidate has a score.
+/// prepared once for all candidates ([`PreparedReference`]; `prepared` when the caller has it);
+/// when it cannot be (its photo too small, no model surface) no candidate has a score.
 pub fn rank_by_model_agreement(
     mesh: &Mesh,
     reference: &StereoView<'_>,
     candidates: &[Option<StereoView<'_>>],
     sweep: &StereoConfig,
+    prepared: Option<&PreparedReference<'_>>,
 ) -> Vec<(usize, Option<f32>)> {
     let (w, h) = reference.photo.size();
     let mut model = RenderBuffers::new(w, h);
@@ -640,24 +650,21 @@ pub fn rank_by_model_agreement(
         &RenderOptions::default(),
         &mut model,
     );
-    let prepared = PreparedReference::new(mesh, reference, sweep).ok();
+    let made = match prepared {
+        Some(_) => None,
+        None => PreparedReference::new(mesh, reference, sweep).ok(),
+    };
+    let prepared = prepared.or(made.as_ref());
     let mut ranked: Vec<(usize, Option<f32>)> = candidates
         .par_iter()
         .enumerate()
         .map(|(position, candidate)| {
-            let score =
-                candidate
-                    .as_ref()
-                    .zip(prepared.as_ref())
-                    .and_then(|(candidate, prepared)| {
-                        model_agreement_per_m(
-                            mesh,
-                            prepared,
-                            candidate,
-                            model.depth_m().view(),
-                            sweep,
-                        )
-                    });
+            let score = candidate
+                .as_ref()
+                .zip(prepared)
+                .and_then(|(candidate, prepared)| {
+                    model_agreement_per_m(mesh, prepared, candidate, model.depth_m().view(), sweep)
+                });
             (position, score)
         })
         .collect();
@@ -830,6 +837,14 @@ pub struct PreparedReference<'a> {
     range: DepthRange,
     stats: Vec<Option<(f32, f32)>>,
     reads: PreparationFields,
+}
+
+impl std::fmt::Debug for PreparedReference<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PreparedReference")
+            .field("reads", &self.reads)
+            .finish_non_exhaustive()
+    }
 }
 
 /// The [`StereoConfig`] fields a [`PreparedReference`] reads (the working scale, the window and
@@ -2429,6 +2444,7 @@ mod tests {
             reference: rig.views[0].2.view(),
             candidates: photos,
             sweep: StereoConfig::default(),
+            prepared: None,
         };
         // Nearest first, the wrong one is chosen.
         let nearest = NeighbourConfig {
@@ -2471,6 +2487,7 @@ mod tests {
             reference: ranking.reference,
             candidates: among.iter().map(|&k| ranking.candidates[k]).collect(),
             sweep: ranking.sweep,
+            prepared: None,
         };
         let sent_cameras: Vec<PosedCamera> = among.iter().map(|&k| candidates[k]).collect();
         let there = choose_neighbours(
