@@ -41,6 +41,15 @@ pub struct FrameEvidence {
     pub correlation: Option<CorrelationPeak>,
 }
 
+impl FrameEvidence {
+    /// The edge support's excess over chance at the output pose (`at_pose − far` of its
+    /// [`SupportPeak`]; 0 without edge evidence): a feature of the model and what
+    /// [`ConfidenceConfig::min_overrule_margin`] bounds.
+    pub fn edge_support_above_chance(&self) -> f64 {
+        self.edges.map_or(0.0, |peak| peak.at_pose - peak.far)
+    }
+}
+
 fn default_coarse_poses() -> usize {
     15
 }
@@ -102,10 +111,8 @@ pub const FEATURE_NAMES: [&str; FEATURE_COUNT] = [
 /// are known; the convergence ratio, the chosen pose's spread and the near ring's support
 /// added nothing that held across scenes and were left out.
 pub fn features(evidence: &FrameEvidence) -> [f64; FEATURE_COUNT] {
-    let (support, above_chance) = match evidence.edges {
-        Some(peak) => (peak.at_pose, peak.at_pose - peak.far),
-        None => (0.0, 0.0),
-    };
+    let support = evidence.edges.map_or(0.0, |peak| peak.at_pose);
+    let above_chance = evidence.edge_support_above_chance();
     let component_share = if evidence.coarse_poses == 0 {
         0.0
     } else {

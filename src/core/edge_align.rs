@@ -425,20 +425,21 @@ impl EdgeEvidence {
     /// Share of model edge samples with a photo ridge within half of `support_px` (0 when there
     /// are none).
     pub fn tight_support_fraction(&self) -> f64 {
+        self.share_of_samples(self.tightly_supported)
+    }
+
+    /// `count` over the model edge samples (0 when there are none).
+    fn share_of_samples(&self, count: usize) -> f64 {
         if self.samples == 0 {
             0.0
         } else {
-            self.tightly_supported as f64 / self.samples as f64
+            count as f64 / self.samples as f64
         }
     }
 
     /// Share of model edge samples supported by a photo ridge (0 when there are none).
     pub fn support_fraction(&self) -> f64 {
-        if self.samples == 0 {
-            0.0
-        } else {
-            self.supported as f64 / self.samples as f64
-        }
+        self.share_of_samples(self.supported)
     }
 }
 

@@ -319,7 +319,8 @@ impl<'m> VerifyStage<'m> {
     /// The change jobs of the frames waiting for stereo neighbours whose window is decided (the
     /// `window_frames` frames after them, or the end of the stream): each with its candidate
     /// neighbours among the accepted frames within the window (the change worker chooses among
-    /// them), or, when there is none, its change result saying why. Frames no waiting frame can use are forgotten.
+    /// them), or, when there is none, its change result saying why. Frames no waiting frame can
+    /// use are forgotten.
     pub fn release_stereo_jobs(&mut self) {
         let window = self.window_frames;
         let last = self.stream_frame_count.map(|count| count.saturating_sub(1));

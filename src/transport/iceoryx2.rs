@@ -182,6 +182,12 @@ pub fn clean_stale_resources() -> Result<usize, TransportError> {
 }
 
 fn clean_stale_resources_with(config: &Config) -> Result<usize, TransportError> {
+    clean_and_report_unborn(config).map(|(removed, _)| removed)
+}
+
+/// [`clean_stale_resources_with`], also returning how long until the youngest unborn node left
+/// in place is old enough to go.
+fn clean_and_report_unborn(config: &Config) -> Result<(usize, Option<Duration>), TransportError> {
     let layout = leftovers::Layout::of(config);
     let mut removed = 0;
     let mut half_removed = HashSet::new();
@@ -220,31 +226,33 @@ fn clean_stale_resources_with(config: &Config) -> Result<usize, TransportError> 
             }
         })?;
     }
-    match leftovers::remove_unborn_nodes(&layout, UNBORN_MIN_AGE) {
-        Ok(unborn) => removed += unborn.removed,
-        Err(error) => tracing::warn!(
-            "{BACKEND}: could not remove the files of nodes killed while being created: {error}"
-        ),
-    }
+    let unborn_next_in = match leftovers::remove_unborn_nodes(&layout, UNBORN_MIN_AGE) {
+        Ok(unborn) => {
+            removed += unborn.removed;
+            unborn.next_in
+        }
+        Err(error) => {
+            tracing::warn!(
+                "{BACKEND}: could not remove the files of nodes killed while being created: {error}"
+            );
+            None
+        }
+    };
     for (id, error) in &failed {
         tracing::warn!("{BACKEND}: could not remove the resources of dead node {id:?}: {error:?}");
     }
     if !failed.is_empty() {
         tracing::warn!("{BACKEND}: {} dead node(s) left in place", failed.len());
     }
-    Ok(removed)
+    Ok((removed, unborn_next_in))
 }
 
 /// As [`clean_stale_resources`], for a launcher whose processes have all exited: a node killed
 /// while being created less than [`UNBORN_MIN_AGE`] ago is waited for, not left behind.
 pub fn clean_stale_resources_after_exit() -> Result<usize, TransportError> {
     let config = Config::global_config();
-    let mut removed = clean_stale_resources_with(config)?;
-    if let Ok(leftovers::Unborn {
-        next_in: Some(wait),
-        ..
-    }) = leftovers::remove_unborn_nodes(&leftovers::Layout::of(config), UNBORN_MIN_AGE)
-    {
+    let (mut removed, unborn_next_in) = clean_and_report_unborn(config)?;
+    if let Some(wait) = unborn_next_in {
         std::thread::sleep(wait);
         removed += clean_stale_resources_with(config)?;
     }

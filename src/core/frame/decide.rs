@@ -398,18 +398,12 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
             ..
         }) if confirmed
             && !overruled_by_the_frame(evidence)
-            && support_margin(evidence) >= config.min_overrule_margin =>
+            && evidence.edge_support_above_chance() >= config.min_overrule_margin =>
         {
             verdict.decision = Ok(*chosen)
         }
         _ => {}
     }
-}
-
-/// The edge support's excess over chance at the output pose (`at_pose − far`; 0 without edge
-/// evidence): what [`ConfidenceConfig::min_overrule_margin`] bounds.
-fn support_margin(evidence: &FrameEvidence) -> f64 {
-    evidence.edges.map_or(0.0, |peak| peak.at_pose - peak.far)
 }
 
 /// Whether a pose the plausibility check rejected is held rejected whatever its photo evidence:
@@ -578,7 +572,7 @@ mod tests {
             decision.evidence
         );
         // ... unless its edge support's margin over chance is below `min_overrule_margin`.
-        let margin = support_margin(&decision.evidence);
+        let margin = decision.evidence.edge_support_above_chance();
         let strict = RegistrationConfig {
             confidence: ConfidenceConfig {
                 min_overrule_margin: (margin + 0.01).min(1.0),

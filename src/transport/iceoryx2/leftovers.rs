@@ -14,6 +14,7 @@
 //! Only files of these two shapes are removed, with names taken from iceoryx2's [`Config`]; a
 //! service tag whose service still exists is kept (that service may still count the node).
 
+use std::collections::HashSet;
 use std::io;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime};
@@ -61,17 +62,19 @@ impl Layout {
         self.node_dir.join(id.to_string())
     }
 
-    /// Whether a monitor token of node `id` (or one of its companion files) exists, under any
-    /// file prefix (node directories are named by id alone, whatever the prefix).
-    fn has_monitor(&self, id: u128) -> bool {
-        let token = format!("{id}{}", self.monitor_suffix);
-        std::fs::read_dir(&self.node_dir)
-            .map(|entries| {
-                entries
-                    .filter_map(Result::ok)
-                    .any(|e| e.file_name().to_string_lossy().contains(&token))
+    /// The ids of the nodes with a monitor token (or one of its companion files), under any
+    /// file prefix (node directories are named by id alone, whatever the prefix): one listing.
+    fn monitored_ids(&self) -> io::Result<HashSet<u128>> {
+        Ok(names_in(&self.node_dir)?
+            .iter()
+            .filter_map(|name| {
+                let (before, _) = name.split_once(self.monitor_suffix.as_str())?;
+                // The id is the run of digits ending where the suffix begins (a prefix may hold
+                // digits of its own).
+                let start = before.trim_end_matches(|c: char| c.is_ascii_digit()).len();
+                before[start..].parse().ok()
             })
-            .unwrap_or(false)
+            .collect())
     }
 
     /// Whether `name` (in a node's directory) is a tag of this prefix.
@@ -136,11 +139,12 @@ pub(super) fn remove_unborn_nodes(layout: &Layout, min_age: Duration) -> io::Res
         Err(error) if error.kind() == io::ErrorKind::NotFound => return Ok(unborn),
         Err(error) => return Err(error),
     };
+    let monitored = layout.monitored_ids()?;
     for entry in entries.filter_map(Result::ok) {
         let Ok(id) = entry.file_name().to_string_lossy().parse::<u128>() else {
             continue;
         };
-        if !entry.file_type().is_ok_and(|t| t.is_dir()) || layout.has_monitor(id) {
+        if !entry.file_type().is_ok_and(|t| t.is_dir()) || monitored.contains(&id) {
             continue;
         }
         let dir = entry.path();
@@ -198,7 +202,10 @@ mod tests {
             .expect("a node");
         let layout = Layout::of(&config);
         let id = node.id().value();
-        assert!(layout.has_monitor(id), "no monitor token for {id}");
+        assert!(
+            layout.monitored_ids().expect("io").contains(&id),
+            "no monitor token for {id}"
+        );
         let names = names_in(&layout.node_files(id)).expect("the node's directory");
         assert!(
             names.iter().any(|n| n.ends_with(&layout.details_suffix)),
@@ -248,6 +255,14 @@ mod tests {
                 .node_dir
                 .join(format!("other_{monitored}.node_monitor")),
         );
+        // A prefix ending in digits does not hide the id before the suffix.
+        let digit_prefixed = 44_u128;
+        touch(&layout.node_files(digit_prefixed).join("iox2_node.details"));
+        touch(
+            &layout
+                .node_dir
+                .join(format!("asgt_7_{digit_prefixed}.node_monitor")),
+        );
         let other_prefix = 33_u128;
         touch(&layout.node_files(other_prefix).join("other_node.details"));
 
@@ -269,5 +284,6 @@ mod tests {
         assert!(!layout.node_files(unborn).exists());
         assert!(layout.node_files(monitored).is_dir());
         assert!(layout.node_files(other_prefix).is_dir(), "another prefix's");
+        assert!(layout.node_files(digit_prefixed).is_dir(), "monitored");
     }
 }
