@@ -34,7 +34,9 @@ use crate::core::edge_align::{
     AlignedParameters, EdgeEvidence, EdgeKind, EdgeSample, SupportPeak,
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
-use crate::core::frame::search::{grid_score_at, search_pose, PoseSearchOutcome};
+use crate::core::frame::search::{
+    grid_score_at, score_grid, screen_candidates, search_pose, PoseSearchOutcome,
+};
 use crate::core::frame::sweep::{apply_passes_decision, register_with_fallback, PassOutcome};
 use crate::core::frame::{
     correspond_view, decide_frame_and_centres, lift_pixel, query_features, query_gradient,
@@ -44,7 +46,7 @@ use crate::core::frame::{
 };
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
-use crate::core::pose_search::OrientedEdgeMap;
+use crate::core::pose_search::{select_beams, OrientedEdgeMap};
 use crate::core::raster::{Rasterizer, RenderBuffers};
 use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
@@ -452,9 +454,33 @@ pub struct SearchDiagnosis {
     /// δ of the first centre of a search started from the prior's rotation at the true centre,
     /// px: what the search reaches when the position is right.
     pub true_centre_search_delta_px: Option<f64>,
+    /// Where the grid candidate nearest the rotation reach stands in the search's selection:
+    /// whether a search that misses the truth misses it in the grid's ranking or in the
+    /// screening (`None` when the grid has no candidate).
+    pub reach_in_grid: Option<ReachInGrid>,
     /// The search's own wall time (the frame's, not the diagnosis'), ms.
     pub search_ms: f64,
 }
+
+/// The grid candidate nearest the rotation reach (the true rotation at the prior's centre), as
+/// the search's selection sees it.
+#[derive(Clone, Debug, Serialize)]
+pub struct ReachInGrid {
+    /// Its rotation angle to the rotation reach, degrees (the grid's steps bound it).
+    pub angle_deg: f64,
+    pub grid_score: f64,
+    /// 1-based rank, in the search's order of distinct candidates (best grid score first, each
+    /// beyond the beam separation of the better ones), of the first candidate within the beam
+    /// separation of it: the number of screened candidates its basin needs. `None` beyond
+    /// [`REACH_RANK_LIMIT`].
+    pub distinct_rank: Option<usize>,
+    /// δ px and edge support (0..1) after the search's screening alignment from it.
+    pub screened_delta_px: Option<f64>,
+    pub screened_support: f64,
+}
+
+/// How far down the distinct candidates [`ReachInGrid::distinct_rank`] looks.
+pub const REACH_RANK_LIMIT: usize = 500;
 
 /// One refined beam of the search against the truth.
 #[derive(Clone, Debug, Serialize)]
@@ -955,8 +981,24 @@ fn search_diagnosis(
         &mut view,
     )
     .and_then(|outcome| outcome.centres.first().and_then(&mut delta));
+    let reach_in_grid = reach_in_grid(
+        mesh,
+        camera,
+        prior,
+        &rotation_reach,
+        query,
+        &map,
+        config,
+        &mut rasterizer,
+        &mut view,
+    )
+    .map(|(reach, screened_pose)| ReachInGrid {
+        screened_delta_px: delta(&screened_pose),
+        ..reach
+    });
     SearchDiagnosis {
         true_centre_search_delta_px,
+        reach_in_grid,
         search_ms: outcome.search_ms,
         prior_delta_px: delta(prior),
         prior_centre_error_m: (prior_centre - truth.camera_center()).norm(),
@@ -1011,6 +1053,62 @@ fn search_diagnosis(
             &mut view,
         ),
     }
+}
+
+/// The grid candidate of a search around `prior` nearest `rotation_reach`, its place in the
+/// search's selection and where the screening alignment takes it (returned apart, δ to be
+/// measured by the caller).
+#[allow(clippy::too_many_arguments)]
+fn reach_in_grid(
+    mesh: &Mesh,
+    camera: &Camera,
+    prior: &Rigid3,
+    rotation_reach: &Rigid3,
+    query: ImageView<'_, f32>,
+    map: &OrientedEdgeMap,
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+    view: &mut CoarseView,
+) -> Option<(ReachInGrid, Rigid3)> {
+    let grid = score_grid(mesh, camera, prior, map, config, rasterizer, view);
+    let nearest = grid.candidates.iter().min_by(|a, b| {
+        a.cam_from_world
+            .rotation_angle_to_rad(rotation_reach)
+            .total_cmp(&b.cam_from_world.rotation_angle_to_rad(rotation_reach))
+    })?;
+    let separation_deg = config.pose_search.beam_separation_deg;
+    let distinct_rank = select_beams(&grid.candidates, REACH_RANK_LIMIT, separation_deg)
+        .iter()
+        .position(|c| {
+            c.cam_from_world
+                .rotation_angle_to_rad(&nearest.cam_from_world)
+                .to_degrees()
+                <= separation_deg
+        })
+        .map(|index| index + 1);
+    let (_, screened_pose, screened_support) = screen_candidates(
+        std::slice::from_ref(nearest),
+        &grid.group_samples,
+        camera,
+        query,
+        config,
+        config.pose_search.render_heading_step_deg,
+    )
+    .into_iter()
+    .next()?;
+    Some((
+        ReachInGrid {
+            angle_deg: nearest
+                .cam_from_world
+                .rotation_angle_to_rad(rotation_reach)
+                .to_degrees(),
+            grid_score: nearest.score,
+            distinct_rank,
+            screened_delta_px: None,
+            screened_support,
+        },
+        screened_pose,
+    ))
 }
 
 /// The errors of one view's correspondences against the truth.

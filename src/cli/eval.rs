@@ -24,6 +24,7 @@ use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::diagnose::{
     diagnose_frame, diagnose_search, DiagnosisSummary, FrameDiagnosis, SearchDiagnosis,
+    REACH_RANK_LIMIT,
     ORACLE_MAX_ERROR_PX,
 };
 use asgreg::eval::{
@@ -1109,13 +1110,15 @@ pub(super) fn search_diagnosis_markdown<K: std::fmt::Display + Ord>(
 prior's centre (the reach of a rotation-only search), the edge support at the truth, the grid score of a \
 candidate at the truth and at the rotation reach, whether a beam replaced the prior, δ of each centre of \
 the coarse poses, and each refined beam as δ px (edge support %, grid score, edge support after the \
-screening %, image uncertainty px; the prior first).\n"
+screening %, image uncertainty px; the prior first); and the grid candidate nearest the rotation reach: its \
+angle to it, its rank among the distinct candidates the search screens (best grid score first) and δ \
+(edge support) after the screening from it.\n"
     );
     let _ = writeln!(
         out,
-        "| level | frame | verdict | prior δ | centre error m | rotation reach δ | support at truth | grid score at truth / rotation reach | moved | centres δ | search from the true centre δ | beams δ (support, grid score, screened support, image uncertainty) |"
+        "| level | frame | verdict | prior δ | centre error m | rotation reach δ | support at truth | grid score at truth / rotation reach | moved | centres δ | search from the true centre δ | reach in grid: angle, rank, screened δ (support) | beams δ (support, grid score, screened support, image uncertainty) |"
     );
-    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     let mut first_centre_within_5px = 0usize;
     let mut frames = 0usize;
     for ((level, _), rows) in diagnoses {
@@ -1132,7 +1135,7 @@ screening %, image uncertainty px; the prior first).\n"
             }
             let _ = writeln!(
                 out,
-                "| {level} | {name} | {} | {} | {:.2} | {} | {} | {:.3} / {:.3} | {} | {} | {} | {} |",
+                "| {level} | {name} | {} | {} | {:.2} | {} | {} | {:.3} / {:.3} | {} | {} | {} | {} | {} |",
                 match accepted {
                     Some(true) => "accepted",
                     Some(false) => "rejected",
@@ -1154,6 +1157,14 @@ screening %, image uncertainty px; the prior first).\n"
                     .collect::<Vec<_>>()
                     .join(", "),
                 px(search.true_centre_search_delta_px),
+                search.reach_in_grid.as_ref().map_or("–".to_string(), |r| format!(
+                    "{:.1}°, {}, {} ({:.0} %)",
+                    r.angle_deg,
+                    r.distinct_rank
+                        .map_or(format!("> {REACH_RANK_LIMIT}"), |rank| rank.to_string()),
+                    px(r.screened_delta_px),
+                    100.0 * r.screened_support
+                )),
                 search
                     .beams
                     .iter()

@@ -373,6 +373,15 @@ pub struct CoarseArgs {
     /// degrees.
     #[arg(long, default_value_t = PoseSearchConfig::default().roll_half_range_deg)]
     pub search_roll_deg: f64,
+    /// Pose search: pitch (about the camera's x axis) searched either side of the prior's,
+    /// degrees.
+    #[arg(long, default_value_t = PoseSearchConfig::default().pitch_half_range_deg)]
+    pub search_pitch_deg: f64,
+    /// The prior's pitch and roll are known within this many degrees (a drone's IMU: gravity):
+    /// the pose search's pitch and roll ranges shrink to cover that, overriding
+    /// --search-pitch-deg/--search-roll-deg (0: not known, those ranges).
+    #[arg(long, default_value_t = 0.0)]
+    pub prior_tilt_deg: f64,
     /// Verification across the pose search's centres: two centres' confirmed poses count as one
     /// only when they lie less than this share of the compatibility threshold apart; farther,
     /// the frame is rejected as ambiguous (0..1; 1: the threshold itself).
@@ -395,7 +404,7 @@ pub struct CoarseArgs {
     #[arg(long, default_value_t = ConfidenceConfig::default().min_least_seen_drop)]
     pub min_least_seen_drop: f64,
     /// Accept a pose the plausibility check rejected on the photo's evidence only when its edge
-    /// support exceeds chance by at least this share (0..1; 0: off, the default).
+    /// support exceeds chance by at least this share (0..1; 0: off).
     #[arg(long, default_value_t = ConfidenceConfig::default().min_overrule_margin)]
     pub min_overrule_margin: f64,
 }
@@ -451,6 +460,8 @@ impl Default for CoarseArgs {
             screened_candidates: PoseSearchConfig::default().screened_candidates,
             keep_prior_centre: PoseSearchConfig::default().keep_prior_centre,
             search_roll_deg: PoseSearchConfig::default().roll_half_range_deg,
+            search_pitch_deg: PoseSearchConfig::default().pitch_half_range_deg,
+            prior_tilt_deg: 0.0,
             centre_agreement_share: PoseSearchConfig::default().centre_agreement_share,
             heading_sweep_deg: PoseSearchConfig::default().heading_sweep_step_deg,
             verify_output: VerifyOutputArg::Medoid,
@@ -644,10 +655,12 @@ pub fn registration_config(
             screened_candidates: coarse.screened_candidates,
             keep_prior_centre: coarse.keep_prior_centre,
             roll_half_range_deg: coarse.search_roll_deg,
+            pitch_half_range_deg: coarse.search_pitch_deg,
             centre_agreement_share: coarse.centre_agreement_share,
             heading_sweep_step_deg: coarse.heading_sweep_deg,
             ..defaults.pose_search
-        },
+        }
+        .with_trusted_tilt_deg(coarse.prior_tilt_deg),
         ..defaults
     }
 }

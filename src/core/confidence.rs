@@ -193,12 +193,15 @@ pub struct ConfidenceConfig {
     /// A pose the paper's plausibility check rejected is accepted on the photo's evidence only
     /// when its edge support exceeds chance (`at_pose − far` of its
     /// [`crate::core::edge_align::SupportPeak`]) by at least this share (0..1; 0: no such
-    /// condition, the default). The photo then carries the decision alone. Measured
-    /// (docs/measurements.md, seventeenth session; 211 accepts of the final default over five
-    /// scenes and levels 30–104): the 37 accepted with the check failed had a mean δ of 7.43 px
-    /// and the one false accept; of them the 22 with a margin below 0.4 had 12.03 px (19 beyond
-    /// 5 px), the 15 above it 0.68 px (none). A measurement switch until validated on scenes it
-    /// was not read from (`--min-overrule-margin`).
+    /// condition). The photo then carries the decision alone, so it must do so clearly.
+    /// Read (seventeenth session; 211 accepts over five scenes and levels 30–104): the 37
+    /// accepted with the check failed had a mean δ of 7.43 px and the one false accept; of them
+    /// the 22 with a margin below 0.4 had 12.03 px (19 beyond 5 px), the 15 above it 0.68 px.
+    /// Validated (nineteenth session, default since) on runs it was not read from — the pose
+    /// search's wider roll, the `heading` level of block and house s1, LoD houses s1/s2 at 30
+    /// and 104 px, block s1 at 104 px: the 8 accepts against a failed check with a margin below
+    /// 0.4 were all 5.3 px or more off, among them both false accepts (26.0 and 428 px), while
+    /// the 12 above it had a median of 0.52 px (docs/measurements.md, nineteenth session).
     pub min_overrule_margin: f64,
 }
 
@@ -228,7 +231,7 @@ impl Default for ConfidenceConfig {
             max_image_uncertainty_px: 2.0,
             max_delta_uncertainty_px: 0.8,
             min_least_seen_drop: 0.5,
-            min_overrule_margin: 0.0,
+            min_overrule_margin: 0.4,
         }
     }
 }

@@ -56,13 +56,14 @@ pub struct PoseSearchConfig {
     /// The 104 px level's rotation noise (about 11.7° per camera axis on the block), expressed
     /// as heading about world up, then pitch and roll, puts a third of the frames beyond ±15° of
     /// roll (the camera looks down obliquely: a turn about its own y axis is part heading, part
-    /// roll); on `synth` block seed 1, 26 of 48 frames lie within the ±22.5° / ±15° grid, 45
-    /// within ±30° of roll, and all 8 frames rejected among the first 24 lay beyond ±15°. ±30°
-    /// (`--search-roll-deg 30`) raises block 104 px from 16/24 to 20/24 but gave a false accept
-    /// on the house at 30 px (docs/measurements.md, branch `reach4`), which verification across
-    /// the centres now rejects (`centre_agreement_share`, branch `reach5`); the default stays 15
-    /// because ±30° loses a frame of the heading level (21/24 → 20/24: the level's tilt is
-    /// within 1°, so a wider roll only adds wrong candidates there).
+    /// roll); on `synth` block seed 1, 26 of 48 frames lie within ±15°, 45 within ±30°
+    /// (docs/measurements.md, branch `reach4`). Default ±30°, to cover the levels: on block s1
+    /// 104 px (first 24 frames, `eval --diagnose-search`) the first centre lands within 5 px of
+    /// the truth on 20 frames against 15 at ±15°; the false accepts ±30° once gave on the house
+    /// at 30 px are rejected by verification across the centres (`centre_agreement_share`), and
+    /// a prior whose tilt is known (a drone's IMU: the `heading` level) narrows the range with
+    /// [`PoseSearchConfig::with_trusted_tilt_deg`] instead of paying for candidates it cannot
+    /// need (docs/measurements.md, nineteenth session).
     pub roll_half_range_deg: f64,
     pub roll_step_deg: f64,
     /// The model is rendered at headings this far apart (the parts in view change with the
@@ -142,7 +143,7 @@ impl Default for PoseSearchConfig {
             yaw_step_deg: 2.0,
             pitch_half_range_deg: 22.5,
             pitch_step_deg: 2.5,
-            roll_half_range_deg: 15.0,
+            roll_half_range_deg: 30.0,
             roll_step_deg: 3.0,
             render_heading_step_deg: 45.0,
             map_level: 2,
@@ -252,6 +253,26 @@ impl PoseSearchConfig {
         Ok(())
     }
 
+    /// The region for a prior whose pitch and roll are known within `tilt_deg` (a drone's IMU
+    /// measures gravity; its compass, not the tilt, is what goes wrong): the pitch and roll ranges
+    /// shrink to three times that, rounded up to whole grid steps and at least one step either
+    /// side (the screening's 6-DoF alignment takes up the position error's apparent rotation).
+    /// `tilt_deg` 0 (not known) or a range that would grow keeps `self`'s ranges.
+    pub fn with_trusted_tilt_deg(self, tilt_deg: f64) -> Self {
+        if !(tilt_deg.is_finite() && tilt_deg > 0.0) {
+            return self;
+        }
+        let covered = |step_deg: f64, half_range_deg: f64| {
+            ((TRUSTED_TILT_COVERAGE * tilt_deg / step_deg).ceil().max(1.0) * step_deg)
+                .min(half_range_deg)
+        };
+        Self {
+            pitch_half_range_deg: covered(self.pitch_step_deg, self.pitch_half_range_deg),
+            roll_half_range_deg: covered(self.roll_step_deg, self.roll_half_range_deg),
+            ..self
+        }
+    }
+
     /// The region of the full-circle heading fallback: headings over the whole circle at
     /// `heading_sweep_step_deg` (the flipped range is then part of it), the rest as `self`;
     /// `None` when the fallback is off or the region already covers the circle.
@@ -292,6 +313,10 @@ impl PoseSearchConfig {
         (-steps..=steps).map(|s| s as f64 * step_deg).collect()
     }
 }
+
+/// How many times a trusted tilt ([`PoseSearchConfig::with_trusted_tilt_deg`]) its pitch and
+/// roll ranges cover.
+pub const TRUSTED_TILT_COVERAGE: f64 = 3.0;
 
 /// An angle in (−180, 180] degrees.
 pub fn wrap_deg(angle_deg: f64) -> f64 {
@@ -596,6 +621,29 @@ pub fn select_beams(candidates: &[Candidate], count: usize, separation_deg: f64)
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A trusted tilt narrows pitch and roll to whole steps covering three times it (at least a
+    /// step either side), never widens them, and an unknown one (0) keeps the region.
+    #[test]
+    fn a_trusted_tilt_narrows_pitch_and_roll_only() {
+        let default = PoseSearchConfig::default();
+        let imu = default.with_trusted_tilt_deg(1.0);
+        assert_eq!(imu.pitch_half_range_deg, 2.0 * default.pitch_step_deg);
+        assert_eq!(imu.roll_half_range_deg, default.roll_step_deg);
+        assert_eq!(imu.yaw_half_range_deg, default.yaw_half_range_deg);
+        assert_eq!(
+            PoseSearchConfig::axis_offsets_deg(imu.roll_half_range_deg, imu.roll_step_deg),
+            vec![-3.0, 0.0, 3.0]
+        );
+        let tiny = default.with_trusted_tilt_deg(0.1);
+        assert_eq!(tiny.pitch_half_range_deg, default.pitch_step_deg);
+        assert_eq!(tiny.roll_half_range_deg, default.roll_step_deg);
+        assert_eq!(default.with_trusted_tilt_deg(0.0), default);
+        assert_eq!(default.with_trusted_tilt_deg(f64::NAN), default);
+        let loose = default.with_trusted_tilt_deg(40.0);
+        assert_eq!(loose.pitch_half_range_deg, default.pitch_half_range_deg);
+        assert_eq!(loose.roll_half_range_deg, default.roll_half_range_deg);
+    }
 
     #[test]
     fn angles_wrap_and_yaws_cover_both_headings_once() {

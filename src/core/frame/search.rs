@@ -97,52 +97,10 @@ pub fn search_pose(
     let started = Instant::now();
     let started_cpu_ms = process_cpu_ms();
     let map = OrientedEdgeMap::build(query, search);
-    let sampling = EdgeAlignConfig {
-        sample_spacing_px: search.sample_spacing_px,
-        ..config.edge_align
-    };
-
-    // The grid, a rendering per heading group.
-    let mut groups: Vec<(f64, Vec<f64>)> = Vec::new();
-    for yaw_deg in search.candidate_yaws_deg() {
-        let rendered = rendered_heading_deg(yaw_deg, search.render_heading_step_deg);
-        match groups
-            .iter_mut()
-            .find(|(r, _)| wrap_deg(r - rendered).abs() < 1e-9)
-        {
-            Some((_, yaws)) => yaws.push(yaw_deg),
-            None => groups.push((rendered, vec![yaw_deg])),
-        }
-    }
-    let mut candidates: Vec<Candidate> = Vec::new();
-    // Per heading group: its rendered heading and its edge samples (world points, normals).
-    let mut group_samples: Vec<(f64, Vec<EdgeSample>)> = Vec::with_capacity(groups.len());
-    for (rendered_yaw_deg, yaws) in &groups {
-        let mut edge_samples = Vec::new();
-        let rendered = turned_pose(prior, *rendered_yaw_deg, 0.0, 0.0);
-        render_coarse_view(mesh, camera, 0, &rendered, config, rasterizer, view);
-        model_edge_samples(
-            view.asg.view(),
-            &view.render,
-            camera,
-            &rendered,
-            &sampling,
-            &mut edge_samples,
-        );
-        let samples = search_samples(&edge_samples, camera, &rendered);
-        if samples.len() < config.edge_align.min_samples {
-            continue;
-        }
-        candidates.extend(score_rotations(
-            &samples,
-            &map,
-            camera,
-            prior,
-            (*rendered_yaw_deg, yaws),
-            search,
-        ));
-        group_samples.push((*rendered_yaw_deg, edge_samples));
-    }
+    let SearchGrid {
+        candidates,
+        group_samples,
+    } = score_grid(mesh, camera, prior, &map, config, rasterizer, view);
     let grid_beams: Vec<(Candidate, Rigid3, f64)> = if search.screened_candidates == 0 {
         select_beams(&candidates, search.beams, search.beam_separation_deg)
             .into_iter()
@@ -318,6 +276,77 @@ pub fn search_pose(
     })
 }
 
+/// The rotation grid of a search around `prior`: every candidate scored on `map`, and per
+/// rendered heading the edge samples that scored its candidates (the screening aligns on them).
+pub(crate) struct SearchGrid {
+    pub candidates: Vec<Candidate>,
+    pub group_samples: Vec<(f64, Vec<EdgeSample>)>,
+}
+
+/// Scores the grid of `config.pose_search` around `prior` on the query's edge map `map`, a
+/// rendering per heading group.
+pub(crate) fn score_grid(
+    mesh: &Mesh,
+    camera: &Camera,
+    prior: &Rigid3,
+    map: &OrientedEdgeMap,
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+    view: &mut CoarseView,
+) -> SearchGrid {
+    let search = &config.pose_search;
+    let sampling = EdgeAlignConfig {
+        sample_spacing_px: search.sample_spacing_px,
+        ..config.edge_align
+    };
+
+    // The grid, a rendering per heading group.
+    let mut groups: Vec<(f64, Vec<f64>)> = Vec::new();
+    for yaw_deg in search.candidate_yaws_deg() {
+        let rendered = rendered_heading_deg(yaw_deg, search.render_heading_step_deg);
+        match groups
+            .iter_mut()
+            .find(|(r, _)| wrap_deg(r - rendered).abs() < 1e-9)
+        {
+            Some((_, yaws)) => yaws.push(yaw_deg),
+            None => groups.push((rendered, vec![yaw_deg])),
+        }
+    }
+    let mut candidates: Vec<Candidate> = Vec::new();
+    // Per heading group: its rendered heading and its edge samples (world points, normals).
+    let mut group_samples: Vec<(f64, Vec<EdgeSample>)> = Vec::with_capacity(groups.len());
+    for (rendered_yaw_deg, yaws) in &groups {
+        let mut edge_samples = Vec::new();
+        let rendered = turned_pose(prior, *rendered_yaw_deg, 0.0, 0.0);
+        render_coarse_view(mesh, camera, 0, &rendered, config, rasterizer, view);
+        model_edge_samples(
+            view.asg.view(),
+            &view.render,
+            camera,
+            &rendered,
+            &sampling,
+            &mut edge_samples,
+        );
+        let samples = search_samples(&edge_samples, camera, &rendered);
+        if samples.len() < config.edge_align.min_samples {
+            continue;
+        }
+        candidates.extend(score_rotations(
+            &samples,
+            map,
+            camera,
+            prior,
+            (*rendered_yaw_deg, yaws),
+            search,
+        ));
+        group_samples.push((*rendered_yaw_deg, edge_samples));
+    }
+    SearchGrid {
+        candidates,
+        group_samples,
+    }
+}
+
 /// The heading (relative to the prior's, degrees) of the rendering whose edge samples score the
 /// candidates of heading `yaw_deg`: the nearest multiple of the render step.
 fn rendered_heading_deg(yaw_deg: f64, render_heading_step_deg: f64) -> f64 {
@@ -329,7 +358,7 @@ fn rendered_heading_deg(yaw_deg: f64, render_heading_step_deg: f64) -> f64 {
 /// samples of the rendering nearest its heading, without a rendering of its own; returned with
 /// its aligned pose and edge support, best support first. The samples' visibility is their
 /// rendering's, a few degrees of heading away: good enough to rank, not to output.
-fn screen_candidates(
+pub(crate) fn screen_candidates(
     candidates: &[Candidate],
     group_samples: &[(f64, Vec<EdgeSample>)],
     camera: &Camera,
