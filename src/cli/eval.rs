@@ -24,8 +24,7 @@ use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::diagnose::{
     diagnose_frame, diagnose_search, DiagnosisSummary, FrameDiagnosis, SearchDiagnosis,
-    REACH_RANK_LIMIT,
-    ORACLE_MAX_ERROR_PX,
+    ORACLE_MAX_ERROR_PX, REACH_RANK_LIMIT,
 };
 use asgreg::eval::{
     calibration_bins, cell_stats, format_accuracy, CalibrationBin, CellStats, EvalFrame, PassEval,

@@ -263,7 +263,10 @@ impl PoseSearchConfig {
             return self;
         }
         let covered = |step_deg: f64, half_range_deg: f64| {
-            ((TRUSTED_TILT_COVERAGE * tilt_deg / step_deg).ceil().max(1.0) * step_deg)
+            ((TRUSTED_TILT_COVERAGE * tilt_deg / step_deg)
+                .ceil()
+                .max(1.0)
+                * step_deg)
                 .min(half_range_deg)
         };
         Self {
