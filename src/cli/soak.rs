@@ -78,6 +78,9 @@ const SOAK_WIDTH_PX: u32 = 240;
 const SOAK_HEIGHT_PX: u32 = 132;
 const SOAK_INITIAL_ERROR_PX: u32 = 10;
 
+/// When the chaos loop starts killing if no result has come yet: the stages are up by then.
+const KILLS_START: Duration = Duration::from_secs(5);
+
 /// What the chaos loop and the samplers share with the launcher's callbacks.
 #[derive(Default)]
 struct Shared {
@@ -394,11 +397,17 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
         let seed = args.seed;
         std::thread::spawn(move || {
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-            let mut next = Instant::now() + period;
+            let launched = Instant::now();
+            let mut next = launched + period;
             while !shared.done.load(Ordering::SeqCst) {
                 std::thread::sleep(Duration::from_millis(20));
-                // Kills start with the first result (the stages are up) and stop at the last.
-                if Instant::now() < next || shared.results.load(Ordering::SeqCst) == 0 {
+                // Kills start with the first result (the stages are up), or KILLS_START_S after
+                // the launch if no result came by then, and stop at the last. The frames share the
+                // workers' queues, so on an idle machine they finish together near the end of a
+                // short run: waiting for the first result left a 40-frame run one kill.
+                let started =
+                    shared.results.load(Ordering::SeqCst) > 0 || launched.elapsed() >= KILLS_START;
+                if Instant::now() < next || !started {
                     continue;
                 }
                 next = Instant::now() + period;
