@@ -991,11 +991,8 @@ fn search_diagnosis(
         config,
         &mut rasterizer,
         &mut view,
-    )
-    .map(|(reach, screened_pose)| ReachInGrid {
-        screened_delta_px: delta(&screened_pose),
-        ..reach
-    });
+        &mut delta,
+    );
     SearchDiagnosis {
         true_centre_search_delta_px,
         reach_in_grid,
@@ -1056,8 +1053,7 @@ fn search_diagnosis(
 }
 
 /// The grid candidate of a search around `prior` nearest `rotation_reach`, its place in the
-/// search's selection and where the screening alignment takes it (returned apart, δ to be
-/// measured by the caller).
+/// search's selection and where the screening alignment takes it (δ by `delta`).
 #[allow(clippy::too_many_arguments)]
 fn reach_in_grid(
     mesh: &Mesh,
@@ -1069,13 +1065,14 @@ fn reach_in_grid(
     config: &RegistrationConfig,
     rasterizer: &mut Rasterizer,
     view: &mut CoarseView,
-) -> Option<(ReachInGrid, Rigid3)> {
+    delta: &mut dyn FnMut(&Rigid3) -> Option<f64>,
+) -> Option<ReachInGrid> {
     let grid = score_grid(mesh, camera, prior, map, config, rasterizer, view);
-    let nearest = grid.candidates.iter().min_by(|a, b| {
-        a.cam_from_world
-            .rotation_angle_to_rad(rotation_reach)
-            .total_cmp(&b.cam_from_world.rotation_angle_to_rad(rotation_reach))
-    })?;
+    let (nearest, angle_rad) = grid
+        .candidates
+        .iter()
+        .map(|c| (c, c.cam_from_world.rotation_angle_to_rad(rotation_reach)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
     let separation_deg = config.pose_search.beam_separation_deg;
     let distinct_rank = select_beams(&grid.candidates, REACH_RANK_LIMIT, separation_deg)
         .iter()
@@ -1096,19 +1093,13 @@ fn reach_in_grid(
     )
     .into_iter()
     .next()?;
-    Some((
-        ReachInGrid {
-            angle_deg: nearest
-                .cam_from_world
-                .rotation_angle_to_rad(rotation_reach)
-                .to_degrees(),
-            grid_score: nearest.score,
-            distinct_rank,
-            screened_delta_px: None,
-            screened_support,
-        },
-        screened_pose,
-    ))
+    Some(ReachInGrid {
+        angle_deg: angle_rad.to_degrees(),
+        grid_score: nearest.score,
+        distinct_rank,
+        screened_delta_px: delta(&screened_pose),
+        screened_support,
+    })
 }
 
 /// The errors of one view's correspondences against the truth.

@@ -295,10 +295,6 @@ pub(crate) fn score_grid(
     view: &mut CoarseView,
 ) -> SearchGrid {
     let search = &config.pose_search;
-    let sampling = EdgeAlignConfig {
-        sample_spacing_px: search.sample_spacing_px,
-        ..config.edge_align
-    };
 
     // The grid, a rendering per heading group.
     let mut groups: Vec<(f64, Vec<f64>)> = Vec::new();
@@ -316,17 +312,8 @@ pub(crate) fn score_grid(
     // Per heading group: its rendered heading and its edge samples (world points, normals).
     let mut group_samples: Vec<(f64, Vec<EdgeSample>)> = Vec::with_capacity(groups.len());
     for (rendered_yaw_deg, yaws) in &groups {
-        let mut edge_samples = Vec::new();
         let rendered = turned_pose(prior, *rendered_yaw_deg, 0.0, 0.0);
-        render_coarse_view(mesh, camera, 0, &rendered, config, rasterizer, view);
-        model_edge_samples(
-            view.asg.view(),
-            &view.render,
-            camera,
-            &rendered,
-            &sampling,
-            &mut edge_samples,
-        );
+        let edge_samples = rendered_edge_samples(mesh, camera, &rendered, config, rasterizer, view);
         let samples = search_samples(&edge_samples, camera, &rendered);
         if samples.len() < config.edge_align.min_samples {
             continue;
@@ -424,9 +411,23 @@ pub fn grid_score_at(
     rasterizer: &mut Rasterizer,
     view: &mut CoarseView,
 ) -> f64 {
-    let search = &config.pose_search;
+    let edge_samples = rendered_edge_samples(mesh, camera, pose, config, rasterizer, view);
+    let samples = search_samples(&edge_samples, camera, pose);
+    score_rotation(&samples, map, camera, &nalgebra::Matrix3::identity())
+}
+
+/// The model's edge samples of a rendering at `pose`, at the search's sample spacing: what the
+/// grid scores its candidates with.
+fn rendered_edge_samples(
+    mesh: &Mesh,
+    camera: &Camera,
+    pose: &Rigid3,
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+    view: &mut CoarseView,
+) -> Vec<EdgeSample> {
     let sampling = EdgeAlignConfig {
-        sample_spacing_px: search.sample_spacing_px,
+        sample_spacing_px: config.pose_search.sample_spacing_px,
         ..config.edge_align
     };
     render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
@@ -439,8 +440,7 @@ pub fn grid_score_at(
         &sampling,
         &mut edge_samples,
     );
-    let samples = search_samples(&edge_samples, camera, pose);
-    score_rotation(&samples, map, camera, &nalgebra::Matrix3::identity())
+    edge_samples
 }
 
 /// The final refinement's edge alignment as the search uses it: the pose alone, on every edge
