@@ -197,10 +197,12 @@ pub struct ConfidenceConfig {
     /// Read (seventeenth session; 211 accepts over five scenes and levels 30–104): the 37
     /// accepted with the check failed had a mean δ of 7.43 px and the one false accept; of them
     /// the 22 with a margin below 0.4 had 12.03 px (19 beyond 5 px), the 15 above it 0.68 px.
-    /// Validated (nineteenth session; not the default yet: with it most frames of two pipeline
-    /// tests' small scenes were rejected, and the soak's 240×132 scene fell from 26 to 20 of 40
-    /// accepted — its cost on small, low-resolution scenes is not measured with truth) on runs it
-    /// was not read from — the pose
+    /// Asked only when the frame's refined poses contradict the pose (some disagree, a chain, no
+    /// convergence), not when they all agree and are only too few (twentieth session: on
+    /// 240×132 blocks with 5 coarse poses correct poses 0.4–1.9 px off had only 2–3 refined
+    /// poses, all agreeing, and margins of 0.28–0.45; asked of them too the margin rejected
+    /// most frames of two pipeline tests).
+    /// Validated (nineteenth session) on runs it was not read from — the pose
     /// search's wider roll, the `heading` level of block and house s1, LoD houses s1/s2 at 30
     /// and 104 px, block s1 at 104 px: the 8 accepts against a failed check with a margin below
     /// 0.4 were all 5.3 px or more off, among them both false accepts (26.0 and 428 px), while
@@ -234,7 +236,7 @@ impl Default for ConfidenceConfig {
             max_image_uncertainty_px: 2.0,
             max_delta_uncertainty_px: 0.8,
             min_least_seen_drop: 0.5,
-            min_overrule_margin: 0.0,
+            min_overrule_margin: 0.4,
         }
     }
 }

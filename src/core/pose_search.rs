@@ -60,10 +60,11 @@ pub struct PoseSearchConfig {
     /// (docs/measurements.md, branch `reach4`). ±30° (`--search-roll-deg 30`) lands the first
     /// centre within 5 px of the truth on 20 of block s1's first 24 frames at 104 px against 15
     /// (`eval --diagnose-search`) and, with `min_overrule_margin` 0.4, accepts 21 of 24 with no
-    /// false accept (docs/measurements.md, nineteenth session); the default stays ±15° because
-    /// that pair failed two pipeline tests on small scenes (most frames rejected) at the
-    /// session's end, not yet understood. A prior whose tilt is known (a drone's IMU: the
-    /// `heading` level) narrows the range with [`PoseSearchConfig::with_trusted_tilt_deg`].
+    /// false accept (docs/measurements.md, nineteenth session). The default since the
+    /// twentieth session, with the margin asked only of poses the flow contradicts (its false
+    /// accepts came with a margin of 0 and were such poses). A prior whose tilt is known (a
+    /// drone's IMU: the `heading` level) narrows the range with
+    /// [`PoseSearchConfig::with_trusted_tilt_deg`].
     pub roll_half_range_deg: f64,
     pub roll_step_deg: f64,
     /// The model is rendered at headings this far apart (the parts in view change with the
@@ -143,7 +144,7 @@ impl Default for PoseSearchConfig {
             yaw_step_deg: 2.0,
             pitch_half_range_deg: 22.5,
             pitch_step_deg: 2.5,
-            roll_half_range_deg: 15.0,
+            roll_half_range_deg: 30.0,
             roll_step_deg: 3.0,
             render_heading_step_deg: 45.0,
             map_level: 2,

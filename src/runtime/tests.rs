@@ -12,7 +12,7 @@ use crate::io::colmap::{read_cameras_txt, read_images_txt};
 use crate::io::mesh_file::read_mesh;
 use crate::msg::PoseNumbers;
 use crate::stage::ingest::SourceConfig;
-use crate::synth::{generate_scene, SynthConfig};
+use crate::synth::{generate_scene, SceneKind, SynthConfig};
 use crate::transport::crossbeam::CrossbeamTransport;
 use crate::transport::keys;
 
@@ -719,8 +719,14 @@ fn cut_state_back_to(config: &PipelineConfig, first_lost: u64) {
 fn a_frame_after_a_verify_restart_gets_its_stereo_change_map_from_frames_accepted_before() {
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("scene");
+    // The block, seed 1: its frames register at this size (`eval` with 5 coarse poses: 8 of 9
+    // accepted, 0.3–1.8 px), so the stream has neighbours accepted before the crash. The house
+    // (seed 2) registered 1 of 9 here once `min_overrule_margin` was asked of poses the flow
+    // contradicts: the test had leaned on such poses, accepted on the photo alone
+    // (docs/measurements.md, twentieth session).
     let synth = SynthConfig {
-        seed: 2,
+        scene: SceneKind::Block,
+        seed: 1,
         width_px: 240,
         height_px: 132,
         image_count: 9,
