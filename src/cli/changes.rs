@@ -17,8 +17,8 @@ use asgreg::core::change::stereo::{
     StereoConfig, StereoView,
 };
 use asgreg::core::change::{
-    classes_to_mask, detect_changes, ChangeClass, ChangeConfig, ChangeRegion, ChangeWorkspace,
-    ClassCounts, DepthEvidence,
+    classes_to_mask, detect_changes, BeyondTheModel, ChangeClass, ChangeConfig, ChangeRegion,
+    ChangeWorkspace, ClassCounts, DepthEvidence,
 };
 use asgreg::core::image::Image;
 use asgreg::frame_files::{depth_path_for, FrameFiles, FrameLoader};
@@ -327,6 +327,9 @@ pub struct FrameChangeReport {
     /// The stereo term σ_quad the threshold used, per metre (0: given depth;
     /// `core::change::frame_quadratic_sigma_per_m`).
     pub quadratic_sigma_per_m: f32,
+    /// `removed` regions dropped as below the model's ground (`core::change::beyond_the_model`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub beyond_the_model: Vec<BeyondTheModel>,
     /// How the frame's depth was computed, when by stereo.
     pub stereo: Option<FrameStereoReport>,
 }
@@ -463,6 +466,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             detect_ms: 0.0,
             pose_sigma_px: 0.0,
             quadratic_sigma_per_m: 0.0,
+            beyond_the_model: Vec::new(),
             stereo: None,
         };
         let Some(camera) = inputs.cameras.get(&image.camera_id) else {
@@ -618,6 +622,21 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             changes.counts.removed,
             changes.pose_sigma_px
         );
+        for dropped in &changes.beyond_the_model {
+            tracing::info!(
+                "{}: removed region of {} px at ({:.1}, {:.1}) dropped: its photo depth lies \
+                 {:.1} m (median) under the model's ground at z {:.1} m, {:.1} m beyond it \
+                 along the ray ({:.0} % of its pixels beyond the threshold)",
+                image.name,
+                dropped.pixel_count,
+                dropped.centroid_m[0],
+                dropped.centroid_m[1],
+                dropped.median_below_ground_m,
+                dropped.ground_z_m,
+                dropped.median_beyond_ground_m,
+                100.0 * dropped.share_below
+            );
+        }
         frames.push(FrameChangeReport {
             name: image.name.clone(),
             failure: None,
@@ -626,6 +645,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
             detect_ms,
             pose_sigma_px: changes.pose_sigma_px,
             quadratic_sigma_per_m: changes.quadratic_sigma_per_m,
+            beyond_the_model: changes.beyond_the_model,
             stereo,
         });
     }

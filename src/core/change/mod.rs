@@ -26,6 +26,11 @@
 //! σ_quad becomes at least the stereo map's own spread against the model in inverse depth
 //! ([`frame_quadratic_sigma_per_m`]).
 //!
+//! What the photo cannot see bounds what it may claim: a `removed` region most of whose photo
+//! depth lies below the model's ground (the lowest model surface near it) is a wrong depth, not
+//! a demolition, and is dropped as `unknown` ([`beyond_the_model`]): a demolished building
+//! leaves the ground, and nothing is seen through the ground.
+//!
 //! Pure functions; [`ChangeWorkspace`] keeps the rasteriser, its buffers and the labels, so a
 //! stream of frames allocates nothing per frame beyond the regions it returns.
 
@@ -173,11 +178,31 @@ pub struct ChangeConfig {
     /// docs/measurements.md, branch `change15`: the false objects' frames all have a
     /// neighbour 3–11 px off there). Ground-truth poses and given depth maps are not touched.
     pub stereo_sigma_from_depth: bool,
+    /// A `removed` region most of whose photo depth lies below the model's ground by more than
+    /// the change threshold is a wrong depth, not a demolition ([`beyond_the_model`]): the
+    /// ground is the lowest model surface within this horizontal distance of the region's
+    /// footprint ([`model_ground_z_m`]), metres. A demolished building leaves the ground, and
+    /// the photo cannot see below it; a stereo match on the wrong repeat of a roof's regular
+    /// texture can (block seed 2 under registered poses: the false `removed` regions lay
+    /// 3.6–10.4 m under the ground; docs/measurements.md, branch `change20`). Wide enough to
+    /// reach the open ground beside a building's footprint (a street, a yard), narrow enough
+    /// that a hillside's lower slope a block away is not this region's ground.
+    /// 0: no such rule.
+    pub ground_search_radius_m: f64,
 }
 
 /// The largest [`ChangeConfig::pose_sigma_px`]: a pose that far off is no registration to
 /// detect changes under (the window of [`pose_error_sigma_m`] grows with it).
 pub const MAX_POSE_SIGMA_PX: f32 = 16.0;
+
+/// The default [`ChangeConfig::ground_search_radius_m`], metres: about a street's width plus a
+/// yard's beside a building of the block scenes' size, so the open ground next to a region is
+/// within reach whichever side the camera saw.
+pub const DEFAULT_GROUND_SEARCH_RADIUS_M: f64 = 15.0;
+
+/// The largest [`ChangeConfig::ground_search_radius_m`], metres: beyond a few blocks the lowest
+/// surface says nothing about the ground under one region (terrain slopes, a river bed).
+pub const MAX_GROUND_SEARCH_RADIUS_M: f64 = 200.0;
 
 impl Default for ChangeConfig {
     fn default() -> Self {
@@ -196,6 +221,7 @@ impl Default for ChangeConfig {
             stereo_relative_sigma: 0.0,
             pose_sigma_from_depth: true,
             stereo_sigma_from_depth: true,
+            ground_search_radius_m: DEFAULT_GROUND_SEARCH_RADIUS_M,
         }
     }
 }
@@ -245,6 +271,14 @@ impl ChangeConfig {
             return bad(format!(
                 "min_area_m2 {} must be ≥ 0 and opening_radius_px {} ≤ 10",
                 self.min_area_m2, self.opening_radius_px
+            ));
+        }
+        if !(self.ground_search_radius_m >= 0.0
+            && self.ground_search_radius_m <= MAX_GROUND_SEARCH_RADIUS_M)
+        {
+            return bad(format!(
+                "ground_search_radius_m {} must be 0..={MAX_GROUND_SEARCH_RADIUS_M}",
+                self.ground_search_radius_m
             ));
         }
         Ok(())
@@ -623,6 +657,31 @@ pub struct FrameChanges {
     pub pose_sigma_px: f32,
     /// The stereo term σ_quad the threshold used, per metre ([`frame_quadratic_sigma_per_m`]).
     pub quadratic_sigma_per_m: f32,
+    /// `removed` regions dropped because the photo's depth lies below the model's ground
+    /// ([`beyond_the_model`]); their pixels are `unknown`.
+    #[serde(default)]
+    pub beyond_the_model: Vec<BeyondTheModel>,
+}
+
+/// A `removed` region whose photo depth lies below the model's ground: a wrong depth (a stereo
+/// match on the wrong repeat of a regular texture), not a demolition ([`beyond_the_model`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BeyondTheModel {
+    pub pixel_count: usize,
+    /// Mean of the model's surface points of the region (what it would have said was
+    /// demolished), georeferenced, metres.
+    pub centroid_m: [f64; 3],
+    /// The model's ground there ([`model_ground_z_m`]), georeferenced z, metres.
+    pub ground_z_m: f64,
+    /// Share of the region's pixels whose photo depth lies beyond the ground by more than the
+    /// change threshold.
+    pub share_below: f64,
+    /// Median over the region's pixels of how far the photo's point lies below the ground,
+    /// vertically, metres (negative: above it).
+    pub median_below_ground_m: f64,
+    /// Median over the region's pixels of the photo's depth beyond the depth at which the ray
+    /// crosses the ground, metres along the ray (the unit of the change threshold).
+    pub median_beyond_ground_m: f64,
 }
 
 /// Reusable buffers of change detection.
@@ -853,7 +912,9 @@ const CONTINUITY_M: f32 = 0.3;
 /// `config.min_pixels` pixels and `config.min_area_m2` of surface, measured in the model's
 /// frame through `cam_from_world` (world = the model's georeferenced frame). Pixels of regions
 /// that are too small become `unchanged` in `classes`. `pose_sigma_m` as in [`classify_pixels`]
-/// (the regions' confidence).
+/// (the regions' confidence). With the `model` mesh and `config.ground_search_radius_m` > 0, a
+/// `removed` region whose photo depth lies below the model's ground ([`beyond_the_model`])
+/// is dropped, its pixels become `unknown`, and it is listed in `beyond`.
 #[allow(clippy::too_many_arguments)]
 pub fn extract_regions(
     classes: &mut Image<ChangeClass>,
@@ -862,9 +923,11 @@ pub fn extract_regions(
     pose_sigma_m: Option<ImageView<'_, f32>>,
     intrinsics: &PinholeIntrinsics,
     cam_from_world: &Rigid3,
+    model: Option<&Mesh>,
     config: &ChangeConfig,
     labels: &mut Vec<u32>,
     stack: &mut Vec<usize>,
+    beyond: &mut Vec<BeyondTheModel>,
 ) -> Vec<ChangeRegion> {
     let (w, h) = classes.size();
     labels.clear();
@@ -947,9 +1010,168 @@ pub fn extract_regions(
             }
             continue;
         }
+        let ground_z_m = match (kind, model) {
+            (ChangeKind::Removed, Some(mesh)) if config.ground_search_radius_m > 0.0 => {
+                model_ground_z_m(mesh, &region.footprint_m, config.ground_search_radius_m)
+            }
+            _ => None,
+        };
+        if let Some(dropped) = ground_z_m.and_then(|ground_z_m| {
+            beyond_the_model(
+                &members,
+                w,
+                photo_depth_m.data(),
+                model_depth_m.data(),
+                pose_sigma_m.map(|s| s.data()),
+                intrinsics,
+                &world_from_cam,
+                ground_z_m,
+                config,
+            )
+        }) {
+            for &index in &members {
+                classes.data_mut()[index] = ChangeClass::Unknown;
+            }
+            beyond.push(dropped);
+            continue;
+        }
         regions.push(region);
     }
     regions
+}
+
+/// The model's ground near a footprint: the lowest model surface whose faces come within
+/// `radius_m` horizontally of `footprint_m`'s bounding box (georeferenced x, y, metres), its z
+/// (georeferenced, metres). Faces are taken whole (the lowest corner of a face reaching into the
+/// square), so a large sloping face can only lower the ground: the rule it feeds
+/// ([`beyond_the_model`]) only gets more reluctant. The mesh's face grid skips the cells outside
+/// the square or above the lowest surface found so far. `None` when no face comes that close or
+/// the footprint is empty.
+pub fn model_ground_z_m(mesh: &Mesh, footprint_m: &[[f64; 2]], radius_m: f64) -> Option<f64> {
+    if footprint_m.is_empty() || !radius_m.is_finite() {
+        return None;
+    }
+    let origin = mesh.origin_m();
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for p in footprint_m {
+        for axis in 0..2 {
+            lo[axis] = lo[axis].min(p[axis]);
+            hi[axis] = hi[axis].max(p[axis]);
+        }
+    }
+    // The square in local coordinates (f32, as the mesh stores them).
+    let lo = [
+        (lo[0] - radius_m - origin.x) as f32,
+        (lo[1] - radius_m - origin.y) as f32,
+    ];
+    let hi = [
+        (hi[0] + radius_m - origin.x) as f32,
+        (hi[1] + radius_m - origin.y) as f32,
+    ];
+    let overlaps = |min: [f32; 2], max: [f32; 2]| {
+        min[0] <= hi[0] && max[0] >= lo[0] && min[1] <= hi[1] && max[1] >= lo[1]
+    };
+    let positions = mesh.positions_local_m();
+    let grid = mesh.grid();
+    let mut lowest = f32::INFINITY;
+    for cell in grid.cells() {
+        let (cmin, cmax) = (cell.min_local_m, cell.max_local_m);
+        if cmin.z >= lowest || !overlaps([cmin.x, cmin.y], [cmax.x, cmax.y]) {
+            continue;
+        }
+        let vertices = grid.cell_vertices(cell);
+        for corners in grid.cell_corners(cell) {
+            let mut min = [f32::INFINITY; 3];
+            let mut max = [f32::NEG_INFINITY; 2];
+            for &corner in corners {
+                let Some(p) = vertices
+                    .get(usize::from(corner))
+                    .and_then(|&v| positions.get(v as usize))
+                else {
+                    continue;
+                };
+                min = [min[0].min(p.x), min[1].min(p.y), min[2].min(p.z)];
+                max = [max[0].max(p.x), max[1].max(p.y)];
+            }
+            if min[2] < lowest && overlaps([min[0], min[1]], max) {
+                lowest = min[2];
+            }
+        }
+    }
+    lowest.is_finite().then(|| origin.z + f64::from(lowest))
+}
+
+/// Whether a `removed` region is beyond the model: most of its pixels (`members`, indices into
+/// the frame's `width`-wide depth images) have a photo depth more than the pixel's change
+/// threshold beyond the depth at which their ray crosses `ground_z_m` (the model's ground,
+/// [`model_ground_z_m`]). A demolished building leaves the ground standing, so the photo of a
+/// true demolition lands on the ground (or on what stood behind); the photo cannot see *below*
+/// the ground, so a depth there is the depth's own error (a stereo match on the wrong repeat of
+/// a roof's grid texture), and the region says nothing about the model. The margin is the
+/// change threshold in the unit it is defined in, depth along the ray: the same test that made
+/// the pixel `removed` (its depth beyond the model's surface), with the ground in place of that
+/// surface. A ray that does not descend never crosses the ground. `Some` with the figures when
+/// the region is beyond the model.
+#[allow(clippy::too_many_arguments)]
+pub fn beyond_the_model(
+    members: &[usize],
+    width: usize,
+    photo: &[f32],
+    model: &[f32],
+    pose_sigma_m: Option<&[f32]>,
+    intrinsics: &PinholeIntrinsics,
+    world_from_cam: &Rigid3,
+    ground_z_m: f64,
+    config: &ChangeConfig,
+) -> Option<BeyondTheModel> {
+    if members.is_empty() || width == 0 {
+        return None;
+    }
+    let centre_z_m = world_from_cam.transform_point(&Vector3::zeros()).z;
+    let point = |index: usize, depth: f32| {
+        let n = intrinsics.pixel_to_normalized(pixel_center(index % width, index / width));
+        let d = f64::from(depth);
+        world_from_cam.transform_point(&Vector3::new(n.x * d, n.y * d, d))
+    };
+    let mut below = 0usize;
+    let mut heights_below = Vec::with_capacity(members.len());
+    let mut depths_beyond = Vec::with_capacity(members.len());
+    let mut centroid = Vector3::zeros();
+    for &index in members {
+        let (Some(&dp), Some(&dm)) = (photo.get(index), model.get(index)) else {
+            continue;
+        };
+        centroid += point(index, dm);
+        if !(dp.is_finite() && dp > 0.0) {
+            continue;
+        }
+        let photo_z_m = point(index, dp).z;
+        heights_below.push(ground_z_m - photo_z_m);
+        // How far the ray descends per metre of depth.
+        let drop_per_m = centre_z_m - point(index, 1.0).z;
+        if drop_per_m <= 0.0 {
+            continue;
+        }
+        let beyond_ground_m = (ground_z_m - photo_z_m) / drop_per_m;
+        depths_beyond.push(beyond_ground_m);
+        let pose_sigma = pose_sigma_m.and_then(|s| s.get(index)).copied();
+        let threshold = config.threshold_with_pose_m(dp.min(dm), pose_sigma.unwrap_or(0.0));
+        if beyond_ground_m > f64::from(threshold) {
+            below += 1;
+        }
+    }
+    if 2 * below <= members.len() {
+        return None;
+    }
+    let centroid = centroid / members.len() as f64;
+    Some(BeyondTheModel {
+        pixel_count: members.len(),
+        centroid_m: [centroid.x, centroid.y, centroid.z],
+        ground_z_m,
+        share_below: below as f64 / members.len() as f64,
+        median_below_ground_m: quantile(&mut heights_below, 0.5),
+        median_beyond_ground_m: quantile(&mut depths_beyond, 0.5),
+    })
 }
 
 /// Quantile (0..1) of a slice, which it reorders.
@@ -1107,6 +1329,7 @@ pub fn detect_changes(
         classes,
         &mut workspace.scratch,
     )?;
+    let mut beyond = Vec::new();
     let regions = extract_regions(
         classes,
         photo_depth_m,
@@ -1114,15 +1337,18 @@ pub fn detect_changes(
         pose_sigma,
         intrinsics,
         cam_from_world,
+        Some(mesh),
         config,
         &mut workspace.labels,
         &mut workspace.stack,
+        &mut beyond,
     );
     Ok(FrameChanges {
         counts: class_counts(classes.view()),
         regions,
         pose_sigma_px,
         quadratic_sigma_per_m,
+        beyond_the_model: beyond,
     })
 }
 
@@ -1716,5 +1942,127 @@ pub(crate) mod tests {
             frame_quadratic_sigma_per_m(&registered_stereo, model.view(), empty.view()),
             1e-4
         );
+    }
+
+    #[test]
+    fn a_removed_region_seen_below_the_ground_is_unknown_and_a_demolition_stays_removed() {
+        // The model: the ground (z = 0) and two 4 × 3 m roofs at 5 m, A at x = −5 (left half
+        // of the nadir image), B at x = +5 (right half). The world has neither: B was
+        // demolished, so the photo sees the ground through it; at A the photo's depth is wrong
+        // by 5 m beyond the ground (a stereo match on the wrong repeat of a roof's texture),
+        // 5 m under the ground, which no photo can see.
+        let (intrinsics, pose) = nadir();
+        let model = mesh_of(&[
+            ground([0.0, 0.0]),
+            roof(-5.0, 0.0, 5.0),
+            roof(5.0, 0.0, 5.0),
+        ]);
+        let world = mesh_of(&[ground([0.0, 0.0])]);
+        let model_depth = depth_of(&model, &intrinsics, &pose);
+        let mut photo_depth = depth_of(&world, &intrinsics, &pose);
+        let width = photo_depth.width_px();
+        for (index, (d, &m)) in photo_depth
+            .data_mut()
+            .iter_mut()
+            .zip(model_depth.data())
+            .enumerate()
+        {
+            // A's roof pixels: model depth 15 m, left half.
+            if index % width < width / 2 && m > 0.0 && m < 16.0 {
+                *d += 5.0;
+            }
+        }
+        let detect = |config: &ChangeConfig| {
+            let mut workspace = ChangeWorkspace::new();
+            let mut classes = Image::default();
+            let changes = detect_changes(
+                &model,
+                &intrinsics,
+                &pose,
+                photo_depth.view(),
+                &DepthEvidence::default(),
+                config,
+                &mut workspace,
+                &mut classes,
+            )
+            .expect("sizes match");
+            let count = |class, left: bool| {
+                classes
+                    .data()
+                    .iter()
+                    .enumerate()
+                    .filter(|(index, c)| **c == class && (index % width < width / 2) == left)
+                    .count()
+            };
+            let counts = [
+                count(ChangeClass::Removed, true),
+                count(ChangeClass::Unknown, true),
+                count(ChangeClass::Removed, false),
+            ];
+            (changes, counts)
+        };
+        let (changes, [left_removed, left_unknown, right_removed]) =
+            detect(&ChangeConfig::default());
+        // B, the demolition, stays one removed region: its photo lands on the ground.
+        assert_eq!(changes.regions.len(), 1, "{:?}", changes.regions);
+        assert_eq!(changes.regions[0].kind, ChangeKind::Removed);
+        assert!((changes.regions[0].centroid_m[0] - 5.0).abs() < 0.2);
+        assert!(right_removed > 1000, "{right_removed}");
+        // A is dropped, its pixels unknown, with where and how deep it was.
+        assert_eq!(left_removed, 0);
+        assert!(left_unknown > 1000, "{left_unknown}");
+        assert_eq!(changes.beyond_the_model.len(), 1);
+        let dropped = &changes.beyond_the_model[0];
+        assert_eq!(dropped.pixel_count, left_unknown);
+        assert!((dropped.centroid_m[0] + 5.0).abs() < 0.2, "{dropped:?}");
+        assert!(dropped.ground_z_m.abs() < 1e-3, "{dropped:?}");
+        assert!(
+            (4.5..5.1).contains(&dropped.median_below_ground_m),
+            "{dropped:?}"
+        );
+        assert!(
+            (4.5..5.1).contains(&dropped.median_beyond_ground_m),
+            "{dropped:?}"
+        );
+        assert!(dropped.share_below > 0.9, "{dropped:?}");
+        // Without the rule both are removed regions.
+        let (off, [left_removed, _, _]) = detect(&ChangeConfig {
+            ground_search_radius_m: 0.0,
+            ..ChangeConfig::default()
+        });
+        assert_eq!(off.regions.len(), 2, "{:?}", off.regions);
+        assert!(off.beyond_the_model.is_empty());
+        assert!(left_removed > 1000, "{left_removed}");
+    }
+
+    #[test]
+    fn the_models_ground_is_its_lowest_surface_within_the_radius() {
+        // The ground at z = 0 (one 100 m quad: its corners are 50 m away, its face is not), a
+        // roof at 5 m and a pit floor at −10 m 30–35 m east of the footprint.
+        let pit = [
+            [30.0, -2.0, -10.0],
+            [35.0, -2.0, -10.0],
+            [35.0, 2.0, -10.0],
+            [30.0, 2.0, -10.0],
+        ];
+        let mesh = mesh_of(&[ground([0.0, 0.0]), roof(0.0, 0.0, 5.0), pit]);
+        let footprint = [[-2.0, -1.5], [2.0, -1.5], [2.0, 1.5], [-2.0, 1.5]];
+        let ground_z = |radius_m| model_ground_z_m(&mesh, &footprint, radius_m);
+        assert_eq!(ground_z(15.0), Some(0.0));
+        assert_eq!(ground_z(0.0), Some(0.0));
+        assert_eq!(ground_z(30.0), Some(-10.0));
+        assert_eq!(model_ground_z_m(&mesh, &[], 15.0), None);
+        // A mesh of the roof alone has the roof as its ground, and none far from it.
+        let roof_only = mesh_of(&[roof(0.0, 0.0, 5.0)]);
+        assert_eq!(model_ground_z_m(&roof_only, &footprint, 15.0), Some(5.0));
+        let far = [[100.0, 100.0], [101.0, 100.0], [101.0, 101.0]];
+        assert_eq!(model_ground_z_m(&roof_only, &far, 15.0), None);
+        for bad in [-1.0, f64::NAN, MAX_GROUND_SEARCH_RADIUS_M + 1.0] {
+            let config = ChangeConfig {
+                ground_search_radius_m: bad,
+                ..ChangeConfig::default()
+            };
+            assert!(config.validate().is_err(), "{bad}");
+        }
     }
 }
