@@ -443,6 +443,17 @@ mod tests {
 
     /// Fifteen outcomes that all refined to `pose`, from coarse poses spread around it (so the
     /// plausibility check sees them agree and converge).
+    /// `config` asking `margin` of every overrule.
+    fn with_overrule_margin(config: &RegistrationConfig, margin: f64) -> RegistrationConfig {
+        RegistrationConfig {
+            confidence: ConfidenceConfig {
+                min_overrule_margin: margin,
+                ..config.confidence
+            },
+            ..config.clone()
+        }
+    }
+
     fn agreeing_outcomes(camera: &Camera, pose: &Rigid3) -> Vec<CoarseOutcome> {
         (0..15)
             .map(|i| {
@@ -590,13 +601,7 @@ mod tests {
         );
         // ... unless its edge support's margin over chance is below `min_overrule_margin`.
         let margin = decision.evidence.edge_support_above_chance();
-        let strict = RegistrationConfig {
-            confidence: ConfidenceConfig {
-                min_overrule_margin: (margin + 0.01).min(1.0),
-                ..config.confidence
-            },
-            ..config.clone()
-        };
+        let strict = with_overrule_margin(&config, (margin + 0.01).min(1.0));
         let held = decide_frame(
             &mesh,
             &camera,
@@ -658,13 +663,7 @@ mod tests {
                 workspace,
             )
         };
-        let lenient = RegistrationConfig {
-            confidence: ConfidenceConfig {
-                min_overrule_margin: 0.0,
-                ..config.confidence
-            },
-            ..config.clone()
-        };
+        let lenient = with_overrule_margin(&config, 0.0);
         let decision = decide(&outcomes, &lenient, &mut workspace);
         assert!(!decision.evidence.check_passed, "{:?}", decision.evidence);
         assert_eq!(
@@ -682,13 +681,7 @@ mod tests {
         );
         let margin = decision.evidence.edge_support_above_chance();
         assert!(margin > 0.1 && margin < 0.99, "{margin}");
-        let strict = RegistrationConfig {
-            confidence: ConfidenceConfig {
-                min_overrule_margin: (margin + 0.01).min(1.0),
-                ..config.confidence
-            },
-            ..config.clone()
-        };
+        let strict = with_overrule_margin(&config, (margin + 0.01).min(1.0));
         let decision = decide(&outcomes, &strict, &mut workspace);
         assert!(
             decision.verdict.accepted(),
