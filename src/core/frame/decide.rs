@@ -439,10 +439,50 @@ mod tests {
 
     use super::*;
     use crate::core::frame::tests::{house_and_poses, ideal_query};
+    use crate::core::image::Image;
     use crate::core::rigid::Rigid3;
 
     /// Fifteen outcomes that all refined to `pose`, from coarse poses spread around it (so the
     /// plausibility check sees them agree and converge).
+    /// [`decide_frame`] with known intrinsics on `query`.
+    fn decide_on(
+        mesh: &Mesh,
+        camera: &Camera,
+        query: &Image<f32>,
+        outcomes: &[CoarseOutcome],
+        config: &RegistrationConfig,
+        workspace: &mut RefineWorkspace,
+    ) -> Decision {
+        decide_frame(
+            mesh,
+            camera,
+            outcomes,
+            Some(query.view()),
+            IntrinsicsMode::Known,
+            config,
+            workspace,
+        )
+    }
+
+    /// `decision` failed the paper's check with `group` (agreeing, refined poses) and was
+    /// accepted on the photo.
+    fn assert_accepted_against_the_check(decision: &Decision, group: (usize, usize)) {
+        assert!(!decision.evidence.check_passed, "{:?}", decision.evidence);
+        assert_eq!(
+            (
+                decision.evidence.component_size,
+                decision.evidence.hypotheses
+            ),
+            group
+        );
+        assert!(
+            decision.verdict.accepted(),
+            "{:?} {:?}",
+            decision.verdict.rejection(),
+            decision.evidence
+        );
+    }
+
     /// `config` asking `margin` of every overrule.
     fn with_overrule_margin(config: &RegistrationConfig, margin: f64) -> RegistrationConfig {
         RegistrationConfig {
@@ -571,51 +611,24 @@ mod tests {
                 })
                 .collect()
         };
-        let decide = |outcomes: &[CoarseOutcome], workspace: &mut RefineWorkspace| {
-            decide_frame(
-                &mesh,
-                &camera,
-                outcomes,
-                Some(query.view()),
-                IntrinsicsMode::Known,
-                &config,
-                workspace,
-            )
+        let decide = |outcomes: &[CoarseOutcome],
+                      config: &RegistrationConfig,
+                      workspace: &mut RefineWorkspace| {
+            decide_on(&mesh, &camera, &query, outcomes, config, workspace)
         };
         let mut majority = outcomes.clone();
         majority.extend(strays(2));
-        let decision = decide(&majority, &mut workspace);
-        assert!(!decision.evidence.check_passed, "{:?}", decision.evidence);
-        assert_eq!(
-            (
-                decision.evidence.component_size,
-                decision.evidence.hypotheses
-            ),
-            (4, 6)
-        );
-        assert!(
-            decision.verdict.accepted(),
-            "{:?} {:?}",
-            decision.verdict.rejection(),
-            decision.evidence
-        );
+        let decision = decide(&majority, &config, &mut workspace);
+        assert_accepted_against_the_check(&decision, (4, 6));
         // ... unless its edge support's margin over chance is below `min_overrule_margin`.
         let margin = decision.evidence.edge_support_above_chance();
         let strict = with_overrule_margin(&config, (margin + 0.01).min(1.0));
-        let held = decide_frame(
-            &mesh,
-            &camera,
-            &majority,
-            Some(query.view()),
-            IntrinsicsMode::Known,
-            &strict,
-            &mut workspace,
-        );
+        let held = decide(&majority, &strict, &mut workspace);
         assert!(margin > 0.3 && margin < 0.99, "{margin}");
         assert!(!held.verdict.accepted(), "{:?}", held.evidence);
 
         outcomes.extend(strays(5));
-        let decision = decide(&outcomes, &mut workspace);
+        let decision = decide(&outcomes, &config, &mut workspace);
         assert_eq!(
             (
                 decision.evidence.component_size,
@@ -653,32 +666,11 @@ mod tests {
         let decide = |outcomes: &[CoarseOutcome],
                       config: &RegistrationConfig,
                       workspace: &mut RefineWorkspace| {
-            decide_frame(
-                &mesh,
-                &camera,
-                outcomes,
-                Some(query.view()),
-                IntrinsicsMode::Known,
-                config,
-                workspace,
-            )
+            decide_on(&mesh, &camera, &query, outcomes, config, workspace)
         };
         let lenient = with_overrule_margin(&config, 0.0);
         let decision = decide(&outcomes, &lenient, &mut workspace);
-        assert!(!decision.evidence.check_passed, "{:?}", decision.evidence);
-        assert_eq!(
-            (
-                decision.evidence.component_size,
-                decision.evidence.hypotheses
-            ),
-            (2, 2)
-        );
-        assert!(
-            decision.verdict.accepted(),
-            "{:?} {:?}",
-            decision.verdict.rejection(),
-            decision.evidence
-        );
+        assert_accepted_against_the_check(&decision, (2, 2));
         let margin = decision.evidence.edge_support_above_chance();
         assert!(margin > 0.1 && margin < 0.99, "{margin}");
         let strict = with_overrule_margin(&config, (margin + 0.01).min(1.0));
