@@ -38,7 +38,7 @@ pub mod fusion;
 pub mod polygon;
 pub mod stereo;
 
-use nalgebra::Vector3;
+use nalgebra::{Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::camera::{pixel_center, PinholeIntrinsics};
@@ -912,8 +912,7 @@ const CONTINUITY_M: f32 = 0.3;
 /// `config.min_pixels` pixels and `config.min_area_m2` of surface, measured in the model's
 /// frame through `cam_from_world` (world = the model's georeferenced frame). Pixels of regions
 /// that are too small become `unchanged` in `classes`. `pose_sigma_m` as in [`classify_pixels`]
-/// (the regions' confidence). With the `model` mesh and `config.ground_search_radius_m` > 0, a
-/// `removed` region whose photo depth lies below the model's ground ([`beyond_the_model`])
+/// (the regions' confidence). With `config.ground_search_radius_m` > 0, a `removed` region whose photo depth lies below the model's ground ([`beyond_the_model`])
 /// is dropped, its pixels become `unknown`, and it is listed in `beyond`.
 #[allow(clippy::too_many_arguments)]
 pub fn extract_regions(
@@ -923,7 +922,7 @@ pub fn extract_regions(
     pose_sigma_m: Option<ImageView<'_, f32>>,
     intrinsics: &PinholeIntrinsics,
     cam_from_world: &Rigid3,
-    model: Option<&Mesh>,
+    model: &Mesh,
     config: &ChangeConfig,
     labels: &mut Vec<u32>,
     stack: &mut Vec<usize>,
@@ -933,6 +932,14 @@ pub fn extract_regions(
     labels.clear();
     labels.resize(w * h, u32::MAX);
     let world_from_cam = cam_from_world.inverse();
+    let pixels = FramePixels {
+        width: w,
+        photo_m: photo_depth_m.data(),
+        model_m: model_depth_m.data(),
+        pose_sigma_m: pose_sigma_m.map(|s| s.data()),
+        intrinsics,
+        world_from_cam: &world_from_cam,
+    };
     let pixel_area = 1.0 / (intrinsics.fx_px * intrinsics.fy_px).abs().max(1e-12);
     let mut regions = Vec::new();
     let mut members: Vec<usize> = Vec::new();
@@ -980,18 +987,7 @@ pub fn extract_regions(
             }
         }
         next_label += 1;
-        let region = measure_region(
-            kind,
-            &members,
-            w,
-            photo_depth_m.data(),
-            model_depth_m.data(),
-            pose_sigma_m.map(|s| s.data()),
-            intrinsics,
-            &world_from_cam,
-            pixel_area,
-            config,
-        );
+        let region = measure_region(kind, &members, &pixels, pixel_area, config);
         let extents = [
             region.vertical_extent_m,
             region.footprint_width_m,
@@ -1010,25 +1006,12 @@ pub fn extract_regions(
             }
             continue;
         }
-        let ground_z_m = match (kind, model) {
-            (ChangeKind::Removed, Some(mesh)) if config.ground_search_radius_m > 0.0 => {
-                model_ground_z_m(mesh, &region.footprint_m, config.ground_search_radius_m)
-            }
-            _ => None,
-        };
-        if let Some(dropped) = ground_z_m.and_then(|ground_z_m| {
-            beyond_the_model(
-                &members,
-                w,
-                photo_depth_m.data(),
-                model_depth_m.data(),
-                pose_sigma_m.map(|s| s.data()),
-                intrinsics,
-                &world_from_cam,
-                ground_z_m,
-                config,
-            )
-        }) {
+        let ground_z_m = (kind == ChangeKind::Removed && config.ground_search_radius_m > 0.0)
+            .then(|| model_ground_z_m(model, &region.footprint_m, config.ground_search_radius_m))
+            .flatten();
+        if let Some(dropped) = ground_z_m
+            .and_then(|ground_z_m| beyond_the_model(&members, &pixels, ground_z_m, config))
+        {
             for &index in &members {
                 classes.data_mut()[index] = ChangeClass::Unknown;
             }
@@ -1102,7 +1085,7 @@ pub fn model_ground_z_m(mesh: &Mesh, footprint_m: &[[f64; 2]], radius_m: f64) ->
 }
 
 /// Whether a `removed` region is beyond the model: most of its pixels (`members`, indices into
-/// the frame's `width`-wide depth images) have a photo depth more than the pixel's change
+/// the frame's depth maps in `pixels`) have a photo depth more than the pixel's change
 /// threshold beyond the depth at which their ray crosses `ground_z_m` (the model's ground,
 /// [`model_ground_z_m`]). A demolished building leaves the ground standing, so the photo of a
 /// true demolition lands on the ground (or on what stood behind); the photo cannot see *below*
@@ -1112,51 +1095,38 @@ pub fn model_ground_z_m(mesh: &Mesh, footprint_m: &[[f64; 2]], radius_m: f64) ->
 /// the pixel `removed` (its depth beyond the model's surface), with the ground in place of that
 /// surface. A ray that does not descend never crosses the ground. `Some` with the figures when
 /// the region is beyond the model.
-#[allow(clippy::too_many_arguments)]
-pub fn beyond_the_model(
+fn beyond_the_model(
     members: &[usize],
-    width: usize,
-    photo: &[f32],
-    model: &[f32],
-    pose_sigma_m: Option<&[f32]>,
-    intrinsics: &PinholeIntrinsics,
-    world_from_cam: &Rigid3,
+    pixels: &FramePixels<'_>,
     ground_z_m: f64,
     config: &ChangeConfig,
 ) -> Option<BeyondTheModel> {
-    if members.is_empty() || width == 0 {
+    if members.is_empty() || pixels.width == 0 {
         return None;
     }
-    let centre_z_m = world_from_cam.transform_point(&Vector3::zeros()).z;
-    let point = |index: usize, depth: f32| {
-        let n = intrinsics.pixel_to_normalized(pixel_center(index % width, index / width));
-        let d = f64::from(depth);
-        world_from_cam.transform_point(&Vector3::new(n.x * d, n.y * d, d))
-    };
     let mut below = 0usize;
     let mut heights_below = Vec::with_capacity(members.len());
     let mut depths_beyond = Vec::with_capacity(members.len());
     let mut centroid = Vector3::zeros();
     for &index in members {
-        let (Some(&dp), Some(&dm)) = (photo.get(index), model.get(index)) else {
+        let (Some(&dp), Some(&dm)) = (pixels.photo_m.get(index), pixels.model_m.get(index)) else {
             continue;
         };
-        centroid += point(index, dm);
+        let n = pixels.normalized(index);
+        centroid += pixels.point_at(n, dm);
         if !(dp.is_finite() && dp > 0.0) {
             continue;
         }
-        let photo_z_m = point(index, dp).z;
+        let photo_z_m = pixels.point_at(n, dp).z;
         heights_below.push(ground_z_m - photo_z_m);
         // How far the ray descends per metre of depth.
-        let drop_per_m = centre_z_m - point(index, 1.0).z;
+        let drop_per_m = -(pixels.world_from_cam.rotation * Vector3::new(n.x, n.y, 1.0)).z;
         if drop_per_m <= 0.0 {
             continue;
         }
         let beyond_ground_m = (ground_z_m - photo_z_m) / drop_per_m;
         depths_beyond.push(beyond_ground_m);
-        let pose_sigma = pose_sigma_m.and_then(|s| s.get(index)).copied();
-        let threshold = config.threshold_with_pose_m(dp.min(dm), pose_sigma.unwrap_or(0.0));
-        if beyond_ground_m > f64::from(threshold) {
+        if beyond_ground_m > f64::from(pixels.threshold_m(index, config)) {
             below += 1;
         }
     }
@@ -1202,16 +1172,44 @@ fn trim_outliers(points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
         .collect()
 }
 
-#[allow(clippy::too_many_arguments)]
+/// A frame's per-pixel inputs as the region measurements read them: the `width`-wide photo and
+/// model depth maps (camera z, metres), the pose term, and how a pixel lifts to the model's
+/// (georeferenced) world frame.
+struct FramePixels<'a> {
+    width: usize,
+    photo_m: &'a [f32],
+    model_m: &'a [f32],
+    pose_sigma_m: Option<&'a [f32]>,
+    intrinsics: &'a PinholeIntrinsics,
+    world_from_cam: &'a Rigid3,
+}
+
+impl FramePixels<'_> {
+    /// Pixel `index`'s normalized image coordinates.
+    fn normalized(&self, index: usize) -> Vector2<f64> {
+        self.intrinsics
+            .pixel_to_normalized(pixel_center(index % self.width, index / self.width))
+    }
+
+    /// The world point at `depth_m` (camera z) on the ray of normalized coordinates `n`.
+    fn point_at(&self, n: Vector2<f64>, depth_m: f32) -> Vector3<f64> {
+        let d = f64::from(depth_m);
+        self.world_from_cam
+            .transform_point(&Vector3::new(n.x * d, n.y * d, d))
+    }
+
+    /// Pixel `index`'s change threshold (metres, the shallower of its two depths, its pose term).
+    fn threshold_m(&self, index: usize, config: &ChangeConfig) -> f32 {
+        let (dp, dm) = (self.photo_m[index], self.model_m[index]);
+        let pose_sigma = self.pose_sigma_m.and_then(|s| s.get(index)).copied();
+        config.threshold_with_pose_m(dp.min(dm), pose_sigma.unwrap_or(0.0))
+    }
+}
+
 fn measure_region(
     kind: ChangeKind,
     members: &[usize],
-    width: usize,
-    photo: &[f32],
-    model: &[f32],
-    pose_sigma_m: Option<&[f32]>,
-    intrinsics: &PinholeIntrinsics,
-    world_from_cam: &Rigid3,
+    pixels: &FramePixels<'_>,
     pixel_area: f64,
     config: &ChangeConfig,
 ) -> ChangeRegion {
@@ -1223,19 +1221,16 @@ fn measure_region(
     let mut differences = Vec::with_capacity(members.len());
     let mut confidence = 0.0;
     let mut bbox = [usize::MAX, usize::MAX, 0, 0];
-    let point = |index: usize, depth: f32| {
-        let n = intrinsics.pixel_to_normalized(pixel_center(index % width, index / width));
-        let d = f64::from(depth);
-        world_from_cam.transform_point(&Vector3::new(n.x * d, n.y * d, d))
-    };
+    let width = pixels.width;
     for &index in members {
-        let (dp, dm) = (photo[index], model[index]);
+        let (dp, dm) = (pixels.photo_m[index], pixels.model_m[index]);
         let (changed, other) = match kind {
             ChangeKind::Added => (dp, dm),
             ChangeKind::Removed => (dm, dp),
         };
-        let p = point(index, changed);
-        let q = point(index, other);
+        let n = pixels.normalized(index);
+        let p = pixels.point_at(n, changed);
+        let q = pixels.point_at(n, other);
         surface_area += f64::from(changed) * f64::from(changed) * pixel_area;
         centroid += p;
         changed_z.push(p.z);
@@ -1244,9 +1239,7 @@ fn measure_region(
         xy.push([p.x, p.y]);
         let difference = f64::from((dp - dm).abs());
         differences.push(difference);
-        let pose_sigma = pose_sigma_m.and_then(|s| s.get(index)).copied();
-        let threshold =
-            f64::from(config.threshold_with_pose_m(dp.min(dm), pose_sigma.unwrap_or(0.0)));
+        let threshold = f64::from(pixels.threshold_m(index, config));
         confidence += (difference / threshold - 1.0).clamp(0.0, 1.0);
         let (col, row) = (index % width, index / width);
         bbox = [
@@ -1337,7 +1330,7 @@ pub fn detect_changes(
         pose_sigma,
         intrinsics,
         cam_from_world,
-        Some(mesh),
+        mesh,
         config,
         &mut workspace.labels,
         &mut workspace.stack,
@@ -1455,25 +1448,43 @@ pub(crate) mod tests {
         buffers.depth_m().clone()
     }
 
+    /// [`detect_changes`] on a given depth map (no stereo evidence) with a fresh workspace: the
+    /// frame's changes and its per-pixel classes.
+    fn detect_on(
+        model: &Mesh,
+        intrinsics: &PinholeIntrinsics,
+        pose: &Rigid3,
+        photo_depth: &Image<f32>,
+        config: &ChangeConfig,
+    ) -> (FrameChanges, Image<ChangeClass>) {
+        let mut classes = Image::default();
+        let changes = detect_changes(
+            model,
+            intrinsics,
+            pose,
+            photo_depth.view(),
+            &DepthEvidence::default(),
+            config,
+            &mut ChangeWorkspace::new(),
+            &mut classes,
+        )
+        .expect("sizes match");
+        (changes, classes)
+    }
+
     #[test]
     fn a_box_in_the_photo_only_is_one_added_region_with_its_area_and_height() {
         let (intrinsics, pose) = nadir();
         let model = mesh_of(&[ground([0.0, 0.0])]);
         let world = mesh_of(&[ground([0.0, 0.0]), roof(3.0, 2.0, 4.0)]);
         let photo_depth = depth_of(&world, &intrinsics, &pose);
-        let mut workspace = ChangeWorkspace::new();
-        let mut classes = Image::default();
-        let changes = detect_changes(
+        let (changes, _) = detect_on(
             &model,
             &intrinsics,
             &pose,
-            photo_depth.view(),
-            &DepthEvidence::default(),
+            &photo_depth,
             &ChangeConfig::default(),
-            &mut workspace,
-            &mut classes,
-        )
-        .expect("sizes match");
+        );
         assert_eq!(changes.regions.len(), 1, "{:?}", changes.regions);
         let region = &changes.regions[0];
         assert_eq!(region.kind, ChangeKind::Added);
@@ -1507,19 +1518,13 @@ pub(crate) mod tests {
         let world = mesh_of(&[ground([0.0, 0.0])].map(shifted));
         let pose = pose.compose(&Rigid3::new(nalgebra::UnitQuaternion::identity(), -offset));
         let photo_depth = depth_of(&world, &intrinsics, &pose);
-        let mut workspace = ChangeWorkspace::new();
-        let mut classes = Image::default();
-        let changes = detect_changes(
+        let (changes, _) = detect_on(
             &model,
             &intrinsics,
             &pose,
-            photo_depth.view(),
-            &DepthEvidence::default(),
+            &photo_depth,
             &ChangeConfig::default(),
-            &mut workspace,
-            &mut classes,
-        )
-        .expect("sizes match");
+        );
         assert_eq!(changes.regions.len(), 1, "{:?}", changes.regions);
         let region = &changes.regions[0];
         assert_eq!(region.kind, ChangeKind::Removed);
@@ -1541,6 +1546,7 @@ pub(crate) mod tests {
                 *d = 0.0;
             }
         }
+        // The workspace and classes of a 200 × 200 frame serve a 10 × 10 one next.
         let mut workspace = ChangeWorkspace::new();
         let mut classes = Image::default();
         let changes = detect_changes(
@@ -1711,18 +1717,7 @@ pub(crate) mod tests {
                 pose_sigma_px,
                 ..ChangeConfig::default()
             };
-            let mut classes = Image::default();
-            detect_changes(
-                &model,
-                &intrinsics,
-                &registered,
-                photo_depth.view(),
-                &DepthEvidence::default(),
-                &config,
-                &mut ChangeWorkspace::new(),
-                &mut classes,
-            )
-            .expect("sizes match")
+            detect_on(&model, &intrinsics, &registered, &photo_depth, &config).0
         };
         let is_new_block = |r: &ChangeRegion| {
             r.kind == ChangeKind::Added
@@ -1973,19 +1968,7 @@ pub(crate) mod tests {
             }
         }
         let detect = |config: &ChangeConfig| {
-            let mut workspace = ChangeWorkspace::new();
-            let mut classes = Image::default();
-            let changes = detect_changes(
-                &model,
-                &intrinsics,
-                &pose,
-                photo_depth.view(),
-                &DepthEvidence::default(),
-                config,
-                &mut workspace,
-                &mut classes,
-            )
-            .expect("sizes match");
+            let (changes, classes) = detect_on(&model, &intrinsics, &pose, &photo_depth, config);
             let count = |class, left: bool| {
                 classes
                     .data()
