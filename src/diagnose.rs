@@ -1053,7 +1053,9 @@ fn search_diagnosis(
 }
 
 /// The grid candidate of a search around `prior` nearest `rotation_reach`, its place in the
-/// search's selection and where the screening alignment takes it (δ by `delta`).
+/// search's selection and where the screening alignment takes it (δ by `delta`). It scores the
+/// grid again: `search_pose` does not hand its grid out (the frame's path has no use for it), so
+/// the diagnosis pays one grid (a rendering per heading group) a frame.
 #[allow(clippy::too_many_arguments)]
 fn reach_in_grid(
     mesh: &Mesh,

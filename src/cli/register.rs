@@ -404,7 +404,8 @@ pub struct CoarseArgs {
     #[arg(long, default_value_t = ConfidenceConfig::default().min_least_seen_drop)]
     pub min_least_seen_drop: f64,
     /// Accept a pose the plausibility check rejected on the photo's evidence only when its edge
-    /// support exceeds chance by at least this share (0..1; 0: off, the default; 0.4 measured).
+    /// support exceeds chance by at least this share, when the frame's refined poses contradict
+    /// it (0..1; 0: off).
     #[arg(long, default_value_t = ConfidenceConfig::default().min_overrule_margin)]
     pub min_overrule_margin: f64,
 }

@@ -401,7 +401,7 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
             let mut next = launched + period;
             while !shared.done.load(Ordering::SeqCst) {
                 std::thread::sleep(Duration::from_millis(20));
-                // Kills start with the first result (the stages are up), or KILLS_START_S after
+                // Kills start with the first result (the stages are up), or KILLS_START after
                 // the launch if no result came by then, and stop at the last. The frames share the
                 // workers' queues, so on an idle machine they finish together near the end of a
                 // short run: waiting for the first result left a 40-frame run one kill.

@@ -199,9 +199,9 @@ pub struct ConfidenceConfig {
     /// the 22 with a margin below 0.4 had 12.03 px (19 beyond 5 px), the 15 above it 0.68 px.
     /// Asked only when the frame's refined poses contradict the pose (some disagree, a chain, no
     /// convergence), not when they all agree and are only too few (twentieth session: on
-    /// 240×132 blocks with 5 coarse poses correct poses 0.4–1.9 px off had only 2–3 refined
-    /// poses, all agreeing, and margins of 0.28–0.45; asked of them too the margin rejected
-    /// most frames of two pipeline tests).
+    /// 240×132 blocks with 5 coarse poses, correct poses 0.4–2.4 px off had only 2–3 refined
+    /// poses, all agreeing, and margins of 0.28–0.45; asked of them too, the margin rejected
+    /// them and most frames of a pipeline test).
     /// Validated (nineteenth session) on runs it was not read from — the pose
     /// search's wider roll, the `heading` level of block and house s1, LoD houses s1/s2 at 30
     /// and 104 px, block s1 at 104 px: the 8 accepts against a failed check with a margin below

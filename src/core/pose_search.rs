@@ -318,8 +318,8 @@ impl PoseSearchConfig {
     }
 }
 
-/// How many times a trusted tilt ([`PoseSearchConfig::with_trusted_tilt_deg`]) its pitch and
-/// roll ranges cover.
+/// The pitch and roll ranges of a trusted tilt ([`PoseSearchConfig::with_trusted_tilt_deg`])
+/// cover this many times the tilt.
 pub const TRUSTED_TILT_COVERAGE: f64 = 3.0;
 
 /// An angle in (−180, 180] degrees.
