@@ -197,6 +197,13 @@ pub struct Timeouts {
     /// long is sent again, then after twice as long, ... up to 16 s (`runtime::ack`), s. 0: never
     /// sent again (a result lost in flight stays lost).
     pub resend_after_s: f64,
+    /// A frame that render has handed on and that has no pose result this long after is sent
+    /// down the pipeline again — when a later frame already has its result, or when no result at
+    /// all came in for that long — then after twice as long, up to 8× (`runtime::nodes`,
+    /// `Recovery::redo_unanswered`): every message of it was lost in flight (over zenoh while the
+    /// router restarted), so verify never heard of it and its own timeout cannot fail it. A
+    /// repeat verify already has is ignored, s. 0: never.
+    pub redo_unanswered_after_s: f64,
 }
 
 impl Default for Timeouts {
@@ -206,6 +213,7 @@ impl Default for Timeouts {
             worker_silence_s: 60.0,
             startup_s: 60.0,
             resend_after_s: 2.0,
+            redo_unanswered_after_s: 20.0,
         }
     }
 }
@@ -408,6 +416,13 @@ impl PipelineConfig {
             return Err(invalid(
                 "timeouts.resend_after_s",
                 format!("must be ≥ 0 s (0: never send a result again), got {resend}"),
+            ));
+        }
+        let redo = self.timeouts.redo_unanswered_after_s;
+        if !(redo.is_finite() && redo >= 0.0) {
+            return Err(invalid(
+                "timeouts.redo_unanswered_after_s",
+                format!("must be ≥ 0 s (0: never send an unanswered frame again), got {redo}"),
             ));
         }
         if !(self.source.rate_hz.is_finite() && self.source.rate_hz >= 0.0) {

@@ -160,6 +160,19 @@ enum Kept {
     Failed(FrameFailed, u64),
 }
 
+/// A kept frame and how long it has gone unanswered.
+struct KeptFrame {
+    kept: Kept,
+    /// When render handed it on (its jobs left render's queue) or, for a frame failed at ingest,
+    /// when it went to verify; `None` while the dispatcher holds it.
+    handed_on: Option<Instant>,
+    /// How long it may go without a result before it is sent again (doubles each time).
+    wait: Duration,
+}
+
+/// The longest wait before an unanswered frame is sent again, as a multiple of the first.
+const REDO_UNANSWERED_MAX_FACTOR: u32 = 8;
+
 /// Ingest's memory of every frame until its result is out (with change detection: its pose
 /// result and its change result), so that the frames a crashed pose or verify process took with
 /// it are redone (render and flow have the dispatcher's redo; fusion's restarts are verify's
@@ -169,7 +182,11 @@ struct Recovery {
     /// With change detection: the published change results.
     changes: Option<Inbox>,
     metrics: Inbox,
-    kept: std::collections::BTreeMap<u64, Kept>,
+    kept: std::collections::BTreeMap<u64, KeptFrame>,
+    /// `timeouts.redo_unanswered_after_s`; `None`: never.
+    redo_unanswered_after: Option<Duration>,
+    /// When a frame last got all its results (or the start).
+    last_finished_at: Instant,
     /// Frames with both results out (the pose result alone without change detection).
     finished: std::collections::BTreeSet<u64>,
     /// Frames with their pose result out, and (change detection) with their change result out.
@@ -209,6 +226,9 @@ impl Recovery {
             },
             metrics: Inbox::open(transport, keys::METRICS, "ingest")?,
             kept: std::collections::BTreeMap::new(),
+            redo_unanswered_after: (config.timeouts.redo_unanswered_after_s > 0.0)
+                .then(|| Duration::from_secs_f64(config.timeouts.redo_unanswered_after_s)),
+            last_finished_at: Instant::now(),
             finished: std::collections::BTreeSet::new(),
             posed: std::collections::BTreeSet::new(),
             changed: std::collections::BTreeSet::new(),
@@ -245,7 +265,9 @@ impl Recovery {
         let needs_change = self.changes.is_some();
         if self.posed.contains(&frame_id) && (!needs_change || self.changed.contains(&frame_id)) {
             self.kept.remove(&frame_id);
-            self.finished.insert(frame_id);
+            if self.finished.insert(frame_id) {
+                self.last_finished_at = Instant::now();
+            }
         }
     }
 
@@ -330,7 +352,24 @@ impl Recovery {
         Ok(restarted)
     }
 
-    /// Takes what arrived and, when pose or verify restarted, redoes the frames without a result.
+    /// Keeps `frame_id` until its result is out; `Kept::Failed` goes to verify now.
+    fn keep(&mut self, frame_id: u64, kept: Kept) {
+        let handed_on = match kept {
+            Kept::Frame(_) => None,
+            Kept::Failed(..) => Some(Instant::now()),
+        };
+        self.kept.insert(
+            frame_id,
+            KeptFrame {
+                kept,
+                handed_on,
+                wait: self.redo_unanswered_after.unwrap_or(Duration::ZERO),
+            },
+        );
+    }
+
+    /// Takes what arrived; when pose or verify restarted, redoes the frames without a result,
+    /// and otherwise the frames gone unanswered for too long.
     fn service(
         &mut self,
         dispatcher: &mut Dispatcher,
@@ -340,6 +379,77 @@ impl Recovery {
     ) -> Result<(), NodeError> {
         if self.poll()? {
             self.redo(dispatcher, verify, stream_end, metrics)?;
+        } else {
+            self.redo_unanswered(dispatcher, verify, metrics)?;
+        }
+        Ok(())
+    }
+
+    /// Sends again each frame that render handed on (or that went to verify failed) and that has
+    /// no pose result after its wait, when a later frame already has its result or no frame got
+    /// one for as long: all its messages were lost in flight (the zenoh router restarting), so
+    /// verify never heard of it and nothing else would ever give it a result (the acks test's
+    /// launch ran into its deadline with 39 of 40 results). A frame still on its way only costs
+    /// a repeat that verify ignores; the wait doubles each time. A frame posed but without its
+    /// change result is not sent again: that is verify's `ChangeRecovery`.
+    fn redo_unanswered(
+        &mut self,
+        dispatcher: &mut Dispatcher,
+        verify: &mut Outbox,
+        metrics: &mut StageMetrics,
+    ) -> Result<(), BusError> {
+        let Some(first_wait) = self.redo_unanswered_after else {
+            return Ok(());
+        };
+        let now = Instant::now();
+        let quiet = now.duration_since(self.last_finished_at);
+        for (&frame_id, frame) in &mut self.kept {
+            if self.posed.contains(&frame_id) {
+                continue;
+            }
+            let Some(handed_on) = frame.handed_on else {
+                if !dispatcher.holds(frame_id) {
+                    frame.handed_on = Some(now);
+                }
+                continue;
+            };
+            let waited = now.duration_since(handed_on);
+            let overtaken = self.finished.range(frame_id + 1..).next().is_some();
+            if waited < frame.wait || !(overtaken || quiet >= frame.wait) {
+                continue;
+            }
+            tracing::warn!(
+                "ingest: frame {frame_id} has no result {:.0} s after render took it and {}; its messages were lost in flight: sending it again",
+                waited.as_secs_f64(),
+                if overtaken {
+                    "a later frame has its result"
+                } else {
+                    "no frame got a result since"
+                }
+            );
+            metrics.redispatched += 1;
+            frame.wait = (frame.wait * 2).min(first_wait * REDO_UNANSWERED_MAX_FACTOR);
+            match &frame.kept {
+                Kept::Frame(bytes) => {
+                    frame.handed_on = None;
+                    dispatcher.push_shared(
+                        JobKey {
+                            frame_id,
+                            coarse_index: 0,
+                        },
+                        std::sync::Arc::clone(bytes),
+                    );
+                }
+                Kept::Failed(failed, capture) => {
+                    frame.handed_on = Some(now);
+                    verify.send(
+                        frame_id,
+                        *capture,
+                        Body::FrameFailed(failed.clone()),
+                        metrics,
+                    )?;
+                }
+            }
         }
         Ok(())
     }
@@ -356,9 +466,11 @@ impl Recovery {
         stream_end: Option<u64>,
         metrics: &mut StageMetrics,
     ) -> Result<(), BusError> {
-        for (frame_id, kept) in &self.kept {
-            match kept {
+        let now = Instant::now();
+        for (frame_id, frame) in &mut self.kept {
+            match &frame.kept {
                 Kept::Frame(bytes) => {
+                    frame.handed_on = None;
                     metrics.redispatched += 1;
                     dispatcher.push_shared(
                         JobKey {
@@ -369,6 +481,7 @@ impl Recovery {
                     );
                 }
                 Kept::Failed(failed, capture) => {
+                    frame.handed_on = Some(now);
                     verify.send(
                         *frame_id,
                         *capture,
@@ -489,9 +602,7 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         match frame {
             Err(failed) => {
                 tracing::warn!("frame {frame_id} '{}': {}", failed.name, failed.reason);
-                recovery
-                    .kept
-                    .insert(frame_id, Kept::Failed(failed.clone(), capture_time_ns));
+                recovery.keep(frame_id, Kept::Failed(failed.clone(), capture_time_ns));
                 verify.send(
                     frame_id,
                     capture_time_ns,
@@ -506,9 +617,6 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                     capture_time_ns,
                     Body::Frame(frame),
                 )?);
-                recovery
-                    .kept
-                    .insert(frame_id, Kept::Frame(std::sync::Arc::clone(&bytes)));
                 record_compute(&mut metrics, started);
                 while !dispatcher.has_room() {
                     match config.backpressure.policy {
@@ -546,6 +654,9 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                         }
                     }
                 }
+                // Kept from when the dispatcher holds it (its wait for a result starts once
+                // render has taken it).
+                recovery.keep(frame_id, Kept::Frame(std::sync::Arc::clone(&bytes)));
                 dispatcher.push_shared(
                     JobKey {
                         frame_id,

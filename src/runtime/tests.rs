@@ -287,6 +287,120 @@ fn bad_messages_are_rejected_and_the_pipeline_goes_on() {
     assert!(rejected("flow") >= 1);
 }
 
+/// Crossbeam, except that every message of frame `lost` to verify and to the pose workers is
+/// lost while render passes it the first time (its query and its correspondences: what a zenoh
+/// router restart can take), so verify never hears of that pass.
+struct LosingFirstPass {
+    inner: CrossbeamTransport,
+    lost: u64,
+    /// The frame's queries sent to verify so far (one per render pass).
+    passes: std::sync::Arc<std::sync::atomic::AtomicU32>,
+    /// Messages lost.
+    dropped: std::sync::Arc<std::sync::atomic::AtomicU32>,
+}
+
+struct LosingPublisher {
+    inner: Box<dyn crate::transport::Publisher>,
+    lost: u64,
+    passes: std::sync::Arc<std::sync::atomic::AtomicU32>,
+    dropped: std::sync::Arc<std::sync::atomic::AtomicU32>,
+}
+
+impl crate::transport::Publisher for LosingPublisher {
+    fn topic(&self) -> &str {
+        self.inner.topic()
+    }
+    fn send_with(
+        &mut self,
+        len: usize,
+        write: &mut dyn FnMut(&mut [u8]),
+    ) -> Result<(), crate::transport::TransportError> {
+        let mut bytes = vec![0; len];
+        write(&mut bytes);
+        let to_verify = self.inner.topic() == keys::VERIFY_IN;
+        let to_pose = (0..4).any(|w| self.inner.topic() == keys::pose_in(w));
+        if let Ok(message) = crate::msg::decode(&bytes) {
+            if message.header.frame_id == self.lost && (to_verify || to_pose) {
+                if to_verify && matches!(message.body, crate::msg::Body::FrameQuery(_)) {
+                    self.passes.fetch_add(1, Ordering::SeqCst);
+                }
+                if self.passes.load(Ordering::SeqCst) <= 1 {
+                    self.dropped.fetch_add(1, Ordering::SeqCst);
+                    return Ok(());
+                }
+            }
+        }
+        self.inner.send(&bytes)
+    }
+    fn wait_for_subscriber(
+        &mut self,
+        timeout: Duration,
+    ) -> Result<bool, crate::transport::TransportError> {
+        self.inner.wait_for_subscriber(timeout)
+    }
+}
+
+impl crate::transport::Transport for LosingFirstPass {
+    fn backend(&self) -> &'static str {
+        "crossbeam"
+    }
+    fn publisher(
+        &self,
+        topic: &str,
+    ) -> Result<Box<dyn crate::transport::Publisher>, crate::transport::TransportError> {
+        Ok(Box::new(LosingPublisher {
+            inner: self.inner.publisher(topic)?,
+            lost: self.lost,
+            passes: std::sync::Arc::clone(&self.passes),
+            dropped: std::sync::Arc::clone(&self.dropped),
+        }))
+    }
+    fn subscriber(
+        &self,
+        topic: &str,
+    ) -> Result<Box<dyn crate::transport::Subscriber>, crate::transport::TransportError> {
+        self.inner.subscriber(topic)
+    }
+}
+
+#[test]
+fn a_frame_whose_every_message_was_lost_in_flight_is_sent_again_and_gets_its_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    config.timeouts.redo_unanswered_after_s = 1.0;
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let transport = LosingFirstPass {
+        inner: CrossbeamTransport::new(config.transport.clone()),
+        lost: 1,
+        passes: Default::default(),
+        dropped: Default::default(),
+    };
+    let collected = run_in_process(
+        &config,
+        &transport,
+        &mesh,
+        Duration::from_secs(300),
+        &mut |_| {},
+    )
+    .unwrap();
+    // The query and the five coarse poses' correspondences of the first pass were lost.
+    assert_eq!(transport.dropped.load(Ordering::SeqCst), 6);
+    assert_eq!(
+        transport.passes.load(Ordering::SeqCst),
+        2,
+        "frame 1 was not sent again"
+    );
+    let redone: u64 = collected
+        .metrics
+        .iter()
+        .filter(|((stage, _), _)| stage == "ingest")
+        .map(|(_, m)| m.redispatched)
+        .sum();
+    assert_eq!(redone, 1);
+    // Its result is the one `register` gives, as every other frame's.
+    assert_same_as_batch(&config, &mesh, &collected);
+}
+
 #[test]
 fn drop_oldest_backpressure_reports_every_dropped_frame_as_its_result() {
     let dir = tempfile::tempdir().unwrap();
