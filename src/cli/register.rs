@@ -408,6 +408,19 @@ pub struct CoarseArgs {
     /// it (0..1; 0: off).
     #[arg(long, default_value_t = ConfidenceConfig::default().min_overrule_margin)]
     pub min_overrule_margin: f64,
+    /// The rival-basin test of an accepted pose: the alignment also runs from the output moved
+    /// by --rival-reach-px of δ either way along this many directions its edges see least, and
+    /// a distinct end that keeps --rival-share of the output's edge support above chance
+    /// rejects the frame (0..6; 0: no test).
+    #[arg(long, default_value_t = EdgeAlignConfig::default().rival_directions)]
+    pub rival_directions: usize,
+    /// How far the rival-basin test's starts lie from the output, px of δ.
+    #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
+    pub rival_reach_px: f64,
+    /// The share of the output's edge support above chance a distinct rival must keep to reject
+    /// it (1: as much support as the output).
+    #[arg(long, default_value_t = EdgeAlignConfig::default().rival_share_above_chance)]
+    pub rival_share: f64,
 }
 
 /// Which pose of the agreeing refined poses a frame outputs.
@@ -469,6 +482,9 @@ impl Default for CoarseArgs {
             max_delta_uncertainty_px: ConfidenceConfig::default().max_delta_uncertainty_px,
             min_least_seen_drop: ConfidenceConfig::default().min_least_seen_drop,
             min_overrule_margin: ConfidenceConfig::default().min_overrule_margin,
+            rival_directions: EdgeAlignConfig::default().rival_directions,
+            rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
+            rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
     }
 }
@@ -649,6 +665,9 @@ pub fn registration_config(
             estimate_rounding: !coarse.no_edge_rounding,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),
+            rival_directions: coarse.rival_directions,
+            rival_reach_px: coarse.rival_reach_px,
+            rival_share_above_chance: coarse.rival_share,
             ..defaults.edge_align
         },
         pose_search: PoseSearchConfig {

@@ -124,6 +124,19 @@ pub struct EdgeAlignConfig {
     /// seventeenth session: LoD house s2 at 30 px 1.43 → 0.31 px mean δ, degraded block s3
     /// 2.00 → 1.75 px, house s1 7.69 → 7.65, the other cells unchanged, no false accept).
     pub centre_starts: bool,
+    /// The rival-basin test of an accepted pose ([`crate::core::frame::refine::rival_basin`]):
+    /// the alignment also runs from the output moved by `rival_reach_px` of δ either way along
+    /// each of this many directions its supported edges see least ([`least_seen_starts`]); an
+    /// end at least the centres' agreement distance away that keeps `rival_share_above_chance`
+    /// of the output's edge support above chance rejects the frame: the photo's edges support a
+    /// distinct pose about as well. 0: no test.
+    pub rival_directions: usize,
+    /// How far the rival starts lie from the output, px of δ.
+    pub rival_reach_px: f64,
+    /// The share of the output's edge support above chance (`at_pose − far` of its
+    /// [`SupportPeak`]) a distinct rival must keep to reject the output (1: as much support as
+    /// the output).
+    pub rival_share_above_chance: f64,
 }
 
 /// What decides whether the final refinement's aligned pose replaces the verified one it started
@@ -257,6 +270,9 @@ impl Default for EdgeAlignConfig {
             short_schedule_radius_px: 8.0,
             short_schedule_rule: KeepRule::SupportAndCorrelation,
             centre_starts: true,
+            rival_directions: 0,
+            rival_reach_px: 30.0,
+            rival_share_above_chance: 0.75,
         }
     }
 }
@@ -285,6 +301,7 @@ impl EdgeAlignConfig {
             ("final_search_radius_px", self.final_search_radius_px),
             ("support_px", self.support_px),
             ("evidence_radius_px", self.evidence_radius_px),
+            ("rival_reach_px", self.rival_reach_px),
         ] {
             if !(value.is_finite() && value > 0.0) {
                 return bad(field, format!("{value} is not a positive number"));
@@ -301,6 +318,18 @@ impl EdgeAlignConfig {
         }
         if self.min_samples < 6 {
             return bad("min_samples", "must be at least 6 (six unknowns)".into());
+        }
+        if !(self.rival_share_above_chance.is_finite() && self.rival_share_above_chance > 0.0) {
+            return bad(
+                "rival_share_above_chance",
+                format!("{} is not a positive number", self.rival_share_above_chance),
+            );
+        }
+        if self.rival_directions > 6 {
+            return bad(
+                "rival_directions",
+                format!("{} exceeds the pose's 6 directions", self.rival_directions),
+            );
         }
         if self.starts == 0 {
             return bad("starts", "must be at least 1 (the chosen pose)".into());
@@ -1289,9 +1318,52 @@ fn generalized_eigen(
 /// it moves the visible model by 1 px RMS (`ξᵀ M ξ = 1`). `None` when the metric cannot be
 /// factorised.
 pub fn least_seen_step(information: &Matrix6<f64>, metric: &Matrix6<f64>) -> Option<Vector6<f64>> {
+    seen_steps(information, metric)?.into_iter().next()
+}
+
+/// Every generalized eigen-direction of `information` against `metric` as a pose step scaled to
+/// move the visible model by 1 px RMS, least seen first ([`least_seen_step`] is the first).
+/// `None` when the metric cannot be factorised.
+pub fn seen_steps(information: &Matrix6<f64>, metric: &Matrix6<f64>) -> Option<Vec<Vector6<f64>>> {
     let (eigen, lower_inverse) = generalized_eigen(information, metric)?;
-    let least = eigen.eigenvalues.imin();
-    Some(lower_inverse.transpose() * eigen.eigenvectors.column(least))
+    let mut order: Vec<usize> = (0..6).collect();
+    order.sort_by(|&a, &b| eigen.eigenvalues[a].total_cmp(&eigen.eigenvalues[b]));
+    Some(
+        order
+            .into_iter()
+            .map(|index| lower_inverse.transpose() * eigen.eigenvectors.column(index))
+            .collect(),
+    )
+}
+
+/// Start poses for a search of other basins of the edge support around `cam_from_world`: the
+/// pose moved either way along each of the `directions` directions its supported edges see
+/// least ([`seen_steps`] of [`supported_information`] against the model's image-motion `metric`),
+/// by `reach_px` of visible-model motion (δ). A wrong pose the edges support (a local maximum)
+/// sits along such a direction from the right one: the edges barely move along it while the
+/// rest of the model does. Empty when the metric cannot be factorised.
+#[allow(clippy::too_many_arguments)]
+pub fn least_seen_starts(
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    metric: &Matrix6<f64>,
+    config: &EdgeAlignConfig,
+    directions: usize,
+    reach_px: f64,
+) -> Vec<Rigid3> {
+    let supported = supported_information(samples, query, camera, cam_from_world, config);
+    let Some(steps) = seen_steps(&supported.information, metric) else {
+        return Vec::new();
+    };
+    steps
+        .iter()
+        .take(directions)
+        .flat_map(|step| {
+            [1.0, -1.0].map(|sign| apply_pose_step(cam_from_world, &(step * (sign * reach_px))))
+        })
+        .collect()
 }
 
 /// How firmly the photo's edges fix the evaluation's own measure: the expected δ, px RMS, of the

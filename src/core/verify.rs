@@ -202,6 +202,18 @@ pub enum RejectionReason {
     /// region the confidence was calibrated on, so its edge support no longer confirms it on
     /// its own (`core::frame::sweep::decide_passes`).
     SweepUnchecked { confidence: f64 },
+    /// The photo's edges support a distinct pose about as well as the accepted one: the
+    /// alignment started around it ([`crate::core::frame::refine::rival_basin`]) ended
+    /// `apart_px` away at a pose with `rival_support` (shares of the model's edge samples;
+    /// `support` at the output, `chance` where only chance supports it), keeping at least
+    /// `min_share` of the output's support above chance.
+    RivalBasin {
+        support: f64,
+        rival_support: f64,
+        chance: f64,
+        min_share: f64,
+        apart_px: f64,
+    },
 }
 
 impl std::fmt::Display for RejectionReason {
@@ -263,6 +275,20 @@ impl std::fmt::Display for RejectionReason {
             } => write!(
                 f,
                 "the photo confirms two distinct poses {apart_px:.0} px apart (confidence {confidence:.2} and {rival_confidence:.2}), from different headings of the pose search: give a better prior (heading) to register this frame"
+            ),
+            RejectionReason::RivalBasin {
+                support,
+                rival_support,
+                chance,
+                min_share,
+                apart_px,
+            } => write!(
+                f,
+                "the photo's edges support a pose {apart_px:.0} px away about as well: {:.0} % of the model's edges there, {:.0} % at this pose, {:.0} % by chance ({:.2} of its support above chance, {min_share:.2} rejects); the frame's edges cannot tell which is right",
+                rival_support * 100.0,
+                support * 100.0,
+                chance * 100.0,
+                (rival_support - chance) / (support - chance).max(f64::EPSILON),
             ),
             RejectionReason::SweepUnchecked { confidence } => write!(
                 f,

@@ -2,7 +2,9 @@
 //! a frame's coarse outcomes (paper §3.4, docs/design.md §2 step 7) and the final refinement of the
 //! chosen pose against the query ([`super::refine`]); the verdict carries the chosen pose itself.
 
-use super::refine::{refine_from_other_centres, refine_verdict, PoseRefinement, RefineWorkspace};
+use super::refine::{
+    refine_from_other_centres, refine_verdict, rival_basin, PoseRefinement, RefineWorkspace,
+};
 use super::{process_cpu_ms, CoarseOutcome, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::confidence::{ConfidenceConfig, FrameEvidence};
@@ -101,8 +103,56 @@ pub fn decide_frame_and_centres(
                 refine_centre(mesh, camera, &[], query, intrinsics, config, workspace, &[])
                     .confirmed(&config.confidence)
             });
-    chosen.refine_cpu_ms = refine_cpu_ms;
+    let rival_started_ms = process_cpu_ms();
+    if let Some(query) = query {
+        reject_a_local_maximum(mesh, query, intrinsics, &mut chosen, config, workspace);
+    }
+    chosen.refine_cpu_ms = refine_cpu_ms + process_cpu_ms() - rival_started_ms;
     (chosen, kept)
+}
+
+/// The rival-basin test of an accepted pose (`edge_align.rival_directions` > 0): when the
+/// alignment started around it ends at a distinct pose (at least the centres' agreement distance
+/// away, as [`choose_among_centres`] counts poses distinct) that keeps
+/// `rival_share_above_chance` of the output's edge support above chance, the photo's edges
+/// cannot tell the two apart and the frame is rejected ([`RejectionReason::RivalBasin`]).
+fn reject_a_local_maximum(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    intrinsics: IntrinsicsMode,
+    chosen: &mut Decision,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) {
+    let (Some(output), Some(peak)) = (chosen.verdict.accepted_pose(), chosen.evidence.edges) else {
+        return;
+    };
+    let min_apart_px = config.pose_search.centre_agreement_share * chosen.verdict.threshold_px;
+    let (support, chance) = (peak.at_pose, peak.far);
+    let min_share = config.edge_align.rival_share_above_chance;
+    let Some(rival) = rival_basin(
+        mesh,
+        query,
+        intrinsics,
+        output,
+        min_apart_px,
+        config,
+        workspace,
+    ) else {
+        return;
+    };
+    if rival.support - chance >= min_share * (support - chance) {
+        reject(
+            &mut chosen.verdict,
+            RejectionReason::RivalBasin {
+                support,
+                rival_support: rival.support,
+                chance,
+                min_share,
+                apart_px: rival.apart_px,
+            },
+        );
+    }
 }
 
 /// Each centre's own decision, in the search's order of centres: one decision when the outcomes
