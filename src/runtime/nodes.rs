@@ -170,6 +170,41 @@ struct KeptFrame {
     wait: Duration,
 }
 
+impl KeptFrame {
+    /// Sends the frame down the pipeline again: a frame to the render workers (its wait starts
+    /// once render has taken it), a frame failed at ingest to verify (its wait starts now).
+    fn send_again(
+        &mut self,
+        frame_id: u64,
+        dispatcher: &mut Dispatcher,
+        verify: &mut Outbox,
+        metrics: &mut StageMetrics,
+    ) -> Result<(), BusError> {
+        match &self.kept {
+            Kept::Frame(bytes) => {
+                self.handed_on = None;
+                dispatcher.push_shared(
+                    JobKey {
+                        frame_id,
+                        coarse_index: 0,
+                    },
+                    std::sync::Arc::clone(bytes),
+                );
+            }
+            Kept::Failed(failed, capture) => {
+                self.handed_on = Some(Instant::now());
+                verify.send(
+                    frame_id,
+                    *capture,
+                    Body::FrameFailed(failed.clone()),
+                    metrics,
+                )?;
+            }
+        }
+        Ok(())
+    }
+}
+
 /// The longest wait before an unanswered frame is sent again, as a multiple of the first.
 const REDO_UNANSWERED_MAX_FACTOR: u32 = 8;
 
@@ -429,27 +464,7 @@ impl Recovery {
             );
             metrics.redispatched += 1;
             frame.wait = (frame.wait * 2).min(first_wait * REDO_UNANSWERED_MAX_FACTOR);
-            match &frame.kept {
-                Kept::Frame(bytes) => {
-                    frame.handed_on = None;
-                    dispatcher.push_shared(
-                        JobKey {
-                            frame_id,
-                            coarse_index: 0,
-                        },
-                        std::sync::Arc::clone(bytes),
-                    );
-                }
-                Kept::Failed(failed, capture) => {
-                    frame.handed_on = Some(now);
-                    verify.send(
-                        frame_id,
-                        *capture,
-                        Body::FrameFailed(failed.clone()),
-                        metrics,
-                    )?;
-                }
-            }
+            frame.send_again(frame_id, dispatcher, verify, metrics)?;
         }
         Ok(())
     }
@@ -466,30 +481,11 @@ impl Recovery {
         stream_end: Option<u64>,
         metrics: &mut StageMetrics,
     ) -> Result<(), BusError> {
-        let now = Instant::now();
-        for (frame_id, frame) in &mut self.kept {
-            match &frame.kept {
-                Kept::Frame(bytes) => {
-                    frame.handed_on = None;
-                    metrics.redispatched += 1;
-                    dispatcher.push_shared(
-                        JobKey {
-                            frame_id: *frame_id,
-                            coarse_index: 0,
-                        },
-                        std::sync::Arc::clone(bytes),
-                    );
-                }
-                Kept::Failed(failed, capture) => {
-                    frame.handed_on = Some(now);
-                    verify.send(
-                        *frame_id,
-                        *capture,
-                        Body::FrameFailed(failed.clone()),
-                        metrics,
-                    )?;
-                }
+        for (&frame_id, frame) in &mut self.kept {
+            if matches!(frame.kept, Kept::Frame(_)) {
+                metrics.redispatched += 1;
             }
+            frame.send_again(frame_id, dispatcher, verify, metrics)?;
         }
         if let Some(frame_count) = stream_end {
             verify.send(
