@@ -347,6 +347,10 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     // to register without it. The final edge refinement stays on: without it the photo's edges
     // do not confirm the pose and no frame is accepted (0 of 40 at 240x132).
     config.registration.pose_search.enabled = false;
+    // Nor the rival-basin test (an accepted frame's search for a better-supported pose nearby):
+    // on these small frames it doubles an accepted frame's CPU, and with it the 40-frame CI
+    // soaks took 328–427 s of their 460 s deadline (docs/measurements.md, twenty-first session).
+    config.registration.edge_align.rival_directions = 0;
     config.state_dir = Some(out.join("state"));
     // The intensity policy of a station, with room for the chaos: a kill every 1.5 s spread over
     // 9 processes is ~4.4 deaths of one process a minute on average and up to ~10 by chance (a
