@@ -171,9 +171,10 @@ struct KeptFrame {
 }
 
 impl KeptFrame {
-    /// Sends the frame down the pipeline again: a frame to the render workers (its wait starts
-    /// once render has taken it), a frame failed at ingest to verify (its wait starts now).
-    fn send_again(
+    /// Sends the frame down the pipeline (the first time or again): a frame to the render
+    /// workers (its wait starts once render has taken it), a frame failed at ingest to verify
+    /// (its wait starts now).
+    fn send(
         &mut self,
         frame_id: u64,
         dispatcher: &mut Dispatcher,
@@ -387,20 +388,23 @@ impl Recovery {
         Ok(restarted)
     }
 
-    /// Keeps `frame_id` until its result is out; `Kept::Failed` goes to verify now.
-    fn keep(&mut self, frame_id: u64, kept: Kept) {
-        let handed_on = match kept {
-            Kept::Frame(_) => None,
-            Kept::Failed(..) => Some(Instant::now()),
+    /// Keeps `frame_id` until its result is out and sends it ([`KeptFrame::send`]).
+    fn keep_and_send(
+        &mut self,
+        frame_id: u64,
+        kept: Kept,
+        dispatcher: &mut Dispatcher,
+        verify: &mut Outbox,
+        metrics: &mut StageMetrics,
+    ) -> Result<(), BusError> {
+        let mut frame = KeptFrame {
+            kept,
+            handed_on: None,
+            wait: self.redo_unanswered_after.unwrap_or(Duration::ZERO),
         };
-        self.kept.insert(
-            frame_id,
-            KeptFrame {
-                kept,
-                handed_on,
-                wait: self.redo_unanswered_after.unwrap_or(Duration::ZERO),
-            },
-        );
+        let sent = frame.send(frame_id, dispatcher, verify, metrics);
+        self.kept.insert(frame_id, frame);
+        sent
     }
 
     /// Takes what arrived; when pose or verify restarted, redoes the frames without a result,
@@ -464,7 +468,7 @@ impl Recovery {
             );
             metrics.redispatched += 1;
             frame.wait = (frame.wait * 2).min(first_wait * REDO_UNANSWERED_MAX_FACTOR);
-            frame.send_again(frame_id, dispatcher, verify, metrics)?;
+            frame.send(frame_id, dispatcher, verify, metrics)?;
         }
         Ok(())
     }
@@ -485,7 +489,7 @@ impl Recovery {
             if matches!(frame.kept, Kept::Frame(_)) {
                 metrics.redispatched += 1;
             }
-            frame.send_again(frame_id, dispatcher, verify, metrics)?;
+            frame.send(frame_id, dispatcher, verify, metrics)?;
         }
         if let Some(frame_count) = stream_end {
             verify.send(
@@ -598,11 +602,11 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
         match frame {
             Err(failed) => {
                 tracing::warn!("frame {frame_id} '{}': {}", failed.name, failed.reason);
-                recovery.keep(frame_id, Kept::Failed(failed.clone(), capture_time_ns));
-                verify.send(
+                recovery.keep_and_send(
                     frame_id,
-                    capture_time_ns,
-                    Body::FrameFailed(failed),
+                    Kept::Failed(failed, capture_time_ns),
+                    &mut dispatcher,
+                    &mut verify,
                     &mut metrics,
                 )?;
             }
@@ -652,14 +656,13 @@ pub fn run_ingest(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                 }
                 // Kept from when the dispatcher holds it (its wait for a result starts once
                 // render has taken it).
-                recovery.keep(frame_id, Kept::Frame(std::sync::Arc::clone(&bytes)));
-                dispatcher.push_shared(
-                    JobKey {
-                        frame_id,
-                        coarse_index: 0,
-                    },
-                    bytes,
-                );
+                recovery.keep_and_send(
+                    frame_id,
+                    Kept::Frame(bytes),
+                    &mut dispatcher,
+                    &mut verify,
+                    &mut metrics,
+                )?;
                 metrics.messages_out += 1;
                 dispatcher.pump(Duration::ZERO)?;
             }

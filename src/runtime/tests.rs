@@ -287,23 +287,30 @@ fn bad_messages_are_rejected_and_the_pipeline_goes_on() {
     assert!(rejected("flow") >= 1);
 }
 
-/// Crossbeam, except that every message of frame `lost` to verify and to the pose workers is
-/// lost while render passes it the first time (its query and its correspondences: what a zenoh
-/// router restart can take), so verify never hears of that pass.
+/// Crossbeam, except that every message of frame `frame_id` to verify and to the pose workers
+/// is lost while render passes it the first time (its query and its correspondences: what a
+/// zenoh router restart can take), so verify never hears of that pass.
 struct LosingFirstPass {
     inner: CrossbeamTransport,
-    lost: u64,
+    /// The pose workers (`keys::pose_in` topics) whose messages are lost too.
+    pose_workers: u32,
+    lost: std::sync::Arc<LostFrame>,
+}
+
+/// The frame [`LosingFirstPass`] loses and what it lost.
+#[derive(Default)]
+struct LostFrame {
+    frame_id: u64,
     /// The frame's queries sent to verify so far (one per render pass).
-    passes: std::sync::Arc<std::sync::atomic::AtomicU32>,
+    passes: std::sync::atomic::AtomicU32,
     /// Messages lost.
-    dropped: std::sync::Arc<std::sync::atomic::AtomicU32>,
+    dropped: std::sync::atomic::AtomicU32,
 }
 
 struct LosingPublisher {
     inner: Box<dyn crate::transport::Publisher>,
-    lost: u64,
-    passes: std::sync::Arc<std::sync::atomic::AtomicU32>,
-    dropped: std::sync::Arc<std::sync::atomic::AtomicU32>,
+    /// Set on the topics that lose the frame (verify's and the pose workers').
+    lost: Option<std::sync::Arc<LostFrame>>,
 }
 
 impl crate::transport::Publisher for LosingPublisher {
@@ -317,15 +324,13 @@ impl crate::transport::Publisher for LosingPublisher {
     ) -> Result<(), crate::transport::TransportError> {
         let mut bytes = vec![0; len];
         write(&mut bytes);
-        let to_verify = self.inner.topic() == keys::VERIFY_IN;
-        let to_pose = (0..4).any(|w| self.inner.topic() == keys::pose_in(w));
-        if let Ok(message) = crate::msg::decode(&bytes) {
-            if message.header.frame_id == self.lost && (to_verify || to_pose) {
-                if to_verify && matches!(message.body, crate::msg::Body::FrameQuery(_)) {
-                    self.passes.fetch_add(1, Ordering::SeqCst);
+        if let (Some(lost), Ok(message)) = (&self.lost, crate::msg::decode(&bytes)) {
+            if message.header.frame_id == lost.frame_id {
+                if matches!(message.body, crate::msg::Body::FrameQuery(_)) {
+                    lost.passes.fetch_add(1, Ordering::SeqCst);
                 }
-                if self.passes.load(Ordering::SeqCst) <= 1 {
-                    self.dropped.fetch_add(1, Ordering::SeqCst);
+                if lost.passes.load(Ordering::SeqCst) <= 1 {
+                    lost.dropped.fetch_add(1, Ordering::SeqCst);
                     return Ok(());
                 }
             }
@@ -348,11 +353,11 @@ impl crate::transport::Transport for LosingFirstPass {
         &self,
         topic: &str,
     ) -> Result<Box<dyn crate::transport::Publisher>, crate::transport::TransportError> {
+        let loses =
+            topic == keys::VERIFY_IN || (0..self.pose_workers).any(|w| topic == keys::pose_in(w));
         Ok(Box::new(LosingPublisher {
             inner: self.inner.publisher(topic)?,
-            lost: self.lost,
-            passes: std::sync::Arc::clone(&self.passes),
-            dropped: std::sync::Arc::clone(&self.dropped),
+            lost: loses.then(|| std::sync::Arc::clone(&self.lost)),
         }))
     }
     fn subscriber(
@@ -371,9 +376,11 @@ fn a_frame_whose_every_message_was_lost_in_flight_is_sent_again_and_gets_its_res
     let mesh = read_mesh(&config.mesh).unwrap();
     let transport = LosingFirstPass {
         inner: CrossbeamTransport::new(config.transport.clone()),
-        lost: 1,
-        passes: Default::default(),
-        dropped: Default::default(),
+        pose_workers: config.workers.pose.max(1),
+        lost: std::sync::Arc::new(LostFrame {
+            frame_id: 1,
+            ..LostFrame::default()
+        }),
     };
     let collected = run_in_process(
         &config,
@@ -384,9 +391,9 @@ fn a_frame_whose_every_message_was_lost_in_flight_is_sent_again_and_gets_its_res
     )
     .unwrap();
     // The query and the five coarse poses' correspondences of the first pass were lost.
-    assert_eq!(transport.dropped.load(Ordering::SeqCst), 6);
+    assert_eq!(transport.lost.dropped.load(Ordering::SeqCst), 6);
     assert_eq!(
-        transport.passes.load(Ordering::SeqCst),
+        transport.lost.passes.load(Ordering::SeqCst),
         2,
         "frame 1 was not sent again"
     );
