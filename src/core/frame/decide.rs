@@ -492,25 +492,50 @@ mod tests {
     use crate::core::image::Image;
     use crate::core::rigid::Rigid3;
 
-    /// Fifteen outcomes that all refined to `pose`, from coarse poses spread around it (so the
-    /// plausibility check sees them agree and converge).
-    /// [`decide_frame`] with known intrinsics on `query`.
-    fn decide_on(
-        mesh: &Mesh,
-        camera: &Camera,
-        query: &Image<f32>,
-        outcomes: &[CoarseOutcome],
-        config: &RegistrationConfig,
-        workspace: &mut RefineWorkspace,
-    ) -> Decision {
-        decide_frame(
-            mesh,
-            camera,
-            outcomes,
-            Some(query.view()),
-            IntrinsicsMode::Known,
-            config,
-            workspace,
+    /// The test house with the ideal query of its true pose (the model's own ASG there).
+    struct OnTheTruth {
+        mesh: Mesh,
+        camera: Camera,
+        truth: Rigid3,
+        query: Image<f32>,
+    }
+
+    impl OnTheTruth {
+        fn new(config: &RegistrationConfig) -> Self {
+            let (mesh, camera, truth, _) = house_and_poses();
+            let query = ideal_query(&mesh, &camera, &truth, config);
+            Self {
+                mesh,
+                camera,
+                truth,
+                query,
+            }
+        }
+
+        /// [`decide_frame`] with known intrinsics on the query.
+        fn decide(
+            &self,
+            outcomes: &[CoarseOutcome],
+            config: &RegistrationConfig,
+            workspace: &mut RefineWorkspace,
+        ) -> Decision {
+            decide_frame(
+                &self.mesh,
+                &self.camera,
+                outcomes,
+                Some(self.query.view()),
+                IntrinsicsMode::Known,
+                config,
+                workspace,
+            )
+        }
+    }
+
+    /// The decision's agreeing group and its refined poses: (component size, hypotheses).
+    fn group_of(decision: &Decision) -> (usize, usize) {
+        (
+            decision.evidence.component_size,
+            decision.evidence.hypotheses,
         )
     }
 
@@ -518,13 +543,7 @@ mod tests {
     /// accepted on the photo.
     fn assert_accepted_against_the_check(decision: &Decision, group: (usize, usize)) {
         assert!(!decision.evidence.check_passed, "{:?}", decision.evidence);
-        assert_eq!(
-            (
-                decision.evidence.component_size,
-                decision.evidence.hypotheses
-            ),
-            group
-        );
+        assert_eq!(group_of(decision), group);
         assert!(
             decision.verdict.accepted(),
             "{:?} {:?}",
@@ -544,6 +563,8 @@ mod tests {
         }
     }
 
+    /// Fifteen outcomes that all refined to `pose`, from coarse poses spread around it (so the
+    /// plausibility check sees them agree and converge).
     fn agreeing_outcomes(camera: &Camera, pose: &Rigid3) -> Vec<CoarseOutcome> {
         (0..15)
             .map(|i| {
@@ -577,23 +598,15 @@ mod tests {
     /// agreement on the true pose is confirmed and accepted.
     #[test]
     fn an_agreed_pose_the_photo_does_not_confirm_is_rejected() {
-        let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
-        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let house = OnTheTruth::new(&config);
+        let (camera, truth) = (house.camera, house.truth);
         let mut workspace = RefineWorkspace::default();
         // Turned about the camera's own y axis: the image moves by about 54 px, far beyond the
         // alignment's 8 px reach.
         let turn = UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.15, 0.0));
         let wrong = Rigid3::new(turn * truth.rotation, turn * truth.translation);
-        let decision = decide_frame(
-            &mesh,
-            &camera,
-            &agreeing_outcomes(&camera, &wrong),
-            Some(query.view()),
-            IntrinsicsMode::Known,
-            &config,
-            &mut workspace,
-        );
+        let decision = house.decide(&agreeing_outcomes(&camera, &wrong), &config, &mut workspace);
         assert!(decision.evidence.check_passed, "{:?}", decision.evidence);
         assert!(
             matches!(
@@ -611,15 +624,7 @@ mod tests {
             decision.evidence
         );
 
-        let decision = decide_frame(
-            &mesh,
-            &camera,
-            &agreeing_outcomes(&camera, &truth),
-            Some(query.view()),
-            IntrinsicsMode::Known,
-            &config,
-            &mut workspace,
-        );
+        let decision = house.decide(&agreeing_outcomes(&camera, &truth), &config, &mut workspace);
         assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
         assert!(decision.verdict.confidence >= config.confidence.accept_above);
     }
@@ -629,9 +634,9 @@ mod tests {
     /// lie elsewhere, or when its edge support exceeds chance by less than the configured margin.
     #[test]
     fn a_checked_out_pose_is_accepted_on_the_photo_only_with_most_poses_in_its_group() {
-        let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
-        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let house = OnTheTruth::new(&config);
+        let (camera, truth) = (house.camera, house.truth);
         let mut workspace = RefineWorkspace::default();
         // Four refined poses on the truth that stayed at their coarse poses (not converged).
         let mut outcomes: Vec<CoarseOutcome> = agreeing_outcomes(&camera, &truth)
@@ -661,31 +666,20 @@ mod tests {
                 })
                 .collect()
         };
-        let decide = |outcomes: &[CoarseOutcome],
-                      config: &RegistrationConfig,
-                      workspace: &mut RefineWorkspace| {
-            decide_on(&mesh, &camera, &query, outcomes, config, workspace)
-        };
         let mut majority = outcomes.clone();
         majority.extend(strays(2));
-        let decision = decide(&majority, &config, &mut workspace);
+        let decision = house.decide(&majority, &config, &mut workspace);
         assert_accepted_against_the_check(&decision, (4, 6));
         // ... unless its edge support's margin over chance is below `min_overrule_margin`.
         let margin = decision.evidence.edge_support_above_chance();
         let strict = with_overrule_margin(&config, (margin + 0.01).min(1.0));
-        let held = decide(&majority, &strict, &mut workspace);
+        let held = house.decide(&majority, &strict, &mut workspace);
         assert!(margin > 0.3 && margin < 0.99, "{margin}");
         assert!(!held.verdict.accepted(), "{:?}", held.evidence);
 
         outcomes.extend(strays(5));
-        let decision = decide(&outcomes, &config, &mut workspace);
-        assert_eq!(
-            (
-                decision.evidence.component_size,
-                decision.evidence.hypotheses
-            ),
-            (4, 9)
-        );
+        let decision = house.decide(&outcomes, &config, &mut workspace);
+        assert_eq!(group_of(&decision), (4, 9));
         assert!(
             decision.verdict.confidence >= config.confidence.accept_above,
             "the photo confirms it: {} {:?}",
@@ -705,26 +699,21 @@ mod tests {
     /// it makes the margin count again.
     #[test]
     fn too_few_refined_poses_all_agreeing_are_overruled_without_the_margin() {
-        let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig::default();
-        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let house = OnTheTruth::new(&config);
+        let (camera, truth) = (house.camera, house.truth);
         let mut workspace = RefineWorkspace::default();
         let mut outcomes: Vec<CoarseOutcome> = agreeing_outcomes(&camera, &truth)
             .into_iter()
             .take(2)
             .collect();
-        let decide = |outcomes: &[CoarseOutcome],
-                      config: &RegistrationConfig,
-                      workspace: &mut RefineWorkspace| {
-            decide_on(&mesh, &camera, &query, outcomes, config, workspace)
-        };
         let lenient = with_overrule_margin(&config, 0.0);
-        let decision = decide(&outcomes, &lenient, &mut workspace);
+        let decision = house.decide(&outcomes, &lenient, &mut workspace);
         assert_accepted_against_the_check(&decision, (2, 2));
         let margin = decision.evidence.edge_support_above_chance();
         assert!(margin > 0.1 && margin < 0.99, "{margin}");
         let strict = with_overrule_margin(&config, (margin + 0.01).min(1.0));
-        let decision = decide(&outcomes, &strict, &mut workspace);
+        let decision = house.decide(&outcomes, &strict, &mut workspace);
         assert!(
             decision.verdict.accepted(),
             "too few, none against it: {:?} {:?}",
@@ -739,16 +728,10 @@ mod tests {
         let mut stray = agreeing_outcomes(&camera, &stray_pose).remove(0);
         stray.coarse_index = 2;
         outcomes.push(stray);
-        let decision = decide(&outcomes, &lenient, &mut workspace);
-        assert_eq!(
-            (
-                decision.evidence.component_size,
-                decision.evidence.hypotheses
-            ),
-            (2, 3)
-        );
+        let decision = house.decide(&outcomes, &lenient, &mut workspace);
+        assert_eq!(group_of(&decision), (2, 3));
         assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
-        let decision = decide(&outcomes, &strict, &mut workspace);
+        let decision = house.decide(&outcomes, &strict, &mut workspace);
         assert!(
             !decision.verdict.accepted(),
             "a stray refined pose: the margin is asked: {:?}",

@@ -229,8 +229,8 @@ pub struct RivalBasin {
     pub cam_from_world: Rigid3,
 }
 
-/// The best-supported other basin of the edge support around `output` (the frame's output pose,
-/// whose refinement is `refinement`): the alignment's full schedule run from the output moved
+/// The best-supported other basin of the edge support around `output` (the frame's output
+/// pose): the alignment's full schedule run from the output moved
 /// by `edge_align.rival_reach_px` of δ either way along each of the `rival_directions`
 /// directions its supported edges see least ([`least_seen_starts`]); among the ends at least
 /// `min_apart_px` from the output, the one with the highest edge support. `None` when none is
