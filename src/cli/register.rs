@@ -364,6 +364,17 @@ pub struct CoarseArgs {
     /// refined directly).
     #[arg(long, default_value_t = PoseSearchConfig::default().screened_candidates)]
     pub screened_candidates: usize,
+    /// Pose search: camera-centre offsets tried around the grid's best candidates, metres either
+    /// side along each camera axis (0: the rotation grid alone).
+    #[arg(long, default_value_t = PoseSearchConfig::default().position_half_range_m)]
+    pub search_position_m: f64,
+    /// Pose search: at most this many centre offsets either side per axis.
+    #[arg(long, default_value_t = PoseSearchConfig::default().position_max_steps)]
+    pub search_position_steps: usize,
+    /// Pose search: the grid's best distinct candidates whose centre is searched (the
+    /// `--screened-candidates` best after that are screened).
+    #[arg(long, default_value_t = PoseSearchConfig::default().positioned_candidates)]
+    pub positioned_candidates: usize,
     /// Pose search: when a beam replaces the prior, the prior stays a centre of its own coarse
     /// poses too and verification across the centres decides (`--keep-prior-centre false`: the
     /// beam is the only centre unless the search is ambiguous).
@@ -472,6 +483,9 @@ impl Default for CoarseArgs {
             edge_rounding_kinds: EdgeKindsArg::All,
             no_pose_search: false,
             screened_candidates: PoseSearchConfig::default().screened_candidates,
+            search_position_m: PoseSearchConfig::default().position_half_range_m,
+            search_position_steps: PoseSearchConfig::default().position_max_steps,
+            positioned_candidates: PoseSearchConfig::default().positioned_candidates,
             keep_prior_centre: PoseSearchConfig::default().keep_prior_centre,
             search_roll_deg: PoseSearchConfig::default().roll_half_range_deg,
             search_pitch_deg: PoseSearchConfig::default().pitch_half_range_deg,
@@ -673,6 +687,9 @@ pub fn registration_config(
         pose_search: PoseSearchConfig {
             enabled: !coarse.no_pose_search,
             screened_candidates: coarse.screened_candidates,
+            position_half_range_m: coarse.search_position_m,
+            position_max_steps: coarse.search_position_steps,
+            positioned_candidates: coarse.positioned_candidates,
             keep_prior_centre: coarse.keep_prior_centre,
             roll_half_range_deg: coarse.search_roll_deg,
             pitch_half_range_deg: coarse.search_pitch_deg,

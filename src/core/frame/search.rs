@@ -26,8 +26,8 @@ use crate::core::edge_align::{
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::pose_search::{
-    score_rotation, score_rotations, search_samples, select_beams, turned_pose, wrap_deg,
-    Candidate, OrientedEdgeMap,
+    position_candidate, score_rotation, score_rotations, search_samples, select_beams, turned_pose,
+    wrap_deg, Candidate, OrientedEdgeMap, PoseSearchConfig, SearchSample,
 };
 use crate::core::raster::Rasterizer;
 use crate::core::rigid::Rigid3;
@@ -107,22 +107,61 @@ pub fn search_pose(
             .map(|c| (c, c.cam_from_world, f64::NAN))
             .collect()
     } else {
-        let screened = select_beams(
+        // The grid's best, and the best of them moved by the position search (both: a moved
+        // candidate is another start for the screening, not a replacement).
+        let mut screened = select_beams(
             &candidates,
             search.screened_candidates,
             search.beam_separation_deg,
         );
-        screen_candidates(
+        if search.position_half_range_m > 0.0 {
+            let moved: Vec<Candidate> = position_candidates(
+                &select_beams(
+                    &candidates,
+                    search.positioned_candidates,
+                    search.beam_separation_deg,
+                ),
+                &group_samples,
+                &map,
+                camera,
+                prior,
+                search,
+            )
+            .into_iter()
+            .filter(|c| c.centre_offset_m.norm() > 0.0)
+            .collect();
+            screened.extend(select_beams(
+                &moved,
+                search.screened_candidates,
+                search.beam_separation_deg,
+            ));
+        }
+        let screened = screen_candidates(
             &screened,
             &group_samples,
             camera,
             query,
             config,
             search.render_heading_step_deg,
-        )
-        .into_iter()
-        .take(search.beams)
-        .collect()
+        );
+        // The best screened. With the position search, each distinct from the better ones: a
+        // moved start and its unmoved candidate that the screening took into one basin are one
+        // beam (measured in that setting only, docs/measurements.md, twenty-second session).
+        let separation_rad = search.beam_separation_deg.to_radians();
+        let mut kept: Vec<(Candidate, Rigid3, f64)> = Vec::with_capacity(search.beams);
+        for entry in screened {
+            if kept.len() >= search.beams {
+                break;
+            }
+            if search.position_half_range_m == 0.0
+                || kept
+                    .iter()
+                    .all(|k| k.1.rotation_angle_to_rad(&entry.1) > separation_rad)
+            {
+                kept.push(entry);
+            }
+        }
+        kept
     };
 
     // Each beam, and the prior, refined by edge alignment from a wide first search.
@@ -332,6 +371,49 @@ pub(crate) fn score_grid(
         candidates,
         group_samples,
     }
+}
+
+/// The position search ([`crate::core::pose_search::position_candidate`]) of each of
+/// `candidates`, on the samples of the rendering nearest its heading (`group_samples` of
+/// [`score_grid`]).
+pub(crate) fn position_candidates(
+    candidates: &[Candidate],
+    group_samples: &[(f64, Vec<EdgeSample>)],
+    map: &OrientedEdgeMap,
+    camera: &Camera,
+    prior: &Rigid3,
+    search: &PoseSearchConfig,
+) -> Vec<Candidate> {
+    let prior_centre = prior.camera_center();
+    let prepared: Vec<(f64, Rigid3, Vec<SearchSample>)> = group_samples
+        .iter()
+        .map(|(rendered_yaw_deg, edge_samples)| {
+            let rendered = turned_pose(prior, *rendered_yaw_deg, 0.0, 0.0);
+            let samples = search_samples(edge_samples, camera, &rendered);
+            (*rendered_yaw_deg, rendered, samples)
+        })
+        .collect();
+    candidates
+        .iter()
+        .map(|candidate| {
+            let rendered_yaw_deg =
+                rendered_heading_deg(candidate.yaw_deg, search.render_heading_step_deg);
+            prepared
+                .iter()
+                .find(|(r, _, _)| wrap_deg(r - rendered_yaw_deg).abs() < 1e-9)
+                .map_or(*candidate, |(_, rendered, samples)| {
+                    position_candidate(
+                        samples,
+                        map,
+                        camera,
+                        rendered,
+                        candidate,
+                        &prior_centre,
+                        search,
+                    )
+                })
+        })
+        .collect()
 }
 
 /// The heading (relative to the prior's, degrees) of the rendering whose edge samples score the
