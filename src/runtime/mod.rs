@@ -14,6 +14,7 @@ pub mod heap;
 pub mod journal;
 pub mod launch;
 pub mod nodes;
+pub mod reference;
 pub mod views;
 
 #[cfg(test)]

@@ -2,15 +2,12 @@
 //! bus give the same poses as `batch::register_batch_frame`, every frame gets exactly one result,
 //! bad messages are rejected without killing a stage, and a dead worker's jobs are redone.
 
-use crate::core::frame::IntrinsicsMode;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-use crate::batch::{register_batch_frame, BatchFrame};
 use crate::io::colmap::{read_cameras_txt, read_images_txt};
 use crate::io::mesh_file::read_mesh;
-use crate::msg::PoseNumbers;
 use crate::stage::ingest::SourceConfig;
 use crate::synth::{generate_scene, SceneKind, SynthConfig};
 use crate::transport::crossbeam::CrossbeamTransport;
@@ -88,6 +85,40 @@ fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
     let config = tiny_scene(dir.path());
     let (mesh, collected) = run_on_crossbeam(&config);
     assert_same_as_batch(&config, &mesh, &collected);
+    // The comparison with `register` (what the soak checks after its kills) names what differs:
+    // a result whose pose moved, one whose confidence changed, and a frame without a result.
+    let mut tampered = collected.results.clone();
+    tampered.sort_by_key(|r| r.frame_id);
+    let (moved, changed, dropped) = (0, 1, 2);
+    tampered[moved].cam_from_world = match tampered[moved].cam_from_world {
+        Some(mut pose) => {
+            pose.tvec_m[0] += 1e-9;
+            Some(pose)
+        }
+        None => Some(crate::msg::PoseNumbers {
+            qvec_wxyz: [1.0, 0.0, 0.0, 0.0],
+            tvec_m: [0.0; 3],
+        }),
+    };
+    tampered[changed].confidence += 0.01;
+    let ids = [moved, changed, dropped].map(|i| tampered[i].frame_id);
+    tampered.remove(dropped);
+    let mismatches = reference::differences_from_register(&config, &mesh, &tampered).unwrap();
+    let found: Vec<u64> = mismatches.iter().map(|m| m.frame_id).collect();
+    assert_eq!(found.len(), 3, "{mismatches:?}");
+    assert!(ids.iter().all(|id| found.contains(id)), "{mismatches:?}");
+    assert!(
+        mismatches.iter().any(|m| m.what.contains("pose")),
+        "{mismatches:?}"
+    );
+    assert!(
+        mismatches.iter().any(|m| m.what.contains("confidence")),
+        "{mismatches:?}"
+    );
+    assert!(
+        mismatches.iter().any(|m| m.what == "no pipeline result"),
+        "{mismatches:?}"
+    );
     // Both flow workers did some of the work.
     let split: std::collections::BTreeSet<u32> = collected
         .results
@@ -185,38 +216,10 @@ fn assert_same_as_batch(
     assert_eq!(collected.frame_count, Some(4));
     assert!(collected.duplicates.is_empty() && collected.missing().is_empty());
     assert_eq!(collected.results.len(), 4);
-
-    let cameras = read_cameras_txt(&config.source.cameras).unwrap();
-    let images = read_images_txt(&config.source.poses).unwrap();
-    for (frame_id, image) in images.iter().enumerate() {
-        let frame = BatchFrame {
-            image_id: image.image_id,
-            camera_id: image.camera_id,
-            name: image.name.clone(),
-            image_path: config.source.images.join(&image.name),
-            depth_path: None,
-            camera: cameras[&image.camera_id],
-            intrinsics: IntrinsicsMode::from_known(config.source.intrinsics_known),
-            initial_cam_from_world: image.cam_from_world,
-        };
-        let batch = register_batch_frame(mesh, &frame, &config.registration, config.source.seed);
-        let result = collected
-            .results
-            .iter()
-            .find(|r| r.frame_id == frame_id as u64)
-            .unwrap();
-        assert_eq!(result.name, image.name);
-        assert_eq!(result.accepted, batch.accepted, "{}", image.name);
-        assert_eq!(result.confidence, batch.confidence, "{}", image.name);
-        assert_eq!(
-            result.evidence.hypotheses as usize, batch.hypotheses,
-            "{}",
-            image.name
-        );
-        assert_eq!(
-            result.cam_from_world,
-            batch.cam_from_world.as_ref().map(PoseNumbers::from)
-        );
+    let mismatches =
+        reference::differences_from_register(config, mesh, &collected.results).unwrap();
+    assert!(mismatches.is_empty(), "{mismatches:?}");
+    for result in &collected.results {
         assert_eq!(result.flow_workers.len(), 5);
     }
     let summary = collect::summary(collected, "crossbeam");

@@ -131,6 +131,38 @@ impl FolderSource {
         self.images.is_empty()
     }
 
+    /// The frames this source emits, with their ids, as `register` reads them (the same photos,
+    /// depth maps, cameras and initial poses): what a pipeline's results are checked against
+    /// ([`crate::runtime::reference`]).
+    pub fn batch_frames(&self) -> Vec<(u64, crate::batch::BatchFrame)> {
+        self.images
+            .iter()
+            .enumerate()
+            .filter_map(|(index, image)| {
+                let camera = *self.cameras.get(&image.camera_id)?;
+                Some((
+                    index as u64,
+                    crate::batch::BatchFrame {
+                        image_id: image.image_id,
+                        camera_id: image.camera_id,
+                        name: image.name.clone(),
+                        image_path: self.config.images.join(&image.name),
+                        depth_path: self
+                            .config
+                            .depth
+                            .as_ref()
+                            .map(|dir| depth_path_for(dir, &image.name)),
+                        camera,
+                        intrinsics: crate::core::frame::IntrinsicsMode::from_known(
+                            self.config.intrinsics_known,
+                        ),
+                        initial_cam_from_world: image.cam_from_world,
+                    },
+                ))
+            })
+            .collect()
+    }
+
     /// The next frame (its id is its position in images.txt), or its failure; `None` at the end.
     pub fn next_frame(&mut self) -> Option<(u64, Result<Frame<'static>, FrameFailed>)> {
         let image = self.images.get(self.next)?.clone();

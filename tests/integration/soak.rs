@@ -2,7 +2,8 @@
 //! register (240×132, initial poses 10 px off), with the change stage on, through `launch` while
 //! a chaos loop SIGKILLs a random stage process (ingest, change and fusion included), flow worker
 //! or the zenoh router every few seconds; the command itself checks exactly one PoseResult and
-//! one change result per frame, at least half the frames accepted, the complete fused change set,
+//! one change result per frame, each pose result equal to `register`'s on the same frame (and at
+//! least one accepted), the complete fused change set,
 //! resident memory after warm-up vs the end, and the shared-memory and socket counts, and exits
 //! non-zero when one fails. Both forms are `#[ignore]`d (minutes of chaos); `.ci/run`
 //! runs the short ones by name (`soak_short_`), the long ones are run by hand and their figures
@@ -59,8 +60,8 @@ fn soak(dir: &Path, transport: &str, frames: usize, kill_every_s: f64, max_rss_g
     assert_eq!(figures["change_results"], frames, "{figures}");
     assert_eq!(figures["change_duplicated"], 0, "{figures}");
     assert_eq!(figures["change_set_complete"], true, "{figures}");
-    let accepted = figures["accepted"].as_u64().unwrap();
-    assert!(2 * accepted >= frames as u64, "{figures}");
+    assert!(figures["accepted"].as_u64().unwrap() > 0, "{figures}");
+    assert_eq!(figures["differing_from_register"], 0, "{figures}");
     assert!(figures["change_maps"].as_u64().unwrap() > 0, "{figures}");
     let kills: u64 = figures["kills"]
         .as_object()

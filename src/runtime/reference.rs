@@ -1,0 +1,87 @@
+//! A pipeline's results checked against the one-process registration of the same frames
+//! (`register`, [`crate::batch::register_batch_frame`]): kills, restarts, re-sends and the work
+//! split must not change what a frame's result says. The soak (`asgreg soak`) and the pipeline
+//! tests use it, so both hold a pipeline to the same standard.
+
+use crate::batch::register_batch_frame;
+use crate::core::mesh::Mesh;
+use crate::msg::{PoseNumbers, PoseResult};
+use crate::stage::ingest::{FolderSource, SourceError};
+
+use super::config::PipelineConfig;
+
+/// A frame whose pipeline result differs from `register`'s, or that has none.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mismatch {
+    pub frame_id: u64,
+    pub name: String,
+    /// What differs, both values named.
+    pub what: String,
+}
+
+impl std::fmt::Display for Mismatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "frame {} ({}): {}", self.frame_id, self.name, self.what)
+    }
+}
+
+/// Registers every frame of `config.source` in this process as `register` does and compares
+/// each with the pipeline's result of that frame (`results`, any order): accepted or not, the
+/// confidence, the number of refined poses and the output pose must be equal (bit for bit: the
+/// same steps on the same inputs). Frames without a result are mismatches too. Costs one
+/// registration per frame.
+pub fn differences_from_register(
+    config: &PipelineConfig,
+    mesh: &Mesh,
+    results: &[PoseResult],
+) -> Result<Vec<Mismatch>, SourceError> {
+    let source = FolderSource::open(&config.source)?;
+    let mut mismatches = Vec::new();
+    for (frame_id, frame) in source.batch_frames() {
+        let mismatch = |what: String| Mismatch {
+            frame_id,
+            name: frame.name.clone(),
+            what,
+        };
+        let Some(result) = results.iter().find(|r| r.frame_id == frame_id) else {
+            mismatches.push(mismatch("no pipeline result".to_string()));
+            continue;
+        };
+        let reference =
+            register_batch_frame(mesh, &frame, &config.registration, config.source.seed);
+        let pose = reference.cam_from_world.as_ref().map(PoseNumbers::from);
+        let differences = [
+            (result.name != reference.name)
+                .then(|| format!("name {} against {}", result.name, reference.name)),
+            (result.accepted != reference.accepted).then(|| {
+                format!(
+                    "accepted {} against register's {}",
+                    result.accepted, reference.accepted
+                )
+            }),
+            (result.confidence.to_bits() != reference.confidence.to_bits()).then(|| {
+                format!(
+                    "confidence {} against register's {}",
+                    result.confidence, reference.confidence
+                )
+            }),
+            (result.evidence.hypotheses as usize != reference.hypotheses).then(|| {
+                format!(
+                    "{} refined poses against register's {}",
+                    result.evidence.hypotheses, reference.hypotheses
+                )
+            }),
+            (result.cam_from_world != pose).then(|| {
+                format!(
+                    "pose {:?} against register's {:?}",
+                    result.cam_from_world, pose
+                )
+            }),
+        ];
+        let what: Vec<String> = differences.into_iter().flatten().collect();
+        if !what.is_empty() {
+            mismatches.push(mismatch(what.join("; ")));
+        }
+    }
+    Ok(mismatches)
+}
