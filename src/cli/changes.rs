@@ -2,8 +2,10 @@
 //! per image a mask PNG (grey levels of `ChangeClass::mask_value`) and an overlay PNG (added
 //! red, removed blue over the photo), `changes.geojson` (fused footprints in the model's
 //! georeferenced frame, with kind, area, height, frames, confirmed) and `report.json` (per-frame
-//! summary, fused objects, settings, time per frame) and `report.html` (`report_html`: per frame
-//! the model and the change classes over the photo). `eval --changes` runs the same function.
+//! summary, fused objects, the free-space test of the `added` ones
+//! (`core::change::free_space`), settings, time per frame) and `report.html` (`report_html`: per
+//! frame the model and the change classes over the photo). `eval --changes` runs the same
+//! function.
 //! Depth: the given maps (`--depth`, e.g. MVS) or, without `--depth`, plane-sweep stereo of each
 //! frame against its nearest registered frames (`core::change::stereo`), written to `depth/`.
 

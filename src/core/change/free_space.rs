@@ -4,7 +4,8 @@
 //! the same place and saw past it. A frame *sees through* an object when its photo depth at an
 //! inner point of the object lies beyond that point by more than the frame's change threshold
 //! (the same threshold, in the same unit, that made the finding frames call it `added`); it
-//! *agrees* when its depth there is within the threshold. An `added` object that more frames
+//! *agrees* when its depth there is within the threshold and the model's surface lies beyond
+//! the point by more (it would call the point `added` too). An `added` object that more frames
 //! see through than agree with is a depth error of the frames that found it, not a new
 //! building, and is not confirmed ([`check_free_space`]).
 //!
@@ -12,7 +13,7 @@
 //! that is off the same way with each of its neighbours (they share its pose), and two such
 //! frames of the same flight line place the same false surface at the same world position
 //! (block seed 2: a 9 m² "building" 4.8 m above open ground, found by view_018 and view_037,
-//! seen through by 14 other frames; docs/measurements.md, branch `change22`). Agreement in
+//! seen through by 15 other frames; docs/measurements.md, branch `change22`). Agreement in
 //! position and height cannot tell it from a building; only the frames that see the ground
 //! behind it can.
 
@@ -135,9 +136,9 @@ pub struct FreeSpaceCheck {
     /// Index of the object in the fused list.
     pub object: usize,
     pub centroid_m: [f64; 3],
-    /// Frames most of whose seen inner points they see through (sorted).
+    /// Frames that see through more of its inner points than they agree with (sorted).
     pub seen_through_by: Vec<usize>,
-    /// Frames that see at least one inner point, and at least as many agreeing as seen through.
+    /// Frames with at least one agreeing inner point and no more seen through (sorted).
     pub agreed_by: Vec<usize>,
     /// More frames see through it than agree: it was confirmed and no longer is.
     pub refuted: bool,
@@ -147,10 +148,10 @@ pub struct FreeSpaceCheck {
 /// ([`inner_points_m`]): a frame votes `through` when more of the points it sees are
 /// [`Sight::Through`] than [`Sight::Agrees`], `agrees` when it has at least one agreeing and no
 /// more through, and abstains otherwise (hidden, unseen or indistinct everywhere: a frame whose
-/// threshold there is wider than the object stands off the model cannot vote for it). An object that more
-/// frames see through than agree with is no longer confirmed. Returns the test of every
-/// confirmed `added` object; `removed` objects are not touched (the ground bounds those,
-/// [`super::model_ground_z_m`]).
+/// threshold there is wider than the object stands off the model cannot vote for it). An
+/// object that more frames see through than agree with is no longer confirmed. Returns the
+/// test of every confirmed `added` object; `removed` objects are not touched (the ground
+/// bounds those, [`super::model_ground_z_m`]).
 pub fn check_free_space(
     objects: &mut [FusedChange],
     frames: &[FrameSight<'_>],
