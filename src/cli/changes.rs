@@ -2,8 +2,10 @@
 //! per image a mask PNG (grey levels of `ChangeClass::mask_value`) and an overlay PNG (added
 //! red, removed blue over the photo), `changes.geojson` (fused footprints in the model's
 //! georeferenced frame, with kind, area, height, frames, confirmed) and `report.json` (per-frame
-//! summary, fused objects, settings, time per frame) and `report.html` (`report_html`: per frame
-//! the model and the change classes over the photo). `eval --changes` runs the same function.
+//! summary, fused objects, the free-space test of the `added` ones
+//! (`core::change::free_space`), settings, time per frame) and `report.html` (`report_html`: per
+//! frame the model and the change classes over the photo). `eval --changes` runs the same
+//! function.
 //! Depth: the given maps (`--depth`, e.g. MVS) or, without `--depth`, plane-sweep stereo of each
 //! frame against its nearest registered frames (`core::change::stereo`), written to `depth/`.
 
@@ -11,6 +13,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
+use asgreg::core::change::free_space::{check_free_space, FrameSight, FreeSpaceCheck};
 use asgreg::core::change::fusion::{fuse_regions, FusedChange, FusionConfig};
 use asgreg::core::change::stereo::{
     choose_neighbours, depth_from_neighbours, NeighbourConfig, PosedCamera, RankingPhotos,
@@ -312,6 +315,42 @@ impl ChangesArgs {
     }
 }
 
+/// What one frame with a change map saw (its photo depth, the model's depth under its pose, its
+/// pose term and threshold settings), kept until fusion for the free-space test.
+struct SeenFrame {
+    /// Index into the report's frames.
+    frame: usize,
+    intrinsics: asgreg::core::camera::PinholeIntrinsics,
+    cam_from_world: asgreg::core::rigid::Rigid3,
+    photo_depth_m: Image<f32>,
+    model_depth_m: Image<f32>,
+    pose_sigma_m: Image<f32>,
+    config: ChangeConfig,
+}
+
+impl SeenFrame {
+    fn sight(&self) -> FrameSight<'_> {
+        FrameSight {
+            frame: self.frame,
+            intrinsics: self.intrinsics,
+            cam_from_world: self.cam_from_world,
+            photo_depth_m: self.photo_depth_m.view(),
+            model_depth_m: self.model_depth_m.view(),
+            pose_sigma_m: Some(self.pose_sigma_m.view()),
+            config: self.config,
+        }
+    }
+}
+
+/// The names of report frames by index, comma-separated.
+fn frame_names(frames: &[FrameChangeReport], indices: &[usize]) -> String {
+    indices
+        .iter()
+        .filter_map(|&i| frames.get(i).map(|f| f.name.as_str()))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// One frame's summary in report.json.
 #[derive(Clone, Debug, Serialize)]
 pub struct FrameChangeReport {
@@ -363,6 +402,10 @@ pub struct ChangesReport {
     pub frames: Vec<FrameChangeReport>,
     /// Fused objects; `frames` index into [`Self::frames`].
     pub objects: Vec<FusedChange>,
+    /// The free-space test of each `added` object fusion confirmed
+    /// (`core::change::free_space`): the frames that see through it and those that agree;
+    /// `object` indexes [`Self::objects`], the frames index [`Self::frames`].
+    pub free_space: Vec<FreeSpaceCheck>,
     pub mean_detect_ms: f64,
     /// "given" (--depth) or "stereo".
     pub depth_source: &'static str,
@@ -455,6 +498,8 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
     let mut classes: Image<ChangeClass> = Image::default();
     let mut mask = Image::default();
     let mut frames = Vec::new();
+    // What each frame with a change map saw, for the free-space test of the fused objects.
+    let mut seen: Vec<SeenFrame> = Vec::new();
     let mut page_pictures: Vec<(String, Vec<Picture>)> = Vec::new();
     let limit = args.limit.unwrap_or(usize::MAX);
     for (index, image) in inputs.images.iter().enumerate().take(limit) {
@@ -637,6 +682,19 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
                 100.0 * dropped.share_below
             );
         }
+        seen.push(SeenFrame {
+            frame: frames.len(),
+            intrinsics: files.camera.intrinsics,
+            cam_from_world: image.cam_from_world,
+            model_depth_m: workspace.model_rendering().depth_m().clone(),
+            pose_sigma_m: workspace.pose_error_sigma_m().clone(),
+            photo_depth_m: depth,
+            config: ChangeConfig {
+                pose_sigma_px: changes.pose_sigma_px,
+                quadratic_sigma_per_m: changes.quadratic_sigma_per_m,
+                ..frame_config
+            },
+        });
         frames.push(FrameChangeReport {
             name: image.name.clone(),
             failure: None,
@@ -654,7 +712,21 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         .enumerate()
         .flat_map(|(index, frame)| frame.regions.iter().map(move |r| (index, r)))
         .collect();
-    let objects = fuse_regions(&regions, &fusion);
+    let mut objects = fuse_regions(&regions, &fusion);
+    let sights: Vec<FrameSight<'_>> = seen.iter().map(SeenFrame::sight).collect();
+    let free_space = check_free_space(&mut objects, &sights);
+    for check in free_space.iter().filter(|c| c.refuted) {
+        tracing::info!(
+            "added object at ({:.1}, {:.1}, {:.1}) not confirmed: {} frames see through it ({}), {} agree ({})",
+            check.centroid_m[0],
+            check.centroid_m[1],
+            check.centroid_m[2],
+            check.seen_through_by.len(),
+            frame_names(&frames, &check.seen_through_by),
+            check.agreed_by.len(),
+            frame_names(&frames, &check.agreed_by),
+        );
+    }
     let timed: Vec<f64> = frames
         .iter()
         .filter(|f| f.failure.is_none())
@@ -677,6 +749,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         mean_detect_ms: timed.iter().sum::<f64>() / timed.len().max(1) as f64,
         frames,
         objects,
+        free_space,
     };
     let geojson = geojson(&report);
     let geojson_path = args.out.join("changes.geojson");

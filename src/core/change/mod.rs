@@ -29,11 +29,14 @@
 //! What the photo cannot see bounds what it may claim: a `removed` region most of whose photo
 //! depth lies below the model's ground (the lowest model surface near it) is a wrong depth, not
 //! a demolition, and is dropped as `unknown` ([`beyond_the_model`]): a demolished building
-//! leaves the ground, and nothing is seen through the ground.
+//! leaves the ground, and nothing is seen through the ground. An `added` object is bounded by
+//! the other frames ([`free_space`]): a surface that more frames see past than agree with is
+//! not a building, however many frames found it.
 //!
 //! Pure functions; [`ChangeWorkspace`] keeps the rasteriser, its buffers and the labels, so a
 //! stream of frames allocates nothing per frame beyond the regions it returns.
 
+pub mod free_space;
 pub mod fusion;
 pub mod polygon;
 pub mod stereo;
@@ -704,6 +707,12 @@ impl ChangeWorkspace {
     /// The model rendering of the last [`detect_changes`] call (depth, face index).
     pub fn model_rendering(&self) -> &RenderBuffers {
         &self.model
+    }
+
+    /// The per-pixel pose term of the last [`detect_changes`] call ([`pose_error_sigma_m`]),
+    /// metres; all zero when its pose was exact.
+    pub fn pose_error_sigma_m(&self) -> &Image<f32> {
+        &self.pose_sigma_m
     }
 }
 
