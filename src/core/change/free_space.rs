@@ -288,6 +288,19 @@ mod tests {
         }
     }
 
+    /// What frame number `frame` of a test saw (exact pose, default settings).
+    fn sight_of(frame: usize, f: &Frame) -> FrameSight<'_> {
+        FrameSight {
+            frame,
+            intrinsics: f.intrinsics,
+            cam_from_world: f.pose,
+            photo_depth_m: f.photo.view(),
+            model_depth_m: f.model.view(),
+            pose_sigma_m: None,
+            config: ChangeConfig::default(),
+        }
+    }
+
     /// Fuses the frames' regions and runs the free-space test: the objects and the tests.
     fn fuse_and_check(
         frames: &[Frame],
@@ -301,15 +314,7 @@ mod tests {
         let sights: Vec<FrameSight<'_>> = frames
             .iter()
             .enumerate()
-            .map(|(i, f)| FrameSight {
-                frame: i,
-                intrinsics: f.intrinsics,
-                cam_from_world: f.pose,
-                photo_depth_m: f.photo.view(),
-                model_depth_m: f.model.view(),
-                pose_sigma_m: None,
-                config: ChangeConfig::default(),
-            })
+            .map(|(i, f)| sight_of(i, f))
             .collect();
         let mut checked = fused.clone();
         let checks = check_free_space(&mut checked, &sights);
@@ -365,21 +370,10 @@ mod tests {
 
     #[test]
     fn a_frame_agrees_only_where_it_could_tell_the_point_from_the_model() {
-        fn sight_of(f: &Frame) -> FrameSight<'_> {
-            FrameSight {
-                frame: 0,
-                intrinsics: f.intrinsics,
-                cam_from_world: f.pose,
-                photo_depth_m: f.photo.view(),
-                model_depth_m: f.model.view(),
-                pose_sigma_m: None,
-                config: ChangeConfig::default(),
-            }
-        }
         let roof = box_quads()[0];
         // A new roof the model lacks.
         let new = frame(&mesh_of(&[ground()]), &mesh_of(&[ground(), roof]), 200.0);
-        let sight = sight_of(&new);
+        let sight = sight_of(0, &new);
         assert_eq!(sight.sight(&Vector3::new(0.0, 0.0, 5.0)), Sight::Agrees);
         // Under it: the photo's roof is in front.
         assert_eq!(sight.sight(&Vector3::new(0.5, 0.3, 3.0)), Sight::Hidden);
@@ -396,7 +390,7 @@ mod tests {
         // tell the point from the model.
         let old = mesh_of(&[ground(), roof]);
         let known = frame(&old, &old, 200.0);
-        let sight = sight_of(&known);
+        let sight = sight_of(0, &known);
         assert_eq!(sight.sight(&Vector3::new(0.5, 0.3, 3.0)), Sight::Hidden);
         assert_eq!(sight.sight(&Vector3::new(0.0, 0.0, 5.0)), Sight::Indistinct);
     }
