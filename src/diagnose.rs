@@ -1087,11 +1087,10 @@ fn reach_in_grid(
         .map(|index| index + 1);
     let (_, screened_pose, screened_support) = screen_candidates(
         std::slice::from_ref(nearest),
-        &grid.group_samples,
+        &grid.groups,
         camera,
         query,
         config,
-        config.pose_search.render_heading_step_deg,
     )
     .into_iter()
     .next()?;

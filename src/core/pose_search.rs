@@ -565,9 +565,6 @@ pub struct Candidate {
     pub yaw_deg: f64,
     pub pitch_deg: f64,
     pub roll_deg: f64,
-    /// The camera-centre offset from the prior's centre, world metres (zero on the rotation
-    /// grid; set by [`position_candidate`]).
-    pub centre_offset_m: Vector3<f64>,
     /// Mean edge-map value over the rendering's samples (0..1).
     pub score: f64,
 }
@@ -625,18 +622,29 @@ pub fn score_relative(
     sum / samples.len() as f64
 }
 
-/// The camera-centre offsets the position search tries around `candidate` (in its camera's
-/// axes, metres; zero included), given the rendering's samples as the candidate sees them
-/// (`relative`: the candidate's camera from the rendering's). An offset `o` moves the centre
-/// and turns the camera back onto the pivot `(0, 0, Z_med)` (the samples' median depth on the
-/// optical axis), so what it changes in the image is what no rotation does:
+/// The camera-centre offsets the position search tries around a candidate and the pivot they
+/// turn onto ([`position_offsets_m`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CentreOffsets {
+    /// In the candidate camera's axes, metres; zero included.
+    pub offsets_m: Vec<Vector3<f64>>,
+    /// The samples' (lower) median depth: the pivot is `(0, 0, pivot_depth_m)` in the
+    /// candidate's camera.
+    pub pivot_depth_m: f64,
+}
+
+/// The camera-centre offsets the position search tries around a candidate, given the
+/// rendering's samples as the candidate sees them (`relative`: the candidate's camera from the
+/// rendering's). An offset `o` moves the centre and turns the camera back onto the pivot
+/// `(0, 0, Z_med)` (the samples' median depth on the optical axis), so what it changes in the
+/// image is what no rotation does:
 /// - sideways (x, y), the parallax of the near samples against the pivot, `f·|o|·(1/Z_near −
 ///   1/Z_med)` px (`Z_near` the samples' 10th depth percentile);
 /// - along the axis (z), the scaling about the pivot, `r·|o|/Z_med` px (`r` the samples' 90th
 ///   percentile of distance from the principal point).
 ///
 /// Each axis's step moves the samples by `step_px` (the screening's first search radius, its
-/// capture), widened to reach `half_range_m` with `max_steps` either side. Empty when there is
+/// capture), widened to reach `half_range_m` with `max_steps` either side. `None` when there is
 /// nothing to search (range 0, or no sample in front of the camera).
 pub fn position_offsets_m(
     samples: &[SearchSample],
@@ -645,11 +653,11 @@ pub fn position_offsets_m(
     half_range_m: f64,
     max_steps: usize,
     step_px: f64,
-) -> Vec<Vector3<f64>> {
+) -> Option<CentreOffsets> {
     if !(half_range_m.is_finite() && half_range_m > 0.0 && step_px.is_finite() && step_px > 0.0)
         || max_steps == 0
     {
-        return Vec::new();
+        return None;
     }
     let k = &camera.intrinsics;
     let mut depths_m: Vec<f64> = Vec::with_capacity(samples.len());
@@ -662,7 +670,7 @@ pub fn position_offsets_m(
         }
     }
     if depths_m.is_empty() {
-        return Vec::new();
+        return None;
     }
     let quantile = |values: &mut Vec<f64>, q: f64| {
         let index = ((values.len() - 1) as f64 * q).round() as usize;
@@ -670,6 +678,11 @@ pub fn position_offsets_m(
     };
     let near_m = quantile(&mut depths_m, 0.1);
     let median_m = quantile(&mut depths_m, 0.5);
+    // The pivot: the lower median.
+    let lower_middle = (depths_m.len() - 1) / 2;
+    let pivot_depth_m = *depths_m
+        .select_nth_unstable_by(lower_middle, f64::total_cmp)
+        .1;
     let radius_px = quantile(&mut radii_px, 0.9);
     let focal_px = 0.5 * (k.fx_px + k.fy_px);
     let sideways_px_per_m = focal_px * (1.0 / near_m - 1.0 / median_m);
@@ -687,15 +700,18 @@ pub fn position_offsets_m(
             .collect()
     };
     let (sideways, along) = (axis(sideways_px_per_m), axis(along_px_per_m));
-    let mut offsets = Vec::with_capacity(sideways.len() * sideways.len() * along.len());
+    let mut offsets_m = Vec::with_capacity(sideways.len() * sideways.len() * along.len());
     for &z in &along {
         for &y in &sideways {
             for &x in &sideways {
-                offsets.push(Vector3::new(x, y, z));
+                offsets_m.push(Vector3::new(x, y, z));
             }
         }
     }
-    offsets
+    Some(CentreOffsets {
+        offsets_m,
+        pivot_depth_m,
+    })
 }
 
 /// `pose` with its centre moved by `offset_cam_m` (in its camera's axes) and turned by the
@@ -716,46 +732,31 @@ pub fn moved_onto_pivot(
 
 /// The position search of one grid candidate: every offset of [`position_offsets_m`] scored as
 /// the grid scores (the rendering's samples, `rendered` its pose), and the candidate moved to
-/// the best (itself when no offset scores higher). `prior_centre` is the centre the grid turned
-/// about, for the candidate's `centre_offset_m`.
+/// the best; `None` when no offset scores higher than the candidate itself.
 pub fn position_candidate(
     samples: &[SearchSample],
     map: &OrientedEdgeMap,
     camera: &Camera,
     rendered: &Rigid3,
     candidate: &Candidate,
-    prior_centre: &Vector3<f64>,
     config: &PoseSearchConfig,
-) -> Candidate {
+) -> Option<Candidate> {
     let rendered_inverse = rendered.inverse();
     let relative = candidate.cam_from_world.compose(&rendered_inverse);
-    let offsets = position_offsets_m(
+    let CentreOffsets {
+        offsets_m,
+        pivot_depth_m,
+    } = position_offsets_m(
         samples,
         camera,
         &relative,
         config.position_half_range_m,
         config.position_max_steps,
         config.refine_initial_radius_px,
-    );
-    let mut depths_m: Vec<f64> = samples
-        .iter()
-        .map(|s| relative.transform_point(&s.point_cam).z)
-        .filter(|z| *z > MIN_DEPTH_M)
-        .collect();
-    if offsets.is_empty() || depths_m.is_empty() {
-        return *candidate;
-    }
-    let middle = (depths_m.len() - 1) / 2;
-    let pivot_cam = Vector3::new(
-        0.0,
-        0.0,
-        *depths_m.select_nth_unstable_by(middle, f64::total_cmp).1,
-    );
-    let mut best = *candidate;
-    for offset in &offsets {
-        if offset.norm() == 0.0 {
-            continue;
-        }
+    )?;
+    let pivot_cam = Vector3::new(0.0, 0.0, pivot_depth_m);
+    let mut best: Option<Candidate> = None;
+    for offset in offsets_m.iter().filter(|o| o.norm() > 0.0) {
         let pose = moved_onto_pivot(&candidate.cam_from_world, offset, &pivot_cam);
         let moved = pose.compose(&rendered_inverse);
         let score = score_relative(
@@ -765,13 +766,12 @@ pub fn position_candidate(
             &moved.rotation.to_rotation_matrix().into_inner(),
             &moved.translation,
         );
-        if score > best.score {
-            best = Candidate {
+        if score > best.map_or(candidate.score, |b| b.score) {
+            best = Some(Candidate {
                 cam_from_world: pose,
-                centre_offset_m: pose.camera_center() - prior_centre,
                 score,
                 ..*candidate
-            };
+            });
         }
     }
     best
@@ -808,7 +808,6 @@ pub fn score_rotations(
                     yaw_deg,
                     pitch_deg,
                     roll_deg,
-                    centre_offset_m: Vector3::zeros(),
                     score: score_rotation(samples, map, camera, &relative),
                 });
             }
@@ -822,21 +821,34 @@ pub fn score_rotations(
 pub fn select_beams(candidates: &[Candidate], count: usize, separation_deg: f64) -> Vec<Candidate> {
     let mut order: Vec<&Candidate> = candidates.iter().collect();
     order.sort_by(|a, b| b.score.total_cmp(&a.score));
+    first_distinct(order, count, separation_deg, |c| &c.cam_from_world)
+        .into_iter()
+        .copied()
+        .collect()
+}
+
+/// The first `count` of `ordered` (best first) whose pose differs from every one kept before it
+/// by more than the separation (rotation angle).
+pub fn first_distinct<T>(
+    ordered: impl IntoIterator<Item = T>,
+    count: usize,
+    separation_deg: f64,
+    pose: impl Fn(&T) -> &Rigid3,
+) -> Vec<T> {
     let separation_rad = separation_deg.to_radians();
-    let mut beams: Vec<Candidate> = Vec::with_capacity(count);
-    for candidate in order {
-        if beams.len() >= count {
+    let mut kept: Vec<T> = Vec::with_capacity(count);
+    for item in ordered {
+        if kept.len() >= count {
             break;
         }
-        if beams.iter().all(|beam| {
-            beam.cam_from_world
-                .rotation_angle_to_rad(&candidate.cam_from_world)
-                > separation_rad
-        }) {
-            beams.push(*candidate);
+        if kept
+            .iter()
+            .all(|k| pose(k).rotation_angle_to_rad(pose(&item)) > separation_rad)
+        {
+            kept.push(item);
         }
     }
-    beams
+    kept
 }
 
 #[cfg(test)]
@@ -924,7 +936,7 @@ mod tests {
     }
     /// A scene of line segments 5–15 m away: a candidate whose centre is 2 m off sideways but
     /// turned onto the scene (the best a rotation can do) is moved by the position search to
-    /// within a step of the true centre, and scores higher there; with the range 0 it stays.
+    /// within a step of the true centre, and scores higher there; with the range 0 it is not moved.
     #[test]
     fn the_position_search_moves_a_candidate_back_to_the_centre_a_rotation_cannot_reach() {
         use crate::core::camera::PinholeIntrinsics;
@@ -1020,11 +1032,10 @@ mod tests {
             yaw_deg: 0.0,
             pitch_deg: 0.0,
             roll_deg: 0.0,
-            centre_offset_m: Vector3::zeros(),
             score: score_rotation(&samples, &map, &camera, &Matrix3::identity()),
         };
-        let centre = off.camera_center();
-        let moved = position_candidate(&samples, &map, &camera, &off, &candidate, &centre, &config);
+        let moved = position_candidate(&samples, &map, &camera, &off, &candidate, &config)
+            .expect("an offset scores higher than the candidate");
         let miss_m = (moved.cam_from_world.camera_center() - truth.camera_center()).norm();
         assert!(
             moved.score > candidate.score + 0.1,
@@ -1036,17 +1047,14 @@ mod tests {
             miss_m < 0.75,
             "the moved centre is {miss_m} m from the truth"
         );
-        assert!(
-            (moved.centre_offset_m - (moved.cam_from_world.camera_center() - centre)).norm() < 1e-9
-        );
         // Off, the candidate stays as it is.
         let without = PoseSearchConfig {
             position_half_range_m: 0.0,
             ..config
         };
         assert_eq!(
-            position_candidate(&samples, &map, &camera, &off, &candidate, &centre, &without),
-            candidate
+            position_candidate(&samples, &map, &camera, &off, &candidate, &without),
+            None
         );
     }
 }

@@ -9,7 +9,9 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::batch::BatchFrame;
 use crate::core::camera::Camera;
+use crate::core::frame::IntrinsicsMode;
 use crate::core::image::Image;
 use crate::frame_files::{depth_path_for, frame_seed, FrameLoader};
 use crate::io::colmap::ImagePose;
@@ -134,7 +136,7 @@ impl FolderSource {
     /// The frames this source emits, with their ids, as `register` reads them (the same photos,
     /// depth maps, cameras and initial poses): what a pipeline's results are checked against
     /// ([`crate::runtime::reference`]).
-    pub fn batch_frames(&self) -> Vec<(u64, crate::batch::BatchFrame)> {
+    pub fn batch_frames(&self) -> Vec<(u64, BatchFrame)> {
         self.images
             .iter()
             .enumerate()
@@ -142,20 +144,14 @@ impl FolderSource {
                 let camera = *self.cameras.get(&image.camera_id)?;
                 Some((
                     index as u64,
-                    crate::batch::BatchFrame {
+                    BatchFrame {
                         image_id: image.image_id,
                         camera_id: image.camera_id,
                         name: image.name.clone(),
                         image_path: self.config.images.join(&image.name),
-                        depth_path: self
-                            .config
-                            .depth
-                            .as_ref()
-                            .map(|dir| depth_path_for(dir, &image.name)),
+                        depth_path: self.depth_path(image),
                         camera,
-                        intrinsics: crate::core::frame::IntrinsicsMode::from_known(
-                            self.config.intrinsics_known,
-                        ),
+                        intrinsics: IntrinsicsMode::from_known(self.config.intrinsics_known),
                         initial_cam_from_world: image.cam_from_world,
                     },
                 ))
@@ -183,6 +179,14 @@ impl FolderSource {
         self.next_frame()
     }
 
+    /// The image's depth map, when the source has a depth folder.
+    fn depth_path(&self, image: &ImagePose) -> Option<PathBuf> {
+        self.config
+            .depth
+            .as_ref()
+            .map(|dir| depth_path_for(dir, &image.name))
+    }
+
     fn load(&self, image: &ImagePose) -> Result<Frame<'static>, FrameFailed> {
         let failed = |reason: String| FrameFailed {
             name: image.name.clone(),
@@ -201,11 +205,7 @@ impl FolderSource {
                 image.name
             )));
         }
-        let depth_path = self
-            .config
-            .depth
-            .as_ref()
-            .map(|dir| depth_path_for(dir, &image.name));
+        let depth_path = self.depth_path(image);
         let files = self
             .loader
             .load(

@@ -26,8 +26,9 @@ use crate::core::edge_align::{
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::pose_search::{
-    position_candidate, score_rotation, score_rotations, search_samples, select_beams, turned_pose,
-    wrap_deg, Candidate, OrientedEdgeMap, PoseSearchConfig, SearchSample,
+    first_distinct, position_candidate, score_rotation, score_rotations, search_samples,
+    select_beams, turned_pose, wrap_deg, Candidate, OrientedEdgeMap, PoseSearchConfig,
+    SearchSample,
 };
 use crate::core::raster::Rasterizer;
 use crate::core::rigid::Rigid3;
@@ -97,10 +98,8 @@ pub fn search_pose(
     let started = Instant::now();
     let started_cpu_ms = process_cpu_ms();
     let map = OrientedEdgeMap::build(query, search);
-    let SearchGrid {
-        candidates,
-        group_samples,
-    } = score_grid(mesh, camera, prior, &map, config, rasterizer, view);
+    let SearchGrid { candidates, groups } =
+        score_grid(mesh, camera, prior, &map, config, rasterizer, view);
     let grid_beams: Vec<(Candidate, Rigid3, f64)> = if search.screened_candidates == 0 {
         select_beams(&candidates, search.beams, search.beam_separation_deg)
             .into_iter()
@@ -109,59 +108,39 @@ pub fn search_pose(
     } else {
         // The grid's best, and the best of them moved by the position search (both: a moved
         // candidate is another start for the screening, not a replacement).
-        let mut screened = select_beams(
+        let mut starts = select_beams(
             &candidates,
             search.screened_candidates,
             search.beam_separation_deg,
         );
-        if search.position_half_range_m > 0.0 {
-            let moved: Vec<Candidate> = position_candidates(
+        let positioned = search.position_half_range_m > 0.0;
+        if positioned {
+            let moved = position_candidates(
                 &select_beams(
                     &candidates,
                     search.positioned_candidates,
                     search.beam_separation_deg,
                 ),
-                &group_samples,
+                &groups,
                 &map,
                 camera,
-                prior,
                 search,
-            )
-            .into_iter()
-            .filter(|c| c.centre_offset_m.norm() > 0.0)
-            .collect();
-            screened.extend(select_beams(
+            );
+            starts.extend(select_beams(
                 &moved,
                 search.screened_candidates,
                 search.beam_separation_deg,
             ));
         }
-        let screened = screen_candidates(
-            &screened,
-            &group_samples,
-            camera,
-            query,
-            config,
-            search.render_heading_step_deg,
-        );
+        let screened = screen_candidates(&starts, &groups, camera, query, config);
         // The best screened. With the position search, each distinct from the better ones: a
         // moved start and its unmoved candidate that the screening took into one basin are one
         // beam (measured in that setting only, docs/measurements.md, twenty-second session).
-        let separation_rad = search.beam_separation_deg.to_radians();
-        let mut kept: Vec<(Candidate, Rigid3, f64)> = Vec::with_capacity(search.beams);
-        for entry in screened {
-            if kept.len() >= search.beams {
-                break;
-            }
-            if search.position_half_range_m == 0.0
-                || kept
-                    .iter()
-                    .all(|k| k.1.rotation_angle_to_rad(&entry.1) > separation_rad)
-            {
-                kept.push(entry);
-            }
+        if positioned {
+            first_distinct(screened, search.beams, search.beam_separation_deg, |s| &s.1)
+        } else {
+            screened.into_iter().take(search.beams).collect()
         }
-        kept
     };
 
     // Each beam, and the prior, refined by edge alignment from a wide first search.
@@ -315,11 +294,35 @@ pub fn search_pose(
     })
 }
 
-/// The rotation grid of a search around `prior`: every candidate scored on `map`, and per
-/// rendered heading the edge samples that scored its candidates (the screening aligns on them).
+/// One rendering of the grid: its heading relative to the prior's, its pose, and the model's
+/// edge samples it gave, as the screening aligns on them (world points) and as the grid scores
+/// them (in the rendering's camera).
+pub(crate) struct HeadingGroup {
+    pub rendered_yaw_deg: f64,
+    pub rendered: Rigid3,
+    pub edge_samples: Vec<EdgeSample>,
+    pub search_samples: Vec<SearchSample>,
+}
+
+/// The group whose rendering scores the candidates of heading `yaw_deg` (relative to the
+/// prior's, degrees): the nearest rendered heading ([`rendered_heading_deg`]); `None` when that
+/// rendering had too few samples.
+fn group_of(
+    groups: &[HeadingGroup],
+    yaw_deg: f64,
+    render_heading_step_deg: f64,
+) -> Option<&HeadingGroup> {
+    let rendered = rendered_heading_deg(yaw_deg, render_heading_step_deg);
+    groups
+        .iter()
+        .find(|g| wrap_deg(g.rendered_yaw_deg - rendered).abs() < 1e-9)
+}
+
+/// The rotation grid of a search around `prior`: every candidate scored on `map`, and the
+/// renderings that scored them (the screening and the position search work on their samples).
 pub(crate) struct SearchGrid {
     pub candidates: Vec<Candidate>,
-    pub group_samples: Vec<(f64, Vec<EdgeSample>)>,
+    pub groups: Vec<HeadingGroup>,
 }
 
 /// Scores the grid of `config.pose_search` around `prior` on the query's edge map `map`, a
@@ -348,8 +351,7 @@ pub(crate) fn score_grid(
         }
     }
     let mut candidates: Vec<Candidate> = Vec::new();
-    // Per heading group: its rendered heading and its edge samples (world points, normals).
-    let mut group_samples: Vec<(f64, Vec<EdgeSample>)> = Vec::with_capacity(groups.len());
+    let mut rendered_groups: Vec<HeadingGroup> = Vec::with_capacity(groups.len());
     for (rendered_yaw_deg, yaws) in &groups {
         let rendered = turned_pose(prior, *rendered_yaw_deg, 0.0, 0.0);
         let edge_samples = rendered_edge_samples(mesh, camera, &rendered, config, rasterizer, view);
@@ -365,53 +367,40 @@ pub(crate) fn score_grid(
             (*rendered_yaw_deg, yaws),
             search,
         ));
-        group_samples.push((*rendered_yaw_deg, edge_samples));
+        rendered_groups.push(HeadingGroup {
+            rendered_yaw_deg: *rendered_yaw_deg,
+            rendered,
+            edge_samples,
+            search_samples: samples,
+        });
     }
     SearchGrid {
         candidates,
-        group_samples,
+        groups: rendered_groups,
     }
 }
 
 /// The position search ([`crate::core::pose_search::position_candidate`]) of each of
-/// `candidates`, on the samples of the rendering nearest its heading (`group_samples` of
-/// [`score_grid`]).
+/// `candidates` on the samples of the rendering nearest its heading: the candidates it moved.
 pub(crate) fn position_candidates(
     candidates: &[Candidate],
-    group_samples: &[(f64, Vec<EdgeSample>)],
+    groups: &[HeadingGroup],
     map: &OrientedEdgeMap,
     camera: &Camera,
-    prior: &Rigid3,
     search: &PoseSearchConfig,
 ) -> Vec<Candidate> {
-    let prior_centre = prior.camera_center();
-    let prepared: Vec<(f64, Rigid3, Vec<SearchSample>)> = group_samples
-        .iter()
-        .map(|(rendered_yaw_deg, edge_samples)| {
-            let rendered = turned_pose(prior, *rendered_yaw_deg, 0.0, 0.0);
-            let samples = search_samples(edge_samples, camera, &rendered);
-            (*rendered_yaw_deg, rendered, samples)
-        })
-        .collect();
     candidates
         .iter()
-        .map(|candidate| {
-            let rendered_yaw_deg =
-                rendered_heading_deg(candidate.yaw_deg, search.render_heading_step_deg);
-            prepared
-                .iter()
-                .find(|(r, _, _)| wrap_deg(r - rendered_yaw_deg).abs() < 1e-9)
-                .map_or(*candidate, |(_, rendered, samples)| {
-                    position_candidate(
-                        samples,
-                        map,
-                        camera,
-                        rendered,
-                        candidate,
-                        &prior_centre,
-                        search,
-                    )
-                })
+        .filter_map(|candidate| {
+            let group = group_of(groups, candidate.yaw_deg, search.render_heading_step_deg)?;
+            position_candidate(
+                &group.search_samples,
+                map,
+                camera,
+                &group.rendered,
+                candidate,
+                search,
+            )
         })
         .collect()
 }
@@ -429,11 +418,10 @@ fn rendered_heading_deg(yaw_deg: f64, render_heading_step_deg: f64) -> f64 {
 /// rendering's, a few degrees of heading away: good enough to rank, not to output.
 pub(crate) fn screen_candidates(
     candidates: &[Candidate],
-    group_samples: &[(f64, Vec<EdgeSample>)],
+    groups: &[HeadingGroup],
     camera: &Camera,
     query: ImageView<'_, f32>,
     config: &RegistrationConfig,
-    render_heading_step_deg: f64,
 ) -> Vec<(Candidate, Rigid3, f64)> {
     let align = EdgeAlignConfig {
         initial_search_radius_px: config
@@ -454,10 +442,12 @@ pub(crate) fn screen_candidates(
     let mut screened: Vec<(Candidate, Rigid3, f64)> = candidates
         .iter()
         .filter_map(|candidate| {
-            let rendered = rendered_heading_deg(candidate.yaw_deg, render_heading_step_deg);
-            let (_, samples) = group_samples
-                .iter()
-                .find(|(r, _)| wrap_deg(r - rendered).abs() < 1e-9)?;
+            let samples = &group_of(
+                groups,
+                candidate.yaw_deg,
+                config.pose_search.render_heading_step_deg,
+            )?
+            .edge_samples;
             let mut pose = candidate.cam_from_world;
             for (radius_px, query_level) in radii.iter().zip(&blurred) {
                 let (_, next, _) = align_level(
