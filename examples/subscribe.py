@@ -19,6 +19,7 @@ import argparse
 import json
 import queue
 import sys
+import time
 
 import zenoh
 
@@ -64,6 +65,11 @@ def describe_change_set(change_set):
         lines.append(f"  {o['kind']:<7} {o['footprint_area_m2']:7.1f} m2 {o['height_m']:5.1f} m high "
                      f"frames {o['frames']} {'confirmed' if o.get('confirmed') else 'unconfirmed'}")
     return "\n".join(lines)
+
+
+# Seconds a subscriber that stops at the final change set keeps listening for change results
+# still on their way (another key than the set's, so not ordered with it).
+CHANGE_RESULTS_GRACE_S = 2.0
 
 
 def change_set_geojson(change_set):
@@ -147,6 +153,29 @@ def main():
                     print(describe_change_set(message), flush=True)
                     if message.get("complete") and final_set is None:
                         final_set = message
+            # The change results and the change set travel on different keys, which zenoh does
+            # not order with each other: a frame's change result may arrive after the final set.
+            # Keep listening until the set's frames have theirs, or for a grace period.
+            if final_set is not None:
+                expected = final_set.get("frames_with_result") or 0
+                grace_ends = time.monotonic() + CHANGE_RESULTS_GRACE_S
+                while sum(1 for kind, _ in seen if kind == "change") < expected:
+                    left = grace_ends - time.monotonic()
+                    if left <= 0:
+                        break
+                    try:
+                        kind, sample = arrived.get(timeout=left)
+                    except queue.Empty:
+                        break
+                    if kind != "change":
+                        continue
+                    try:
+                        message = json.loads(sample.payload.to_string())
+                    except json.JSONDecodeError:
+                        continue
+                    if (kind, message.get("frame_id")) not in seen:
+                        seen.add((kind, message.get("frame_id")))
+                        print(describe_change(message), flush=True)
         except KeyboardInterrupt:
             pass
         for subscriber in subscribers:
