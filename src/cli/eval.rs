@@ -108,6 +108,12 @@ pub struct EvalArgs {
     pub seed: u64,
     #[command(flatten)]
     pub coarse: CoarseArgs,
+    /// Do not trust the `heading` level's pitch and roll: by default that level, a drone's prior,
+    /// registers with its tilt trusted within the IMU error the scene was made with (scene.json's
+    /// `config.heading_noise.tilt_max_deg`), as `register --prior-tilt-deg` does for a drone
+    /// whose IMU is known; --prior-tilt-deg, when given, is used instead.
+    #[arg(long)]
+    pub untrusted_heading_tilt: bool,
     /// Skip the ICP baselines (point-to-plane and point-to-point on the photos' depth maps).
     #[arg(long)]
     pub no_icp: bool,
@@ -199,6 +205,55 @@ fn parse_level(text: &str) -> Result<Level, String> {
     })
 }
 
+/// The tilt the `heading` level's prior is trusted within, degrees: --prior-tilt-deg when given,
+/// else the IMU error the scene was made with (`config.heading_noise.tilt_max_deg` in
+/// scene.json), none with --untrusted-heading-tilt or when the level is not run. A drone's pitch
+/// and roll come from its IMU (gravity), so the level is registered as a drone would be; the
+/// Gaussian px levels disturb all six degrees of freedom and trust nothing.
+fn heading_level_tilt_deg(args: &EvalArgs) -> anyhow::Result<Option<f64>> {
+    if !args.levels.contains(&Level::Heading) || args.untrusted_heading_tilt {
+        return Ok(None);
+    }
+    if args.coarse.prior_tilt_deg > 0.0 {
+        return Ok(Some(args.coarse.prior_tilt_deg));
+    }
+    let path = args.scene.join("scene.json");
+    let text = std::fs::read_to_string(&path).with_context(|| {
+        format!(
+            "reading {} for the heading level's IMU tilt: pass --prior-tilt-deg (the prior's pitch/roll error, degrees) or --untrusted-heading-tilt",
+            path.display()
+        )
+    })?;
+    let summary: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{} is not JSON", path.display()))?;
+    let tilt_deg = summary["config"]["heading_noise"]["tilt_max_deg"]
+        .as_f64()
+        .filter(|t| t.is_finite() && *t > 0.0)
+        .with_context(|| {
+            format!(
+                "{} has no positive config.heading_noise.tilt_max_deg: pass --prior-tilt-deg (the heading level's pitch/roll error, degrees) or --untrusted-heading-tilt",
+                path.display()
+            )
+        })?;
+    eprintln!(
+        "heading level: the prior's pitch and roll trusted within {tilt_deg}° (the scene's IMU error, {}; --untrusted-heading-tilt to search them as the px levels do)",
+        path.display()
+    );
+    Ok(Some(tilt_deg))
+}
+
+/// The coarse settings `level` registers with: the heading level's trusted tilt
+/// ([`heading_level_tilt_deg`]) on it, the command line's elsewhere.
+fn level_coarse(coarse: &CoarseArgs, level: Level, heading_tilt_deg: Option<f64>) -> CoarseArgs {
+    match (level, heading_tilt_deg) {
+        (Level::Heading, Some(tilt_deg)) => CoarseArgs {
+            prior_tilt_deg: tilt_deg,
+            ..*coarse
+        },
+        _ => *coarse,
+    }
+}
+
 /// What registers a frame in an evaluation run.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Method {
@@ -242,6 +297,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         .context("gt/cameras.txt defines no camera")?;
     let false_accept_px = 0.05 * f64::from(longest_side_px);
 
+    let heading_tilt_deg = heading_level_tilt_deg(args)?;
     let mut jobs = Vec::new();
     for &level in &args.levels {
         let poses_path = args.scene.join(format!("initial/{level}/images.txt"));
@@ -275,6 +331,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let loader = FrameLoader::default();
     let mut page_frames: Vec<ReportFrame> = Vec::new();
     for (level, method, initial) in jobs {
+        let coarse = level_coarse(&args.coarse, level, heading_tilt_deg);
         if !methods_seen.contains(&method) {
             methods_seen.push(method);
         }
@@ -300,7 +357,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         let mut asg_row = None;
         let outcome = match method {
             Method::Asg(intrinsics) if args.diagnose_search => {
-                let config = registration_config(query_mode, intrinsics, &args.coarse);
+                let config = registration_config(query_mode, intrinsics, &coarse);
                 let started = std::time::Instant::now();
                 let diagnosis = with_scene_frame(
                     &args.scene,
@@ -341,7 +398,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 outcome
             }
             Method::Asg(intrinsics) if args.diagnose => {
-                let config = registration_config(query_mode, intrinsics, &args.coarse);
+                let config = registration_config(query_mode, intrinsics, &coarse);
                 let started = std::time::Instant::now();
                 match with_scene_frame(
                     &args.scene,
@@ -394,7 +451,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 }
             }
             Method::Asg(intrinsics) => {
-                let config = registration_config(query_mode, intrinsics, &args.coarse);
+                let config = registration_config(query_mode, intrinsics, &coarse);
                 let (report, final_delta_px) = register_scene_frame(
                     &mesh,
                     &args.scene,
@@ -597,7 +654,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         .map(|(key, frames)| (*key, cell_stats(frames, false_accept_px)))
         .collect();
     let methods: Vec<&str> = methods_seen.iter().map(|m| m.name()).collect();
-    let mut table = results_markdown(args, &stats, &methods, false_accept_px);
+    let mut table = results_markdown(args, &stats, &methods, false_accept_px, heading_tilt_deg);
     let calibration: BTreeMap<&str, Vec<CalibrationBin>> = methods
         .iter()
         .filter(|method| !method.starts_with("ICP"))
@@ -620,6 +677,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         "scene": args.scene,
         "query": format!("{:?}", args.query),
         "false_accept_threshold_px": false_accept_px,
+        "heading_tilt_trusted_deg": heading_tilt_deg,
         "calibration": calibration,
         "cells": stats.iter().map(|((level, method), s)| serde_json::json!({
             "level_px": level, "method": method, "stats": s,
@@ -1441,6 +1499,7 @@ fn results_markdown(
     stats: &BTreeMap<(Level, &str), CellStats>,
     methods: &[&str],
     false_accept_px: f64,
+    heading_tilt_deg: Option<f64>,
 ) -> String {
     let mut out = String::new();
     let _ = writeln!(
@@ -1451,6 +1510,12 @@ ICP has no self-check: its 'accepted' is the paper's success criterion δ < 20 p
         args.scene.display(),
         args.query
     );
+    if let Some(tilt_deg) = heading_tilt_deg {
+        let _ = writeln!(
+            out,
+            "The heading level registers with its prior's pitch and roll trusted within {tilt_deg}° (a drone's IMU; `register --prior-tilt-deg`).\n"
+        );
+    }
     let _ = writeln!(out, "## Accuracy of accepted frames (paper Table 1)\n");
     let _ = write!(out, "| initial δ (px) |");
     for method in methods {
@@ -1597,4 +1662,73 @@ fn plot_svg(stats: &BTreeMap<(Level, &str), CellStats>, methods: &[&str]) -> Str
     }
     svg.push_str("</svg>\n");
     svg
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Parser)]
+    struct Command {
+        #[command(flatten)]
+        eval: EvalArgs,
+    }
+
+    fn eval_args(scene: &Path, extra: &[&str]) -> EvalArgs {
+        let mut argv = vec![
+            "eval",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--out",
+            "unused",
+        ];
+        argv.extend_from_slice(extra);
+        Command::try_parse_from(argv).unwrap().eval
+    }
+
+    /// The heading level, a drone's prior, registers with the IMU tilt the scene was made with;
+    /// the px levels, Gaussian on all six degrees of freedom, trust no tilt.
+    #[test]
+    fn the_heading_level_trusts_the_tilt_the_scene_was_made_with() {
+        let scene = tempfile::tempdir().unwrap();
+        std::fs::write(
+            scene.path().join("scene.json"),
+            r#"{"config": {"heading_noise": {"tilt_max_deg": 1.5}}}"#,
+        )
+        .unwrap();
+        let args = eval_args(scene.path(), &["--levels", "30,heading"]);
+        let tilt = heading_level_tilt_deg(&args).unwrap();
+        assert_eq!(tilt, Some(1.5));
+        assert_eq!(
+            level_coarse(&args.coarse, Level::Heading, tilt).prior_tilt_deg,
+            1.5
+        );
+        assert_eq!(
+            level_coarse(&args.coarse, Level::Px(30), tilt).prior_tilt_deg,
+            0.0
+        );
+
+        let given = eval_args(
+            scene.path(),
+            &["--levels", "heading", "--prior-tilt-deg", "3"],
+        );
+        assert_eq!(heading_level_tilt_deg(&given).unwrap(), Some(3.0));
+        let untrusted = eval_args(
+            scene.path(),
+            &["--levels", "heading", "--untrusted-heading-tilt"],
+        );
+        assert_eq!(heading_level_tilt_deg(&untrusted).unwrap(), None);
+        let px_only = eval_args(scene.path(), &["--levels", "30"]);
+        assert_eq!(heading_level_tilt_deg(&px_only).unwrap(), None);
+
+        std::fs::write(scene.path().join("scene.json"), r#"{"config": {}}"#).unwrap();
+        let message = format!("{:#}", heading_level_tilt_deg(&args).unwrap_err());
+        assert!(
+            message.contains("config.heading_noise.tilt_max_deg")
+                && message.contains("--untrusted-heading-tilt"),
+            "{message}"
+        );
+    }
 }
