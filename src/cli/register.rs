@@ -15,7 +15,7 @@ use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig, Unknown
 use asgreg::core::image::Image;
 use asgreg::core::pose_search::PoseSearchConfig;
 use asgreg::core::shading::AsgOptions;
-use asgreg::core::verify::{OutputChoice, VerifyConfig};
+use asgreg::core::verify::{ConvergenceMeasure, OutputChoice, VerifyConfig};
 use asgreg::frame_files::{depth_path_for, FrameLoader, DEFAULT_WORKING_WIDTH_PX};
 use asgreg::io::colmap::{ColmapModel, ImagePose};
 use asgreg::io::colmap_model::write_model_dir;
@@ -283,6 +283,11 @@ pub struct CoarseArgs {
     /// coarse poses' spread (1 or more turns the convergence test off).
     #[arg(long, default_value_t = RegistrationConfig::default().verify.max_convergence_ratio)]
     pub max_convergence_ratio: f64,
+    /// Verification: what --max-convergence-ratio bounds: the refined poses' spread over their
+    /// coarse poses' (`spread`), or the share of the coarse poses' differences the refined poses
+    /// keep (`carried`: the flow's noise averages out of it).
+    #[arg(long, value_enum, default_value_t = ConvergenceMeasureArg::Spread)]
+    pub convergence_measure: ConvergenceMeasureArg,
     /// Lifting: matches within this many px of a depth discontinuity of the rendering are not
     /// lifted (0: every match is).
     #[arg(long, default_value_t = RegistrationConfig::default().lift_edge_margin_px)]
@@ -434,6 +439,22 @@ pub struct CoarseArgs {
     pub rival_share: f64,
 }
 
+/// What the convergence test bounds ([`ConvergenceMeasure`]).
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ConvergenceMeasureArg {
+    Spread,
+    Carried,
+}
+
+impl From<ConvergenceMeasureArg> for ConvergenceMeasure {
+    fn from(arg: ConvergenceMeasureArg) -> Self {
+        match arg {
+            ConvergenceMeasureArg::Spread => Self::Spread,
+            ConvergenceMeasureArg::Carried => Self::Carried,
+        }
+    }
+}
+
 /// Which pose of the agreeing refined poses a frame outputs.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum VerifyOutputArg {
@@ -463,6 +484,7 @@ impl Default for CoarseArgs {
             coarse_rotation_deg: defaults.coarse_rotation_sigma_deg,
             coarse_translation_fraction: defaults.coarse_translation_sigma_fraction,
             max_convergence_ratio: defaults.verify.max_convergence_ratio,
+            convergence_measure: ConvergenceMeasureArg::Spread,
             lift_edge_margin_px: defaults.lift_edge_margin_px,
             no_edge_align: false,
             edge_search_px: defaults.edge_align.initial_search_radius_px,
@@ -650,6 +672,7 @@ pub fn registration_config(
         },
         verify: VerifyConfig {
             max_convergence_ratio: coarse.max_convergence_ratio,
+            convergence_measure: coarse.convergence_measure.into(),
             output: coarse.verify_output.into(),
             ..defaults.verify
         },

@@ -49,8 +49,26 @@ pub struct VerifyConfig {
     /// from 81/46/21/10 % to 92/62/29/15 % at 30/57/80/104 px with still no false accept, and on
     /// Brighton from 0 to 3 of 18 frames (4.6–9.2 px from 19.8–27.3 px), none wrong.
     pub max_convergence_ratio: f64,
+    /// What `max_convergence_ratio` bounds.
+    pub convergence_measure: ConvergenceMeasure,
     /// Which member of the largest component is the output pose.
     pub output: OutputChoice,
+}
+
+/// How the convergence test measures whether the refined poses left their coarse poses.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ConvergenceMeasure {
+    /// The component's mean pairwise δ over its coarse poses' ([`convergence_ratio`]): 1 when the
+    /// refined poses stayed put, but also near 1 when they converged and the flow's own noise
+    /// spreads them as far as the coarse poses were spread.
+    #[default]
+    Spread,
+    /// The share of the coarse poses' differences the refined poses keep ([`carried_share`]):
+    /// the least-squares slope of each refined pose's image offset from the component's mean
+    /// against its coarse pose's offset from theirs. 1 when each refined pose stayed at its
+    /// coarse pose, 0 when none remembers where it started; noise that does not follow the coarse
+    /// offsets averages out of it instead of adding to it.
+    Carried,
 }
 
 /// Which refined pose of the largest component a frame outputs.
@@ -79,6 +97,7 @@ impl Default for VerifyConfig {
             min_component_size: 4,
             require_direct_support: true,
             max_convergence_ratio: 0.9,
+            convergence_measure: ConvergenceMeasure::default(),
             output: OutputChoice::default(),
         }
     }
@@ -450,8 +469,13 @@ pub fn verify_hypotheses_with_coarse(
     let direct_support = (0..n)
         .filter(|&i| delta_px[chosen * n + i] < threshold_px)
         .count();
-    let convergence_ratio = coarse.and_then(|coarse| {
-        convergence_ratio(mesh, hypotheses, &component, &delta_px, coarse, workspace)
+    let convergence_ratio = coarse.and_then(|coarse| match config.convergence_measure {
+        ConvergenceMeasure::Spread => {
+            convergence_ratio(mesh, hypotheses, &component, &delta_px, coarse, workspace)
+        }
+        ConvergenceMeasure::Carried => {
+            carried_share(hypotheses, &component, &visible[chosen], coarse.camera)
+        }
     });
     let rejection = if component.len() < config.min_component_size {
         Some(RejectionReason::NoAgreement {
@@ -609,6 +633,64 @@ fn convergence_ratio(
     (pairs > 0 && coarse_sum > 1e-9).then(|| refined_sum / coarse_sum)
 }
 
+/// The most points of the model [`carried_share`] projects.
+const CARRIED_SHARE_POINTS: usize = 1000;
+
+/// The share of the coarse poses' differences that the component's refined poses keep
+/// ([`ConvergenceMeasure::Carried`]): over points of `chosen`'s visible model, each member's
+/// refined projection's offset from the members' mean, `r`, against its coarse projection's
+/// offset from theirs, `c` (coarse poses under `coarse_camera`); `Σ r·c / Σ |c|²`. `None` with
+/// fewer than two members, no point every pose projects, or coinciding coarse poses.
+fn carried_share(
+    hypotheses: &[PoseHypothesis],
+    component: &[usize],
+    chosen: &VisiblePoints,
+    coarse_camera: &Camera,
+) -> Option<f64> {
+    if component.len() < 2 {
+        return None;
+    }
+    let project = |camera: &Camera, cam_from_world: &Rigid3, point: &nalgebra::Vector3<f64>| {
+        camera
+            .project(&cam_from_world.transform_point(point))
+            .filter(|p| p.x.is_finite() && p.y.is_finite())
+    };
+    let points = chosen.points_world_m();
+    let stride = points.len().div_ceil(CARRIED_SHARE_POINTS).max(1);
+    let members = component.len() as f64;
+    let (mut carried, mut coarse_energy) = (0.0, 0.0);
+    let mut refined_px = Vec::with_capacity(component.len());
+    let mut coarse_px = Vec::with_capacity(component.len());
+    for point in points.iter().step_by(stride) {
+        refined_px.clear();
+        coarse_px.clear();
+        for &i in component {
+            let h = &hypotheses[i];
+            match (
+                project(&h.camera, &h.cam_from_world, point),
+                project(coarse_camera, &h.coarse_cam_from_world, point),
+            ) {
+                (Some(r), Some(c)) => {
+                    refined_px.push(r);
+                    coarse_px.push(c);
+                }
+                _ => break,
+            }
+        }
+        if refined_px.len() < component.len() {
+            continue;
+        }
+        let refined_mean = refined_px.iter().sum::<nalgebra::Vector2<f64>>() / members;
+        let coarse_mean = coarse_px.iter().sum::<nalgebra::Vector2<f64>>() / members;
+        for (r, c) in refined_px.iter().zip(&coarse_px) {
+            let (r, c) = (r - refined_mean, c - coarse_mean);
+            carried += r.dot(&c);
+            coarse_energy += c.norm_squared();
+        }
+    }
+    (coarse_energy > 1e-9).then(|| carried / coarse_energy)
+}
+
 /// The largest connected component of the graph on `0..n` with edges where `compatible(i, j)`,
 /// found by depth-first search; ties go to the component with the larger total consensus, then
 /// to the one with the lowest index.
@@ -714,6 +796,59 @@ mod tests {
         );
         assert!(verdict.accepted(), "{verdict:?}");
         assert!((verdict.convergence_ratio.unwrap() - 0.025).abs() < 1e-6);
+    }
+
+    /// The carried share reads how much of the coarse poses' differences the refined poses
+    /// keep, whatever noise the flow adds across them; the spread ratio adds that noise in.
+    #[test]
+    fn the_carried_share_separates_following_the_coarse_poses_from_noise() {
+        let camera = hypothesis(0.0, 1).camera;
+        let carried = VerifyConfig {
+            convergence_measure: ConvergenceMeasure::Carried,
+            ..VerifyConfig::default()
+        };
+        let verify = |hypotheses: &[PoseHypothesis], config: &VerifyConfig| {
+            verify_hypotheses(
+                &wall(),
+                hypotheses,
+                Some(&camera),
+                config,
+                &mut ReprojectionWorkspace::new(),
+            )
+        };
+        // Refined poses where they started (2 px apart): all of it carried, not converged.
+        let stayed: Vec<_> = (0..6).map(|i| hypothesis(0.4 * i as f64, 100)).collect();
+        let verdict = verify(&stayed, &carried);
+        assert!((verdict.convergence_ratio.unwrap() - 1.0).abs() < 1e-9);
+        assert!(matches!(
+            verdict.rejection(),
+            Some(RejectionReason::NotConverged { .. })
+        ));
+        // Half of each coarse offset kept (x), and ±3 px of noise across it (y): the spread
+        // ratio is over 1 and rejects, the carried share is the half that was kept.
+        let mut noisy = stayed.clone();
+        for (i, h) in noisy.iter_mut().enumerate() {
+            h.cam_from_world.translation.x = 0.2 * i as f64;
+            h.cam_from_world.translation.y = if i % 2 == 0 { 0.6 } else { -0.6 };
+        }
+        let spread = verify(&noisy, &VerifyConfig::default());
+        assert!(spread.convergence_ratio.unwrap() > 1.0, "{spread:?}");
+        assert!(matches!(
+            spread.rejection(),
+            Some(RejectionReason::NotConverged { .. })
+        ));
+        let verdict = verify(&noisy, &carried);
+        assert!(
+            (verdict.convergence_ratio.unwrap() - 0.5).abs() < 1e-6,
+            "{verdict:?}"
+        );
+        assert!(verdict.accepted(), "{verdict:?}");
+        // All refined onto one pose: nothing carried.
+        let mut one = stayed.clone();
+        for h in &mut one {
+            h.cam_from_world.translation.x = 0.7;
+        }
+        assert!(verify(&one, &carried).convergence_ratio.unwrap().abs() < 1e-9);
     }
 
     /// The coarse poses' visible points taken from their renderings give the verdict of
