@@ -136,6 +136,9 @@ pub struct FrameDiagnosis {
     /// Each centre's own decision against the truth, in the search's order of centres (one
     /// without the search), before verification across the centres chose among them.
     pub centres: Vec<CentreDiagnosis>,
+    /// Where each run of the rival-basin test around the accepted pose ended, in the test's
+    /// order (`core::frame::refine::rival_ends`; empty when it did not run).
+    pub rival_ends: Vec<RivalEndDiagnosis>,
     /// Where the edge alignment's bias comes from, measured at the true pose.
     pub edge_bias: EdgeBiasDiagnosis,
     /// The photo's evidence for a correct pose: the edge support and its peak where the final
@@ -157,6 +160,17 @@ pub struct FrameDiagnosis {
     /// the frame's result carries (`core::frame::decide_passes`, registration's own rule). The
     /// fields above are the first pass's.
     pub heading_sweep: Option<SweepDiagnosis>,
+}
+
+/// One end of the rival-basin test against the truth.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct RivalEndDiagnosis {
+    /// δ(the end, the output it started around), px.
+    pub apart_px: f64,
+    /// Its edge support (share of the model's edge samples on a photo ridge).
+    pub support: f64,
+    /// δ(the end, truth), px.
+    pub delta_px: Option<f64>,
 }
 
 /// The heading fallback's retry against the truth.
@@ -664,6 +678,7 @@ fn diagnose_region(
             verdict,
             refinement,
             evidence,
+            rival_ends,
             ..
         },
         centre_decisions,
@@ -728,6 +743,14 @@ fn diagnose_region(
                     },
                 ),
             }
+        })
+        .collect();
+    let rival_ends: Vec<RivalEndDiagnosis> = rival_ends
+        .iter()
+        .map(|end| RivalEndDiagnosis {
+            apart_px: end.apart_px,
+            support: end.support,
+            delta_px: delta(&end.camera, &end.cam_from_world),
         })
         .collect();
     let verified_delta_px = match &refinement {
@@ -895,6 +918,7 @@ fn diagnose_region(
         best_delta_px,
         search,
         centres,
+        rival_ends,
         edge_bias,
         truth_edges,
         truth_best_confidence,

@@ -1078,6 +1078,54 @@ check: the paper's plausibility check of its refined poses; apart: δ from its o
             }
         }
     }
+    let _ = writeln!(
+        out,
+        "\n## Rival basins\n\nPer frame the rival-basin test ran on (a pose accepted before it): where each of its \
+alignment runs, started around the output along the directions its edges see least, ended (in the test's order): δ px \
+from the output, edge support, δ px to the truth. The frame is rejected when an end at least the centres' agreement \
+distance from the output keeps the output's edge support above chance (`--rival-share`).\n"
+    );
+    let _ = writeln!(
+        out,
+        "| level | method | frame | output δ | output support | ends: apart px (support, δ to the truth px) | verdict |"
+    );
+    let _ = writeln!(out, "|---|---|---|---|---|---|---|");
+    for ((level, method), frames) in diagnoses {
+        for (name, diagnosis) in with_retries(frames)
+            .into_iter()
+            .filter(|(_, d)| !d.rival_ends.is_empty())
+        {
+            let ends = diagnosis
+                .rival_ends
+                .iter()
+                .map(|end| {
+                    format!(
+                        "{:.1} ({:.0} %, {})",
+                        end.apart_px,
+                        100.0 * end.support,
+                        px(end.delta_px)
+                    )
+                })
+                .collect::<Vec<_>>()
+                .join(", ");
+            let _ = writeln!(
+                out,
+                "| {level} | {method} | {name} | {} | {} | {ends} | {} |",
+                px(diagnosis.chosen_delta_px),
+                diagnosis
+                    .evidence
+                    .edges
+                    .map_or("–".to_string(), |peak| format!(
+                        "{:.0} %",
+                        100.0 * peak.at_pose
+                    )),
+                diagnosis
+                    .verdict
+                    .rejection()
+                    .map_or("accepted".to_string(), |r| r.to_string()),
+            );
+        }
+    }
     let swept: Vec<(String, &FrameDiagnosis, SweepEval)> = diagnoses
         .iter()
         .flat_map(|((level, method), frames)| {

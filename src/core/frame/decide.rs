@@ -3,7 +3,8 @@
 //! chosen pose against the query ([`super::refine`]); the verdict carries the chosen pose itself.
 
 use super::refine::{
-    refine_from_other_centres, refine_verdict, rival_basin, PoseRefinement, RefineWorkspace,
+    refine_from_other_centres, refine_verdict, rival_basin, rival_ends, PoseRefinement,
+    RefineWorkspace, RivalEnd,
 };
 use super::{process_cpu_ms, CoarseOutcome, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
@@ -30,6 +31,9 @@ pub struct Decision {
     /// The process's CPU time during the final refinements, ms (theirs where one frame at a time
     /// runs in the process, as in `register`).
     pub refine_cpu_ms: f64,
+    /// Where the rival-basin test's runs ended ([`super::refine::rival_ends`]); empty when it
+    /// did not run (the frame was not accepted before it, or the test is off).
+    pub rival_ends: Vec<RivalEnd>,
 }
 
 /// The verdict over a frame's coarse outcomes (in coarse order), then the final refinement of its
@@ -130,15 +134,8 @@ fn reject_a_local_maximum(
     let min_apart_px = config.pose_search.centre_agreement_share * chosen.verdict.threshold_px;
     let (support, chance) = (peak.at_pose, peak.far);
     let min_share = config.edge_align.rival_share_above_chance;
-    let Some(rival) = rival_basin(
-        mesh,
-        query,
-        intrinsics,
-        output,
-        min_apart_px,
-        config,
-        workspace,
-    ) else {
+    chosen.rival_ends = rival_ends(mesh, query, intrinsics, output, config, workspace);
+    let Some(rival) = rival_basin(&chosen.rival_ends, min_apart_px) else {
         return;
     };
     if rival.support - chance >= min_share * (support - chance) {
@@ -269,6 +266,7 @@ impl RefinedCentre {
             refinement: self.refinement,
             evidence,
             refine_cpu_ms: self.refine_cpu_ms,
+            rival_ends: Vec::new(),
         }
     }
 }

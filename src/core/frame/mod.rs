@@ -373,6 +373,7 @@ fn register_region(
             refinement,
             evidence,
             refine_cpu_ms,
+            ..
         },
         _,
     ) = decide_frame_and_centres(

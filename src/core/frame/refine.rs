@@ -218,9 +218,9 @@ pub fn refine_from_other_centres(
     (chosen.camera, chosen.cam_from_world) = refinement.output_pose();
 }
 
-/// A distinct pose the photo's edges support, found around a frame's output by [`rival_basin`].
+/// Where one run of the rival-basin test ([`rival_ends`]) ended.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct RivalBasin {
+pub struct RivalEnd {
     /// Its edge support (share of model edge samples, as [`PoseRefinement::output_support`]).
     pub support: f64,
     /// δ between it and the output, px.
@@ -229,38 +229,36 @@ pub struct RivalBasin {
     pub cam_from_world: Rigid3,
 }
 
-/// The best-supported other basin of the edge support around `output` (the frame's output
-/// pose): the alignment's full schedule run from the output moved
-/// by `edge_align.rival_reach_px` of δ either way along each of the `rival_directions`
-/// directions its supported edges see least ([`least_seen_starts`]); among the ends at least
-/// `min_apart_px` from the output, the one with the highest edge support. `None` when none is
-/// that far, or the output cannot be evaluated. A correct output is the edge support's highest
-/// peak in its neighbourhood, the truth's sharp peak (29 % of the model's edges 3 px from it on
-/// the house); the clean house's two false accepts with a passed check were lower peaks 35 and
-/// 44 px from the truth's (67 % against 74 %, 52 % against 76 %; docs/measurements.md).
-pub fn rival_basin(
+/// Every end of the rival-basin test around `output` (the frame's output pose): the
+/// alignment's full schedule run from the output moved by `edge_align.rival_reach_px` of δ
+/// either way along each of the `rival_directions` directions its supported edges see least
+/// ([`least_seen_starts`]), in that order; runs that fail or whose end cannot be compared with
+/// the output are left out. Empty when the test is off or the output cannot be evaluated.
+pub fn rival_ends(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
     intrinsics: IntrinsicsMode,
     output: &PoseHypothesis,
-    min_apart_px: f64,
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
-) -> Option<RivalBasin> {
+) -> Vec<RivalEnd> {
     let align = &config.edge_align;
     if align.rival_directions == 0 {
-        return None;
+        return Vec::new();
     }
-    let evaluated = evaluate_start(
+    let Ok(evaluated) = evaluate_start(
         mesh,
         &output.camera,
         query,
         &output.cam_from_world,
         config,
         workspace,
-    )
-    .ok()?;
-    let metric = evaluated.metric?;
+    ) else {
+        return Vec::new();
+    };
+    let Some(metric) = evaluated.metric else {
+        return Vec::new();
+    };
     let starts = least_seen_starts(
         &evaluated.samples,
         &query,
@@ -273,7 +271,7 @@ pub fn rival_basin(
     );
     let parameters = aligned_parameters(intrinsics);
     let mut reprojection = ReprojectionWorkspace::new();
-    let mut best: Option<RivalBasin> = None;
+    let mut ends = Vec::with_capacity(starts.len());
     for start in starts {
         let Ok(end) = refine_pose(
             mesh,
@@ -297,17 +295,30 @@ pub fn rival_basin(
         ) else {
             continue;
         };
-        let support = end.output_support();
-        if apart_px >= min_apart_px && best.is_none_or(|best| support > best.support) {
-            best = Some(RivalBasin {
-                support,
-                apart_px,
-                camera,
-                cam_from_world,
-            });
-        }
+        ends.push(RivalEnd {
+            support: end.output_support(),
+            apart_px,
+            camera,
+            cam_from_world,
+        });
     }
-    best
+    ends
+}
+
+/// The best-supported other basin among `ends` ([`rival_ends`]): the end with the highest edge
+/// support among those at least `min_apart_px` from the output; `None` when none is that far.
+/// A correct output is the edge support's highest peak in its neighbourhood, the truth's sharp
+/// peak (29 % of the model's edges 3 px from it on the house); the clean house's two false
+/// accepts with a passed check were lower peaks 35 and 44 px from the truth's (67 % against
+/// 74 %, 52 % against 76 %; docs/measurements.md).
+pub fn rival_basin(ends: &[RivalEnd], min_apart_px: f64) -> Option<&RivalEnd> {
+    ends.iter().filter(|end| end.apart_px >= min_apart_px).fold(
+        None,
+        |best: Option<&RivalEnd>, end| match best {
+            Some(best) if best.support >= end.support => Some(best),
+            _ => Some(end),
+        },
+    )
 }
 
 /// What the alignment estimates: the pose, and the focal length when the intrinsics are unknown.
@@ -1617,16 +1628,15 @@ mod tests {
             &config.edge_align,
         )
         .support_fraction();
-        let rival = rival_basin(
+        let ends = rival_ends(
             &mesh,
             query.view(),
             IntrinsicsMode::Known,
             &hypothesis_at(camera, off, 100),
-            min_apart_px,
             &config,
             &mut workspace,
-        )
-        .expect("a rival basin");
+        );
+        let rival = *rival_basin(&ends, min_apart_px).expect("a rival basin");
         let rival_delta_px = delta_px(&mesh, &camera, &rival.cam_from_world, &truth);
         println!(
             "off: δ {off_delta_px:.1} px, support {off_support:.3}; rival {:.1} px away, δ {rival_delta_px:.2} px, support {:.3}",
@@ -1638,15 +1648,15 @@ mod tests {
         let truth_support =
             edge_evidence(&samples, &query.view(), &camera, &truth, &config.edge_align)
                 .support_fraction();
-        let at_truth = rival_basin(
+        let truth_ends = rival_ends(
             &mesh,
             query.view(),
             IntrinsicsMode::Known,
             &hypothesis_at(camera, truth, 100),
-            min_apart_px,
             &config,
             &mut workspace,
         );
+        let at_truth = rival_basin(&truth_ends, min_apart_px);
         println!("truth: support {truth_support:.3}; rival {at_truth:?}");
         assert!(at_truth.is_none_or(|rival| rival.support < truth_support));
     }
