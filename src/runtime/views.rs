@@ -7,20 +7,20 @@
 //! instead of a change map).
 //!
 //! Each view is a `ChangeJob` without neighbours in the one wire encoding (`msg`), in
-//! `<state_dir>/<pipeline>.stereo-views/<frame id>.view`, written to a temporary name and renamed
-//! (a crash leaves the old file or the new one, never half of one), and removed once verify no
+//! `<state_dir>/<pipeline>.stereo-views/<frame id>.view` (a `frame_folder`: written whole or not
+//! at all, tied to its run by a header, another run's views removed), and removed once verify no
 //! longer keeps the frame: the folder holds at most the frames within the window of those still
-//! waiting. A `header` file ties the folder to the run as the results journals' header does
-//! (another run's views are removed). Writing is best effort: a view that cannot be written costs
+//! waiting. Writing is best effort: a view that cannot be written costs
 //! only stereo neighbours after a restart, so it is a warning, not a failed frame.
 
 use std::collections::BTreeSet;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use crate::msg::Body;
 use crate::stage::verify::VerifyStage;
 
 use super::config::PipelineConfig;
+use super::frame_folder::FrameFolder;
 use super::journal;
 
 /// The folder of a configuration's stereo views.
@@ -40,33 +40,12 @@ fn header(config: &PipelineConfig) -> String {
 
 /// Starts a run over: removes the views folder (none is fine).
 pub fn reset(config: &PipelineConfig) -> std::io::Result<()> {
-    match std::fs::remove_dir_all(dir(config)) {
-        Err(error) if error.kind() != std::io::ErrorKind::NotFound => Err(error),
-        _ => Ok(()),
-    }
-}
-
-fn view_path(dir: &Path, frame_id: u64) -> PathBuf {
-    dir.join(format!("{frame_id}.view"))
-}
-
-/// The frame ids of the views in `dir`.
-fn listed(dir: &Path) -> BTreeSet<u64> {
-    let Ok(entries) = std::fs::read_dir(dir) else {
-        return BTreeSet::new();
-    };
-    entries
-        .filter_map(|entry| entry.ok())
-        .filter_map(|entry| {
-            let name = entry.file_name();
-            name.to_str()?.strip_suffix(".view")?.parse::<u64>().ok()
-        })
-        .collect()
+    FrameFolder::reset(&dir(config))
 }
 
 /// Verify's durable stereo views.
 pub struct ViewStore {
-    dir: PathBuf,
+    folder: FrameFolder,
     /// The views written (or found) in the folder.
     on_disk: BTreeSet<u64>,
     /// Whether a write failed since the last success (warned once).
@@ -78,48 +57,38 @@ impl ViewStore {
     /// (as neighbours; a view that cannot be read is removed with a warning) and returns the
     /// store with how many were restored. Another run's views are removed.
     pub fn open_and_restore(config: &PipelineConfig, stage: &mut VerifyStage<'_>) -> (Self, usize) {
-        let dir = dir(config);
-        let header = header(config);
-        let header_path = dir.join("header");
         let mut store = Self {
-            dir: dir.clone(),
+            folder: FrameFolder::new(dir(config), "view"),
             on_disk: BTreeSet::new(),
             failing: false,
         };
-        let ours = std::fs::read_to_string(&header_path).is_ok_and(|found| found == header);
-        if !ours {
-            for frame_id in listed(&dir) {
-                let _ = std::fs::remove_file(view_path(&dir, frame_id));
-            }
-            if let Err(error) = std::fs::create_dir_all(&dir)
-                .and_then(|()| std::fs::write(&header_path, header.as_bytes()))
-            {
+        match store.folder.claim(&header(config)) {
+            Ok(true) => {}
+            Ok(false) => return (store, 0),
+            Err(error) => {
                 tracing::warn!(
                     "verify: {}: cannot start the stereo views folder ({error}); a restart of verify will lose the stereo neighbours accepted before it",
-                    dir.display()
+                    store.folder.dir().display()
                 );
                 store.failing = true;
+                return (store, 0);
             }
-            return (store, 0);
         }
         let mut restored = 0;
-        for frame_id in listed(&dir) {
-            let path = view_path(&dir, frame_id);
-            let outcome = std::fs::read(&path)
-                .map_err(|error| error.to_string())
-                .and_then(|bytes| {
-                    let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
-                    match &message.body {
-                        Body::ChangeJob(job) if message.header.frame_id == frame_id => {
-                            stage.restore_stereo_view(frame_id, job)
-                        }
-                        other => Err(format!(
-                            "it holds a {:?} message of frame {}",
-                            other.kind(),
-                            message.header.frame_id
-                        )),
+        for frame_id in store.folder.listed() {
+            let outcome = store.folder.read(frame_id).and_then(|bytes| {
+                let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
+                match &message.body {
+                    Body::ChangeJob(job) if message.header.frame_id == frame_id => {
+                        stage.restore_stereo_view(frame_id, job)
                     }
-                });
+                    other => Err(format!(
+                        "it holds a {:?} message of frame {}",
+                        other.kind(),
+                        message.header.frame_id
+                    )),
+                }
+            });
             match outcome {
                 Ok(()) => {
                     store.on_disk.insert(frame_id);
@@ -128,9 +97,9 @@ impl ViewStore {
                 Err(error) => {
                     tracing::warn!(
                         "verify: {}: not a stereo view ({error}); removed (the frame is no stereo neighbour after this restart)",
-                        path.display()
+                        store.folder.path(frame_id).display()
                     );
-                    let _ = std::fs::remove_file(&path);
+                    let _ = store.folder.remove(frame_id);
                 }
             }
         }
@@ -148,13 +117,13 @@ impl ViewStore {
             let Some(job) = stage.stereo_view(frame_id) else {
                 continue;
             };
-            match self.write(frame_id, Body::ChangeJob(job)) {
+            match self.folder.write(frame_id, Body::ChangeJob(job)) {
                 Ok(()) => {
                     self.on_disk.insert(frame_id);
                     if self.failing {
                         tracing::info!(
                             "verify: stereo views are written again in {}",
-                            self.dir.display()
+                            self.folder.dir().display()
                         );
                         self.failing = false;
                     }
@@ -163,7 +132,7 @@ impl ViewStore {
                     if !self.failing {
                         tracing::warn!(
                             "verify: {}: cannot write the stereo view of frame {frame_id} ({error}); a restart of verify would lose it as a stereo neighbour",
-                            self.dir.display()
+                            self.folder.dir().display()
                         );
                     }
                     self.failing = true;
@@ -172,25 +141,14 @@ impl ViewStore {
         }
         let gone: Vec<u64> = self.on_disk.difference(&kept).copied().collect();
         for frame_id in gone {
-            match std::fs::remove_file(view_path(&self.dir, frame_id)) {
-                Err(error) if error.kind() != std::io::ErrorKind::NotFound => {
+            match self.folder.remove(frame_id) {
+                Err(error) => {
                     tracing::debug!("verify: stereo view of frame {frame_id} not removed: {error}");
                 }
-                _ => {
+                Ok(()) => {
                     self.on_disk.remove(&frame_id);
                 }
             }
         }
-    }
-
-    fn write(&self, frame_id: u64, body: Body<'_>) -> Result<(), String> {
-        let bytes =
-            super::bus::encode_to_vec(frame_id, 0, body).map_err(|error| error.to_string())?;
-        let path = view_path(&self.dir, frame_id);
-        let partial = self.dir.join(format!("{frame_id}.view.partial"));
-        std::fs::create_dir_all(&self.dir)
-            .and_then(|()| std::fs::write(&partial, &bytes))
-            .and_then(|()| std::fs::rename(&partial, &path))
-            .map_err(|error| error.to_string())
     }
 }
