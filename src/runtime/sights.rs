@@ -20,34 +20,29 @@ use crate::msg::{Body, ChangeSight};
 use crate::stage::fusion::seen_frame;
 
 use super::config::PipelineConfig;
-use super::frame_folder::FrameFolder;
-use super::journal;
+use super::frame_folder::{self, FolderKind, FrameFolder};
+
+const SIGHTS: FolderKind = FolderKind {
+    stage: "fusion",
+    name: "sights",
+    extension: "sight",
+    what: "sight",
+    loss: "the frame's vote in the free-space test",
+};
 
 /// The folder of a configuration's sights.
 pub fn dir(config: &PipelineConfig) -> PathBuf {
-    journal::state_dir(config).join(format!("{}.sights", config.transport.pipeline))
-}
-
-/// What ties the folder to a run (the results journals' header, for the sights).
-fn header(config: &PipelineConfig) -> String {
-    format!(
-        "# asgreg sights v1 pipeline={} poses={} max_frames={}\n",
-        config.transport.pipeline,
-        config.source.poses.display(),
-        config.source.max_frames
-    )
+    frame_folder::dir_of(config, SIGHTS.name)
 }
 
 /// Starts a run over: removes the sights folder (none is fine).
 pub fn reset(config: &PipelineConfig) -> std::io::Result<()> {
-    FrameFolder::reset(&dir(config))
+    frame_folder::reset(config, &SIGHTS)
 }
 
 /// Fusion's durable sights.
 pub struct SightStore {
     folder: FrameFolder,
-    /// Whether a write failed since the last success (warned once).
-    failing: bool,
 }
 
 impl SightStore {
@@ -55,76 +50,23 @@ impl SightStore {
     /// cannot be read is removed with a warning: that frame does not vote after this restart).
     /// Another run's sights are removed.
     pub fn open_and_restore(config: &PipelineConfig) -> (Self, BTreeMap<u64, SeenFrame>) {
-        let mut store = Self {
-            folder: FrameFolder::new(dir(config), "sight"),
-            failing: false,
-        };
         let mut restored = BTreeMap::new();
-        match store.folder.claim(&header(config)) {
-            Ok(true) => {}
-            Ok(false) => return (store, restored),
-            Err(error) => {
-                tracing::warn!(
-                    "fusion: {}: cannot start the sights folder ({error}); a restart of fusion will test the change set against the frames after it only",
-                    store.folder.dir().display()
-                );
-                store.failing = true;
-                return (store, restored);
-            }
-        }
-        for frame_id in store.folder.listed() {
-            let outcome = store.folder.read(frame_id).and_then(|bytes| {
-                let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
-                match &message.body {
-                    Body::ChangeSight(sight) if message.header.frame_id == frame_id => {
-                        seen_frame(sight)
+        let folder =
+            FrameFolder::open_and_restore(config, SIGHTS, &mut |frame_id, body| match body {
+                Body::ChangeSight(sight) => {
+                    if let Some(seen) = seen_frame(sight)? {
+                        restored.insert(frame_id, seen);
                     }
-                    other => Err(format!(
-                        "it holds a {:?} message of frame {}",
-                        other.kind(),
-                        message.header.frame_id
-                    )),
+                    Ok(())
                 }
+                other => Err(format!("it holds a {:?} message", other.kind())),
             });
-            match outcome {
-                Ok(Some(seen)) => {
-                    restored.insert(frame_id, seen);
-                }
-                Ok(None) => {}
-                Err(error) => {
-                    tracing::warn!(
-                        "fusion: {}: not a sight ({error}); removed (the frame does not vote in the free-space test after this restart)",
-                        store.folder.path(frame_id).display()
-                    );
-                    let _ = store.folder.remove(frame_id);
-                }
-            }
-        }
-        (store, restored)
+        (Self { folder }, restored)
     }
 
     /// Keeps `sight` (a frame's first change result with a change map) on disk; best effort.
     pub fn write(&mut self, frame_id: u64, sight: ChangeSight<'_>) {
-        match self.folder.write(frame_id, Body::ChangeSight(sight)) {
-            Ok(()) => {
-                if self.failing {
-                    tracing::info!(
-                        "fusion: sights are written again in {}",
-                        self.folder.dir().display()
-                    );
-                    self.failing = false;
-                }
-            }
-            Err(error) => {
-                if !self.failing {
-                    tracing::warn!(
-                        "fusion: {}: cannot write the sight of frame {frame_id} ({error}); a restart of fusion would test the change set without it",
-                        self.folder.dir().display()
-                    );
-                }
-                self.failing = true;
-            }
-        }
+        self.folder.write(frame_id, Body::ChangeSight(sight));
     }
 }
 

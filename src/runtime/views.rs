@@ -20,27 +20,24 @@ use crate::msg::Body;
 use crate::stage::verify::VerifyStage;
 
 use super::config::PipelineConfig;
-use super::frame_folder::FrameFolder;
-use super::journal;
+use super::frame_folder::{self, FolderKind, FrameFolder};
+
+const VIEWS: FolderKind = FolderKind {
+    stage: "verify",
+    name: "stereo-views",
+    extension: "view",
+    what: "stereo view",
+    loss: "the frame as a stereo neighbour",
+};
 
 /// The folder of a configuration's stereo views.
 pub fn dir(config: &PipelineConfig) -> PathBuf {
-    journal::state_dir(config).join(format!("{}.stereo-views", config.transport.pipeline))
-}
-
-/// What ties the folder to a run (the results journals' header, for the views).
-fn header(config: &PipelineConfig) -> String {
-    format!(
-        "# asgreg stereo views v1 pipeline={} poses={} max_frames={}\n",
-        config.transport.pipeline,
-        config.source.poses.display(),
-        config.source.max_frames
-    )
+    frame_folder::dir_of(config, VIEWS.name)
 }
 
 /// Starts a run over: removes the views folder (none is fine).
 pub fn reset(config: &PipelineConfig) -> std::io::Result<()> {
-    FrameFolder::reset(&dir(config))
+    frame_folder::reset(config, &VIEWS)
 }
 
 /// Verify's durable stereo views.
@@ -48,8 +45,6 @@ pub struct ViewStore {
     folder: FrameFolder,
     /// The views written (or found) in the folder.
     on_disk: BTreeSet<u64>,
-    /// Whether a write failed since the last success (warned once).
-    failing: bool,
 }
 
 impl ViewStore {
@@ -57,53 +52,17 @@ impl ViewStore {
     /// (as neighbours; a view that cannot be read is removed with a warning) and returns the
     /// store with how many were restored. Another run's views are removed.
     pub fn open_and_restore(config: &PipelineConfig, stage: &mut VerifyStage<'_>) -> (Self, usize) {
-        let mut store = Self {
-            folder: FrameFolder::new(dir(config), "view"),
-            on_disk: BTreeSet::new(),
-            failing: false,
-        };
-        match store.folder.claim(&header(config)) {
-            Ok(true) => {}
-            Ok(false) => return (store, 0),
-            Err(error) => {
-                tracing::warn!(
-                    "verify: {}: cannot start the stereo views folder ({error}); a restart of verify will lose the stereo neighbours accepted before it",
-                    store.folder.dir().display()
-                );
-                store.failing = true;
-                return (store, 0);
+        let mut on_disk = BTreeSet::new();
+        let folder = FrameFolder::open_and_restore(config, VIEWS, &mut |frame_id, body| {
+            match body {
+                Body::ChangeJob(job) => stage.restore_stereo_view(frame_id, job)?,
+                other => return Err(format!("it holds a {:?} message", other.kind())),
             }
-        }
-        let mut restored = 0;
-        for frame_id in store.folder.listed() {
-            let outcome = store.folder.read(frame_id).and_then(|bytes| {
-                let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
-                match &message.body {
-                    Body::ChangeJob(job) if message.header.frame_id == frame_id => {
-                        stage.restore_stereo_view(frame_id, job)
-                    }
-                    other => Err(format!(
-                        "it holds a {:?} message of frame {}",
-                        other.kind(),
-                        message.header.frame_id
-                    )),
-                }
-            });
-            match outcome {
-                Ok(()) => {
-                    store.on_disk.insert(frame_id);
-                    restored += 1;
-                }
-                Err(error) => {
-                    tracing::warn!(
-                        "verify: {}: not a stereo view ({error}); removed (the frame is no stereo neighbour after this restart)",
-                        store.folder.path(frame_id).display()
-                    );
-                    let _ = store.folder.remove(frame_id);
-                }
-            }
-        }
-        (store, restored)
+            on_disk.insert(frame_id);
+            Ok(())
+        });
+        let restored = on_disk.len();
+        (Self { folder, on_disk }, restored)
     }
 
     /// Makes the folder hold the views `stage` keeps: writes the new ones, removes those it no
@@ -117,26 +76,8 @@ impl ViewStore {
             let Some(job) = stage.stereo_view(frame_id) else {
                 continue;
             };
-            match self.folder.write(frame_id, Body::ChangeJob(job)) {
-                Ok(()) => {
-                    self.on_disk.insert(frame_id);
-                    if self.failing {
-                        tracing::info!(
-                            "verify: stereo views are written again in {}",
-                            self.folder.dir().display()
-                        );
-                        self.failing = false;
-                    }
-                }
-                Err(error) => {
-                    if !self.failing {
-                        tracing::warn!(
-                            "verify: {}: cannot write the stereo view of frame {frame_id} ({error}); a restart of verify would lose it as a stereo neighbour",
-                            self.folder.dir().display()
-                        );
-                    }
-                    self.failing = true;
-                }
+            if self.folder.write(frame_id, Body::ChangeJob(job)) {
+                self.on_disk.insert(frame_id);
             }
         }
         let gone: Vec<u64> = self.on_disk.difference(&kept).copied().collect();
