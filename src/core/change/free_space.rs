@@ -7,7 +7,10 @@
 //! *agrees* when its depth there is within the threshold and the model's surface lies beyond
 //! the point by more (it would call the point `added` too). An `added` object that more frames
 //! see through than agree with is a depth error of the frames that found it, not a new
-//! building, and is not confirmed ([`check_free_space`]).
+//! building, and is not confirmed ([`check_free_space`]). Batch `asgreg changes` and the
+//! pipeline's fusion stage both keep a [`SeenFrame`] per frame with a change map and call it
+//! after `fuse_regions` (the pipeline's change workers send their frame's depths to fusion for
+//! it).
 //!
 //! Why: under registered poses, a frame whose own pose is a few pixels off gets a stereo depth
 //! that is off the same way with each of its neighbours (they share its pose), and two such
