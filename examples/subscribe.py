@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
 """Print asgreg's pose results, change results and fused change sets as they arrive, from any host that reaches the zenoh router.
 
-asgreg publishes every frame's result as JSON on ``asgreg/v6/<pipeline>/results/json``, and,
+asgreg publishes every frame's result as JSON on ``asgreg/v7/<pipeline>/results/json``, and,
 when the pipeline runs change detection (``workers.change`` > 0), every frame's change result on
-``asgreg/v6/<pipeline>/changes/json`` and the fused change set on
-``asgreg/v6/<pipeline>/changeset/json`` (now and then, and once with ``complete: true``)
-(src/transport/keys.rs; fields: src/msg/json.rs, schemas/v6/*.schema.json). This script joins
+``asgreg/v7/<pipeline>/changes/json`` and the fused change set on
+``asgreg/v7/<pipeline>/changeset/json`` (now and then, and once with ``complete: true``)
+(src/transport/keys.rs; fields: src/msg/json.rs, schemas/v7/*.schema.json). This script joins
 the ground station's router as a zenoh client with scouting off (no multicast, no gossip) and
 prints one line per message; with --changes-out it also writes the final change set as GeoJSON.
 
@@ -61,10 +61,21 @@ def describe_change_set(change_set):
     lines = [f"change set ({state}): {len(objects)} objects, {confirmed} confirmed, "
              f"from {change_set.get('frames_with_map')} change maps of "
              f"{change_set.get('frames_with_result')} frames"]
-    for o in objects:
-        lines.append(f"  {o['kind']:<7} {o['footprint_area_m2']:7.1f} m2 {o['height_m']:5.1f} m high "
-                     f"frames {o['frames']} {'confirmed' if o.get('confirmed') else 'unconfirmed'}")
+    free_space = free_space_by_object(change_set)
+    for index, o in enumerate(objects):
+        line = (f"  {o['kind']:<7} {o['footprint_area_m2']:7.1f} m2 {o['height_m']:5.1f} m high "
+                f"frames {o['frames']} {'confirmed' if o.get('confirmed') else 'unconfirmed'}")
+        check = free_space.get(index)
+        if check is not None:
+            line += (f" (free space: seen through by frames {check['seen_through_by']}, "
+                     f"agreed by {check['agreed_by']}{', refuted' if check.get('refuted') else ''})")
+        lines.append(line)
     return "\n".join(lines)
+
+
+def free_space_by_object(change_set):
+    """The free-space test of each tested object (confirmed `added` ones), by object index."""
+    return {check["object"]: check for check in change_set.get("free_space") or []}
 
 
 # Seconds a subscriber that stops at the final change set keeps listening for change results
@@ -75,11 +86,17 @@ CHANGE_RESULTS_GRACE_S = 2.0
 def change_set_geojson(change_set):
     """The fused objects as a GeoJSON FeatureCollection (coordinates: the model's frame)."""
     features = []
+    free_space = free_space_by_object(change_set)
     for index, o in enumerate(change_set.get("objects") or []):
         ring = [list(p) for p in o.get("footprint_m") or []]
         if ring:
             ring.append(ring[0])
         properties = {k: v for k, v in o.items() if k != "footprint_m"}
+        check = free_space.get(index)
+        if check is not None:
+            properties["seen_through_by"] = check["seen_through_by"]
+            properties["agreed_by"] = check["agreed_by"]
+            properties["refuted"] = check["refuted"]
         features.append({"type": "Feature", "id": index,
                          "geometry": {"type": "Polygon", "coordinates": [ring]},
                          "properties": properties})
@@ -107,7 +124,7 @@ def main():
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("scouting/gossip/enabled", "false")
 
-    prefix = f"asgreg/v6/{args.pipeline}"
+    prefix = f"asgreg/v7/{args.pipeline}"
     keys = {f"{prefix}/results/json": "pose", f"{prefix}/changes/json": "change",
             f"{prefix}/changeset/json": "change_set"}
     try:

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
-use asgreg::core::change::free_space::{check_free_space, FrameSight, FreeSpaceCheck};
+use asgreg::core::change::free_space::{check_free_space, FrameSight, FreeSpaceCheck, SeenFrame};
 use asgreg::core::change::fusion::{fuse_regions, FusedChange, FusionConfig};
 use asgreg::core::change::stereo::{
     choose_neighbours, depth_from_neighbours, NeighbourConfig, PosedCamera, RankingPhotos,
@@ -315,33 +315,6 @@ impl ChangesArgs {
     }
 }
 
-/// What one frame with a change map saw (its photo depth, the model's depth under its pose, its
-/// pose term and threshold settings), kept until fusion for the free-space test.
-struct SeenFrame {
-    /// Index into the report's frames.
-    frame: usize,
-    intrinsics: asgreg::core::camera::PinholeIntrinsics,
-    cam_from_world: asgreg::core::rigid::Rigid3,
-    photo_depth_m: Image<f32>,
-    model_depth_m: Image<f32>,
-    pose_sigma_m: Image<f32>,
-    config: ChangeConfig,
-}
-
-impl SeenFrame {
-    fn sight(&self) -> FrameSight<'_> {
-        FrameSight {
-            frame: self.frame,
-            intrinsics: self.intrinsics,
-            cam_from_world: self.cam_from_world,
-            photo_depth_m: self.photo_depth_m.view(),
-            model_depth_m: self.model_depth_m.view(),
-            pose_sigma_m: Some(self.pose_sigma_m.view()),
-            config: self.config,
-        }
-    }
-}
-
 /// The names of report frames by index, comma-separated.
 fn frame_names(frames: &[FrameChangeReport], indices: &[usize]) -> String {
     indices
@@ -499,7 +472,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
     let mut mask = Image::default();
     let mut frames = Vec::new();
     // What each frame with a change map saw, for the free-space test of the fused objects.
-    let mut seen: Vec<SeenFrame> = Vec::new();
+    let mut seen: Vec<(usize, SeenFrame)> = Vec::new();
     let mut page_pictures: Vec<(String, Vec<Picture>)> = Vec::new();
     let limit = args.limit.unwrap_or(usize::MAX);
     for (index, image) in inputs.images.iter().enumerate().take(limit) {
@@ -682,19 +655,16 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
                 100.0 * dropped.share_below
             );
         }
-        seen.push(SeenFrame {
-            frame: frames.len(),
-            intrinsics: files.camera.intrinsics,
-            cam_from_world: image.cam_from_world,
-            model_depth_m: workspace.model_rendering().depth_m().clone(),
-            pose_sigma_m: workspace.pose_error_sigma_m().clone(),
-            photo_depth_m: depth,
-            config: ChangeConfig {
-                pose_sigma_px: changes.pose_sigma_px,
-                quadratic_sigma_per_m: changes.quadratic_sigma_per_m,
-                ..frame_config
-            },
-        });
+        seen.push((
+            frames.len(),
+            SeenFrame::new(
+                files.camera.intrinsics,
+                image.cam_from_world,
+                depth,
+                workspace.model_rendering().depth_m().clone(),
+                changes.settings(&frame_config),
+            ),
+        ));
         frames.push(FrameChangeReport {
             name: image.name.clone(),
             failure: None,
@@ -713,7 +683,10 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         .flat_map(|(index, frame)| frame.regions.iter().map(move |r| (index, r)))
         .collect();
     let mut objects = fuse_regions(&regions, &fusion);
-    let sights: Vec<FrameSight<'_>> = seen.iter().map(SeenFrame::sight).collect();
+    let sights: Vec<FrameSight<'_>> = seen
+        .iter()
+        .map(|(frame, seen)| seen.sight(*frame))
+        .collect();
     let free_space = check_free_space(&mut objects, &sights);
     for check in free_space.iter().filter(|c| c.refuted) {
         tracing::info!(

@@ -304,9 +304,21 @@ fn print_change_set(set: &ChangeSet) {
         set.frames_with_map,
         set.frames_with_result
     );
-    for object in &set.objects {
+    for (index, object) in set.objects.iter().enumerate() {
+        let free_space = set
+            .free_space
+            .iter()
+            .find(|check| check.object == index)
+            .map_or(String::new(), |check| {
+                format!(
+                    " (free space: seen through by frames {:?}, agreed by {:?}{})",
+                    check.seen_through_by,
+                    check.agreed_by,
+                    if check.refuted { ", refuted" } else { "" }
+                )
+            });
         println!(
-            "  {:<7} {:>7.1} m² footprint, {:>5.1} m high, at ({:.1}, {:.1}), frames {:?}{}",
+            "  {:<7} {:>7.1} m² footprint, {:>5.1} m high, at ({:.1}, {:.1}), frames {:?}{}{free_space}",
             object.kind.name(),
             object.footprint_area_m2,
             object.height_m,

@@ -591,7 +591,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
     Ok(targets)
 }
 
-const MESSAGE_KINDS: [MessageKind; 13] = [
+const MESSAGE_KINDS: [MessageKind; 14] = [
     MessageKind::Frame,
     MessageKind::FlowJob,
     MessageKind::Correspondences,
@@ -605,6 +605,7 @@ const MESSAGE_KINDS: [MessageKind; 13] = [
     MessageKind::ChangeJob,
     MessageKind::ChangeResult,
     MessageKind::ChangeSet,
+    MessageKind::ChangeSight,
 ];
 
 /// The golden wire files of one kind (`tests/data/wire/v<SCHEMA_VERSION>/NN_<Kind>.bin`).
@@ -676,6 +677,9 @@ fn decode_and_use(bytes: &[u8]) -> Result<(), String> {
         }
         Body::ChangeSet(set) => {
             crate::msg::change_set_json(&envelope.header, set);
+        }
+        Body::ChangeSight(sight) => {
+            crate::stage::fusion::seen_frame(sight)?;
         }
         Body::Hypothesis(_)
         | Body::FrameFailed(_)

@@ -1,5 +1,5 @@
 //! The wire types of the bus and the one place that encodes and decodes them (docs/design.md §5).
-//! `schemas/v6/` describes the same layout for subscribers in other languages.
+//! `schemas/v7/` describes the same layout for subscribers in other languages.
 //!
 //! Layout of every message (all integers little-endian):
 //! ```text
@@ -38,4 +38,7 @@ pub use wire::{decode, encode, same_body, DecodeError, EncodeError, Encoded, HEA
 /// stereo neighbours).
 /// v6: a ChangeJob's meta ends with the registered pose's error (`pose_sigma_px`) for the change
 /// threshold's pose term.
-pub const SCHEMA_VERSION: u16 = 6;
+/// v7: a change worker sends fusion a ChangeSight (its ChangeResult with the photo's and the
+/// model's depth, the camera, pose and change settings) for the free-space test; a ChangeSet
+/// ends with `free_space`, that test of every confirmed `added` object.
+pub const SCHEMA_VERSION: u16 = 7;

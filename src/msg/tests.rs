@@ -6,8 +6,9 @@ use nalgebra::{UnitQuaternion, Vector3};
 
 use super::*;
 use crate::core::camera::{Camera, PinholeIntrinsics};
+use crate::core::change::free_space::FreeSpaceCheck;
 use crate::core::change::fusion::{FusedChange, FusionConfig};
-use crate::core::change::{ChangeKind, ChangeRegion, ClassCounts};
+use crate::core::change::{ChangeConfig, ChangeKind, ChangeRegion, ClassCounts};
 use crate::core::frame::CoarseOutcome;
 use crate::core::rigid::Rigid3;
 use crate::core::verify::PoseHypothesis;
@@ -186,6 +187,41 @@ fn every_kind() -> Vec<Body<'static>> {
                 region_count: 2,
             }],
             fusion: FusionConfig::default(),
+            free_space: vec![FreeSpaceCheck {
+                object: 0,
+                centroid_m: [1.0, 2.0, 3.0],
+                seen_through_by: vec![1, 3, 4],
+                agreed_by: vec![0, 2],
+                refuted: true,
+            }],
+        }),
+        Body::ChangeSight(ChangeSight {
+            meta: ChangeSightMeta {
+                result: change_result_example(),
+                view: Some(SightView {
+                    camera: info().camera,
+                    cam_from_world: info().initial_cam_from_world,
+                    config: ChangeConfig {
+                        pose_sigma_px: 1.5,
+                        quadratic_sigma_per_m: 0.002,
+                        ..ChangeConfig::default()
+                    },
+                }),
+            },
+            photo_depth_m: Cow::Owned(image.iter().map(|v| 30.0 + v).collect()),
+            model_depth_m: Cow::Owned(vec![42.0; 12]),
+        }),
+        Body::ChangeSight(ChangeSight {
+            meta: ChangeSightMeta {
+                result: ChangeResult {
+                    failure: Some("no depth: stereo chose no neighbour".to_string()),
+                    regions: Vec::new(),
+                    ..change_result_example()
+                },
+                view: None,
+            },
+            photo_depth_m: Cow::Owned(Vec::new()),
+            model_depth_m: Cow::Owned(Vec::new()),
         }),
     ]
 }
@@ -277,7 +313,7 @@ fn golden_bytes_of_every_kind() {
             path.display()
         );
     }
-    let every_kind: Vec<u16> = (1..=13).collect();
+    let every_kind: Vec<u16> = (1..=14).collect();
     assert_eq!(
         kinds_seen.into_iter().collect::<Vec<_>>(),
         every_kind,
@@ -424,7 +460,7 @@ fn pose_result_json_carries_header_and_result() {
 #[test]
 fn pose_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v6/pose_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v7/pose_result.schema.json")).unwrap();
     let keys = |value: &serde_json::Value| -> Vec<String> {
         let mut keys: Vec<String> = value.as_object().unwrap().keys().cloned().collect();
         keys.sort();
@@ -488,7 +524,7 @@ fn assert_matches_schema(json: &serde_json::Value, schema: &serde_json::Value) {
 #[test]
 fn change_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v6/change_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v7/change_result.schema.json")).unwrap();
     let json: serde_json::Value =
         serde_json::from_str(&change_result_json(&header(), &change_result_example())).unwrap();
     assert_eq!(json["schema_version"], SCHEMA_VERSION);
@@ -507,7 +543,7 @@ fn change_result_json_has_exactly_the_schema_properties() {
 #[test]
 fn change_set_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v6/change_set.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v7/change_set.schema.json")).unwrap();
     let set = every_kind()
         .into_iter()
         .find_map(|body| match body {
@@ -525,5 +561,38 @@ fn change_set_json_has_exactly_the_schema_properties() {
     assert_eq!(
         sorted_keys(&json["fusion"]),
         sorted_keys(&properties["fusion"]["properties"])
+    );
+    assert_eq!(
+        sorted_keys(&json["free_space"][0]),
+        sorted_keys(&properties["free_space"]["items"]["properties"])
+    );
+}
+
+/// A change worker's ChangeSight carries the depths of its camera's size, or none without a
+/// change map; any other length is an error naming the array.
+#[test]
+fn a_change_sight_carries_both_depths_of_its_camera_or_none() {
+    let sights: Vec<ChangeSight> = every_kind()
+        .into_iter()
+        .filter_map(|body| match body {
+            Body::ChangeSight(sight) => Some(sight),
+            _ => None,
+        })
+        .collect();
+    let (photo, model) = sights[0].depths().unwrap().expect("a change map");
+    assert_eq!((photo.size(), model.size()), ((4, 3), (4, 3)));
+    assert_eq!(sights[1].depths().unwrap(), None);
+    let mut short = sights[0].clone();
+    short.model_depth_m = Cow::Owned(vec![1.0; 11]);
+    let bytes = encode(&Envelope {
+        header: header(),
+        body: Body::ChangeSight(short),
+    })
+    .unwrap()
+    .to_vec();
+    let error = decode(&bytes).unwrap_err().to_string();
+    assert!(
+        error.contains("'model_depth_m' has 11 values, expected 12"),
+        "{error}"
     );
 }

@@ -7,8 +7,9 @@ use std::borrow::Cow;
 use serde::{Deserialize, Serialize};
 
 use crate::core::camera::Camera;
+use crate::core::change::free_space::FreeSpaceCheck;
 use crate::core::change::fusion::{FusedChange, FusionConfig};
-use crate::core::change::{ChangeRegion, ClassCounts};
+use crate::core::change::{ChangeConfig, ChangeRegion, ClassCounts};
 use nalgebra::{Vector2, Vector3};
 
 use crate::core::frame::{CoarseOutcome, ViewCorrespondences, ViewRef};
@@ -48,6 +49,7 @@ pub enum MessageKind {
     ChangeJob = 11,
     ChangeResult = 12,
     ChangeSet = 13,
+    ChangeSight = 14,
 }
 
 impl MessageKind {
@@ -66,6 +68,7 @@ impl MessageKind {
             11 => Self::ChangeJob,
             12 => Self::ChangeResult,
             13 => Self::ChangeSet,
+            14 => Self::ChangeSight,
             _ => return None,
         })
     }
@@ -94,6 +97,7 @@ pub enum Body<'a> {
     ChangeJob(ChangeJob<'a>),
     ChangeResult(ChangeResult),
     ChangeSet(ChangeSet),
+    ChangeSight(ChangeSight<'a>),
 }
 
 impl Body<'_> {
@@ -112,6 +116,7 @@ impl Body<'_> {
             Body::ChangeJob(_) => MessageKind::ChangeJob,
             Body::ChangeResult(_) => MessageKind::ChangeResult,
             Body::ChangeSet(_) => MessageKind::ChangeSet,
+            Body::ChangeSight(_) => MessageKind::ChangeSight,
         }
     }
 }
@@ -305,8 +310,9 @@ pub struct NeighbourMeta {
     pub cam_from_world: Rigid3,
 }
 
-/// One frame's change detection (change workers, or verify for a frame without a pose →
-/// fusion → subscribers); also published as JSON (`schemas/v6/change_result.schema.json`).
+/// One frame's change detection (verify for a frame without a pose, change workers inside a
+/// [`ChangeSight`] → fusion → subscribers); also published as JSON
+/// (`schemas/v7/change_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeResult {
     pub frame_id: u64,
@@ -326,7 +332,7 @@ pub struct ChangeResult {
 
 /// The changes of every frame so far fused into objects (fusion → subscribers); published now
 /// and then while frames arrive and once, `complete`, when every frame has its change result.
-/// Also published as JSON (`schemas/v6/change_set.schema.json`).
+/// Also published as JSON (`schemas/v7/change_set.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeSet {
     /// Whether every frame of the stream has its change result (the final set).
@@ -337,9 +343,65 @@ pub struct ChangeSet {
     pub frames_with_result: u64,
     pub frames_with_map: u64,
     /// Fused objects; their `frames` are frame ids. Confirmed when seen by at least
-    /// `fusion.min_frames` frames.
+    /// `fusion.min_frames` frames and, for an `added` one, not seen through by more frames than
+    /// agree with it (`free_space`).
     pub objects: Vec<FusedChange>,
     pub fusion: FusionConfig,
+    /// The free-space test of every `added` object fusion confirmed
+    /// (`core::change::free_space::check_free_space`): its index in `objects`, the frames (ids)
+    /// that see through it and those that agree, and whether it was refuted (then it is not
+    /// confirmed in `objects`).
+    pub free_space: Vec<FreeSpaceCheck>,
+}
+
+/// A change worker's change result with what its frame saw (change worker → fusion; never
+/// published further): the photo's depth map and the model's depth under the registered pose,
+/// so that fusion can test the fused `added` objects against every frame's free space
+/// (`core::change::free_space`, as `asgreg changes` does). Fusion publishes `meta.result` alone,
+/// as a ChangeResult. Without a change map (`meta.view` `None`) both arrays are empty.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ChangeSight<'a> {
+    pub meta: ChangeSightMeta,
+    /// The depth map the change map compared with the model (given or stereo), metres along the
+    /// optical axis (0 = hole), `meta.view.camera`'s size.
+    pub photo_depth_m: Blob<'a, f32>,
+    /// The model's rendered depth under the registered pose, metres (0 = no surface), same size.
+    pub model_depth_m: Blob<'a, f32>,
+}
+
+impl ChangeSight<'_> {
+    /// The photo's and the model's depth as images of the registered camera's size; `None`
+    /// without a change map.
+    #[allow(clippy::type_complexity)]
+    pub fn depths(&self) -> Result<Option<(ImageView<'_, f32>, ImageView<'_, f32>)>, ImageError> {
+        let Some(view) = &self.meta.view else {
+            return Ok(None);
+        };
+        let (w, h) = (
+            view.camera.width_px as usize,
+            view.camera.height_px as usize,
+        );
+        Ok(Some((
+            ImageView::new(w, h, &self.photo_depth_m)?,
+            ImageView::new(w, h, &self.model_depth_m)?,
+        )))
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChangeSightMeta {
+    pub result: ChangeResult,
+    /// How the frame looked, when it has a change map.
+    pub view: Option<SightView>,
+}
+
+/// The registered camera and pose of a frame's change map and the settings it was made with
+/// (its own u, `pose_sigma_px`, and σ_quad included).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SightView {
+    pub camera: Camera,
+    pub cam_from_world: Rigid3,
+    pub config: ChangeConfig,
 }
 
 /// Identifies a unit of parallel work: one coarse pose of one frame.
@@ -576,7 +638,7 @@ pub struct StageTimesMs {
 }
 
 /// The one result of a frame (verify → subscribers); also published as JSON
-/// (`schemas/v6/pose_result.schema.json`).
+/// (`schemas/v7/pose_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseResult {
     pub frame_id: u64,

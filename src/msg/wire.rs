@@ -175,6 +175,13 @@ pub fn encode<'m>(message: &'m Envelope<'_>) -> Result<Encoded<'m>, EncodeError>
         ),
         Body::ChangeResult(body) => (meta_bytes(kind, body)?, Vec::new()),
         Body::ChangeSet(body) => (meta_bytes(kind, body)?, Vec::new()),
+        Body::ChangeSight(sight) => (
+            meta_bytes(kind, &sight.meta)?,
+            vec![
+                bytemuck::cast_slice(&sight.photo_depth_m),
+                bytemuck::cast_slice(&sight.model_depth_m),
+            ],
+        ),
     };
     let header = &message.header;
     let mut fixed = [0u8; HEADER_BYTES];
@@ -472,6 +479,20 @@ pub fn decode(bytes: &[u8]) -> Result<Envelope<'_>, DecodeError> {
         MessageKind::ChangeSet => {
             reader.expect_arrays(0)?;
             Body::ChangeSet(reader.meta()?)
+        }
+        MessageKind::ChangeSight => {
+            reader.expect_arrays(2)?;
+            let meta: ChangeSightMeta = reader.meta()?;
+            // With a change map, both depths of the registered camera's size; without, none.
+            let len = match &meta.view {
+                Some(view) => reader.camera_len(&meta.result.name, &view.camera)?,
+                None => 0,
+            };
+            Body::ChangeSight(ChangeSight {
+                photo_depth_m: reader.array(0, "photo_depth_m", Some(len))?,
+                model_depth_m: reader.array(1, "model_depth_m", Some(len))?,
+                meta,
+            })
         }
     };
     Ok(Envelope { header, body })

@@ -446,10 +446,11 @@ pub fn summary(collected: &Collected, backend: &str) -> String {
             Some(set) => {
                 let _ = writeln!(
                     text,
-                    "change set: {} objects ({} confirmed by ≥ {} frames)",
+                    "change set: {} objects ({} confirmed by ≥ {} frames; {} added seen through by more frames than agree, not confirmed)",
                     set.objects.len(),
                     set.objects.iter().filter(|o| o.confirmed).count(),
-                    set.fusion.min_frames
+                    set.fusion.min_frames,
+                    set.free_space.iter().filter(|c| c.refuted).count()
                 );
             }
             None => {

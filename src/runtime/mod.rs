@@ -2,7 +2,7 @@
 //! (`dispatch`), the bus wrappers (`bus`), the results collector and summary (`collect`), the
 //! one-process runner (`run_in_process`), the process supervisor (`launch`), the results
 //! journal that makes "has a result" survive a crash (`journal`), verify's durable stereo views
-//! (`views`), the end-to-end acks that make a result lost in flight be sent again (`ack`) and the
+//! (`views`) and fusion's durable sights (`sights`), both in a `frame_folder`, the end-to-end acks that make a result lost in flight be sent again (`ack`) and the
 //! process's heap settings (`heap`).
 
 pub mod ack;
@@ -10,11 +10,13 @@ pub mod bus;
 pub mod collect;
 pub mod config;
 pub mod dispatch;
+pub mod frame_folder;
 pub mod heap;
 pub mod journal;
 pub mod launch;
 pub mod nodes;
 pub mod reference;
+pub mod sights;
 pub mod views;
 
 #[cfg(test)]

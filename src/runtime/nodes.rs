@@ -17,7 +17,7 @@ use crate::msg::{
 };
 use crate::stage::change::{ChangeStage, StereoDepthSettings};
 use crate::stage::flow::FlowStage;
-use crate::stage::fusion::FusionStage;
+use crate::stage::fusion::{seen_frame, FusionStage};
 use crate::stage::ingest::{FolderSource, SourceError};
 use crate::stage::pose::PoseStage;
 use crate::stage::render::RenderStage;
@@ -29,6 +29,7 @@ use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
 use super::config::{BackpressurePolicy, PipelineConfig};
 use super::dispatch::{Dispatcher, WorkerPort};
 use super::journal::{self, Journal, JournalError};
+use super::sights::SightStore;
 use super::views::ViewStore;
 
 /// How long a loop waits for a message before checking the stop flag.
@@ -1433,8 +1434,8 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     })
 }
 
-/// Stage "change" (N workers): one accepted frame's change job at a time, its change result to
-/// fusion.
+/// Stage "change" (N workers): one accepted frame's change job at a time, its change result
+/// with the frame's sight (a ChangeSight: the depths fusion's free-space test reads) to fusion.
 pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeError> {
     let mut fusion = Outbox::open(ctx.transport, keys::FUSION_IN)?;
     fusion.wait_for_reader("fusion", ctx.startup())?;
@@ -1451,14 +1452,14 @@ pub fn run_change(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             return None;
         };
         let started = Instant::now();
-        let result = stage.process(frame_id, &job);
+        let sight = stage.process(frame_id, &job);
         record_compute(metrics, started);
         Some(
             fusion
                 .send(
                     frame_id,
                     message.header.capture_time_ns,
-                    Body::ChangeResult(result),
+                    Body::ChangeSight(sight),
                     metrics,
                 )
                 .map(|_| JobKey {
@@ -1665,10 +1666,12 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     )?;
     let mut acks = AckJournal::open(ctx.config, journal::Kind::ChangeAcked, "fusion");
     restore_unacked(&mut changes_ack, &journaled, &acks, journal.path());
+    // What the frames published before the restart saw, for the free-space test.
+    let (mut sights, mut seen) = SightStore::open_and_restore(ctx.config);
     let restored = journaled.len();
     for (frame_id, payload) in journaled {
         match restore_change_result(frame_id, &payload) {
-            Ok(result) => stage.restore(result),
+            Ok(result) => stage.restore(result, seen.remove(&frame_id)),
             Err(why) => tracing::error!(
                 "fusion: {}: the line of frame {frame_id} is damaged ({why}); that frame's change result is left out of the change set (delete the file to start the run over)",
                 journal.path().display()
@@ -1690,59 +1693,80 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
             let frame_id = message.header.frame_id;
             let capture = message.header.capture_time_ns;
             let started = Instant::now();
-            match message.body {
-                Body::ChangeResult(result) => {
-                    if let Some(result) = stage.on_result(result).cloned() {
-                        let header = Header {
-                            frame_id,
-                            sequence: 0,
-                            capture_time_ns: capture,
-                            sent_time_ns: unix_time_ns(),
-                        };
-                        if sent.is_ok() {
-                            // Encoded once: the bytes journaled, published and (until
-                            // acknowledged) sent again; written ahead, and a change result the
-                            // station cannot record is given out failed, naming the journal.
-                            sent = encode_to_vec(
-                                frame_id,
-                                capture,
-                                Body::ChangeResult(result.clone()),
-                            )
-                            .and_then(|bytes| {
-                                let written =
-                                    journal.append_with(frame_id, &journal::to_hex(&bytes));
-                                health.report(frame_id, &written);
-                                let (bytes, json) = match written {
-                                    Ok(()) => (bytes, change_result_json(&header, &result)),
-                                    Err(error) => {
-                                        let failed = stage
-                                            .withdraw(frame_id, &format!("fusion: {error}"))
-                                            .cloned()
-                                            .unwrap_or(result);
-                                        let bytes = encode_to_vec(
-                                            frame_id,
-                                            capture,
-                                            Body::ChangeResult(failed.clone()),
-                                        )?;
-                                        // Best effort, as in verify.
-                                        let _ =
-                                            journal.append_with(frame_id, &journal::to_hex(&bytes));
-                                        (bytes, change_result_json(&header, &failed))
-                                    }
-                                };
-                                acks.take(&mut changes_ack, metrics)?;
-                                changes.send_encoded(&bytes, metrics)?;
-                                changes_json.send_raw(json.as_bytes())?;
-                                let first_after = changes_ack.first_after();
-                                changes_ack.track(frame_id, bytes, json, first_after);
-                                Ok(())
-                            });
-                        }
-                        unpublished += 1;
+            // A change worker's result comes with its frame's sight (kept on disk before the
+            // result is journaled); a frame without a pose has verify's result alone.
+            let first = match message.body {
+                Body::ChangeResult(result) => stage.on_result(result, None).cloned(),
+                Body::ChangeSight(sight) => {
+                    let seen = seen_frame(&sight).unwrap_or_else(|why| {
+                        tracing::warn!(
+                            "fusion: frame {frame_id}: {why}; it does not vote in the free-space test"
+                        );
+                        None
+                    });
+                    let has_sight = seen.is_some();
+                    let first = stage.on_result(sight.meta.result.clone(), seen).cloned();
+                    if first.is_some() && has_sight {
+                        sights.write(frame_id, sight);
                     }
+                    first
                 }
-                Body::StreamEnd(end) => stage.on_stream_end(end.frame_count),
-                other => unexpected("fusion", other.kind(), frame_id),
+                Body::StreamEnd(end) => {
+                    stage.on_stream_end(end.frame_count);
+                    None
+                }
+                other => {
+                    unexpected("fusion", other.kind(), frame_id);
+                    None
+                }
+            };
+            if let Some(result) = first {
+                let header = Header {
+                    frame_id,
+                    sequence: 0,
+                    capture_time_ns: capture,
+                    sent_time_ns: unix_time_ns(),
+                };
+                if sent.is_ok() {
+                    // Encoded once: the bytes journaled, published and (until
+                    // acknowledged) sent again; written ahead, and a change result the
+                    // station cannot record is given out failed, naming the journal.
+                    sent = encode_to_vec(
+                        frame_id,
+                        capture,
+                        Body::ChangeResult(result.clone()),
+                    )
+                    .and_then(|bytes| {
+                        let written =
+                            journal.append_with(frame_id, &journal::to_hex(&bytes));
+                        health.report(frame_id, &written);
+                        let (bytes, json) = match written {
+                            Ok(()) => (bytes, change_result_json(&header, &result)),
+                            Err(error) => {
+                                let failed = stage
+                                    .withdraw(frame_id, &format!("fusion: {error}"))
+                                    .cloned()
+                                    .unwrap_or(result);
+                                let bytes = encode_to_vec(
+                                    frame_id,
+                                    capture,
+                                    Body::ChangeResult(failed.clone()),
+                                )?;
+                                // Best effort, as in verify.
+                                let _ =
+                                    journal.append_with(frame_id, &journal::to_hex(&bytes));
+                                (bytes, change_result_json(&header, &failed))
+                            }
+                        };
+                        acks.take(&mut changes_ack, metrics)?;
+                        changes.send_encoded(&bytes, metrics)?;
+                        changes_json.send_raw(json.as_bytes())?;
+                        let first_after = changes_ack.first_after();
+                        changes_ack.track(frame_id, bytes, json, first_after);
+                        Ok(())
+                    });
+                }
+                unpublished += 1;
             }
             record_compute(metrics, started);
         })?;

@@ -247,7 +247,7 @@ fn bad_messages_are_rejected_and_the_pipeline_goes_on() {
         }),
     )
     .unwrap();
-    wrong_version[4..6].copy_from_slice(&7u16.to_le_bytes());
+    wrong_version[4..6].copy_from_slice(&(crate::msg::SCHEMA_VERSION + 1).to_le_bytes());
     let collected = std::thread::scope(|scope| {
         scope.spawn(|| {
             let mut verify = bus::Outbox::open(&transport, keys::VERIFY_IN).unwrap();

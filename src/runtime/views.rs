@@ -7,70 +7,44 @@
 //! instead of a change map).
 //!
 //! Each view is a `ChangeJob` without neighbours in the one wire encoding (`msg`), in
-//! `<state_dir>/<pipeline>.stereo-views/<frame id>.view`, written to a temporary name and renamed
-//! (a crash leaves the old file or the new one, never half of one), and removed once verify no
+//! `<state_dir>/<pipeline>.stereo-views/<frame id>.view` (a `frame_folder`: written whole or not
+//! at all, tied to its run by a header, another run's views removed), and removed once verify no
 //! longer keeps the frame: the folder holds at most the frames within the window of those still
-//! waiting. A `header` file ties the folder to the run as the results journals' header does
-//! (another run's views are removed). Writing is best effort: a view that cannot be written costs
+//! waiting. Writing is best effort: a view that cannot be written costs
 //! only stereo neighbours after a restart, so it is a warning, not a failed frame.
 
 use std::collections::BTreeSet;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use crate::msg::Body;
 use crate::stage::verify::VerifyStage;
 
 use super::config::PipelineConfig;
-use super::journal;
+use super::frame_folder::{self, FolderKind, FrameFolder};
+
+const VIEWS: FolderKind = FolderKind {
+    stage: "verify",
+    name: "stereo-views",
+    extension: "view",
+    what: "stereo view",
+    loss: "the frame as a stereo neighbour",
+};
 
 /// The folder of a configuration's stereo views.
 pub fn dir(config: &PipelineConfig) -> PathBuf {
-    journal::state_dir(config).join(format!("{}.stereo-views", config.transport.pipeline))
-}
-
-/// What ties the folder to a run (the results journals' header, for the views).
-fn header(config: &PipelineConfig) -> String {
-    format!(
-        "# asgreg stereo views v1 pipeline={} poses={} max_frames={}\n",
-        config.transport.pipeline,
-        config.source.poses.display(),
-        config.source.max_frames
-    )
+    frame_folder::dir_of(config, VIEWS.name)
 }
 
 /// Starts a run over: removes the views folder (none is fine).
 pub fn reset(config: &PipelineConfig) -> std::io::Result<()> {
-    match std::fs::remove_dir_all(dir(config)) {
-        Err(error) if error.kind() != std::io::ErrorKind::NotFound => Err(error),
-        _ => Ok(()),
-    }
-}
-
-fn view_path(dir: &Path, frame_id: u64) -> PathBuf {
-    dir.join(format!("{frame_id}.view"))
-}
-
-/// The frame ids of the views in `dir`.
-fn listed(dir: &Path) -> BTreeSet<u64> {
-    let Ok(entries) = std::fs::read_dir(dir) else {
-        return BTreeSet::new();
-    };
-    entries
-        .filter_map(|entry| entry.ok())
-        .filter_map(|entry| {
-            let name = entry.file_name();
-            name.to_str()?.strip_suffix(".view")?.parse::<u64>().ok()
-        })
-        .collect()
+    frame_folder::reset(config, &VIEWS)
 }
 
 /// Verify's durable stereo views.
 pub struct ViewStore {
-    dir: PathBuf,
+    folder: FrameFolder,
     /// The views written (or found) in the folder.
     on_disk: BTreeSet<u64>,
-    /// Whether a write failed since the last success (warned once).
-    failing: bool,
 }
 
 impl ViewStore {
@@ -78,63 +52,17 @@ impl ViewStore {
     /// (as neighbours; a view that cannot be read is removed with a warning) and returns the
     /// store with how many were restored. Another run's views are removed.
     pub fn open_and_restore(config: &PipelineConfig, stage: &mut VerifyStage<'_>) -> (Self, usize) {
-        let dir = dir(config);
-        let header = header(config);
-        let header_path = dir.join("header");
-        let mut store = Self {
-            dir: dir.clone(),
-            on_disk: BTreeSet::new(),
-            failing: false,
-        };
-        let ours = std::fs::read_to_string(&header_path).is_ok_and(|found| found == header);
-        if !ours {
-            for frame_id in listed(&dir) {
-                let _ = std::fs::remove_file(view_path(&dir, frame_id));
+        let mut on_disk = BTreeSet::new();
+        let folder = FrameFolder::open_and_restore(config, VIEWS, &mut |frame_id, body| {
+            match body {
+                Body::ChangeJob(job) => stage.restore_stereo_view(frame_id, job)?,
+                other => return Err(format!("it holds a {:?} message", other.kind())),
             }
-            if let Err(error) = std::fs::create_dir_all(&dir)
-                .and_then(|()| std::fs::write(&header_path, header.as_bytes()))
-            {
-                tracing::warn!(
-                    "verify: {}: cannot start the stereo views folder ({error}); a restart of verify will lose the stereo neighbours accepted before it",
-                    dir.display()
-                );
-                store.failing = true;
-            }
-            return (store, 0);
-        }
-        let mut restored = 0;
-        for frame_id in listed(&dir) {
-            let path = view_path(&dir, frame_id);
-            let outcome = std::fs::read(&path)
-                .map_err(|error| error.to_string())
-                .and_then(|bytes| {
-                    let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
-                    match &message.body {
-                        Body::ChangeJob(job) if message.header.frame_id == frame_id => {
-                            stage.restore_stereo_view(frame_id, job)
-                        }
-                        other => Err(format!(
-                            "it holds a {:?} message of frame {}",
-                            other.kind(),
-                            message.header.frame_id
-                        )),
-                    }
-                });
-            match outcome {
-                Ok(()) => {
-                    store.on_disk.insert(frame_id);
-                    restored += 1;
-                }
-                Err(error) => {
-                    tracing::warn!(
-                        "verify: {}: not a stereo view ({error}); removed (the frame is no stereo neighbour after this restart)",
-                        path.display()
-                    );
-                    let _ = std::fs::remove_file(&path);
-                }
-            }
-        }
-        (store, restored)
+            on_disk.insert(frame_id);
+            Ok(())
+        });
+        let restored = on_disk.len();
+        (Self { folder, on_disk }, restored)
     }
 
     /// Makes the folder hold the views `stage` keeps: writes the new ones, removes those it no
@@ -148,49 +76,20 @@ impl ViewStore {
             let Some(job) = stage.stereo_view(frame_id) else {
                 continue;
             };
-            match self.write(frame_id, Body::ChangeJob(job)) {
-                Ok(()) => {
-                    self.on_disk.insert(frame_id);
-                    if self.failing {
-                        tracing::info!(
-                            "verify: stereo views are written again in {}",
-                            self.dir.display()
-                        );
-                        self.failing = false;
-                    }
-                }
-                Err(error) => {
-                    if !self.failing {
-                        tracing::warn!(
-                            "verify: {}: cannot write the stereo view of frame {frame_id} ({error}); a restart of verify would lose it as a stereo neighbour",
-                            self.dir.display()
-                        );
-                    }
-                    self.failing = true;
-                }
+            if self.folder.write(frame_id, Body::ChangeJob(job)) {
+                self.on_disk.insert(frame_id);
             }
         }
         let gone: Vec<u64> = self.on_disk.difference(&kept).copied().collect();
         for frame_id in gone {
-            match std::fs::remove_file(view_path(&self.dir, frame_id)) {
-                Err(error) if error.kind() != std::io::ErrorKind::NotFound => {
+            match self.folder.remove(frame_id) {
+                Err(error) => {
                     tracing::debug!("verify: stereo view of frame {frame_id} not removed: {error}");
                 }
-                _ => {
+                Ok(()) => {
                     self.on_disk.remove(&frame_id);
                 }
             }
         }
-    }
-
-    fn write(&self, frame_id: u64, body: Body<'_>) -> Result<(), String> {
-        let bytes =
-            super::bus::encode_to_vec(frame_id, 0, body).map_err(|error| error.to_string())?;
-        let path = view_path(&self.dir, frame_id);
-        let partial = self.dir.join(format!("{frame_id}.view.partial"));
-        std::fs::create_dir_all(&self.dir)
-            .and_then(|()| std::fs::write(&partial, &bytes))
-            .and_then(|()| std::fs::rename(&partial, &path))
-            .map_err(|error| error.to_string())
     }
 }

@@ -7,6 +7,7 @@
 //! changes` does), because ranking them by their agreement with the model sweeps each one: work
 //! that scales with the change workers instead of holding up verify's poses.
 
+use std::borrow::Cow;
 use std::time::Instant;
 
 use crate::core::change::stereo::{
@@ -18,7 +19,7 @@ use crate::core::change::{
 };
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
-use crate::msg::{ChangeJob, ChangeResult};
+use crate::msg::{ChangeJob, ChangeResult, ChangeSight, ChangeSightMeta, SightView};
 
 use super::elapsed_ms;
 
@@ -163,19 +164,11 @@ impl<'m> ChangeStage<'m> {
         }
     }
 
-    /// The frame's change result; a frame without usable depth gets one saying why.
-    pub fn process(&mut self, frame_id: u64, job: &ChangeJob) -> ChangeResult {
+    /// The frame's change result with what the frame saw (for fusion's free-space test); a
+    /// frame without usable depth gets one saying why, and no sight.
+    pub fn process(&mut self, frame_id: u64, job: &ChangeJob) -> ChangeSight<'static> {
         let started = Instant::now();
         let meta = &job.meta;
-        let mut result = ChangeResult {
-            frame_id,
-            name: meta.info.name.clone(),
-            failure: None,
-            counts: Default::default(),
-            regions: Vec::new(),
-            change_ms: 0.0,
-            change_worker: Some(self.worker_index),
-        };
         // The frame's own pose error (verify's measure of its registration) for the threshold.
         let frame_config = ChangeConfig {
             pose_sigma_px: meta.pose_sigma_px as f32,
@@ -196,7 +189,7 @@ impl<'m> ChangeStage<'m> {
                     frame_config.for_stereo(*quadratic_sigma_per_m as f32),
                 ),
             };
-            detect_changes(
+            let changes = detect_changes(
                 self.mesh,
                 &meta.camera.intrinsics,
                 &meta.cam_from_world,
@@ -206,17 +199,44 @@ impl<'m> ChangeStage<'m> {
                 &mut self.workspace,
                 &mut self.classes,
             )
-            .map_err(|error| error.to_string())
+            .map_err(|error| error.to_string())?;
+            let settings = changes.settings(&config);
+            Ok((changes, depth.data().to_vec(), settings))
         });
+        let mut sight = ChangeSight {
+            meta: ChangeSightMeta {
+                result: ChangeResult {
+                    frame_id,
+                    name: meta.info.name.clone(),
+                    failure: None,
+                    counts: Default::default(),
+                    regions: Vec::new(),
+                    change_ms: 0.0,
+                    change_worker: Some(self.worker_index),
+                },
+                view: None,
+            },
+            photo_depth_m: Cow::Owned(Vec::new()),
+            model_depth_m: Cow::Owned(Vec::new()),
+        };
         match detected {
-            Ok(changes) => {
+            Ok((changes, photo_depth_m, config)) => {
+                let result = &mut sight.meta.result;
                 result.counts = changes.counts;
                 result.regions = changes.regions;
+                sight.meta.view = Some(SightView {
+                    camera: meta.camera,
+                    cam_from_world: meta.cam_from_world,
+                    config,
+                });
+                sight.photo_depth_m = Cow::Owned(photo_depth_m);
+                sight.model_depth_m =
+                    Cow::Owned(self.workspace.model_rendering().depth_m().data().to_vec());
             }
-            Err(why) => result.failure = Some(why),
+            Err(why) => sight.meta.result.failure = Some(why),
         }
-        result.change_ms = elapsed_ms(started);
-        result
+        sight.meta.result.change_ms = elapsed_ms(started);
+        sight
     }
 }
 

@@ -1,6 +1,6 @@
 //! Network transport between hosts (zenoh): the stages of one pipeline spread over several
 //! machines (a ground station and remote flow-worker hosts), and any outside subscriber (Python,
-//! C, ROS 2 via zenoh) reading the results as `asgreg/v6/<pipeline>/results/json` (docs/design.md §5).
+//! C, ROS 2 via zenoh) reading the results as `asgreg/v7/<pipeline>/results/json` (docs/design.md §5).
 //!
 //! **Topology.** The ground station runs one zenoh *router* (the launcher runs it as a process of
 //! its own that calls [`open_router`]; `deploy/zenoh/router.json5` is the same as a file). Every
@@ -937,7 +937,7 @@ mod tests {
                 b"allowed"
             ))
             .unwrap());
-        // A key outside asgreg/v6/** is not routed.
+        // A key outside asgreg/v7/** is not routed.
         let outside = subscriber_side
             .session
             .declare_subscriber("other/results")
@@ -1070,6 +1070,14 @@ mod tests {
                 &Default::default(),
             ),
             fusion: Default::default(),
+            // As fusion's free-space test reports an `added` object three frames see through.
+            free_space: vec![crate::core::change::free_space::FreeSpaceCheck {
+                object: 0,
+                centroid_m: region.centroid_m,
+                seen_through_by: vec![1, 2, 3],
+                agreed_by: vec![0],
+                refuted: true,
+            }],
         };
         // The final set first: the two keys are not ordered with each other, so a subscriber
         // that stops at the final set must still take the change results on their way (a CI run
@@ -1123,11 +1131,20 @@ mod tests {
             stdout.contains("change set (final): 1 objects, 0 confirmed"),
             "{stdout}"
         );
+        assert!(
+            stdout.contains("free space: seen through by frames [1, 2, 3], agreed by [0], refuted"),
+            "{stdout}"
+        );
         let geojson: serde_json::Value = serde_json::from_str(
             &std::fs::read_to_string(&geojson_path).expect("the GeoJSON the subscriber wrote"),
         )
         .expect("GeoJSON");
         assert_eq!(geojson["features"].as_array().map(Vec::len), Some(1));
+        assert_eq!(geojson["features"][0]["properties"]["refuted"], true);
+        assert_eq!(
+            geojson["features"][0]["properties"]["seen_through_by"],
+            serde_json::json!([1, 2, 3])
+        );
         println!("{stdout}");
     }
 }

@@ -7,7 +7,10 @@
 //! *agrees* when its depth there is within the threshold and the model's surface lies beyond
 //! the point by more (it would call the point `added` too). An `added` object that more frames
 //! see through than agree with is a depth error of the frames that found it, not a new
-//! building, and is not confirmed ([`check_free_space`]).
+//! building, and is not confirmed ([`check_free_space`]). Batch `asgreg changes` and the
+//! pipeline's fusion stage both keep a [`SeenFrame`] per frame with a change map and call it
+//! after `fuse_regions` (the pipeline's change workers send their frame's depths to fusion for
+//! it).
 //!
 //! Why: under registered poses, a frame whose own pose is a few pixels off gets a stereo depth
 //! that is off the same way with each of its neighbours (they share its pose), and two such
@@ -21,9 +24,9 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::fusion::FusedChange;
-use super::{ChangeConfig, ChangeKind};
+use super::{pose_error_sigma_m, ChangeConfig, ChangeKind};
 use crate::core::camera::{nearest_pixel, PinholeIntrinsics};
-use crate::core::image::ImageView;
+use crate::core::image::{Image, ImageView};
 use crate::core::rigid::Rigid3;
 
 /// What one frame saw, to test world points against: its photo depth and the model's depth
@@ -41,6 +44,65 @@ pub struct FrameSight<'a> {
     pub model_depth_m: ImageView<'a, f32>,
     pub pose_sigma_m: Option<ImageView<'a, f32>>,
     pub config: ChangeConfig,
+}
+
+/// What one frame saw, owned until fusion (batch `changes` keeps one per frame with a change
+/// map; the pipeline's fusion stage one per frame from its change worker's message): the maps
+/// and settings a [`FrameSight`] borrows. The pose term is not kept apart: it is the model
+/// depth's local range under the frame's u ([`pose_error_sigma_m`] of `config.pose_sigma_px`),
+/// made again here exactly as [`super::detect_changes`] made it.
+#[derive(Clone, Debug)]
+pub struct SeenFrame {
+    pub intrinsics: PinholeIntrinsics,
+    pub cam_from_world: Rigid3,
+    pub photo_depth_m: Image<f32>,
+    pub model_depth_m: Image<f32>,
+    pose_sigma_m: Image<f32>,
+    /// The settings the frame's change map was made with (its u and σ_quad included:
+    /// [`super::FrameChanges::settings`]).
+    pub config: ChangeConfig,
+}
+
+impl SeenFrame {
+    /// A frame's photo depth and the model's depth under its pose (camera z, metres, 0 = none;
+    /// the same size) with the settings its change map was made with.
+    pub fn new(
+        intrinsics: PinholeIntrinsics,
+        cam_from_world: Rigid3,
+        photo_depth_m: Image<f32>,
+        model_depth_m: Image<f32>,
+        config: ChangeConfig,
+    ) -> Self {
+        let mut pose_sigma_m = Image::default();
+        pose_error_sigma_m(
+            model_depth_m.view(),
+            config.pose_sigma_px,
+            &mut pose_sigma_m,
+            &mut Vec::new(),
+        );
+        Self {
+            intrinsics,
+            cam_from_world,
+            photo_depth_m,
+            model_depth_m,
+            pose_sigma_m,
+            config,
+        }
+    }
+
+    /// The frame as the free-space test reads it, numbered `frame` (as the fused objects'
+    /// `frames` number it).
+    pub fn sight(&self, frame: usize) -> FrameSight<'_> {
+        FrameSight {
+            frame,
+            intrinsics: self.intrinsics,
+            cam_from_world: self.cam_from_world,
+            photo_depth_m: self.photo_depth_m.view(),
+            model_depth_m: self.model_depth_m.view(),
+            pose_sigma_m: Some(self.pose_sigma_m.view()),
+            config: self.config,
+        }
+    }
 }
 
 /// How one frame sees one world point.
@@ -199,7 +261,7 @@ pub fn check_free_space(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::core::change::fusion::{fuse_regions, FusionConfig};
     use crate::core::change::tests::mesh_of;
@@ -210,9 +272,9 @@ mod tests {
     use crate::core::mesh::Mesh;
     use crate::core::raster::{Rasterizer, RenderBuffers, RenderOptions};
 
-    const SIZE_PX: u32 = 200;
+    pub(crate) const SIZE_PX: u32 = 200;
 
-    fn ground() -> [[f64; 3]; 4] {
+    pub(crate) fn ground() -> [[f64; 3]; 4] {
         [
             [-60.0, -60.0, 0.0],
             [60.0, -60.0, 0.0],
@@ -222,7 +284,7 @@ mod tests {
     }
 
     /// A 4 × 3 m box 5 m high centred on the origin: its roof and four walls.
-    fn box_quads() -> Vec<[[f64; 3]; 4]> {
+    pub(crate) fn box_quads() -> Vec<[[f64; 3]; 4]> {
         let (x, y, z) = (2.0, 1.5, 5.0);
         vec![
             [[-x, -y, z], [x, -y, z], [x, y, z], [-x, y, z]],
@@ -234,14 +296,18 @@ mod tests {
     }
 
     /// Oblique cameras 40 m up, 30 m out, looking at the origin from around it.
-    fn camera(azimuth_deg: f64) -> (PinholeIntrinsics, Rigid3) {
+    pub(crate) fn camera(azimuth_deg: f64) -> (PinholeIntrinsics, Rigid3) {
         let a = azimuth_deg.to_radians();
         let eye = Vector3::new(30.0 * a.cos(), 30.0 * a.sin(), 40.0);
         let pose = Rigid3::look_at(&eye, &Vector3::zeros(), &Vector3::z()).expect("a valid pose");
         (PinholeIntrinsics::centered(200.0, SIZE_PX, SIZE_PX), pose)
     }
 
-    fn depth_of(mesh: &Mesh, intrinsics: &PinholeIntrinsics, pose: &Rigid3) -> Image<f32> {
+    pub(crate) fn depth_of(
+        mesh: &Mesh,
+        intrinsics: &PinholeIntrinsics,
+        pose: &Rigid3,
+    ) -> Image<f32> {
         let mut buffers = RenderBuffers::new(SIZE_PX as usize, SIZE_PX as usize);
         Rasterizer::new().render(
             mesh,

@@ -666,6 +666,18 @@ pub struct FrameChanges {
     pub beyond_the_model: Vec<BeyondTheModel>,
 }
 
+impl FrameChanges {
+    /// The settings this frame's map was made with: `config` (what [`detect_changes`] was
+    /// given) with the frame's own u and σ_quad.
+    pub fn settings(&self, config: &ChangeConfig) -> ChangeConfig {
+        ChangeConfig {
+            pose_sigma_px: self.pose_sigma_px,
+            quadratic_sigma_per_m: self.quadratic_sigma_per_m,
+            ..*config
+        }
+    }
+}
+
 /// A `removed` region whose photo depth lies below the model's ground: a wrong depth (a stereo
 /// match on the wrong repeat of a regular texture), not a demolition ([`beyond_the_model`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -1,0 +1,215 @@
+//! A folder of one message per frame in the state folder, written so that a crash leaves the
+//! old file or the new one, never half of one (a temporary name, then a rename), and tied to its
+//! run by a `header` file (another run's files are removed). What a restarted stage needs back
+//! that is too large for a results journal's line: verify's stereo views (`views`, the photos of
+//! its stereo neighbours) and fusion's sights (`sights`, the frames' depths for the free-space
+//! test). One implementation, so both keep the same crash rules and the same warnings: writing
+//! is best effort (a file that cannot be written costs only what a restart would get back, so it
+//! is a warning, once until writing works again), and a file that cannot be read back is removed
+//! with a warning.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use crate::msg::Body;
+
+use super::config::PipelineConfig;
+use super::journal;
+
+/// What a folder holds and what losing a file costs, for its warnings.
+#[derive(Clone, Copy, Debug)]
+pub struct FolderKind {
+    /// The stage that keeps the folder ("verify").
+    pub stage: &'static str,
+    /// The folder's name after the pipeline's (`<pipeline>.<name>`) and its files' extension.
+    pub name: &'static str,
+    pub extension: &'static str,
+    /// One file's content, for the messages ("stereo view").
+    pub what: &'static str,
+    /// What a restart of the stage loses without a frame's file.
+    pub loss: &'static str,
+}
+
+/// One frame's message per file: `<state_dir>/<pipeline>.<name>/<frame id>.<extension>`, in
+/// the one wire encoding.
+pub struct FrameFolder {
+    kind: FolderKind,
+    dir: PathBuf,
+    /// Whether a write failed since the last success (warned once).
+    failing: bool,
+}
+
+/// The folder `<state_dir>/<pipeline>.<name>` of a configuration.
+pub fn dir_of(config: &PipelineConfig, name: &str) -> PathBuf {
+    journal::state_dir(config).join(format!("{}.{name}", config.transport.pipeline))
+}
+
+/// Starts a run over: removes the folder (none is fine).
+pub fn reset(config: &PipelineConfig, kind: &FolderKind) -> std::io::Result<()> {
+    match std::fs::remove_dir_all(dir_of(config, kind.name)) {
+        Err(error) if error.kind() != std::io::ErrorKind::NotFound => Err(error),
+        _ => Ok(()),
+    }
+}
+
+impl FrameFolder {
+    /// Opens the configuration's folder of `kind` and hands each message of this run to
+    /// `restore` (frame id and body; an error: the file is removed with a warning). Another
+    /// run's files are removed.
+    pub fn open_and_restore(
+        config: &PipelineConfig,
+        kind: FolderKind,
+        restore: &mut dyn FnMut(u64, &Body<'_>) -> Result<(), String>,
+    ) -> Self {
+        let mut folder = Self {
+            kind,
+            dir: dir_of(config, kind.name),
+            failing: false,
+        };
+        let header = format!(
+            "# asgreg {} v1 pipeline={} poses={} max_frames={}\n",
+            kind.name,
+            config.transport.pipeline,
+            config.source.poses.display(),
+            config.source.max_frames
+        );
+        match folder.claim(&header) {
+            Ok(true) => {}
+            Ok(false) => return folder,
+            Err(error) => {
+                tracing::warn!(
+                    "{}: {}: cannot start the folder of each frame's {} ({error}); a restart of {} will lose {}",
+                    kind.stage,
+                    folder.dir.display(),
+                    kind.what,
+                    kind.stage,
+                    kind.loss
+                );
+                folder.failing = true;
+                return folder;
+            }
+        }
+        for frame_id in folder.listed() {
+            let path = folder.path(frame_id);
+            let outcome = std::fs::read(&path)
+                .map_err(|error| error.to_string())
+                .and_then(|bytes| {
+                    let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
+                    if message.header.frame_id != frame_id {
+                        return Err(format!(
+                            "it holds a {:?} message of frame {}",
+                            message.body.kind(),
+                            message.header.frame_id
+                        ));
+                    }
+                    restore(frame_id, &message.body)
+                });
+            if let Err(error) = outcome {
+                tracing::warn!(
+                    "{}: {}: not a {} ({error}); removed (this restart loses {})",
+                    kind.stage,
+                    path.display(),
+                    kind.what,
+                    kind.loss
+                );
+                let _ = folder.remove(frame_id);
+            }
+        }
+        folder
+    }
+
+    /// The file of `frame_id`'s message.
+    fn path(&self, frame_id: u64) -> PathBuf {
+        self.dir.join(format!("{frame_id}.{}", self.kind.extension))
+    }
+
+    /// The frame ids of the messages in the folder.
+    fn listed(&self) -> BTreeSet<u64> {
+        let Ok(entries) = std::fs::read_dir(&self.dir) else {
+            return BTreeSet::new();
+        };
+        entries
+            .filter_map(|entry| entry.ok())
+            .filter_map(|entry| {
+                let name = entry.file_name();
+                name.to_str()?
+                    .strip_suffix(self.kind.extension)?
+                    .strip_suffix('.')?
+                    .parse::<u64>()
+                    .ok()
+            })
+            .collect()
+    }
+
+    /// Whether the folder is this run's (its `header` file holds `header`). When it is not, its
+    /// messages are removed and it is started for this run (the error: it cannot be).
+    fn claim(&self, header: &str) -> std::io::Result<bool> {
+        let header_path = self.dir.join("header");
+        if std::fs::read_to_string(&header_path).is_ok_and(|found| found == header) {
+            return Ok(true);
+        }
+        for frame_id in self.listed() {
+            let _ = std::fs::remove_file(self.path(frame_id));
+        }
+        std::fs::create_dir_all(&self.dir)?;
+        std::fs::write(&header_path, header.as_bytes())?;
+        Ok(false)
+    }
+
+    /// Writes `body` as `frame_id`'s message (replacing any earlier one whole); best effort:
+    /// whether it was written (a failure is warned once until a write works again).
+    pub fn write(&mut self, frame_id: u64, body: Body<'_>) -> bool {
+        let written = super::bus::encode_to_vec(frame_id, 0, body)
+            .map_err(|error| error.to_string())
+            .and_then(|bytes| {
+                let partial = self
+                    .dir
+                    .join(format!("{frame_id}.{}.partial", self.kind.extension));
+                std::fs::create_dir_all(&self.dir)
+                    .and_then(|()| std::fs::write(&partial, &bytes))
+                    .and_then(|()| std::fs::rename(&partial, self.path(frame_id)))
+                    .map_err(|error| error.to_string())
+            });
+        let kind = &self.kind;
+        match written {
+            Ok(()) => {
+                if self.failing {
+                    tracing::info!(
+                        "{}: each frame's {} is written again in {}",
+                        kind.stage,
+                        kind.what,
+                        self.dir.display()
+                    );
+                    self.failing = false;
+                }
+                true
+            }
+            Err(error) => {
+                if !self.failing {
+                    tracing::warn!(
+                        "{}: {}: cannot write the {} of frame {frame_id} ({error}); a restart of {} would lose {}",
+                        kind.stage,
+                        self.dir.display(),
+                        kind.what,
+                        kind.stage,
+                        kind.loss
+                    );
+                }
+                self.failing = true;
+                false
+            }
+        }
+    }
+
+    /// Removes `frame_id`'s message (none is fine).
+    pub fn remove(&self, frame_id: u64) -> std::io::Result<()> {
+        match std::fs::remove_file(self.path(frame_id)) {
+            Err(error) if error.kind() != std::io::ErrorKind::NotFound => Err(error),
+            _ => Ok(()),
+        }
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+}
