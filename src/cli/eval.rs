@@ -103,6 +103,10 @@ pub struct EvalArgs {
     /// Use only the first N images of each level.
     #[arg(long)]
     pub limit: Option<usize>,
+    /// Use only these images (names as in the level's images.txt, comma-separated), e.g. one
+    /// frame under --diagnose; applied before --limit.
+    #[arg(long, value_delimiter = ',')]
+    pub frames: Vec<String>,
     /// Seed of the registration's random draws.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -242,6 +246,27 @@ fn heading_level_tilt_deg(args: &EvalArgs) -> anyhow::Result<Option<f64>> {
     Ok(Some(tilt_deg))
 }
 
+/// Every name of --frames is in every level's images.txt: a misspelt frame is an error naming
+/// it and the file, not an empty evaluation.
+fn check_frames_exist(args: &EvalArgs) -> anyhow::Result<()> {
+    for &level in &args.levels {
+        let path = args.scene.join(format!("initial/{level}/images.txt"));
+        let names: Vec<String> = read_images_txt(&path)?
+            .into_iter()
+            .map(|image| image.name)
+            .collect();
+        if let Some(missing) = args.frames.iter().find(|name| !names.contains(name)) {
+            bail!(
+                "--frames: {missing:?} is not in {} ({} images, e.g. {:?}); give names as that file spells them",
+                path.display(),
+                names.len(),
+                names.first().map(String::as_str).unwrap_or("none")
+            );
+        }
+    }
+    Ok(())
+}
+
 /// The coarse settings `level` registers with: the heading level's trusted tilt
 /// ([`heading_level_tilt_deg`]) on it, the command line's elsewhere.
 fn level_coarse(coarse: &CoarseArgs, level: Level, heading_tilt_deg: Option<f64>) -> CoarseArgs {
@@ -275,6 +300,9 @@ impl Method {
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     if args.changes {
+        if !args.frames.is_empty() {
+            bail!("--frames selects frames to register; eval --changes uses --limit");
+        }
         return super::eval_changes::run(args);
     }
     let model_path = args.model.path(&args.scene)?;
@@ -298,6 +326,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let false_accept_px = 0.05 * f64::from(longest_side_px);
 
     let heading_tilt_deg = heading_level_tilt_deg(args)?;
+    check_frames_exist(args)?;
     let mut jobs = Vec::new();
     for &level in &args.levels {
         let poses_path = args.scene.join(format!("initial/{level}/images.txt"));
@@ -308,7 +337,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             methods.push(Method::Icp(IcpVariant::PointToPoint));
         }
         for method in methods {
-            for image in initial.iter().take(args.limit.unwrap_or(usize::MAX)) {
+            for image in initial
+                .iter()
+                .filter(|image| args.frames.is_empty() || args.frames.contains(&image.name))
+                .take(args.limit.unwrap_or(usize::MAX))
+            {
                 jobs.push((level, method, image.clone()));
             }
         }
@@ -1776,6 +1809,31 @@ mod tests {
         assert!(
             message.contains("config.heading_noise.tilt_max_deg")
                 && message.contains("--untrusted-heading-tilt"),
+            "{message}"
+        );
+    }
+
+    /// --frames names frames of the levels' images.txt; a misspelt one is an error naming it
+    /// and the file.
+    #[test]
+    fn a_frame_asked_for_must_be_in_every_level() {
+        let scene = tempfile::tempdir().unwrap();
+        let level_dir = scene.path().join("initial/30");
+        std::fs::create_dir_all(&level_dir).unwrap();
+        std::fs::write(
+            level_dir.join("images.txt"),
+            "1 1 0 0 0 0 0 0 1 view_000.jpg\n\n2 1 0 0 0 0 0 0 1 view_001.jpg\n\n",
+        )
+        .unwrap();
+        let one = eval_args(
+            scene.path(),
+            &["--levels", "30", "--frames", "view_001.jpg"],
+        );
+        check_frames_exist(&one).unwrap();
+        let misspelt = eval_args(scene.path(), &["--levels", "30", "--frames", "view_01.jpg"]);
+        let message = format!("{:#}", check_frames_exist(&misspelt).unwrap_err());
+        assert!(
+            message.contains("\"view_01.jpg\"") && message.contains("initial/30/images.txt"),
             "{message}"
         );
     }
