@@ -13,8 +13,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
-use asgreg::core::change::free_space::{check_free_space, FrameSight, FreeSpaceCheck, SeenFrame};
-use asgreg::core::change::fusion::{fuse_regions, FusedChange, FusionConfig};
+use asgreg::core::change::free_space::{fuse_and_check, FreeSpaceCheck, SeenFrame};
+use asgreg::core::change::fusion::{FusedChange, FusionConfig};
 use asgreg::core::change::stereo::{
     choose_neighbours, depth_from_neighbours, NeighbourConfig, PosedCamera, RankingPhotos,
     StereoConfig, StereoView,
@@ -682,12 +682,11 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         .enumerate()
         .flat_map(|(index, frame)| frame.regions.iter().map(move |r| (index, r)))
         .collect();
-    let mut objects = fuse_regions(&regions, &fusion);
-    let sights: Vec<FrameSight<'_>> = seen
-        .iter()
-        .map(|(frame, seen)| seen.sight(*frame))
-        .collect();
-    let free_space = check_free_space(&mut objects, &sights);
+    let (objects, free_space) = fuse_and_check(
+        &regions,
+        &fusion,
+        seen.iter().map(|(frame, seen)| (*frame, seen)),
+    );
     for check in free_space.iter().filter(|c| c.refuted) {
         tracing::info!(
             "added object at ({:.1}, {:.1}, {:.1}) not confirmed: {} frames see through it ({}), {} agree ({})",

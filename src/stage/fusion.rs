@@ -1,18 +1,17 @@
 //! Stage "fusion": gathers the frames' change results (one per frame: the first kept, repeats
-//! from redone change jobs ignored) and fuses their regions across frames into a ChangeSet by
-//! `core::change::fusion::fuse_regions`, then tests the confirmed `added` objects against every
-//! frame's free space by `core::change::free_space::check_free_space` (the two functions
-//! `asgreg changes` calls, in the same order). The frames' sights (their photo's and the model's
-//! depth, from the change workers' ChangeSight messages: [`seen_frame`]) are kept until the end
-//! of the stream. The set is made in frame order, so it does not depend on which worker
-//! finished first. After a restart, the results published before it come back from the change
-//! journal and their sights from the state folder (`restore`), so none is published twice and
-//! the set is the same as without the restart.
+//! from redone change jobs ignored) and fuses their regions across frames into a ChangeSet,
+//! the confirmed `added` objects tested against every frame's free space, by
+//! `core::change::free_space::fuse_and_check` (what `asgreg changes` calls). The frames'
+//! sights (their photo's and the model's depth, from the change workers' ChangeSight messages:
+//! [`seen_frame`]) are kept until the end of the stream. The set is made in frame order, so it
+//! does not depend on which worker finished first. After a restart, the results published
+//! before it come back from the change journal and their sights from the state folder
+//! (`restore`), so none is published twice and the set is the same as without the restart.
 
 use std::collections::BTreeMap;
 
-use crate::core::change::free_space::{check_free_space, FrameSight, SeenFrame};
-use crate::core::change::fusion::{fuse_regions, FusionConfig};
+use crate::core::change::free_space::{fuse_and_check, SeenFrame};
+use crate::core::change::fusion::FusionConfig;
 use crate::core::change::ChangeRegion;
 use crate::core::image::ImageView;
 use crate::msg::{ChangeResult, ChangeSet, ChangeSight};
@@ -135,13 +134,13 @@ impl FusionStage {
                     .map(move |region| (*frame_id as usize, region))
             })
             .collect();
-        let mut objects = fuse_regions(&regions, &self.config);
-        let sights: Vec<FrameSight<'_>> = self
-            .seen
-            .iter()
-            .map(|(frame_id, seen)| seen.sight(*frame_id as usize))
-            .collect();
-        let free_space = check_free_space(&mut objects, &sights);
+        let (objects, free_space) = fuse_and_check(
+            &regions,
+            &self.config,
+            self.seen
+                .iter()
+                .map(|(frame_id, seen)| (*frame_id as usize, seen)),
+        );
         ChangeSet {
             complete: self.is_complete(),
             frame_count: self.frame_count,

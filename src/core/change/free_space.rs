@@ -23,8 +23,8 @@
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-use super::fusion::FusedChange;
-use super::{pose_error_sigma_m, ChangeConfig, ChangeKind};
+use super::fusion::{fuse_regions, FusedChange, FusionConfig};
+use super::{pose_error_sigma_m, ChangeConfig, ChangeKind, ChangeRegion};
 use crate::core::camera::{nearest_pixel, PinholeIntrinsics};
 use crate::core::image::{Image, ImageView};
 use crate::core::rigid::Rigid3;
@@ -204,6 +204,24 @@ pub struct FreeSpaceCheck {
     pub agreed_by: Vec<usize>,
     /// More frames see through it than agree: it was confirmed and no longer is.
     pub refuted: bool,
+}
+
+/// The change set's objects, as batch `asgreg changes` and the pipeline's fusion stage make
+/// them: every frame's regions fused into objects ([`fuse_regions`]), then the confirmed `added`
+/// ones tested against the free space of every frame in `seen` ([`check_free_space`]).
+/// `regions` and `seen` number the frames alike (the objects' `frames`).
+pub fn fuse_and_check<'a>(
+    regions: &[(usize, &ChangeRegion)],
+    config: &FusionConfig,
+    seen: impl IntoIterator<Item = (usize, &'a SeenFrame)>,
+) -> (Vec<FusedChange>, Vec<FreeSpaceCheck>) {
+    let mut objects = fuse_regions(regions, config);
+    let sights: Vec<FrameSight<'_>> = seen
+        .into_iter()
+        .map(|(frame, seen)| seen.sight(frame))
+        .collect();
+    let free_space = check_free_space(&mut objects, &sights);
+    (objects, free_space)
 }
 
 /// Tests each confirmed `added` object against every frame's sight of its inner points
