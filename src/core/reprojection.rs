@@ -308,7 +308,7 @@ pub(crate) fn ray_plane_point_cam(
 }
 
 /// `camera.project(cam_from_world · point)`, `None` when behind the camera or not finite.
-fn project_finite(
+pub(crate) fn project_finite(
     camera: &Camera,
     cam_from_world: &Rigid3,
     point_world: &Vector3<f64>,

@@ -19,7 +19,7 @@ use super::mesh::Mesh;
 use rayon::prelude::*;
 
 use super::reprojection::{
-    delta_between, visible_points_of_poses, ReprojectionWorkspace, VisiblePoints,
+    delta_between, project_finite, visible_points_of_poses, ReprojectionWorkspace, VisiblePoints,
 };
 use super::rigid::Rigid3;
 
@@ -650,11 +650,6 @@ fn carried_share(
     if component.len() < 2 {
         return None;
     }
-    let project = |camera: &Camera, cam_from_world: &Rigid3, point: &nalgebra::Vector3<f64>| {
-        camera
-            .project(&cam_from_world.transform_point(point))
-            .filter(|p| p.x.is_finite() && p.y.is_finite())
-    };
     let points = chosen.points_world_m();
     let stride = points.len().div_ceil(CARRIED_SHARE_POINTS).max(1);
     let members = component.len() as f64;
@@ -667,8 +662,8 @@ fn carried_share(
         for &i in component {
             let h = &hypotheses[i];
             match (
-                project(&h.camera, &h.cam_from_world, point),
-                project(coarse_camera, &h.coarse_cam_from_world, point),
+                project_finite(&h.camera, &h.cam_from_world, point),
+                project_finite(coarse_camera, &h.coarse_cam_from_world, point),
             ) {
                 (Some(r), Some(c)) => {
                     refined_px.push(r);

@@ -720,12 +720,6 @@ impl ChangeWorkspace {
     pub fn model_rendering(&self) -> &RenderBuffers {
         &self.model
     }
-
-    /// The per-pixel pose term of the last [`detect_changes`] call ([`pose_error_sigma_m`]),
-    /// metres; all zero when its pose was exact.
-    pub fn pose_error_sigma_m(&self) -> &Image<f32> {
-        &self.pose_sigma_m
-    }
 }
 
 /// What the photo's depth rests on besides the depth values: where the photo's own data do not
