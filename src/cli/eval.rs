@@ -246,23 +246,19 @@ fn heading_level_tilt_deg(args: &EvalArgs) -> anyhow::Result<Option<f64>> {
     Ok(Some(tilt_deg))
 }
 
-/// Every name of --frames is in every level's images.txt: a misspelt frame is an error naming
-/// it and the file, not an empty evaluation.
-fn check_frames_exist(args: &EvalArgs) -> anyhow::Result<()> {
-    for &level in &args.levels {
-        let path = args.scene.join(format!("initial/{level}/images.txt"));
-        let names: Vec<String> = read_images_txt(&path)?
-            .into_iter()
-            .map(|image| image.name)
-            .collect();
-        if let Some(missing) = args.frames.iter().find(|name| !names.contains(name)) {
-            bail!(
-                "--frames: {missing:?} is not in {} ({} images, e.g. {:?}); give names as that file spells them",
-                path.display(),
-                names.len(),
-                names.first().map(String::as_str).unwrap_or("none")
-            );
-        }
+/// Every name of --frames is among a level's images (read from `path`): a misspelt frame is an
+/// error naming it and the file, not an empty evaluation.
+fn check_frames_exist(frames: &[String], images: &[ImagePose], path: &Path) -> anyhow::Result<()> {
+    if let Some(missing) = frames
+        .iter()
+        .find(|name| !images.iter().any(|image| &image.name == *name))
+    {
+        bail!(
+            "--frames: {missing:?} is not in {} ({} images, e.g. {:?}); give names as that file spells them",
+            path.display(),
+            images.len(),
+            images.first().map_or("none", |image| image.name.as_str())
+        );
     }
     Ok(())
 }
@@ -326,11 +322,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let false_accept_px = 0.05 * f64::from(longest_side_px);
 
     let heading_tilt_deg = heading_level_tilt_deg(args)?;
-    check_frames_exist(args)?;
     let mut jobs = Vec::new();
     for &level in &args.levels {
         let poses_path = args.scene.join(format!("initial/{level}/images.txt"));
         let initial = read_images_txt(&poses_path)?;
+        check_frames_exist(&args.frames, &initial, &poses_path)?;
         let mut methods: Vec<Method> = args.intrinsics.iter().map(|i| Method::Asg(*i)).collect();
         if !args.no_icp && depth_dir.is_dir() {
             methods.push(Method::Icp(IcpVariant::PointToPlane));
@@ -1825,13 +1821,18 @@ mod tests {
             "1 1 0 0 0 0 0 0 1 view_000.jpg\n\n2 1 0 0 0 0 0 0 1 view_001.jpg\n\n",
         )
         .unwrap();
+        let path = level_dir.join("images.txt");
+        let images = read_images_txt(&path).unwrap();
         let one = eval_args(
             scene.path(),
             &["--levels", "30", "--frames", "view_001.jpg"],
         );
-        check_frames_exist(&one).unwrap();
+        check_frames_exist(&one.frames, &images, &path).unwrap();
         let misspelt = eval_args(scene.path(), &["--levels", "30", "--frames", "view_01.jpg"]);
-        let message = format!("{:#}", check_frames_exist(&misspelt).unwrap_err());
+        let message = format!(
+            "{:#}",
+            check_frames_exist(&misspelt.frames, &images, &path).unwrap_err()
+        );
         assert!(
             message.contains("\"view_01.jpg\"") && message.contains("initial/30/images.txt"),
             "{message}"
