@@ -386,7 +386,7 @@ pub(crate) mod tests {
     }
 
     /// Fuses the frames' regions and runs the free-space test: the objects and the tests.
-    fn fuse_and_check(
+    fn fused_and_checked(
         frames: &[Frame],
     ) -> (Vec<FusedChange>, Vec<FusedChange>, Vec<FreeSpaceCheck>) {
         let regions: Vec<(usize, &ChangeRegion)> = frames
@@ -423,7 +423,7 @@ pub(crate) mod tests {
             .iter()
             .map(|&a| frame(&model, &with_box, a))
             .collect();
-        let (fused, checked, checks) = fuse_and_check(&frames);
+        let (fused, checked, checks) = fused_and_checked(&frames);
         let confirmed = |objects: &[FusedChange]| {
             objects
                 .iter()
@@ -442,7 +442,7 @@ pub(crate) mod tests {
             .enumerate()
             .map(|(i, &a)| frame(&model, if i < 2 { &floating } else { &bare }, a))
             .collect();
-        let (fused, checked, checks) = fuse_and_check(&frames);
+        let (fused, checked, checks) = fused_and_checked(&frames);
         // Fusion alone confirms it: two frames agree in position and height.
         assert_eq!(confirmed(&fused), 1, "{fused:?}");
         assert_eq!(confirmed(&checked), 0, "{checks:?}");
