@@ -156,6 +156,147 @@ pub fn calibration_bins<'a>(
     table
 }
 
+/// A `results.json` of `asgreg eval`, as `calibrate` and `compare` read it back.
+#[derive(Clone, Debug, Deserialize)]
+pub struct EvalResults {
+    pub false_accept_threshold_px: f64,
+    pub cells: Vec<EvalCell>,
+}
+
+/// One (level, method) cell of an [`EvalResults`].
+#[derive(Clone, Debug, Deserialize)]
+pub struct EvalCell {
+    /// The initial-error level: px, or a named level such as `"heading"`.
+    #[serde(default)]
+    pub level_px: serde_json::Value,
+    pub method: String,
+    pub frames: Vec<EvalFrame>,
+}
+
+impl EvalCell {
+    /// The level as tables print it (`30`, `heading`).
+    pub fn level_text(&self) -> String {
+        match &self.level_px {
+            serde_json::Value::String(text) => text.clone(),
+            serde_json::Value::Null => "?".to_string(),
+            other => other.to_string(),
+        }
+    }
+}
+
+/// Two evaluations of the same frames, frame by frame: what a change to the method did. The
+/// cells' own statistics move with every frame that flips between accepted and rejected, so the
+/// comparison also gives the paired figure (δ of the frames both accepted) and each frame that
+/// changed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Comparison {
+    /// Frames present in both (by name).
+    pub frames: usize,
+    pub base: ComparedSide,
+    pub new: ComparedSide,
+    /// Frames both accepted, and their mean δ before and after, px.
+    pub both_accepted: usize,
+    pub both_accepted_mean_px: Option<(f64, f64)>,
+    /// Frames whose acceptance flipped or whose δ moved by more than the comparison's
+    /// `changed_px`, in name order.
+    pub changed: Vec<FrameChange>,
+}
+
+/// One side of a [`Comparison`], over the frames both evaluations hold.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ComparedSide {
+    pub accepted: usize,
+    /// Mean δ of the accepted frames within the false-accept threshold, px.
+    pub correct_mean_px: Option<f64>,
+    /// δ of each false accept, px.
+    pub false_accepts_px: Vec<f64>,
+}
+
+/// A frame that changed between two evaluations.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameChange {
+    pub name: String,
+    pub base: (bool, Option<f64>),
+    pub new: (bool, Option<f64>),
+    /// The new evaluation's reason for rejecting it.
+    pub new_reason: Option<String>,
+}
+
+/// Compares two evaluations of the same frames (matched by name; frames only one holds are left
+/// out). A frame "changed" when its acceptance flipped or its δ moved by more than `changed_px`.
+pub fn compare_frames(
+    base: &[EvalFrame],
+    new: &[EvalFrame],
+    false_accept_px: f64,
+    changed_px: f64,
+) -> Comparison {
+    let by_name: std::collections::BTreeMap<&str, &EvalFrame> =
+        new.iter().map(|f| (f.name.as_str(), f)).collect();
+    let mut pairs: Vec<(&EvalFrame, &EvalFrame)> = base
+        .iter()
+        .filter_map(|b| by_name.get(b.name.as_str()).map(|n| (b, *n)))
+        .collect();
+    pairs.sort_by(|a, b| a.0.name.cmp(&b.0.name));
+    let both: Vec<(f64, f64)> = pairs
+        .iter()
+        .filter(|(b, n)| b.accepted && n.accepted)
+        .filter_map(|(b, n)| b.final_delta_px.zip(n.final_delta_px))
+        .collect();
+    let both_accepted_mean_px = mean(&both.iter().map(|p| p.0).collect::<Vec<_>>())
+        .zip(mean(&both.iter().map(|p| p.1).collect::<Vec<_>>()));
+    let changed = pairs
+        .iter()
+        .filter(|(b, n)| {
+            b.accepted != n.accepted
+                || match (b.final_delta_px, n.final_delta_px) {
+                    (Some(x), Some(y)) => (x - y).abs() > changed_px,
+                    (x, y) => x.is_some() != y.is_some(),
+                }
+        })
+        .map(|(b, n)| FrameChange {
+            name: b.name.clone(),
+            base: (b.accepted, b.final_delta_px),
+            new: (n.accepted, n.final_delta_px),
+            new_reason: n.reason.clone(),
+        })
+        .collect();
+    Comparison {
+        frames: pairs.len(),
+        base: compared_side(pairs.iter().map(|p| p.0), false_accept_px),
+        new: compared_side(pairs.iter().map(|p| p.1), false_accept_px),
+        both_accepted: both.len(),
+        both_accepted_mean_px,
+        changed,
+    }
+}
+
+/// One side of a comparison over its `frames`.
+fn compared_side<'a>(
+    frames: impl Iterator<Item = &'a EvalFrame>,
+    false_accept_px: f64,
+) -> ComparedSide {
+    let accepted: Vec<&EvalFrame> = frames.filter(|f| f.accepted).collect();
+    let deltas_px: Vec<f64> = accepted.iter().filter_map(|f| f.final_delta_px).collect();
+    let correct: Vec<f64> = deltas_px
+        .iter()
+        .copied()
+        .filter(|d| *d <= false_accept_px)
+        .collect();
+    ComparedSide {
+        accepted: accepted.len(),
+        correct_mean_px: mean(&correct),
+        false_accepts_px: deltas_px
+            .into_iter()
+            .filter(|d| *d > false_accept_px)
+            .collect(),
+    }
+}
+
+/// The mean of `values`; `None` when empty.
+fn mean(values: &[f64]) -> Option<f64> {
+    (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+}
+
 /// `mean ± std (min–max)` or `–` when nothing was accepted.
 pub fn format_accuracy(stats: &CellStats) -> String {
     match (stats.mean_px, stats.std_px, stats.min_px, stats.max_px) {
@@ -207,6 +348,49 @@ mod tests {
             (2, 1, 2)
         );
         assert_eq!(table.iter().map(|b| b.frames).sum::<usize>(), 3);
+    }
+
+    fn named(name: &str, accepted: bool, final_delta_px: Option<f64>) -> EvalFrame {
+        EvalFrame {
+            name: name.into(),
+            ..frame(accepted, final_delta_px)
+        }
+    }
+
+    #[test]
+    fn a_comparison_pairs_frames_by_name_and_lists_what_changed() {
+        let base = [
+            named("a", true, Some(1.0)),
+            named("b", true, Some(4.0)),
+            named("c", false, Some(3.0)),
+            named("d", true, Some(40.0)),
+            named("only-in-base", true, Some(2.0)),
+        ];
+        let mut new = vec![
+            named("d", true, Some(41.0)),
+            named("c", true, Some(2.0)),
+            named("b", true, Some(2.0)),
+            named("a", true, Some(1.2)),
+            named("only-in-new", false, None),
+        ];
+        new[0].reason = None;
+        let comparison = compare_frames(&base, &new, 25.25, 0.5);
+        assert_eq!(comparison.frames, 4);
+        assert_eq!(comparison.base.accepted, 3);
+        assert_eq!(comparison.new.accepted, 4);
+        assert_eq!(comparison.base.correct_mean_px, Some(2.5));
+        assert!((comparison.new.correct_mean_px.unwrap() - 5.2 / 3.0).abs() < 1e-12);
+        assert_eq!(comparison.base.false_accepts_px, vec![40.0]);
+        assert_eq!(comparison.new.false_accepts_px, vec![41.0]);
+        // a, b and d were accepted by both.
+        assert_eq!(comparison.both_accepted, 3);
+        let (before, after) = comparison.both_accepted_mean_px.unwrap();
+        assert!((before - 15.0).abs() < 1e-12 && (after - 44.2 / 3.0).abs() < 1e-12);
+        // a moved 0.2 px (not a change); b 2 px; c flipped; d moved 1 px.
+        let names: Vec<&str> = comparison.changed.iter().map(|c| c.name.as_str()).collect();
+        assert_eq!(names, ["b", "c", "d"]);
+        assert_eq!(comparison.changed[1].base, (false, Some(3.0)));
+        assert_eq!(comparison.changed[1].new, (true, Some(2.0)));
     }
 
     #[test]

@@ -9,9 +9,8 @@ use anyhow::{bail, Context};
 use asgreg::core::confidence::{
     features, fit_logistic, ConfidenceConfig, LogisticModel, FEATURE_COUNT, FEATURE_NAMES,
 };
-use asgreg::eval::{calibration_bins, EvalFrame};
+use asgreg::eval::{calibration_bins, EvalFrame, EvalResults};
 use clap::Args;
-use serde::Deserialize;
 
 #[derive(Args, Debug)]
 pub struct CalibrateArgs {
@@ -36,18 +35,6 @@ pub struct CalibrateArgs {
     pub drop_feature: Vec<String>,
 }
 
-#[derive(Deserialize)]
-struct ResultsFile {
-    false_accept_threshold_px: f64,
-    cells: Vec<ResultsCell>,
-}
-
-#[derive(Deserialize)]
-struct ResultsCell {
-    method: String,
-    frames: Vec<EvalFrame>,
-}
-
 /// A frame with evidence and a pose (`frame.evidence` is always `Some`), labelled.
 struct Labelled {
     frame: EvalFrame,
@@ -65,7 +52,7 @@ fn load(paths: &[PathBuf]) -> anyhow::Result<Vec<Labelled>> {
     for path in paths {
         let text =
             std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-        let file: ResultsFile = serde_json::from_str(&text).with_context(|| {
+        let file: EvalResults = serde_json::from_str(&text).with_context(|| {
             format!(
                 "{}: not a results.json of `asgreg eval` (rerun eval to write one)",
                 path.display()

@@ -4,6 +4,7 @@
 mod bench_mesh;
 mod calibrate;
 mod changes;
+mod compare;
 mod demo;
 mod eval;
 mod eval_changes;
@@ -42,6 +43,9 @@ pub enum Command {
     Register(register::RegisterArgs),
     /// Evaluate registration on a scene folder the paper's way (tables, JSON, plot).
     Eval(eval::EvalArgs),
+    /// Compare two `eval` runs of the same scene frame by frame (paired figures, frames that
+    /// changed).
+    Compare(compare::CompareArgs),
     /// Fit the confidence model and its accept threshold on `eval` results with ground truth.
     Calibrate(calibrate::CalibrateArgs),
     /// Change detection on registered photos: masks, overlays, changes.geojson, report.json.
@@ -127,6 +131,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Register(args) => register::run(&args),
         Command::Eval(args) => eval::run(&args),
         Command::Calibrate(args) => calibrate::run(&args),
+        Command::Compare(args) => compare::run(&args),
         Command::Changes(args) => changes::run(&args),
         Command::Flow(args) => flow::run(&args),
         Command::Synth(args) => synth::run(&args),

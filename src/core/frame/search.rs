@@ -516,10 +516,13 @@ fn rendered_edge_samples(
 }
 
 /// The final refinement's edge alignment as the search uses it: the pose alone, on every edge
-/// sample (the search picks a basin; the refinement's precision options are the final step's).
+/// sample (the search picks a basin; the refinement's precision options are the final step's:
+/// the level check too, since a beam degrees off starts at chance support, where a level that
+/// lowers it is noise, and only the coarse levels reach the basin).
 fn search_alignment(align: &EdgeAlignConfig) -> EdgeAlignConfig {
     EdgeAlignConfig {
         estimate_rounding: false,
+        check_levels: false,
         rounding_kinds: AlignedKinds::All,
         aligned_kinds: AlignedKinds::All,
         coarse_rotation_only: false,
