@@ -4,6 +4,7 @@
 //! an accepted frame and on the would-be pose of a rejected one.
 
 use nalgebra::Matrix6;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
@@ -72,6 +73,8 @@ pub struct RefineWorkspace {
     blurred_asg: Image<f32>,
     dense: Vec<DenseSample>,
     correlation: CorrelationWorkspace,
+    /// A second workspace for the runs [`refine_verdict`] makes beside this one's.
+    spare: Option<Box<RefineWorkspace>>,
 }
 
 /// A start pose of the alignment evaluated once ([`evaluate_start`]): what every run of the
@@ -130,36 +133,40 @@ pub fn refine_verdict(
         config,
         workspace,
     )?;
-    let mut refinement = align_from_start(
-        mesh,
-        query,
-        &mut chosen_start,
-        parameters,
-        config,
-        workspace,
+    let starts = other_starts(mesh, chosen, group, align);
+    let short_config = short_schedule_config(config);
+    // The runs are independent (each reads only its own start), so the chosen pose's schedules
+    // and the other starts run side by side, on the workspace and its spare; their ends are
+    // then decided in the order a single thread would take them (the same output).
+    let mut spare = workspace.spare.take().unwrap_or_default();
+    let ((mut refinement, short_end), other_ends) = rayon::join(
+        || {
+            let full = align_from_start(
+                mesh,
+                query,
+                &mut chosen_start,
+                parameters,
+                config,
+                workspace,
+            );
+            // The short schedule from the chosen pose: its start is the full schedule's.
+            let short = short_config.as_ref().map(|short| {
+                align_from_start(mesh, query, &mut chosen_start, parameters, short, workspace)
+            });
+            (full, short)
+        },
+        || {
+            starts
+                .iter()
+                .filter_map(|start| {
+                    aligned_from_start(mesh, query, parameters, start, config, &mut spare)
+                })
+                .collect::<Vec<_>>()
+        },
     );
-    if align.short_schedule().is_some() {
-        // The short schedule from the chosen pose: its start is the full schedule's.
-        refined_from_evaluated_start(
-            mesh,
-            query,
-            parameters,
-            &mut chosen_start,
-            &mut refinement,
-            config,
-            workspace,
-        );
-    }
-    for start in other_starts(mesh, chosen, group, align) {
-        refined_from_start(
-            mesh,
-            query,
-            parameters,
-            &start,
-            &mut refinement,
-            config,
-            workspace,
-        );
+    workspace.spare = Some(spare);
+    for other in short_end.into_iter().chain(other_ends) {
+        refinement.take_if_better(other, align);
     }
     if refinement.kept {
         chosen.cam_from_world = refinement.aligned_cam_from_world;
@@ -271,19 +278,23 @@ pub fn rival_ends(
     );
     let parameters = aligned_parameters(intrinsics);
     let mut reprojection = ReprojectionWorkspace::new();
-    let mut ends = Vec::with_capacity(starts.len());
-    for start in starts {
-        let Ok(end) = refine_pose(
-            mesh,
-            &output.camera,
-            query,
-            &start,
-            parameters,
-            config,
-            workspace,
-        ) else {
-            continue;
-        };
+    // The runs are independent: side by side (a workspace per rayon task), in order after.
+    let runs: Vec<Result<PoseRefinement, String>> = starts
+        .par_iter()
+        .map_init(RefineWorkspace::default, |workspace, start| {
+            refine_pose(
+                mesh,
+                &output.camera,
+                query,
+                start,
+                parameters,
+                config,
+                workspace,
+            )
+        })
+        .collect();
+    let mut ends = Vec::with_capacity(runs.len());
+    for end in runs.into_iter().flatten() {
         let (camera, cam_from_world) = end.output_pose();
         let Some(apart_px) = mutual_reprojection_error_px(
             mesh,
@@ -343,48 +354,52 @@ fn refined_from_start(
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) {
-    let Ok(mut evaluated) = evaluate_start(
+    if let Some(other) = aligned_from_start(mesh, query, parameters, start, config, workspace) {
+        refinement.take_if_better(other, &config.edge_align);
+    }
+}
+
+/// The alignment from another start (`start` evaluated, then the short schedule when there is
+/// one, else the full one): the end [`PoseRefinement::take_if_better`] weighs against the
+/// output; `None` when the start cannot be evaluated.
+fn aligned_from_start(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    parameters: AlignedParameters,
+    start: &PoseHypothesis,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Option<PoseRefinement> {
+    let mut evaluated = evaluate_start(
         mesh,
         &start.camera,
         query,
         &start.cam_from_world,
         config,
         workspace,
-    ) else {
-        return;
-    };
-    refined_from_evaluated_start(
+    )
+    .ok()?;
+    let short_config = short_schedule_config(config);
+    let run_config = short_config.as_ref().unwrap_or(config);
+    Some(align_from_start(
         mesh,
         query,
-        parameters,
         &mut evaluated,
-        refinement,
-        config,
+        parameters,
+        run_config,
         workspace,
-    );
+    ))
 }
 
-/// [`refined_from_start`] from a start already evaluated (the chosen pose, whose full schedule
-/// ran from the same evaluation).
-fn refined_from_evaluated_start(
-    mesh: &Mesh,
-    query: ImageView<'_, f32>,
-    parameters: AlignedParameters,
-    start: &mut EvaluatedStart,
-    refinement: &mut PoseRefinement,
-    config: &RegistrationConfig,
-    workspace: &mut RefineWorkspace,
-) {
-    let align = &config.edge_align;
-    let short_config = align.short_schedule().map(|short| RegistrationConfig {
-        edge_align: short,
-        ..config.clone()
-    });
-    let run_config = short_config.as_ref().unwrap_or(config);
-    let other = align_from_start(mesh, query, start, parameters, run_config, workspace);
-    if refinement.is_replaced_by(&other, align) {
-        *refinement = refinement.clone().replaced_by(other);
-    }
+/// `config` with the short schedule as its alignment; `None` without a short schedule.
+fn short_schedule_config(config: &RegistrationConfig) -> Option<RegistrationConfig> {
+    config
+        .edge_align
+        .short_schedule()
+        .map(|short| RegistrationConfig {
+            edge_align: short,
+            ..config.clone()
+        })
 }
 
 /// The further starting poses of the final refinement: members of `group` (the chosen pose's
@@ -447,6 +462,14 @@ impl PoseRefinement {
                 other.correlation.map(|peak| peak.at_pose),
             ),
         )
+    }
+
+    /// Replaces this refinement's output with `other`'s end when [`Self::is_replaced_by`]
+    /// says so.
+    fn take_if_better(&mut self, other: PoseRefinement, align: &EdgeAlignConfig) {
+        if self.is_replaced_by(&other, align) {
+            *self = self.clone().replaced_by(other);
+        }
     }
 
     /// The evidence of the pose this refinement outputs (aligned when kept, else verified).
@@ -613,6 +636,7 @@ fn align_from_start(
         blurred_asg,
         dense,
         correlation: correlation_workspace,
+        ..
     } = workspace;
     let render_at = |rasterizer: &mut Rasterizer,
                      view: &mut CoarseView,
