@@ -1531,7 +1531,8 @@ mod tests {
     /// The refinement of a verdict reuses the chosen pose's evaluation (its rendering, samples,
     /// evidence, metric, and its support peak and correlation when read) for the short schedule
     /// from that pose: bit for bit the refinement of independent runs ([`refine_pose`], each
-    /// evaluating its start afresh, as before the reuse), with fewer renderings. Several keep
+    /// evaluating its start afresh, as before the reuse, one after the other and decided in
+    /// turn, while `refine_verdict` runs them side by side), with fewer renderings. Several keep
     /// rules and with and without the rounding estimate, from a start a few pixels off.
     #[test]
     fn the_start_evaluated_once_gives_the_refinement_of_independent_runs() {
