@@ -12,6 +12,7 @@
 
 use std::time::Instant;
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{
@@ -153,8 +154,7 @@ pub fn search_pose(
         },
         ..config.clone()
     };
-    let mut workspace = RefineWorkspace::default();
-    let mut refine = |start: &Rigid3| -> (Rigid3, f64, f64, f64) {
+    let refine = |workspace: &mut RefineWorkspace, start: &Rigid3| -> (Rigid3, f64, f64, f64) {
         match refine_pose(
             mesh,
             camera,
@@ -162,7 +162,7 @@ pub fn search_pose(
             start,
             AlignedParameters::Pose,
             &refine_config,
-            &mut workspace,
+            workspace,
         ) {
             Ok(r) => {
                 let before = r.verified.support_fraction();
@@ -181,7 +181,17 @@ pub fn search_pose(
             Err(_) => (*start, 0.0, 0.0, UNBOUNDED_IMAGE_UNCERTAINTY_PX),
         }
     };
-    let (prior_refined, prior_refined_support, prior_support, prior_uncertainty_px) = refine(prior);
+    // The prior and each beam, refined side by side (independent runs), in that order.
+    let starts: Vec<&Rigid3> = std::iter::once(prior)
+        .chain(grid_beams.iter().map(|(_, screened_pose, _)| screened_pose))
+        .collect();
+    let refined: Vec<(Rigid3, f64, f64, f64)> = starts
+        .par_iter()
+        .map_init(RefineWorkspace::default, |workspace, start| {
+            refine(workspace, start)
+        })
+        .collect();
+    let (prior_refined, prior_refined_support, prior_support, prior_uncertainty_px) = refined[0];
     let mut beams = vec![Beam {
         yaw_deg: 0.0,
         pitch_deg: 0.0,
@@ -192,17 +202,18 @@ pub fn search_pose(
         support: prior_refined_support,
         image_uncertainty_px: prior_uncertainty_px,
     }];
-    for (candidate, screened_pose, screened_support) in &grid_beams {
-        let (pose, support, _, image_uncertainty_px) = refine(screened_pose);
+    for ((candidate, _, screened_support), (pose, support, _, image_uncertainty_px)) in
+        grid_beams.iter().zip(&refined[1..])
+    {
         beams.push(Beam {
             yaw_deg: candidate.yaw_deg,
             pitch_deg: candidate.pitch_deg,
             roll_deg: candidate.roll_deg,
             grid_score: candidate.score,
             screened_support: *screened_support,
-            cam_from_world: pose,
-            support,
-            image_uncertainty_px,
+            cam_from_world: *pose,
+            support: *support,
+            image_uncertainty_px: *image_uncertainty_px,
         });
     }
 
@@ -533,6 +544,7 @@ fn search_alignment(align: &EdgeAlignConfig) -> EdgeAlignConfig {
 #[cfg(test)]
 mod tests {
     use nalgebra::Vector3;
+    use rayon::prelude::*;
 
     use super::*;
     use crate::core::frame::tests::{house_and_poses, ideal_query};
