@@ -284,4 +284,55 @@ mod tests {
         assert_eq!(stage.change_set(), set);
         assert_eq!(stage.sight_memory().loads, loads_before + 3 + 3);
     }
+
+    /// The cost of the bound on a longer stream (a measurement, run by hand with
+    /// `-- --ignored --nocapture`): the floating roof's five frames repeated as 200 frames
+    /// (0.48 MB of maps each), every one of which sees the object (the worst case: each change
+    /// set reads back every frame not held), unbounded and bounded to 8 MB.
+    #[test]
+    #[ignore = "a measurement"]
+    fn measure_fusion_memory_and_time_on_200_frames() {
+        let state = tempfile::tempdir().unwrap();
+        let sights = floating_roof_sights();
+        let frames = 200u64;
+        let mut sets = Vec::new();
+        for max_mb in [None, Some(8u64)] {
+            let mut config = config_in(state.path(), max_mb.unwrap_or(0));
+            config.transport.pipeline = format!("measure-{max_mb:?}");
+            let mut store = SightStore::open_and_restore(&config, &mut |_, _| {});
+            let mut stage = match max_mb {
+                Some(_) => FusionStage::with_sights(config.fusion.merge(), kept(&config)),
+                None => FusionStage::new(config.fusion.merge()),
+            };
+            let started = std::time::Instant::now();
+            for frame_id in 0..frames {
+                let mut sight = sights[(frame_id % 5) as usize].clone();
+                sight.meta.result.frame_id = frame_id;
+                let seen = seen_frame(&sight).unwrap();
+                stage.on_result(sight.meta.result.clone(), seen);
+                if store.write(frame_id, sight) {
+                    stage.sight_on_disk(frame_id);
+                }
+            }
+            let taking_s = started.elapsed().as_secs_f64();
+            stage.on_stream_end(frames);
+            let started = std::time::Instant::now();
+            let set = stage.change_set();
+            let set_s = started.elapsed().as_secs_f64();
+            let memory = stage.sight_memory();
+            println!(
+                "bound {max_mb:?} MB: {frames} frames taken in {taking_s:.2} s (sight written, pose term made), one change set in {set_s:.3} s; held {:.1} MB ({} frames), peak {:.1} MB, {} read back; free space {:?}",
+                memory.held_bytes as f64 / 1e6,
+                memory.frames_held,
+                memory.peak_bytes as f64 / 1e6,
+                memory.loads,
+                set.free_space
+                    .iter()
+                    .map(|c| (c.seen_through_by.len(), c.agreed_by.len(), c.refuted))
+                    .collect::<Vec<_>>()
+            );
+            sets.push(set);
+        }
+        assert_eq!(sets[0], sets[1]);
+    }
 }
