@@ -12,13 +12,18 @@
 //! [`KeptSights`] keeps every frame's footprint (camera, pose, map size; a few hundred bytes),
 //! and the maps of at most `max_bytes` of frames in memory, the least recently used leaving
 //! first once they are on disk (`runtime::sights` writes them; a [`SightReader`] reads them
-//! back when the free-space test needs a frame whose footprint sees an object). The votes, and
-//! so the change set, are the same as with every map in memory.
+//! back when the free-space test needs a frame whose footprint sees an object). Each frame's
+//! vote on an object is kept by the object's inner points (a frame's sight never changes), so a
+//! change set reads only the frames that see an object whose points moved since the last one
+//! and the frames new since. The votes, and so the change set, are the same as with every map in
+//! memory.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
+
+use nalgebra::Vector3;
 
 use crate::core::change::free_space::{
-    fuse_and_check, FrameFootprint, FreeSpaceTest, SeenFrame, SightSource,
+    fuse_and_check, FrameFootprint, FreeSpaceTest, SeenFrame, SightSource, Vote,
 };
 use crate::core::change::fusion::FusionConfig;
 use crate::core::change::ChangeRegion;
@@ -90,7 +95,18 @@ pub struct KeptSights {
     clock: u64,
     /// Frames that could not leave memory while over the bound, warned once.
     warned_pinned: bool,
+    /// Each frame's vote on the objects of the last test, by the object's inner points (their
+    /// f64 bits: the same points, the same vote).
+    votes: HashMap<Vec<u64>, BTreeMap<u64, Vote>>,
     memory: SightMemory,
+}
+
+/// The key of an object's inner points in the kept votes: their exact bits.
+fn points_key(points_m: &[Vector3<f64>]) -> Vec<u64> {
+    points_m
+        .iter()
+        .flat_map(|p| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
+        .collect()
 }
 
 impl KeptSights {
@@ -102,6 +118,7 @@ impl KeptSights {
             reader: None,
             clock: 0,
             warned_pinned: false,
+            votes: HashMap::new(),
             memory: SightMemory::default(),
         }
     }
@@ -159,6 +176,9 @@ impl KeptSights {
 
     fn remove(&mut self, frame_id: u64) {
         self.footprints.remove(&frame_id);
+        for votes in self.votes.values_mut() {
+            votes.remove(&frame_id);
+        }
         if let Some(old) = self.held.remove(&frame_id) {
             self.memory.held_bytes -= old.seen.map_bytes();
         }
@@ -196,28 +216,67 @@ impl KeptSights {
 }
 
 impl SightSource for KeptSights {
-    /// The wanted frames in memory first (no read), then the others read back one at a time
-    /// (each may push out a frame already counted). A frame that cannot be read back is warned
-    /// (naming it and its file) and no longer votes.
+    /// Per frame, the tested objects its footprint sees. A frame whose votes on them are all
+    /// kept counts them without its sight. Otherwise the frames in memory are voted first (no
+    /// read), then the others read back one at a time (each may push out a frame already
+    /// counted). A frame that cannot be read back is warned (naming it and its file) and no
+    /// longer votes. The votes of objects no longer tested are dropped.
     fn visit(&mut self, test: &mut FreeSpaceTest) {
-        let wanted: Vec<u64> = self
-            .footprints
-            .iter()
-            .filter(|(_, footprint)| test.wants(footprint))
-            .map(|(frame_id, _)| *frame_id)
-            .collect();
+        let points: Vec<Vec<Vector3<f64>>> = test.points_m().map(|p| p.to_vec()).collect();
+        let keys: Vec<Vec<u64>> = points.iter().map(|p| points_key(p)).collect();
+        self.votes.retain(|key, _| keys.contains(key));
+        for key in &keys {
+            self.votes.entry(key.clone()).or_default();
+        }
+        let mut in_memory = Vec::new();
         let mut to_read = Vec::new();
-        for frame_id in wanted {
-            let now = self.tick();
-            match self.held.get_mut(&frame_id) {
-                Some(held) => {
-                    held.last_used = now;
-                    test.add(&held.seen.sight(frame_id as usize));
+        for (&frame_id, footprint) in &self.footprints {
+            let slots: Vec<usize> = (0..points.len())
+                .filter(|&slot| footprint.sees_any(&points[slot]))
+                .collect();
+            if slots.is_empty() {
+                continue;
+            }
+            let kept: Option<Vec<Vote>> = slots
+                .iter()
+                .map(|&slot| {
+                    self.votes
+                        .get(&keys[slot])
+                        .and_then(|votes| votes.get(&frame_id).copied())
+                })
+                .collect();
+            match kept {
+                Some(kept) => {
+                    for (&slot, vote) in slots.iter().zip(kept) {
+                        test.count(slot, frame_id as usize, vote);
+                    }
                 }
-                None => to_read.push(frame_id),
+                None if self.held.contains_key(&frame_id) => in_memory.push((frame_id, slots)),
+                None => to_read.push((frame_id, slots)),
             }
         }
-        for frame_id in to_read {
+        let vote = |votes: &mut HashMap<Vec<u64>, BTreeMap<u64, Vote>>,
+                    test: &mut FreeSpaceTest,
+                    frame_id: u64,
+                    slots: &[usize],
+                    seen: &SeenFrame| {
+            let sight = seen.sight(frame_id as usize);
+            for &slot in slots {
+                let vote = sight.vote(&points[slot]);
+                test.count(slot, frame_id as usize, vote);
+                if let Some(kept) = votes.get_mut(&keys[slot]) {
+                    kept.insert(frame_id, vote);
+                }
+            }
+        };
+        for (frame_id, slots) in in_memory {
+            let now = self.tick();
+            if let Some(held) = self.held.get_mut(&frame_id) {
+                held.last_used = now;
+                vote(&mut self.votes, test, frame_id, &slots, &held.seen);
+            }
+        }
+        for (frame_id, slots) in to_read {
             let read = match self.reader.as_mut() {
                 Some(reader) => reader.read(frame_id),
                 None => Err("no sight file to read it from".to_string()),
@@ -225,7 +284,7 @@ impl SightSource for KeptSights {
             match read {
                 Ok(seen) => {
                     self.memory.loads += 1;
-                    test.add(&seen.sight(frame_id as usize));
+                    vote(&mut self.votes, test, frame_id, &slots, &seen);
                     self.insert(frame_id, seen, true);
                 }
                 Err(why) => {

@@ -239,6 +239,39 @@ impl FrameSight<'_> {
     }
 }
 
+/// A frame's vote on one object.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Vote {
+    /// More of the object's inner points it sees are [`Sight::Through`] than [`Sight::Agrees`].
+    Through,
+    /// At least one agreeing point and no more seen through.
+    Agrees,
+    /// Hidden, unseen or indistinct everywhere.
+    Abstains,
+}
+
+impl FrameSight<'_> {
+    /// This frame's vote on an object tested at `points_m` (its inner points): the one rule of
+    /// the free-space test.
+    pub fn vote(&self, points_m: &[Vector3<f64>]) -> Vote {
+        let (mut through, mut agrees) = (0usize, 0usize);
+        for point in points_m {
+            match self.sight(point) {
+                Sight::Through => through += 1,
+                Sight::Agrees => agrees += 1,
+                Sight::Hidden | Sight::Unseen | Sight::Indistinct => {}
+            }
+        }
+        if through > agrees {
+            Vote::Through
+        } else if agrees > 0 {
+            Vote::Agrees
+        } else {
+            Vote::Abstains
+        }
+    }
+}
+
 /// The points an object is tested at: its centroid and its footprint's corners moved halfway
 /// to the centroid, all at the centroid's height (world, metres). Inner points: a frame a few
 /// pixels off sees past an object's edge, never past its middle; and the centroid's height is
@@ -365,22 +398,30 @@ impl FreeSpaceTest {
             .any(|tested| footprint.sees_any(&tested.points_m))
     }
 
+    /// The tested objects' inner points, by slot (the order [`FreeSpaceTest::count`] numbers
+    /// them in).
+    pub fn points_m(&self) -> impl Iterator<Item = &[Vector3<f64>]> {
+        self.tested.iter().map(|tested| tested.points_m.as_slice())
+    }
+
+    /// Counts `frame`'s vote on the tested object in `slot` ([`FrameSight::vote`] on its
+    /// points; a vote kept from an earlier test of the same points is the same vote).
+    pub fn count(&mut self, slot: usize, frame: usize, vote: Vote) {
+        let Some(tested) = self.tested.get_mut(slot) else {
+            return;
+        };
+        match vote {
+            Vote::Through => tested.seen_through_by.push(frame),
+            Vote::Agrees => tested.agreed_by.push(frame),
+            Vote::Abstains => {}
+        }
+    }
+
     /// Counts `frame`'s votes on every tested object.
     pub fn add(&mut self, frame: &FrameSight<'_>) {
-        for tested in &mut self.tested {
-            let (mut through, mut agrees) = (0usize, 0usize);
-            for point in &tested.points_m {
-                match frame.sight(point) {
-                    Sight::Through => through += 1,
-                    Sight::Agrees => agrees += 1,
-                    Sight::Hidden | Sight::Unseen | Sight::Indistinct => {}
-                }
-            }
-            if through > agrees {
-                tested.seen_through_by.push(frame.frame);
-            } else if agrees > 0 {
-                tested.agreed_by.push(frame.frame);
-            }
+        for slot in 0..self.tested.len() {
+            let vote = frame.vote(&self.tested[slot].points_m);
+            self.count(slot, frame.frame, vote);
         }
     }
 
