@@ -682,11 +682,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         .enumerate()
         .flat_map(|(index, frame)| frame.regions.iter().map(move |r| (index, r)))
         .collect();
-    let (objects, free_space) = fuse_and_check(
-        &regions,
-        &fusion,
-        seen.iter().map(|(frame, seen)| (*frame, seen)),
-    );
+    let (objects, free_space) = fuse_and_check(&regions, &fusion, seen.as_mut_slice());
     for check in free_space.iter().filter(|c| c.refuted) {
         tracing::info!(
             "added object at ({:.1}, {:.1}, {:.1}) not confirmed: {} frames see through it ({}), {} agree ({})",

@@ -42,8 +42,9 @@ pub struct PipelineConfig {
     pub registration: RegistrationConfig,
     /// Change detection of the change stage (`workers.change` > 0), as `asgreg changes`.
     pub change: ChangeConfig,
-    /// How the fusion stage merges the frames' change regions into objects.
-    pub fusion: FusionConfig,
+    /// How the fusion stage merges the frames' change regions into objects, and how much of
+    /// the frames' sights it holds in memory.
+    pub fusion: FusionSettings,
     /// Depth of frames without a given depth map: stereo from registered neighbours.
     pub stereo: StereoSettings,
     /// Folder of the run's durable state: the results journal (`<pipeline>.results-journal`,
@@ -75,10 +76,48 @@ impl Default for PipelineConfig {
             launch: LaunchSettings::default(),
             registration: RegistrationConfig::default(),
             change: ChangeConfig::default(),
-            fusion: FusionConfig::default(),
+            fusion: FusionSettings::default(),
             stereo: StereoSettings::default(),
             state_dir: None,
             simulate: None,
+        }
+    }
+}
+
+/// The fusion stage (`[fusion]`): how it merges the frames' change regions into objects (a
+/// `FusionConfig`, as `asgreg changes`), and the memory its frames' sights may take.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FusionSettings {
+    /// Footprints closer than this are one object, metres.
+    pub merge_distance_m: f64,
+    /// Distinct frames needed to confirm an object.
+    pub min_frames: usize,
+    /// Most MB (10^6 bytes) of the frames' sights (photo depth, model depth, pose term; about
+    /// 1.7 MB per frame at 505 × 275) fusion holds in memory; the others are read back from the
+    /// state folder (`<pipeline>.sights`) when the free-space test needs a frame that can see an
+    /// object. Every frame's footprint (a few hundred bytes) stays. 0: a sight is held only
+    /// while it is read. The change set does not depend on it.
+    pub max_sights_in_memory_mb: u64,
+}
+
+impl Default for FusionSettings {
+    fn default() -> Self {
+        let merge = FusionConfig::default();
+        Self {
+            merge_distance_m: merge.merge_distance_m,
+            min_frames: merge.min_frames,
+            max_sights_in_memory_mb: 256,
+        }
+    }
+}
+
+impl FusionSettings {
+    /// How regions are merged into objects.
+    pub fn merge(&self) -> FusionConfig {
+        FusionConfig {
+            merge_distance_m: self.merge_distance_m,
+            min_frames: self.min_frames,
         }
     }
 }

@@ -52,6 +52,30 @@ pub fn reset(config: &PipelineConfig, kind: &FolderKind) -> std::io::Result<()> 
     }
 }
 
+/// The file of `frame_id`'s message in the folder `dir` of `kind`.
+pub fn path_in(dir: &Path, kind: &FolderKind, frame_id: u64) -> PathBuf {
+    dir.join(format!("{frame_id}.{}", kind.extension))
+}
+
+/// Reads the file `path` and hands its message (`frame_id`'s, or an error saying whose it is)
+/// to `take`: the error of the read, the decoding or `take`, without the path.
+pub fn read_message(
+    path: &Path,
+    frame_id: u64,
+    take: &mut dyn FnMut(u64, &Body<'_>) -> Result<(), String>,
+) -> Result<(), String> {
+    let bytes = std::fs::read(path).map_err(|error| error.to_string())?;
+    let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
+    if message.header.frame_id != frame_id {
+        return Err(format!(
+            "it holds a {:?} message of frame {}",
+            message.body.kind(),
+            message.header.frame_id
+        ));
+    }
+    take(frame_id, &message.body)
+}
+
 impl FrameFolder {
     /// Opens the configuration's folder of `kind` and hands each message of this run to
     /// `restore` (frame id and body; an error: the file is removed with a warning). Another
@@ -91,20 +115,7 @@ impl FrameFolder {
         }
         for frame_id in folder.listed() {
             let path = folder.path(frame_id);
-            let outcome = std::fs::read(&path)
-                .map_err(|error| error.to_string())
-                .and_then(|bytes| {
-                    let message = crate::msg::decode(&bytes).map_err(|error| error.to_string())?;
-                    if message.header.frame_id != frame_id {
-                        return Err(format!(
-                            "it holds a {:?} message of frame {}",
-                            message.body.kind(),
-                            message.header.frame_id
-                        ));
-                    }
-                    restore(frame_id, &message.body)
-                });
-            if let Err(error) = outcome {
+            if let Err(error) = read_message(&path, frame_id, restore) {
                 tracing::warn!(
                     "{}: {}: not a {} ({error}); removed (this restart loses {})",
                     kind.stage,
@@ -119,8 +130,8 @@ impl FrameFolder {
     }
 
     /// The file of `frame_id`'s message.
-    fn path(&self, frame_id: u64) -> PathBuf {
-        self.dir.join(format!("{frame_id}.{}", self.kind.extension))
+    pub fn path(&self, frame_id: u64) -> PathBuf {
+        path_in(&self.dir, &self.kind, frame_id)
     }
 
     /// The frame ids of the messages in the folder.

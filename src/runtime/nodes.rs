@@ -29,7 +29,7 @@ use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
 use super::config::{BackpressurePolicy, PipelineConfig};
 use super::dispatch::{Dispatcher, WorkerPort};
 use super::journal::{self, Journal, JournalError};
-use super::sights::SightStore;
+use super::sights::{self, SightStore};
 use super::views::ViewStore;
 
 /// How long a loop waits for a message before checking the stop flag.
@@ -1654,7 +1654,8 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     let mut changes = Outbox::open(ctx.transport, keys::CHANGES)?;
     let mut changes_json = Outbox::open(ctx.transport, keys::CHANGES_JSON)?;
     let mut set_json = Outbox::open(ctx.transport, keys::CHANGE_SET_JSON)?;
-    let mut stage = FusionStage::new(ctx.config.fusion);
+    // Every frame's footprint, at most fusion.max_sights_in_memory_mb of their maps.
+    let mut stage = FusionStage::with_sights(ctx.config.fusion.merge(), sights::kept(ctx.config));
     // Change results published before a restart of this stage: fused, not published again.
     let (mut journal, journaled, mut health) =
         open_journal(ctx.config, journal::Kind::Change, "fusion");
@@ -1666,20 +1667,26 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
     )?;
     let mut acks = AckJournal::open(ctx.config, journal::Kind::ChangeAcked, "fusion");
     restore_unacked(&mut changes_ack, &journaled, &acks, journal.path());
-    // What the frames published before the restart saw, for the free-space test.
-    let (mut sights, mut seen) = SightStore::open_and_restore(ctx.config);
     let restored = journaled.len();
     for (frame_id, payload) in journaled {
         match restore_change_result(frame_id, &payload) {
-            Ok(result) => stage.restore(result, seen.remove(&frame_id)),
+            Ok(result) => stage.restore(result),
             Err(why) => tracing::error!(
                 "fusion: {}: the line of frame {frame_id} is damaged ({why}); that frame's change result is left out of the change set (delete the file to start the run over)",
                 journal.path().display()
             ),
         }
     }
+    // What the frames published before the restart saw, for the free-space test (on disk, so
+    // held in memory only within the bound).
+    let mut sights = SightStore::open_and_restore(ctx.config, &mut |frame_id, seen| {
+        stage.restore_sight(frame_id, seen)
+    });
     if restored > 0 {
-        tracing::info!("fusion: {restored} change results restored from the change journal");
+        tracing::info!(
+            "fusion: {restored} change results restored from the change journal, {} of them with a sight",
+            stage.sight_memory().frames
+        );
     }
     // When the final change set and the end of the change stream were last sent (repeated
     // now and then: a lost one would leave the collector waiting).
@@ -1706,8 +1713,9 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
                     });
                     let has_sight = seen.is_some();
                     let first = stage.on_result(sight.meta.result.clone(), seen).cloned();
-                    if first.is_some() && has_sight {
-                        sights.write(frame_id, sight);
+                    // On disk, the sight may leave memory (read back when it is needed).
+                    if first.is_some() && has_sight && sights.write(frame_id, sight) {
+                        stage.sight_on_disk(frame_id);
                     }
                     first
                 }
@@ -1793,11 +1801,19 @@ pub fn run_fusion(ctx: &NodeContext) -> Result<StageMetrics, NodeError> {
             };
             let json = change_set_json(&header, &set);
             if complete && completed.is_none() {
+                let memory = stage.sight_memory();
                 tracing::info!(
-                    "fusion: all {} frames have their change result: {} objects ({} confirmed)",
+                    "fusion: all {} frames have their change result: {} objects ({} confirmed); sights: {} frames, {} held, {:.1} MB held, peak {:.1} MB (bound {:.0} MB), {} read back, {} lost",
                     stage.result_count(),
                     set.objects.len(),
-                    set.objects.iter().filter(|o| o.confirmed).count()
+                    set.objects.iter().filter(|o| o.confirmed).count(),
+                    memory.frames,
+                    memory.frames_held,
+                    memory.held_bytes as f64 / 1e6,
+                    memory.peak_bytes as f64 / 1e6,
+                    memory.max_bytes.map_or(f64::INFINITY, |b| b as f64 / 1e6),
+                    memory.loads,
+                    memory.lost.len()
                 );
             }
             changes.send(0, 0, Body::ChangeSet(set), &mut metrics)?;

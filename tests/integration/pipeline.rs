@@ -478,8 +478,10 @@ fn change_set(out: &Path) -> serde_json::Value {
 /// Change detection in the pipeline on a tiny `synth --changes` scene (5 photos, 160×88, given
 /// depth maps): `run` prints a change result per frame (a map for the registered frames, the
 /// reason for the others) and the fused change set; `launch` over iceoryx2 with 2 change
-/// workers, with change worker 0, then verify, then fusion SIGKILLed mid-stream, gives every
-/// frame exactly one change result and the same change results and change set as `run`.
+/// workers, with change worker 0, then verify, then fusion SIGKILLed mid-stream, and fusion
+/// holding no sight in memory (`fusion.max_sights_in_memory_mb = 0`: each read back from the
+/// state folder), gives every frame exactly one change result and the same change results and
+/// change set as `run` (every sight in memory).
 #[test]
 fn change_stage_run_and_launch_with_killed_change_verify_and_fusion_give_the_same_change_set() {
     let dir = tempfile::tempdir().unwrap();
@@ -507,9 +509,9 @@ fn change_stage_run_and_launch_with_killed_change_verify_and_fusion_give_the_sam
     ]);
     assert!(output.status.success(), "{}", stderr(&output));
     let depth = format!("[source]\ndepth = \"{}\"\n", scene.join("depth").display());
-    let body = |name: &str, extra_source: &str| {
+    let body = |name: &str, extra_source: &str, fusion: &str| {
         format!(
-            "{depth}{extra_source}\n{}",
+            "{depth}{extra_source}\n{}{fusion}",
             common(&unique(name), 2, "change = 2")
         )
     };
@@ -518,7 +520,7 @@ fn change_stage_run_and_launch_with_killed_change_verify_and_fusion_give_the_sam
         "changes-run.toml",
         &scene,
         "crossbeam",
-        &body("chg-run", ""),
+        &body("chg-run", "", ""),
     );
     let out_run = dir.path().join("out-run");
     let output = asgreg(&[
@@ -575,7 +577,13 @@ fn change_stage_run_and_launch_with_killed_change_verify_and_fusion_give_the_sam
         "changes-iox.toml",
         &scene,
         "iceoryx2",
-        &body("chg-iox", "rate_hz = 0.75\n"),
+        // No sight held in memory beyond the free-space test: each read back from the state
+        // folder, also by the restarted fusion; the change set must not move.
+        &body(
+            "chg-iox",
+            "rate_hz = 0.75\n",
+            "\n[fusion]\nmax_sights_in_memory_mb = 0\n",
+        ),
     );
     let out_iox = dir.path().join("out-iox");
     let mut launcher = command(&[

@@ -10,7 +10,10 @@
 //! building, and is not confirmed ([`check_free_space`]). Batch `asgreg changes` and the
 //! pipeline's fusion stage both keep a [`SeenFrame`] per frame with a change map and call it
 //! after `fuse_regions` (the pipeline's change workers send their frame's depths to fusion for
-//! it).
+//! it). Only the frames whose [`FrameFootprint`] (camera, pose, image size: where its pixels
+//! look) holds an object's inner point can vote on it; [`FreeSpaceTest`] asks a
+//! [`SightSource`] for those frames' sights alone, so a caller may keep the footprints in memory
+//! and the maps elsewhere (the pipeline's fusion: on disk, a few in memory) with the same votes.
 //!
 //! Why: under registered poses, a frame whose own pose is a few pixels off gets a stereo depth
 //! that is off the same way with each of its neighbours (they share its pose), and two such
@@ -90,6 +93,25 @@ impl SeenFrame {
         }
     }
 
+    /// Where the frame's pixels look: what tells whether it can see a point at all.
+    pub fn footprint(&self) -> FrameFootprint {
+        let (width_px, height_px) = self.photo_depth_m.size();
+        FrameFootprint {
+            intrinsics: self.intrinsics,
+            cam_from_world: self.cam_from_world,
+            width_px,
+            height_px,
+        }
+    }
+
+    /// Bytes its maps hold (photo depth, model depth, pose term).
+    pub fn map_bytes(&self) -> usize {
+        std::mem::size_of::<f32>()
+            * (self.photo_depth_m.data().len()
+                + self.model_depth_m.data().len()
+                + self.pose_sigma_m.data().len())
+    }
+
     /// The frame as the free-space test reads it, numbered `frame` (as the fused objects'
     /// `frames` number it).
     pub fn sight(&self, frame: usize) -> FrameSight<'_> {
@@ -103,6 +125,50 @@ impl SeenFrame {
             config: self.config,
         }
     }
+}
+
+/// Where a frame's pixels look: its camera, pose and depth map size, a few hundred bytes. A
+/// frame sees no point outside it (every [`Sight`] but `Unseen` needs the point's pixel), so
+/// the frames whose footprint holds none of an object's inner points cannot vote on it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameFootprint {
+    pub intrinsics: PinholeIntrinsics,
+    pub cam_from_world: Rigid3,
+    pub width_px: usize,
+    pub height_px: usize,
+}
+
+impl FrameFootprint {
+    /// Whether any of `points_m` (world, metres) falls on one of the frame's pixels, in front of
+    /// it: the one projection [`FrameSight::sight`] reads its pixel by.
+    pub fn sees_any(&self, points_m: &[Vector3<f64>]) -> bool {
+        points_m.iter().any(|point| {
+            pixel_of(
+                &self.intrinsics,
+                &self.cam_from_world,
+                self.width_px,
+                self.height_px,
+                point,
+            )
+            .is_some()
+        })
+    }
+}
+
+/// The pixel (column, row) of `point_m` in a frame's `width_px` × `height_px` map and the
+/// point in the camera's frame; `None` behind the camera or outside the map.
+fn pixel_of(
+    intrinsics: &PinholeIntrinsics,
+    cam_from_world: &Rigid3,
+    width_px: usize,
+    height_px: usize,
+    point_m: &Vector3<f64>,
+) -> Option<((usize, usize), Vector3<f64>)> {
+    let point_cam = cam_from_world.transform_point(point_m);
+    intrinsics
+        .project(&point_cam)
+        .and_then(|px| nearest_pixel(px, width_px, height_px))
+        .map(|pixel| (pixel, point_cam))
 }
 
 /// How one frame sees one world point.
@@ -132,15 +198,12 @@ impl FrameSight<'_> {
     /// as well), but it can still see through: a depth beyond the point by more than the
     /// threshold is past it whatever the model.
     pub fn sight(&self, point_m: &Vector3<f64>) -> Sight {
-        let point_cam = self.cam_from_world.transform_point(point_m);
         let (w, h) = self.photo_depth_m.size();
         if self.model_depth_m.size() != (w, h) {
             return Sight::Unseen;
         }
-        let Some((col, row)) = self
-            .intrinsics
-            .project(&point_cam)
-            .and_then(|px| nearest_pixel(px, w, h))
+        let Some(((col, row), point_cam)) =
+            pixel_of(&self.intrinsics, &self.cam_from_world, w, h, point_m)
         else {
             return Sight::Unseen;
         };
@@ -176,6 +239,39 @@ impl FrameSight<'_> {
     }
 }
 
+/// A frame's vote on one object.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Vote {
+    /// More of the object's inner points it sees are [`Sight::Through`] than [`Sight::Agrees`].
+    Through,
+    /// At least one agreeing point and no more seen through.
+    Agrees,
+    /// Hidden, unseen or indistinct everywhere.
+    Abstains,
+}
+
+impl FrameSight<'_> {
+    /// This frame's vote on an object tested at `points_m` (its inner points): the one rule of
+    /// the free-space test.
+    pub fn vote(&self, points_m: &[Vector3<f64>]) -> Vote {
+        let (mut through, mut agrees) = (0usize, 0usize);
+        for point in points_m {
+            match self.sight(point) {
+                Sight::Through => through += 1,
+                Sight::Agrees => agrees += 1,
+                Sight::Hidden | Sight::Unseen | Sight::Indistinct => {}
+            }
+        }
+        if through > agrees {
+            Vote::Through
+        } else if agrees > 0 {
+            Vote::Agrees
+        } else {
+            Vote::Abstains
+        }
+    }
+}
+
 /// The points an object is tested at: its centroid and its footprint's corners moved halfway
 /// to the centroid, all at the centroid's height (world, metres). Inner points: a frame a few
 /// pixels off sees past an object's edge, never past its middle; and the centroid's height is
@@ -206,76 +302,166 @@ pub struct FreeSpaceCheck {
     pub refuted: bool,
 }
 
+/// Where the free-space test gets the frames' sights: every frame's footprint, and the sight
+/// of each frame the test [`wants`](FreeSpaceTest::wants) (batch `changes`: all in memory; the
+/// pipeline's fusion: loaded from the state folder when not in memory). A frame whose sight
+/// cannot be had is left out of the vote (the source says why, naming it).
+pub trait SightSource {
+    /// Hands `test` ([`FreeSpaceTest::add`]) the sight of every frame whose footprint it
+    /// wants, each once, in any order (the votes do not depend on it).
+    fn visit(&mut self, test: &mut FreeSpaceTest);
+}
+
+/// Frames with a change map, all in memory, numbered as the fused objects' `frames`.
+impl SightSource for [(usize, SeenFrame)] {
+    fn visit(&mut self, test: &mut FreeSpaceTest) {
+        for (frame, seen) in self.iter() {
+            if test.wants(&seen.footprint()) {
+                test.add(&seen.sight(*frame));
+            }
+        }
+    }
+}
+
 /// The change set's objects, as batch `asgreg changes` and the pipeline's fusion stage make
 /// them: every frame's regions fused into objects ([`fuse_regions`]), then the confirmed `added`
-/// ones tested against the free space of every frame in `seen` ([`check_free_space`]).
-/// `regions` and `seen` number the frames alike (the objects' `frames`).
-pub fn fuse_and_check<'a>(
+/// ones tested against the free space of every frame `sights` has ([`FreeSpaceTest`]).
+/// `regions` and `sights` number the frames alike (the objects' `frames`).
+pub fn fuse_and_check<S: SightSource + ?Sized>(
     regions: &[(usize, &ChangeRegion)],
     config: &FusionConfig,
-    seen: impl IntoIterator<Item = (usize, &'a SeenFrame)>,
+    sights: &mut S,
 ) -> (Vec<FusedChange>, Vec<FreeSpaceCheck>) {
     let mut objects = fuse_regions(regions, config);
-    let sights: Vec<FrameSight<'_>> = seen
-        .into_iter()
-        .map(|(frame, seen)| seen.sight(frame))
-        .collect();
-    let free_space = check_free_space(&mut objects, &sights);
+    let mut test = FreeSpaceTest::new(&objects);
+    if !test.is_empty() {
+        sights.visit(&mut test);
+    }
+    let free_space = test.finish(&mut objects);
     (objects, free_space)
 }
 
-/// Tests each confirmed `added` object against every frame's sight of its inner points
-/// ([`inner_points_m`]): a frame votes `through` when more of the points it sees are
-/// [`Sight::Through`] than [`Sight::Agrees`], `agrees` when it has at least one agreeing and no
-/// more through, and abstains otherwise (hidden, unseen or indistinct everywhere: a frame whose
-/// threshold there is wider than the object stands off the model cannot vote for it). An
-/// object that more frames see through than agree with is no longer confirmed. Returns the
-/// test of every confirmed `added` object; `removed` objects are not touched (the ground
-/// bounds those, [`super::model_ground_z_m`]).
+/// The free-space test of a fused list's confirmed `added` objects, frame by frame: each frame
+/// ([`FreeSpaceTest::add`]) votes on every object whose inner points ([`inner_points_m`]) it
+/// sees. A frame votes `through` when more of the points it sees are [`Sight::Through`] than
+/// [`Sight::Agrees`], `agrees` when it has at least one agreeing and no more through, and
+/// abstains otherwise (hidden, unseen or indistinct everywhere: a frame whose threshold there is
+/// wider than the object stands off the model cannot vote for it). An object that more frames
+/// see through than agree with is no longer confirmed ([`FreeSpaceTest::finish`]). `removed`
+/// objects are not touched (the ground bounds those, [`super::model_ground_z_m`]). A frame's
+/// vote on one object does not depend on the other frames, so frames may come in any order and
+/// a frame whose footprint holds none of the points may be left out: the result is the same.
+#[derive(Clone, Debug)]
+pub struct FreeSpaceTest {
+    /// Per tested object: its index in the fused list, its inner points, the frames that see
+    /// through it and those that agree.
+    tested: Vec<TestedObject>,
+}
+
+#[derive(Clone, Debug)]
+struct TestedObject {
+    object: usize,
+    centroid_m: [f64; 3],
+    points_m: Vec<Vector3<f64>>,
+    seen_through_by: Vec<usize>,
+    agreed_by: Vec<usize>,
+}
+
+impl FreeSpaceTest {
+    /// The test of `objects`' confirmed `added` objects, no frame counted yet.
+    pub fn new(objects: &[FusedChange]) -> Self {
+        let tested = objects
+            .iter()
+            .enumerate()
+            .filter(|(_, object)| object.kind == ChangeKind::Added && object.confirmed)
+            .map(|(object, fused)| TestedObject {
+                object,
+                centroid_m: fused.centroid_m,
+                points_m: inner_points_m(fused),
+                seen_through_by: Vec::new(),
+                agreed_by: Vec::new(),
+            })
+            .collect();
+        Self { tested }
+    }
+
+    /// No object to test.
+    pub fn is_empty(&self) -> bool {
+        self.tested.is_empty()
+    }
+
+    /// Whether a frame with this footprint could vote on any tested object (one of its inner
+    /// points falls on the frame's pixels).
+    pub fn wants(&self, footprint: &FrameFootprint) -> bool {
+        self.tested
+            .iter()
+            .any(|tested| footprint.sees_any(&tested.points_m))
+    }
+
+    /// The tested objects' inner points, by slot (the order [`FreeSpaceTest::count`] numbers
+    /// them in).
+    pub fn points_m(&self) -> impl Iterator<Item = &[Vector3<f64>]> {
+        self.tested.iter().map(|tested| tested.points_m.as_slice())
+    }
+
+    /// Counts `frame`'s vote on the tested object in `slot` ([`FrameSight::vote`] on its
+    /// points; a vote kept from an earlier test of the same points is the same vote).
+    pub fn count(&mut self, slot: usize, frame: usize, vote: Vote) {
+        let Some(tested) = self.tested.get_mut(slot) else {
+            return;
+        };
+        match vote {
+            Vote::Through => tested.seen_through_by.push(frame),
+            Vote::Agrees => tested.agreed_by.push(frame),
+            Vote::Abstains => {}
+        }
+    }
+
+    /// Counts `frame`'s votes on every tested object.
+    pub fn add(&mut self, frame: &FrameSight<'_>) {
+        for slot in 0..self.tested.len() {
+            let vote = frame.vote(&self.tested[slot].points_m);
+            self.count(slot, frame.frame, vote);
+        }
+    }
+
+    /// The test of every tested object; an object more frames see through than agree with is
+    /// no longer confirmed in `objects` (the list the test was made from).
+    pub fn finish(self, objects: &mut [FusedChange]) -> Vec<FreeSpaceCheck> {
+        self.tested
+            .into_iter()
+            .map(|mut tested| {
+                tested.seen_through_by.sort_unstable();
+                tested.seen_through_by.dedup();
+                tested.agreed_by.sort_unstable();
+                tested.agreed_by.dedup();
+                let refuted = tested.seen_through_by.len() > tested.agreed_by.len();
+                if let Some(object) = objects.get_mut(tested.object).filter(|_| refuted) {
+                    object.confirmed = false;
+                }
+                FreeSpaceCheck {
+                    object: tested.object,
+                    centroid_m: tested.centroid_m,
+                    seen_through_by: tested.seen_through_by,
+                    agreed_by: tested.agreed_by,
+                    refuted,
+                }
+            })
+            .collect()
+    }
+}
+
+/// Tests each confirmed `added` object against every frame's sight ([`FreeSpaceTest`], every
+/// frame given): the test of every confirmed `added` object.
 pub fn check_free_space(
     objects: &mut [FusedChange],
     frames: &[FrameSight<'_>],
 ) -> Vec<FreeSpaceCheck> {
-    let mut checks = Vec::new();
-    for (index, object) in objects.iter_mut().enumerate() {
-        if object.kind != ChangeKind::Added || !object.confirmed {
-            continue;
-        }
-        let points = inner_points_m(object);
-        let mut seen_through_by = Vec::new();
-        let mut agreed_by = Vec::new();
-        for frame in frames {
-            let (mut through, mut agrees) = (0usize, 0usize);
-            for point in &points {
-                match frame.sight(point) {
-                    Sight::Through => through += 1,
-                    Sight::Agrees => agrees += 1,
-                    Sight::Hidden | Sight::Unseen | Sight::Indistinct => {}
-                }
-            }
-            if through > agrees {
-                seen_through_by.push(frame.frame);
-            } else if agrees > 0 {
-                agreed_by.push(frame.frame);
-            }
-        }
-        seen_through_by.sort_unstable();
-        seen_through_by.dedup();
-        agreed_by.sort_unstable();
-        agreed_by.dedup();
-        let refuted = seen_through_by.len() > agreed_by.len();
-        if refuted {
-            object.confirmed = false;
-        }
-        checks.push(FreeSpaceCheck {
-            object: index,
-            centroid_m: object.centroid_m,
-            seen_through_by,
-            agreed_by,
-            refuted,
-        });
+    let mut test = FreeSpaceTest::new(objects);
+    for frame in frames {
+        test.add(frame);
     }
-    checks
+    test.finish(objects)
 }
 
 #[cfg(test)]
@@ -450,6 +636,39 @@ pub(crate) mod tests {
         assert!(checks[0].refuted);
         assert_eq!(checks[0].seen_through_by, vec![2, 3, 4]);
         assert_eq!(checks[0].agreed_by, vec![0, 1]);
+    }
+
+    /// A frame sees no point outside its footprint: where `sees_any` is false the sight is
+    /// `Unseen`, so the frames a footprint rules out could not have voted. Over a grid of points
+    /// around and far from the frame, both cases occur.
+    #[test]
+    fn a_frame_sees_no_point_outside_its_footprint() {
+        let roof = box_quads()[0];
+        let f = frame(&mesh_of(&[ground()]), &mesh_of(&[ground(), roof]), 200.0);
+        let sight = sight_of(0, &f);
+        let footprint = SeenFrame::new(
+            f.intrinsics,
+            f.pose,
+            f.photo.clone(),
+            f.model.clone(),
+            ChangeConfig::default(),
+        )
+        .footprint();
+        let (mut inside, mut outside) = (0, 0);
+        for x in (-100..=100).step_by(4) {
+            for y in (-100..=100).step_by(4) {
+                for z in [0.0, 5.0, 60.0] {
+                    let point = Vector3::new(f64::from(x), f64::from(y), z);
+                    if footprint.sees_any(&[point]) {
+                        inside += 1;
+                    } else {
+                        outside += 1;
+                        assert_eq!(sight.sight(&point), Sight::Unseen, "{point:?}");
+                    }
+                }
+            }
+        }
+        assert!(inside > 100 && outside > 100, "{inside} / {outside}");
     }
 
     #[test]
