@@ -544,7 +544,6 @@ fn search_alignment(align: &EdgeAlignConfig) -> EdgeAlignConfig {
 #[cfg(test)]
 mod tests {
     use nalgebra::Vector3;
-    use rayon::prelude::*;
 
     use super::*;
     use crate::core::frame::tests::{house_and_poses, ideal_query};
