@@ -121,8 +121,8 @@ impl DenseSiftConfig {
 
 /// Bytes that start on a 64-byte boundary (a cache line) and come in whole lines: with 128-byte
 /// descriptors every descriptor then fills two lines and no 32-byte load of one crosses a line.
-/// A `Vec<u8>` of this size comes from `mmap` at 16 bytes past a page, where half of those loads
-/// cross one: measured −7.5 % of the data term's CPU time with aligned descriptors
+/// glibc gives a `Vec<u8>` of this size 16 bytes past a page (from `mmap`), or 16-byte alignment
+/// (from the heap), where half of those loads cross one: measured −7.5 % of the data term's CPU time with aligned descriptors
 /// (docs/measurements.md, branch `speed24`). Reads and writes as a byte slice.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct DescriptorBytes {
