@@ -13,7 +13,9 @@
 //! minimum of `FLOW_BENCH_REPEATS` (default 15) runs with reused buffers, in process CPU time
 //! (dense SIFT, whole flow) and wall time (the flow's own per-stage timings); with the EPE.
 //! `FLOW_BENCH_CONFIG='{"iterations": 8}'` replaces fields of the preset; `FLOW_BENCH_FRESH=1`
-//! gives every rerun fresh flow buffers (as a new workspace per view pays).
+//! gives every rerun fresh flow buffers (as a new workspace per view pays);
+//! `FLOW_BENCH_SIFT_THEN_PYRAMID=1` builds each image's pyramid right after its dense SIFT (as a
+//! frame does) and flows on the given pyramids, the pyramids' time then counted with dense SIFT.
 
 use std::hint::black_box;
 use std::path::Path;
@@ -178,10 +180,13 @@ fn stages_report(pairs: &[Pair]) {
     };
     let ms = |duration: Duration| duration.as_secs_f64() * 1e3;
     let fresh = std::env::var_os("FLOW_BENCH_FRESH").is_some();
+    let sift_then_pyramid = std::env::var_os("FLOW_BENCH_SIFT_THEN_PYRAMID").is_some();
     pool(1).install(|| {
         for pair in pairs {
             let mut sift_workspace = DenseSiftWorkspace::default();
             let (mut first, mut second) = (DenseSiftImage::default(), DenseSiftImage::default());
+            let (mut first_pyramid, mut second_pyramid) =
+                (SiftPyramid::default(), SiftPyramid::default());
             let mut workspace = SiftFlowWorkspace::default();
             let mut field = FlowField::default();
             let mut cost = Image::default();
@@ -192,7 +197,10 @@ fn stages_report(pairs: &[Pair]) {
                     workspace = SiftFlowWorkspace::default();
                 }
                 let started = precise_process_cpu_time();
-                for (image, out) in [(&pair.first, &mut first), (&pair.second, &mut second)] {
+                for (image, out, pyramid) in [
+                    (&pair.first, &mut first, &mut first_pyramid),
+                    (&pair.second, &mut second, &mut second_pyramid),
+                ] {
                     compute_dense_sift(
                         image.view(),
                         &DenseSiftConfig::default(),
@@ -200,19 +208,36 @@ fn stages_report(pairs: &[Pair]) {
                         out,
                     )
                     .expect("dense SIFT");
+                    // `FLOW_BENCH_SIFT_THEN_PYRAMID=1`: each image's pyramid right after its
+                    // dense SIFT (as a frame builds the query's and each rendering's), then the
+                    // flow on the pyramids; the pyramids' CPU time is then in the first column.
+                    if sift_then_pyramid {
+                        pyramid.build(out, &config).expect("pyramid");
+                    }
                 }
                 let sift_done = precise_process_cpu_time();
-                let timings = compute_sift_flow(
-                    &first,
-                    None,
-                    &second,
-                    None,
-                    &config,
-                    &mut workspace,
-                    &mut field,
-                    &mut cost,
-                )
-                .expect("SIFT flow");
+                let timings = if sift_then_pyramid {
+                    compute_sift_flow_on_pyramids(
+                        (&first, &first_pyramid, None),
+                        (&second, &second_pyramid, None),
+                        &config,
+                        &mut workspace,
+                        &mut field,
+                        &mut cost,
+                    )
+                } else {
+                    compute_sift_flow(
+                        &first,
+                        None,
+                        &second,
+                        None,
+                        &config,
+                        &mut workspace,
+                        &mut field,
+                        &mut cost,
+                    )
+                };
+                let timings = timings.expect("SIFT flow");
                 let done = precise_process_cpu_time();
                 runs.push([
                     sift_done - started,
@@ -224,6 +249,10 @@ fn stages_report(pairs: &[Pair]) {
                 ]);
             }
             let (epe, under_one) = score(&field, &pair.truth);
+            let first_column = match sift_then_pyramid {
+                true => "dense SIFT + pyramid x2",
+                false => "dense SIFT x2",
+            };
             let cold = runs[0];
             let warm: [Duration; 6] = std::array::from_fn(|stage| {
                 runs[1..]
@@ -234,7 +263,7 @@ fn stages_report(pairs: &[Pair]) {
             });
             for (label, run) in [("first run", cold), ("min of reruns", warm)] {
                 println!(
-                    "{} one-way flow, fast preset, 1 thread, {label}: CPU {:.1} ms (dense SIFT x2 {:.1}, flow {:.1}); wall pyramid {:.1}, data cost {:.1}, BP {:.1} ms; EPE {epe:.4} px, < 1 px {under_one:.4}",
+                    "{} one-way flow, fast preset, 1 thread, {label}: CPU {:.1} ms ({first_column} {:.1}, flow {:.1}); wall pyramid {:.1}, data cost {:.1}, BP {:.1} ms; EPE {epe:.4} px, < 1 px {under_one:.4}",
                     pair.name,
                     ms(run[2]),
                     ms(run[0]),

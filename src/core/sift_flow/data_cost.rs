@@ -290,9 +290,11 @@ mod tests {
         DenseSiftImage {
             width_px: width,
             height_px: height,
-            descriptors: (0..width * height * DESCRIPTOR_LEN)
-                .map(|_| sequence.next(256) as u8)
-                .collect(),
+            descriptors: crate::core::dense_sift::DescriptorBytes::from_bytes(
+                &(0..width * height * DESCRIPTOR_LEN)
+                    .map(|_| sequence.next(256) as u8)
+                    .collect::<Vec<u8>>(),
+            ),
             ..Default::default()
         }
     }

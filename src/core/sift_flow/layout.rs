@@ -59,6 +59,32 @@ impl Layout {
         }
     }
 
+    /// Calls `visit(x, y, vector, lane)` for every pixel, vector by vector: block by block, within
+    /// a block position by position, within a position its pixels' lanes in order. Reads of
+    /// per-vector data (the cost volume) then touch each vector once.
+    #[inline(always)]
+    pub(super) fn for_each_pixel_by_vector(
+        &self,
+        mut visit: impl FnMut(usize, usize, usize, usize),
+    ) {
+        for block in 0..self.blocks {
+            let rows = LANES.min(self.height - block * LANES);
+            for position in 0..self.positions {
+                // Lane `lane` holds pixel `x = position − lane`, inside when `x < width`.
+                let first_lane = (position + 1).saturating_sub(self.width);
+                let last_lane = rows.min(position + 1);
+                for lane in first_lane..last_lane {
+                    visit(
+                        position - lane,
+                        block * LANES + lane,
+                        block * self.positions + position,
+                        lane,
+                    );
+                }
+            }
+        }
+    }
+
     /// Calls `visit(x, y, vector, lane)` for every pixel, row by row.
     #[inline(always)]
     pub(super) fn for_each_pixel(&self, mut visit: impl FnMut(usize, usize, usize, usize)) {
@@ -146,6 +172,23 @@ mod tests {
             seen[vector * LANES + lane] = true;
         });
         assert_eq!(seen.iter().filter(|&&used| used).count(), 7 * 19);
+        // Vector by vector: the same pixels at the same places, each once, vectors in order.
+        for (width, height) in [(7, 19), (1, 1), (20, 16), (3, 33), (16, 5)] {
+            let layout = Layout::new(width, height);
+            let mut visits = vec![0usize; width * height];
+            let mut last_vector = 0;
+            layout.for_each_pixel_by_vector(|x, y, vector, lane| {
+                assert!(x < width && y < height, "({x}, {y}) in {width}x{height}");
+                assert_eq!(layout.locate(x, y), (vector, lane), "({x}, {y})");
+                assert!(vector >= last_vector, "vector {vector} after {last_vector}");
+                last_vector = vector;
+                visits[y * width + x] += 1;
+            });
+            assert!(
+                visits.iter().all(|&count| count == 1),
+                "{width}x{height}: {visits:?}"
+            );
+        }
         let rows: Vec<i32> = (0..7 * 19).collect();
         let mut skewed = Vec::new();
         layout.skew(&rows, |value| value as u16 + 1, &mut skewed);
