@@ -135,6 +135,8 @@ pub fn refine_verdict(
     )?;
     let starts = other_starts(mesh, chosen, group, align);
     let short_config = short_schedule_config(config);
+    // The other starts run the short schedule when there is one.
+    let other_config = short_config.as_ref().unwrap_or(config);
     // The runs are independent (each reads only its own start), so the chosen pose's schedules
     // and the other starts run side by side, on the workspace and its spare; their ends are
     // then decided in the order a single thread would take them (the same output).
@@ -159,7 +161,7 @@ pub fn refine_verdict(
             starts
                 .iter()
                 .filter_map(|start| {
-                    aligned_from_start(mesh, query, parameters, start, config, &mut spare)
+                    aligned_from_start(mesh, query, parameters, start, other_config, &mut spare)
                 })
                 .collect::<Vec<_>>()
         },
@@ -354,20 +356,23 @@ fn refined_from_start(
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) {
-    if let Some(other) = aligned_from_start(mesh, query, parameters, start, config, workspace) {
+    let short_config = short_schedule_config(config);
+    let run_config = short_config.as_ref().unwrap_or(config);
+    if let Some(other) = aligned_from_start(mesh, query, parameters, start, run_config, workspace) {
         refinement.take_if_better(other, &config.edge_align);
     }
 }
 
-/// The alignment from another start (`start` evaluated, then the short schedule when there is
-/// one, else the full one): the end [`PoseRefinement::take_if_better`] weighs against the
-/// output; `None` when the start cannot be evaluated.
+/// The alignment from another start (`start` evaluated, then aligned with `run_config`'s
+/// schedule: the short one when there is one, [`short_schedule_config`]): the end
+/// [`PoseRefinement::take_if_better`] weighs against the output; `None` when the start cannot
+/// be evaluated (evaluation reads none of the schedule's settings).
 fn aligned_from_start(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
     parameters: AlignedParameters,
     start: &PoseHypothesis,
-    config: &RegistrationConfig,
+    run_config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) -> Option<PoseRefinement> {
     let mut evaluated = evaluate_start(
@@ -375,12 +380,10 @@ fn aligned_from_start(
         &start.camera,
         query,
         &start.cam_from_world,
-        config,
+        run_config,
         workspace,
     )
     .ok()?;
-    let short_config = short_schedule_config(config);
-    let run_config = short_config.as_ref().unwrap_or(config);
     Some(align_from_start(
         mesh,
         query,
