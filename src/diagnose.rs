@@ -30,8 +30,9 @@ use crate::core::camera::{nearest_pixel, Camera};
 use crate::core::confidence::FrameEvidence;
 use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
-    model_edge_samples, pose_jacobian_rows, search_ridge, supported_edge_observability,
-    AlignedParameters, EdgeEvidence, EdgeKind, EdgeSample, SupportPeak,
+    edge_evidence, model_edge_samples, pose_jacobian_rows, search_ridge,
+    supported_edge_observability, AlignedParameters, EdgeEvidence, EdgeKind, EdgeSample,
+    SupportPeak,
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{
@@ -160,6 +161,24 @@ pub struct FrameDiagnosis {
     /// the frame's result carries (`core::frame::decide_passes`, registration's own rule). The
     /// fields above are the first pass's.
     pub heading_sweep: Option<SweepDiagnosis>,
+    /// The edge support split by the kind of model edge, each pose rendered on its own: at the
+    /// truth, at the verified pose and where the final refinement's alignment ended (empty when
+    /// the refinement did not run). Whether a kind of edge ranks the truth above the poses the
+    /// refinement preferred: a model simpler than the world lacks details inside its outline,
+    /// so its contours may be a less biased witness than its creases.
+    pub support_by_kind: Vec<KindSupport>,
+}
+
+/// The edge support of one kind of model edge at the truth and at the refinement's two poses
+/// (see [`FrameDiagnosis::support_by_kind`]).
+#[derive(Clone, Debug, Serialize)]
+pub struct KindSupport {
+    /// "all", "contour", "crease" (convex or concave).
+    pub kind: String,
+    /// (samples, share supported) at each pose.
+    pub truth: (usize, f64),
+    pub verified: (usize, f64),
+    pub aligned: (usize, f64),
 }
 
 /// One end of the rival-basin test against the truth.
@@ -905,6 +924,22 @@ fn diagnose_region(
             )
         }),
     };
+    let support_by_kind = refinement.as_ref().map_or_else(
+        |_| Vec::new(),
+        |r| {
+            support_by_kind(
+                mesh,
+                [
+                    (camera, truth),
+                    (&r.verified_camera, &r.verified_cam_from_world),
+                    (&r.aligned_camera, &r.aligned_cam_from_world),
+                ],
+                &query,
+                config,
+                &mut rasterizer,
+            )
+        },
+    );
     Ok(FrameDiagnosis {
         views: diagnoses,
         at_truth,
@@ -925,7 +960,69 @@ fn diagnose_region(
         truth_correlation,
         output_correlation,
         heading_sweep: None,
+        support_by_kind,
     })
+}
+
+/// The support of each kind of model edge rendered at each of `poses` (see
+/// [`FrameDiagnosis::support_by_kind`]); `poses` are truth, verified, aligned.
+fn support_by_kind(
+    mesh: &Mesh,
+    poses: [(&Camera, &Rigid3); 3],
+    query: &ImageView<'_, f32>,
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+) -> Vec<KindSupport> {
+    type Filter = fn(EdgeKind) -> bool;
+    let kinds: [(&str, Filter); 3] = [
+        ("all", |_| true),
+        ("contour", |k| k == EdgeKind::Contour),
+        ("crease", |k| k != EdgeKind::Contour),
+    ];
+    let mut per_pose: Vec<Vec<(usize, f64)>> = Vec::new();
+    for (index, (camera, cam_from_world)) in poses.into_iter().enumerate() {
+        let mut view = CoarseView::default();
+        render_coarse_view(
+            mesh,
+            camera,
+            1000 + index,
+            cam_from_world,
+            config,
+            rasterizer,
+            &mut view,
+        );
+        let mut samples = Vec::new();
+        model_edge_samples(
+            view.asg.view(),
+            &view.render,
+            camera,
+            cam_from_world,
+            &config.edge_align,
+            &mut samples,
+        );
+        per_pose.push(
+            kinds
+                .iter()
+                .map(|(_, keep)| {
+                    let chosen: Vec<EdgeSample> =
+                        samples.iter().filter(|s| keep(s.kind)).copied().collect();
+                    let evidence =
+                        edge_evidence(&chosen, query, camera, cam_from_world, &config.edge_align);
+                    (evidence.samples, evidence.support_fraction())
+                })
+                .collect(),
+        );
+    }
+    kinds
+        .iter()
+        .enumerate()
+        .map(|(k, (name, _))| KindSupport {
+            kind: (*name).to_string(),
+            truth: per_pose[0][k],
+            verified: per_pose[1][k],
+            aligned: per_pose[2][k],
+        })
+        .collect()
 }
 
 /// Only the pose search of a frame, against the true pose `truth` (`None` when the search is

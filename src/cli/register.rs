@@ -318,6 +318,10 @@ pub struct CoarseArgs {
     /// Final refinement: undo a level whose result lowers the edge support.
     #[arg(long)]
     pub edge_check_levels: bool,
+    /// Final refinement: judge levels, starts and the kept pose on the model's edges as
+    /// rendered, not with the estimated rounding undone.
+    #[arg(long)]
+    pub edge_judge_unrounded: bool,
     /// Final refinement: moving edges (default), the dense feature-metric alignment, or both in
     /// turn (`edges-then-dense`).
     #[arg(long, value_enum, default_value_t = RefineMethodArg::Edges)]
@@ -494,6 +498,7 @@ impl Default for CoarseArgs {
             edge_short_schedule_rule: KeepRuleArg::SupportAndCorrelation,
             refine_method: RefineMethodArg::Edges,
             edge_check_levels: false,
+            edge_judge_unrounded: !defaults.edge_align.judge_rounding,
             edge_ridge_choice: RidgeChoiceArg::Strongest,
             edge_distinct_weights: defaults.edge_align.distinct_weights,
             no_edge_rounding: !defaults.edge_align.estimate_rounding,
@@ -700,6 +705,7 @@ pub fn registration_config(
             coarse_rotation_only: coarse.edge_coarse_rotation_only,
             keep_rule: coarse.edge_keep.into(),
             estimate_rounding: !coarse.no_edge_rounding,
+            judge_rounding: !coarse.edge_judge_unrounded,
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),
             rival_directions: coarse.rival_directions,

@@ -63,6 +63,11 @@ pub struct EdgeAlignConfig {
     pub estimate_rounding: bool,
     /// The kinds of model edge the estimated rounding is undone on.
     pub rounding_kinds: AlignedKinds,
+    /// Measure the support that judges a level, a start's end and the kept pose with the
+    /// estimated rounding undone (else on the model's edges as rendered). The rounding is
+    /// estimated jointly with the aligned pose, so undoing it also on the pose the alignment
+    /// started from compares that pose under a radius fitted to the other.
+    pub judge_rounding: bool,
     /// Which model edge samples the Gauss–Newton steps use (the evidence always uses all).
     pub aligned_kinds: AlignedKinds,
     /// Starting poses of the final refinement: the chosen pose and up to `starts − 1` other
@@ -263,6 +268,7 @@ impl Default for EdgeAlignConfig {
             min_samples: 40,
             estimate_rounding: true,
             rounding_kinds: AlignedKinds::All,
+            judge_rounding: true,
             aligned_kinds: AlignedKinds::All,
             starts: 3,
             check_levels: false,

@@ -680,9 +680,10 @@ fn align_from_start(
         if !align.check_levels {
             return;
         }
+        let judged_rounding_m = if align.judge_rounding { current.2 } else { 0.0 };
         let support =
             |samples: &[EdgeSample], camera: &Camera, pose: &Rigid3, out: &mut Vec<EdgeSample>| {
-                sharpened_samples(samples, current.2, align.rounding_kinds, out);
+                sharpened_samples(samples, judged_rounding_m, align.rounding_kinds, out);
                 edge_evidence(out, &query, camera, pose, align).support_fraction()
             };
         let now = support(samples, &current.0, &current.1, sharpened);
@@ -764,11 +765,17 @@ fn align_from_start(
         }
     }
     sample_at(rasterizer, view, &aligned_camera, &pose, samples, rendered);
-    // Both poses measured the same way: with the estimated rounding undone.
-    let (start_samples, verified) = if rounding_m > 0.0 {
+    // Both poses measured the same way: with the estimated rounding undone (`judge_rounding`)
+    // or both as rendered.
+    let judged_rounding_m = if align.judge_rounding {
+        rounding_m
+    } else {
+        0.0
+    };
+    let (start_samples, verified) = if judged_rounding_m > 0.0 {
         sharpened_samples(
             &evaluated.samples,
-            rounding_m,
+            judged_rounding_m,
             align.rounding_kinds,
             start_samples,
         );
@@ -777,7 +784,7 @@ fn align_from_start(
     } else {
         (evaluated.samples.as_slice(), evaluated.verified)
     };
-    sharpened_samples(samples, rounding_m, align.rounding_kinds, sharpened);
+    sharpened_samples(samples, judged_rounding_m, align.rounding_kinds, sharpened);
     std::mem::swap(samples, sharpened);
     let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
     // The last rendering (`view`) is at the aligned pose; the start's was kept. The output's
@@ -828,7 +835,9 @@ fn align_from_start(
         )
     } else {
         match evaluated.peak {
-            Some((peak_rounding_m, peak)) if peak_rounding_m.to_bits() == rounding_m.to_bits() => {
+            Some((peak_rounding_m, peak))
+                if peak_rounding_m.to_bits() == judged_rounding_m.to_bits() =>
+            {
                 peak
             }
             _ => {
@@ -841,7 +850,7 @@ fn align_from_start(
                     evaluated.metric.as_ref(),
                     align,
                 );
-                evaluated.peak = Some((rounding_m, peak));
+                evaluated.peak = Some((judged_rounding_m, peak));
                 peak
             }
         }
@@ -1157,6 +1166,55 @@ mod tests {
         );
         assert!(refinement.rounding_m < 0.05, "{}", refinement.rounding_m);
         assert!(stays_px < 0.3, "{stays_px}");
+    }
+
+    /// On a photo of a slightly larger house (edges outward of the model's, as a rounded model
+    /// sees them) the rounding estimate is positive. Judged with it undone, both poses' evidence
+    /// is measured at a radius fitted to the aligned pose; judged unrounded
+    /// (`judge_rounding: false`), each pose's evidence is that of its own rendering's edges as
+    /// rendered, whatever radius the alignment estimated.
+    #[test]
+    fn judged_unrounded_each_pose_is_measured_on_its_own_rendering() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let centre_m = Vector3::new(0.0, 0.0, 3.0);
+        let grown: Vec<Vector3<f64>> = (0..mesh.vertex_count())
+            .map(|i| centre_m + (mesh.world_position(i) - centre_m) * 1.04)
+            .collect();
+        let grown = Mesh::from_world(&grown, mesh.faces().to_vec(), None).unwrap();
+        let mut config = RegistrationConfig::default();
+        config.edge_align.estimate_rounding = true;
+        let query = ideal_query(&grown, &camera, &truth, &config);
+        let start = few_px_off(&truth);
+        let evidence_at = |pose: &Rigid3, config: &RegistrationConfig| {
+            let samples = edge_samples_at(&mesh, &camera, pose, config);
+            edge_evidence(&samples, &query.view(), &camera, pose, &config.edge_align)
+        };
+        let judged = refined(
+            &mesh,
+            &camera,
+            &query,
+            &start,
+            &config,
+            &mut RefineWorkspace::default(),
+        );
+        println!("rounding {:.3} m", judged.rounding_m);
+        assert!(judged.rounding_m > 0.0, "{}", judged.rounding_m);
+        assert_ne!(judged.verified, evidence_at(&start, &config));
+        config.edge_align.judge_rounding = false;
+        let unrounded = refined(
+            &mesh,
+            &camera,
+            &query,
+            &start,
+            &config,
+            &mut RefineWorkspace::default(),
+        );
+        assert!(unrounded.rounding_m > 0.0, "{}", unrounded.rounding_m);
+        assert_eq!(unrounded.verified, evidence_at(&start, &config));
+        assert_eq!(
+            unrounded.aligned,
+            evidence_at(&unrounded.aligned_cam_from_world, &config)
+        );
     }
 
     /// Unknown intrinsics: a focal length 3 % off (as a DLT may leave it) is aligned with the pose.
