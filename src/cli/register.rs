@@ -318,10 +318,11 @@ pub struct CoarseArgs {
     /// Final refinement: undo a level whose result lowers the edge support.
     #[arg(long)]
     pub edge_check_levels: bool,
-    /// Final refinement: judge levels, starts and the kept pose on the model's edges as
-    /// rendered, not with the estimated rounding undone.
-    #[arg(long)]
-    pub edge_judge_unrounded: bool,
+    /// Final refinement: the rounding undone on each pose's edges when the support judges
+    /// levels, starts and the kept pose: the alignment's estimate on both (`shared`), none
+    /// (`as-rendered`), or each pose's own fit (`each-own`).
+    #[arg(long, value_enum, default_value_t = RoundingJudgeArg::Shared)]
+    pub edge_rounding_judge: RoundingJudgeArg,
     /// Final refinement: moving edges (default), the dense feature-metric alignment, or both in
     /// turn (`edges-then-dense`).
     #[arg(long, value_enum, default_value_t = RefineMethodArg::Edges)]
@@ -498,7 +499,7 @@ impl Default for CoarseArgs {
             edge_short_schedule_rule: KeepRuleArg::SupportAndCorrelation,
             refine_method: RefineMethodArg::Edges,
             edge_check_levels: false,
-            edge_judge_unrounded: !defaults.edge_align.judge_rounding,
+            edge_rounding_judge: RoundingJudgeArg::Shared,
             edge_ridge_choice: RidgeChoiceArg::Strongest,
             edge_distinct_weights: defaults.edge_align.distinct_weights,
             no_edge_rounding: !defaults.edge_align.estimate_rounding,
@@ -544,6 +545,24 @@ impl From<KeepRuleArg> for asgreg::core::edge_align::KeepRule {
             KeepRuleArg::Support => Self::Support,
             KeepRuleArg::SupportAndCorrelation => Self::SupportAndCorrelation,
             KeepRuleArg::Correlation => Self::Correlation,
+        }
+    }
+}
+
+/// Which rounding the final refinement's judge undoes on each pose's edges.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RoundingJudgeArg {
+    Shared,
+    AsRendered,
+    EachOwn,
+}
+
+impl From<RoundingJudgeArg> for asgreg::core::edge_align::RoundingJudge {
+    fn from(arg: RoundingJudgeArg) -> Self {
+        match arg {
+            RoundingJudgeArg::Shared => Self::Shared,
+            RoundingJudgeArg::AsRendered => Self::AsRendered,
+            RoundingJudgeArg::EachOwn => Self::EachOwn,
         }
     }
 }
@@ -705,7 +724,7 @@ pub fn registration_config(
             coarse_rotation_only: coarse.edge_coarse_rotation_only,
             keep_rule: coarse.edge_keep.into(),
             estimate_rounding: !coarse.no_edge_rounding,
-            judge_rounding: !coarse.edge_judge_unrounded,
+            rounding_judge: coarse.edge_rounding_judge.into(),
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),
             rival_directions: coarse.rival_directions,

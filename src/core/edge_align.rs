@@ -63,11 +63,9 @@ pub struct EdgeAlignConfig {
     pub estimate_rounding: bool,
     /// The kinds of model edge the estimated rounding is undone on.
     pub rounding_kinds: AlignedKinds,
-    /// Measure the support that judges a level, a start's end and the kept pose with the
-    /// estimated rounding undone (else on the model's edges as rendered). The rounding is
-    /// estimated jointly with the aligned pose, so undoing it also on the pose the alignment
-    /// started from compares that pose under a radius fitted to the other.
-    pub judge_rounding: bool,
+    /// Which rounding is undone on each pose's samples when the support judges a level, a
+    /// start's end and the kept pose (see [`RoundingJudge`]).
+    pub rounding_judge: RoundingJudge,
     /// Which model edge samples the Gauss–Newton steps use (the evidence always uses all).
     pub aligned_kinds: AlignedKinds,
     /// Starting poses of the final refinement: the chosen pose and up to `starts − 1` other
@@ -196,6 +194,22 @@ impl KeepRule {
     }
 }
 
+/// Which rounding radius the support that judges the refinement's poses undoes. The alignment
+/// estimates the radius jointly with the aligned pose; undoing that radius on the pose the
+/// alignment started from too judges it under a radius fitted to the other (on the clean house
+/// s1, view_007: 0.81 against 0.52 so, 0.62 against 0.64 on each pose's edges as rendered;
+/// docs/measurements.md, twenty-fifth session).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum RoundingJudge {
+    /// The alignment's estimate, undone on both poses.
+    #[default]
+    Shared,
+    /// None: each pose's edges as rendered.
+    AsRendered,
+    /// Each pose's own: the radius fitted with that pose held ([`fit_rounding`]).
+    EachOwn,
+}
+
 /// Which photo ridge on a search line a model edge sample is matched to.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub enum RidgeChoice {
@@ -268,7 +282,7 @@ impl Default for EdgeAlignConfig {
             min_samples: 40,
             estimate_rounding: true,
             rounding_kinds: AlignedKinds::All,
-            judge_rounding: true,
+            rounding_judge: RoundingJudge::Shared,
             aligned_kinds: AlignedKinds::All,
             starts: 3,
             check_levels: false,
@@ -1236,6 +1250,75 @@ pub fn align_level(
     }
     summary.rounding_m = *rounding_m;
     (camera, pose, summary)
+}
+
+/// The model's edge rounding radius (m, ≥ 0) that best explains the offsets of `samples` to the
+/// photo's ridges with the pose held at `cam_from_world`: the rounding unknown of
+/// [`align_level`]'s steps alone, by the same robust (Tukey) Gauss–Newton at the last level's
+/// search radius on `query` as it is, `config.iterations_per_level` steps from 0. 0 when fewer
+/// than `config.min_samples` samples match.
+pub fn fit_rounding(
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    config: &EdgeAlignConfig,
+) -> f64 {
+    let mut rounding_m: f64 = 0.0;
+    // (offset px, offset per metre of rounding px/m) per matched sample.
+    let mut matches: Vec<(f64, f64)> = Vec::with_capacity(samples.len());
+    let k = camera.intrinsics;
+    for _ in 0..config.iterations_per_level {
+        matches.clear();
+        for sample in samples {
+            let rounding = sample.rounding_on(config.rounding_kinds);
+            if rounding == Vector3::zeros() {
+                continue;
+            }
+            let point_cam = cam_from_world
+                .transform_point(&sample.sharp_point_m(rounding_m, config.rounding_kinds));
+            let Some(projected) = camera.project(&point_cam) else {
+                continue;
+            };
+            let Some(found) = find_ridge(
+                query,
+                projected,
+                sample.normal,
+                config.final_search_radius_px,
+                config.min_query_ridge,
+                config.ridge_choice,
+            ) else {
+                continue;
+            };
+            let rounding_cam = cam_from_world.rotation * rounding;
+            let (row_u, row_v) = pose_jacobian_rows(&k, &point_cam);
+            let per_m = row_u.fixed_rows::<3>(3).dot(&rounding_cam) * sample.normal.x
+                + row_v.fixed_rows::<3>(3).dot(&rounding_cam) * sample.normal.y;
+            matches.push((found.offset_px, per_m));
+        }
+        if matches.len() < config.min_samples {
+            return 0.0;
+        }
+        let mut magnitudes: Vec<f64> = matches.iter().map(|(offset, _)| offset.abs()).collect();
+        let scale_px = (1.4826 * median_of(&mut magnitudes)).max(0.2);
+        let tukey_c = 4.685 * scale_px;
+        let (mut information, mut gradient) = (1e-9, 0.0);
+        for &(offset, per_m) in &matches {
+            let ratio = offset / tukey_c;
+            if ratio.abs() >= 1.0 {
+                continue;
+            }
+            let weight = (1.0 - ratio * ratio).powi(2);
+            information += weight * per_m * per_m;
+            gradient += weight * per_m * offset;
+        }
+        let step = gradient / information;
+        if !step.is_finite() {
+            break;
+        }
+        rounding_m = (rounding_m + step).max(0.0);
+    }
+    rounding_m
 }
 
 /// The image-motion metric of a rendering's visible model: the mean over its surface pixels

@@ -11,9 +11,10 @@ use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
-    align_level, blurred_query, edge_evidence, image_motion_metric, least_seen_starts,
-    model_edge_samples, sharpened_samples, support_peak, AlignedParameters, EdgeAlignConfig,
-    EdgeEvidence, EdgeSample, LevelSummary, SupportPeak, MOTION_METRIC_STRIDE_PX,
+    align_level, blurred_query, edge_evidence, fit_rounding, image_motion_metric,
+    least_seen_starts, model_edge_samples, sharpened_samples, support_peak, AlignedParameters,
+    EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary, RoundingJudge, SupportPeak,
+    MOTION_METRIC_STRIDE_PX,
 };
 use crate::core::feature_align::{align_dense_level, dense_samples, DenseSample};
 use crate::core::image::{Image, ImageView};
@@ -680,9 +681,10 @@ fn align_from_start(
         if !align.check_levels {
             return;
         }
-        let judged_rounding_m = if align.judge_rounding { current.2 } else { 0.0 };
         let support =
             |samples: &[EdgeSample], camera: &Camera, pose: &Rigid3, out: &mut Vec<EdgeSample>| {
+                let judged_rounding_m =
+                    judged_rounding(align, current.2, samples, &query, camera, pose);
                 sharpened_samples(samples, judged_rounding_m, align.rounding_kinds, out);
                 edge_evidence(out, &query, camera, pose, align).support_fraction()
             };
@@ -765,17 +767,15 @@ fn align_from_start(
         }
     }
     sample_at(rasterizer, view, &aligned_camera, &pose, samples, rendered);
-    // Both poses measured the same way: with the estimated rounding undone (`judge_rounding`)
-    // or both as rendered.
-    let judged_rounding_m = if align.judge_rounding {
-        rounding_m
-    } else {
-        0.0
-    };
-    let (start_samples, verified) = if judged_rounding_m > 0.0 {
+    // Both poses measured with the rounding `rounding_judge` says undone.
+    let verified_rounding_m =
+        judged_rounding(align, rounding_m, &evaluated.samples, &query, camera, start);
+    let aligned_rounding_m =
+        judged_rounding(align, rounding_m, samples, &query, &aligned_camera, &pose);
+    let (start_samples, verified) = if verified_rounding_m > 0.0 {
         sharpened_samples(
             &evaluated.samples,
-            judged_rounding_m,
+            verified_rounding_m,
             align.rounding_kinds,
             start_samples,
         );
@@ -784,7 +784,7 @@ fn align_from_start(
     } else {
         (evaluated.samples.as_slice(), evaluated.verified)
     };
-    sharpened_samples(samples, judged_rounding_m, align.rounding_kinds, sharpened);
+    sharpened_samples(samples, aligned_rounding_m, align.rounding_kinds, sharpened);
     std::mem::swap(samples, sharpened);
     let aligned = edge_evidence(samples, &query, &aligned_camera, &pose, align);
     // The last rendering (`view`) is at the aligned pose; the start's was kept. The output's
@@ -836,7 +836,7 @@ fn align_from_start(
     } else {
         match evaluated.peak {
             Some((peak_rounding_m, peak))
-                if peak_rounding_m.to_bits() == judged_rounding_m.to_bits() =>
+                if peak_rounding_m.to_bits() == verified_rounding_m.to_bits() =>
             {
                 peak
             }
@@ -850,7 +850,7 @@ fn align_from_start(
                     evaluated.metric.as_ref(),
                     align,
                 );
-                evaluated.peak = Some((judged_rounding_m, peak));
+                evaluated.peak = Some((verified_rounding_m, peak));
                 peak
             }
         }
@@ -867,6 +867,27 @@ fn align_from_start(
         peak,
         correlation,
         levels,
+    }
+}
+
+/// The rounding radius undone on `samples` (of the pose `cam_from_world`) when the support
+/// judges that pose: the alignment's estimate `estimated_m`, none, or the pose's own fit, as
+/// `align.rounding_judge` says.
+fn judged_rounding(
+    align: &EdgeAlignConfig,
+    estimated_m: f64,
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+) -> f64 {
+    match align.rounding_judge {
+        RoundingJudge::Shared => estimated_m,
+        RoundingJudge::AsRendered => 0.0,
+        RoundingJudge::EachOwn if align.estimate_rounding => {
+            fit_rounding(samples, query, camera, cam_from_world, align)
+        }
+        RoundingJudge::EachOwn => 0.0,
     }
 }
 
@@ -1171,7 +1192,7 @@ mod tests {
     /// On a photo of a slightly larger house (edges outward of the model's, as a rounded model
     /// sees them) the rounding estimate is positive. Judged with it undone, both poses' evidence
     /// is measured at a radius fitted to the aligned pose; judged unrounded
-    /// (`judge_rounding: false`), each pose's evidence is that of its own rendering's edges as
+    /// (`RoundingJudge::AsRendered`), each pose's evidence is that of its own rendering's edges as
     /// rendered, whatever radius the alignment estimated.
     #[test]
     fn judged_unrounded_each_pose_is_measured_on_its_own_rendering() {
@@ -1200,7 +1221,7 @@ mod tests {
         println!("rounding {:.3} m", judged.rounding_m);
         assert!(judged.rounding_m > 0.0, "{}", judged.rounding_m);
         assert_ne!(judged.verified, evidence_at(&start, &config));
-        config.edge_align.judge_rounding = false;
+        config.edge_align.rounding_judge = RoundingJudge::AsRendered;
         let unrounded = refined(
             &mesh,
             &camera,
@@ -1215,6 +1236,63 @@ mod tests {
             unrounded.aligned,
             evidence_at(&unrounded.aligned_cam_from_world, &config)
         );
+        // Each pose judged under its own fitted radius: the grown house's edges lie outward of
+        // the model's, so the fit at the truth is positive; on the model's own edges it is 0.
+        config.edge_align.rounding_judge = RoundingJudge::EachOwn;
+        let own = refined(
+            &mesh,
+            &camera,
+            &query,
+            &start,
+            &config,
+            &mut RefineWorkspace::default(),
+        );
+        let start_samples = edge_samples_at(&mesh, &camera, &start, &config);
+        let start_fit_m = fit_rounding(
+            &start_samples,
+            &query.view(),
+            &camera,
+            &start,
+            &config.edge_align,
+        );
+        let mut sharpened = Vec::new();
+        sharpened_samples(
+            &start_samples,
+            start_fit_m,
+            config.edge_align.rounding_kinds,
+            &mut sharpened,
+        );
+        assert_eq!(
+            own.verified,
+            edge_evidence(
+                &sharpened,
+                &query.view(),
+                &camera,
+                &start,
+                &config.edge_align
+            )
+        );
+        let truth_samples = edge_samples_at(&mesh, &camera, &truth, &config);
+        let fit_at_truth_m = fit_rounding(
+            &truth_samples,
+            &query.view(),
+            &camera,
+            &truth,
+            &config.edge_align,
+        );
+        let own_query = ideal_query(&mesh, &camera, &truth, &config);
+        let fit_on_own_edges_m = fit_rounding(
+            &truth_samples,
+            &own_query.view(),
+            &camera,
+            &truth,
+            &config.edge_align,
+        );
+        println!(
+            "fit at the truth: grown {fit_at_truth_m:.3} m, own edges {fit_on_own_edges_m:.3} m"
+        );
+        assert!(fit_at_truth_m > 0.02, "{fit_at_truth_m}");
+        assert!(fit_on_own_edges_m < 0.01, "{fit_on_own_edges_m}");
     }
 
     /// Unknown intrinsics: a focal length 3 % off (as a DLT may leave it) is aligned with the pose.
