@@ -27,9 +27,9 @@ use crate::core::edge_align::{
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::pose_search::{
-    first_distinct, position_candidate, score_rotation, score_rotations, search_samples,
-    select_beams, turned_pose, wrap_deg, Candidate, OrientedEdgeMap, PoseSearchConfig,
-    SearchSample,
+    first_distinct, position_candidate, score_rotation, score_rotations, screening_capture_deg,
+    search_samples, select_beams, turned_pose, wrap_deg, Candidate, OrientedEdgeMap,
+    PoseSearchConfig, SearchSample,
 };
 use crate::core::raster::Rasterizer;
 use crate::core::rigid::Rigid3;
@@ -303,6 +303,18 @@ pub(crate) fn screen_grid(
             search.screened_candidates,
             search.beam_separation_deg,
         );
+        // Within the basins, the candidates the screening from their best could not reach.
+        if search.capture_candidates > 0 {
+            for candidate in select_beams(
+                &grid.candidates,
+                search.capture_candidates,
+                screening_capture_deg(camera, search),
+            ) {
+                if !starts.contains(&candidate) {
+                    starts.push(candidate);
+                }
+            }
+        }
         if search.position_half_range_m > 0.0 {
             let moved = position_candidates(
                 &select_beams(
@@ -327,14 +339,17 @@ pub(crate) fn screen_grid(
 }
 
 /// The beams among the screened starts of [`screen_grid`] (its order): the best screened. With
-/// the position search, each distinct from the better ones: a moved start and its unmoved
-/// candidate that the screening took into one basin are one beam (measured in that setting only,
-/// docs/measurements.md, twenty-second session).
+/// the position search or the capture's candidates, each distinct from the better ones: several
+/// starts that the screening took into one basin are one beam (a moved start and its unmoved
+/// candidate, docs/measurements.md, twenty-second session; neighbours within a basin, branch
+/// `reach25`).
 pub(crate) fn beams_of(
     screened: Vec<(Candidate, Rigid3, f64)>,
     search: &PoseSearchConfig,
 ) -> Vec<(Candidate, Rigid3, f64)> {
-    if search.screened_candidates != 0 && search.position_half_range_m > 0.0 {
+    if search.screened_candidates != 0
+        && (search.position_half_range_m > 0.0 || search.capture_candidates > 0)
+    {
         first_distinct(screened, search.beams, search.beam_separation_deg, |s| &s.1)
     } else {
         screened.into_iter().take(search.beams).collect()
