@@ -36,7 +36,8 @@ use crate::core::edge_align::{
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{
-    grid_score_at, score_grid, screen_candidates, search_pose, PoseSearchOutcome,
+    beams_of, grid_score_at, screen_candidates, screen_grid, search_pose, PoseSearchOutcome,
+    ScreenedGrid, SearchGrid,
 };
 use crate::core::frame::sweep::{apply_passes_decision, register_with_fallback, PassOutcome};
 use crate::core::frame::{
@@ -221,6 +222,93 @@ impl FrameDiagnosis {
                 ..
             }) => retry,
             _ => self,
+        }
+    }
+}
+
+/// Where a frame's registration lost the truth, read along the pose search and on (issue #12):
+/// the first step after which no pose near the truth was left (`FrameDiagnosis::search_loss`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize)]
+pub enum SearchLoss {
+    /// Accepted within the false-accept line: nothing lost.
+    Registered,
+    /// (a) No start of the search's screening ended near the truth: the rotation grid about the
+    /// prior's centre, or its ranking of the candidates, offered none.
+    Grid,
+    /// (a′) A screened start ended near the truth, but better-supported ones took the beams.
+    Screening,
+    /// (b) A beam (or the prior) started near the truth; its refinement ended away from it.
+    BeamRefinement,
+    /// (c) A refined beam (or the refined prior) lay near the truth; the search's decision made
+    /// no centre of coarse poses near it.
+    Decision,
+    /// (d) A centre of coarse poses lay near the truth; flow, pose, verification or the final
+    /// refinement then rejected the frame or accepted a wrong pose.
+    Later,
+}
+
+impl SearchLoss {
+    /// Every class, in the order of the frame's steps.
+    pub const ALL: [SearchLoss; 6] = [
+        SearchLoss::Registered,
+        SearchLoss::Grid,
+        SearchLoss::Screening,
+        SearchLoss::BeamRefinement,
+        SearchLoss::Decision,
+        SearchLoss::Later,
+    ];
+
+    /// Its name in the tables.
+    pub fn label(self) -> &'static str {
+        match self {
+            SearchLoss::Registered => "registered",
+            SearchLoss::Grid => "(a) grid",
+            SearchLoss::Screening => "(a′) screening",
+            SearchLoss::BeamRefinement => "(b) beam refinement",
+            SearchLoss::Decision => "(c) search decision",
+            SearchLoss::Later => "(d) after the search",
+        }
+    }
+}
+
+impl FrameDiagnosis {
+    /// Whether the frame was accepted within `false_accept_px` of the truth (the registration its
+    /// result carries).
+    pub fn registered_within(&self, false_accept_px: f64) -> bool {
+        self.frame_verdict().accepted()
+            && self
+                .carried()
+                .chosen_delta_px
+                .is_some_and(|d| d <= false_accept_px)
+    }
+
+    /// Where the registration the frame's result carries lost the truth
+    /// ([`SearchDiagnosis::loss`]); `None` without the search (or once it was taken out).
+    pub fn search_loss(&self, near_truth_px: f64, false_accept_px: f64) -> Option<SearchLoss> {
+        let search = self.carried().search.as_ref()?;
+        Some(search.loss(self.registered_within(false_accept_px), near_truth_px))
+    }
+}
+
+impl SearchDiagnosis {
+    /// Where the frame this search belongs to lost the truth: `Registered` when it was
+    /// `registered` (accepted within the false-accept line), else the first step of the search
+    /// after which no pose within `near_truth_px` of the truth was left (the screened starts, the
+    /// beams' starts, the refined beams, the centres; [`SearchLoss`]).
+    pub fn loss(&self, registered: bool, near_truth_px: f64) -> SearchLoss {
+        let near = |delta_px: &Option<f64>| delta_px.is_some_and(|d| d <= near_truth_px);
+        if registered {
+            SearchLoss::Registered
+        } else if self.centres_delta_px.iter().any(near) {
+            SearchLoss::Later
+        } else if self.beams.iter().any(|b| near(&b.delta_px)) {
+            SearchLoss::Decision
+        } else if self.beams.iter().any(|b| near(&b.start_delta_px)) {
+            SearchLoss::BeamRefinement
+        } else if self.screened.iter().any(|s| near(&s.delta_px)) {
+            SearchLoss::Screening
+        } else {
+            SearchLoss::Grid
         }
     }
 }
@@ -493,6 +581,19 @@ pub struct SearchDiagnosis {
     pub reach_in_grid: Option<ReachInGrid>,
     /// The search's own wall time (the frame's, not the diagnosis'), ms.
     pub search_ms: f64,
+    /// Every start the search screened (`core::frame::search::screen_grid`, the search's own
+    /// list, scored again here), best screened support first: where its screening alignment
+    /// ended against the truth. The beams are the first of them.
+    pub screened: Vec<ScreenedStartDiagnosis>,
+}
+
+/// One start of the search's screening against the truth.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct ScreenedStartDiagnosis {
+    /// δ(where its screening alignment ended, truth), px.
+    pub delta_px: Option<f64>,
+    /// Its edge support there (0..1; NaN without the screening).
+    pub support: f64,
 }
 
 /// The grid candidate nearest the rotation reach (the true rotation at the prior's centre), as
@@ -529,6 +630,9 @@ pub struct SearchBeamDiagnosis {
     /// `max_image_uncertainty_px` the search ignores the beam.
     pub image_uncertainty_px: f64,
     pub delta_px: Option<f64>,
+    /// δ(where its refinement started, truth), px: the prior for the prior, the screened pose for
+    /// a beam.
+    pub start_delta_px: Option<f64>,
 }
 
 /// Runs a frame's steps one by one and measures each against the true pose `truth`.
@@ -1102,18 +1206,34 @@ fn search_diagnosis(
         &mut view,
     )
     .and_then(|outcome| outcome.centres.first().and_then(&mut delta));
-    let reach_in_grid = reach_in_grid(
+    // The search's grid and screening once more (`search_pose` does not hand them out: the
+    // frame's path has no use for them), so the diagnosis pays one grid (a rendering per heading
+    // group) and the screening a frame.
+    let ScreenedGrid { grid, screened } = screen_grid(
         mesh,
         camera,
         prior,
-        &rotation_reach,
         query,
         &map,
         config,
         &mut rasterizer,
         &mut view,
-        &mut delta,
     );
+    let reach_in_grid = reach_in_grid(camera, &grid, &rotation_reach, query, config, &mut delta);
+    let beam_starts: Vec<Rigid3> = std::iter::once(*prior)
+        .chain(
+            beams_of(screened.clone(), &config.pose_search)
+                .into_iter()
+                .map(|(_, pose, _)| pose),
+        )
+        .collect();
+    let screened: Vec<ScreenedStartDiagnosis> = screened
+        .iter()
+        .map(|(_, pose, support)| ScreenedStartDiagnosis {
+            delta_px: delta(pose),
+            support: *support,
+        })
+        .collect();
     SearchDiagnosis {
         true_centre_search_delta_px,
         reach_in_grid,
@@ -1124,7 +1244,8 @@ fn search_diagnosis(
         beams: outcome
             .beams
             .iter()
-            .map(|beam| SearchBeamDiagnosis {
+            .enumerate()
+            .map(|(index, beam)| SearchBeamDiagnosis {
                 yaw_deg: beam.yaw_deg,
                 pitch_deg: beam.pitch_deg,
                 roll_deg: beam.roll_deg,
@@ -1133,8 +1254,10 @@ fn search_diagnosis(
                 support: beam.support,
                 image_uncertainty_px: beam.image_uncertainty_px,
                 delta_px: delta(&beam.cam_from_world),
+                start_delta_px: beam_starts.get(index).and_then(&mut delta),
             })
             .collect(),
+        screened,
         centres_delta_px: outcome.centres.iter().map(&mut delta).collect(),
         centres_apart_px: outcome
             .centres
@@ -1173,24 +1296,16 @@ fn search_diagnosis(
     }
 }
 
-/// The grid candidate of a search around `prior` nearest `rotation_reach`, its place in the
-/// search's selection and where the screening alignment takes it (δ by `delta`). It scores the
-/// grid again: `search_pose` does not hand its grid out (the frame's path has no use for it), so
-/// the diagnosis pays one grid (a rendering per heading group) a frame.
-#[allow(clippy::too_many_arguments)]
+/// The candidate of the search's grid `grid` nearest `rotation_reach`, its place in the
+/// search's selection and where the screening alignment takes it (δ by `delta`).
 fn reach_in_grid(
-    mesh: &Mesh,
     camera: &Camera,
-    prior: &Rigid3,
+    grid: &SearchGrid,
     rotation_reach: &Rigid3,
     query: ImageView<'_, f32>,
-    map: &OrientedEdgeMap,
     config: &RegistrationConfig,
-    rasterizer: &mut Rasterizer,
-    view: &mut CoarseView,
     delta: &mut dyn FnMut(&Rigid3) -> Option<f64>,
 ) -> Option<ReachInGrid> {
-    let grid = score_grid(mesh, camera, prior, map, config, rasterizer, view);
     let (nearest, angle_rad) = grid
         .candidates
         .iter()
@@ -1501,6 +1616,94 @@ mod tests {
     use crate::core::frame::tests::house_and_poses;
     use crate::core::frame::{register_frame, register_query, QueryMode};
     use crate::core::image::Image;
+
+    /// A search diagnosis with the given δ (px) of its screened starts, its beams' starts and
+    /// ends, and its centres; every other figure made up.
+    fn search_with(
+        screened: &[f64],
+        beam_starts_and_ends: &[(f64, f64)],
+        centres: &[f64],
+    ) -> SearchDiagnosis {
+        SearchDiagnosis {
+            prior_delta_px: Some(200.0),
+            prior_centre_error_m: 1.0,
+            rotation_reach_delta_px: Some(20.0),
+            beams: beam_starts_and_ends
+                .iter()
+                .map(|&(start, end)| SearchBeamDiagnosis {
+                    yaw_deg: 0.0,
+                    pitch_deg: 0.0,
+                    roll_deg: 0.0,
+                    grid_score: 0.2,
+                    screened_support: 0.5,
+                    support: 0.5,
+                    image_uncertainty_px: 1.0,
+                    delta_px: Some(end),
+                    start_delta_px: Some(start),
+                })
+                .collect(),
+            centres_delta_px: centres.iter().map(|&d| Some(d)).collect(),
+            centres_apart_px: Vec::new(),
+            moved: true,
+            truth_support: Some(0.7),
+            truth_grid_score: 0.3,
+            rotation_reach_grid_score: 0.2,
+            true_centre_search_delta_px: None,
+            reach_in_grid: None,
+            search_ms: 1.0,
+            screened: screened
+                .iter()
+                .map(|&d| ScreenedStartDiagnosis {
+                    delta_px: Some(d),
+                    support: 0.5,
+                })
+                .collect(),
+        }
+    }
+
+    /// The class is the first step after which nothing near the truth was left, read from the
+    /// grid's screening to the centres; a registered frame is registered whatever its search did.
+    #[test]
+    fn a_frame_is_lost_at_the_first_step_that_leaves_nothing_near_the_truth() {
+        let near_px = 16.0;
+        let cases = [
+            (
+                search_with(&[40.0], &[(200.0, 150.0), (40.0, 35.0)], &[35.0, 200.0]),
+                SearchLoss::Grid,
+            ),
+            (
+                search_with(
+                    &[40.0, 9.0],
+                    &[(200.0, 150.0), (40.0, 35.0)],
+                    &[35.0, 200.0],
+                ),
+                SearchLoss::Screening,
+            ),
+            (
+                search_with(&[9.0], &[(200.0, 150.0), (9.0, 30.0)], &[30.0, 200.0]),
+                SearchLoss::BeamRefinement,
+            ),
+            (
+                search_with(&[9.0], &[(200.0, 150.0), (9.0, 3.0)], &[200.0]),
+                SearchLoss::Decision,
+            ),
+            (
+                search_with(&[9.0], &[(200.0, 150.0), (9.0, 3.0)], &[3.0, 200.0]),
+                SearchLoss::Later,
+            ),
+            // The prior is a beam too: its start is the prior.
+            (
+                search_with(&[40.0], &[(12.0, 60.0)], &[60.0]),
+                SearchLoss::BeamRefinement,
+            ),
+        ];
+        for (index, (search, class)) in cases.iter().enumerate() {
+            assert_eq!(search.loss(false, near_px), *class, "case {index}");
+            assert_eq!(search.loss(true, near_px), SearchLoss::Registered);
+        }
+        // Nearness is the caller's: at 50 px the first case's centre (35 px) is near.
+        assert_eq!(cases[0].0.loss(false, 50.0), SearchLoss::Later);
+    }
 
     fn truth_view(
         mesh: &Mesh,

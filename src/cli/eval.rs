@@ -23,7 +23,7 @@ use asgreg::core::frame::{
 use asgreg::core::mesh::Mesh;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::diagnose::{
-    diagnose_frame, diagnose_search, DiagnosisSummary, FrameDiagnosis, SearchDiagnosis,
+    diagnose_frame, diagnose_search, DiagnosisSummary, FrameDiagnosis, SearchDiagnosis, SearchLoss,
     ORACLE_MAX_ERROR_PX, REACH_RANK_LIMIT,
 };
 use asgreg::eval::{
@@ -754,6 +754,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     };
     write_report_html(&args.out.join(REPORT_HTML), &page)?;
     if args.diagnose {
+        // A pose within the final refinement's first search radius of the truth is in its reach.
+        let near_truth_px = args.coarse.edge_search_px;
         let json = serde_json::json!({
             "scene": args.scene,
             "query": format!("{:?}", args.query),
@@ -761,15 +763,22 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 "level_px": level,
                 "method": method,
                 "summary": DiagnosisSummary::of(frames.iter().map(|(_, d)| d)),
-                "frames": frames.iter().map(|(name, d)| serde_json::json!({"name": name, "diagnosis": d})).collect::<Vec<_>>(),
+                "frames": frames.iter().map(|(name, d)| serde_json::json!({
+                    "name": name,
+                    "lost_at": carried_search(&search_diagnoses, &(*level, *method), name, d)
+                        .map(|s| s.loss(d.registered_within(false_accept_px), near_truth_px)),
+                    "diagnosis": d,
+                })).collect::<Vec<_>>(),
             })).collect::<Vec<_>>(),
         });
-        write_diagnosis(
-            &args.out,
-            "diagnosis",
-            &diagnosis_markdown(&diagnoses),
-            &json,
-        )?;
+        let mut text = diagnosis_markdown(&diagnoses);
+        text.push_str(&search_loss_markdown(
+            &diagnoses,
+            &search_diagnoses,
+            near_truth_px,
+            false_accept_px,
+        ));
+        write_diagnosis(&args.out, "diagnosis", &text, &json)?;
     }
     if !search_diagnoses.is_empty() {
         let json = serde_json::json!({
@@ -1320,6 +1329,123 @@ angle to it, its rank among the distinct candidates the search screens (best gri
         "\nFirst centre within 5 px of the truth: {first_centre_within_5px} of {frames} frames."
     );
     out
+}
+
+/// The table of where each frame was lost (`FrameDiagnosis::search_loss`): per cell the count
+/// of each class with its frames, then one line per frame that was not registered, with the
+/// nearest pose to the truth at each step of the search.
+pub(super) fn search_loss_markdown<K: std::fmt::Display + Ord + Clone>(
+    diagnoses: &BTreeMap<(K, &'static str), Vec<(String, FrameDiagnosis)>>,
+    searches: &SearchDiagnosesBy<K>,
+    near_truth_px: f64,
+    false_accept_px: f64,
+) -> String {
+    let loss = |key: &(K, &'static str), name: &str, d: &FrameDiagnosis| {
+        carried_search(searches, key, name, d).map(|s| {
+            (
+                s.loss(d.registered_within(false_accept_px), near_truth_px),
+                s,
+            )
+        })
+    };
+    let px = |value: Option<f64>| value.map_or("–".to_string(), |v| format!("{v:.2}"));
+    let nearest =
+        |deltas: &mut dyn Iterator<Item = Option<f64>>| px(deltas.flatten().min_by(f64::total_cmp));
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "\n## Where the frame was lost\n\nEach frame not accepted within {false_accept_px:.2} px of the truth, by the \
+first step of the pose search after which no pose within {near_truth_px:.0} px of the truth (the final refinement's \
+first search radius) was left: (a) grid: no start of the screening ended near it; (a′) screening: one did, but \
+better-supported starts took the beams; (b) beam refinement: a beam (or the prior) started near it and its \
+refinement ended away; (c) search decision: a refined beam lay near it, no centre did; (d) after the search: a \
+centre lay near it, and flow, pose, verification or the final refinement lost it.\n"
+    );
+    let _ = writeln!(
+        out,
+        "| level | method | frames | {} |",
+        SearchLoss::ALL.map(|l| l.label()).join(" | ")
+    );
+    let _ = writeln!(out, "|---|---|---|{}", "---|".repeat(SearchLoss::ALL.len()));
+    for (key, frames) in diagnoses {
+        let (level, method) = key;
+        let cells: Vec<String> = SearchLoss::ALL
+            .iter()
+            .map(|class| {
+                let names: Vec<&str> = frames
+                    .iter()
+                    .filter(|(name, d)| loss(key, name, d).map(|(l, _)| l) == Some(*class))
+                    .map(|(name, _)| name.trim_end_matches(".jpg"))
+                    .collect();
+                if names.is_empty() || *class == SearchLoss::Registered {
+                    names.len().to_string()
+                } else {
+                    format!("{} ({})", names.len(), names.join(", "))
+                }
+            })
+            .collect();
+        let _ = writeln!(
+            out,
+            "| {level} | {method} | {} | {} |",
+            frames.len(),
+            cells.join(" | ")
+        );
+    }
+    let _ = writeln!(
+        out,
+        "\n| level | method | frame | lost at | verdict | output δ | nearest screened δ | nearest beam start δ | nearest beam δ | nearest centre δ | rotation reach δ | from the true centre δ |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
+    for (key, frames) in diagnoses {
+        let (level, method) = key;
+        for (name, diagnosis) in frames {
+            let Some((loss, search)) = loss(key, name, diagnosis) else {
+                continue;
+            };
+            if loss == SearchLoss::Registered {
+                continue;
+            }
+            let carried = diagnosis.carried();
+            let _ = writeln!(
+                out,
+                "| {level} | {method} | {name} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                loss.label(),
+                if diagnosis.frame_verdict().accepted() {
+                    "accepted"
+                } else {
+                    "rejected"
+                },
+                px(carried.chosen_delta_px),
+                nearest(&mut search.screened.iter().map(|s| s.delta_px)),
+                nearest(&mut search.beams.iter().map(|b| b.start_delta_px)),
+                nearest(&mut search.beams.iter().map(|b| b.delta_px)),
+                nearest(&mut search.centres_delta_px.iter().copied()),
+                px(search.rotation_reach_delta_px),
+                px(search.true_centre_search_delta_px),
+            );
+        }
+    }
+    out
+}
+
+/// The search diagnosis of the registration a frame's result carries (the retry's, "<name>
+/// (sweep)", when the heading fallback's is carried), from `searches`, where
+/// [`take_search_diagnoses`] put it.
+fn carried_search<'a, K: Ord + Clone>(
+    searches: &'a SearchDiagnosesBy<K>,
+    key: &(K, &'static str),
+    name: &str,
+    diagnosis: &FrameDiagnosis,
+) -> Option<&'a SearchDiagnosis> {
+    let wanted = if std::ptr::eq(diagnosis.carried(), diagnosis) {
+        name.to_string()
+    } else {
+        format!("{name} (sweep)")
+    };
+    searches
+        .get(key)?
+        .iter()
+        .find(|(n, _, _)| *n == wanted)
+        .map(|(_, _, s)| s)
 }
 
 /// Registers the frame `initial` of a scene folder (photo in `images/`, depth in `depth/` when

@@ -374,6 +374,11 @@ pub struct CoarseArgs {
     /// refined directly).
     #[arg(long, default_value_t = PoseSearchConfig::default().screened_candidates)]
     pub screened_candidates: usize,
+    /// Pose search: the grid's best candidates distinct by the screening's own capture (its first
+    /// search radius as an angle) also screened, beside the `--screened-candidates` distinct by
+    /// the beam separation (0: none).
+    #[arg(long, default_value_t = PoseSearchConfig::default().capture_candidates)]
+    pub capture_candidates: usize,
     /// Pose search: camera-centre offsets tried around the grid's best candidates, metres either
     /// side along each camera axis (0: the rotation grid alone).
     #[arg(long, default_value_t = PoseSearchConfig::default().position_half_range_m)]
@@ -511,6 +516,7 @@ impl Default for CoarseArgs {
             edge_rounding_kinds: EdgeKindsArg::All,
             no_pose_search: false,
             screened_candidates: PoseSearchConfig::default().screened_candidates,
+            capture_candidates: PoseSearchConfig::default().capture_candidates,
             search_position_m: PoseSearchConfig::default().position_half_range_m,
             search_position_steps: PoseSearchConfig::default().position_max_steps,
             positioned_candidates: PoseSearchConfig::default().positioned_candidates,
@@ -735,6 +741,7 @@ pub fn registration_config(
         pose_search: PoseSearchConfig {
             enabled: !coarse.no_pose_search,
             screened_candidates: coarse.screened_candidates,
+            capture_candidates: coarse.capture_candidates,
             position_half_range_m: coarse.search_position_m,
             position_max_steps: coarse.search_position_steps,
             positioned_candidates: coarse.positioned_candidates,

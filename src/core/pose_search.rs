@@ -109,6 +109,25 @@ pub struct PoseSearchConfig {
     /// 21/24 vs 17/24, house 30 px 12/24 vs 10/24, 0 false accepts everywhere (docs/measurements.md,
     /// branch `reach3`). Screening alone lost house frames to wrong beams that beat a weak prior.
     pub screened_candidates: usize,
+    /// Grid candidates (best grid score first) distinct by the screening's own capture, screened
+    /// beside the `screened_candidates` distinct by `beam_separation_deg`: two candidates are one
+    /// start for the screening only when its alignment from one reaches the other, i.e. when they
+    /// differ by less than its first search radius (`refine_initial_radius_px`) turned into an
+    /// angle by the focal length ([`screening_capture_deg`]: 2.5° at f = 360 px), not by the
+    /// beams' 6°; the screened starts then give their beams distinct by `beam_separation_deg`
+    /// (several starts that the screening took into one basin are one beam). Why: a
+    /// better-scoring candidate up to 6° away speaks for the truth's candidate and screens
+    /// elsewhere (the heading level's house s1 and s5 view_018: the grid candidate nearest the
+    /// true rotation screens to 0.8 / 2.8 px with the best support of the frame but was never
+    /// screened). Measured at 24 (`--capture-candidates 24`; docs/measurements.md, branch
+    /// `reach25`): on house s1/s5 heading the frames whose screening left nothing within 16 px of
+    /// the truth fall from 12 to 10 (2 to 4 screened near it but lost the beams), correct
+    /// accepts 45 → 46 over four cells and house s5's
+    /// false accept (view_009) rejected, but 4 accepts lost against 5 gained (block s2 heading
+    /// view_018 1.17 px → a wrong beam, 375 px, rejected): the frames it gains fail later
+    /// (verification's gates), so registration churns rather than gains. Not the default (0:
+    /// the basins' best alone).
+    pub capture_candidates: usize,
     /// Beams kept after the screening, best screened edge support first, each then refined with
     /// re-rendering (besides the prior, which is always one).
     pub beams: usize,
@@ -176,6 +195,7 @@ impl Default for PoseSearchConfig {
             bin_blur_px: 1.5,
             sample_spacing_px: 6,
             screened_candidates: 24,
+            capture_candidates: 0,
             beams: 4,
             beam_separation_deg: 6.0,
             refine_initial_radius_px: 16.0,
@@ -356,6 +376,17 @@ impl PoseSearchConfig {
         let steps = (half_range_deg / step_deg).floor() as i64;
         (-steps..=steps).map(|s| s as f64 * step_deg).collect()
     }
+}
+
+/// The rotation the screening's alignment reaches from a start, degrees: its first search radius
+/// (`refine_initial_radius_px`) turned into an angle by the camera's focal length (the image
+/// motion of a turn about the camera centre, `f·θ` px at the principal point).
+pub fn screening_capture_deg(camera: &Camera, config: &PoseSearchConfig) -> f64 {
+    let k = &camera.intrinsics;
+    let focal_px = k.fx_px.max(k.fy_px).max(1.0);
+    (config.refine_initial_radius_px / focal_px)
+        .atan()
+        .to_degrees()
 }
 
 /// The most offsets either side per axis of the position search (`position_max_steps`).
@@ -899,6 +930,19 @@ mod tests {
             ..config
         };
         assert!(bad.validate().is_err());
+    }
+
+    /// The screening's capture is its first search radius seen from the camera centre: 16 px at
+    /// f = 360 px is 2.5°; a longer focal length narrows it.
+    #[test]
+    fn the_screening_capture_is_its_first_radius_as_an_angle() {
+        use crate::core::camera::PinholeIntrinsics;
+        let camera = Camera::pinhole(505, 275, PinholeIntrinsics::centered(360.0, 505, 275));
+        let config = PoseSearchConfig::default();
+        let capture_deg = screening_capture_deg(&camera, &config);
+        assert!((capture_deg - 2.545).abs() < 0.01, "{capture_deg}");
+        let long = Camera::pinhole(505, 275, PinholeIntrinsics::centered(720.0, 505, 275));
+        assert!(screening_capture_deg(&long, &config) < 0.51 * capture_deg);
     }
 
     #[test]

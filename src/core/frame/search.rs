@@ -27,9 +27,9 @@ use crate::core::edge_align::{
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
 use crate::core::pose_search::{
-    first_distinct, position_candidate, score_rotation, score_rotations, search_samples,
-    select_beams, turned_pose, wrap_deg, Candidate, OrientedEdgeMap, PoseSearchConfig,
-    SearchSample,
+    first_distinct, position_candidate, score_rotation, score_rotations, screening_capture_deg,
+    search_samples, select_beams, turned_pose, wrap_deg, Candidate, OrientedEdgeMap,
+    PoseSearchConfig, SearchSample,
 };
 use crate::core::raster::Rasterizer;
 use crate::core::rigid::Rigid3;
@@ -99,50 +99,9 @@ pub fn search_pose(
     let started = Instant::now();
     let started_cpu_ms = process_cpu_ms();
     let map = OrientedEdgeMap::build(query, search);
-    let SearchGrid { candidates, groups } =
-        score_grid(mesh, camera, prior, &map, config, rasterizer, view);
-    let grid_beams: Vec<(Candidate, Rigid3, f64)> = if search.screened_candidates == 0 {
-        select_beams(&candidates, search.beams, search.beam_separation_deg)
-            .into_iter()
-            .map(|c| (c, c.cam_from_world, f64::NAN))
-            .collect()
-    } else {
-        // The grid's best, and the best of them moved by the position search (both: a moved
-        // candidate is another start for the screening, not a replacement).
-        let mut starts = select_beams(
-            &candidates,
-            search.screened_candidates,
-            search.beam_separation_deg,
-        );
-        let positioned = search.position_half_range_m > 0.0;
-        if positioned {
-            let moved = position_candidates(
-                &select_beams(
-                    &candidates,
-                    search.positioned_candidates,
-                    search.beam_separation_deg,
-                ),
-                &groups,
-                &map,
-                camera,
-                search,
-            );
-            starts.extend(select_beams(
-                &moved,
-                search.screened_candidates,
-                search.beam_separation_deg,
-            ));
-        }
-        let screened = screen_candidates(&starts, &groups, camera, query, config);
-        // The best screened. With the position search, each distinct from the better ones: a
-        // moved start and its unmoved candidate that the screening took into one basin are one
-        // beam (measured in that setting only, docs/measurements.md, twenty-second session).
-        if positioned {
-            first_distinct(screened, search.beams, search.beam_separation_deg, |s| &s.1)
-        } else {
-            screened.into_iter().take(search.beams).collect()
-        }
-    };
+    let ScreenedGrid { screened, .. } =
+        screen_grid(mesh, camera, prior, query, &map, config, rasterizer, view);
+    let grid_beams = beams_of(screened, search);
 
     // Each beam, and the prior, refined by edge alignment from a wide first search.
     let refine_config = RegistrationConfig {
@@ -303,6 +262,98 @@ pub fn search_pose(
         search_ms: started.elapsed().as_secs_f64() * 1e3,
         search_cpu_ms: process_cpu_ms() - started_cpu_ms,
     })
+}
+
+/// The grid of a search and what its screening made of it.
+pub(crate) struct ScreenedGrid {
+    pub grid: SearchGrid,
+    /// Every start the search screened (the grid's best distinct candidates and, with the
+    /// position search, the best of them moved), each with the pose its screening alignment
+    /// ended at and its edge support there, best support first; without the screening
+    /// (`screened_candidates` 0) the grid's best `beams` as they are, support NaN. The beams are
+    /// the first of them ([`beams_of`]); the diagnosis measures all of them against the truth.
+    pub screened: Vec<(Candidate, Rigid3, f64)>,
+}
+
+/// The grid of `config.pose_search` around `prior` scored on the query's edge map `map`, and its
+/// best candidates screened (step "search" up to its beams).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn screen_grid(
+    mesh: &Mesh,
+    camera: &Camera,
+    prior: &Rigid3,
+    query: ImageView<'_, f32>,
+    map: &OrientedEdgeMap,
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+    view: &mut CoarseView,
+) -> ScreenedGrid {
+    let search = &config.pose_search;
+    let grid = score_grid(mesh, camera, prior, map, config, rasterizer, view);
+    let screened = if search.screened_candidates == 0 {
+        select_beams(&grid.candidates, search.beams, search.beam_separation_deg)
+            .into_iter()
+            .map(|c| (c, c.cam_from_world, f64::NAN))
+            .collect()
+    } else {
+        // The grid's best, and the best of them moved by the position search (both: a moved
+        // candidate is another start for the screening, not a replacement).
+        let mut starts = select_beams(
+            &grid.candidates,
+            search.screened_candidates,
+            search.beam_separation_deg,
+        );
+        // Within the basins, the candidates the screening from their best could not reach.
+        if search.capture_candidates > 0 {
+            for candidate in select_beams(
+                &grid.candidates,
+                search.capture_candidates,
+                screening_capture_deg(camera, search),
+            ) {
+                if !starts.contains(&candidate) {
+                    starts.push(candidate);
+                }
+            }
+        }
+        if search.position_half_range_m > 0.0 {
+            let moved = position_candidates(
+                &select_beams(
+                    &grid.candidates,
+                    search.positioned_candidates,
+                    search.beam_separation_deg,
+                ),
+                &grid.groups,
+                map,
+                camera,
+                search,
+            );
+            starts.extend(select_beams(
+                &moved,
+                search.screened_candidates,
+                search.beam_separation_deg,
+            ));
+        }
+        screen_candidates(&starts, &grid.groups, camera, query, config)
+    };
+    ScreenedGrid { grid, screened }
+}
+
+/// The beams among the screened starts of [`screen_grid`] (its order): the best screened. With
+/// the position search or the capture's candidates, each distinct from the better ones: several
+/// starts that the screening took into one basin are one beam (a moved start and its unmoved
+/// candidate, docs/measurements.md, twenty-second session; neighbours within a basin, branch
+/// `reach25`).
+pub(crate) fn beams_of(
+    screened: Vec<(Candidate, Rigid3, f64)>,
+    search: &PoseSearchConfig,
+) -> Vec<(Candidate, Rigid3, f64)> {
+    if search.screened_candidates != 0
+        && (search.position_half_range_m > 0.0 || search.capture_candidates > 0)
+    {
+        first_distinct(screened, search.beams, search.beam_separation_deg, |s| &s.1)
+    } else {
+        screened.into_iter().take(search.beams).collect()
+    }
 }
 
 /// One rendering of the grid: its heading relative to the prior's, its pose, and the model's
