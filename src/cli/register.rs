@@ -273,6 +273,14 @@ pub struct CoarseArgs {
     /// Coarse poses per frame.
     #[arg(long, default_value_t = RegistrationConfig::default().coarse_pose_count)]
     pub coarse_poses: usize,
+    /// Coarse poses about the second centre of a frame whose pose search gives it two (at most
+    /// --coarse-poses; default: --coarse-poses).
+    #[arg(long)]
+    pub other_centre_coarse_poses: Option<usize>,
+    /// SIFT flow: belief-propagation iterations at the coarsest level (default: the
+    /// registration's flow schedule, `SiftFlowConfig::fast`).
+    #[arg(long, default_value_t = RegistrationConfig::default().matching.sift_flow.top_iterations)]
+    pub flow_top_iterations: usize,
     /// Rotation noise of the coarse poses, degrees (σ per axis).
     #[arg(long, default_value_t = RegistrationConfig::default().coarse_rotation_sigma_deg)]
     pub coarse_rotation_deg: f64,
@@ -491,6 +499,8 @@ impl Default for CoarseArgs {
         let defaults = RegistrationConfig::default();
         Self {
             coarse_poses: defaults.coarse_pose_count,
+            other_centre_coarse_poses: defaults.other_centre_coarse_pose_count,
+            flow_top_iterations: defaults.matching.sift_flow.top_iterations,
             coarse_rotation_deg: defaults.coarse_rotation_sigma_deg,
             coarse_translation_fraction: defaults.coarse_translation_sigma_fraction,
             max_convergence_ratio: defaults.verify.max_convergence_ratio,
@@ -691,6 +701,7 @@ pub fn registration_config(
         query_mode,
         unknown_intrinsics: intrinsics.unknown_intrinsics(),
         coarse_pose_count: coarse.coarse_poses,
+        other_centre_coarse_pose_count: coarse.other_centre_coarse_poses,
         coarse_rotation_sigma_deg: coarse.coarse_rotation_deg,
         coarse_translation_sigma_fraction: coarse.coarse_translation_fraction,
         lift_edge_margin_px: coarse.lift_edge_margin_px,
@@ -698,6 +709,10 @@ pub fn registration_config(
             min_rendering_edge: coarse
                 .flow_near_model_edges
                 .then_some(EdgeAlignConfig::default().min_model_ridge),
+            sift_flow: asgreg::core::sift_flow::SiftFlowConfig {
+                top_iterations: coarse.flow_top_iterations,
+                ..defaults.matching.sift_flow.clone()
+            },
             ..defaults.matching.clone()
         },
         verify: VerifyConfig {

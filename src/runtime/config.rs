@@ -167,7 +167,8 @@ pub struct Workers {
     /// (`runtime::nodes::pose_worker_of`), so every coarse pose is solved by exactly one.
     pub pose: u32,
     /// Threads of the verify stage that decide complete frames (plausibility check, final
-    /// refinement); 1: decided in verify's loop. Results stay one per frame.
+    /// refinement), beside verify's loop, which keeps reading its inbox meanwhile. Results stay
+    /// one per frame.
     pub verify_threads: u32,
     /// Change detection workers (accepted frames' change maps, dispatched like flow), plus one
     /// fusion stage when > 0 (the default: 1). 0: no change detection.

@@ -1190,10 +1190,11 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         Duration::from_secs_f64(config.timeouts.frame_timeout_s),
     )
     .with_simulated_work(config.simulate);
-    let threads = config.workers.verify_threads;
-    if threads > 1 {
-        stage = stage.with_deferred_decisions();
-    }
+    // Complete frames are decided on `verify_threads` threads beside this loop, one too: a
+    // decision takes ~1 s, and a loop that decided in its own receive stopped reading its inbox
+    // for that long, so the pose workers (then the flow workers) waited in their sends to it.
+    let threads = config.workers.verify_threads.max(1);
+    stage = stage.with_deferred_decisions();
     // With change detection: accepted frames' change jobs go to the change workers, the other
     // frames' change results (why there is none) and the end of the stream to fusion.
     let mut changes = if config.changes_enabled() {
@@ -1227,35 +1228,33 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     let mut acks = AckJournal::open(config, journal::Kind::PoseAcked, "verify");
     let mut published: std::collections::BTreeSet<u64> = journaled.keys().copied().collect();
     restore_unacked(&mut results_ack, &journaled, &acks, journal.path());
-    // With verify_threads > 1: complete frames are decided by a pool of threads (each with its
-    // own refinement workspace) and concluded here, one result per frame as before.
+    // Complete frames are decided by a pool of threads (each with its own refinement
+    // workspace) and concluded here, one result per frame as before.
     let (ready_tx, ready_rx) = std::sync::mpsc::channel::<ReadyFrame>();
     let ready_rx = std::sync::Mutex::new(ready_rx);
     let (decided_tx, decided_rx) = std::sync::mpsc::channel::<DecidedFrame>();
     std::thread::scope(|scope| {
         let ready_tx = ready_tx;
-        if threads > 1 {
-            for _ in 0..threads {
-                let ready_rx = &ready_rx;
-                let decided_tx = decided_tx.clone();
-                let registration = &config.registration;
-                scope.spawn(move || {
-                    let mut workspace = RefineWorkspace::default();
-                    loop {
-                        let next = match ready_rx.lock() {
-                            Ok(queue) => queue.recv(),
-                            Err(_) => return,
-                        };
-                        let Ok(ready) = next else { return };
-                        if decided_tx
-                            .send(ready.decide(mesh, registration, &mut workspace))
-                            .is_err()
-                        {
-                            return;
-                        }
+        for _ in 0..threads {
+            let ready_rx = &ready_rx;
+            let decided_tx = decided_tx.clone();
+            let registration = &config.registration;
+            scope.spawn(move || {
+                let mut workspace = RefineWorkspace::default();
+                loop {
+                    let next = match ready_rx.lock() {
+                        Ok(queue) => queue.recv(),
+                        Err(_) => return,
+                    };
+                    let Ok(ready) = next else { return };
+                    if decided_tx
+                        .send(ready.decide(mesh, registration, &mut workspace))
+                        .is_err()
+                    {
+                        return;
                     }
-                });
-            }
+                }
+            });
         }
         drop(decided_tx);
         while !ctx.stopped() {

@@ -13,7 +13,9 @@
 //! iceoryx2's defaults are wrong for this pipeline (docs/design.md §7); what is set instead and why:
 //! - **Lossless**: `enable_safe_overflow(false)` (the default overwrites the oldest queued
 //!   sample) and the publisher's `BackpressureStrategy::RetryUntilDelivered` (0.10's name for
-//!   "block"): a full subscriber queue (`TransportConfig::queue_depth`) blocks the publisher.
+//!   "block"): a full subscriber queue (`TransportConfig::queue_depth`) blocks the publisher;
+//!   after a few retries the blocked publisher sleeps between them instead of yielding the CPU
+//!   thousands of times ([`BLOCKED_SEND_YIELDS`]).
 //! - **Attach handshake**: iceoryx2 0.10 still drops samples silently when a subscriber's queue is
 //!   full *before the subscriber has attached* to the publisher's connection
 //!   (`NoConnectedReceiverAndBufferIsFull`, upstream issue #305). A subscriber attaches when it is
@@ -113,6 +115,15 @@ const CLEANUP_WAIT: Duration = Duration::from_millis(100);
 /// How old a node directory without a monitor token must be before it counts as left by a
 /// process killed while creating the node (creation writes the token right after the details).
 const UNBORN_MIN_AGE: Duration = Duration::from_secs(5);
+/// A send blocked on a full queue: iceoryx2's own wait between retries yields the CPU 10 000
+/// times before it sleeps (`iceoryx2_bb_posix::config::ADAPTIVE_WAIT_YIELD_REPETITIONS`), and a
+/// pipeline stage's queue stays full for a whole job of its reader (tens to thousands of ms), so
+/// every blocked send spent several ms of CPU yielding, on cores the stages share. After this
+/// many retries the handler sleeps [`BLOCKED_SEND_SLEEP`] before each further retry.
+const BLOCKED_SEND_YIELDS: u64 = 64;
+/// How long a blocked send sleeps between retries once past [`BLOCKED_SEND_YIELDS`]: a slot
+/// freed in the queue is taken at most this late (a flow job is ~50–150 ms).
+const BLOCKED_SEND_SLEEP: Duration = Duration::from_micros(200);
 
 /// The user header of every message: its length in bytes (the `[u64]` payload is padded).
 #[derive(Debug, Default, Clone, Copy, ZeroCopySend)]
@@ -432,6 +443,9 @@ impl Transport for Iceoryx2Transport {
                     if due > checks_done.load(Ordering::Relaxed) {
                         checks_done.store(due, Ordering::Relaxed);
                         release_dead_peers(&iceoryx, info.elapsed_time);
+                    }
+                    if info.retries >= BLOCKED_SEND_YIELDS {
+                        std::thread::sleep(BLOCKED_SEND_SLEEP);
                     }
                 }
                 BackpressureAction::Retry

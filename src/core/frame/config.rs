@@ -78,6 +78,18 @@ pub struct RegistrationConfig {
     /// convergence test rejects them all; at 3° / 6 % the ideal query only reaches 4.1 px (far
     /// coarse views flow less accurately) while photo frames start to pass the test.
     pub coarse_pose_count: usize,
+    /// Coarse poses about the second centre of a frame whose pose search gives it two (the prior
+    /// kept beside the beam that replaced it, `pose_search.keep_prior_centre`, or a rival beam);
+    /// `None`: `coarse_pose_count`, as about the first. Its first `n` are the first `n` of the
+    /// `coarse_pose_count` it would have (the same draws). At most `coarse_pose_count`: the
+    /// verdict splits a frame's outcomes into groups of `coarse_pose_count`
+    /// ([`super::decide::decide_frame`]), which finds the two centres' groups only when the
+    /// second is not larger; for the same reason a frame with three centres keeps
+    /// `coarse_pose_count` about each. Measured (docs/measurements.md, branch `speed25`; `eval`,
+    /// 24 frames, known K, gradient query): 5 cuts a block frame's CPU by 15–20 % (26–30 → 19–21
+    /// views) and 10 by 4–12 %, but both lose block-2's 30 px view_021 (accepted at 5.4 px) and
+    /// move house-1's view_021 from 1.1 to 7.6 px: not the default.
+    pub other_centre_coarse_pose_count: Option<usize>,
     /// Standard deviation of the coarse poses' rotation noise, degrees (per axis).
     pub coarse_rotation_sigma_deg: f64,
     /// Standard deviation of the coarse poses' camera-centre noise, as a fraction of the median
@@ -128,6 +140,7 @@ impl Default for RegistrationConfig {
         };
         Self {
             coarse_pose_count: 15,
+            other_centre_coarse_pose_count: None,
             coarse_rotation_sigma_deg: 1.0,
             coarse_translation_sigma_fraction: 0.02,
             query_mode: QueryMode::ImageGradient,
@@ -192,11 +205,32 @@ impl RegistrationConfig {
         self.coarse_pose_count * centres
     }
 
+    /// How many coarse views each of a frame's `centres` centres gets, in the centres' order
+    /// (`coarse_pose_count` each, but the second of two `other_centre_coarse_pose_count`).
+    pub fn coarse_views_per_centre(&self, centres: usize) -> Vec<usize> {
+        let mut counts = vec![self.coarse_pose_count; centres];
+        if let (2, Some(other)) = (centres, self.other_centre_coarse_pose_count) {
+            counts[1] = other.min(self.coarse_pose_count);
+        }
+        counts
+    }
+
     pub fn validate(&self) -> Result<(), RegistrationError> {
         let bad =
             |field: &'static str, why: String| Err(RegistrationError::InvalidConfig { field, why });
         if self.coarse_pose_count == 0 {
             return bad("coarse_pose_count", "must be at least 1".into());
+        }
+        if let Some(other) = self.other_centre_coarse_pose_count {
+            if other == 0 || other > self.coarse_pose_count {
+                return bad(
+                    "other_centre_coarse_pose_count",
+                    format!(
+                        "{other} is outside 1..={} (coarse_pose_count)",
+                        self.coarse_pose_count
+                    ),
+                );
+            }
         }
         for (field, value) in [
             ("coarse_rotation_sigma_deg", self.coarse_rotation_sigma_deg),

@@ -22,7 +22,8 @@ use crate::core::shading::{asg_of_rendering, scale_to_percentile};
 /// What [`render_views`] made.
 #[derive(Clone, Debug)]
 pub struct RenderedViews {
-    /// The number of views (`config.coarse_pose_count` per centre of the search).
+    /// The number of views (`config.coarse_views_per_centre`: `coarse_pose_count` per centre of
+    /// the search, the second of two `other_centre_coarse_pose_count`).
     pub count: usize,
     /// What the pose search found (`None` when it is disabled).
     pub search: Option<PoseSearchOutcome>,
@@ -36,7 +37,8 @@ pub struct RenderedViews {
 /// number of views. `view` is rendered into again for the next one: `emit` reads it, or takes it
 /// (`std::mem::take`) to keep it, and the next view is then rendered into fresh buffers.
 /// The views come in groups of `config.coarse_pose_count`, one group per centre of the search
-/// (one centre unless the search was ambiguous, [`super::decide`] splits them the same way); a
+/// (one centre unless the search moved or was ambiguous, [`super::decide`] splits them the same
+/// way; the second of two centres has `other_centre_coarse_pose_count` when set); a
 /// group's first view is its centre itself (the initial pose unless the search moved it). Each
 /// centre's rendering gives the scene depth that scales its coarse poses and is its group's first
 /// view (each view is rendered once).
@@ -88,11 +90,22 @@ pub fn render_views(
     }
     let mut renderings = centres.len();
     let first_depth_m = median_depths_m[0];
+    let views_per_centre = config.coarse_views_per_centre(centres.len());
+    // Where each centre's group of views starts, in coarse order.
+    let group_starts: Vec<usize> = views_per_centre
+        .iter()
+        .scan(0, |start, count| {
+            let this = *start;
+            *start += count;
+            Some(this)
+        })
+        .collect();
     let poses: Vec<Rigid3> = centres
         .iter()
         .zip(&median_depths_m)
+        .zip(&views_per_centre)
         .enumerate()
-        .flat_map(|(index, (centre, depth_m))| {
+        .flat_map(|(index, ((centre, depth_m), &views))| {
             let depth_m = if depth_m.is_finite() {
                 *depth_m
             } else {
@@ -103,7 +116,9 @@ pub fn render_views(
             } else {
                 seed.wrapping_add(index as u64)
             };
-            coarse_poses(centre, depth_m, config, centre_seed)
+            let mut poses = coarse_poses(centre, depth_m, config, centre_seed);
+            poses.truncate(views);
+            poses
         })
         .collect();
     emit(view, poses.len());
@@ -111,7 +126,6 @@ pub fn render_views(
     // parallel inside too, but its bands alone leave the threads waiting on each other), and
     // handed to `emit` in coarse-pose order.
     // A group's first view is its centre (`coarse_poses` starts with it), rendered above.
-    let count = config.coarse_pose_count.max(1);
     let batch_len = rayon::current_num_threads().max(1);
     let mut batch: Vec<(Rasterizer, CoarseView)> = Vec::new();
     for first in (1..poses.len()).step_by(batch_len) {
@@ -120,9 +134,8 @@ pub fn render_views(
         let mut rendered: Vec<Option<CoarseView>> = indices
             .clone()
             .map(|coarse_index| {
-                (coarse_index % count == 0)
-                    .then(|| centre_views.get_mut(coarse_index / count)?.take())
-                    .flatten()
+                let centre = group_starts.binary_search(&coarse_index).ok()?;
+                centre_views.get_mut(centre)?.take()
             })
             .collect();
         renderings += rendered.iter().filter(|view| view.is_none()).count();
@@ -300,5 +313,57 @@ mod tests {
             Some(second_centre.cam_from_world),
             rendered.search.map(|s| s.centres[1])
         );
+    }
+
+    /// With `other_centre_coarse_pose_count`, the second of two centres gets that many views,
+    /// the first of those it has by default (the same poses, bit for bit), each rendered once;
+    /// the first centre's group is unchanged.
+    #[test]
+    fn the_second_centre_gets_its_own_count_of_the_same_poses() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let full = RegistrationConfig::default();
+        let fewer = RegistrationConfig {
+            other_centre_coarse_pose_count: Some(5),
+            ..full.clone()
+        };
+        fewer.validate().expect("5 of 15 is valid");
+        let query = ideal_query(&mesh, &camera, &truth, &full);
+        let prior = turned_pose(&truth, 30.0, 0.0, 0.0);
+        let views_of = |config: &RegistrationConfig| {
+            let mut poses: Vec<(usize, Rigid3)> = Vec::new();
+            let rendered = render_views(
+                &mesh,
+                &camera,
+                &prior,
+                query.view(),
+                config,
+                7,
+                &mut Rasterizer::new(),
+                &mut CoarseView::default(),
+                &mut |view, _| poses.push((view.coarse_index, view.cam_from_world)),
+            )
+            .expect("the house is in view");
+            (rendered, poses)
+        };
+        let (rendered_full, poses_full) = views_of(&full);
+        let (rendered, poses) = views_of(&fewer);
+        assert_eq!(rendered_full.count, 30);
+        assert_eq!(rendered.count, 15 + 5);
+        assert_eq!(rendered.renderings, rendered.count);
+        assert_eq!(poses.len(), rendered.count);
+        for (index, (coarse_index, _)) in poses.iter().enumerate() {
+            assert_eq!(*coarse_index, index);
+        }
+        assert_eq!(poses[..20], poses_full[..20]);
+        assert_eq!(
+            fewer.coarse_views_per_centre(3),
+            vec![15, 15, 15],
+            "three centres keep the full count (the verdict's groups)"
+        );
+        let too_many = RegistrationConfig {
+            other_centre_coarse_pose_count: Some(16),
+            ..full
+        };
+        assert!(too_many.validate().is_err());
     }
 }
