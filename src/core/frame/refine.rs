@@ -1210,26 +1210,22 @@ mod tests {
             let samples = edge_samples_at(&mesh, &camera, pose, config);
             edge_evidence(&samples, &query.view(), &camera, pose, &config.edge_align)
         };
-        let judged = refined(
-            &mesh,
-            &camera,
-            &query,
-            &start,
-            &config,
-            &mut RefineWorkspace::default(),
-        );
+        let refined_with = |config: &RegistrationConfig| {
+            refined(
+                &mesh,
+                &camera,
+                &query,
+                &start,
+                config,
+                &mut RefineWorkspace::default(),
+            )
+        };
+        let judged = refined_with(&config);
         println!("rounding {:.3} m", judged.rounding_m);
         assert!(judged.rounding_m > 0.0, "{}", judged.rounding_m);
         assert_ne!(judged.verified, evidence_at(&start, &config));
         config.edge_align.rounding_judge = RoundingJudge::AsRendered;
-        let unrounded = refined(
-            &mesh,
-            &camera,
-            &query,
-            &start,
-            &config,
-            &mut RefineWorkspace::default(),
-        );
+        let unrounded = refined_with(&config);
         assert!(unrounded.rounding_m > 0.0, "{}", unrounded.rounding_m);
         assert_eq!(unrounded.verified, evidence_at(&start, &config));
         assert_eq!(
@@ -1239,14 +1235,7 @@ mod tests {
         // Each pose judged under its own fitted radius: the grown house's edges lie outward of
         // the model's, so the fit at the truth is positive; on the model's own edges it is 0.
         config.edge_align.rounding_judge = RoundingJudge::EachOwn;
-        let own = refined(
-            &mesh,
-            &camera,
-            &query,
-            &start,
-            &config,
-            &mut RefineWorkspace::default(),
-        );
+        let own = refined_with(&config);
         let start_samples = edge_samples_at(&mesh, &camera, &start, &config);
         let start_fit_m = fit_rounding(
             &start_samples,
