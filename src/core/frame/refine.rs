@@ -35,7 +35,8 @@ pub struct PoseRefinement {
     pub aligned_cam_from_world: Rigid3,
     pub aligned_camera: Camera,
     /// The model's edge rounding radius estimated with the pose, m (0 unless
-    /// `edge_align.estimate_rounding`); both evidences are measured with it undone.
+    /// `edge_align.estimate_rounding`); both evidences are measured with it undone under the
+    /// default `edge_align.rounding_judge` (`Shared`; see [`RoundingJudge`] for the others).
     #[serde(default)]
     pub rounding_m: f64,
     /// Evidence of the verified pose.
