@@ -29,6 +29,9 @@ fn launch_with_router_kills(
     resend_after_s: f64,
 ) -> (bool, String, String, usize) {
     let scene = synth_scene(dir, 64, 48, frames);
+    // The source's rate sets how long results are in flight: kills come at least `every` apart,
+    // each right after a result, so the stream must outlast `kills × every` (40 frames at 3 Hz:
+    // about 13 s for 12 kills 0.8 s apart; at 10 Hz a fast pipeline finished after 5 kills).
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
@@ -39,7 +42,7 @@ fn launch_with_router_kills(
         &config,
         format!(
             "synthetic_scene = \"{}\"\nbackend = \"zenoh\"\nstate_dir = \"{}\"\n\n\
-             [source]\nrate_hz = 10.0\n\n\
+             [source]\nrate_hz = 3.0\n\n\
              [transport]\npipeline = \"it-ack-{}\"\n\n\
              [workers]\nflow = 2\nchange = 0\nverify_threads = 2\n\n\
              [zenoh]\nmode = \"client\"\nconnect = [\"tcp/127.0.0.1:{port}\"]\n\n\
