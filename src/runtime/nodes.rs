@@ -1186,7 +1186,6 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     let mut results_json = Outbox::open(ctx.transport, keys::RESULTS_JSON)?;
     let mut stage = VerifyStage::new(
         mesh,
-        config.registration.clone(),
         Duration::from_secs_f64(config.timeouts.frame_timeout_s),
     )
     .with_simulated_work(config.simulate);
@@ -1194,7 +1193,6 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     // decision takes ~1 s, and a loop that decided in its own receive stopped reading its inbox
     // for that long, so the pose workers (then the flow workers) waited in their sends to it.
     let threads = config.workers.verify_threads.max(1);
-    stage = stage.with_deferred_decisions();
     // With change detection: accepted frames' change jobs go to the change workers, the other
     // frames' change results (why there is none) and the end of the stream to fusion.
     let mut changes = if config.changes_enabled() {
@@ -1274,7 +1272,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                             capture_times
                                 .entry(frame_id)
                                 .or_insert(message.header.capture_time_ns);
-                            produced.extend(stage.on_hypothesis(frame_id, hypothesis));
+                            stage.on_hypothesis(frame_id, hypothesis);
                         }
                         Body::FrameFailed(failure) => {
                             capture_times
@@ -1286,7 +1284,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                             capture_times
                                 .entry(frame_id)
                                 .or_insert(message.header.capture_time_ns);
-                            produced.extend(stage.on_query(frame_id, &query));
+                            stage.on_query(frame_id, &query);
                         }
                         Body::StreamEnd(end) => {
                             stage.on_stream_end(end.frame_count, &end.finished_frames)

@@ -106,10 +106,8 @@ impl PendingFrame {
 
 pub struct VerifyStage<'m> {
     mesh: &'m Mesh,
-    config: RegistrationConfig,
     frame_timeout: Duration,
     pending: BTreeMap<u64, PendingFrame>,
-    refine_workspace: RefineWorkspace,
     /// Every frame id below this has its result.
     finished_below: u64,
     /// Frame ids at or above `finished_below` that have their result.
@@ -129,10 +127,8 @@ pub struct VerifyStage<'m> {
     stereo_waiting: BTreeSet<u64>,
     /// Change work of the frames decided so far, oldest first (the runtime takes it).
     pub change_work: Vec<ChangeWork>,
-    /// Whether complete frames wait in `ready` for the runtime to decide them on other threads
-    /// ([`VerifyStage::take_ready`], [`ReadyFrame::decide`], [`VerifyStage::conclude`]) instead
-    /// of being decided at once.
-    deferred: bool,
+    /// Complete frames waiting for the runtime to decide them on its threads
+    /// ([`VerifyStage::take_ready`], [`ReadyFrame::decide`], [`VerifyStage::conclude`]).
     ready: Vec<ReadyFrame>,
     /// Frames handed out to be decided and not concluded yet.
     deciding: BTreeSet<u64>,
@@ -202,13 +198,11 @@ impl ReadyFrame {
 }
 
 impl<'m> VerifyStage<'m> {
-    pub fn new(mesh: &'m Mesh, config: RegistrationConfig, frame_timeout: Duration) -> Self {
+    pub fn new(mesh: &'m Mesh, frame_timeout: Duration) -> Self {
         Self {
             mesh,
-            config,
             frame_timeout,
             pending: BTreeMap::new(),
-            refine_workspace: RefineWorkspace::default(),
             finished_below: 0,
             finished_above: BTreeSet::new(),
             stream_frame_count: None,
@@ -219,19 +213,10 @@ impl<'m> VerifyStage<'m> {
             registered_views: BTreeMap::new(),
             stereo_waiting: BTreeSet::new(),
             change_work: Vec::new(),
-            deferred: false,
             ready: Vec::new(),
             deciding: BTreeSet::new(),
             simulated: None,
         }
-    }
-
-    /// Complete frames are not decided at once but wait for [`VerifyStage::take_ready`] (the
-    /// runtime decides them on several threads and concludes each with
-    /// [`VerifyStage::conclude`]); a frame still counts as pending until concluded.
-    pub fn with_deferred_decisions(mut self) -> Self {
-        self.deferred = true;
-        self
     }
 
     /// Sleeps the given time per frame's decision (simulated pipeline).
@@ -240,8 +225,8 @@ impl<'m> VerifyStage<'m> {
         self
     }
 
-    /// The complete frames waiting to be decided (deferred decisions); each must come back to
-    /// [`VerifyStage::conclude`].
+    /// The complete frames waiting to be decided; each must come back to
+    /// [`VerifyStage::conclude`] (a frame counts as pending until then).
     pub fn take_ready(&mut self) -> Vec<ReadyFrame> {
         let ready = std::mem::take(&mut self.ready);
         self.deciding.extend(ready.iter().map(|r| r.frame_id));
@@ -492,11 +477,12 @@ impl<'m> VerifyStage<'m> {
         self.pending.len() + self.ready.len() + self.deciding.len()
     }
 
-    /// One coarse pose's hypothesis; returns the frame's result when it was the last thing missing.
-    pub fn on_hypothesis(&mut self, frame_id: u64, hypothesis: Hypothesis) -> Option<PoseResult> {
+    /// One coarse pose's hypothesis; the frame waits in [`VerifyStage::take_ready`] when it was
+    /// the last thing missing.
+    pub fn on_hypothesis(&mut self, frame_id: u64, hypothesis: Hypothesis) {
         if self.is_taken(frame_id) {
             self.late_messages += 1;
-            return None;
+            return;
         }
         let coarse_index = hypothesis.outcome.coarse_index as u32;
         let pending = self
@@ -514,11 +500,12 @@ impl<'m> VerifyStage<'m> {
         self.decide_if_complete(frame_id)
     }
 
-    /// The frame's query; returns the frame's result when it was the last thing missing.
-    pub fn on_query(&mut self, frame_id: u64, query: &FrameQuery) -> Option<PoseResult> {
+    /// The frame's query; the frame waits in [`VerifyStage::take_ready`] when it was the last
+    /// thing missing.
+    pub fn on_query(&mut self, frame_id: u64, query: &FrameQuery) {
         if self.is_taken(frame_id) {
             self.late_messages += 1;
-            return None;
+            return;
         }
         let image = match query.query_image() {
             Ok(image) => image.to_image(),
@@ -527,7 +514,7 @@ impl<'m> VerifyStage<'m> {
                     "frame {frame_id} '{}': query image unusable ({error}); the frame is decided without the final refinement",
                     query.info.name
                 );
-                return None;
+                return;
             }
         };
         let pending = self
@@ -556,13 +543,14 @@ impl<'m> VerifyStage<'m> {
         self.decide_if_complete(frame_id)
     }
 
-    fn decide_if_complete(&mut self, frame_id: u64) -> Option<PoseResult> {
-        let pending = self.pending.get(&frame_id)?;
-        if !(pending.has_every_hypothesis() && pending.query.is_some()) {
-            return None;
+    fn decide_if_complete(&mut self, frame_id: u64) {
+        let complete = self
+            .pending
+            .get(&frame_id)
+            .is_some_and(|pending| pending.has_every_hypothesis() && pending.query.is_some());
+        if let Some(pending) = complete.then(|| self.pending.remove(&frame_id)).flatten() {
+            self.queue_ready(frame_id, pending);
         }
-        let pending = self.pending.remove(&frame_id)?;
-        self.decide(frame_id, pending)
     }
 
     /// A stage gave up on the frame: its result is that failure (unless it already has one).
@@ -607,7 +595,7 @@ impl<'m> VerifyStage<'m> {
             };
             if frame.has_every_hypothesis() {
                 // Only the query is missing: decided without the final refinement.
-                results.extend(self.decide(frame_id, frame));
+                self.queue_ready(frame_id, frame);
                 continue;
             }
             let coarse_count = frame.coarse_count.unwrap_or(0);
@@ -689,19 +677,13 @@ impl<'m> VerifyStage<'m> {
         })
     }
 
-    /// A complete frame: decided now, or (deferred decisions) queued for `take_ready`.
-    fn decide(&mut self, frame_id: u64, frame: PendingFrame) -> Option<PoseResult> {
-        let ready = ReadyFrame {
+    /// A complete frame, queued for [`VerifyStage::take_ready`].
+    fn queue_ready(&mut self, frame_id: u64, frame: PendingFrame) {
+        self.ready.push(ReadyFrame {
             frame_id,
             frame,
             simulated: self.simulated,
-        };
-        if self.deferred {
-            self.ready.push(ready);
-            return None;
-        }
-        let decided = ready.decide(self.mesh, &self.config, &mut self.refine_workspace);
-        Some(self.conclude(decided))
+        });
     }
 
     /// A decided frame's one result (and its change work); the frame is finished.
