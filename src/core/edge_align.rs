@@ -1186,12 +1186,8 @@ pub fn align_level(
             break;
         }
         let mut magnitudes: Vec<f64> = matches.iter().map(|m| m.offset_px.abs()).collect();
-        let middle = magnitudes.len() / 2;
-        let (_, median, _) = magnitudes.select_nth_unstable_by(middle, f64::total_cmp);
-        // Floor: the search quantises to sub-pixel, no finer than ~0.2 px.
-        let scale_px = (1.4826 * *median).max(0.2);
-        summary.scale_px = scale_px;
-        let tukey_c = 4.685 * scale_px;
+        let tukey = Tukey::of_offsets(&mut magnitudes);
+        summary.scale_px = tukey.scale_px;
         let k = camera.intrinsics;
         let mut normal_matrix = Matrix8::zeros();
         let mut gradient = Vector8::zeros();
@@ -1204,11 +1200,10 @@ pub fn align_level(
             distinct_weight,
         } in &matches
         {
-            let ratio = offset / tukey_c;
-            if ratio.abs() >= 1.0 {
+            let Some(weight) = tukey.weight(*offset) else {
                 continue;
-            }
-            let weight = (1.0 - ratio * ratio).powi(2) * distinct_weight;
+            };
+            let weight = weight * distinct_weight;
             let (row_u, row_v) = pose_jacobian_rows(&k, point_cam);
             let mut g = Vector8::zeros();
             g.fixed_rows_mut::<6>(0)
@@ -1250,6 +1245,31 @@ pub fn align_level(
     }
     summary.rounding_m = *rounding_m;
     (camera, pose, summary)
+}
+
+/// The robust weights of the alignment's Gauss–Newton steps: Tukey's biweight at 4.685 robust
+/// standard deviations of the offsets (1.4826 × their median magnitude).
+struct Tukey {
+    scale_px: f64,
+    c_px: f64,
+}
+
+impl Tukey {
+    /// From the offsets' magnitudes (reordered).
+    fn of_offsets(magnitudes_px: &mut [f64]) -> Self {
+        // Floor: the search quantises to sub-pixel, no finer than ~0.2 px.
+        let scale_px = (1.4826 * median_of(magnitudes_px)).max(0.2);
+        Self {
+            scale_px,
+            c_px: 4.685 * scale_px,
+        }
+    }
+
+    /// The weight of an offset; `None` beyond the cut-off.
+    fn weight(&self, offset_px: f64) -> Option<f64> {
+        let ratio = offset_px / self.c_px;
+        (ratio.abs() < 1.0).then(|| (1.0 - ratio * ratio).powi(2))
+    }
 }
 
 /// The model's edge rounding radius (m, ≥ 0) that best explains the offsets of `samples` to the
@@ -1300,15 +1320,12 @@ pub fn fit_rounding(
             return 0.0;
         }
         let mut magnitudes: Vec<f64> = matches.iter().map(|(offset, _)| offset.abs()).collect();
-        let scale_px = (1.4826 * median_of(&mut magnitudes)).max(0.2);
-        let tukey_c = 4.685 * scale_px;
+        let tukey = Tukey::of_offsets(&mut magnitudes);
         let (mut information, mut gradient) = (1e-9, 0.0);
         for &(offset, per_m) in &matches {
-            let ratio = offset / tukey_c;
-            if ratio.abs() >= 1.0 {
+            let Some(weight) = tukey.weight(offset) else {
                 continue;
-            }
-            let weight = (1.0 - ratio * ratio).powi(2);
+            };
             information += weight * per_m * per_m;
             gradient += weight * per_m * offset;
         }
