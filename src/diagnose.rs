@@ -1033,11 +1033,8 @@ fn diagnose_region(
         |r| {
             support_by_kind(
                 mesh,
-                [
-                    (camera, truth),
-                    (&r.verified_camera, &r.verified_cam_from_world),
-                    (&r.aligned_camera, &r.aligned_cam_from_world),
-                ],
+                (camera, truth, &truth_samples),
+                r,
                 &query,
                 config,
                 &mut rasterizer,
@@ -1068,34 +1065,44 @@ fn diagnose_region(
     })
 }
 
-/// The support of each kind of model edge rendered at each of `poses` (see
-/// [`FrameDiagnosis::support_by_kind`]); `poses` are truth, verified, aligned.
+/// The support of each kind of model edge at the truth (its samples `truth_samples`, already
+/// lifted from the truth's rendering) and at the refinement's verified and aligned poses, each
+/// rendered here (see [`FrameDiagnosis::support_by_kind`]).
 fn support_by_kind(
     mesh: &Mesh,
-    poses: [(&Camera, &Rigid3); 3],
+    truth: (&Camera, &Rigid3, &[EdgeSample]),
+    refinement: &PoseRefinement,
     query: &ImageView<'_, f32>,
     config: &RegistrationConfig,
     rasterizer: &mut Rasterizer,
 ) -> Vec<KindSupport> {
     type Filter = fn(EdgeKind) -> bool;
-    let kinds: [(&str, Filter); 3] = [
+    const KINDS: [(&str, Filter); 3] = [
         ("all", |_| true),
         ("contour", |k| k == EdgeKind::Contour),
         ("crease", |k| k != EdgeKind::Contour),
     ];
-    let mut per_pose: Vec<Vec<(usize, f64)>> = Vec::new();
-    for (index, (camera, cam_from_world)) in poses.into_iter().enumerate() {
-        let mut view = CoarseView::default();
+    let shares = |samples: &[EdgeSample], camera: &Camera, cam_from_world: &Rigid3| {
+        KINDS.map(|(_, keep)| {
+            let chosen: Vec<EdgeSample> =
+                samples.iter().filter(|s| keep(s.kind)).copied().collect();
+            let evidence =
+                edge_evidence(&chosen, query, camera, cam_from_world, &config.edge_align);
+            (evidence.samples, evidence.support_fraction())
+        })
+    };
+    let mut view = CoarseView::default();
+    let mut samples = Vec::new();
+    let mut rendered_shares = |camera: &Camera, cam_from_world: &Rigid3| {
         render_coarse_view(
             mesh,
             camera,
-            1000 + index,
+            0,
             cam_from_world,
             config,
             rasterizer,
             &mut view,
         );
-        let mut samples = Vec::new();
         model_edge_samples(
             view.asg.view(),
             &view.render,
@@ -1104,27 +1111,26 @@ fn support_by_kind(
             &config.edge_align,
             &mut samples,
         );
-        per_pose.push(
-            kinds
-                .iter()
-                .map(|(_, keep)| {
-                    let chosen: Vec<EdgeSample> =
-                        samples.iter().filter(|s| keep(s.kind)).copied().collect();
-                    let evidence =
-                        edge_evidence(&chosen, query, camera, cam_from_world, &config.edge_align);
-                    (evidence.samples, evidence.support_fraction())
-                })
-                .collect(),
-        );
-    }
-    kinds
+        shares(&samples, camera, cam_from_world)
+    };
+    let (truth_camera, truth_pose, truth_samples) = truth;
+    let at_truth = shares(truth_samples, truth_camera, truth_pose);
+    let verified = rendered_shares(
+        &refinement.verified_camera,
+        &refinement.verified_cam_from_world,
+    );
+    let aligned = rendered_shares(
+        &refinement.aligned_camera,
+        &refinement.aligned_cam_from_world,
+    );
+    KINDS
         .iter()
         .enumerate()
         .map(|(k, (name, _))| KindSupport {
             kind: (*name).to_string(),
-            truth: per_pose[0][k],
-            verified: per_pose[1][k],
-            aligned: per_pose[2][k],
+            truth: at_truth[k],
+            verified: verified[k],
+            aligned: aligned[k],
         })
         .collect()
 }
