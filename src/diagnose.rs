@@ -23,16 +23,16 @@
 //! photo's ridges at the true pose by kind of edge, depth and orientation, and the floor's pose
 //! error split into its part along the view axis and the rest.
 
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Vector2, Vector3, Vector6};
 use serde::Serialize;
 
 use crate::core::camera::{nearest_pixel, Camera};
 use crate::core::confidence::FrameEvidence;
 use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
-    edge_evidence, model_edge_samples, pose_jacobian_rows, search_ridge,
-    supported_edge_observability, AlignedParameters, EdgeEvidence, EdgeKind, EdgeSample,
-    SupportPeak,
+    apply_pose_step, edge_evidence, image_motion_metric, model_edge_samples, pose_jacobian_rows,
+    search_ridge, supported_edge_observability, supported_seen_steps, AlignedParameters,
+    EdgeEvidence, EdgeKind, EdgeSample, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::search::{
@@ -108,6 +108,31 @@ pub struct ViewDiagnosis {
     /// δ(oracle pose, truth), px; None when fewer than the solver's minimum were within
     /// [`ORACLE_MAX_ERROR_PX`].
     pub oracle_delta_px: Option<f64>,
+    /// The refinement's short schedule run from this view's refined pose (its output, kept or
+    /// not): a start of the alignment the frame's own flow offers (`None` without a pose, a
+    /// short schedule, or when the start could not be evaluated).
+    pub short_from_hypothesis: Option<StartEnd>,
+}
+
+/// Where a run of the alignment from a start ended, against the truth.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct StartEnd {
+    /// δ(end, truth), px.
+    pub delta_px: Option<f64>,
+    /// Its edge support (the refinement's own evidence).
+    pub support: f64,
+    /// The dense correlation at the end.
+    pub correlation: Option<f64>,
+    /// The ends of the frame's views grouped: the index of the first end (in view order) within
+    /// the alignment's final search radius (δ) of this one, and how many ends that group has.
+    pub group: usize,
+    pub group_size: usize,
+    /// δ(end, the frame's output), px.
+    pub apart_from_output_px: Option<f64>,
+    #[serde(skip)]
+    pub camera: Camera,
+    #[serde(skip)]
+    pub cam_from_world: Rigid3,
 }
 
 /// One frame's error budget and its verdict (the registration's own).
@@ -168,7 +193,39 @@ pub struct FrameDiagnosis {
     /// refinement preferred: a model simpler than the world lacks details inside its outline,
     /// so its contours may be a less biased witness than its creases.
     pub support_by_kind: Vec<KindSupport>,
+    /// Where the truth lies from the frame's output pose in the directions the output's
+    /// supported edges see (least seen first), and what the output's own edge samples, moved
+    /// without re-rendering, say of the poses along the two least seen (`None` without an
+    /// output pose or when the model's metric cannot be factorised).
+    pub truth_along_seen: Option<TruthAlongSeen>,
 }
+
+/// The step from the output pose to the truth in the output's seen directions, and a grid of
+/// poses along its two least seen directions scored by the output's own edge samples (see
+/// [`FrameDiagnosis::truth_along_seen`]): whether a search confined to the directions the edges
+/// see least could reach the truth, and whether its cheap score ranks the truth above the output.
+#[derive(Clone, Debug, Serialize)]
+pub struct TruthAlongSeen {
+    /// The step's component along each seen direction (each scaled to move the visible model by
+    /// 1 px RMS), px of δ, least seen first; their root sum of squares approximates δ.
+    pub components_px: Vec<f64>,
+    /// Edge support at the output (its own samples).
+    pub support_at_output: f64,
+    /// Edge support of the output's samples moved to the truth (no re-rendering).
+    pub support_at_truth_moved: f64,
+    /// The grid's best pose: its offsets along the two least seen directions (px of δ), its
+    /// support (the output's samples moved), and its δ to the truth.
+    pub grid_best_offsets_px: (f64, f64),
+    pub grid_best_support: f64,
+    pub grid_best_delta_px: Option<f64>,
+    /// The grid point nearest the truth's own two components, its support and δ to the truth.
+    pub grid_nearest_truth_support: f64,
+    pub grid_nearest_truth_delta_px: Option<f64>,
+}
+
+/// Half-width and step of [`TruthAlongSeen`]'s grid, px of δ.
+const SEEN_GRID_REACH_PX: f64 = 30.0;
+const SEEN_GRID_STEP_PX: f64 = 2.0;
 
 /// The edge support of one kind of model edge at the truth and at the refinement's two poses
 /// (see [`FrameDiagnosis::support_by_kind`]).
@@ -782,6 +839,7 @@ fn diagnose_region(
                     .and_then(|h| delta(&h.camera, &h.cam_from_world)),
                 failure: outcome.hypothesis.as_ref().err().cloned(),
                 oracle_delta_px,
+                short_from_hypothesis: None,
             };
             Ok((diagnosis, outcome))
         };
@@ -796,6 +854,71 @@ fn diagnose_region(
     // no pose error is left to bridge, and where solving from there ends.
     let (at_truth, _) = diagnose_view(&truth_view)?;
     let mut refine_workspace = RefineWorkspace::default();
+    if let Some(short) = config.edge_align.short_schedule() {
+        let short_config = RegistrationConfig {
+            edge_align: short,
+            ..config.clone()
+        };
+        for (diagnosis, outcome) in diagnoses.iter_mut().zip(&outcomes) {
+            let Ok(start) = outcome.hypothesis.as_ref() else {
+                continue;
+            };
+            diagnosis.short_from_hypothesis = refine_pose(
+                mesh,
+                &start.camera,
+                query,
+                &start.cam_from_world,
+                AlignedParameters::Pose,
+                &short_config,
+                &mut refine_workspace,
+            )
+            .ok()
+            .map(|end| {
+                let (end_camera, end_pose) = end.output_pose();
+                StartEnd {
+                    delta_px: delta(&end_camera, &end_pose),
+                    support: end.output_support(),
+                    correlation: end.correlation.map(|peak| peak.at_pose),
+                    group: 0,
+                    group_size: 0,
+                    apart_from_output_px: None,
+                    camera: end_camera,
+                    cam_from_world: end_pose,
+                }
+            });
+        }
+        let ends: Vec<StartEnd> = diagnoses
+            .iter()
+            .filter_map(|d| d.short_from_hypothesis)
+            .collect();
+        let mut apart = ReprojectionWorkspace::new();
+        let groups: Vec<usize> = ends
+            .iter()
+            .map(|end| {
+                ends.iter()
+                    .position(|other| {
+                        mutual_reprojection_error_px(
+                            mesh,
+                            &other.camera,
+                            &other.cam_from_world,
+                            &end.camera,
+                            &end.cam_from_world,
+                            &mut apart,
+                        )
+                        .is_some_and(|px| px < config.edge_align.final_search_radius_px)
+                    })
+                    .unwrap_or(0)
+            })
+            .collect();
+        let mut ends_seen = 0;
+        for diagnosis in &mut diagnoses {
+            if let Some(end) = diagnosis.short_from_hypothesis.as_mut() {
+                end.group = groups[ends_seen];
+                end.group_size = groups.iter().filter(|&&g| g == end.group).count();
+                ends_seen += 1;
+            }
+        }
+    }
     let (
         Decision {
             verdict,
@@ -816,6 +939,22 @@ fn diagnose_region(
         true,
         &[],
     );
+    if let Some(output) = verdict.chosen() {
+        let mut apart = ReprojectionWorkspace::new();
+        for end in diagnoses
+            .iter_mut()
+            .filter_map(|d| d.short_from_hypothesis.as_mut())
+        {
+            end.apart_from_output_px = mutual_reprojection_error_px(
+                mesh,
+                &output.camera,
+                &output.cam_from_world,
+                &end.camera,
+                &end.cam_from_world,
+                &mut apart,
+            );
+        }
+    }
     let verdict_output = verdict.chosen();
     let mut apart_workspace = ReprojectionWorkspace::new();
     let centres: Vec<CentreDiagnosis> = centre_decisions
@@ -1041,6 +1180,16 @@ fn diagnose_region(
             )
         },
     );
+    let truth_along_seen = verdict.chosen().and_then(|output| {
+        truth_along_seen(
+            mesh,
+            (camera, truth),
+            (&output.camera, &output.cam_from_world),
+            &query,
+            config,
+            &mut rasterizer,
+        )
+    });
     Ok(FrameDiagnosis {
         views: diagnoses,
         at_truth,
@@ -1062,6 +1211,93 @@ fn diagnose_region(
         output_correlation,
         heading_sweep: None,
         support_by_kind,
+        truth_along_seen,
+    })
+}
+
+/// [`TruthAlongSeen`] of the frame's `output` pose against `truth` (each camera and pose).
+fn truth_along_seen(
+    mesh: &Mesh,
+    truth: (&Camera, &Rigid3),
+    output: (&Camera, &Rigid3),
+    query: &ImageView<'_, f32>,
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+) -> Option<TruthAlongSeen> {
+    let (truth_camera, truth_pose) = truth;
+    let (camera, pose) = output;
+    let align = &config.edge_align;
+    let mut view = CoarseView::default();
+    render_coarse_view(mesh, camera, 0, pose, config, rasterizer, &mut view);
+    let mut samples = Vec::new();
+    model_edge_samples(
+        view.asg.view(),
+        &view.render,
+        camera,
+        pose,
+        align,
+        &mut samples,
+    );
+    let metric = image_motion_metric(&view.render, camera, MOTION_METRIC_STRIDE_PX)?;
+    let steps = supported_seen_steps(&samples, query, camera, pose, &metric, align)?;
+    // The step ξ with apply_pose_step(pose, ξ) = truth.
+    let rotation_step = truth_pose.rotation * pose.rotation.inverse();
+    let translation_step = truth_pose.translation - rotation_step * pose.translation;
+    let omega = rotation_step.scaled_axis();
+    let step = Vector6::new(
+        omega.x,
+        omega.y,
+        omega.z,
+        translation_step.x,
+        translation_step.y,
+        translation_step.z,
+    );
+    // The steps are metric-orthonormal: the component along s is sᵀ M ξ.
+    let components_px: Vec<f64> = steps.iter().map(|s| s.dot(&(metric * step))).collect();
+    let support =
+        |moved: &Rigid3| edge_evidence(&samples, query, camera, moved, align).support_fraction();
+    let mut reprojection = ReprojectionWorkspace::new();
+    let mut delta = |moved: &Rigid3| {
+        mutual_reprojection_error_px(
+            mesh,
+            camera,
+            moved,
+            truth_camera,
+            truth_pose,
+            &mut reprojection,
+        )
+    };
+    let along = |a_px: f64, b_px: f64| apply_pose_step(pose, &(steps[0] * a_px + steps[1] * b_px));
+    let count = (SEEN_GRID_REACH_PX / SEEN_GRID_STEP_PX).round() as i32;
+    let mut best = (0.0, 0.0, f64::NEG_INFINITY);
+    for i in -count..=count {
+        for j in -count..=count {
+            let (a_px, b_px) = (
+                f64::from(i) * SEEN_GRID_STEP_PX,
+                f64::from(j) * SEEN_GRID_STEP_PX,
+            );
+            let share = support(&along(a_px, b_px));
+            if share > best.2 {
+                best = (a_px, b_px, share);
+            }
+        }
+    }
+    let snap = |component_px: f64| {
+        (component_px / SEEN_GRID_STEP_PX)
+            .round()
+            .clamp(-f64::from(count), f64::from(count))
+            * SEEN_GRID_STEP_PX
+    };
+    let nearest = along(snap(components_px[0]), snap(components_px[1]));
+    Some(TruthAlongSeen {
+        support_at_output: support(pose),
+        support_at_truth_moved: support(truth_pose),
+        grid_best_offsets_px: (best.0, best.1),
+        grid_best_support: best.2,
+        grid_best_delta_px: delta(&along(best.0, best.1)),
+        grid_nearest_truth_support: support(&nearest),
+        grid_nearest_truth_delta_px: delta(&nearest),
+        components_px,
     })
 }
 

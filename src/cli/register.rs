@@ -437,6 +437,10 @@ pub struct CoarseArgs {
     /// at least this share of its edge support above chance (0..1; 0: no such test).
     #[arg(long, default_value_t = ConfidenceConfig::default().min_least_seen_drop)]
     pub min_least_seen_drop: f64,
+    /// Accept a pose only when moving it 3 px (δ) along the direction its edges see least loses
+    /// at least this share of its edge support above chance (0..1; 0: no such test).
+    #[arg(long, default_value_t = ConfidenceConfig::default().min_least_seen_near_drop)]
+    pub min_least_seen_near_drop: f64,
     /// Accept a pose the plausibility check rejected on the photo's evidence only when its edge
     /// support exceeds chance by at least this share, when the frame's refined poses contradict
     /// it (0..1; 0: off).
@@ -539,6 +543,7 @@ impl Default for CoarseArgs {
             verify_output: VerifyOutputArg::Medoid,
             max_delta_uncertainty_px: ConfidenceConfig::default().max_delta_uncertainty_px,
             min_least_seen_drop: ConfidenceConfig::default().min_least_seen_drop,
+            min_least_seen_near_drop: ConfidenceConfig::default().min_least_seen_near_drop,
             min_overrule_margin: ConfidenceConfig::default().min_overrule_margin,
             rival_directions: EdgeAlignConfig::default().rival_directions,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
@@ -724,6 +729,7 @@ pub fn registration_config(
         confidence: ConfidenceConfig {
             max_delta_uncertainty_px: coarse.max_delta_uncertainty_px,
             min_least_seen_drop: coarse.min_least_seen_drop,
+            min_least_seen_near_drop: coarse.min_least_seen_near_drop,
             min_overrule_margin: coarse.min_overrule_margin,
             ..defaults.confidence
         },

@@ -190,6 +190,20 @@ pub struct ConfidenceConfig {
     /// [`crate::core::edge_align::support_peak`] turn the camera, a motion every edge sees; a
     /// building's orbit is not one of them.
     pub min_least_seen_drop: f64,
+    /// ... and from one the near ring's shift (3 px of δ) away along that direction: the support
+    /// there must have lost at least this share of the pose's support above chance
+    /// ([`crate::core::edge_align::SupportPeak::least_seen_near_drop`]; 0..1, 0: no such test).
+    /// A pose that keeps its support when the visible model moves 3 px along the direction its
+    /// edges see least is not fixed by them to a few pixels along it: an accepted pose must be
+    /// told apart from one a few pixels off, not only from one 12 px off. Default 0.1 (a tenth
+    /// of the support above chance), read (twenty-sixth session, docs/measurements.md) on the
+    /// ten base cells' 124 accepts: the house accepts 5–35 px off kept 0.02–0.24 of it, those
+    /// within 1 px mostly 0.2–0.5; at 0.1 the cells lose 9 accepts (2 within 2 px) and both
+    /// remaining false accepts (house s5 view_009, 34.5 px). Validated on runs it was not read
+    /// from (houses s4 and s6 at 30 and 104 px, house s2 104 px, blocks s1 and s2 at 30 px,
+    /// degraded block and house s1 at 30 px): 93 → 89 accepts, the four lost 5.9–10.5 px
+    /// off, none within 5 px.
+    pub min_least_seen_near_drop: f64,
     /// A pose the paper's plausibility check rejected is accepted on the photo's evidence only
     /// when its edge support exceeds chance (`at_pose − far` of its
     /// [`crate::core::edge_align::SupportPeak`]) by at least this share (0..1; 0: no such
@@ -236,6 +250,7 @@ impl Default for ConfidenceConfig {
             max_image_uncertainty_px: 2.0,
             max_delta_uncertainty_px: 0.8,
             min_least_seen_drop: 0.5,
+            min_least_seen_near_drop: 0.1,
             min_overrule_margin: 0.4,
         }
     }
@@ -275,6 +290,7 @@ impl ConfidenceConfig {
         positive_px("max_image_uncertainty_px", self.max_image_uncertainty_px)?;
         positive_px("max_delta_uncertainty_px", self.max_delta_uncertainty_px)?;
         share("min_least_seen_drop", self.min_least_seen_drop)?;
+        share("min_least_seen_near_drop", self.min_least_seen_near_drop)?;
         share("min_overrule_margin", self.min_overrule_margin)?;
         if !(self.model.bias.is_finite() && self.model.weights.iter().all(|w| w.is_finite())) {
             return Err(ConfidenceConfigError {

@@ -948,6 +948,15 @@ impl SupportPeak {
         }
         (self.at_pose - self.least_seen_far) / above_chance
     }
+
+    /// [`Self::least_seen_drop`] at the near ring's shift (`least_seen_near`).
+    pub fn least_seen_near_drop(&self) -> f64 {
+        let above_chance = self.at_pose - self.far;
+        if above_chance <= 0.0 {
+            return 0.0;
+        }
+        (self.at_pose - self.least_seen_near) / above_chance
+    }
 }
 
 /// Image shifts of [`support_peak`]'s two rings, px: the near one just beyond the final search
@@ -1447,6 +1456,22 @@ pub fn seen_steps(information: &Matrix6<f64>, metric: &Matrix6<f64>) -> Option<V
     )
 }
 
+/// [`seen_steps`] of the pose `cam_from_world` from its model edge `samples` that a photo ridge
+/// supports (as [`supported_edge_observability`] counts them) against the model's image-motion
+/// `metric`: pose steps that each move the visible model by 1 px RMS, least seen first. `None`
+/// when the metric cannot be factorised.
+pub fn supported_seen_steps(
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    metric: &Matrix6<f64>,
+    config: &EdgeAlignConfig,
+) -> Option<Vec<Vector6<f64>>> {
+    let supported = supported_information(samples, query, camera, cam_from_world, config);
+    seen_steps(&supported.information, metric)
+}
+
 /// Start poses for a search of other basins of the edge support around `cam_from_world`: the
 /// pose moved either way along each of the `directions` directions its supported edges see
 /// least ([`seen_steps`] of [`supported_information`] against the model's image-motion `metric`),
@@ -1464,8 +1489,8 @@ pub fn least_seen_starts(
     directions: usize,
     reach_px: f64,
 ) -> Vec<Rigid3> {
-    let supported = supported_information(samples, query, camera, cam_from_world, config);
-    let Some(steps) = seen_steps(&supported.information, metric) else {
+    let Some(steps) = supported_seen_steps(samples, query, camera, cam_from_world, metric, config)
+    else {
         return Vec::new();
     };
     steps

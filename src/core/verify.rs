@@ -206,6 +206,11 @@ pub enum RejectionReason {
         least_seen_drop: f64,
         #[serde(default)]
         min_least_seen_drop: f64,
+        /// [`crate::core::edge_align::SupportPeak::least_seen_near_drop`] and its minimum.
+        #[serde(default)]
+        least_seen_near_drop: f64,
+        #[serde(default)]
+        min_least_seen_near_drop: f64,
     },
     /// The photo confirms two distinct poses, from different centres of the pose search: the
     /// frame cannot be decided without a better prior (never a coin toss).
@@ -281,11 +286,15 @@ impl std::fmt::Display for RejectionReason {
                 max_delta_px,
                 least_seen_drop,
                 min_least_seen_drop,
+                least_seen_near_drop,
+                min_least_seen_near_drop,
             } => write!(
                 f,
-                "the photo's edges that support the pose (confidence {confidence:.2}) do not fix it: per px of edge noise the frame could move {image_uncertainty_px:.1} px (at most {max_px:.1} allowed) and the visible model {delta_uncertainty_px:.2} px (at most {max_delta_px:.2}); moved 12 px along the direction the edges see least, the pose keeps {:.0} % of its support above chance (at most {:.0} % allowed); too little of the model is in view, only parallel edges, or a building seen from low down whose edges barely move as the camera orbits it",
+                "the photo's edges that support the pose (confidence {confidence:.2}) do not fix it: per px of edge noise the frame could move {image_uncertainty_px:.1} px (at most {max_px:.1} allowed) and the visible model {delta_uncertainty_px:.2} px (at most {max_delta_px:.2}); moved 12 px along the direction the edges see least, the pose keeps {:.0} % of its support above chance (at most {:.0} % allowed), moved 3 px {:.0} % (at most {:.0} %); too little of the model is in view, only parallel edges, or a building seen from low down whose edges barely move as the camera orbits it",
                 100.0 * (1.0 - least_seen_drop),
-                100.0 * (1.0 - min_least_seen_drop)
+                100.0 * (1.0 - min_least_seen_drop),
+                100.0 * (1.0 - least_seen_near_drop),
+                100.0 * (1.0 - min_least_seen_near_drop)
             ),
             RejectionReason::Ambiguous {
                 confidence,

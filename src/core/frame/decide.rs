@@ -400,19 +400,21 @@ pub(super) fn reject(verdict: &mut Verdict, reason: RejectionReason) {
 fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceConfig) {
     let confidence = config.model.probability(evidence);
     verdict.confidence = confidence;
-    let (image_uncertainty_px, delta_uncertainty_px, least_seen_drop) =
+    let (image_uncertainty_px, delta_uncertainty_px, least_seen_drop, least_seen_near_drop) =
         evidence
             .edges
-            .map_or((f64::INFINITY, f64::INFINITY, 0.0), |peak| {
+            .map_or((f64::INFINITY, f64::INFINITY, 0.0, 0.0), |peak| {
                 (
                     peak.image_uncertainty_px,
                     peak.delta_uncertainty_px,
                     peak.least_seen_drop(),
+                    peak.least_seen_near_drop(),
                 )
             });
     let fixed = image_uncertainty_px <= config.max_image_uncertainty_px
         && delta_uncertainty_px <= config.max_delta_uncertainty_px
-        && least_seen_drop >= config.min_least_seen_drop;
+        && least_seen_drop >= config.min_least_seen_drop
+        && least_seen_near_drop >= config.min_least_seen_near_drop;
     let confirmed = confidence >= config.accept_above && fixed;
     match &verdict.decision {
         Ok(chosen) if !confirmed => {
@@ -425,6 +427,8 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
                     max_delta_px: config.max_delta_uncertainty_px,
                     least_seen_drop,
                     min_least_seen_drop: config.min_least_seen_drop,
+                    least_seen_near_drop,
+                    min_least_seen_near_drop: config.min_least_seen_near_drop,
                 }
             } else {
                 let (edge_support, edge_support_chance) = evidence
@@ -735,6 +739,43 @@ mod tests {
             "a stray refined pose: the margin is asked: {:?}",
             decision.evidence
         );
+    }
+
+    /// The near certification along the least seen direction: the truth, agreed on by every
+    /// refined pose, is accepted; asked for more drop of its support 3 px (δ) along the direction
+    /// its edges see least than it shows, it is rejected as not fixed by its edges, and the
+    /// reason carries the drop and the minimum.
+    #[test]
+    fn a_pose_its_edges_do_not_fix_to_a_few_pixels_along_their_least_seen_direction_is_rejected() {
+        let config = RegistrationConfig::default();
+        let house = OnTheTruth::new(&config);
+        let (camera, truth) = (house.camera, house.truth);
+        let mut workspace = RefineWorkspace::default();
+        let outcomes = agreeing_outcomes(&camera, &truth);
+        let decision = house.decide(&outcomes, &config, &mut workspace);
+        assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
+        let peak = decision.evidence.edges.expect("edge evidence on the truth");
+        let drop = peak.least_seen_near_drop();
+        assert!(drop > 0.0 && drop < 0.99, "{drop} {peak:?}");
+        let strict = RegistrationConfig {
+            confidence: ConfidenceConfig {
+                min_least_seen_near_drop: drop + 0.01,
+                ..config.confidence
+            },
+            ..config.clone()
+        };
+        let decision = house.decide(&outcomes, &strict, &mut workspace);
+        match decision.verdict.rejection() {
+            Some(RejectionReason::Unconstrained {
+                least_seen_near_drop,
+                min_least_seen_near_drop,
+                ..
+            }) => {
+                assert!((least_seen_near_drop - drop).abs() < 1e-12);
+                assert!((min_least_seen_near_drop - (drop + 0.01)).abs() < 1e-12);
+            }
+            other => panic!("expected Unconstrained, got {other:?}"),
+        }
     }
 
     /// Verification across the pose search's centres: two groups of coarse outcomes, one agreeing
