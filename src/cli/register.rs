@@ -446,6 +446,10 @@ pub struct CoarseArgs {
     /// it (0..1; 0: off).
     #[arg(long, default_value_t = ConfidenceConfig::default().min_overrule_margin)]
     pub min_overrule_margin: f64,
+    /// Accept a pose only when its edge support exceeds chance by at least this share, whatever
+    /// the frame's refined poses agree on (0..1; 0: off).
+    #[arg(long, default_value_t = ConfidenceConfig::default().min_support_above_chance)]
+    pub min_support_above_chance: f64,
     /// The rival-basin test of an accepted pose: the alignment also runs from the output moved
     /// by --rival-reach-px of δ either way along this many directions its edges see least, and
     /// a distinct end that keeps --rival-share of the output's edge support above chance
@@ -545,6 +549,7 @@ impl Default for CoarseArgs {
             min_least_seen_drop: ConfidenceConfig::default().min_least_seen_drop,
             min_least_seen_near_drop: ConfidenceConfig::default().min_least_seen_near_drop,
             min_overrule_margin: ConfidenceConfig::default().min_overrule_margin,
+            min_support_above_chance: ConfidenceConfig::default().min_support_above_chance,
             rival_directions: EdgeAlignConfig::default().rival_directions,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
@@ -731,6 +736,7 @@ pub fn registration_config(
             min_least_seen_drop: coarse.min_least_seen_drop,
             min_least_seen_near_drop: coarse.min_least_seen_near_drop,
             min_overrule_margin: coarse.min_overrule_margin,
+            min_support_above_chance: coarse.min_support_above_chance,
             ..defaults.confidence
         },
         asg: AsgOptions {

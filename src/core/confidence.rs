@@ -222,6 +222,19 @@ pub struct ConfidenceConfig {
     /// 0.4 were all 5.3 px or more off, among them both false accepts (26.0 and 428 px), while
     /// the 12 above it had a median of 0.52 px (docs/measurements.md, nineteenth session).
     pub min_overrule_margin: f64,
+    /// Every accepted pose's edge support must exceed chance (`at_pose − far` of its
+    /// [`crate::core::edge_align::SupportPeak`]) by at least this share (0..1; 0: no such
+    /// condition), whatever the frame's refined poses agree on. The calibrated confidence lets
+    /// the flow's agreement stand in for the photo (its feature is the agreement times the
+    /// excess), so a pose all fifteen refined poses agree on scores about 1.0 with its edges
+    /// barely above chance. Default 0.23, the middle of the gap read (twenty-sixth session,
+    /// docs/measurements.md) over 20 cells' 260 accepts (LoD and degraded models, blocks and
+    /// houses, the change-detection block s2): the ten accepts below 0.213 were 3.2–16.2 px off
+    /// (nine beyond 5 px: the block s2 frames 7–16 px off that cost change detection its
+    /// precision), the first good one (≤ 2 px) at 0.246. Validated on runs it was not read
+    /// from (degraded houses s4 and s6 and block s2 at 30 px, the change scene block s1): 48 →
+    /// 40 accepts, mean δ 2.45 → 1.28 px, the eight it removes 4.6–16.1 px off.
+    pub min_support_above_chance: f64,
 }
 
 impl Default for ConfidenceConfig {
@@ -252,6 +265,7 @@ impl Default for ConfidenceConfig {
             min_least_seen_drop: 0.5,
             min_least_seen_near_drop: 0.1,
             min_overrule_margin: 0.4,
+            min_support_above_chance: 0.23,
         }
     }
 }
@@ -292,6 +306,7 @@ impl ConfidenceConfig {
         share("min_least_seen_drop", self.min_least_seen_drop)?;
         share("min_least_seen_near_drop", self.min_least_seen_near_drop)?;
         share("min_overrule_margin", self.min_overrule_margin)?;
+        share("min_support_above_chance", self.min_support_above_chance)?;
         if !(self.model.bias.is_finite() && self.model.weights.iter().all(|w| w.is_finite())) {
             return Err(ConfidenceConfigError {
                 field: "model",

@@ -180,12 +180,16 @@ pub enum RejectionReason {
         max_ratio: f64,
     },
     /// The plausibility check passed but the photo does not confirm the pose: its calibrated
-    /// confidence (edge support at the pose, [`crate::core::confidence`]) is below the threshold.
+    /// confidence (edge support at the pose, [`crate::core::confidence`]) is below the threshold,
+    /// or its edge support exceeds chance by less than `min_above_chance`
+    /// ([`crate::core::confidence::ConfidenceConfig::min_support_above_chance`]).
     NotConfirmed {
         confidence: f64,
         threshold: f64,
         edge_support: f64,
         edge_support_chance: f64,
+        #[serde(default)]
+        min_above_chance: f64,
     },
     /// The pose's edge support is high but comes from edges that do not fix it (a sliver of the
     /// model, parallel lines, a building seen from a low orbit): the frame's image could move
@@ -272,6 +276,20 @@ impl std::fmt::Display for RejectionReason {
                 threshold,
                 edge_support,
                 edge_support_chance,
+                min_above_chance,
+            } if confidence >= threshold => write!(
+                f,
+                "the photo does not confirm the agreed pose clearly enough: {:.0} % of the model's edges on a photo edge, {:.0} % by chance, less than the {:.0} points above chance asked (confidence {confidence:.2}); the flow's agreement alone does not confirm a pose",
+                100.0 * edge_support,
+                100.0 * edge_support_chance,
+                100.0 * min_above_chance
+            ),
+            RejectionReason::NotConfirmed {
+                confidence,
+                threshold,
+                edge_support,
+                edge_support_chance,
+                ..
             } => write!(
                 f,
                 "the photo does not confirm the agreed pose: confidence {confidence:.2} < {threshold:.2} ({:.0} % of the model's edges on a photo edge, {:.0} % by chance)",

@@ -415,10 +415,11 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
         && delta_uncertainty_px <= config.max_delta_uncertainty_px
         && least_seen_drop >= config.min_least_seen_drop
         && least_seen_near_drop >= config.min_least_seen_near_drop;
-    let confirmed = confidence >= config.accept_above && fixed;
+    let clear = evidence.edge_support_above_chance() >= config.min_support_above_chance;
+    let confirmed = confidence >= config.accept_above && clear && fixed;
     match &verdict.decision {
         Ok(chosen) if !confirmed => {
-            let reason = if confidence >= config.accept_above {
+            let reason = if confidence >= config.accept_above && clear {
                 RejectionReason::Unconstrained {
                     confidence,
                     image_uncertainty_px,
@@ -439,6 +440,7 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
                     threshold: config.accept_above,
                     edge_support,
                     edge_support_chance,
+                    min_above_chance: config.min_support_above_chance,
                 }
             };
             verdict.decision = Err(Rejection {
@@ -775,6 +777,43 @@ mod tests {
                 assert!((min_least_seen_near_drop - (drop + 0.01)).abs() < 1e-12);
             }
             other => panic!("expected Unconstrained, got {other:?}"),
+        }
+    }
+
+    /// The photo's margin asked of every accept: the truth, agreed on by every refined pose, is
+    /// accepted; asked for a larger excess of edge support over chance than it has, the same
+    /// agreement no longer confirms it (the flow's agreement alone never does), and the reason
+    /// says so with the minimum.
+    #[test]
+    fn an_agreed_pose_whose_edges_barely_exceed_chance_is_not_confirmed() {
+        let config = RegistrationConfig::default();
+        let house = OnTheTruth::new(&config);
+        let (camera, truth) = (house.camera, house.truth);
+        let mut workspace = RefineWorkspace::default();
+        let outcomes = agreeing_outcomes(&camera, &truth);
+        let decision = house.decide(&outcomes, &config, &mut workspace);
+        assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
+        let margin = decision.evidence.edge_support_above_chance();
+        assert!(margin > 0.0 && margin < 0.99, "{margin}");
+        let strict = RegistrationConfig {
+            confidence: ConfidenceConfig {
+                min_support_above_chance: margin + 0.01,
+                ..config.confidence
+            },
+            ..config.clone()
+        };
+        let decision = house.decide(&outcomes, &strict, &mut workspace);
+        assert!(decision.verdict.confidence >= config.confidence.accept_above);
+        match decision.verdict.rejection() {
+            Some(
+                reason @ RejectionReason::NotConfirmed {
+                    min_above_chance, ..
+                },
+            ) => {
+                assert!((min_above_chance - (margin + 0.01)).abs() < 1e-12);
+                assert!(reason.to_string().contains("clearly enough"), "{reason}");
+            }
+            other => panic!("expected NotConfirmed, got {other:?}"),
         }
     }
 

@@ -242,6 +242,7 @@ mod tests {
                     threshold: 0.9,
                     edge_support: 0.2,
                     edge_support_chance: 0.2,
+                    min_above_chance: 0.0,
                 },
                 candidate,
             }),
