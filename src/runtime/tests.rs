@@ -482,6 +482,14 @@ fn flow_workers_describe_each_query_once_with_the_same_correspondences() {
         assert_eq!(cached.image_points_px, fresh.image_points_px);
         assert_eq!(cached.world_points_m, fresh.world_points_m);
         assert!(!cached.image_points_px.is_empty());
+        // With them go the view's samples on δ's grid, for verify's convergence test.
+        let (width_px, height_px) = job.meta.info.image_size();
+        assert_eq!(cached.meta.grid_stride_px, 4);
+        assert_eq!(
+            cached.grid.face_index.len(),
+            crate::core::reprojection::GridSamples::sample_count(width_px, height_px, 4)
+        );
+        assert_eq!(cached.grid, fresh.grid);
     }
     assert_eq!(caching.feature_cache_hits as usize, jobs.len() - 1);
 }
