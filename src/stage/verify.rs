@@ -163,8 +163,10 @@ impl ReadyFrame {
         self.frame_id
     }
 
-    /// The frame's decision (`core::frame::decide_frame`); needs no stage state, so any thread
-    /// with the mesh and a workspace can run it.
+    /// The frame's decision (`core::frame::decide_frame_and_centres`, with the coarse poses'
+    /// visible points made from the grid samples that came with the hypotheses, so none is
+    /// rendered again); needs no stage state, so any thread with the mesh and a workspace can
+    /// run it.
     pub fn decide(
         self,
         mesh: &Mesh,
