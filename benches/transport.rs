@@ -10,7 +10,7 @@ use asgreg::core::camera::{Camera, PinholeIntrinsics};
 use asgreg::core::rigid::Rigid3;
 use asgreg::msg::{
     decode, encode, Body, Correspondences, CorrespondencesMeta, Envelope, FlowJob, FlowJobMeta,
-    Frame, FrameInfo, Header,
+    Frame, FrameInfo, GridArrays, Header,
 };
 use asgreg::transport::{self, Backend, Transport, TransportConfig};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
@@ -59,6 +59,7 @@ fn messages() -> Vec<(&'static str, Vec<u8>)> {
         }),
     };
     let pairs = 5000;
+    let grid_samples = asgreg::core::reprojection::GridSamples::sample_count(505, 275, 4);
     let correspondences = Envelope {
         header,
         body: Body::Correspondences(Correspondences {
@@ -70,9 +71,15 @@ fn messages() -> Vec<(&'static str, Vec<u8>)> {
                 render_ms: 1.0,
                 flow_ms: 300.0,
                 flow_worker: 0,
+                grid_stride_px: 4,
             },
             image_points_px: Cow::Owned(vec![100.5; 2 * pairs]),
             world_points_m: Cow::Owned(vec![3.25; 3 * pairs]),
+            // The coarse view on δ's 4-px grid, as flow sends it on for verify.
+            grid: GridArrays {
+                face_index: Cow::Owned(vec![7; grid_samples]),
+                depth_m: Cow::Owned(vec![10.0; grid_samples]),
+            },
         }),
     };
     vec![

@@ -32,6 +32,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::camera::Camera;
+use super::image::ImageView;
 use super::mesh::Mesh;
 use super::raster::{Rasterizer, RenderBuffers, RenderOptions, NO_FACE};
 use super::rigid::Rigid3;
@@ -41,6 +42,12 @@ use super::rigid::Rigid3;
 pub enum ReprojectionError {
     #[error("grid_stride_px must be at least 1 (got 0)")]
     ZeroGridStride,
+    #[error("grid samples: {faces} face indices and {depths} depths, expected {expected} of each")]
+    GridSampleCount {
+        expected: usize,
+        faces: usize,
+        depths: usize,
+    },
 }
 
 /// How visible points are sampled.
@@ -203,14 +210,15 @@ pub fn visible_points_into(
         &workspace.options.render_options,
         buffers,
     );
-    sample_visible_points(
-        mesh,
-        camera,
-        cam_from_world,
-        buffers,
+    let grid = Grid::new(
+        buffers.width_px(),
+        buffers.height_px(),
         workspace.options.grid_stride_px,
-        out,
     );
+    let (face_index, depth_m) = (buffers.face_index().data(), buffers.depth_m().data());
+    sample_visible_points(mesh, camera, cam_from_world, &grid, out, |pixel, _| {
+        (face_index[pixel], depth_m[pixel])
+    });
 }
 
 /// The visible points of a pose whose rendering is already made: `render` must be `mesh` rendered
@@ -224,7 +232,25 @@ pub fn visible_points_from_render(
     render: &RenderBuffers,
     options: &ReprojectionOptions,
 ) -> Option<VisiblePoints> {
-    if (render.width_px(), render.height_px())
+    let samples = GridSamples::from_render(
+        render.depth_m().view(),
+        render.face_index().view(),
+        options.grid_stride_px,
+    )?;
+    visible_points_from_samples(mesh, camera, cam_from_world, &samples)
+}
+
+/// The visible points of a pose from its rendering's [`GridSamples`]: the set
+/// [`visible_points_from_render`] gives from that rendering with the samples' grid stride, to
+/// the bit (the same sampling, reading the samples instead of the rendering). `None` when the
+/// samples are not of the camera's size.
+pub fn visible_points_from_samples(
+    mesh: &Mesh,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    samples: &GridSamples,
+) -> Option<VisiblePoints> {
+    if (samples.grid.width_px, samples.grid.height_px)
         != (camera.width_px as usize, camera.height_px as usize)
     {
         return None;
@@ -234,54 +260,196 @@ pub fn visible_points_from_render(
         mesh,
         camera,
         cam_from_world,
-        render,
-        options.grid_stride_px,
+        &samples.grid,
         &mut visible,
+        |_, sample| (samples.face_index[sample], samples.depth_m[sample]),
     );
     Some(visible)
 }
 
-/// The surface points a rendering shows at the pixel centres of the grid (every `stride_px`).
+/// The pixel grid visible points are sampled on: the pixel centres every `stride_px` along rows
+/// and columns of a `width_px × height_px` rendering, from `stride_px / 2`, row by row.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Grid {
+    width_px: usize,
+    height_px: usize,
+    stride_px: usize,
+}
+
+impl Grid {
+    fn new(width_px: usize, height_px: usize, stride_px: usize) -> Self {
+        Self {
+            width_px,
+            height_px,
+            stride_px: stride_px.max(1),
+        }
+    }
+
+    /// The rows (or columns) of the grid along a side of `side_px` pixels.
+    fn count(&self, side_px: usize) -> usize {
+        side_px
+            .saturating_sub(self.stride_px / 2)
+            .div_ceil(self.stride_px)
+    }
+
+    /// Grid points in all.
+    fn len(&self) -> usize {
+        self.count(self.width_px) * self.count(self.height_px)
+    }
+
+    /// Each grid point's `(row, col, pixel index, sample index)`, row by row.
+    fn points(&self) -> impl Iterator<Item = (usize, usize, usize, usize)> + '_ {
+        let (first, stride, width) = (self.stride_px / 2, self.stride_px, self.width_px);
+        let cols = self.count(width);
+        (first..self.height_px)
+            .step_by(stride)
+            .enumerate()
+            .flat_map(move |(grid_row, row)| {
+                (first..width)
+                    .step_by(stride)
+                    .enumerate()
+                    .map(move |(grid_col, col)| {
+                        (row, col, row * width + col, grid_row * cols + grid_col)
+                    })
+            })
+    }
+}
+
+/// A rendering's face index and depth at the pixel centres of the visible-point grid (every
+/// `stride_px`, from `stride_px / 2`, row by row): all that the visible points read of a
+/// rendering, so they can be made where the rendering is not ([`visible_points_from_samples`]):
+/// the pipeline's flow stage, which has a coarse view's rendering, sends them on to verify for
+/// the convergence test, which then renders nothing for that coarse pose.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GridSamples {
+    grid: Grid,
+    /// Face per sample ([`NO_FACE`] where nothing was hit).
+    face_index: Vec<u32>,
+    /// Rendered depth along the optical axis per sample, metres.
+    depth_m: Vec<f32>,
+}
+
+impl GridSamples {
+    /// The samples of a rendering's depth and face index (of the same size); `None` when their
+    /// sizes differ.
+    pub fn from_render(
+        depth_m: ImageView<'_, f32>,
+        face_index: ImageView<'_, u32>,
+        stride_px: usize,
+    ) -> Option<Self> {
+        let (width_px, height_px) = depth_m.size();
+        if face_index.size() != (width_px, height_px) {
+            return None;
+        }
+        let grid = Grid::new(width_px, height_px, stride_px);
+        let (faces, depths) = (face_index.data(), depth_m.data());
+        let (face_index, depth_m) = grid
+            .points()
+            .map(|(_, _, pixel, _)| (faces[pixel], depths[pixel]))
+            .unzip();
+        Some(Self {
+            grid,
+            face_index,
+            depth_m,
+        })
+    }
+
+    /// Samples received from elsewhere: `face_index` and `depth_m` must each hold
+    /// [`GridSamples::sample_count`] values.
+    pub fn from_parts(
+        width_px: usize,
+        height_px: usize,
+        stride_px: usize,
+        face_index: Vec<u32>,
+        depth_m: Vec<f32>,
+    ) -> Result<Self, ReprojectionError> {
+        if stride_px == 0 {
+            return Err(ReprojectionError::ZeroGridStride);
+        }
+        let grid = Grid::new(width_px, height_px, stride_px);
+        let expected = grid.len();
+        if face_index.len() != expected || depth_m.len() != expected {
+            return Err(ReprojectionError::GridSampleCount {
+                expected,
+                faces: face_index.len(),
+                depths: depth_m.len(),
+            });
+        }
+        Ok(Self {
+            grid,
+            face_index,
+            depth_m,
+        })
+    }
+
+    /// How many grid samples a `width_px × height_px` rendering has at `stride_px` (≥ 1).
+    pub fn sample_count(width_px: usize, height_px: usize, stride_px: usize) -> usize {
+        Grid::new(width_px, height_px, stride_px).len()
+    }
+
+    pub fn width_px(&self) -> usize {
+        self.grid.width_px
+    }
+
+    pub fn height_px(&self) -> usize {
+        self.grid.height_px
+    }
+
+    pub fn stride_px(&self) -> usize {
+        self.grid.stride_px
+    }
+
+    /// Face per sample ([`NO_FACE`] where nothing was hit), row by row.
+    pub fn face_index(&self) -> &[u32] {
+        &self.face_index
+    }
+
+    /// Rendered depth per sample, metres, row by row.
+    pub fn depth_m(&self) -> &[f32] {
+        &self.depth_m
+    }
+
+    /// The face indices and depths, row by row.
+    pub fn into_parts(self) -> (Vec<u32>, Vec<f32>) {
+        (self.face_index, self.depth_m)
+    }
+}
+
+/// The surface points a rendering shows at the points of `grid`; `sample(pixel index, sample
+/// index)` reads the rendering's face index and depth there (from the rendering or from its
+/// [`GridSamples`]: one sampling for both, so their sets are the same).
 fn sample_visible_points(
     mesh: &Mesh,
     camera: &Camera,
     cam_from_world: &Rigid3,
-    buffers: &RenderBuffers,
-    stride_px: usize,
+    grid: &Grid,
     out: &mut VisiblePoints,
+    sample: impl Fn(usize, usize) -> (u32, f32),
 ) {
     out.camera = *camera;
     out.cam_from_world = *cam_from_world;
     out.points_world_m.clear();
     out.projections_px.clear();
-    let width = buffers.width_px();
-    let height = buffers.height_px();
-    let stride = stride_px.max(1);
     let world_from_cam = cam_from_world.inverse();
-    let (face_index, depth_m) = (buffers.face_index().data(), buffers.depth_m().data());
-    let first = stride / 2;
-    for row in (first..height).step_by(stride) {
-        for col in (first..width).step_by(stride) {
-            let pixel = row * width + col;
-            let face_index = face_index[pixel];
-            if face_index == NO_FACE {
-                continue;
-            }
-            let normalized = camera
-                .intrinsics
-                .pixel_to_normalized(Vector2::new(col as f64 + 0.5, row as f64 + 0.5));
-            let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
-            let depth_m = f64::from(depth_m[pixel]);
-            let point_cam =
-                ray_plane_point_cam(mesh, face_index as usize, cam_from_world, &ray_cam, depth_m)
-                    .unwrap_or(ray_cam * depth_m);
-            let point_world = world_from_cam.transform_point(&point_cam);
-            let Some(projection) = project_finite(camera, cam_from_world, &point_world) else {
-                continue;
-            };
-            out.points_world_m.push(point_world);
-            out.projections_px.push(projection);
+    for (row, col, pixel, index) in grid.points() {
+        let (face_index, depth_m) = sample(pixel, index);
+        if face_index == NO_FACE {
+            continue;
         }
+        let normalized = camera
+            .intrinsics
+            .pixel_to_normalized(Vector2::new(col as f64 + 0.5, row as f64 + 0.5));
+        let ray_cam = Vector3::new(normalized.x, normalized.y, 1.0);
+        let depth_m = f64::from(depth_m);
+        let point_cam =
+            ray_plane_point_cam(mesh, face_index as usize, cam_from_world, &ray_cam, depth_m)
+                .unwrap_or(ray_cam * depth_m);
+        let point_world = world_from_cam.transform_point(&point_cam);
+        let Some(projection) = project_finite(camera, cam_from_world, &point_world) else {
+            continue;
+        };
+        out.points_world_m.push(point_world);
+        out.projections_px.push(projection);
     }
 }
 
@@ -663,6 +831,63 @@ mod tests {
         assert!(
             ((coarse - dense) / dense).abs() < 0.02,
             "{coarse} vs {dense}"
+        );
+    }
+
+    /// The visible points made from a rendering's grid samples (as the pipeline's verify makes
+    /// them from the flow stage's) are the rendered pose's, to the bit, for any stride and size;
+    /// samples of the wrong count or size are refused.
+    #[test]
+    fn grid_samples_give_the_visible_points_of_the_rendering() {
+        let mesh = box_on_ground();
+        let narrower = camera(160, 91, 120.0);
+        let camera = camera(161, 91, 120.0);
+        let pose = oblique_pose(Vector3::new(40.0, -50.0, 60.0));
+        let mut render = RenderBuffers::new(161, 91);
+        for grid_stride_px in [1, 3, 4, 7] {
+            let options = ReprojectionOptions {
+                grid_stride_px,
+                ..ReprojectionOptions::default()
+            };
+            let mut workspace = ReprojectionWorkspace::with_options(options).unwrap();
+            let rendered = visible_points(&mesh, &camera, &pose, &mut workspace);
+            Rasterizer::new().render(
+                &mesh,
+                &camera.intrinsics,
+                &pose,
+                &options.render_options,
+                &mut render,
+            );
+            let samples = GridSamples::from_render(
+                render.depth_m().view(),
+                render.face_index().view(),
+                grid_stride_px,
+            )
+            .unwrap();
+            let loops = (grid_stride_px / 2..91).step_by(grid_stride_px).count()
+                * (grid_stride_px / 2..161).step_by(grid_stride_px).count();
+            assert_eq!(samples.face_index().len(), loops);
+            assert_eq!(GridSamples::sample_count(161, 91, grid_stride_px), loops);
+            let (face_index, depth_m) = samples.clone().into_parts();
+            let received =
+                GridSamples::from_parts(161, 91, grid_stride_px, face_index, depth_m).unwrap();
+            let from_samples =
+                visible_points_from_samples(&mesh, &camera, &pose, &received).unwrap();
+            assert!(rendered.len() > 100, "{}", rendered.len());
+            assert_eq!(format!("{rendered:?}"), format!("{from_samples:?}"));
+            assert!(visible_points_from_samples(&mesh, &narrower, &pose, &received).is_none());
+        }
+        assert_eq!(
+            GridSamples::from_parts(161, 91, 4, vec![0; 3], vec![1.0; 3]),
+            Err(ReprojectionError::GridSampleCount {
+                expected: 920,
+                faces: 3,
+                depths: 3,
+            })
+        );
+        assert_eq!(
+            GridSamples::from_parts(161, 91, 0, Vec::new(), Vec::new()),
+            Err(ReprojectionError::ZeroGridStride)
         );
     }
 }

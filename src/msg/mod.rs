@@ -1,5 +1,5 @@
 //! The wire types of the bus and the one place that encodes and decodes them (docs/design.md §5).
-//! `schemas/v7/` describes the same layout for subscribers in other languages.
+//! `schemas/v8/` describes the same layout for subscribers in other languages.
 //!
 //! Layout of every message (all integers little-endian):
 //! ```text
@@ -41,4 +41,7 @@ pub use wire::{decode, encode, same_body, DecodeError, EncodeError, Encoded, HEA
 /// v7: a change worker sends fusion a ChangeSight (its ChangeResult with the photo's and the
 /// model's depth, the camera, pose and change settings) for the free-space test; a ChangeSet
 /// ends with `free_space`, that test of every confirmed `added` object.
-pub const SCHEMA_VERSION: u16 = 7;
+/// v8: Correspondences and Hypothesis carry the coarse view's rendering sampled on δ's grid
+/// (`GridArrays`: face index and depth, the stride in their meta), so that verify's convergence
+/// test does not render the coarse poses again.
+pub const SCHEMA_VERSION: u16 = 8;

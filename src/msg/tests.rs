@@ -27,6 +27,15 @@ fn info() -> FrameInfo {
     }
 }
 
+/// A coarse view's grid samples for [`info`]'s 4×3 camera at stride 2: two samples (row 1,
+/// columns 1 and 3), one of them without a face.
+fn grid() -> GridArrays<'static> {
+    GridArrays {
+        face_index: Cow::Owned(vec![17, u32::MAX]),
+        depth_m: Cow::Owned(vec![41.5, 0.0]),
+    }
+}
+
 fn header() -> Header {
     Header {
         frame_id: 9,
@@ -71,38 +80,48 @@ fn every_kind() -> Vec<Body<'static>> {
                 render_ms: 1.0,
                 flow_ms: 2.0,
                 flow_worker: 1,
+                grid_stride_px: 2,
             },
             image_points_px: Cow::Owned(vec![0.5, 1.5, 2.5, 3.5]),
             world_points_m: Cow::Owned(vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
+            grid: grid(),
         }),
         Body::Hypothesis(Hypothesis {
-            info: info(),
-            coarse_count: 15,
-            outcome,
-            render_ms: 1.0,
-            flow_ms: 2.0,
-            pose_ms: 3.0,
-            flow_worker: 0,
-        }),
-        Body::Hypothesis(Hypothesis {
-            info: info(),
-            coarse_count: 15,
-            outcome: CoarseOutcome {
-                coarse_index: 5,
-                consistent_matches: 1234,
-                hypothesis: Ok(PoseHypothesis {
-                    camera: info().camera,
-                    cam_from_world: info().initial_cam_from_world,
-                    consensus: 900,
-                    inlier_rms_px: 0.75,
-                    correspondence_count: 1100,
-                    coarse_cam_from_world: Rigid3::identity(),
-                }),
+            meta: HypothesisMeta {
+                info: info(),
+                coarse_count: 15,
+                outcome,
+                render_ms: 1.0,
+                flow_ms: 2.0,
+                pose_ms: 3.0,
+                flow_worker: 0,
+                grid_stride_px: 0,
             },
-            render_ms: 1.0,
-            flow_ms: 2.0,
-            pose_ms: 3.0,
-            flow_worker: 1,
+            grid: GridArrays::default(),
+        }),
+        Body::Hypothesis(Hypothesis {
+            meta: HypothesisMeta {
+                info: info(),
+                coarse_count: 15,
+                outcome: CoarseOutcome {
+                    coarse_index: 5,
+                    consistent_matches: 1234,
+                    hypothesis: Ok(PoseHypothesis {
+                        camera: info().camera,
+                        cam_from_world: info().initial_cam_from_world,
+                        consensus: 900,
+                        inlier_rms_px: 0.75,
+                        correspondence_count: 1100,
+                        coarse_cam_from_world: Rigid3::identity(),
+                    }),
+                },
+                render_ms: 1.0,
+                flow_ms: 2.0,
+                pose_ms: 3.0,
+                flow_worker: 1,
+                grid_stride_px: 2,
+            },
+            grid: grid(),
         }),
         Body::FrameFailed(FrameFailed {
             name: "a.png".to_string(),
@@ -430,6 +449,51 @@ fn array_sizes_are_checked_against_the_camera() {
     );
 }
 
+/// A hypothesis' grid samples are as many as its camera's grid has at its stride (none at
+/// stride 0), and read back as the core's samples.
+#[test]
+fn grid_samples_are_checked_against_the_camera_and_stride() {
+    let Body::Hypothesis(hypothesis) = every_kind().swap_remove(4) else {
+        panic!("the fifth example is the hypothesis with a pose");
+    };
+    let samples = hypothesis.grid_samples().unwrap();
+    assert_eq!((samples.width_px(), samples.height_px()), (4, 3));
+    assert_eq!(samples.stride_px(), 2);
+    assert_eq!(samples.face_index(), &[17, u32::MAX]);
+    assert_eq!(samples.depth_m(), &[41.5, 0.0]);
+    let decode_error = |hypothesis: Hypothesis<'static>| {
+        let bytes = encode(&Envelope {
+            header: header(),
+            body: Body::Hypothesis(hypothesis),
+        })
+        .unwrap()
+        .to_vec();
+        decode(&bytes).unwrap_err().to_string()
+    };
+    let mut one_short = hypothesis.clone();
+    one_short.grid.depth_m = Cow::Owned(vec![41.5]);
+    let error = decode_error(one_short);
+    assert!(
+        error.contains("'grid_depth_m' has 1 values, expected 2"),
+        "{error}"
+    );
+    let mut other_stride = hypothesis.clone();
+    other_stride.meta.grid_stride_px = 1;
+    let error = decode_error(other_stride);
+    assert!(
+        error.contains("'grid_face_index' has 2 values, expected 12"),
+        "{error}"
+    );
+    let mut no_stride = hypothesis;
+    no_stride.meta.grid_stride_px = 0;
+    assert!(no_stride.grid_samples().is_none());
+    let error = decode_error(no_stride);
+    assert!(
+        error.contains("'grid_face_index' has 2 values, expected 0"),
+        "{error}"
+    );
+}
+
 fn pose_result_example() -> PoseResult {
     every_kind()
         .into_iter()
@@ -460,7 +524,7 @@ fn pose_result_json_carries_header_and_result() {
 #[test]
 fn pose_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v7/pose_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v8/pose_result.schema.json")).unwrap();
     let keys = |value: &serde_json::Value| -> Vec<String> {
         let mut keys: Vec<String> = value.as_object().unwrap().keys().cloned().collect();
         keys.sort();
@@ -524,7 +588,7 @@ fn assert_matches_schema(json: &serde_json::Value, schema: &serde_json::Value) {
 #[test]
 fn change_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v7/change_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v8/change_result.schema.json")).unwrap();
     let json: serde_json::Value =
         serde_json::from_str(&change_result_json(&header(), &change_result_example())).unwrap();
     assert_eq!(json["schema_version"], SCHEMA_VERSION);
@@ -543,7 +607,7 @@ fn change_result_json_has_exactly_the_schema_properties() {
 #[test]
 fn change_set_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v7/change_set.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v8/change_set.schema.json")).unwrap();
     let set = every_kind()
         .into_iter()
         .find_map(|body| match body {

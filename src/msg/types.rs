@@ -14,6 +14,7 @@ use nalgebra::{Vector2, Vector3};
 
 use crate::core::frame::{CoarseOutcome, ViewCorrespondences, ViewRef};
 use crate::core::image::{ImageError, ImageView};
+use crate::core::reprojection::GridSamples;
 use crate::core::rigid::Rigid3;
 
 /// Bulk data of a message: borrowed from the received bytes when possible, owned otherwise.
@@ -87,7 +88,7 @@ pub enum Body<'a> {
     Frame(Frame<'a>),
     FlowJob(FlowJob<'a>),
     Correspondences(Correspondences<'a>),
-    Hypothesis(Hypothesis),
+    Hypothesis(Hypothesis<'a>),
     FrameFailed(FrameFailed),
     PoseResult(PoseResult),
     Credit(Credit),
@@ -312,7 +313,7 @@ pub struct NeighbourMeta {
 
 /// One frame's change detection (verify for a frame without a pose, change workers inside a
 /// [`ChangeSight`] → fusion → subscribers); also published as JSON
-/// (`schemas/v7/change_result.schema.json`).
+/// (`schemas/v8/change_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeResult {
     pub frame_id: u64,
@@ -332,7 +333,7 @@ pub struct ChangeResult {
 
 /// The changes of every frame so far fused into objects (fusion → subscribers); published now
 /// and then while frames arrive and once, `complete`, when every frame has its change result.
-/// Also published as JSON (`schemas/v7/change_set.schema.json`).
+/// Also published as JSON (`schemas/v8/change_set.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeSet {
     /// Whether every frame of the stream has its change result (the final set).
@@ -456,7 +457,8 @@ pub struct FlowJobMeta {
     pub render_ms: f64,
 }
 
-/// 2D–3D correspondences of one coarse pose (flow → pose).
+/// 2D–3D correspondences of one coarse pose (flow → pose), with the coarse view's rendering on
+/// δ's grid for verify's convergence test.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Correspondences<'a> {
     pub meta: CorrespondencesMeta,
@@ -464,16 +466,23 @@ pub struct Correspondences<'a> {
     pub image_points_px: Blob<'a, f64>,
     /// World points (x, y, z) in metres, interleaved.
     pub world_points_m: Blob<'a, f64>,
+    /// The coarse view's grid samples (stride `meta.grid_stride_px`); the pose stage passes them
+    /// on to verify with the hypothesis.
+    pub grid: GridArrays<'a>,
 }
 
 impl Correspondences<'_> {
-    /// The message of one view's correspondences.
+    /// The message of one view's correspondences; `meta.grid_stride_px` is set from `grid`.
     pub fn from_view(
-        meta: CorrespondencesMeta,
+        mut meta: CorrespondencesMeta,
         view: &ViewCorrespondences,
+        grid: Option<GridSamples>,
     ) -> Correspondences<'static> {
+        let (grid_stride_px, grid) = GridArrays::from_samples(grid);
+        meta.grid_stride_px = grid_stride_px;
         Correspondences {
             meta,
+            grid,
             image_points_px: Cow::Owned(
                 view.image_points_px
                     .iter()
@@ -518,11 +527,79 @@ pub struct CorrespondencesMeta {
     pub flow_ms: f64,
     /// Which flow worker made them (for the work-split report).
     pub flow_worker: u32,
+    /// The grid stride of `Correspondences::grid`, px; 0: no grid samples.
+    pub grid_stride_px: u32,
 }
 
-/// The refined pose of one coarse pose, or why there is none (pose → verify).
+/// A coarse view's rendering sampled on the grid of δ's visible points
+/// (`core::reprojection::GridSamples`, made by `core::frame::coarse_view_samples` in the flow
+/// stage, which has the view's rendering): flow → pose → verify, so that verify's convergence
+/// test has the coarse pose's visible points (`core::frame::coarse_points`) without rendering it
+/// again. Two arrays of `GridSamples::sample_count(camera size, stride)` values each, the stride
+/// in the message's meta; both empty (stride 0) when there are none (the views rendered with
+/// other options than δ's, or, from pose on, a coarse pose without a hypothesis).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GridArrays<'a> {
+    /// Rendered face per sample (u32::MAX where nothing was hit), row by row.
+    pub face_index: Blob<'a, u32>,
+    /// Rendered depth along the optical axis per sample, metres.
+    pub depth_m: Blob<'a, f32>,
+}
+
+impl GridArrays<'_> {
+    /// The arrays of `samples` and their stride (0 without samples).
+    pub fn from_samples(samples: Option<GridSamples>) -> (u32, GridArrays<'static>) {
+        let Some(samples) = samples else {
+            return (0, GridArrays::default());
+        };
+        let stride_px = u32::try_from(samples.stride_px()).unwrap_or(0);
+        let (face_index, depth_m) = samples.into_parts();
+        (
+            stride_px,
+            GridArrays {
+                face_index: Cow::Owned(face_index),
+                depth_m: Cow::Owned(depth_m),
+            },
+        )
+    }
+
+    /// The samples of a coarse view of `camera`'s size at `stride_px`; `None` without samples
+    /// (stride 0) or when their counts do not fit the grid (the decoder has checked them).
+    pub fn samples(&self, stride_px: u32, camera: &Camera) -> Option<GridSamples> {
+        if stride_px == 0 {
+            return None;
+        }
+        GridSamples::from_parts(
+            camera.width_px as usize,
+            camera.height_px as usize,
+            stride_px as usize,
+            self.face_index.to_vec(),
+            self.depth_m.to_vec(),
+        )
+        .ok()
+    }
+}
+
+/// The refined pose of one coarse pose, or why there is none (pose → verify), with its coarse
+/// view's grid samples when there is a pose.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Hypothesis<'a> {
+    pub meta: HypothesisMeta,
+    /// The coarse view's grid samples (stride `meta.grid_stride_px`) for verify's convergence
+    /// test; empty without a pose.
+    pub grid: GridArrays<'a>,
+}
+
+impl Hypothesis<'_> {
+    /// The coarse view's grid samples, when they came.
+    pub fn grid_samples(&self) -> Option<GridSamples> {
+        self.grid
+            .samples(self.meta.grid_stride_px, &self.meta.info.camera)
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Hypothesis {
+pub struct HypothesisMeta {
     pub info: FrameInfo,
     pub coarse_count: u32,
     pub outcome: CoarseOutcome,
@@ -530,6 +607,8 @@ pub struct Hypothesis {
     pub flow_ms: f64,
     pub pose_ms: f64,
     pub flow_worker: u32,
+    /// The grid stride of `Hypothesis::grid`, px; 0: no grid samples.
+    pub grid_stride_px: u32,
 }
 
 /// A frame that cannot be registered at all (bad input, model not visible, dropped by
@@ -638,7 +717,7 @@ pub struct StageTimesMs {
 }
 
 /// The one result of a frame (verify → subscribers); also published as JSON
-/// (`schemas/v7/pose_result.schema.json`).
+/// (`schemas/v8/pose_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseResult {
     pub frame_id: u64,

@@ -8,6 +8,7 @@ use serde::Serialize;
 
 use super::types::*;
 use super::SCHEMA_VERSION;
+use crate::core::reprojection::GridSamples;
 
 /// First bytes of every message.
 pub const MAGIC: [u8; 4] = *b"ASGR";
@@ -149,9 +150,17 @@ pub fn encode<'m>(message: &'m Envelope<'_>) -> Result<Encoded<'m>, EncodeError>
             vec![
                 bytemuck::cast_slice(&set.image_points_px),
                 bytemuck::cast_slice(&set.world_points_m),
+                bytemuck::cast_slice(&set.grid.face_index),
+                bytemuck::cast_slice(&set.grid.depth_m),
             ],
         ),
-        Body::Hypothesis(body) => (meta_bytes(kind, body)?, Vec::new()),
+        Body::Hypothesis(body) => (
+            meta_bytes(kind, &body.meta)?,
+            vec![
+                bytemuck::cast_slice(&body.grid.face_index),
+                bytemuck::cast_slice(&body.grid.depth_m),
+            ],
+        ),
         Body::FrameFailed(body) => (meta_bytes(kind, body)?, Vec::new()),
         Body::PoseResult(body) => (meta_bytes(kind, body)?, Vec::new()),
         Body::Credit(body) => (meta_bytes(kind, body)?, Vec::new()),
@@ -297,6 +306,28 @@ impl<'a> Reader<'a> {
         Ok(values)
     }
 
+    /// Arrays `first` and `first + 1`: a coarse view's grid samples at `stride_px` (face index,
+    /// depth), each of the grid's sample count for the frame's camera; both empty for stride 0.
+    fn grid(
+        &self,
+        first: usize,
+        info: &FrameInfo,
+        stride_px: u32,
+    ) -> Result<GridArrays<'a>, DecodeError> {
+        let len = match stride_px {
+            0 => 0,
+            stride_px => {
+                self.image_len(info)?;
+                let (width_px, height_px) = info.image_size();
+                GridSamples::sample_count(width_px, height_px, stride_px as usize)
+            }
+        };
+        Ok(GridArrays {
+            face_index: self.array(first, "grid_face_index", Some(len))?,
+            depth_m: self.array(first + 1, "grid_depth_m", Some(len))?,
+        })
+    }
+
     fn image_len(&self, info: &FrameInfo) -> Result<usize, DecodeError> {
         self.camera_len(&info.name, &info.camera)
     }
@@ -412,19 +443,23 @@ pub fn decode(bytes: &[u8]) -> Result<Envelope<'_>, DecodeError> {
             })
         }
         MessageKind::Correspondences => {
-            reader.expect_arrays(2)?;
+            reader.expect_arrays(4)?;
             let meta: CorrespondencesMeta = reader.meta()?;
             let world_points_m: Blob<f64> = reader.array(1, "world_points_m", None)?;
             let count = world_points_m.len() / 3;
+            let grid = reader.grid(2, &meta.info, meta.grid_stride_px)?;
             Body::Correspondences(Correspondences {
                 image_points_px: reader.array(0, "image_points_px", Some(2 * count))?,
                 world_points_m: reader.array(1, "world_points_m", Some(3 * count))?,
+                grid,
                 meta,
             })
         }
         MessageKind::Hypothesis => {
-            reader.expect_arrays(0)?;
-            Body::Hypothesis(reader.meta()?)
+            reader.expect_arrays(2)?;
+            let meta: HypothesisMeta = reader.meta()?;
+            let grid = reader.grid(0, &meta.info, meta.grid_stride_px)?;
+            Body::Hypothesis(Hypothesis { meta, grid })
         }
         MessageKind::FrameFailed => {
             reader.expect_arrays(0)?;

@@ -499,6 +499,51 @@ mod tests {
         assert_eq!(dispatcher.jobs_done().values().sum::<u64>(), 3);
     }
 
+    /// Work sharing without relying on the scheduler: a worker whose every slot holds an
+    /// unfinished job gets nothing more, so the other worker takes every job meanwhile, and the
+    /// busy one gets work again as soon as it finishes.
+    #[test]
+    fn while_one_worker_is_busy_the_other_takes_every_job() {
+        let transport = CrossbeamTransport::new(config("busy"));
+        let mut dispatcher =
+            Dispatcher::open(&transport, "link", 10, Duration::from_secs(600)).unwrap();
+        let mut busy = WorkerPort::open(&transport, "link", 0, 1, "test").unwrap();
+        let mut free = WorkerPort::open(&transport, "link", 1, 1, "test").unwrap();
+        let (key, bytes) = job(0);
+        dispatcher.push(key, bytes);
+        assert_eq!(next_job(&mut busy, &mut dispatcher), 0);
+        for frame_id in 1..5 {
+            let (key, bytes) = job(frame_id);
+            dispatcher.push(key, bytes);
+            assert_eq!(next_job(&mut free, &mut dispatcher), frame_id);
+            free.finished(JobKey {
+                frame_id,
+                coarse_index: 0,
+            })
+            .unwrap();
+        }
+        // The busy worker finishes; the next job may go to either, and one of them takes it.
+        busy.finished(JobKey {
+            frame_id: 0,
+            coarse_index: 0,
+        })
+        .unwrap();
+        let (key, bytes) = job(5);
+        dispatcher.push(key, bytes);
+        for _ in 0..100 {
+            dispatcher.pump(Duration::from_millis(5)).unwrap();
+            if dispatcher.queued() == 0 && dispatcher.outstanding() == 1 {
+                break;
+            }
+        }
+        assert_eq!((dispatcher.queued(), dispatcher.outstanding()), (0, 1));
+        assert_eq!(
+            dispatcher.jobs_done().into_iter().collect::<Vec<_>>(),
+            vec![(0, 1), (1, 4)]
+        );
+        assert_eq!(dispatcher.metrics.redispatched, 0);
+    }
+
     #[test]
     fn a_silent_workers_jobs_are_redone_elsewhere() {
         let transport = CrossbeamTransport::new(config("silence"));

@@ -1272,7 +1272,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                             capture_times
                                 .entry(frame_id)
                                 .or_insert(message.header.capture_time_ns);
-                            stage.on_hypothesis(frame_id, hypothesis);
+                            stage.on_hypothesis(frame_id, &hypothesis);
                         }
                         Body::FrameFailed(failure) => {
                             capture_times

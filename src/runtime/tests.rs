@@ -119,13 +119,18 @@ fn pipeline_gives_the_batch_results_exactly_once_per_frame() {
         mismatches.iter().any(|m| m.what == "no pipeline result"),
         "{mismatches:?}"
     );
-    // Both flow workers did some of the work.
-    let split: std::collections::BTreeSet<u32> = collected
-        .results
-        .iter()
-        .flat_map(|r| r.flow_workers.iter().copied())
-        .collect();
-    assert_eq!(split.len(), 2, "work split {split:?}");
+    // Every coarse pose was matched by one of the two flow workers. Which of them took how many
+    // is the scheduler's choice (under load one may take them all), so that both share the work
+    // is proven where it is deterministic: `runtime::dispatch`'s tests, where a worker without a
+    // free slot gets no job and the other gets them all.
+    for result in &collected.results {
+        assert!(
+            result.flow_workers.iter().all(|&worker| worker < 2),
+            "{}: {:?}",
+            result.name,
+            result.flow_workers
+        );
+    }
 }
 
 #[test]
@@ -482,6 +487,14 @@ fn flow_workers_describe_each_query_once_with_the_same_correspondences() {
         assert_eq!(cached.image_points_px, fresh.image_points_px);
         assert_eq!(cached.world_points_m, fresh.world_points_m);
         assert!(!cached.image_points_px.is_empty());
+        // With them go the view's samples on δ's grid, for verify's convergence test.
+        let (width_px, height_px) = job.meta.info.image_size();
+        assert_eq!(cached.meta.grid_stride_px, 4);
+        assert_eq!(
+            cached.grid.face_index.len(),
+            crate::core::reprojection::GridSamples::sample_count(width_px, height_px, 4)
+        );
+        assert_eq!(cached.grid, fresh.grid);
     }
     assert_eq!(caching.feature_cache_hits as usize, jobs.len() - 1);
 }

@@ -7,8 +7,8 @@ use std::time::Instant;
 
 use crate::core::flow_consistency::QueryFeatures;
 use crate::core::frame::{
-    correspond_view, query_features, CorrespondWorkspace, RegistrationConfig, RegistrationError,
-    ViewCorrespondences,
+    coarse_view_samples, correspond_view, query_features, CorrespondWorkspace, RegistrationConfig,
+    RegistrationError, ViewCorrespondences,
 };
 use crate::core::mesh::Mesh;
 use crate::msg::{Correspondences, CorrespondencesMeta, FlowJob};
@@ -52,10 +52,16 @@ impl<'m> FlowStage<'m> {
     }
 
     /// The job's correspondences; a flow error leaves them empty (the pose stage then reports
-    /// too few correspondences for this coarse pose), with the error logged.
+    /// too few correspondences for this coarse pose), with the error logged. With them go the
+    /// view's grid samples (`core::frame::coarse_view_samples`), which verify's convergence test
+    /// reads instead of rendering the coarse pose again.
     pub fn process(&mut self, frame_id: u64, job: &FlowJob) -> Correspondences<'static> {
         let started = Instant::now();
         let meta = &job.meta;
+        let grid = job
+            .view()
+            .ok()
+            .and_then(|view| coarse_view_samples(&view, &self.config));
         let correspondences = self.correspond(frame_id, job).unwrap_or_else(|error| {
             tracing::warn!(
                 "frame '{}' coarse pose {}: {error}",
@@ -77,8 +83,10 @@ impl<'m> FlowStage<'m> {
                 render_ms: meta.render_ms,
                 flow_ms: elapsed_ms(started),
                 flow_worker: self.worker_index,
+                grid_stride_px: 0,
             },
             &correspondences,
+            grid,
         )
     }
 

@@ -4,7 +4,7 @@
 use std::time::Instant;
 
 use crate::core::frame::{solve_view, IntrinsicsMode, RegistrationConfig};
-use crate::msg::{Correspondences, Hypothesis};
+use crate::msg::{Correspondences, GridArrays, Hypothesis, HypothesisMeta};
 
 use super::elapsed_ms;
 use super::simulate::{spend_ms, SimulatedWork};
@@ -30,7 +30,10 @@ impl PoseStage {
         self
     }
 
-    pub fn process(&mut self, set: &Correspondences) -> Hypothesis {
+    /// The coarse pose's hypothesis; the view's grid samples go on with it to verify when it
+    /// has a pose (the convergence test reads only those; in a simulated run always, so that
+    /// the messages keep their size).
+    pub fn process<'a>(&mut self, set: &Correspondences<'a>) -> Hypothesis<'a> {
         let started = Instant::now();
         let meta = &set.meta;
         if let Some(work) = self.simulated {
@@ -43,14 +46,23 @@ impl PoseStage {
             &self.config,
             meta.info.seed,
         );
+        let (grid_stride_px, grid) = if outcome.hypothesis.is_ok() || self.simulated.is_some() {
+            (meta.grid_stride_px, set.grid.clone())
+        } else {
+            (0, GridArrays::default())
+        };
         Hypothesis {
-            info: meta.info.clone(),
-            coarse_count: meta.coarse_count,
-            outcome,
-            render_ms: meta.render_ms,
-            flow_ms: meta.flow_ms,
-            pose_ms: elapsed_ms(started),
-            flow_worker: meta.flow_worker,
+            meta: HypothesisMeta {
+                info: meta.info.clone(),
+                coarse_count: meta.coarse_count,
+                outcome,
+                render_ms: meta.render_ms,
+                flow_ms: meta.flow_ms,
+                pose_ms: elapsed_ms(started),
+                flow_worker: meta.flow_worker,
+                grid_stride_px,
+            },
+            grid,
         }
     }
 }

@@ -12,14 +12,16 @@ use crate::core::camera::Camera;
 use crate::core::change::pose_sigma_px_of_registration;
 use crate::core::change::stereo::{neighbour_candidates, NeighbourConfig, PosedCamera};
 use crate::core::frame::{
-    decide_frame, CoarseOutcome, Decision, IntrinsicsMode, RefineWorkspace, RegistrationConfig,
+    coarse_points, decide_frame_and_centres, CoarseOutcome, Decision, IntrinsicsMode,
+    RefineWorkspace, RegistrationConfig,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
+use crate::core::reprojection::GridSamples;
 use crate::msg::{
     CameraNumbers, ChangeJob, ChangeJobMeta, ChangeResult, Evidence, FrameFailed, FrameInfo,
-    FrameQuery, Hypothesis, NeighbourMeta, PoseNumbers, PoseResult, RefinementNumbers,
-    StageTimesMs,
+    FrameQuery, Hypothesis, HypothesisMeta, NeighbourMeta, PoseNumbers, PoseResult,
+    RefinementNumbers, StageTimesMs,
 };
 
 use super::change::not_registered;
@@ -72,7 +74,10 @@ struct PendingFrame {
     intrinsics: IntrinsicsMode,
     /// Known from the first hypothesis.
     coarse_count: Option<u32>,
-    hypotheses: BTreeMap<u32, Hypothesis>,
+    hypotheses: BTreeMap<u32, HypothesisMeta>,
+    /// The coarse views' grid samples that came with the hypotheses (those with a pose), by
+    /// coarse index: the convergence test's coarse poses, not rendered again.
+    grids: BTreeMap<u32, GridSamples>,
     /// The frame's query gradient image (render sends it before the flow jobs).
     query: Option<Image<f32>>,
     /// The photo's depth map (render sends it with the query), for the change stage.
@@ -91,6 +96,7 @@ impl PendingFrame {
             intrinsics: IntrinsicsMode::from_known(info.intrinsics_known),
             coarse_count: None,
             hypotheses: BTreeMap::new(),
+            grids: BTreeMap::new(),
             query: None,
             depth_m: None,
             photo: None,
@@ -157,8 +163,10 @@ impl ReadyFrame {
         self.frame_id
     }
 
-    /// The frame's decision (`core::frame::decide_frame`); needs no stage state, so any thread
-    /// with the mesh and a workspace can run it.
+    /// The frame's decision (`core::frame::decide_frame_and_centres`, with the coarse poses'
+    /// visible points made from the grid samples that came with the hypotheses, so none is
+    /// rendered again); needs no stage state, so any thread with the mesh and a workspace can
+    /// run it.
     pub fn decide(
         self,
         mesh: &Mesh,
@@ -179,7 +187,19 @@ impl ReadyFrame {
             .values()
             .map(|h| h.outcome.clone())
             .collect();
-        let decision = decide_frame(
+        // The coarse poses' visible points from the flow stage's samples of their views, as
+        // one process makes them from its own views (`core::frame::register_frame`).
+        let samples: Vec<_> = frame
+            .hypotheses
+            .iter()
+            .filter_map(|(coarse_index, h)| {
+                let coarse_cam_from_world =
+                    h.outcome.hypothesis.as_ref().ok()?.coarse_cam_from_world;
+                Some((coarse_cam_from_world, frame.grids.get(coarse_index)?))
+            })
+            .collect();
+        let coarse_points = coarse_points(mesh, &frame.camera, &samples);
+        let (decision, _) = decide_frame_and_centres(
             mesh,
             &frame.camera,
             &outcomes,
@@ -187,6 +207,8 @@ impl ReadyFrame {
             frame.intrinsics,
             config,
             workspace,
+            false,
+            &coarse_points,
         );
         DecidedFrame {
             frame_id,
@@ -479,20 +501,25 @@ impl<'m> VerifyStage<'m> {
 
     /// One coarse pose's hypothesis; the frame waits in [`VerifyStage::take_ready`] when it was
     /// the last thing missing.
-    pub fn on_hypothesis(&mut self, frame_id: u64, hypothesis: Hypothesis) {
+    pub fn on_hypothesis(&mut self, frame_id: u64, hypothesis: &Hypothesis) {
         if self.is_taken(frame_id) {
             self.late_messages += 1;
             return;
         }
-        let coarse_index = hypothesis.outcome.coarse_index as u32;
+        let meta = &hypothesis.meta;
+        let coarse_index = meta.outcome.coarse_index as u32;
         let pending = self
             .pending
             .entry(frame_id)
-            .or_insert_with(|| PendingFrame::new(&hypothesis.info));
-        pending.coarse_count = Some(hypothesis.coarse_count);
+            .or_insert_with(|| PendingFrame::new(&meta.info));
+        pending.coarse_count = Some(meta.coarse_count);
+        match hypothesis.grid_samples() {
+            Some(grid) => pending.grids.insert(coarse_index, grid),
+            None => pending.grids.remove(&coarse_index),
+        };
         if pending
             .hypotheses
-            .insert(coarse_index, hypothesis)
+            .insert(coarse_index, meta.clone())
             .is_some()
         {
             self.late_messages += 1;

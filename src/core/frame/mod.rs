@@ -62,7 +62,9 @@ use super::confidence::FrameEvidence;
 use super::image::{Image, ImageView};
 use super::mesh::Mesh;
 use super::raster::{Rasterizer, RenderBuffers};
-use super::reprojection::{visible_points_from_render, ReprojectionOptions, VisiblePoints};
+use super::reprojection::{
+    visible_points_from_samples, GridSamples, ReprojectionOptions, VisiblePoints,
+};
 use super::rigid::Rigid3;
 use super::verify::{PoseHypothesis, Verdict};
 
@@ -201,6 +203,43 @@ fn frame_rng(seed: u64, stream: u64) -> ChaCha8Rng {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(stream);
     rng
+}
+
+/// A coarse view's rendering sampled on the grid of δ's visible points
+/// ([`GridSamples`]): what the convergence test needs of the view to know its coarse pose's
+/// visible points without rendering it again ([`coarse_points`]). `None` when the views are
+/// rendered with other options than δ renders with (the test then renders the coarse pose).
+/// One process samples its own views; in the pipeline the flow stage samples its job's view and
+/// the samples travel with the correspondences and the hypothesis to verify.
+pub fn coarse_view_samples(view: &ViewRef<'_>, config: &RegistrationConfig) -> Option<GridSamples> {
+    let reprojection = ReprojectionOptions::default();
+    if config.render != reprojection.render_options {
+        return None;
+    }
+    GridSamples::from_render(
+        view.depth_m(),
+        view.face_index(),
+        reprojection.grid_stride_px,
+    )
+}
+
+/// The coarse poses' visible points from their views' samples ([`coarse_view_samples`]), each
+/// with its coarse pose, for [`decide_frame_and_centres`]' `coarse_points`: the very sets a
+/// rendering of each coarse pose would give. Samples of another grid stride or size than δ's
+/// under `camera` are left out (the test then renders that coarse pose).
+pub fn coarse_points(
+    mesh: &Mesh,
+    camera: &Camera,
+    samples: &[(Rigid3, &GridSamples)],
+) -> Vec<VisiblePoints> {
+    let stride_px = ReprojectionOptions::default().grid_stride_px;
+    samples
+        .par_iter()
+        .filter(|(_, samples)| samples.stride_px() == stride_px)
+        .filter_map(|(cam_from_world, samples)| {
+            visible_points_from_samples(mesh, camera, cam_from_world, samples)
+        })
+        .collect()
 }
 
 /// Registers one frame: the steps of the sequence above, in one process.
@@ -347,25 +386,17 @@ fn register_region(
 
     let stage = Instant::now();
     // The convergence test's coarse poses are these views: their visible points come from the
-    // views' own renderings (when those were made with the options δ renders with) instead of
-    // rendering the coarse poses again.
-    let reprojection = ReprojectionOptions::default();
-    let coarse_points: Vec<VisiblePoints> = if config.render == reprojection.render_options {
-        views
-            .par_iter()
-            .filter_map(|view| {
-                visible_points_from_render(
-                    mesh,
-                    camera,
-                    &view.cam_from_world,
-                    &view.render,
-                    &reprojection,
-                )
-            })
-            .collect()
-    } else {
-        Vec::new()
-    };
+    // views' own renderings (sampled as the pipeline's flow stage samples them for verify)
+    // instead of rendering the coarse poses again.
+    let samples: Vec<(Rigid3, GridSamples)> = views
+        .par_iter()
+        .filter_map(|view| {
+            let samples = coarse_view_samples(&view.as_ref().ok()?, config)?;
+            Some((view.cam_from_world, samples))
+        })
+        .collect();
+    let samples: Vec<(Rigid3, &GridSamples)> = samples.iter().map(|(p, s)| (*p, s)).collect();
+    let coarse_points = coarse_points(mesh, camera, &samples);
     drop(views);
     let (
         Decision {
