@@ -743,30 +743,44 @@ mod tests {
         );
     }
 
-    /// The near certification along the least seen direction: the truth, agreed on by every
-    /// refined pose, is accepted; asked for more drop of its support 3 px (δ) along the direction
-    /// its edges see least than it shows, it is rejected as not fixed by its edges, and the
-    /// reason carries the drop and the minimum.
-    #[test]
-    fn a_pose_its_edges_do_not_fix_to_a_few_pixels_along_their_least_seen_direction_is_rejected() {
+    /// The truth, agreed on by every refined pose, decided with the default settings (it must be
+    /// accepted), then again with the confidence settings `stricter` makes from that decision's
+    /// evidence: the evidence and the second decision.
+    fn accepted_truth_decided_again(
+        stricter: impl FnOnce(&FrameEvidence, ConfidenceConfig) -> ConfidenceConfig,
+    ) -> (FrameEvidence, Decision) {
         let config = RegistrationConfig::default();
         let house = OnTheTruth::new(&config);
-        let (camera, truth) = (house.camera, house.truth);
         let mut workspace = RefineWorkspace::default();
-        let outcomes = agreeing_outcomes(&camera, &truth);
+        let outcomes = agreeing_outcomes(&house.camera, &house.truth);
         let decision = house.decide(&outcomes, &config, &mut workspace);
         assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
-        let peak = decision.evidence.edges.expect("edge evidence on the truth");
-        let drop = peak.least_seen_near_drop();
-        assert!(drop > 0.0 && drop < 0.99, "{drop} {peak:?}");
         let strict = RegistrationConfig {
-            confidence: ConfidenceConfig {
-                min_least_seen_near_drop: drop + 0.01,
-                ..config.confidence
-            },
+            confidence: stricter(&decision.evidence, config.confidence.clone()),
             ..config.clone()
         };
-        let decision = house.decide(&outcomes, &strict, &mut workspace);
+        let again = house.decide(&outcomes, &strict, &mut workspace);
+        (decision.evidence, again)
+    }
+
+    /// The near certification along the least seen direction: asked for more drop of its
+    /// support 3 px (δ) along the direction its edges see least than it shows, the accepted
+    /// truth is rejected as not fixed by its edges, and the reason carries the drop and the
+    /// minimum.
+    #[test]
+    fn a_pose_its_edges_do_not_fix_to_a_few_pixels_along_their_least_seen_direction_is_rejected() {
+        let (evidence, decision) = accepted_truth_decided_again(|evidence, confidence| {
+            let drop = evidence
+                .edges
+                .map_or(0.0, |peak| peak.least_seen_near_drop());
+            ConfidenceConfig {
+                min_least_seen_near_drop: (drop + 0.01).min(1.0),
+                ..confidence
+            }
+        });
+        let peak = evidence.edges.expect("edge evidence on the truth");
+        let drop = peak.least_seen_near_drop();
+        assert!(drop > 0.0 && drop < 0.99, "{drop} {peak:?}");
         match decision.verdict.rejection() {
             Some(RejectionReason::Unconstrained {
                 least_seen_near_drop,
@@ -780,30 +794,19 @@ mod tests {
         }
     }
 
-    /// The photo's margin asked of every accept: the truth, agreed on by every refined pose, is
-    /// accepted; asked for a larger excess of edge support over chance than it has, the same
-    /// agreement no longer confirms it (the flow's agreement alone never does), and the reason
-    /// says so with the minimum.
+    /// The photo's margin asked of every accept: asked for a larger excess of edge support over
+    /// chance than it has, the same agreement no longer confirms the truth (the flow's agreement
+    /// alone never does), and the reason says so with the minimum.
     #[test]
     fn an_agreed_pose_whose_edges_barely_exceed_chance_is_not_confirmed() {
-        let config = RegistrationConfig::default();
-        let house = OnTheTruth::new(&config);
-        let (camera, truth) = (house.camera, house.truth);
-        let mut workspace = RefineWorkspace::default();
-        let outcomes = agreeing_outcomes(&camera, &truth);
-        let decision = house.decide(&outcomes, &config, &mut workspace);
-        assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
-        let margin = decision.evidence.edge_support_above_chance();
+        let (evidence, decision) =
+            accepted_truth_decided_again(|evidence, confidence| ConfidenceConfig {
+                min_support_above_chance: (evidence.edge_support_above_chance() + 0.01).min(1.0),
+                ..confidence
+            });
+        let margin = evidence.edge_support_above_chance();
         assert!(margin > 0.0 && margin < 0.99, "{margin}");
-        let strict = RegistrationConfig {
-            confidence: ConfidenceConfig {
-                min_support_above_chance: margin + 0.01,
-                ..config.confidence
-            },
-            ..config.clone()
-        };
-        let decision = house.decide(&outcomes, &strict, &mut workspace);
-        assert!(decision.verdict.confidence >= config.confidence.accept_above);
+        assert!(decision.verdict.confidence >= ConfidenceConfig::default().accept_above);
         match decision.verdict.rejection() {
             Some(
                 reason @ RejectionReason::NotConfirmed {
