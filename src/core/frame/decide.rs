@@ -387,10 +387,12 @@ pub(super) fn reject(verdict: &mut Verdict, reason: RejectionReason) {
 
 /// The accept decision on the calibrated confidence (issue #11 item 4): the verdict's confidence
 /// becomes the model's probability that the output pose is correct, and the frame is accepted
-/// exactly when it reaches the threshold and the supporting edges fix the pose (their image
-/// uncertainty is within `max_image_uncertainty_px`, the visible model's within
-/// `max_delta_uncertainty_px`). A pose the refined poses agreed on but the
-/// photo's edges do not confirm is rejected ([`RejectionReason::NotConfirmed`]), one they
+/// exactly when it reaches the threshold, its edge support exceeds chance by
+/// `min_support_above_chance` whatever the agreement, and the supporting edges fix the pose
+/// (their image uncertainty is within `max_image_uncertainty_px`, the visible model's within
+/// `max_delta_uncertainty_px`, and the support drops along the direction they see least by
+/// `min_least_seen_drop` at 12 px and `min_least_seen_near_drop` at 3 px). A pose the refined
+/// poses agreed on but the photo's edges do not confirm is rejected ([`RejectionReason::NotConfirmed`]), one they
 /// confirm without fixing it too ([`RejectionReason::Unconstrained`]); a pose the photo
 /// confirms is accepted even when the agreement test failed (its reason is then moot), unless
 /// most of the frame's refined poses lie outside its agreeing group
