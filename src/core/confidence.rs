@@ -230,8 +230,9 @@ pub struct ConfidenceConfig {
     /// barely above chance. Default 0.23, the middle of the gap read (twenty-sixth session,
     /// docs/measurements.md) over 20 cells' 260 accepts (LoD and degraded models, blocks and
     /// houses, the change-detection block s2): the ten accepts below 0.213 were 3.2–16.2 px off
-    /// (nine beyond 5 px: the block s2 frames 7–16 px off that cost change detection its
-    /// precision), the first good one (≤ 2 px) at 0.246. Validated on runs it was not read
+    /// (nine beyond 5 px, among them the change scene block s2's view_005, 16 px off, one of
+    /// the two frames behind the twenty-fourth session's false `removed` object), the first
+    /// good one (≤ 2 px) at 0.246. Validated on runs it was not read
     /// from (degraded houses s4 and s6 and block s2 at 30 px, the change scene block s1): 48 →
     /// 40 accepts, mean δ 2.45 → 1.28 px, the eight it removes 4.6–16.1 px off.
     pub min_support_above_chance: f64,
