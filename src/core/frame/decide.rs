@@ -758,7 +758,7 @@ mod tests {
         let decision = house.decide(&outcomes, &config, &mut workspace);
         assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
         let strict = RegistrationConfig {
-            confidence: stricter(&decision.evidence, config.confidence.clone()),
+            confidence: stricter(&decision.evidence, config.confidence),
             ..config.clone()
         };
         let again = house.decide(&outcomes, &strict, &mut workspace);
