@@ -35,6 +35,7 @@ use crate::core::edge_align::{
     EdgeEvidence, EdgeKind, EdgeSample, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
+use crate::core::frame::refine::{aligned_parameters, short_schedule_config};
 use crate::core::frame::search::{
     beams_of, grid_score_at, screen_candidates, screen_grid, search_pose, PoseSearchOutcome,
     ScreenedGrid, SearchGrid,
@@ -123,8 +124,9 @@ pub struct StartEnd {
     pub support: f64,
     /// The dense correlation at the end.
     pub correlation: Option<f64>,
-    /// The ends of the frame's views grouped: the index of the first end (in view order) within
-    /// the alignment's final search radius (δ) of this one, and how many ends that group has.
+    /// The ends of the frame's views grouped: the index, among the frame's ends in view order,
+    /// of the first end within the alignment's final search radius (δ) of this one, and how
+    /// many ends that group has.
     pub group: usize,
     pub group_size: usize,
     /// δ(end, the frame's output), px.
@@ -854,11 +856,7 @@ fn diagnose_region(
     // no pose error is left to bridge, and where solving from there ends.
     let (at_truth, _) = diagnose_view(&truth_view)?;
     let mut refine_workspace = RefineWorkspace::default();
-    if let Some(short) = config.edge_align.short_schedule() {
-        let short_config = RegistrationConfig {
-            edge_align: short,
-            ..config.clone()
-        };
+    if let Some(short_config) = short_schedule_config(config) {
         for (diagnosis, outcome) in diagnoses.iter_mut().zip(&outcomes) {
             let Ok(start) = outcome.hypothesis.as_ref() else {
                 continue;
@@ -868,7 +866,7 @@ fn diagnose_region(
                 &start.camera,
                 query,
                 &start.cam_from_world,
-                AlignedParameters::Pose,
+                aligned_parameters(intrinsics),
                 &short_config,
                 &mut refine_workspace,
             )
@@ -1215,6 +1213,28 @@ fn diagnose_region(
     })
 }
 
+/// The model rendered at `pose` (camera and pose) into `view`, and its edge samples lifted into
+/// `samples`: what the diagnosis's own renderings of a pose start from.
+fn render_samples(
+    mesh: &Mesh,
+    pose: (&Camera, &Rigid3),
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+    view: &mut CoarseView,
+    samples: &mut Vec<EdgeSample>,
+) {
+    let (camera, cam_from_world) = pose;
+    render_coarse_view(mesh, camera, 0, cam_from_world, config, rasterizer, view);
+    model_edge_samples(
+        view.asg.view(),
+        &view.render,
+        camera,
+        cam_from_world,
+        &config.edge_align,
+        samples,
+    );
+}
+
 /// [`TruthAlongSeen`] of the frame's `output` pose against `truth` (each camera and pose).
 fn truth_along_seen(
     mesh: &Mesh,
@@ -1228,14 +1248,13 @@ fn truth_along_seen(
     let (camera, pose) = output;
     let align = &config.edge_align;
     let mut view = CoarseView::default();
-    render_coarse_view(mesh, camera, 0, pose, config, rasterizer, &mut view);
     let mut samples = Vec::new();
-    model_edge_samples(
-        view.asg.view(),
-        &view.render,
-        camera,
-        pose,
-        align,
+    render_samples(
+        mesh,
+        (camera, pose),
+        config,
+        rasterizer,
+        &mut view,
         &mut samples,
     );
     let metric = image_motion_metric(&view.render, camera, MOTION_METRIC_STRIDE_PX)?;
@@ -1330,21 +1349,12 @@ fn support_by_kind(
     let mut view = CoarseView::default();
     let mut samples = Vec::new();
     let mut rendered_shares = |camera: &Camera, cam_from_world: &Rigid3| {
-        render_coarse_view(
+        render_samples(
             mesh,
-            camera,
-            0,
-            cam_from_world,
+            (camera, cam_from_world),
             config,
             rasterizer,
             &mut view,
-        );
-        model_edge_samples(
-            view.asg.view(),
-            &view.render,
-            camera,
-            cam_from_world,
-            &config.edge_align,
             &mut samples,
         );
         shares(&samples, camera, cam_from_world)

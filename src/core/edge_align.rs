@@ -942,20 +942,22 @@ impl SupportPeak {
     /// direction moves the model by the far ring's shift: 1 when the support there is at
     /// chance, 0 (or less) when it is as high as at the pose. 0 without support above chance.
     pub fn least_seen_drop(&self) -> f64 {
-        let above_chance = self.at_pose - self.far;
-        if above_chance <= 0.0 {
-            return 0.0;
-        }
-        (self.at_pose - self.least_seen_far) / above_chance
+        self.drop_to(self.least_seen_far)
     }
 
     /// [`Self::least_seen_drop`] at the near ring's shift (`least_seen_near`).
     pub fn least_seen_near_drop(&self) -> f64 {
+        self.drop_to(self.least_seen_near)
+    }
+
+    /// The share of the support above chance lost where the support is `moved`; 0 without
+    /// support above chance.
+    fn drop_to(&self, moved: f64) -> f64 {
         let above_chance = self.at_pose - self.far;
         if above_chance <= 0.0 {
             return 0.0;
         }
-        (self.at_pose - self.least_seen_near) / above_chance
+        (self.at_pose - moved) / above_chance
     }
 }
 

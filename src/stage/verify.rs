@@ -12,8 +12,8 @@ use crate::core::camera::Camera;
 use crate::core::change::pose_sigma_px_of_registration;
 use crate::core::change::stereo::{neighbour_candidates, NeighbourConfig, PosedCamera};
 use crate::core::frame::{
-    coarse_points, decide_frame_and_centres, CoarseOutcome, Decision, IntrinsicsMode,
-    RefineWorkspace, RegistrationConfig,
+    coarse_points, decide_frame, CoarseOutcome, Decision, IntrinsicsMode, RefineWorkspace,
+    RegistrationConfig,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
@@ -163,7 +163,7 @@ impl ReadyFrame {
         self.frame_id
     }
 
-    /// The frame's decision (`core::frame::decide_frame_and_centres`, with the coarse poses'
+    /// The frame's decision (`core::frame::decide_frame`, with the coarse poses'
     /// visible points made from the grid samples that came with the hypotheses, so none is
     /// rendered again); needs no stage state, so any thread with the mesh and a workspace can
     /// run it.
@@ -199,7 +199,7 @@ impl ReadyFrame {
             })
             .collect();
         let coarse_points = coarse_points(mesh, &frame.camera, &samples);
-        let (decision, _) = decide_frame_and_centres(
+        let decision = decide_frame(
             mesh,
             &frame.camera,
             &outcomes,
@@ -207,7 +207,6 @@ impl ReadyFrame {
             frame.intrinsics,
             config,
             workspace,
-            false,
             &coarse_points,
         );
         DecidedFrame {

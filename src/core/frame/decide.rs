@@ -45,6 +45,12 @@ pub struct Decision {
 /// ([`super::render_views`]); each group is decided on its own (the paper's check, the refinement,
 /// the calibrated confidence), and then the groups against each other
 /// ([`choose_among_centres`]).
+///
+/// `coarse_points`: the coarse poses' visible points where they are at hand
+/// ([`super::coarse_points`], from the coarse views' grid samples: in one process from its own
+/// views, in the pipeline from the samples that came with the hypotheses): the same decision,
+/// without rendering those coarse poses again for the convergence test (empty: rendered).
+#[allow(clippy::too_many_arguments)]
 pub fn decide_frame(
     mesh: &Mesh,
     camera: &Camera,
@@ -53,6 +59,7 @@ pub fn decide_frame(
     intrinsics: IntrinsicsMode,
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
+    coarse_points: &[VisiblePoints],
 ) -> Decision {
     decide_frame_and_centres(
         mesh,
@@ -63,16 +70,13 @@ pub fn decide_frame(
         config,
         workspace,
         false,
-        &[],
+        coarse_points,
     )
     .0
 }
 
 /// [`decide_frame`], and with `keep_centres` also each centre's own decision before the choice
 /// among them, in the search's order of centres (for the diagnosis; empty otherwise).
-/// `coarse_points`: the coarse poses' visible points where they are at hand (made from the coarse
-/// views' own renderings in one process, [`crate::core::reprojection::visible_points_from_render`]):
-/// the same decision, without rendering those coarse poses again for the convergence test.
 #[allow(clippy::too_many_arguments)]
 pub fn decide_frame_and_centres(
     mesh: &Mesh,
@@ -533,6 +537,7 @@ mod tests {
                 IntrinsicsMode::Known,
                 config,
                 workspace,
+                &[],
             )
         }
     }
@@ -851,6 +856,7 @@ mod tests {
                 IntrinsicsMode::Known,
                 &config,
                 &mut workspace,
+                &[],
             );
             let chosen = decision
                 .verdict
@@ -876,6 +882,7 @@ mod tests {
             IntrinsicsMode::Known,
             &config,
             &mut workspace,
+            &[],
         );
         assert!(
             matches!(
@@ -926,6 +933,7 @@ mod tests {
                 IntrinsicsMode::Known,
                 config,
                 &mut workspace,
+                &[],
             )
         };
         let decision = decide(&config);

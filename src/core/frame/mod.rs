@@ -224,7 +224,7 @@ pub fn coarse_view_samples(view: &ViewRef<'_>, config: &RegistrationConfig) -> O
 }
 
 /// The coarse poses' visible points from their views' samples ([`coarse_view_samples`]), each
-/// with its coarse pose, for [`decide_frame_and_centres`]' `coarse_points`: the very sets a
+/// with its coarse pose, for [`decide_frame`]'s `coarse_points`: the very sets a
 /// rendering of each coarse pose would give. Samples of another grid stride or size than δ's
 /// under `camera` are left out (the test then renders that coarse pose).
 pub fn coarse_points(
@@ -398,16 +398,13 @@ fn register_region(
     let samples: Vec<(Rigid3, &GridSamples)> = samples.iter().map(|(p, s)| (*p, s)).collect();
     let coarse_points = coarse_points(mesh, camera, &samples);
     drop(views);
-    let (
-        Decision {
-            verdict,
-            refinement,
-            evidence,
-            refine_cpu_ms,
-            ..
-        },
-        _,
-    ) = decide_frame_and_centres(
+    let Decision {
+        verdict,
+        refinement,
+        evidence,
+        refine_cpu_ms,
+        ..
+    } = decide_frame(
         mesh,
         camera,
         &outcomes,
@@ -415,7 +412,6 @@ fn register_region(
         intrinsics,
         config,
         &mut RefineWorkspace::default(),
-        false,
         &coarse_points,
     );
     timings.verify_ms = elapsed_ms(stage);

@@ -337,7 +337,7 @@ pub fn rival_basin(ends: &[RivalEnd], min_apart_px: f64) -> Option<&RivalEnd> {
 }
 
 /// What the alignment estimates: the pose, and the focal length when the intrinsics are unknown.
-fn aligned_parameters(intrinsics: IntrinsicsMode) -> AlignedParameters {
+pub(crate) fn aligned_parameters(intrinsics: IntrinsicsMode) -> AlignedParameters {
     match intrinsics {
         IntrinsicsMode::Known => AlignedParameters::Pose,
         IntrinsicsMode::Unknown => AlignedParameters::PoseAndFocal,
@@ -397,7 +397,7 @@ fn aligned_from_start(
 }
 
 /// `config` with the short schedule as its alignment; `None` without a short schedule.
-fn short_schedule_config(config: &RegistrationConfig) -> Option<RegistrationConfig> {
+pub(crate) fn short_schedule_config(config: &RegistrationConfig) -> Option<RegistrationConfig> {
     config
         .edge_align
         .short_schedule()
