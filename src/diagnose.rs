@@ -51,6 +51,7 @@ use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::pose_search::{select_beams, OrientedEdgeMap};
 use crate::core::raster::{Rasterizer, RenderBuffers};
+use crate::core::region_contrast::{region_contrast, RegionContrastWorkspace};
 use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
 use crate::core::verify::Verdict;
@@ -124,6 +125,9 @@ pub struct StartEnd {
     pub support: f64,
     /// The dense correlation at the end.
     pub correlation: Option<f64>,
+    /// The region contrast at the end ([`crate::core::region_contrast`]), at each of
+    /// [`REGION_BANDS_PX`] (`None` without the photo).
+    pub region_contrast: [Option<f64>; 2],
     /// The ends of the frame's views grouped: the index, among the frame's ends in view order,
     /// of the first end within the alignment's final search radius (δ) of this one, and how
     /// many ends that group has.
@@ -200,6 +204,26 @@ pub struct FrameDiagnosis {
     /// without re-rendering, say of the poses along the two least seen (`None` without an
     /// output pose or when the model's metric cannot be factorised).
     pub truth_along_seen: Option<TruthAlongSeen>,
+    /// The region contrast ([`crate::core::region_contrast`]) at the truth and at the output
+    /// pose, at each of [`REGION_BANDS_PX`] (`None` without the photo or an output).
+    pub truth_region_contrast: [Option<f64>; 2],
+    pub output_region_contrast: [Option<f64>; 2],
+}
+
+/// The bands around the facing groups' borders the region contrast is measured over, px.
+pub const REGION_BANDS_PX: [usize; 2] = [6, 12];
+
+/// The region contrast of `photo` against a rendering's `face_index` at each of
+/// [`REGION_BANDS_PX`].
+fn region_contrasts(
+    photo: Option<ImageView<'_, f32>>,
+    face_index: ImageView<'_, u32>,
+    mesh: &Mesh,
+    workspace: &mut RegionContrastWorkspace,
+) -> [Option<f64>; 2] {
+    REGION_BANDS_PX.map(|band_px| {
+        photo.and_then(|photo| region_contrast(photo, face_index, mesh, band_px, workspace))
+    })
 }
 
 /// The step from the output pose to the truth in the output's seen directions, and a grid of
@@ -709,6 +733,7 @@ pub fn diagnose_frame(
         input.intrinsics,
         &input.initial_cam_from_world,
         query.view(),
+        Some(input.photo),
         truth,
         config,
         input.seed,
@@ -725,6 +750,7 @@ pub fn diagnose_query(
     intrinsics: IntrinsicsMode,
     initial_cam_from_world: &Rigid3,
     query: ImageView<'_, f32>,
+    photo: Option<ImageView<'_, f32>>,
     truth: &Rigid3,
     config: &RegistrationConfig,
     seed: u64,
@@ -736,6 +762,7 @@ pub fn diagnose_query(
             intrinsics,
             initial_cam_from_world,
             query,
+            photo,
             truth,
             config,
             seed,
@@ -771,10 +798,13 @@ fn diagnose_region(
     intrinsics: IntrinsicsMode,
     initial_cam_from_world: &Rigid3,
     query: ImageView<'_, f32>,
+    photo: Option<ImageView<'_, f32>>,
     truth: &Rigid3,
     config: &RegistrationConfig,
     seed: u64,
 ) -> Result<FrameDiagnosis, RegistrationError> {
+    let mut region_workspace = RegionContrastWorkspace::default();
+    let mut end_view = CoarseView::default();
     let mut views: Vec<CoarseView> = Vec::with_capacity(config.coarse_pose_count);
     let mut rasterizer = Rasterizer::new();
     let rendered = render_views(
@@ -873,10 +903,30 @@ fn diagnose_region(
             .ok()
             .map(|end| {
                 let (end_camera, end_pose) = end.output_pose();
+                let region_contrast = if photo.is_some() {
+                    render_coarse_view(
+                        mesh,
+                        &end_camera,
+                        0,
+                        &end_pose,
+                        config,
+                        &mut rasterizer,
+                        &mut end_view,
+                    );
+                    region_contrasts(
+                        photo,
+                        end_view.render.face_index().view(),
+                        mesh,
+                        &mut region_workspace,
+                    )
+                } else {
+                    [None; 2]
+                };
                 StartEnd {
                     delta_px: delta(&end_camera, &end_pose),
                     support: end.output_support(),
                     correlation: end.correlation.map(|peak| peak.at_pose),
+                    region_contrast,
                     group: 0,
                     group_size: 0,
                     apart_from_output_px: None,
@@ -1178,6 +1228,32 @@ fn diagnose_region(
             )
         },
     );
+    let truth_region_contrast = region_contrasts(
+        photo,
+        truth_view.render.face_index().view(),
+        mesh,
+        &mut region_workspace,
+    );
+    let output_region_contrast = match (photo, verdict.chosen()) {
+        (Some(_), Some(chosen)) => {
+            render_coarse_view(
+                mesh,
+                &chosen.camera,
+                0,
+                &chosen.cam_from_world,
+                config,
+                &mut rasterizer,
+                &mut end_view,
+            );
+            region_contrasts(
+                photo,
+                end_view.render.face_index().view(),
+                mesh,
+                &mut region_workspace,
+            )
+        }
+        _ => [None; 2],
+    };
     let truth_along_seen = verdict.chosen().and_then(|output| {
         truth_along_seen(
             mesh,
@@ -1210,6 +1286,8 @@ fn diagnose_region(
         heading_sweep: None,
         support_by_kind,
         truth_along_seen,
+        truth_region_contrast,
+        output_region_contrast,
     })
 }
 
@@ -2003,6 +2081,7 @@ mod tests {
             known,
             &prior,
             query.view(),
+            None,
             &truth,
             &config,
             7,
@@ -2039,6 +2118,7 @@ mod tests {
             known,
             &initial,
             query.view(),
+            None,
             &truth,
             &config,
             7,

@@ -456,6 +456,11 @@ pub struct CoarseArgs {
     /// rejects the frame (0..6; 0: no test).
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_directions)]
     pub rival_directions: usize,
+    /// The other centres' outputs of the pose search do not count as rival ends in the
+    /// rival-basin test (they do by default: a distinct centre output the photo's edges support
+    /// at least as well rejects the chosen pose).
+    #[arg(long)]
+    pub no_rival_centres: bool,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
     pub rival_reach_px: f64,
@@ -551,6 +556,7 @@ impl Default for CoarseArgs {
             min_overrule_margin: ConfidenceConfig::default().min_overrule_margin,
             min_support_above_chance: ConfidenceConfig::default().min_support_above_chance,
             rival_directions: EdgeAlignConfig::default().rival_directions,
+            no_rival_centres: !EdgeAlignConfig::default().rival_centres,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -761,6 +767,7 @@ pub fn registration_config(
             rounding_kinds: coarse.edge_rounding_kinds.into(),
             aligned_kinds: coarse.edge_kinds.into(),
             rival_directions: coarse.rival_directions,
+            rival_centres: !coarse.no_rival_centres,
             rival_reach_px: coarse.rival_reach_px,
             rival_share_above_chance: coarse.rival_share,
             ..defaults.edge_align

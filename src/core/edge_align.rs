@@ -145,6 +145,11 @@ pub struct EdgeAlignConfig {
     /// [`SupportPeak`]) a distinct rival must keep to reject the output (1: as much support as
     /// the output).
     pub rival_share_above_chance: f64,
+    /// Whether the other centres' outputs of the pose search count as rival ends in the
+    /// rival-basin test (with the same distance and share): a centre that ended in a distinct
+    /// basin the photo's edges support at least as well rejects the chosen pose, whatever
+    /// `rival_directions` (docs/measurements.md, twenty-seventh session). Default on.
+    pub rival_centres: bool,
 }
 
 /// What decides whether the final refinement's aligned pose replaces the verified one it started
@@ -298,6 +303,7 @@ impl Default for EdgeAlignConfig {
             rival_directions: 3,
             rival_reach_px: 30.0,
             rival_share_above_chance: 1.0,
+            rival_centres: true,
         }
     }
 }

@@ -16,6 +16,7 @@ pub mod mesh;
 pub mod pose;
 pub mod pose_search;
 pub mod raster;
+pub mod region_contrast;
 pub mod reprojection;
 pub mod rigid;
 pub mod shading;

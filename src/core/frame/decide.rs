@@ -105,6 +105,7 @@ pub fn decide_frame_and_centres(
         Vec::new()
     };
     let refine_cpu_ms: f64 = decisions.iter().map(|d| d.refine_cpu_ms).sum();
+    let centre_outputs = centre_outputs(&decisions);
     let mut chosen =
         choose_among_centres(mesh, decisions, config.pose_search.centre_agreement_share)
             .unwrap_or_else(|| {
@@ -113,22 +114,47 @@ pub fn decide_frame_and_centres(
             });
     let rival_started_ms = process_cpu_ms();
     if let Some(query) = query {
-        reject_a_local_maximum(mesh, query, intrinsics, &mut chosen, config, workspace);
+        reject_a_local_maximum(
+            mesh,
+            query,
+            intrinsics,
+            &mut chosen,
+            &centre_outputs,
+            config,
+            workspace,
+        );
     }
     chosen.refine_cpu_ms = refine_cpu_ms + process_cpu_ms() - rival_started_ms;
     (chosen, kept)
+}
+
+/// Every centre's output pose (accepted or not) with its edge support: the basins the pose
+/// search's other centres ended in, rivals of the chosen pose at no further cost.
+fn centre_outputs(decisions: &[Decision]) -> Vec<(PoseHypothesis, f64)> {
+    decisions
+        .iter()
+        .filter_map(|decision| {
+            let output = decision.verdict.chosen()?;
+            let peak = decision.evidence.edges?;
+            Some((*output, peak.at_pose))
+        })
+        .collect()
 }
 
 /// The rival-basin test of an accepted pose (`edge_align.rival_directions` > 0): when the
 /// alignment started around it ends at a distinct pose (at least the centres' agreement distance
 /// away, as [`choose_among_centres`] counts poses distinct) that keeps
 /// `rival_share_above_chance` of the output's edge support above chance, the photo's edges
-/// cannot tell the two apart and the frame is rejected ([`RejectionReason::RivalBasin`]).
+/// cannot tell the two apart and the frame is rejected ([`RejectionReason::RivalBasin`]). The
+/// other centres' outputs (`centre_outputs`, each with its edge support) are rival ends too:
+/// a centre that ended in a distinct basin the photo supports as well is the same doubt, found
+/// by the pose search instead of by the test's own runs.
 fn reject_a_local_maximum(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
     intrinsics: IntrinsicsMode,
     chosen: &mut Decision,
+    centre_outputs: &[(PoseHypothesis, f64)],
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) {
@@ -139,7 +165,34 @@ fn reject_a_local_maximum(
     let (support, chance) = (peak.at_pose, peak.far);
     let min_share = config.edge_align.rival_share_above_chance;
     chosen.rival_ends = rival_ends(mesh, query, intrinsics, output, config, workspace);
-    let Some(rival) = rival_basin(&chosen.rival_ends, min_apart_px) else {
+    let mut apart = ReprojectionWorkspace::new();
+    let centre_ends: Vec<RivalEnd> = centre_outputs
+        .iter()
+        .filter(|_| config.edge_align.rival_centres)
+        .filter_map(|(centre, centre_support)| {
+            let apart_px = mutual_reprojection_error_px(
+                mesh,
+                &output.camera,
+                &output.cam_from_world,
+                &centre.camera,
+                &centre.cam_from_world,
+                &mut apart,
+            )?;
+            Some(RivalEnd {
+                support: *centre_support,
+                apart_px,
+                camera: centre.camera,
+                cam_from_world: centre.cam_from_world,
+            })
+        })
+        .collect();
+    let own = rival_basin(&chosen.rival_ends, min_apart_px);
+    let from_centres = rival_basin(&centre_ends, min_apart_px);
+    let Some(rival) = [own, from_centres]
+        .into_iter()
+        .flatten()
+        .max_by(|a, b| a.support.total_cmp(&b.support))
+    else {
         return;
     };
     if rival.support - chance >= min_share * (support - chance) {
@@ -498,6 +551,7 @@ mod tests {
     use nalgebra::{UnitQuaternion, Vector3};
 
     use super::*;
+    use crate::core::edge_align::EdgeAlignConfig;
     use crate::core::frame::tests::{house_and_poses, ideal_query};
     use crate::core::image::Image;
     use crate::core::rigid::Rigid3;
@@ -893,6 +947,118 @@ mod tests {
             decision.verdict.rejection(),
             decision.evidence
         );
+    }
+
+    /// A centre the photo confirms less well than another centre's distinct output is a local
+    /// maximum, even when that other centre's own decision failed: the wrong pose's agreeing
+    /// group is accepted on a query that shows only part of its edges, while the truth's centre
+    /// (its edges all in the query) is held rejected by its own flow (two agreeing refined poses
+    /// of five). With the other centres' outputs as rival ends the accepted pose is rejected as
+    /// a rival basin; without them it is accepted, whatever the order of the centres.
+    #[test]
+    fn an_accepted_centre_another_centre_outscores_on_the_photo_is_rejected() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let without = RegistrationConfig {
+            edge_align: EdgeAlignConfig {
+                rival_centres: false,
+                ..config.edge_align
+            },
+            ..config.clone()
+        };
+        let mut workspace = RefineWorkspace::default();
+        let turn = UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.15, 0.0));
+        let wrong = Rigid3::new(turn * truth.rotation, turn * truth.translation);
+        // The truth's centre: two refined poses on the truth, three scattered far from it.
+        let truth_centre = |first_index: usize| -> Vec<CoarseOutcome> {
+            let mut outcomes: Vec<CoarseOutcome> = agreeing_outcomes(&camera, &truth)
+                .into_iter()
+                .take(5)
+                .collect();
+            for (k, outcome) in outcomes.iter_mut().enumerate().skip(2) {
+                let away = UnitQuaternion::from_scaled_axis(Vector3::new(
+                    0.2 * k as f64,
+                    -0.1,
+                    0.05 * k as f64,
+                ));
+                if let Ok(h) = outcome.hypothesis.as_mut() {
+                    h.cam_from_world = Rigid3::new(away * truth.rotation, away * truth.translation);
+                }
+            }
+            for outcome in &mut outcomes {
+                outcome.coarse_index += first_index;
+            }
+            outcomes.extend((5..config.coarse_pose_count).map(|i| CoarseOutcome {
+                coarse_index: first_index + i,
+                consistent_matches: 0,
+                hypothesis: Err("too few consistent correspondences".into()),
+            }));
+            outcomes
+        };
+        let wrong_centre = |first_index: usize| -> Vec<CoarseOutcome> {
+            agreeing_outcomes(&camera, &wrong)
+                .into_iter()
+                .map(|mut o| {
+                    o.coarse_index += first_index;
+                    o
+                })
+                .collect()
+        };
+        // The truth's edges everywhere, the wrong pose's in the left two thirds of the photo.
+        let mut query = ideal_query(&mesh, &camera, &truth, &config);
+        let other = ideal_query(&mesh, &camera, &wrong, &config);
+        let width_px = query.width_px();
+        for (index, (a, b)) in query.data_mut().iter_mut().zip(other.data()).enumerate() {
+            if index % width_px < 2 * width_px / 3 {
+                *a = a.max(*b);
+            }
+        }
+        let count = config.coarse_pose_count;
+        for (outcomes, label) in [
+            (
+                [wrong_centre(0), truth_centre(count)].concat(),
+                "wrong first",
+            ),
+            (
+                [truth_centre(0), wrong_centre(count)].concat(),
+                "truth first",
+            ),
+        ] {
+            let decide = |config: &RegistrationConfig, workspace: &mut RefineWorkspace| {
+                decide_frame(
+                    &mesh,
+                    &camera,
+                    &outcomes,
+                    Some(query.view()),
+                    IntrinsicsMode::Known,
+                    config,
+                    workspace,
+                    &[],
+                )
+            };
+            let accepted = decide(&without, &mut workspace);
+            let pose = accepted.verdict.accepted_pose().unwrap_or_else(|| {
+                panic!(
+                    "{label}: {:?} {:?}",
+                    accepted.verdict.rejection(),
+                    accepted.evidence
+                )
+            });
+            assert!(
+                pose.cam_from_world.rotation_angle_to_rad(&wrong) < 0.01,
+                "{label}: the wrong pose is the one accepted"
+            );
+            let decision = decide(&config, &mut workspace);
+            assert!(
+                matches!(
+                    decision.verdict.rejection(),
+                    Some(RejectionReason::RivalBasin { .. })
+                ),
+                "{label}: {:?} {:?}",
+                decision.verdict.rejection(),
+                decision.evidence
+            );
+        }
     }
 
     /// Two centres whose confirmed poses lie closer than the compatibility threshold but farther
