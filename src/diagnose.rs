@@ -28,7 +28,9 @@ use serde::Serialize;
 
 use crate::core::camera::{nearest_pixel, Camera};
 use crate::core::confidence::FrameEvidence;
-use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
+use crate::core::correlation::{
+    correlation_peak, correlation_peak_blurred, CorrelationPeak, CorrelationWorkspace,
+};
 use crate::core::edge_align::{
     apply_pose_step, edge_evidence, image_motion_metric, model_edge_samples, pose_jacobian_rows,
     search_ridge, supported_edge_observability, supported_seen_steps, AlignedParameters,
@@ -128,6 +130,9 @@ pub struct StartEnd {
     /// The region contrast at the end ([`crate::core::region_contrast`]), at each of
     /// [`REGION_BANDS_PX`] (`None` without the photo).
     pub region_contrast: [Option<f64>; 2],
+    /// The dense correlation at the end with both images blurred by each of
+    /// [`COARSE_CORRELATION_SIGMAS_PX`] (the large-scale layout rather than the texture).
+    pub coarse_correlation: [Option<f64>; 2],
     /// The ends of the frame's views grouped: the index, among the frame's ends in view order,
     /// of the first end within the alignment's final search radius (δ) of this one, and how
     /// many ends that group has.
@@ -212,6 +217,9 @@ pub struct FrameDiagnosis {
 
 /// The bands around the facing groups' borders the region contrast is measured over, px.
 pub const REGION_BANDS_PX: [usize; 2] = [6, 12];
+
+/// The blurs (σ, px) of the ends' coarse correlations.
+pub const COARSE_CORRELATION_SIGMAS_PX: [f64; 2] = [3.0, 6.0];
 
 /// The region contrast of `photo` against a rendering's `face_index` at each of
 /// [`REGION_BANDS_PX`].
@@ -804,6 +812,7 @@ fn diagnose_region(
     seed: u64,
 ) -> Result<FrameDiagnosis, RegistrationError> {
     let mut region_workspace = RegionContrastWorkspace::default();
+    let mut end_correlation_workspace = CorrelationWorkspace::default();
     let mut end_view = CoarseView::default();
     let mut views: Vec<CoarseView> = Vec::with_capacity(config.coarse_pose_count);
     let mut rasterizer = Rasterizer::new();
@@ -903,6 +912,7 @@ fn diagnose_region(
             .ok()
             .map(|end| {
                 let (end_camera, end_pose) = end.output_pose();
+                let mut coarse_correlation = [None; 2];
                 let region_contrast = if photo.is_some() {
                     render_coarse_view(
                         mesh,
@@ -913,6 +923,16 @@ fn diagnose_region(
                         &mut rasterizer,
                         &mut end_view,
                     );
+                    coarse_correlation = COARSE_CORRELATION_SIGMAS_PX.map(|sigma_px| {
+                        correlation_peak_blurred(
+                            end_view.asg.view(),
+                            end_view.render.face_index().view(),
+                            query,
+                            sigma_px,
+                            &mut end_correlation_workspace,
+                        )
+                        .map(|peak| peak.at_pose)
+                    });
                     region_contrasts(
                         photo,
                         end_view.render.face_index().view(),
@@ -927,6 +947,7 @@ fn diagnose_region(
                     support: end.output_support(),
                     correlation: end.correlation.map(|peak| peak.at_pose),
                     region_contrast,
+                    coarse_correlation,
                     group: 0,
                     group_size: 0,
                     apart_from_output_px: None,

@@ -13,6 +13,16 @@ contrast exceeds the output's.
 Usage: python3 docs/scripts/end_witnesses.py OUT/diagnosis.json [...]"""
 import json, sys
 CAP = 25.0
+def value(candidate, witness):
+    """A candidate's value for a witness: None = edge support, 0/1 = region contrast band,
+    "c" = correlation, "c3"/"c6" = the coarse correlations."""
+    if witness is None:
+        return candidate["support"]
+    if witness == "c":
+        return candidate.get("corr")
+    if witness in ("c3", "c6"):
+        return (candidate.get("cc") or [None, None])[0 if witness == "c3" else 1]
+    return candidate["rc"][witness]
 def g(d, *ks):
     for k in ks:
         if d is None: return None
@@ -35,7 +45,7 @@ for path in sys.argv[1:]:
             for v in d["views"]:
                 e = v.get("short_from_hypothesis")
                 if e and e.get("delta_px") is not None:
-                    cands.append(dict(delta=e["delta_px"], support=e["support"], rc=e.get("region_contrast") or [None, None], who="end"))
+                    cands.append(dict(delta=e["delta_px"], support=e["support"], rc=e.get("region_contrast") or [None, None], corr=e.get("correlation"), cc=e.get("coarse_correlation") or [None, None], who="end"))
             if not cands: continue
             trc = d.get("truth_region_contrast") or [None, None]
             if out_rc[0] is not None and trc[0] is not None:
@@ -54,6 +64,7 @@ for path in sys.argv[1:]:
             "max rc6": lambda cs: max(cs, key=lambda c: c["rc"][0] if c["rc"][0] is not None else -1),
             "max rc12": lambda cs: max(cs, key=lambda c: c["rc"][1] if c["rc"][1] is not None else -1),
             "max support*rc6": lambda cs: max(cs, key=lambda c: c["support"]*(c["rc"][0] or 0)),
+            "max correlation σ3": lambda cs: max(cs, key=lambda c: value(c, "c3") if value(c, "c3") is not None else -2),
             "oracle": lambda cs: min(cs, key=lambda c: c["delta"]),
         }
         print(f"== {path} level {cell['level_px']} frames {len(rows)}")
@@ -61,14 +72,13 @@ for path in sys.argv[1:]:
             print(f"  {k:18s} {score(r)}")
         # pairwise: among ends of the same frame, pairs where one is <2px and the other >4px:
         # how often does each witness rank the good one higher
-        for wi, wname in [(None, "support"), (0, "rc6"), (1, "rc12")]:
+        for wi, wname in [(None, "support"), (0, "rc6"), (1, "rc12"), ("c", "correlation σ1"), ("c3", "correlation σ3"), ("c6", "correlation σ6")]:
             good = tot = 0
             for name, cands in rows:
                 for a in cands:
                     for b in cands:
                         if a["delta"] <= 2 and b["delta"] >= 4:
-                            va = a["support"] if wi is None else a["rc"][wi]
-                            vb = b["support"] if wi is None else b["rc"][wi]
+                            va, vb = (value(a, wi), value(b, wi))
                             if va is None or vb is None: continue
                             tot += 1; good += va > vb
             print(f"  pairs good<=2 vs bad>=4 ranked right by {wname}: {good}/{tot}")

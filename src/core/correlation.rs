@@ -51,6 +51,19 @@ pub fn correlation_peak(
     query: ImageView<'_, f32>,
     workspace: &mut CorrelationWorkspace,
 ) -> Option<CorrelationPeak> {
+    correlation_peak_blurred(asg, face_index, query, CORRELATION_BLUR_SIGMA_PX, workspace)
+}
+
+/// [`correlation_peak`] with both images blurred by `blur_sigma_px` (σ) instead of
+/// [`CORRELATION_BLUR_SIGMA_PX`]: a coarser blur weighs the model's large-scale layout against
+/// the photo's and not its fine texture (the diagnosis measures it at several).
+pub fn correlation_peak_blurred(
+    asg: ImageView<'_, f32>,
+    face_index: ImageView<'_, u32>,
+    query: ImageView<'_, f32>,
+    blur_sigma_px: f64,
+    workspace: &mut CorrelationWorkspace,
+) -> Option<CorrelationPeak> {
     let (width_px, height_px) = asg.size();
     if query.size() != (width_px, height_px) || face_index.size() != (width_px, height_px) {
         return None;
@@ -61,8 +74,8 @@ pub fn correlation_peak(
         model_pixels,
     } = workspace;
     // `blurred_query` blurs with a quarter of its radius as σ.
-    blurred_query(asg, 4.0 * CORRELATION_BLUR_SIGMA_PX, rendering);
-    blurred_query(query, 4.0 * CORRELATION_BLUR_SIGMA_PX, photo);
+    blurred_query(asg, 4.0 * blur_sigma_px, rendering);
+    blurred_query(query, 4.0 * blur_sigma_px, photo);
     let (rendering, photo, faces) = (rendering.data(), photo.data(), face_index.data());
     model_pixels.clear();
     for y in 0..height_px {
