@@ -175,7 +175,8 @@ pub struct FrameDiagnosis {
     /// without the search), before verification across the centres chose among them.
     pub centres: Vec<CentreDiagnosis>,
     /// Where each run of the rival-basin test around the accepted pose ended, in the test's
-    /// order (`core::frame::refine::rival_ends`; empty when it did not run).
+    /// order (`core::frame::refine::rival_ends`), then the other centres' outputs distinct from
+    /// it (`edge_align.rival_centres`); empty when the test did not run.
     pub rival_ends: Vec<RivalEndDiagnosis>,
     /// Where the edge alignment's bias comes from, measured at the true pose.
     pub edge_bias: EdgeBiasDiagnosis,
@@ -912,36 +913,31 @@ fn diagnose_region(
             .ok()
             .map(|end| {
                 let (end_camera, end_pose) = end.output_pose();
-                let mut coarse_correlation = [None; 2];
-                let region_contrast = if photo.is_some() {
-                    render_coarse_view(
-                        mesh,
-                        &end_camera,
-                        0,
-                        &end_pose,
-                        config,
-                        &mut rasterizer,
-                        &mut end_view,
-                    );
-                    coarse_correlation = COARSE_CORRELATION_SIGMAS_PX.map(|sigma_px| {
-                        correlation_peak_blurred(
-                            end_view.asg.view(),
-                            end_view.render.face_index().view(),
-                            query,
-                            sigma_px,
-                            &mut end_correlation_workspace,
-                        )
-                        .map(|peak| peak.at_pose)
-                    });
-                    region_contrasts(
-                        photo,
+                render_coarse_view(
+                    mesh,
+                    &end_camera,
+                    0,
+                    &end_pose,
+                    config,
+                    &mut rasterizer,
+                    &mut end_view,
+                );
+                let coarse_correlation = COARSE_CORRELATION_SIGMAS_PX.map(|sigma_px| {
+                    correlation_peak_blurred(
+                        end_view.asg.view(),
                         end_view.render.face_index().view(),
-                        mesh,
-                        &mut region_workspace,
+                        query,
+                        sigma_px,
+                        &mut end_correlation_workspace,
                     )
-                } else {
-                    [None; 2]
-                };
+                    .map(|peak| peak.at_pose)
+                });
+                let region_contrast = region_contrasts(
+                    photo,
+                    end_view.render.face_index().view(),
+                    mesh,
+                    &mut region_workspace,
+                );
                 StartEnd {
                     delta_px: delta(&end_camera, &end_pose),
                     support: end.output_support(),

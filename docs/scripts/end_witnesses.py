@@ -29,7 +29,8 @@ def g(d, *ks):
         d = d.get(k) if isinstance(d, dict) else None
     return d
 for path in sys.argv[1:]:
-    doc = json.load(open(path))
+    with open(path) as file:
+        doc = json.load(file)
     for cell in doc["cells"]:
         rows = []
         t_vs_o = []
@@ -56,7 +57,7 @@ for path in sys.argv[1:]:
             for name, cands in rows:
                 c = rule(cands)
                 ds.append(min(c["delta"], CAP))
-            n = len(ds)
+            n = max(len(ds), 1)
             return f"{sum(ds)/n:6.2f}; {sum(x<=2 for x in ds):2d} / {sum(x<=5 for x in ds):2d}"
         rules = {
             "output": lambda cs: cs[0],

@@ -453,7 +453,8 @@ pub struct CoarseArgs {
     /// The rival-basin test of an accepted pose: the alignment also runs from the output moved
     /// by --rival-reach-px of δ either way along this many directions its edges see least, and
     /// a distinct end that keeps --rival-share of the output's edge support above chance
-    /// rejects the frame (0..6; 0: no test).
+    /// rejects the frame (0..6; 0: no runs of its own; the other centres' outputs still count
+    /// unless --no-rival-centres).
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_directions)]
     pub rival_directions: usize,
     /// The other centres' outputs of the pose search do not count as rival ends in the

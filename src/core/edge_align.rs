@@ -132,7 +132,8 @@ pub struct EdgeAlignConfig {
     /// each of this many directions its supported edges see least ([`least_seen_starts`]); an
     /// end at least the centres' agreement distance away that keeps `rival_share_above_chance`
     /// of the output's edge support above chance rejects the frame: the photo's edges support a
-    /// distinct pose about as well. 0: no test. Default 3 directions, 30 px, share 1 (a rival
+    /// distinct pose about as well. 0: no runs of its own (the other centres' outputs still
+    /// count with `rival_centres`). Default 3 directions, 30 px, share 1 (a rival
     /// at least as well supported; docs/measurements.md, twenty-first session: over 12 cells of
     /// 24 frames (LoD block and house, 30/104 px and heading) it removed the house s4 false
     /// accept (44.0 px) and four accepts 14–25 px off, and no accept within 10 px of the truth;

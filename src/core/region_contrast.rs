@@ -9,7 +9,8 @@
 //! edge and is fooled by texture edges (windows, bricks, tiles) a few pixels away; this figure
 //! weighs whole strips on both sides of each outline instead.
 
-use super::image::ImageView;
+use super::flow_consistency::near_model_edge_mask;
+use super::image::{Image, ImageView};
 use super::mesh::Mesh;
 use super::raster::NO_FACE;
 
@@ -43,9 +44,13 @@ fn facing_group(normal: [f32; 3]) -> u8 {
 /// Buffers of [`region_contrast`], reused across calls.
 #[derive(Default)]
 pub struct RegionContrastWorkspace {
+    /// Each face's facing group, filled as faces are seen ([`u8::MAX`]: not yet).
+    facing: Vec<u8>,
     groups: Vec<u8>,
-    near_border: Vec<bool>,
-    spread: Vec<bool>,
+    /// 1 at the pixels on a border between two groups, 0 elsewhere.
+    borders: Image<f32>,
+    row_counts: Vec<u32>,
+    band: Image<bool>,
 }
 
 /// The share of the photo's brightness variance, over the pixels within `band_px` of a border
@@ -64,11 +69,14 @@ pub fn region_contrast(
         return None;
     }
     let RegionContrastWorkspace {
+        facing,
         groups,
-        near_border,
-        spread,
+        borders,
+        row_counts,
+        band,
     } = workspace;
-    let mut facing = vec![u8::MAX; mesh.face_count()];
+    facing.clear();
+    facing.resize(mesh.face_count(), u8::MAX);
     groups.clear();
     groups.extend(face_index.data().iter().map(|&face| {
         if face == NO_FACE {
@@ -80,26 +88,28 @@ pub fn region_contrast(
         }
         *slot
     }));
-    near_border.clear();
-    near_border.resize(width_px * height_px, false);
+    borders.reset(width_px, height_px, 0.0);
+    let marks = borders.data_mut();
     for y in 0..height_px {
         for x in 0..width_px {
             let pixel = y * width_px + x;
-            if x + 1 < width_px && groups[pixel] != groups[pixel + 1] {
-                near_border[pixel] = true;
-                near_border[pixel + 1] = true;
-            }
-            if y + 1 < height_px && groups[pixel] != groups[pixel + width_px] {
-                near_border[pixel] = true;
-                near_border[pixel + width_px] = true;
+            for other in [
+                (x + 1 < width_px).then_some(pixel + 1),
+                (y + 1 < height_px).then_some(pixel + width_px),
+            ]
+            .into_iter()
+            .flatten()
+            {
+                if groups[pixel] != groups[other] {
+                    marks[pixel] = 1.0;
+                    marks[other] = 1.0;
+                }
             }
         }
     }
-    // Widen the borders to the band: a running count along rows, then along columns.
-    dilate_rows(near_border, spread, width_px, height_px, band_px);
-    dilate_columns(spread, near_border, width_px, height_px, band_px);
+    near_model_edge_mask(borders.view(), 0.5, band_px, row_counts, band);
     let mut sums = [(0.0f64, 0.0f64, 0.0f64); FACING_GROUPS as usize + 1];
-    for ((&inside, &group), &value) in near_border.iter().zip(groups.iter()).zip(photo.data()) {
+    for ((&inside, &group), &value) in band.data().iter().zip(groups.iter()).zip(photo.data()) {
         if inside {
             let value = f64::from(value);
             let entry = &mut sums[group as usize];
@@ -128,64 +138,9 @@ pub fn region_contrast(
     Some((1.0 - within / total).clamp(0.0, 1.0))
 }
 
-/// `out[x]` = any of `input` within `radius` along the row.
-fn dilate_rows(input: &[bool], out: &mut Vec<bool>, width: usize, height: usize, radius: usize) {
-    out.clear();
-    out.resize(width * height, false);
-    for y in 0..height {
-        let row = &input[y * width..(y + 1) * width];
-        let mut last_seen: Option<usize> = None;
-        // Forward: the nearest set pixel at or before x; backward pass for after.
-        for x in 0..width {
-            if row[x] {
-                last_seen = Some(x);
-            }
-            if last_seen.is_some_and(|s| x - s <= radius) {
-                out[y * width + x] = true;
-            }
-        }
-        let mut next_seen: Option<usize> = None;
-        for x in (0..width).rev() {
-            if row[x] {
-                next_seen = Some(x);
-            }
-            if next_seen.is_some_and(|s| s - x <= radius) {
-                out[y * width + x] = true;
-            }
-        }
-    }
-}
-
-/// `out[y]` = any of `input` within `radius` along the column.
-fn dilate_columns(input: &[bool], out: &mut Vec<bool>, width: usize, height: usize, radius: usize) {
-    out.clear();
-    out.resize(width * height, false);
-    for x in 0..width {
-        let mut last_seen: Option<usize> = None;
-        for y in 0..height {
-            if input[y * width + x] {
-                last_seen = Some(y);
-            }
-            if last_seen.is_some_and(|s| y - s <= radius) {
-                out[y * width + x] = true;
-            }
-        }
-        let mut next_seen: Option<usize> = None;
-        for y in (0..height).rev() {
-            if input[y * width + x] {
-                next_seen = Some(y);
-            }
-            if next_seen.is_some_and(|s| s - y <= radius) {
-                out[y * width + x] = true;
-            }
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::image::Image;
 
     /// A photo made of the groups' own brightness plus texture is explained best by the
     /// rendering that lines up with it, and less the further the rendering is shifted.

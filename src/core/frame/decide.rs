@@ -31,8 +31,9 @@ pub struct Decision {
     /// The process's CPU time during the final refinements, ms (theirs where one frame at a time
     /// runs in the process, as in `register`).
     pub refine_cpu_ms: f64,
-    /// Where the rival-basin test's runs ended ([`super::refine::rival_ends`]); empty when it
-    /// did not run (the frame was not accepted before it, or the test is off).
+    /// Where the rival-basin test's runs ended ([`super::refine::rival_ends`]), then the other
+    /// centres' outputs distinct from the accepted pose (with `edge_align.rival_centres`);
+    /// empty when the frame was not accepted before the test, or no rival was found.
     pub rival_ends: Vec<RivalEnd>,
 }
 
@@ -129,7 +130,8 @@ pub fn decide_frame_and_centres(
 }
 
 /// Every centre's output pose (accepted or not) with its edge support: the basins the pose
-/// search's other centres ended in, rivals of the chosen pose at no further cost.
+/// search's other centres ended in, rivals of the chosen pose without another alignment run
+/// (only their distance to it is measured).
 fn centre_outputs(decisions: &[Decision]) -> Vec<(PoseHypothesis, f64)> {
     decisions
         .iter()
@@ -141,14 +143,16 @@ fn centre_outputs(decisions: &[Decision]) -> Vec<(PoseHypothesis, f64)> {
         .collect()
 }
 
-/// The rival-basin test of an accepted pose (`edge_align.rival_directions` > 0): when the
-/// alignment started around it ends at a distinct pose (at least the centres' agreement distance
-/// away, as [`choose_among_centres`] counts poses distinct) that keeps
+/// The rival-basin test of an accepted pose: when the alignment started around it
+/// (`edge_align.rival_directions` > 0) ends at a distinct pose (at least the centres' agreement
+/// distance away, as [`choose_among_centres`] counts poses distinct) that keeps
 /// `rival_share_above_chance` of the output's edge support above chance, the photo's edges
-/// cannot tell the two apart and the frame is rejected ([`RejectionReason::RivalBasin`]). The
-/// other centres' outputs (`centre_outputs`, each with its edge support) are rival ends too:
-/// a centre that ended in a distinct basin the photo supports as well is the same doubt, found
-/// by the pose search instead of by the test's own runs.
+/// cannot tell the two apart and the frame is rejected ([`RejectionReason::RivalBasin`]). With
+/// `edge_align.rival_centres` the other centres' distinct outputs (`centre_outputs`, each with
+/// its edge support) are rival ends too, whatever `rival_directions`: a centre that ended in a
+/// distinct basin the photo supports as well is the same doubt, found by the pose search
+/// instead of by the test's own runs. The rival ends are kept in `chosen.rival_ends` (the
+/// test's runs first, then the distinct centres).
 fn reject_a_local_maximum(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
@@ -165,34 +169,31 @@ fn reject_a_local_maximum(
     let (support, chance) = (peak.at_pose, peak.far);
     let min_share = config.edge_align.rival_share_above_chance;
     chosen.rival_ends = rival_ends(mesh, query, intrinsics, output, config, workspace);
-    let mut apart = ReprojectionWorkspace::new();
-    let centre_ends: Vec<RivalEnd> = centre_outputs
-        .iter()
-        .filter(|_| config.edge_align.rival_centres)
-        .filter_map(|(centre, centre_support)| {
-            let apart_px = mutual_reprojection_error_px(
+    if config.edge_align.rival_centres {
+        let mut apart = ReprojectionWorkspace::new();
+        for (centre, centre_support) in centre_outputs {
+            let Some(apart_px) = mutual_reprojection_error_px(
                 mesh,
                 &output.camera,
                 &output.cam_from_world,
                 &centre.camera,
                 &centre.cam_from_world,
                 &mut apart,
-            )?;
-            Some(RivalEnd {
-                support: *centre_support,
-                apart_px,
-                camera: centre.camera,
-                cam_from_world: centre.cam_from_world,
-            })
-        })
-        .collect();
-    let own = rival_basin(&chosen.rival_ends, min_apart_px);
-    let from_centres = rival_basin(&centre_ends, min_apart_px);
-    let Some(rival) = [own, from_centres]
-        .into_iter()
-        .flatten()
-        .max_by(|a, b| a.support.total_cmp(&b.support))
-    else {
+            ) else {
+                continue;
+            };
+            // The chosen centre itself, and centres in its basin, are no rivals.
+            if apart_px >= min_apart_px {
+                chosen.rival_ends.push(RivalEnd {
+                    support: *centre_support,
+                    apart_px,
+                    camera: centre.camera,
+                    cam_from_world: centre.cam_from_world,
+                });
+            }
+        }
+    }
+    let Some(rival) = rival_basin(&chosen.rival_ends, min_apart_px) else {
         return;
     };
     if rival.support - chance >= min_share * (support - chance) {
