@@ -1,8 +1,14 @@
 #!/usr/bin/env python3
-"""Photo-to-photo SIFT flow between registered neighbours of a synthetic scene, against the true
-flow from the exact depth and true poses: how accurate would correspondences from a neighbour's
-photo be, compared with the photo-to-ASG flow (eval --diagnose's flow error)?
-Usage: pp.py SCENE ASGREG OUTDIR [pairs]"""
+"""Photo-to-photo SIFT flow between neighbouring views of a synthetic scene (`asgreg synth`),
+against the true flow made from the exact depth (`depth_exact/`) and the true poses (`gt/`):
+how accurate correspondences taken from a neighbour's photo would be, next to the photo-to-ASG
+flow that registration uses (`eval --diagnose`'s flow error). Each view is paired with the
+nearest other view (camera centres) looking within 30° of it; pixels are kept where A sees a
+surface, it lands inside B at least 20 px from the border, and B's exact depth there agrees
+within 2 % (not occluded). `asgreg flow --preset fast` makes the flow.
+(docs/measurements.md, twenty-seventh session.)
+
+Usage: python3 docs/scripts/photo_to_photo_flow.py SCENE ASGREG_BINARY OUT_DIR [PAIRS]"""
 import sys, os, subprocess, numpy as np
 scene, asgreg, out = sys.argv[1], sys.argv[2], sys.argv[3]
 npairs = int(sys.argv[4]) if len(sys.argv) > 4 else 12
