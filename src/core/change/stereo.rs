@@ -25,7 +25,9 @@
 //!   within `uniqueness_margin` of the best (flat or repetitive cost), and, with
 //!   `left_right_check`, the geometric consistency check against the neighbours' own depths (the
 //!   same sweep run from each neighbour against the reference): a depth stays when one neighbour
-//!   confirms it within `consistency_planes` plane steps and none sees through it (its surface
+//!   confirms it within `consistency_planes` of the reference's plane steps (not the coarser
+//!   steps of a short baseline's sweep back, which let a correctly posed neighbour confirm a
+//!   depth a mis-posed one made 9 % too near: branch `change27`) and none sees through it (its surface
 //!   farther than the point: free space violated); a neighbour whose surface is nearer sees the
 //!   point occluded and has no vote (the sweep's best-`k` cost lets that neighbour drop out, so
 //!   the check must not undo it), nor does one that sees a hole or whose photo the point leaves;
@@ -131,7 +133,9 @@ pub struct StereoConfig {
     /// `change12`; the false far matches that more confirmations let through are the model
     /// test's, `model_test_sigmas`).
     pub consistency_neighbours: usize,
-    /// Tolerance of that check, in plane steps of inverse depth.
+    /// Tolerance of that check, in the reference sweep's plane steps of inverse depth (each
+    /// neighbour's sweep back has as many or fewer planes over the same range: its steps are
+    /// not the tolerance).
     pub consistency_planes: f32,
     /// With the check: keep depths no checked neighbour can confirm (their own depth is a hole
     /// there, or the point leaves their photos) and drop only those they contradict.
@@ -1719,8 +1723,9 @@ impl HoleReason {
 
 /// Keeps the depths of `sweep` that one of the neighbours' own depths (`backs`: each one's sweep
 /// back against the reference) confirms: the point seen at the reference pixel lands in that
-/// neighbour at a pixel whose depth agrees within `consistency_planes` plane steps of inverse
-/// depth, and no checked neighbour sees through it (its own depth farther than the point beyond
+/// neighbour at a pixel whose depth agrees within `consistency_planes` of the reference sweep's
+/// plane steps of inverse depth (whichever the neighbour's own steps), and no checked neighbour
+/// sees through it (its own depth farther than the point beyond
 /// the tolerance: a free-space violation). A neighbour that does not see the point (occluded
 /// there: its depth is nearer; or it leaves its photo) neither confirms nor vetoes it: the
 /// sweep's best-`k` cost already lets an occluded neighbour drop out, and the check must not undo
@@ -1733,15 +1738,16 @@ fn left_right_check(
     config: &StereoConfig,
 ) {
     let w = sweep.depth_m.width_px();
-    let checks: Vec<(Rigid3, f32)> = backs
+    // The reference's own plane steps, for every neighbour: a neighbour's sweep back has
+    // coarser steps (one pair spans fewer pixels), and a tolerance in those let a short
+    // baseline confirm a depth it placed several of the reference's steps farther.
+    let tolerance = config.consistency_planes * sweep.inverse_step;
+    let n_from_r: Vec<Rigid3> = backs
         .iter()
-        .map(|(back, neighbour)| {
-            (
-                neighbour
-                    .cam_from_world
-                    .compose(&reference.cam_from_world.inverse()),
-                config.consistency_planes * back.inverse_step.max(sweep.inverse_step),
-            )
+        .map(|(_, neighbour)| {
+            neighbour
+                .cam_from_world
+                .compose(&reference.cam_from_world.inverse())
         })
         .collect();
     let mut inconsistent = 0;
@@ -1757,7 +1763,7 @@ fn left_right_check(
         let mut confirmed = false;
         let mut occluded = false;
         let mut seen_through = false;
-        for ((back, neighbour), (n_from_r, tolerance)) in backs.iter().zip(&checks) {
+        for ((back, neighbour), n_from_r) in backs.iter().zip(&n_from_r) {
             let (nw, nh) = back.depth_m.size();
             let point = n_from_r.transform_point(&in_reference);
             let other = neighbour
@@ -1771,9 +1777,9 @@ fn left_right_check(
                 // through where the point would be: a free-space violation) or nearer (the
                 // point is occluded there: no vote).
                 let excess = 1.0 / point.z as f32 - 1.0 / other;
-                if excess.abs() <= *tolerance {
+                if excess.abs() <= tolerance {
                     confirmed = true;
-                } else if excess > *tolerance {
+                } else if excess > tolerance {
                     seen_through = true;
                 } else {
                     occluded = true;
@@ -2738,5 +2744,97 @@ mod tests {
             .filter(|&(col, row)| at(&without, col, row).is_some())
             .count();
         assert!(flat_without > 23 * 56 / 2, "{flat_without} of {}", 23 * 56);
+    }
+
+    /// A neighbour whose registered pose is off (a yaw error: a disparity error along its
+    /// baseline) makes the sweep's depth too near wherever its sharp cost leads, and its own
+    /// sweep back confirms that depth (it shares the error). A second, correctly posed
+    /// neighbour with a short baseline sees the surface farther (it sees through the wrong
+    /// depth); its sweep back has coarser planes than the reference's (fewer planes span the
+    /// same range), and a tolerance in those coarse steps lets it confirm a depth it places
+    /// several of the reference's plane steps farther. At the reference's own steps it vetoes.
+    #[test]
+    fn a_short_baseline_neighbour_vetoes_a_depth_it_sees_farther_than_the_reference_resolves() {
+        // The mis-posed neighbour 6 m east of the reference, registered 1.5° off in yaw
+        // (about 5 px); the correct one 1.5 m west.
+        const YAW_EYE_X_M: f64 = 6.0;
+        const YAW_DEG: f64 = 1.5;
+        const SHORT_EYE_X_M: f64 = -1.5;
+        let rig = rig(None);
+        let truth = &rig.views[0].3;
+        let (k_long, long_pose) = camera_at([YAW_EYE_X_M, -20.0, 18.0]);
+        let (long_photo, _) = photo(&rig.mesh, &k_long, &long_pose, None, 31);
+        let yaw = Rigid3::new(
+            nalgebra::UnitQuaternion::from_axis_angle(&Vector3::y_axis(), YAW_DEG.to_radians()),
+            Vector3::zeros(),
+        );
+        let long_registered = yaw.compose(&long_pose);
+        let (k_short, short_pose) = camera_at([SHORT_EYE_X_M, -20.0, 18.0]);
+        let (short_photo, _) = photo(&rig.mesh, &k_short, &short_pose, None, 32);
+        let reference = StereoView {
+            photo: rig.views[0].2.view(),
+            intrinsics: rig.views[0].0,
+            cam_from_world: rig.views[0].1,
+        };
+        let long = StereoView {
+            photo: long_photo.view(),
+            intrinsics: k_long,
+            cam_from_world: long_registered,
+        };
+        let short = StereoView {
+            photo: short_photo.view(),
+            intrinsics: k_short,
+            cam_from_world: short_pose,
+        };
+        let config = StereoConfig::default();
+        let near_share = |result: &StereoDepth| {
+            let (mut valid, mut near, mut right) = (0usize, 0usize, 0usize);
+            for (e, t) in result.depth_m.data().iter().zip(truth.data()) {
+                if *e > 0.0 && *t > 0.0 {
+                    valid += 1;
+                    near += usize::from(*e < 0.95 * t);
+                    right += usize::from((e - t).abs() < 0.02 * t);
+                }
+            }
+            (valid, near, right)
+        };
+        let sweep = |neighbours: &[StereoView<'_>]| {
+            let result = depth_from_neighbours(&rig.mesh, &reference, neighbours, &config)
+                .expect("stereo depth");
+            let (valid, near, right) = near_share(&result);
+            eprintln!(
+                "{} neighbour(s), {} planes: {valid} px with depth, {near} over 5 % too near, {right} within 2 %, holes {:?}",
+                neighbours.len(),
+                result.planes,
+                result.holes
+            );
+            (valid, near, right)
+        };
+        // The mis-posed neighbour alone: too near almost everywhere; the short one alone: right.
+        let (valid, near, _) = sweep(&[long]);
+        assert!(near * 10 > 9 * valid, "{near} of {valid} too near");
+        let (valid, _, right) = sweep(&[short]);
+        assert!(right * 4 > 3 * valid, "{right} of {valid} right");
+        // Together the sharper, wrong cost leads (measured: 31396 px with depth, 25277 too near
+        // with the tolerance in the coarser back sweep's steps), and the short neighbour's veto
+        // leaves holes instead, keeping the right depths (3355 → 3264 within 2 %).
+        let (valid, near, right) = sweep(&[long, short]);
+        assert!(near * 4 < valid, "{near} of {valid} px too near");
+        assert!(right > 3000, "{right} px within 2 %");
+        // Both correctly posed, the depth is as good as ever.
+        let long_right = StereoView {
+            cam_from_world: long_pose,
+            ..long
+        };
+        let (valid, near, right) = sweep(&[long_right, short]);
+        let truth_pixels = truth.data().iter().filter(|t| **t > 0.0).count();
+        assert!(
+            2 * valid > truth_pixels,
+            "{valid} of {truth_pixels} px have depth"
+        );
+        assert!(
+            near * 50 < valid && right * 10 > 9 * valid,
+            "{near}, {right} of {valid}"
+        );
     }
 }
