@@ -2917,9 +2917,10 @@ mod tests {
         assert!(near * 10 > 9 * valid, "{near} of {valid} too near");
         let (valid, _, right) = sweep(&[short]);
         assert!(right * 4 > 3 * valid, "{right} of {valid} right");
-        // Together the sharper, wrong cost leads (measured: 31396 px with depth, 25277 too near
-        // with the tolerance in the coarser back sweep's steps), and the short neighbour's veto
-        // leaves holes instead, keeping the right depths (3355 → 3264 within 2 %).
+        // Together the sharper, wrong cost leads (measured with the tolerance in the coarser
+        // back sweep's steps: 31500 px with depth, 25337 too near), and the short neighbour's
+        // veto leaves holes instead (6218, 949 too near), keeping the right depths (3362 → 3263
+        // within 2 %).
         let (valid, near, right) = sweep(&[long, short]);
         assert!(near * 4 < valid, "{near} of {valid} px too near");
         assert!(right > 3000, "{right} px within 2 %");
