@@ -14,7 +14,11 @@
 //!   needs for a shift of at most `plane_step_px` between planes;
 //! - per plane and neighbour: the neighbour warped into the reference by the plane's homography
 //!   `K_n (R + t·nᵀ/d) K_r⁻¹` (bilinear), cost `1 − ZNCC` over a (2r+1)² window (box sums);
-//!   windows leaving the neighbour have no cost;
+//!   windows leaving the neighbour have no cost, nor have windows whose texture runs nearly
+//!   along the neighbour's epipolar lines (`min_epipolar_gradient_share` of the window's
+//!   gradient energy across them: there a pose error across the lines becomes a disparity
+//!   error several times as large, which the cost and the left-right check cannot see), and
+//!   with two or more neighbours a pixel fewer than two can measure is a hole;
 //! - per plane the mean of the best `best_k` neighbour costs (a neighbour that sees the pixel
 //!   occluded drops out), then winner-take-all over the planes with a parabola through the best
 //!   plane and its two neighbours (sub-plane);
@@ -124,13 +128,16 @@ pub struct StereoConfig {
     pub uniqueness_margin: f32,
     /// Least share of a reference window's grey-gradient energy (its structure tensor) along a
     /// neighbour's epipolar line at the pixel for that neighbour to measure the pixel's depth
-    /// ([`epipolar_measurable`]); where it is less the neighbour has no cost there, and with two
-    /// or more neighbours a pixel fewer than two of them can measure is a hole (`ambiguous`).
+    /// ([`epipolar_measurable`]); where it is less the neighbour has no cost there (as outside
+    /// its photo), and with two or more neighbours a pixel fewer than two of them can measure
+    /// is a hole (`ambiguous`): one neighbour's depth cannot be checked for its own pose error.
     /// For a window whose texture is one edge the share is sin²θ, θ the edge's angle to the
     /// epipolar line, and a pose error δ across the epipolar line moves the match δ·cot θ along
     /// it: at an edge nearly parallel to the baseline a pixel's worth of pose error is several
     /// pixels of disparity, which the neighbour's own sweep back shares, so neither the cost nor
-    /// the left-right check can tell. 0.1 (θ ≥ 18°, cot θ ≤ 3); 0: off (branch `change27`).
+    /// the left-right check can tell. 0.1 (θ ≥ 18°, cot θ ≤ 3); 0: off. Without the
+    /// two-neighbour rule block s2's view_027 keeps its false roof region (its one measuring
+    /// neighbour is the mis-posed one; docs/measurements.md, branch `change27`).
     pub min_epipolar_gradient_share: f32,
     /// Check each depth against the neighbours' own depths (one-pair sweeps back from them).
     pub left_right_check: bool,
