@@ -9,10 +9,9 @@ within 2 % (not occluded). `asgreg flow --preset fast` makes the flow.
 (docs/measurements.md, twenty-seventh session.)
 
 Usage: python3 docs/scripts/photo_to_photo_flow.py SCENE ASGREG_BINARY OUT_DIR [PAIRS]"""
-import sys, os, subprocess, numpy as np
-scene, asgreg, out = sys.argv[1], sys.argv[2], sys.argv[3]
-npairs = int(sys.argv[4]) if len(sys.argv) > 4 else 12
-os.makedirs(out, exist_ok=True)
+import sys, os, subprocess
+import numpy as np
+
 def read_pfm(p):
     with open(p, 'rb') as f:
         f.readline(); w, h = map(int, f.readline().split()); s = float(f.readline())
@@ -27,47 +26,61 @@ def quat_to_R(qw, qx, qy, qz):
     return np.array([[1-2*(qy*qy+qz*qz), 2*(qx*qy-qz*qw), 2*(qx*qz+qy*qw)],
                      [2*(qx*qy+qz*qw), 1-2*(qx*qx+qz*qz), 2*(qy*qz-qx*qw)],
                      [2*(qx*qz-qy*qw), 2*(qy*qz+qx*qw), 1-2*(qx*qx+qy*qy)]])
-cam = open(f"{scene}/gt/cameras.txt").read().strip().splitlines()[-1].split()
-W, H, f, cx, cy = int(cam[2]), int(cam[3]), float(cam[4]), float(cam[6]), float(cam[7])
-poses = {}
-lines = [l for l in open(f"{scene}/gt/images.txt") if not l.startswith('#')]
-for l in lines[::2]:
-    t = l.split()
-    if len(t) < 10: continue
-    R = quat_to_R(*map(float, t[1:5])); tr = np.array(list(map(float, t[5:8])))
-    poses[t[9]] = (R, tr)
-names = sorted(poses)
-centres = {n: -poses[n][0].T @ poses[n][1] for n in names}
-axes = {n: poses[n][0][2] for n in names}
-# Each view's nearest other view by centre distance among those looking within 30 degrees.
-pairs = []
-for a in names:
-    cands = [(np.linalg.norm(centres[a]-centres[b]), b) for b in names if b != a and axes[a] @ axes[b] > np.cos(np.radians(30))]
-    if cands:
-        pairs.append((a, min(cands)[1], min(cands)[0]))
-pairs = pairs[:npairs]
-u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-rows = []
-for a, b, dist in pairs:
-    da = read_pfm(f"{scene}/depth_exact/{a.replace('.jpg','.pfm')}")
-    db = read_pfm(f"{scene}/depth_exact/{b.replace('.jpg','.pfm')}")
-    Ra, ta = poses[a]; Rb, tb = poses[b]
-    Xc = np.stack([(u-cx)/f*da, (v-cy)/f*da, da], -1)
-    Xw = (Xc - ta) @ Ra  # R^T (x - t)
-    Xb = Xw @ Rb.T + tb
-    ub = f*Xb[...,0]/Xb[...,2] + cx; vb = f*Xb[...,1]/Xb[...,2] + cy
-    valid = (da > 0) & (Xb[...,2] > 0) & (ub >= 0) & (ub < W) & (vb >= 0) & (vb < H)
-    # Occlusion: B's exact depth at the landing pixel agrees within 2 %.
-    ib = np.clip(ub.astype(int), 0, W-1); jb = np.clip(vb.astype(int), 0, H-1)
-    valid &= np.abs(db[jb, ib] - Xb[...,2]) < 0.02 * Xb[...,2]
-    margin = np.zeros_like(valid); margin[20:-20, 20:-20] = True
-    valid &= margin
-    flo = f"{out}/{a}-{b}.flo"
-    subprocess.run([asgreg, "flow", "--preset", "fast", "--out", flo, f"{scene}/images/{a}", f"{scene}/images/{b}"], check=True, capture_output=True)
-    F = read_flo(flo)
-    epe = np.hypot(F[...,0] - (ub - u), F[...,1] - (vb - v))[valid]
-    true_mag = np.hypot(ub-u, vb-v)[valid]
-    rows.append((a, b, dist, valid.mean(), np.median(true_mag), np.median(epe), (epe <= 1).mean(), (epe <= 2).mean(), (epe <= 5).mean()))
-    print(f"{a} -> {b}: {dist:5.2f} m apart, {100*valid.mean():4.1f} % pixels, true flow median {np.median(true_mag):6.1f} px, EPE median {np.median(epe):5.2f} px, <=1/2/5 px {100*(epe<=1).mean():4.0f} / {100*(epe<=2).mean():4.0f} / {100*(epe<=5).mean():4.0f} %", flush=True)
-r = np.array([x[2:] for x in rows])
-print(f"mean over {len(rows)} pairs: true flow median {r[:,2].mean():.1f} px, EPE median {r[:,3].mean():.2f} px, <=1/2/5 px {100*r[:,4].mean():.0f} / {100*r[:,5].mean():.0f} / {100*r[:,6].mean():.0f} %")
+def load_scene(scene):
+    """The scene's PINHOLE camera (W, H, f, cx, cy) and true poses {name: (R, t)}, cam_from_world."""
+    with open(f"{scene}/gt/cameras.txt") as fh:
+        cam = fh.read().strip().splitlines()[-1].split()
+    W, H, f, cx, cy = int(cam[2]), int(cam[3]), float(cam[4]), float(cam[6]), float(cam[7])
+    poses = {}
+    with open(f"{scene}/gt/images.txt") as fh:
+        lines = [l for l in fh if not l.startswith('#')]
+    for l in lines[::2]:
+        t = l.split()
+        if len(t) < 10: continue
+        R = quat_to_R(*map(float, t[1:5])); tr = np.array(list(map(float, t[5:8])))
+        poses[t[9]] = (R, tr)
+    return W, H, f, cx, cy, poses
+
+def main():
+    scene, asgreg, out = sys.argv[1], sys.argv[2], sys.argv[3]
+    npairs = int(sys.argv[4]) if len(sys.argv) > 4 else 12
+    os.makedirs(out, exist_ok=True)
+    W, H, f, cx, cy, poses = load_scene(scene)
+    names = sorted(poses)
+    centres = {n: -poses[n][0].T @ poses[n][1] for n in names}
+    axes = {n: poses[n][0][2] for n in names}
+    # Each view's nearest other view by centre distance among those looking within 30 degrees.
+    pairs = []
+    for a in names:
+        cands = [(np.linalg.norm(centres[a]-centres[b]), b) for b in names if b != a and axes[a] @ axes[b] > np.cos(np.radians(30))]
+        if cands:
+            pairs.append((a, min(cands)[1], min(cands)[0]))
+    pairs = pairs[:npairs]
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    rows = []
+    for a, b, dist in pairs:
+        da = read_pfm(f"{scene}/depth_exact/{a.replace('.jpg','.pfm')}")
+        db = read_pfm(f"{scene}/depth_exact/{b.replace('.jpg','.pfm')}")
+        Ra, ta = poses[a]; Rb, tb = poses[b]
+        Xc = np.stack([(u-cx)/f*da, (v-cy)/f*da, da], -1)
+        Xw = (Xc - ta) @ Ra  # R^T (x - t)
+        Xb = Xw @ Rb.T + tb
+        ub = f*Xb[...,0]/Xb[...,2] + cx; vb = f*Xb[...,1]/Xb[...,2] + cy
+        valid = (da > 0) & (Xb[...,2] > 0) & (ub >= 0) & (ub < W) & (vb >= 0) & (vb < H)
+        # Occlusion: B's exact depth at the landing pixel agrees within 2 %.
+        ib = np.clip(ub.astype(int), 0, W-1); jb = np.clip(vb.astype(int), 0, H-1)
+        valid &= np.abs(db[jb, ib] - Xb[...,2]) < 0.02 * Xb[...,2]
+        margin = np.zeros_like(valid); margin[20:-20, 20:-20] = True
+        valid &= margin
+        flo = f"{out}/{a}-{b}.flo"
+        subprocess.run([asgreg, "flow", "--preset", "fast", "--out", flo, f"{scene}/images/{a}", f"{scene}/images/{b}"], check=True, capture_output=True)
+        F = read_flo(flo)
+        epe = np.hypot(F[...,0] - (ub - u), F[...,1] - (vb - v))[valid]
+        true_mag = np.hypot(ub-u, vb-v)[valid]
+        rows.append((a, b, dist, valid.mean(), np.median(true_mag), np.median(epe), (epe <= 1).mean(), (epe <= 2).mean(), (epe <= 5).mean()))
+        print(f"{a} -> {b}: {dist:5.2f} m apart, {100*valid.mean():4.1f} % pixels, true flow median {np.median(true_mag):6.1f} px, EPE median {np.median(epe):5.2f} px, <=1/2/5 px {100*(epe<=1).mean():4.0f} / {100*(epe<=2).mean():4.0f} / {100*(epe<=5).mean():4.0f} %", flush=True)
+    r = np.array([x[2:] for x in rows])
+    print(f"mean over {len(rows)} pairs: true flow median {r[:,2].mean():.1f} px, EPE median {r[:,3].mean():.2f} px, <=1/2/5 px {100*r[:,4].mean():.0f} / {100*r[:,5].mean():.0f} / {100*r[:,6].mean():.0f} %")
+
+if __name__ == "__main__":
+    main()

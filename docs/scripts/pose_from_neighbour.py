@@ -53,30 +53,11 @@ def depth_at(V, F, R, t, us, vs, f, cx, cy):
         out[s:s+2000] = np.where(np.isfinite(best), best, 0)
     return out
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from photo_to_photo_flow import read_pfm, read_flo, load_scene
+
 scene, flodir = sys.argv[1], sys.argv[2]
-def read_pfm(p):
-    with open(p, 'rb') as f:
-        f.readline(); w, h = map(int, f.readline().split()); s = float(f.readline())
-        d = np.frombuffer(f.read(), dtype='<f4' if s < 0 else '>f4').reshape(h, w)
-        return np.flipud(d).astype(np.float64)
-def read_flo(p):
-    with open(p, 'rb') as f:
-        assert np.frombuffer(f.read(4), '<f4')[0] == 202021.25
-        w, h = np.frombuffer(f.read(8), '<i4')
-        return np.frombuffer(f.read(), '<f4').reshape(h, w, 2).astype(np.float64)
-def quat_to_R(qw, qx, qy, qz):
-    return np.array([[1-2*(qy*qy+qz*qz), 2*(qx*qy-qz*qw), 2*(qx*qz+qy*qw)],
-                     [2*(qx*qy+qz*qw), 1-2*(qx*qx+qz*qz), 2*(qy*qz-qx*qw)],
-                     [2*(qx*qz-qy*qw), 2*(qy*qz+qx*qw), 1-2*(qx*qx+qy*qy)]])
-cam = open(f"{scene}/gt/cameras.txt").read().strip().splitlines()[-1].split()
-W, H, f, cx, cy = int(cam[2]), int(cam[3]), float(cam[4]), float(cam[6]), float(cam[7])
-poses = {}
-lines = [l for l in open(f"{scene}/gt/images.txt") if not l.startswith('#')]
-for l in lines[::2]:
-    t = l.split()
-    if len(t) < 10: continue
-    R = quat_to_R(*map(float, t[1:5])); tr = np.array(list(map(float, t[5:8])))
-    poses[t[9]] = (R, tr)
+W, H, f, cx, cy, poses = load_scene(scene)
 turn_deg = float(sys.argv[3]) if len(sys.argv) > 3 else 0.0
 use_lod = len(sys.argv) > 4 and sys.argv[4] == "lod"
 
