@@ -53,7 +53,7 @@ use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::pose_search::{select_beams, OrientedEdgeMap};
 use crate::core::raster::{Rasterizer, RenderBuffers};
-use crate::core::region_contrast::{region_contrast, RegionContrastWorkspace};
+use crate::core::region_contrast::{region_contrasts, RegionContrastWorkspace};
 use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
 use crate::core::verify::Verdict;
@@ -223,15 +223,15 @@ pub const REGION_BANDS_PX: [usize; 2] = [6, 12];
 pub const COARSE_CORRELATION_SIGMAS_PX: [f64; 2] = [3.0, 6.0];
 
 /// The region contrast of `photo` against a rendering's `face_index` at each of
-/// [`REGION_BANDS_PX`].
-fn region_contrasts(
+/// [`REGION_BANDS_PX`] (`None`s without the photo).
+fn region_contrasts_at_bands(
     photo: Option<ImageView<'_, f32>>,
     face_index: ImageView<'_, u32>,
     mesh: &Mesh,
     workspace: &mut RegionContrastWorkspace,
 ) -> [Option<f64>; 2] {
-    REGION_BANDS_PX.map(|band_px| {
-        photo.and_then(|photo| region_contrast(photo, face_index, mesh, band_px, workspace))
+    photo.map_or([None; 2], |photo| {
+        region_contrasts(photo, face_index, mesh, REGION_BANDS_PX, workspace)
     })
 }
 
@@ -932,7 +932,7 @@ fn diagnose_region(
                     )
                     .map(|peak| peak.at_pose)
                 });
-                let region_contrast = region_contrasts(
+                let region_contrast = region_contrasts_at_bands(
                     photo,
                     end_view.render.face_index().view(),
                     mesh,
@@ -1245,7 +1245,7 @@ fn diagnose_region(
             )
         },
     );
-    let truth_region_contrast = region_contrasts(
+    let truth_region_contrast = region_contrasts_at_bands(
         photo,
         truth_view.render.face_index().view(),
         mesh,
@@ -1262,7 +1262,7 @@ fn diagnose_region(
                 &mut rasterizer,
                 &mut end_view,
             );
-            region_contrasts(
+            region_contrasts_at_bands(
                 photo,
                 end_view.render.face_index().view(),
                 mesh,

@@ -64,9 +64,21 @@ pub fn region_contrast(
     band_px: usize,
     workspace: &mut RegionContrastWorkspace,
 ) -> Option<f64> {
+    let [contrast] = region_contrasts(photo, face_index, mesh, [band_px], workspace);
+    contrast
+}
+
+/// [`region_contrast`] at each of `bands_px`, the groups and their borders found once.
+pub fn region_contrasts<const N: usize>(
+    photo: ImageView<'_, f32>,
+    face_index: ImageView<'_, u32>,
+    mesh: &Mesh,
+    bands_px: [usize; N],
+    workspace: &mut RegionContrastWorkspace,
+) -> [Option<f64>; N] {
     let (width_px, height_px) = photo.size();
     if face_index.size() != (width_px, height_px) || width_px == 0 || height_px == 0 {
-        return None;
+        return [None; N];
     }
     let RegionContrastWorkspace {
         facing,
@@ -107,35 +119,37 @@ pub fn region_contrast(
             }
         }
     }
-    near_model_edge_mask(borders.view(), 0.5, band_px, row_counts, band);
-    let mut sums = [(0.0f64, 0.0f64, 0.0f64); FACING_GROUPS as usize + 1];
-    for ((&inside, &group), &value) in band.data().iter().zip(groups.iter()).zip(photo.data()) {
-        if inside {
-            let value = f64::from(value);
-            let entry = &mut sums[group as usize];
-            entry.0 += 1.0;
-            entry.1 += value;
-            entry.2 += value * value;
+    bands_px.map(|band_px| {
+        near_model_edge_mask(borders.view(), 0.5, band_px, row_counts, band);
+        let mut sums = [(0.0f64, 0.0f64, 0.0f64); FACING_GROUPS as usize + 1];
+        for ((&inside, &group), &value) in band.data().iter().zip(groups.iter()).zip(photo.data()) {
+            if inside {
+                let value = f64::from(value);
+                let entry = &mut sums[group as usize];
+                entry.0 += 1.0;
+                entry.1 += value;
+                entry.2 += value * value;
+            }
         }
-    }
-    let (count, sum, squares) = sums
-        .iter()
-        .fold((0.0, 0.0, 0.0), |(n, s, q), &(gn, gs, gq)| {
-            (n + gn, s + gs, q + gq)
-        });
-    if count < 2.0 {
-        return None;
-    }
-    let total = squares - sum * sum / count;
-    if total <= f64::EPSILON * count {
-        return None;
-    }
-    let within: f64 = sums
-        .iter()
-        .filter(|(n, _, _)| *n > 0.0)
-        .map(|&(n, s, q)| q - s * s / n)
-        .sum();
-    Some((1.0 - within / total).clamp(0.0, 1.0))
+        let (count, sum, squares) = sums
+            .iter()
+            .fold((0.0, 0.0, 0.0), |(n, s, q), &(gn, gs, gq)| {
+                (n + gn, s + gs, q + gq)
+            });
+        if count < 2.0 {
+            return None;
+        }
+        let total = squares - sum * sum / count;
+        if total <= f64::EPSILON * count {
+            return None;
+        }
+        let within: f64 = sums
+            .iter()
+            .filter(|(n, _, _)| *n > 0.0)
+            .map(|&(n, s, q)| q - s * s / n)
+            .sum();
+        Some((1.0 - within / total).clamp(0.0, 1.0))
+    })
 }
 
 #[cfg(test)]

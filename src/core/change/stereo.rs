@@ -1630,28 +1630,12 @@ const MODEL_EDGE_JUMP: f32 = 0.05;
 /// `model_test_edge_px` > 0): a 3 × 3 window's worth.
 const MODEL_TEST_LEAST_PIXELS: f32 = 9.0;
 
-/// Per working pixel of `reference`, whether `neighbour` can measure its depth: the share of the
-/// reference window's grey-gradient energy along the neighbour's epipolar line through the pixel
-/// (`eᵀJe / (|e|² tr J)`, J the window's structure tensor from central differences) is at least
-/// `min_epipolar_gradient_share` (see [`StereoConfig`]). True where the window has no gradient
-/// (the texture tests decide there), outside the windows' valid area, and with the test off.
-fn epipolar_measurable(
-    reference: &WorkingView,
-    neighbour: &WorkingView,
-    config: &StereoConfig,
-) -> Vec<bool> {
-    let (w, h) = reference.photo.size();
-    let share = config.min_epipolar_gradient_share;
-    if share <= 0.0 {
-        return vec![true; w * h];
-    }
-    // The neighbour's centre in the reference's camera, projected: the epipole (homogeneous,
-    // at infinity when the centre lies in the reference's focal plane).
-    let centre = reference
-        .cam_from_world
-        .transform_point(&neighbour.cam_from_world.camera_center());
-    let epipole = reference.intrinsics.k_matrix() * centre;
-    let data = reference.photo.data();
+/// The structure tensor of `photo` summed over each pixel's window (`radius_px`): per pixel
+/// `[Σgx², Σgx·gy, Σgy², 0]` of central differences. One per reference and sweep, whatever the
+/// number of neighbours [`epipolar_measurable`] reads it for.
+fn window_structure_tensor(photo: &Image<f32>, radius_px: usize) -> Vec<[f32; 4]> {
+    let (w, h) = photo.size();
+    let data = photo.data();
     let at = |col: usize, row: usize| data[row * w + col];
     let gradients: Vec<[f32; 4]> = (0..w * h)
         .map(|index| {
@@ -1663,14 +1647,29 @@ fn epipolar_measurable(
         .collect();
     let mut tmp = vec![[0.0; 4]; w * h];
     let mut tensor = vec![[0.0; 4]; w * h];
-    box_sums(
-        &gradients,
-        w,
-        h,
-        config.window_radius_px,
-        &mut tmp,
-        &mut tensor,
-    );
+    box_sums(&gradients, w, h, radius_px, &mut tmp, &mut tensor);
+    tensor
+}
+
+/// Per working pixel of `reference`, whether `neighbour` can measure its depth: the share of the
+/// reference window's grey-gradient energy along the neighbour's epipolar line through the pixel
+/// (`eᵀJe / (|e|² tr J)`, J the window's structure tensor `tensor` from
+/// [`window_structure_tensor`]) is at least `share` (`min_epipolar_gradient_share`, see
+/// [`StereoConfig`]). True where the window has no gradient (the texture tests decide there) and
+/// outside the windows' valid area.
+fn epipolar_measurable(
+    reference: &WorkingView,
+    neighbour: &WorkingView,
+    tensor: &[[f32; 4]],
+    share: f32,
+) -> Vec<bool> {
+    let w = reference.photo.width_px();
+    // The neighbour's centre in the reference's camera, projected: the epipole (homogeneous,
+    // at infinity when the centre lies in the reference's focal plane).
+    let centre = reference
+        .cam_from_world
+        .transform_point(&neighbour.cam_from_world.camera_center());
+    let epipole = reference.intrinsics.k_matrix() * centre;
     tensor
         .iter()
         .enumerate()
@@ -1711,10 +1710,16 @@ fn plane_sweep(
         .map(|n| plane_warp(reference, n))
         .collect();
     let planes = plane_count(reference, &warps, range, config);
-    let measurable: Vec<Vec<bool>> = neighbours
-        .iter()
-        .map(|n| epipolar_measurable(reference, n, config))
-        .collect();
+    let share = config.min_epipolar_gradient_share;
+    let measurable: Vec<Vec<bool>> = if share > 0.0 {
+        let tensor = window_structure_tensor(&reference.photo, config.window_radius_px);
+        neighbours
+            .iter()
+            .map(|n| epipolar_measurable(reference, n, &tensor, share))
+            .collect()
+    } else {
+        vec![vec![true; pixels]; neighbours.len()]
+    };
     let least_measuring = neighbours.len().min(2);
     let inverse_near = 1.0 / range.near_m;
     let inverse_far = 1.0 / range.far_m;
