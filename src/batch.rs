@@ -11,13 +11,15 @@ use serde::{Deserialize, Serialize};
 use crate::core::camera::Camera;
 use crate::core::confidence::FrameEvidence;
 use crate::core::frame::{
-    register_frame, FrameInput, IntrinsicsMode, Pass, PoseRefinement, RegistrationConfig,
-    StageTimings,
+    check_neighbour_pose, nearest_neighbours, pose_from_neighbour, query_features,
+    query_gradient, register_frame, FrameInput, IntrinsicsMode, NeighbourCheck,
+    NeighbourDecision, NeighbourWorkspace, Pass, PoseRefinement, RegisteredNeighbour,
+    RegistrationConfig, StageTimings,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::core::rigid::Rigid3;
-use crate::core::verify::Verdict;
+use crate::core::verify::{PoseHypothesis, Verdict};
 use crate::frame_files::{frame_seed, FrameFiles, FrameFilesError, FrameLoader};
 
 /// Where one frame's inputs are.
@@ -75,6 +77,23 @@ pub struct FrameReport {
     /// above carry (`core::frame::decide_passes`).
     #[serde(default)]
     pub heading_sweep: Option<HeadingSweepReport>,
+    /// Step "neighbour" ([`neighbour_pass`]): each registered neighbour tried, in order; empty
+    /// when the step did not run for the frame.
+    #[serde(default)]
+    pub neighbours: Vec<NeighbourReport>,
+}
+
+/// One registered neighbour tried for a frame by [`neighbour_pass`].
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct NeighbourReport {
+    /// The neighbour frame's name.
+    pub neighbour: String,
+    /// Neighbours between this frame and one the model accepted on its own (1: the neighbour
+    /// was).
+    pub steps: usize,
+    /// The neighbour's pose of this frame and what the model said of it, or why there is none.
+    pub check: Result<NeighbourCheck, String>,
+    pub decision: NeighbourDecision,
 }
 
 /// What the full-circle heading fallback did for a frame (`core::frame::HeadingSweepOutcome`
@@ -144,6 +163,7 @@ impl FrameReport {
             evidence: None,
             timings: StageTimings::default(),
             heading_sweep: None,
+            neighbours: Vec::new(),
         }
     }
 }
@@ -262,9 +282,229 @@ pub fn register_batch_frame_with(
                 evidence: Some(result.evidence),
                 timings: result.timings,
                 heading_sweep,
+                neighbours: Vec::new(),
             }
         }
         Err(error) => FrameReport::failed(frame, format!("{}: {error}", frame.name)),
+    }
+}
+
+/// A frame's inputs for step "neighbour": its files and query image, loaded once per pass.
+struct LoadedQuery {
+    files: FrameFiles,
+    query: Image<f32>,
+}
+
+/// Step "neighbour" over a batch already registered frame by frame (`reports[i]` is
+/// `frames[i]`'s): each frame's pose from its nearest accepted frames
+/// ([`nearest_neighbours`], [`pose_from_neighbour`]), checked by the model
+/// ([`check_neighbour_pose`]): a frame not accepted is accepted at a confirmed neighbour's
+/// pose; an accepted frame a confirmed neighbour's pose contradicts is rejected. Round `r`
+/// lends the poses of frames accepted `r − 1` neighbours away from one the model accepted on
+/// its own, up to `neighbour.max_steps`; every frame of a round is decided on the reports as
+/// they were when the round began, so the order of the frames does not matter. Frames with
+/// unknown intrinsics, and those whose files cannot be read, are left as they are. Returns the
+/// indices of the frames whose decision changed.
+pub fn neighbour_pass(
+    mesh: &Mesh,
+    frames: &[BatchFrame],
+    reports: &mut [FrameReport],
+    loader: &FrameLoader,
+    config: &RegistrationConfig,
+    seed: u64,
+) -> Vec<usize> {
+    let settings = &config.neighbour;
+    let mut steps: Vec<Option<usize>> = reports
+        .iter()
+        .map(|report| report.accepted.then_some(0))
+        .collect();
+    let mut loaded: Vec<Option<LoadedQuery>> = frames.iter().map(|_| None).collect();
+    let mut changed = Vec::new();
+    let mut workspace = NeighbourWorkspace::default();
+    for round in 1..=settings.max_steps {
+        let lenders: Vec<(usize, Rigid3)> = (0..frames.len())
+            .filter(|&index| steps[index] == Some(round - 1))
+            .filter_map(|index| Some((index, reports[index].cam_from_world?)))
+            .filter(|&(index, _)| frames[index].intrinsics == IntrinsicsMode::Known)
+            .collect();
+        if lenders.is_empty() {
+            break;
+        }
+        let mut decided: Vec<(usize, NeighbourReport)> = Vec::new();
+        for index in 0..frames.len() {
+            let frame = &frames[index];
+            // Round 1 checks every frame; later rounds only those still not accepted.
+            if frame.intrinsics != IntrinsicsMode::Known || (round > 1 && steps[index].is_some())
+            {
+                continue;
+            }
+            let others: Vec<(usize, Rigid3)> =
+                lenders.iter().copied().filter(|&(i, _)| i != index).collect();
+            let candidates =
+                nearest_neighbours(&frame.initial_cam_from_world, &others, settings);
+            if candidates.is_empty() || load_query(frame, loader, config, &mut loaded[index]).is_err() {
+                continue;
+            }
+            for candidate in candidates {
+                if load_query(&frames[candidate], loader, config, &mut loaded[candidate]).is_err()
+                {
+                    continue;
+                }
+                let (Some(own), Some(lender)) = (&loaded[index], &loaded[candidate]) else {
+                    continue;
+                };
+                let tried = neighbour_report(
+                    mesh,
+                    frame,
+                    &reports[index],
+                    own,
+                    &frames[candidate],
+                    &reports[candidate],
+                    lender,
+                    round,
+                    config,
+                    seed,
+                    &mut workspace,
+                );
+                let confirmed = tried.check.as_ref().is_ok_and(|c| c.confirmed.is_ok());
+                reports[index].neighbours.push(tried.clone());
+                if confirmed {
+                    decided.push((index, tried));
+                    break;
+                }
+            }
+        }
+        for (index, tried) in decided {
+            let report = &mut reports[index];
+            match (tried.decision, tried.check) {
+                (NeighbourDecision::Accept, Ok(check)) => {
+                    report.accepted = true;
+                    report.reason = None;
+                    report.camera = Some(frames[index].camera);
+                    report.cam_from_world = Some(check.hypothesis.cam_from_world);
+                    report.consensus = check.hypothesis.consensus;
+                    report.inlier_rms_px = Some(check.hypothesis.inlier_rms_px);
+                    report.rejected_candidate = None;
+                    steps[index] = Some(round);
+                    changed.push(index);
+                }
+                (NeighbourDecision::Contradicted { apart_px }, _) => {
+                    report.accepted = false;
+                    report.reason = Some(format!(
+                        "a registered neighbour ({}) gives a pose the photo confirms {apart_px:.0} px \
+                         from the accepted one: two witnesses contradict each other",
+                        tried.neighbour
+                    ));
+                    report.rejected_candidate = report
+                        .camera
+                        .zip(report.cam_from_world)
+                        .map(|(camera, cam_from_world)| RejectedCandidate {
+                            camera,
+                            cam_from_world,
+                        });
+                    report.camera = None;
+                    report.cam_from_world = None;
+                    steps[index] = None;
+                    changed.push(index);
+                }
+                _ => {}
+            }
+        }
+    }
+    changed.sort_unstable();
+    changed.dedup();
+    changed
+}
+
+/// Loads `frame`'s files and query image into `slot` once.
+fn load_query(
+    frame: &BatchFrame,
+    loader: &FrameLoader,
+    config: &RegistrationConfig,
+    slot: &mut Option<LoadedQuery>,
+) -> Result<(), String> {
+    if slot.is_some() {
+        return Ok(());
+    }
+    let files = frame.load_with(loader).map_err(|e| e.to_string())?;
+    let query = query_gradient(&frame.input(&files, 0), config).map_err(|e| e.to_string())?;
+    *slot = Some(LoadedQuery { files, query });
+    Ok(())
+}
+
+/// One neighbour tried for a frame: the neighbour's pose of it and the model's check.
+#[allow(clippy::too_many_arguments)]
+fn neighbour_report(
+    mesh: &Mesh,
+    frame: &BatchFrame,
+    report: &FrameReport,
+    own: &LoadedQuery,
+    lender_frame: &BatchFrame,
+    lender_report: &FrameReport,
+    lender: &LoadedQuery,
+    steps: usize,
+    config: &RegistrationConfig,
+    seed: u64,
+    workspace: &mut NeighbourWorkspace,
+) -> NeighbourReport {
+    let camera = own.files.camera;
+    let as_hypothesis = |cam_from_world: Rigid3| PoseHypothesis {
+        camera,
+        cam_from_world,
+        consensus: report.consensus,
+        inlier_rms_px: report.inlier_rms_px.unwrap_or(0.0),
+        correspondence_count: 0,
+        coarse_cam_from_world: frame.initial_cam_from_world,
+    };
+    let accepted = report.cam_from_world.map(as_hypothesis);
+    let candidate = report
+        .rejected_candidate
+        .map(|candidate| as_hypothesis(candidate.cam_from_world));
+    let own_pose = match (&accepted, &candidate) {
+        (Some(pose), _) => Ok(pose),
+        (None, candidate) => Err(candidate.as_ref()),
+    };
+    let check = lender_report
+        .cam_from_world
+        .ok_or_else(|| "the neighbour is not registered".to_string())
+        .and_then(|lender_pose| {
+            let features = query_features(own.query.view(), config).map_err(|e| e.to_string())?;
+            let neighbour = RegisteredNeighbour {
+                query: lender.query.view(),
+                camera: &lender.files.camera,
+                cam_from_world: lender_pose,
+            };
+            pose_from_neighbour(
+                mesh,
+                &camera,
+                frame.intrinsics,
+                &features,
+                &neighbour,
+                config,
+                crate::frame_files::frame_seed(seed, frame.image_id),
+                workspace,
+            )
+        })
+        .map(|hypothesis| {
+            check_neighbour_pose(
+                mesh,
+                own.query.view(),
+                frame.intrinsics,
+                &hypothesis,
+                own_pose,
+                config,
+                workspace,
+            )
+        });
+    let (check, decision) = match check {
+        Ok((check, decision)) => (Ok(check), decision),
+        Err(why) => (Err(why), NeighbourDecision::Keep),
+    };
+    NeighbourReport {
+        neighbour: lender_frame.name.clone(),
+        steps,
+        check,
+        decision,
     }
 }
 

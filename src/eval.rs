@@ -32,6 +32,37 @@ pub struct EvalFrame {
     /// and frames that were not registered).
     #[serde(default)]
     pub timings: Option<StageTimings>,
+    /// Step "neighbour" (`--neighbours`): each registered neighbour tried for the frame.
+    #[serde(default)]
+    pub neighbours: Vec<NeighbourEval>,
+}
+
+/// The alignment's end from a neighbour's pose ([`crate::core::frame::neighbour::EdgeEnd`]).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct NeighbourEdgesEval {
+    /// δ of the end to the truth, px.
+    pub delta_px: Option<f64>,
+    /// δ between the end and the neighbour's pose, px.
+    pub apart_px: f64,
+    pub peak: crate::core::edge_align::SupportPeak,
+}
+
+/// One registered neighbour tried for an [`EvalFrame`] (step "neighbour").
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct NeighbourEval {
+    pub neighbour: String,
+    /// Neighbours away from a frame the model accepted on its own.
+    pub steps: usize,
+    /// δ of the neighbour's pose of the frame to the truth, px (None without a pose).
+    pub delta_px: Option<f64>,
+    /// δ between it and the frame's own pose, px.
+    pub apart_px: Option<f64>,
+    /// Where the photo's edges judged it: the alignment's end from it.
+    pub edges: Option<NeighbourEdgesEval>,
+    /// RANSAC consensus and matches of the neighbour's pose.
+    pub consensus: Option<(usize, usize)>,
+    /// What the model said of it.
+    pub outcome: String,
 }
 
 /// The heading fallback's two registrations of an [`EvalFrame`].
@@ -323,6 +354,7 @@ mod tests {
             total_ms: 100.0,
             heading_sweep: None,
             timings: None,
+            neighbours: Vec::new(),
         }
     }
 

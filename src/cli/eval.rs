@@ -12,8 +12,8 @@ use asgreg::baseline::icp::{
     register_depth_to_mesh, IcpConfig, IcpVariant, ICP_SUCCESS_THRESHOLD_PX,
 };
 use asgreg::batch::{
-    register_batch_frame, BatchFrame, FrameReport, HeadingSweepReport, PassReport,
-    RejectedCandidate,
+    neighbour_pass, register_batch_frame, BatchFrame, FrameReport, HeadingSweepReport,
+    PassReport, RejectedCandidate,
 };
 use asgreg::core::camera::Camera;
 use asgreg::core::confidence::FrameEvidence;
@@ -21,14 +21,15 @@ use asgreg::core::frame::{
     FrameInput, IntrinsicsMode, Pass, RegistrationConfig, RegistrationError, StageTimings,
 };
 use asgreg::core::mesh::Mesh;
+use asgreg::core::rigid::Rigid3;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::diagnose::{
     diagnose_frame, diagnose_search, DiagnosisSummary, FrameDiagnosis, SearchDiagnosis, SearchLoss,
     ORACLE_MAX_ERROR_PX, REACH_RANK_LIMIT,
 };
 use asgreg::eval::{
-    calibration_bins, cell_stats, format_accuracy, CalibrationBin, CellStats, EvalFrame, PassEval,
-    SweepEval,
+    calibration_bins, cell_stats, format_accuracy, CalibrationBin, CellStats, EvalFrame,
+    NeighbourEdgesEval, NeighbourEval, PassEval, SweepEval,
 };
 use asgreg::frame_files::depth_path_for;
 use asgreg::io::colmap::{read_cameras_txt, read_images_txt, ImagePose};
@@ -359,6 +360,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     // camera, as registration saw the photo).
     let loader = FrameLoader::default();
     let mut page_frames: Vec<ReportFrame> = Vec::new();
+    let mut neighbour_batches: BTreeMap<(Level, &'static str), NeighbourBatch> = BTreeMap::new();
     for (level, method, initial) in jobs {
         let coarse = level_coarse(&args.coarse, level, heading_tilt_deg);
         if !methods_seen.contains(&method) {
@@ -384,6 +386,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         )
         .unwrap_or(f64::NAN);
         let mut asg_row = None;
+        // The registered frame and its report, for step "neighbour" after the loop.
+        let mut registered: Option<(BatchFrame, FrameReport, RegistrationConfig)> = None;
         let outcome = match method {
             Method::Asg(intrinsics) if args.diagnose_search => {
                 let config = registration_config(query_mode, intrinsics, &coarse);
@@ -518,6 +522,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         Vec::new()
                     }
                 };
+                if config.neighbour.enabled {
+                    registered = Some((frame.clone(), report.clone(), config.clone()));
+                }
                 asg_row = Some(report_frame(
                     &report,
                     Some(format!("level {level}, {}", method.name())),
@@ -660,10 +667,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             details: Vec::new(),
             pictures: Vec::new(),
         }));
-        results
-            .entry((level, method.name()))
-            .or_default()
-            .push(EvalFrame {
+        let cell = results.entry((level, method.name())).or_default();
+        if let Some((frame, report, config)) = registered {
+            neighbour_batches
+                .entry((level, method.name()))
+                .or_insert_with(|| NeighbourBatch {
+                    config,
+                    ..NeighbourBatch::default()
+                })
+                .push(cell.len(), frame, report, gt.cam_from_world, camera);
+        }
+        cell.push(EvalFrame {
                 name: initial.name.clone(),
                 initial_delta_px,
                 accepted: outcome.accepted,
@@ -674,9 +688,15 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 total_ms: outcome.total_ms,
                 heading_sweep: outcome.heading_sweep,
                 timings: outcome.timings,
+                neighbours: Vec::new(),
             });
     }
     bar.finish_and_clear();
+    for (key, batch) in neighbour_batches {
+        if let Some(frames) = results.get_mut(&key) {
+            batch.run(&mesh, &loader, args.seed, frames, &mut workspace);
+        }
+    }
 
     let stats: BTreeMap<(Level, &str), CellStats> = results
         .iter()
@@ -1483,6 +1503,117 @@ pub fn register_scene_frame(
         )
     });
     (report, final_delta_px)
+}
+
+/// One cell's registered frames kept for step "neighbour" (`--neighbours`), which runs over the
+/// cell once every frame is registered ([`neighbour_pass`]).
+#[derive(Default)]
+struct NeighbourBatch {
+    config: RegistrationConfig,
+    /// Each frame's position in the cell's results, inputs, report, true pose and camera.
+    positions: Vec<usize>,
+    frames: Vec<BatchFrame>,
+    reports: Vec<FrameReport>,
+    truths: Vec<(Rigid3, Camera)>,
+}
+
+impl NeighbourBatch {
+    fn push(
+        &mut self,
+        position: usize,
+        frame: BatchFrame,
+        report: FrameReport,
+        truth: Rigid3,
+        camera: Camera,
+    ) {
+        self.positions.push(position);
+        self.frames.push(frame);
+        self.reports.push(report);
+        self.truths.push((truth, camera));
+    }
+
+    /// Runs step "neighbour" over the cell and writes what it decided into the cell's results
+    /// (`frames`): every frame's neighbour tries (with δ of each neighbour's pose to the truth),
+    /// and the new decision of those it changed.
+    fn run(
+        mut self,
+        mesh: &Mesh,
+        loader: &FrameLoader,
+        seed: u64,
+        frames: &mut [EvalFrame],
+        workspace: &mut ReprojectionWorkspace,
+    ) {
+        let changed = neighbour_pass(
+            mesh,
+            &self.frames,
+            &mut self.reports,
+            loader,
+            &self.config,
+            seed,
+        );
+        for (index, report) in self.reports.iter().enumerate() {
+            let Some(frame) = frames.get_mut(self.positions[index]) else {
+                continue;
+            };
+            let (truth, camera) = self.truths[index];
+            let mut delta_to_truth = |pose_camera: &Camera, pose: &Rigid3| {
+                mutual_reprojection_error_px(mesh, pose_camera, pose, &camera, &truth, workspace)
+            };
+            frame.neighbours = report
+                .neighbours
+                .iter()
+                .map(|tried| NeighbourEval {
+                    neighbour: tried.neighbour.clone(),
+                    steps: tried.steps,
+                    delta_px: tried.check.as_ref().ok().and_then(|check| {
+                        delta_to_truth(&check.hypothesis.camera, &check.hypothesis.cam_from_world)
+                    }),
+                    apart_px: tried.check.as_ref().ok().and_then(|check| check.apart_px),
+                    edges: tried.check.as_ref().ok().and_then(|check| {
+                        let end = check.edges?;
+                        Some(NeighbourEdgesEval {
+                            delta_px: delta_to_truth(&end.camera, &end.cam_from_world),
+                            apart_px: end.apart_px,
+                            peak: end.peak,
+                        })
+                    }),
+                    consensus: tried
+                        .check
+                        .as_ref()
+                        .ok()
+                        .map(|check| (check.hypothesis.consensus, check.hypothesis.correspondence_count)),
+                    outcome: match &tried.check {
+                        Ok(check) => match &check.confirmed {
+                            Ok(()) => format!("confirmed: {:?}", tried.decision),
+                            Err(why) => format!("not confirmed: {why}"),
+                        },
+                        Err(why) => format!("no pose: {why}"),
+                    },
+                })
+                .collect();
+            if changed.contains(&index) {
+                frame.accepted = report.accepted;
+                frame.reason = report.reason.clone();
+                let output = match (report.camera, report.cam_from_world) {
+                    (Some(camera), Some(pose)) => Some((camera, pose)),
+                    _ => report
+                        .rejected_candidate
+                        .map(|candidate| (candidate.camera, candidate.cam_from_world)),
+                };
+                frame.final_delta_px =
+                    output.and_then(|(pose_camera, pose)| delta_to_truth(&pose_camera, &pose));
+                let line = format!(
+                    "step \"neighbour\": {} → {}, δ {}",
+                    frame.name,
+                    if frame.accepted { "accepted" } else { "rejected" },
+                    frame
+                        .final_delta_px
+                        .map_or("-".to_string(), |d| format!("{d:.2} px"))
+                );
+                println!("{line}");
+            }
+        }
+    }
 }
 
 /// Confidence bins of the calibration table.

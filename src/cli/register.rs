@@ -7,11 +7,13 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use asgreg::batch::{register_batch_frame_with, BatchFrame, FrameReport};
+use asgreg::batch::{neighbour_pass, register_batch_frame_with, BatchFrame, FrameReport};
 use asgreg::core::confidence::ConfidenceConfig;
 use asgreg::core::edge_align::{AlignedKinds, EdgeAlignConfig};
 use asgreg::core::flow_consistency::MatchConfig;
-use asgreg::core::frame::{IntrinsicsMode, QueryMode, RegistrationConfig, UnknownIntrinsics};
+use asgreg::core::frame::{
+    IntrinsicsMode, NeighbourConfig, QueryMode, RegistrationConfig, UnknownIntrinsics,
+};
 use asgreg::core::image::Image;
 use asgreg::core::pose_search::PoseSearchConfig;
 use asgreg::core::shading::AsgOptions;
@@ -462,6 +464,19 @@ pub struct CoarseArgs {
     /// at least as well rejects the chosen pose).
     #[arg(long)]
     pub no_rival_centres: bool,
+    /// Step "neighbour" after the frames are registered one by one: each frame's pose also from
+    /// its nearest accepted frames' photos (photo-to-photo flow, lifted on the model at the
+    /// neighbour's pose), checked by the model's edges; accepts a frame not accepted on its
+    /// own, rejects an accepted one it contradicts (known intrinsics only).
+    #[arg(long)]
+    pub neighbours: bool,
+    /// Step "neighbour": how many neighbours away from a frame the model accepted on its own a
+    /// pose may be lent (1: only those frames lend).
+    #[arg(long, default_value_t = NeighbourConfig::default().max_steps)]
+    pub neighbour_steps: usize,
+    /// Step "neighbour": the nearest this many accepted frames are tried, nearest first.
+    #[arg(long, default_value_t = NeighbourConfig::default().candidates)]
+    pub neighbour_candidates: usize,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
     pub rival_reach_px: f64,
@@ -558,6 +573,9 @@ impl Default for CoarseArgs {
             min_support_above_chance: ConfidenceConfig::default().min_support_above_chance,
             rival_directions: EdgeAlignConfig::default().rival_directions,
             no_rival_centres: !EdgeAlignConfig::default().rival_centres,
+            neighbours: NeighbourConfig::default().enabled,
+            neighbour_steps: NeighbourConfig::default().max_steps,
+            neighbour_candidates: NeighbourConfig::default().candidates,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -788,6 +806,12 @@ pub fn registration_config(
             ..defaults.pose_search
         }
         .with_trusted_tilt_deg(coarse.prior_tilt_deg),
+        neighbour: NeighbourConfig {
+            enabled: coarse.neighbours,
+            max_steps: coarse.neighbour_steps,
+            candidates: coarse.neighbour_candidates,
+            ..defaults.neighbour
+        },
         ..defaults
     }
 }
@@ -875,6 +899,33 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
         reports.push(report);
     }
     bar.finish_and_clear();
+    if config.neighbour.enabled {
+        let changed = neighbour_pass(
+            &inputs.mesh,
+            &frames,
+            &mut reports,
+            &loader,
+            &config,
+            args.seed,
+        );
+        for &index in &changed {
+            let report = &reports[index];
+            println!(
+                "{}: step \"neighbour\": {}",
+                report.name,
+                match &report.reason {
+                    None => format!(
+                        "accepted at the pose from {}",
+                        report
+                            .neighbours
+                            .last()
+                            .map_or("a neighbour", |n| n.neighbour.as_str())
+                    ),
+                    Some(reason) => format!("FAILED: {reason}"),
+                }
+            );
+        }
+    }
 
     let deltas = match &args.truth {
         Some(truth) => truth_deltas(truth, &inputs.mesh, &frames, &reports)?,

@@ -130,6 +130,8 @@ pub struct RegistrationConfig {
     /// The pose search before the coarse poses (step "search"): its region in degrees, its
     /// edge map's pyramid level and blur in px, how many beams, when a beam replaces the prior.
     pub pose_search: PoseSearchConfig,
+    /// One more hypothesis from a registered neighbour frame (step "neighbour", batch only).
+    pub neighbour: super::neighbour::NeighbourConfig,
 }
 
 impl Default for RegistrationConfig {
@@ -159,6 +161,7 @@ impl Default for RegistrationConfig {
             edge_align: EdgeAlignConfig::default(),
             confidence: ConfidenceConfig::default(),
             pose_search: PoseSearchConfig::default(),
+            neighbour: super::neighbour::NeighbourConfig::default(),
         }
     }
 }
@@ -242,6 +245,25 @@ impl RegistrationConfig {
             if !(value.is_finite() && value >= 0.0) {
                 return bad(field, format!("{value} is not a non-negative number"));
             }
+        }
+        let neighbour = &self.neighbour;
+        if !(0.0..=180.0).contains(&neighbour.max_axis_angle_deg) {
+            return bad(
+                "neighbour.max_axis_angle_deg",
+                format!("{} is outside 0..=180", neighbour.max_axis_angle_deg),
+            );
+        }
+        if !(0.0..=1.0).contains(&neighbour.min_inlier_share) {
+            return bad(
+                "neighbour.min_inlier_share",
+                format!("{} is outside 0..=1", neighbour.min_inlier_share),
+            );
+        }
+        if neighbour.enabled && (neighbour.candidates == 0 || neighbour.max_steps == 0) {
+            return bad(
+                "neighbour",
+                "candidates and max_steps must be at least 1 when the step is enabled".into(),
+            );
         }
         if !(self.query_depth_max_relative_step.is_finite()
             && self.query_depth_max_relative_step >= 0.0)

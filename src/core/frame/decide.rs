@@ -9,6 +9,7 @@ use super::refine::{
 use super::{process_cpu_ms, CoarseOutcome, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::confidence::{ConfidenceConfig, FrameEvidence};
+use crate::core::edge_align::SupportPeak;
 use crate::core::image::ImageView;
 use crate::core::mesh::Mesh;
 use crate::core::reprojection::{
@@ -166,7 +167,6 @@ fn reject_a_local_maximum(
         return;
     };
     let min_apart_px = config.pose_search.centre_agreement_share * chosen.verdict.threshold_px;
-    let (support, chance) = (peak.at_pose, peak.far);
     let min_share = config.edge_align.rival_share_above_chance;
     chosen.rival_ends = rival_ends(mesh, query, intrinsics, output, config, workspace);
     if config.edge_align.rival_centres {
@@ -193,21 +193,32 @@ fn reject_a_local_maximum(
             }
         }
     }
-    let Some(rival) = rival_basin(&chosen.rival_ends, min_apart_px) else {
-        return;
-    };
-    if rival.support - chance >= min_share * (support - chance) {
-        reject(
-            &mut chosen.verdict,
-            RejectionReason::RivalBasin {
-                support,
-                rival_support: rival.support,
-                chance,
-                min_share,
-                apart_px: rival.apart_px,
-            },
-        );
+    if let Some(reason) = rival_rejection(&chosen.rival_ends, min_apart_px, &peak, min_share) {
+        reject(&mut chosen.verdict, reason);
     }
+}
+
+/// The rival-basin test's verdict on a pose whose edge support is `peak`, given the `ends` of
+/// the alignment runs around it (and any other rivals): [`RejectionReason::RivalBasin`] when the
+/// best-supported end at least `min_apart_px` away keeps `min_share` of the pose's support
+/// above chance; `None` otherwise. The one statement of the test.
+pub(super) fn rival_rejection(
+    ends: &[RivalEnd],
+    min_apart_px: f64,
+    peak: &SupportPeak,
+    min_share: f64,
+) -> Option<RejectionReason> {
+    let (support, chance) = (peak.at_pose, peak.far);
+    let rival = rival_basin(ends, min_apart_px)?;
+    (rival.support - chance >= min_share * (support - chance)).then_some(
+        RejectionReason::RivalBasin {
+            support,
+            rival_support: rival.support,
+            chance,
+            min_share,
+            apart_px: rival.apart_px,
+        },
+    )
 }
 
 /// Each centre's own decision, in the search's order of centres: one decision when the outcomes
@@ -460,22 +471,14 @@ pub(super) fn reject(verdict: &mut Verdict, reason: RejectionReason) {
 fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceConfig) {
     let confidence = config.model.probability(evidence);
     verdict.confidence = confidence;
-    let (image_uncertainty_px, delta_uncertainty_px, least_seen_drop, least_seen_near_drop) =
-        evidence
-            .edges
-            .map_or((f64::INFINITY, f64::INFINITY, 0.0, 0.0), |peak| {
-                (
-                    peak.image_uncertainty_px,
-                    peak.delta_uncertainty_px,
-                    peak.least_seen_drop(),
-                    peak.least_seen_near_drop(),
-                )
-            });
-    let fixed = image_uncertainty_px <= config.max_image_uncertainty_px
-        && delta_uncertainty_px <= config.max_delta_uncertainty_px
-        && least_seen_drop >= config.min_least_seen_drop
-        && least_seen_near_drop >= config.min_least_seen_near_drop;
-    let clear = evidence.edge_support_above_chance() >= config.min_support_above_chance;
+    let EdgeGates {
+        clear,
+        fixed,
+        image_uncertainty_px,
+        delta_uncertainty_px,
+        least_seen_drop,
+        least_seen_near_drop,
+    } = EdgeGates::of(evidence.edges.as_ref(), config);
     let confirmed = confidence >= config.accept_above && clear && fixed;
     match &verdict.decision {
         Ok(chosen) if !confirmed => {
@@ -519,6 +522,47 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
             verdict.decision = Ok(*chosen)
         }
         _ => {}
+    }
+}
+
+/// What every accept asks of the photo's edges at the pose, whatever else confirms it: support
+/// above chance by `min_support_above_chance` (`clear`), and supporting edges that fix the pose
+/// (`fixed`: image and model uncertainty within their maxima, the support dropping along the
+/// least seen direction by `min_least_seen_drop` at 12 px and `min_least_seen_near_drop` at
+/// 3 px). Without edge evidence the pose is not fixed (and clear only when no margin is asked).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct EdgeGates {
+    pub clear: bool,
+    pub fixed: bool,
+    pub image_uncertainty_px: f64,
+    pub delta_uncertainty_px: f64,
+    pub least_seen_drop: f64,
+    pub least_seen_near_drop: f64,
+}
+
+impl EdgeGates {
+    pub(super) fn of(peak: Option<&SupportPeak>, config: &ConfidenceConfig) -> Self {
+        let (image_uncertainty_px, delta_uncertainty_px, least_seen_drop, least_seen_near_drop) =
+            peak.map_or((f64::INFINITY, f64::INFINITY, 0.0, 0.0), |peak| {
+                (
+                    peak.image_uncertainty_px,
+                    peak.delta_uncertainty_px,
+                    peak.least_seen_drop(),
+                    peak.least_seen_near_drop(),
+                )
+            });
+        Self {
+            clear: peak.map_or(0.0, |peak| peak.at_pose - peak.far)
+                >= config.min_support_above_chance,
+            fixed: image_uncertainty_px <= config.max_image_uncertainty_px
+                && delta_uncertainty_px <= config.max_delta_uncertainty_px
+                && least_seen_drop >= config.min_least_seen_drop
+                && least_seen_near_drop >= config.min_least_seen_near_drop,
+            image_uncertainty_px,
+            delta_uncertainty_px,
+            least_seen_drop,
+            least_seen_near_drop,
+        }
     }
 }
 

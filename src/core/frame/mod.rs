@@ -9,6 +9,7 @@
 //! | match + lift | per coarse view | [`correspond::correspond_view`] | flow (N workers) |
 //! | solve | per coarse view | [`solve::solve_view`] | pose |
 //! | verify + refine | once per frame, over all views | [`decide::decide_frame`] (plausibility check, then [`refine::refine_verdict`]) | verify |
+//! | neighbour | once per frame, after its decision, with a registered neighbour | [`neighbour::pose_from_neighbour`], [`neighbour::check_neighbour_pose`] | batch only (`--neighbours`) |
 //!
 //! [`register_frame`] (one process), the stage adapters (`stage::*`) and batch registration all
 //! call these functions and nothing else; none re-derives a step. A new step is one function
@@ -23,6 +24,7 @@
 pub mod config;
 pub mod correspond;
 pub mod decide;
+pub mod neighbour;
 pub mod query;
 pub mod refine;
 pub mod search;
@@ -43,6 +45,10 @@ pub use config::{
 };
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
 pub use decide::{decide_frame, decide_frame_and_centres, Decision};
+pub use neighbour::{
+    check_neighbour_pose, nearest_neighbours, pose_from_neighbour, NeighbourCheck, NeighbourConfig,
+    NeighbourDecision, NeighbourWorkspace, RegisteredNeighbour,
+};
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{
     refine_from_other_centres, refine_pose, refine_verdict, PoseRefinement, RefineWorkspace,
