@@ -313,7 +313,7 @@ pub fn neighbour_pass(
     config: &RegistrationConfig,
     seed: u64,
 ) -> Vec<usize> {
-    let settings = &config.neighbour;
+    let settings = &config.neighbour_pose;
     let mut steps: Vec<Option<usize>> = reports
         .iter()
         .map(|report| report.accepted.then_some(0))

@@ -522,7 +522,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                         Vec::new()
                     }
                 };
-                if config.neighbour.enabled {
+                if config.neighbour_pose.enabled {
                     registered = Some((frame.clone(), report.clone(), config.clone()));
                 }
                 asg_row = Some(report_frame(

@@ -12,7 +12,7 @@ use asgreg::core::confidence::ConfidenceConfig;
 use asgreg::core::edge_align::{AlignedKinds, EdgeAlignConfig};
 use asgreg::core::flow_consistency::MatchConfig;
 use asgreg::core::frame::{
-    IntrinsicsMode, NeighbourConfig, QueryMode, RegistrationConfig, UnknownIntrinsics,
+    IntrinsicsMode, NeighbourPoseConfig, QueryMode, RegistrationConfig, UnknownIntrinsics,
 };
 use asgreg::core::image::Image;
 use asgreg::core::pose_search::PoseSearchConfig;
@@ -472,10 +472,10 @@ pub struct CoarseArgs {
     pub neighbours: bool,
     /// Step "neighbour": how many neighbours away from a frame the model accepted on its own a
     /// pose may be lent (1: only those frames lend).
-    #[arg(long, default_value_t = NeighbourConfig::default().max_steps)]
+    #[arg(long, default_value_t = NeighbourPoseConfig::default().max_steps)]
     pub neighbour_steps: usize,
     /// Step "neighbour": the nearest this many accepted frames are tried, nearest first.
-    #[arg(long, default_value_t = NeighbourConfig::default().candidates)]
+    #[arg(long, default_value_t = NeighbourPoseConfig::default().candidates)]
     pub neighbour_candidates: usize,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
@@ -573,9 +573,9 @@ impl Default for CoarseArgs {
             min_support_above_chance: ConfidenceConfig::default().min_support_above_chance,
             rival_directions: EdgeAlignConfig::default().rival_directions,
             no_rival_centres: !EdgeAlignConfig::default().rival_centres,
-            neighbours: NeighbourConfig::default().enabled,
-            neighbour_steps: NeighbourConfig::default().max_steps,
-            neighbour_candidates: NeighbourConfig::default().candidates,
+            neighbours: NeighbourPoseConfig::default().enabled,
+            neighbour_steps: NeighbourPoseConfig::default().max_steps,
+            neighbour_candidates: NeighbourPoseConfig::default().candidates,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -806,11 +806,11 @@ pub fn registration_config(
             ..defaults.pose_search
         }
         .with_trusted_tilt_deg(coarse.prior_tilt_deg),
-        neighbour: NeighbourConfig {
+        neighbour_pose: NeighbourPoseConfig {
             enabled: coarse.neighbours,
             max_steps: coarse.neighbour_steps,
             candidates: coarse.neighbour_candidates,
-            ..defaults.neighbour
+            ..defaults.neighbour_pose
         },
         ..defaults
     }
@@ -899,7 +899,7 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<()> {
         reports.push(report);
     }
     bar.finish_and_clear();
-    if config.neighbour.enabled {
+    if config.neighbour_pose.enabled {
         let changed = neighbour_pass(
             &inputs.mesh,
             &frames,

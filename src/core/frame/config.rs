@@ -131,7 +131,7 @@ pub struct RegistrationConfig {
     /// edge map's pyramid level and blur in px, how many beams, when a beam replaces the prior.
     pub pose_search: PoseSearchConfig,
     /// One more hypothesis from a registered neighbour frame (step "neighbour", batch only).
-    pub neighbour: super::neighbour::NeighbourConfig,
+    pub neighbour_pose: super::neighbour::NeighbourPoseConfig,
 }
 
 impl Default for RegistrationConfig {
@@ -161,7 +161,7 @@ impl Default for RegistrationConfig {
             edge_align: EdgeAlignConfig::default(),
             confidence: ConfidenceConfig::default(),
             pose_search: PoseSearchConfig::default(),
-            neighbour: super::neighbour::NeighbourConfig::default(),
+            neighbour_pose: super::neighbour::NeighbourPoseConfig::default(),
         }
     }
 }
@@ -246,22 +246,22 @@ impl RegistrationConfig {
                 return bad(field, format!("{value} is not a non-negative number"));
             }
         }
-        let neighbour = &self.neighbour;
+        let neighbour = &self.neighbour_pose;
         if !(0.0..=180.0).contains(&neighbour.max_axis_angle_deg) {
             return bad(
-                "neighbour.max_axis_angle_deg",
+                "neighbour_pose.max_axis_angle_deg",
                 format!("{} is outside 0..=180", neighbour.max_axis_angle_deg),
             );
         }
         if !(0.0..=1.0).contains(&neighbour.min_inlier_share) {
             return bad(
-                "neighbour.min_inlier_share",
+                "neighbour_pose.min_inlier_share",
                 format!("{} is outside 0..=1", neighbour.min_inlier_share),
             );
         }
         if neighbour.enabled && (neighbour.candidates == 0 || neighbour.max_steps == 0) {
             return bad(
-                "neighbour",
+                "neighbour_pose",
                 "candidates and max_steps must be at least 1 when the step is enabled".into(),
             );
         }

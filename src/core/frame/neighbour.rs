@@ -32,7 +32,7 @@ use crate::core::verify::PoseHypothesis;
 /// Settings of step "neighbour".
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct NeighbourConfig {
+pub struct NeighbourPoseConfig {
     /// Whether batch registration (`register`, `eval`) runs the step (`--neighbours`).
     pub enabled: bool,
     /// A registered frame is a candidate neighbour when its optical axis is within this angle of
@@ -51,7 +51,7 @@ pub struct NeighbourConfig {
     pub min_inlier_share: f64,
 }
 
-impl Default for NeighbourConfig {
+impl Default for NeighbourPoseConfig {
     fn default() -> Self {
         Self {
             enabled: false,
@@ -262,7 +262,7 @@ fn confirm(
     config: &RegistrationConfig,
     workspace: &mut NeighbourWorkspace,
 ) -> Result<EdgeEnd, (Option<EdgeEnd>, String)> {
-    let settings = &config.neighbour;
+    let settings = &config.neighbour_pose;
     let inlier_share = hypothesis.consensus as f64 / hypothesis.correspondence_count.max(1) as f64;
     if hypothesis.consensus < settings.min_consensus || inlier_share < settings.min_inlier_share {
         return Err((
@@ -358,7 +358,7 @@ fn confirm(
 pub fn nearest_neighbours(
     prior: &Rigid3,
     registered: &[(usize, Rigid3)],
-    config: &NeighbourConfig,
+    config: &NeighbourPoseConfig,
 ) -> Vec<usize> {
     let axis = |pose: &Rigid3| pose.rotation.inverse() * nalgebra::Vector3::z();
     let prior_axis = axis(prior);
@@ -486,9 +486,9 @@ mod tests {
             (2, at(0.5, 90.0)),
             (3, at(3.0, -20.0)),
         ];
-        let config = NeighbourConfig {
+        let config = NeighbourPoseConfig {
             candidates: 2,
-            ..NeighbourConfig::default()
+            ..NeighbourPoseConfig::default()
         };
         assert_eq!(nearest_neighbours(&prior, &registered, &config), vec![1, 3]);
     }
