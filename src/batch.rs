@@ -11,15 +11,15 @@ use serde::{Deserialize, Serialize};
 use crate::core::camera::Camera;
 use crate::core::confidence::FrameEvidence;
 use crate::core::frame::{
-    check_neighbour_pose, nearest_neighbours, pose_from_neighbour, query_features,
-    query_gradient, register_frame, FrameInput, IntrinsicsMode, NeighbourCheck,
-    NeighbourDecision, NeighbourWorkspace, Pass, PoseRefinement, RegisteredNeighbour,
-    RegistrationConfig, StageTimings,
+    check_neighbour_pose, nearest_neighbours, pose_from_neighbour, query_features, query_gradient,
+    register_frame, FrameInput, IntrinsicsMode, NeighbourCheck, NeighbourDecision,
+    NeighbourWorkspace, Pass, PoseRefinement, RegisteredNeighbour, RegistrationConfig,
+    StageTimings,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
 use crate::core::rigid::Rigid3;
-use crate::core::verify::{PoseHypothesis, Verdict};
+use crate::core::verify::{PoseHypothesis, RejectionReason, Verdict};
 use crate::frame_files::{frame_seed, FrameFiles, FrameFilesError, FrameLoader};
 
 /// Where one frame's inputs are.
@@ -334,20 +334,22 @@ pub fn neighbour_pass(
         for index in 0..frames.len() {
             let frame = &frames[index];
             // Round 1 checks every frame; later rounds only those still not accepted.
-            if frame.intrinsics != IntrinsicsMode::Known || (round > 1 && steps[index].is_some())
+            if frame.intrinsics != IntrinsicsMode::Known || (round > 1 && steps[index].is_some()) {
+                continue;
+            }
+            let others: Vec<(usize, Rigid3)> = lenders
+                .iter()
+                .copied()
+                .filter(|&(i, _)| i != index)
+                .collect();
+            let candidates = nearest_neighbours(&frame.initial_cam_from_world, &others, settings);
+            if candidates.is_empty()
+                || load_query(frame, loader, config, &mut loaded[index]).is_err()
             {
                 continue;
             }
-            let others: Vec<(usize, Rigid3)> =
-                lenders.iter().copied().filter(|&(i, _)| i != index).collect();
-            let candidates =
-                nearest_neighbours(&frame.initial_cam_from_world, &others, settings);
-            if candidates.is_empty() || load_query(frame, loader, config, &mut loaded[index]).is_err() {
-                continue;
-            }
             for candidate in candidates {
-                if load_query(&frames[candidate], loader, config, &mut loaded[candidate]).is_err()
-                {
+                if load_query(&frames[candidate], loader, config, &mut loaded[candidate]).is_err() {
                     continue;
                 }
                 let (Some(own), Some(lender)) = (&loaded[index], &loaded[candidate]) else {
@@ -390,18 +392,21 @@ pub fn neighbour_pass(
                 }
                 (NeighbourDecision::Contradicted { apart_px }, _) => {
                     report.accepted = false;
-                    report.reason = Some(format!(
-                        "a registered neighbour ({}) gives a pose the photo confirms {apart_px:.0} px \
-                         from the accepted one: two witnesses contradict each other",
-                        tried.neighbour
-                    ));
-                    report.rejected_candidate = report
-                        .camera
-                        .zip(report.cam_from_world)
-                        .map(|(camera, cam_from_world)| RejectedCandidate {
-                            camera,
-                            cam_from_world,
-                        });
+                    report.reason = Some(
+                        RejectionReason::ContradictedByNeighbour {
+                            neighbour: tried.neighbour.clone(),
+                            apart_px,
+                        }
+                        .to_string(),
+                    );
+                    report.rejected_candidate =
+                        report
+                            .camera
+                            .zip(report.cam_from_world)
+                            .map(|(camera, cam_from_world)| RejectedCandidate {
+                                camera,
+                                cam_from_world,
+                            });
                     report.camera = None;
                     report.cam_from_world = None;
                     steps[index] = None;

@@ -37,16 +37,6 @@ pub struct EvalFrame {
     pub neighbours: Vec<NeighbourEval>,
 }
 
-/// The alignment's end from a neighbour's pose ([`crate::core::frame::neighbour::EdgeEnd`]).
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct NeighbourEdgesEval {
-    /// δ of the end to the truth, px.
-    pub delta_px: Option<f64>,
-    /// δ between the end and the neighbour's pose, px.
-    pub apart_px: f64,
-    pub peak: crate::core::edge_align::SupportPeak,
-}
-
 /// One registered neighbour tried for an [`EvalFrame`] (step "neighbour").
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct NeighbourEval {
@@ -57,8 +47,8 @@ pub struct NeighbourEval {
     pub delta_px: Option<f64>,
     /// δ between it and the frame's own pose, px.
     pub apart_px: Option<f64>,
-    /// Where the photo's edges judged it: the alignment's end from it.
-    pub edges: Option<NeighbourEdgesEval>,
+    /// The photo's edge support at it and its peak.
+    pub peak: Option<crate::core::edge_align::SupportPeak>,
     /// RANSAC consensus and matches of the neighbour's pose.
     pub consensus: Option<(usize, usize)>,
     /// What the model said of it.

@@ -12,8 +12,8 @@ use asgreg::baseline::icp::{
     register_depth_to_mesh, IcpConfig, IcpVariant, ICP_SUCCESS_THRESHOLD_PX,
 };
 use asgreg::batch::{
-    neighbour_pass, register_batch_frame, BatchFrame, FrameReport, HeadingSweepReport,
-    PassReport, RejectedCandidate,
+    neighbour_pass, register_batch_frame, BatchFrame, FrameReport, HeadingSweepReport, PassReport,
+    RejectedCandidate,
 };
 use asgreg::core::camera::Camera;
 use asgreg::core::confidence::FrameEvidence;
@@ -21,15 +21,15 @@ use asgreg::core::frame::{
     FrameInput, IntrinsicsMode, Pass, RegistrationConfig, RegistrationError, StageTimings,
 };
 use asgreg::core::mesh::Mesh;
-use asgreg::core::rigid::Rigid3;
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
+use asgreg::core::rigid::Rigid3;
 use asgreg::diagnose::{
     diagnose_frame, diagnose_search, DiagnosisSummary, FrameDiagnosis, SearchDiagnosis, SearchLoss,
     ORACLE_MAX_ERROR_PX, REACH_RANK_LIMIT,
 };
 use asgreg::eval::{
     calibration_bins, cell_stats, format_accuracy, CalibrationBin, CellStats, EvalFrame,
-    NeighbourEdgesEval, NeighbourEval, PassEval, SweepEval,
+    NeighbourEval, PassEval, SweepEval,
 };
 use asgreg::frame_files::depth_path_for;
 use asgreg::io::colmap::{read_cameras_txt, read_images_txt, ImagePose};
@@ -678,18 +678,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                 .push(cell.len(), frame, report, gt.cam_from_world, camera);
         }
         cell.push(EvalFrame {
-                name: initial.name.clone(),
-                initial_delta_px,
-                accepted: outcome.accepted,
-                final_delta_px: outcome.final_delta_px,
-                confidence: outcome.confidence,
-                evidence: outcome.evidence,
-                reason: outcome.reason,
-                total_ms: outcome.total_ms,
-                heading_sweep: outcome.heading_sweep,
-                timings: outcome.timings,
-                neighbours: Vec::new(),
-            });
+            name: initial.name.clone(),
+            initial_delta_px,
+            accepted: outcome.accepted,
+            final_delta_px: outcome.final_delta_px,
+            confidence: outcome.confidence,
+            evidence: outcome.evidence,
+            reason: outcome.reason,
+            total_ms: outcome.total_ms,
+            heading_sweep: outcome.heading_sweep,
+            timings: outcome.timings,
+            neighbours: Vec::new(),
+        });
     }
     bar.finish_and_clear();
     for (key, batch) in neighbour_batches {
@@ -1569,19 +1569,13 @@ impl NeighbourBatch {
                         delta_to_truth(&check.hypothesis.camera, &check.hypothesis.cam_from_world)
                     }),
                     apart_px: tried.check.as_ref().ok().and_then(|check| check.apart_px),
-                    edges: tried.check.as_ref().ok().and_then(|check| {
-                        let end = check.edges?;
-                        Some(NeighbourEdgesEval {
-                            delta_px: delta_to_truth(&end.camera, &end.cam_from_world),
-                            apart_px: end.apart_px,
-                            peak: end.peak,
-                        })
+                    peak: tried.check.as_ref().ok().and_then(|check| check.peak),
+                    consensus: tried.check.as_ref().ok().map(|check| {
+                        (
+                            check.hypothesis.consensus,
+                            check.hypothesis.correspondence_count,
+                        )
                     }),
-                    consensus: tried
-                        .check
-                        .as_ref()
-                        .ok()
-                        .map(|check| (check.hypothesis.consensus, check.hypothesis.correspondence_count)),
                     outcome: match &tried.check {
                         Ok(check) => match &check.confirmed {
                             Ok(()) => format!("confirmed: {:?}", tried.decision),
@@ -1605,7 +1599,11 @@ impl NeighbourBatch {
                 let line = format!(
                     "step \"neighbour\": {} → {}, δ {}",
                     frame.name,
-                    if frame.accepted { "accepted" } else { "rejected" },
+                    if frame.accepted {
+                        "accepted"
+                    } else {
+                        "rejected"
+                    },
                     frame
                         .final_delta_px
                         .map_or("-".to_string(), |d| format!("{d:.2} px"))

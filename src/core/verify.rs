@@ -242,6 +242,10 @@ pub enum RejectionReason {
         min_share: f64,
         apart_px: f64,
     },
+    /// A registered neighbour's photo gives a pose of the frame that the photo's edges confirm
+    /// ([`crate::core::frame::neighbour::check_neighbour_pose`]) `apart_px` from the accepted one
+    /// (at least the centres' agreement distance): two witnesses contradict each other.
+    ContradictedByNeighbour { neighbour: String, apart_px: f64 },
 }
 
 impl std::fmt::Display for RejectionReason {
@@ -335,6 +339,13 @@ impl std::fmt::Display for RejectionReason {
                 support * 100.0,
                 chance * 100.0,
                 (rival_support - chance) / (support - chance).max(f64::EPSILON),
+            ),
+            RejectionReason::ContradictedByNeighbour {
+                neighbour,
+                apart_px,
+            } => write!(
+                f,
+                "a registered neighbour ({neighbour}) gives a pose the photo's edges confirm {apart_px:.0} px from the accepted one: two witnesses contradict each other"
             ),
             RejectionReason::SweepUnchecked { confidence } => write!(
                 f,

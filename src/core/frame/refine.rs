@@ -555,6 +555,46 @@ pub fn refine_pose(
     ))
 }
 
+/// How the photo's edges see `cam_from_world` as it is (no alignment): its edge support and the
+/// support's peak ([`support_peak`]), with the model's edge rounding fitted at the pose itself
+/// undone when `edge_align.estimate_rounding` is on (as [`RoundingJudge::EachOwn`] judges a
+/// pose). For a pose that did not come from the alignment (a registered neighbour's,
+/// [`super::neighbour`]). `Err` when the query and the camera differ in size or the model shows
+/// too few edge samples there.
+pub fn support_at_pose(
+    mesh: &Mesh,
+    camera: &Camera,
+    query: ImageView<'_, f32>,
+    cam_from_world: &Rigid3,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Result<SupportPeak, String> {
+    let align = &config.edge_align;
+    let evaluated = evaluate_start(mesh, camera, query, cam_from_world, config, workspace)?;
+    let rounding_m = if align.estimate_rounding {
+        fit_rounding(&evaluated.samples, &query, camera, cam_from_world, align)
+    } else {
+        0.0
+    };
+    let mut samples = Vec::new();
+    sharpened_samples(
+        &evaluated.samples,
+        rounding_m,
+        align.rounding_kinds,
+        &mut samples,
+    );
+    let at_pose = edge_evidence(&samples, &query, camera, cam_from_world, align);
+    Ok(support_peak(
+        &samples,
+        &query,
+        camera,
+        cam_from_world,
+        &at_pose,
+        evaluated.metric.as_ref(),
+        align,
+    ))
+}
+
 /// Renders `camera` at `start` (`workspace`'s view then holds it) and evaluates it: its model
 /// edge samples, their evidence and the image-motion metric. `Err` when the query and the camera
 /// differ in size or the model shows too few edge samples there. Reads none of the schedule's
