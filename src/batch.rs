@@ -11,10 +11,9 @@ use serde::{Deserialize, Serialize};
 use crate::core::camera::Camera;
 use crate::core::confidence::FrameEvidence;
 use crate::core::frame::{
-    check_neighbour_pose, nearest_neighbours, pose_from_neighbour, query_features, query_gradient,
-    register_frame, FrameInput, IntrinsicsMode, NeighbourCheck, NeighbourDecision,
-    NeighbourWorkspace, Pass, PoseRefinement, RegisteredNeighbour, RegistrationConfig,
-    StageTimings,
+    nearest_neighbours, query_gradient, register_frame, try_neighbours, FrameInput, IntrinsicsMode,
+    NeighbourCheck, NeighbourDecision, NeighbourWorkspace, Pass, PoseRefinement,
+    RegisteredNeighbour, RegistrationConfig, StageTimings,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
@@ -297,8 +296,7 @@ struct LoadedQuery {
 
 /// Step "neighbour" over a batch already registered frame by frame (`reports[i]` is
 /// `frames[i]`'s): each frame's pose from its nearest accepted frames
-/// ([`nearest_neighbours`], [`pose_from_neighbour`]), checked by the model
-/// ([`check_neighbour_pose`]): a frame not accepted is accepted at a confirmed neighbour's
+/// ([`nearest_neighbours`], [`try_neighbours`]), checked by the model: a frame not accepted is accepted at a confirmed neighbour's
 /// pose; an accepted frame a confirmed neighbour's pose contradicts is rejected. Round `r`
 /// lends the poses of frames accepted `r − 1` neighbours away from one the model accepted on
 /// its own, up to `neighbour.max_steps`; every frame of a round is decided on the reports as
@@ -348,31 +346,51 @@ pub fn neighbour_pass(
             {
                 continue;
             }
-            for candidate in candidates {
-                if load_query(&frames[candidate], loader, config, &mut loaded[candidate]).is_err() {
-                    continue;
-                }
-                let (Some(own), Some(lender)) = (&loaded[index], &loaded[candidate]) else {
-                    continue;
+            let candidates: Vec<usize> = candidates
+                .into_iter()
+                .filter(|&c| load_query(&frames[c], loader, config, &mut loaded[c]).is_ok())
+                .collect();
+            let Some(own) = &loaded[index] else {
+                continue;
+            };
+            let neighbours: Vec<RegisteredNeighbour> = candidates
+                .iter()
+                .filter_map(|&c| {
+                    let lender = loaded[c].as_ref()?;
+                    Some(RegisteredNeighbour {
+                        query: lender.query.view(),
+                        camera: &lender.files.camera,
+                        cam_from_world: reports[c].cam_from_world?,
+                    })
+                })
+                .collect();
+            let (accepted, candidate) = own_poses(&reports[index], frame, own.files.camera);
+            let own_pose = match (&accepted, &candidate) {
+                (Some(pose), _) => Ok(pose),
+                (None, candidate) => Err(candidate.as_ref()),
+            };
+            let tries = try_neighbours(
+                mesh,
+                &own.files.camera,
+                frame.intrinsics,
+                own.query.view(),
+                own_pose,
+                &neighbours,
+                config,
+                crate::frame_files::frame_seed(seed, frame.image_id),
+                &mut workspace,
+            );
+            for (tried, &c) in tries.into_iter().zip(&candidates) {
+                let confirmed = tried.confirmed();
+                let report = NeighbourReport {
+                    neighbour: frames[c].name.clone(),
+                    steps: round,
+                    check: tried.check,
+                    decision: tried.decision,
                 };
-                let tried = neighbour_report(
-                    mesh,
-                    frame,
-                    &reports[index],
-                    own,
-                    &frames[candidate],
-                    &reports[candidate],
-                    lender,
-                    round,
-                    config,
-                    seed,
-                    &mut workspace,
-                );
-                let confirmed = tried.check.as_ref().is_ok_and(|c| c.confirmed.is_ok());
-                reports[index].neighbours.push(tried.clone());
+                reports[index].neighbours.push(report.clone());
                 if confirmed {
-                    decided.push((index, tried));
-                    break;
+                    decided.push((index, report));
                 }
             }
         }
@@ -437,22 +455,14 @@ fn load_query(
     Ok(())
 }
 
-/// One neighbour tried for a frame: the neighbour's pose of it and the model's check.
-#[allow(clippy::too_many_arguments)]
-fn neighbour_report(
-    mesh: &Mesh,
-    frame: &BatchFrame,
+/// A frame's own poses as step "neighbour" reads them from its report (with its working
+/// `camera`, which known intrinsics share with the report's): its accepted pose, and its
+/// would-be pose when rejected.
+fn own_poses(
     report: &FrameReport,
-    own: &LoadedQuery,
-    lender_frame: &BatchFrame,
-    lender_report: &FrameReport,
-    lender: &LoadedQuery,
-    steps: usize,
-    config: &RegistrationConfig,
-    seed: u64,
-    workspace: &mut NeighbourWorkspace,
-) -> NeighbourReport {
-    let camera = own.files.camera;
+    frame: &BatchFrame,
+    camera: Camera,
+) -> (Option<PoseHypothesis>, Option<PoseHypothesis>) {
     let as_hypothesis = |cam_from_world: Rigid3| PoseHypothesis {
         camera,
         cam_from_world,
@@ -461,56 +471,12 @@ fn neighbour_report(
         correspondence_count: 0,
         coarse_cam_from_world: frame.initial_cam_from_world,
     };
-    let accepted = report.cam_from_world.map(as_hypothesis);
-    let candidate = report
-        .rejected_candidate
-        .map(|candidate| as_hypothesis(candidate.cam_from_world));
-    let own_pose = match (&accepted, &candidate) {
-        (Some(pose), _) => Ok(pose),
-        (None, candidate) => Err(candidate.as_ref()),
-    };
-    let check = lender_report
-        .cam_from_world
-        .ok_or_else(|| "the neighbour is not registered".to_string())
-        .and_then(|lender_pose| {
-            let features = query_features(own.query.view(), config).map_err(|e| e.to_string())?;
-            let neighbour = RegisteredNeighbour {
-                query: lender.query.view(),
-                camera: &lender.files.camera,
-                cam_from_world: lender_pose,
-            };
-            pose_from_neighbour(
-                mesh,
-                &camera,
-                frame.intrinsics,
-                &features,
-                &neighbour,
-                config,
-                crate::frame_files::frame_seed(seed, frame.image_id),
-                workspace,
-            )
-        })
-        .map(|hypothesis| {
-            check_neighbour_pose(
-                mesh,
-                own.query.view(),
-                frame.intrinsics,
-                &hypothesis,
-                own_pose,
-                config,
-                workspace,
-            )
-        });
-    let (check, decision) = match check {
-        Ok((check, decision)) => (Ok(check), decision),
-        Err(why) => (Err(why), NeighbourDecision::Keep),
-    };
-    NeighbourReport {
-        neighbour: lender_frame.name.clone(),
-        steps,
-        check,
-        decision,
-    }
+    (
+        report.cam_from_world.map(as_hypothesis),
+        report
+            .rejected_candidate
+            .map(|candidate| as_hypothesis(candidate.cam_from_world)),
+    )
 }
 
 #[cfg(test)]

@@ -1188,7 +1188,8 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         mesh,
         Duration::from_secs_f64(config.timeouts.frame_timeout_s),
     )
-    .with_simulated_work(config.simulate);
+    .with_simulated_work(config.simulate)
+    .with_neighbour_poses(config.registration.neighbour_pose.clone());
     // Complete frames are decided on `verify_threads` threads beside this loop, one too: a
     // decision takes ~1 s, and a loop that decided in its own receive stopped reading its inbox
     // for that long, so the pose workers (then the flow workers) waited in their sends to it.

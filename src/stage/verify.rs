@@ -12,8 +12,9 @@ use crate::core::camera::Camera;
 use crate::core::change::pose_sigma_px_of_registration;
 use crate::core::change::stereo::{neighbour_candidates, NeighbourConfig, PosedCamera};
 use crate::core::frame::{
-    coarse_points, decide_frame, CoarseOutcome, Decision, IntrinsicsMode, RefineWorkspace,
-    RegistrationConfig,
+    apply_to_verdict, coarse_points, decide_frame, nearest_neighbours, try_neighbours,
+    CoarseOutcome, Decision, IntrinsicsMode, NeighbourDecision, NeighbourPoseConfig,
+    NeighbourWorkspace, RefineWorkspace, RegisteredNeighbour, RegistrationConfig,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
@@ -65,6 +66,18 @@ impl RegisteredView {
             cam_from_world: self.cam_from_world,
         }
     }
+}
+
+/// An accepted frame kept to lend its pose to later frames (step "neighbour",
+/// `registration.neighbour_pose`): its query image, camera and pose, and how many neighbours
+/// away from a frame the model accepted on its own it is (0: it is one).
+#[derive(Clone)]
+struct PoseLender {
+    name: String,
+    query: Arc<Image<f32>>,
+    camera: Camera,
+    cam_from_world: crate::core::rigid::Rigid3,
+    steps: usize,
 }
 
 struct PendingFrame {
@@ -140,6 +153,10 @@ pub struct VerifyStage<'m> {
     deciding: BTreeSet<u64>,
     /// `bench pipeline --simulate`: sleep per frame's decision.
     simulated: Option<SimulatedWork>,
+    /// Step "neighbour" (when `enabled`): its settings, and the accepted frames that lend their
+    /// poses (the latest `lenders_kept`, by frame id).
+    neighbour_pose: NeighbourPoseConfig,
+    pose_lenders: BTreeMap<u64, PoseLender>,
 }
 
 /// A frame with every hypothesis (and its query, or timed out waiting for it): what deciding it
@@ -148,6 +165,8 @@ pub struct ReadyFrame {
     frame_id: u64,
     frame: PendingFrame,
     simulated: Option<SimulatedWork>,
+    /// Step "neighbour": the accepted frames to try, nearest first (empty when off).
+    neighbours: Vec<PoseLender>,
 }
 
 /// A frame's decision, to be concluded by the stage ([`VerifyStage::conclude`]).
@@ -156,6 +175,9 @@ pub struct DecidedFrame {
     frame: PendingFrame,
     decision: Decision,
     verify_ms: f64,
+    /// When accepted: neighbours away from a frame the model accepted on its own (0: accepted
+    /// on its own; step "neighbour").
+    lender_steps: Option<usize>,
 }
 
 impl ReadyFrame {
@@ -178,6 +200,7 @@ impl ReadyFrame {
             frame_id,
             frame,
             simulated,
+            neighbours,
         } = self;
         if let Some(work) = simulated {
             spend_ms(work.verify_frame_ms);
@@ -199,7 +222,7 @@ impl ReadyFrame {
             })
             .collect();
         let coarse_points = coarse_points(mesh, &frame.camera, &samples);
-        let decision = decide_frame(
+        let mut decision = decide_frame(
             mesh,
             &frame.camera,
             &outcomes,
@@ -209,12 +232,84 @@ impl ReadyFrame {
             workspace,
             &coarse_points,
         );
+        let lender_steps = decide_with_neighbours(mesh, &frame, &neighbours, config, &mut decision);
         DecidedFrame {
             frame_id,
             frame,
             decision,
             verify_ms: elapsed_ms(started),
+            lender_steps,
         }
+    }
+}
+
+/// Step "neighbour" on a decided frame ([`try_neighbours`], as batch registration runs it):
+/// the decisive try applied to the verdict. Returns the accepted frame's steps from a frame
+/// the model accepted on its own (`None` when not accepted).
+fn decide_with_neighbours(
+    mesh: &Mesh,
+    frame: &PendingFrame,
+    neighbours: &[PoseLender],
+    config: &RegistrationConfig,
+    decision: &mut Decision,
+) -> Option<usize> {
+    let own_steps = decision.verdict.accepted().then_some(0);
+    let Some(query) = frame.query.as_ref() else {
+        return own_steps;
+    };
+    if neighbours.is_empty() || frame.intrinsics != IntrinsicsMode::Known {
+        return own_steps;
+    }
+    let registered: Vec<RegisteredNeighbour> = neighbours
+        .iter()
+        .map(|lender| RegisteredNeighbour {
+            query: lender.query.view(),
+            camera: &lender.camera,
+            cam_from_world: lender.cam_from_world,
+        })
+        .collect();
+    let verdict = &decision.verdict;
+    let own = match verdict.accepted_pose() {
+        Some(pose) => Ok(pose),
+        None => Err(verdict.chosen()),
+    };
+    let tries = try_neighbours(
+        mesh,
+        &frame.camera,
+        frame.intrinsics,
+        query.view(),
+        own,
+        &registered,
+        config,
+        frame.info.seed,
+        &mut NeighbourWorkspace::default(),
+    );
+    let (Some(last), Some(lender)) = (tries.last(), neighbours.get(tries.len().wrapping_sub(1)))
+    else {
+        return own_steps;
+    };
+    if !last.confirmed() {
+        return own_steps;
+    }
+    apply_to_verdict(&mut decision.verdict, last, &lender.name);
+    match last.decision {
+        NeighbourDecision::Accept => {
+            tracing::info!(
+                "frame '{}': accepted at the pose from its neighbour '{}' (step \"neighbour\")",
+                frame.name,
+                lender.name
+            );
+            Some(lender.steps + 1)
+        }
+        NeighbourDecision::Contradicted { apart_px } => {
+            tracing::info!(
+                "frame '{}': rejected, its neighbour '{}' gives a pose {apart_px:.0} px away",
+                frame.name,
+                lender.name
+            );
+            None
+        }
+        NeighbourDecision::Keep => own_steps,
     }
 }
 
@@ -237,6 +332,8 @@ impl<'m> VerifyStage<'m> {
             ready: Vec::new(),
             deciding: BTreeSet::new(),
             simulated: None,
+            neighbour_pose: NeighbourPoseConfig::default(),
+            pose_lenders: BTreeMap::new(),
         }
     }
 
@@ -246,11 +343,40 @@ impl<'m> VerifyStage<'m> {
         self
     }
 
+    /// Runs step "neighbour" after each frame's own decision (`config.enabled`): a frame is
+    /// also tried against the accepted frames concluded before it is handed out (the nearest
+    /// `candidates` of the latest `lenders_kept`, [`nearest_neighbours`]). Which frames those
+    /// are depends on the order frames complete in, so with it on a frame's result can differ
+    /// between runs (never its count: one per frame).
+    pub fn with_neighbour_poses(mut self, config: NeighbourPoseConfig) -> Self {
+        self.neighbour_pose = config;
+        self
+    }
+
     /// The complete frames waiting to be decided; each must come back to
-    /// [`VerifyStage::conclude`] (a frame counts as pending until then).
+    /// [`VerifyStage::conclude`] (a frame counts as pending until then). With step
+    /// "neighbour" each carries its candidate neighbours.
     pub fn take_ready(&mut self) -> Vec<ReadyFrame> {
-        let ready = std::mem::take(&mut self.ready);
+        let mut ready = std::mem::take(&mut self.ready);
         self.deciding.extend(ready.iter().map(|r| r.frame_id));
+        if self.neighbour_pose.enabled {
+            let lenders: Vec<(usize, crate::core::rigid::Rigid3)> = self
+                .pose_lenders
+                .iter()
+                .filter(|(_, lender)| lender.steps < self.neighbour_pose.max_steps)
+                .map(|(&id, lender)| (id as usize, lender.cam_from_world))
+                .collect();
+            for frame in &mut ready {
+                frame.neighbours = nearest_neighbours(
+                    &frame.frame.info.initial_cam_from_world,
+                    &lenders,
+                    &self.neighbour_pose,
+                )
+                .into_iter()
+                .filter_map(|id| self.pose_lenders.get(&(id as u64)).cloned())
+                .collect();
+            }
+        }
         ready
     }
 
@@ -709,6 +835,7 @@ impl<'m> VerifyStage<'m> {
             frame_id,
             frame,
             simulated: self.simulated,
+            neighbours: Vec::new(),
         });
     }
 
@@ -724,6 +851,7 @@ impl<'m> VerifyStage<'m> {
                     ..
                 },
             verify_ms,
+            lender_steps,
         } = decided;
         self.deciding.remove(&frame_id);
         self.mark_finished(frame_id);
@@ -771,8 +899,23 @@ impl<'m> VerifyStage<'m> {
             info,
             depth_m,
             photo,
+            query,
             ..
         } = frame;
+        if let (true, Some(steps), Some(query), Some((camera, cam_from_world))) =
+            (self.neighbour_pose.enabled, lender_steps, query, registered)
+        {
+            self.lend_pose(
+                frame_id,
+                PoseLender {
+                    name: result.name.clone(),
+                    query: Arc::new(query),
+                    camera,
+                    cam_from_world,
+                    steps,
+                },
+            );
+        }
         self.queue_change_work(
             &result,
             registered.map(|(camera, cam_from_world)| Decided {
@@ -784,6 +927,17 @@ impl<'m> VerifyStage<'m> {
             }),
         );
         result
+    }
+}
+
+impl VerifyStage<'_> {
+    /// Keeps an accepted frame as a lender of its pose (step "neighbour"), the latest
+    /// `lenders_kept` by frame id.
+    fn lend_pose(&mut self, frame_id: u64, lender: PoseLender) {
+        self.pose_lenders.insert(frame_id, lender);
+        while self.pose_lenders.len() > self.neighbour_pose.lenders_kept {
+            self.pose_lenders.pop_first();
+        }
     }
 }
 
@@ -799,5 +953,91 @@ fn failed_result(frame_id: u64, name: &str, reason: String) -> PoseResult {
         evidence: Evidence::default(),
         times: StageTimesMs::default(),
         flow_workers: Vec::new(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    use super::*;
+    use crate::core::frame::tests::{house_and_poses, ideal_query};
+    use crate::core::rigid::Rigid3;
+
+    fn info(name: &str, camera: Camera, prior: Rigid3) -> FrameInfo {
+        FrameInfo {
+            name: name.to_string(),
+            camera_id: 1,
+            camera,
+            intrinsics_known: true,
+            initial_cam_from_world: prior,
+            // The seed of `core::frame::neighbour`'s test of the same neighbour (RANSAC's draws
+            // decide whether the ideal query's pose lands on the edges' sharp peak).
+            seed: 7,
+        }
+    }
+
+    /// Step "neighbour" in verify: a frame whose own registration gave nothing (no hypotheses)
+    /// is handed out with the nearest lender looking its way (not the one facing away, nor one
+    /// dropped beyond `lenders_kept`), and accepted at the pose from that neighbour, one step
+    /// from a frame accepted on its own; concluded, it lends its own pose in turn.
+    #[test]
+    fn a_frame_without_hypotheses_is_accepted_at_its_neighbours_pose() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig {
+            neighbour_pose: NeighbourPoseConfig {
+                enabled: true,
+                lenders_kept: 2,
+                ..NeighbourPoseConfig::default()
+            },
+            ..RegistrationConfig::default()
+        };
+        let lender_at = |name: &str, pose: Rigid3| PoseLender {
+            name: name.to_string(),
+            query: Arc::new(ideal_query(&mesh, &camera, &pose, &config)),
+            camera,
+            cam_from_world: pose,
+            steps: 0,
+        };
+        let near = Rigid3::new(
+            truth.rotation,
+            truth.translation + Vector3::new(0.3, 0.12, -0.18),
+        );
+        let away = Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 1.5, 0.0)) * truth.rotation,
+            truth.translation,
+        );
+        let mut stage = VerifyStage::new(&mesh, Duration::from_secs(60))
+            .with_neighbour_poses(config.neighbour_pose.clone());
+        stage.lend_pose(1, lender_at("dropped", near));
+        stage.lend_pose(2, lender_at("near", near));
+        stage.lend_pose(3, lender_at("away", away));
+        assert_eq!(stage.pose_lenders.len(), 2);
+        let mut frame = PendingFrame::new(&info("frame", camera, truth));
+        frame.query = Some(ideal_query(&mesh, &camera, &truth, &config));
+        stage
+            .pending
+            .insert(4, PendingFrame::new(&info("frame", camera, truth)));
+        stage.queue_ready(4, frame);
+        let mut ready = stage.take_ready();
+        assert_eq!(ready.len(), 1);
+        let names: Vec<&str> = ready[0]
+            .neighbours
+            .iter()
+            .map(|n| n.name.as_str())
+            .collect();
+        assert_eq!(names, ["near"]);
+        let decided = ready
+            .remove(0)
+            .decide(&mesh, &config, &mut RefineWorkspace::default());
+        assert!(
+            decided.decision.verdict.accepted(),
+            "{:?}",
+            decided.decision.verdict.rejection()
+        );
+        assert_eq!(decided.lender_steps, Some(1));
+        let result = stage.conclude(decided);
+        assert!(result.accepted && result.cam_from_world.is_some());
+        assert_eq!(stage.pose_lenders.get(&4).map(|l| l.steps), Some(1));
     }
 }

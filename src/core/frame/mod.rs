@@ -46,8 +46,9 @@ pub use config::{
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
 pub use decide::{decide_frame, decide_frame_and_centres, Decision};
 pub use neighbour::{
-    check_neighbour_pose, nearest_neighbours, pose_from_neighbour, NeighbourCheck,
-    NeighbourDecision, NeighbourPoseConfig, NeighbourWorkspace, RegisteredNeighbour,
+    apply_to_verdict, check_neighbour_pose, nearest_neighbours, pose_from_neighbour,
+    try_neighbours, NeighbourCheck, NeighbourDecision, NeighbourPoseConfig, NeighbourTry,
+    NeighbourWorkspace, RegisteredNeighbour,
 };
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{

@@ -11,11 +11,11 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::decide::{rival_rejection, EdgeGates};
+use super::decide::{reject, rival_rejection, EdgeGates};
 use super::refine::{rival_ends, support_at_pose, RefineWorkspace};
 use super::{
-    correspond_view, render_coarse_view, solve_view, CoarseView, CorrespondWorkspace,
-    IntrinsicsMode, RegistrationConfig, ViewRef,
+    correspond_view, query_features, render_coarse_view, solve_view, CoarseView,
+    CorrespondWorkspace, IntrinsicsMode, RegistrationConfig, ViewRef,
 };
 use crate::core::camera::Camera;
 use crate::core::edge_align::SupportPeak;
@@ -25,13 +25,14 @@ use crate::core::mesh::Mesh;
 use crate::core::raster::Rasterizer;
 use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use crate::core::rigid::Rigid3;
-use crate::core::verify::PoseHypothesis;
+use crate::core::verify::{PoseHypothesis, RejectionReason, Verdict};
 
 /// Settings of step "neighbour".
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct NeighbourPoseConfig {
-    /// Whether batch registration (`register`, `eval`) runs the step (`--neighbours`).
+    /// Whether the step runs: after a batch is registered (`register`, `eval`: `--neighbours`),
+    /// and in the pipeline's verify (`registration.neighbour_pose.enabled`).
     pub enabled: bool,
     /// A registered frame is a candidate neighbour when its optical axis is within this angle of
     /// the frame's prior axis, degrees.
@@ -41,12 +42,17 @@ pub struct NeighbourPoseConfig {
     pub candidates: usize,
     /// A frame accepted through a neighbour lends its pose to others only while the chain back
     /// to a frame the model accepted on its own is shorter than this (1: only frames accepted on
-    /// their own are neighbours). Each step carries the neighbour's error over.
+    /// their own are neighbours). Each step carries the neighbour's error over. Measured over
+    /// 14 cells (docs/measurements.md, twenty-eighth session): 2 accepted 5 more frames than 1,
+    /// none wrong; the nearest 2 candidates decided every accept that 4 did.
     pub max_steps: usize,
     /// The neighbour's pose needs at least this RANSAC consensus (inlier matches).
     pub min_consensus: usize,
     /// ... and this share of its matches as inliers.
     pub min_inlier_share: f64,
+    /// The pipeline's verify keeps the latest this many accepted frames as lenders (their
+    /// query images: 0.5 MB each at 505 × 275).
+    pub lenders_kept: usize,
 }
 
 impl Default for NeighbourPoseConfig {
@@ -55,9 +61,10 @@ impl Default for NeighbourPoseConfig {
             enabled: false,
             max_axis_angle_deg: 40.0,
             candidates: 2,
-            max_steps: 1,
+            max_steps: 2,
             min_consensus: 60,
             min_inlier_share: 0.25,
+            lenders_kept: 64,
         }
     }
 }
@@ -240,9 +247,10 @@ pub fn check_neighbour_pose(
 /// The gates of [`check_neighbour_pose`], the photo's edges judged at the neighbour's pose
 /// itself ([`support_at_pose`]): a pose the edges confirm there sits on their sharp peak. Judged
 /// instead where the alignment's short schedule from it ends (the peak of its basin, as the
-/// frame's own refined poses are judged), 13 % more frames passed over 12 cells, with fewer within
-/// 2 px (106 against 127) and a mean δ of 2.02 against 1.60 px (docs/measurements.md,
-/// twenty-eighth session): the gates at the pose keep only the neighbour poses that are precise.
+/// frame's own refined poses are judged), 12 more frames were accepted over 14 cells (176
+/// against 164) but fewer within 2 px (125 against 127), at a mean δ of 2.01 against 1.60 px
+/// (docs/measurements.md, twenty-eighth session): the gates at the pose keep only the
+/// neighbour poses that are precise.
 /// Returns the support peak when confirmed, else what was measured and the first gate failed.
 #[allow(clippy::too_many_arguments)]
 fn confirm(
@@ -317,6 +325,103 @@ fn confirm(
         return Err((Some(peak), reason.to_string()));
     }
     Ok(peak)
+}
+
+/// One neighbour tried by [`try_neighbours`]: its pose of the frame and the model's check, or
+/// why there is no pose.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NeighbourTry {
+    pub check: Result<NeighbourCheck, String>,
+    pub decision: NeighbourDecision,
+}
+
+impl NeighbourTry {
+    pub fn confirmed(&self) -> bool {
+        self.check
+            .as_ref()
+            .is_ok_and(|check| check.confirmed.is_ok())
+    }
+}
+
+/// Step "neighbour" for one frame: `neighbours` (nearest first, [`nearest_neighbours`]) tried in
+/// order until one's pose is confirmed ([`pose_from_neighbour`], [`check_neighbour_pose`]);
+/// every try, the deciding one last. `query` is the frame's query image, `own` its own
+/// decision's pose (accepted, or would-be when rejected). The one sequence that batch
+/// registration and the pipeline's verify run.
+#[allow(clippy::too_many_arguments)]
+pub fn try_neighbours(
+    mesh: &Mesh,
+    camera: &Camera,
+    intrinsics: IntrinsicsMode,
+    query: ImageView<'_, f32>,
+    own: Result<&PoseHypothesis, Option<&PoseHypothesis>>,
+    neighbours: &[RegisteredNeighbour<'_>],
+    config: &RegistrationConfig,
+    seed: u64,
+    workspace: &mut NeighbourWorkspace,
+) -> Vec<NeighbourTry> {
+    let mut tries = Vec::with_capacity(neighbours.len());
+    if neighbours.is_empty() {
+        return tries;
+    }
+    let features = match query_features(query, config) {
+        Ok(features) => features,
+        Err(error) => {
+            tries.push(NeighbourTry {
+                check: Err(error.to_string()),
+                decision: NeighbourDecision::Keep,
+            });
+            return tries;
+        }
+    };
+    for neighbour in neighbours {
+        let tried = match pose_from_neighbour(
+            mesh, camera, intrinsics, &features, neighbour, config, seed, workspace,
+        ) {
+            Ok(hypothesis) => {
+                let (check, decision) = check_neighbour_pose(
+                    mesh,
+                    query,
+                    intrinsics,
+                    &hypothesis,
+                    own,
+                    config,
+                    workspace,
+                );
+                NeighbourTry {
+                    check: Ok(check),
+                    decision,
+                }
+            }
+            Err(why) => NeighbourTry {
+                check: Err(why),
+                decision: NeighbourDecision::Keep,
+            },
+        };
+        let confirmed = tried.confirmed();
+        tries.push(tried);
+        if confirmed {
+            break;
+        }
+    }
+    tries
+}
+
+/// A neighbour's decision applied to the frame's verdict: accepted at the neighbour's pose
+/// ([`NeighbourDecision::Accept`]), or rejected
+/// ([`RejectionReason::ContradictedByNeighbour`], naming `neighbour`); else unchanged.
+pub fn apply_to_verdict(verdict: &mut Verdict, tried: &NeighbourTry, neighbour: &str) {
+    match (tried.decision, &tried.check) {
+        (NeighbourDecision::Accept, Ok(check)) => verdict.decision = Ok(check.hypothesis),
+        (NeighbourDecision::Contradicted { apart_px }, _) => reject(
+            verdict,
+            RejectionReason::ContradictedByNeighbour {
+                neighbour: neighbour.to_string(),
+                apart_px,
+            },
+        ),
+        _ => {}
+    }
 }
 
 /// The registered frames a frame may take a neighbour's pose from, nearest first: those whose
