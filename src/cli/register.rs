@@ -1254,6 +1254,22 @@ mod tests {
     /// `eval` and `demo` register a frame as the pipeline does (a `MatchConfig::default()` here
     /// once ran the reference flow's 30/60/20 iterations instead of the registration's 4/20/4).
     #[test]
+    fn the_parsed_command_line_defaults_are_the_library_defaults() {
+        #[derive(clap::Parser)]
+        struct Wrapper {
+            #[command(flatten)]
+            coarse: CoarseArgs,
+        }
+        let parsed = <Wrapper as clap::Parser>::try_parse_from(["asgreg"]).unwrap();
+        let config = registration_config(
+            QueryMode::ImageGradient,
+            IntrinsicsArg::Known,
+            &parsed.coarse,
+        );
+        assert_eq!(config, RegistrationConfig::default());
+    }
+
+    #[test]
     fn the_command_line_defaults_are_the_library_defaults() {
         let config = registration_config(
             QueryMode::ImageGradient,
