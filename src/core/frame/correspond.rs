@@ -272,3 +272,57 @@ mod tests {
         );
     }
 }
+
+#[cfg(test)]
+mod workspace_tests {
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    use super::*;
+    use crate::core::frame::tests::{house_and_poses, ideal_query, view_at};
+
+    /// A view's correspondences do not depend on what the workspace matched before: the
+    /// pipeline's flow stage keeps one workspace for every job, one process one per rayon task.
+    #[test]
+    fn correspondences_do_not_depend_on_the_workspaces_past() {
+        let (mesh, camera, truth, initial) = house_and_poses();
+        let config = RegistrationConfig::default();
+        let query = ideal_query(&mesh, &camera, &truth, &config);
+        let features = query_features(query.view(), &config).unwrap();
+        let other = Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.2, 0.05)) * truth.rotation,
+            truth.translation + Vector3::new(2.0, 1.0, 0.0),
+        );
+        let first = view_at(&mesh, &camera, &other, &config);
+        let second = view_at(&mesh, &camera, &initial, &config);
+        let fresh = correspond_view(
+            &mesh,
+            &camera,
+            &features,
+            &second.as_ref().unwrap(),
+            &config,
+            &mut CorrespondWorkspace::default(),
+        )
+        .unwrap();
+        let mut reused = CorrespondWorkspace::default();
+        correspond_view(
+            &mesh,
+            &camera,
+            &features,
+            &first.as_ref().unwrap(),
+            &config,
+            &mut reused,
+        )
+        .unwrap();
+        let after = correspond_view(
+            &mesh,
+            &camera,
+            &features,
+            &second.as_ref().unwrap(),
+            &config,
+            &mut reused,
+        )
+        .unwrap();
+        assert_eq!(fresh.image_points_px.len(), after.image_points_px.len());
+        assert!(fresh == after, "the reused workspace changed the matches");
+    }
+}
