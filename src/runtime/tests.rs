@@ -932,3 +932,32 @@ fn a_frame_after_a_verify_restart_gets_its_stereo_change_map_from_frames_accepte
     assert!(set.complete);
     assert_eq!(set.frames_with_result, 9);
 }
+
+/// At the working size (505 × 275) with the pose search on, on the clean LoD house: the
+/// pipeline's results are `register`'s (the tiny scene above runs without the search).
+#[test]
+fn full_size_house_frames_give_the_batch_results() {
+    let dir = tempfile::tempdir().unwrap();
+    let synth = SynthConfig {
+        seed: 5,
+        width_px: 505,
+        height_px: 275,
+        image_count: 3,
+        initial_levels_px: vec![30.0],
+        scene: SceneKind::House,
+        ..SynthConfig::default()
+    };
+    generate_scene(&synth, dir.path()).unwrap();
+    let mut config = PipelineConfig {
+        mesh: dir.path().join("model_lod.ply"),
+        source: SourceConfig::scene(dir.path(), 30),
+        ..PipelineConfig::default()
+    };
+    config.transport.pipeline = crate::transport::conformance::unique_pipeline("full-size");
+    config.timeouts.frame_timeout_s = 300.0;
+    let (mesh, collected) = run_on_crossbeam(&config);
+    assert_eq!(collected.results.len(), 3);
+    let mismatches =
+        reference::differences_from_register(&config, &mesh, &collected.results).unwrap();
+    assert!(mismatches.is_empty(), "{mismatches:?}");
+}
