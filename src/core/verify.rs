@@ -111,6 +111,11 @@ pub enum VerifyError {
 }
 
 impl VerifyConfig {
+    /// The compatibility threshold for poses of `camera`, px: two refined poses within it agree.
+    pub fn compatibility_threshold_px(&self, camera: &Camera) -> f64 {
+        self.compatible_fraction_of_long_side * f64::from(camera.longest_side_px())
+    }
+
     pub fn validate(&self) -> Result<(), VerifyError> {
         if !(self.compatible_fraction_of_long_side > 0.0
             && self.compatible_fraction_of_long_side.is_finite())
@@ -467,8 +472,7 @@ pub fn verify_hypotheses_with_coarse(
             confidence: 0.0,
         };
     };
-    let threshold_px =
-        config.compatible_fraction_of_long_side * f64::from(first.camera.longest_side_px());
+    let threshold_px = config.compatibility_threshold_px(&first.camera);
     let poses: Vec<(&Camera, &Rigid3)> = hypotheses
         .iter()
         .map(|h| (&h.camera, &h.cam_from_world))

@@ -9,7 +9,6 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use crate::core::frame::RefineWorkspace;
 use crate::core::mesh::Mesh;
 use crate::msg::{
     change_result_json, change_set_json, pose_result_json, Body, FrameFailed, Header, JobKey,
@@ -21,7 +20,7 @@ use crate::stage::fusion::{seen_frame, FusionStage};
 use crate::stage::ingest::{FolderSource, SourceError};
 use crate::stage::pose::PoseStage;
 use crate::stage::render::RenderStage;
-use crate::stage::verify::{ChangeWork, DecidedFrame, ReadyFrame, VerifyStage};
+use crate::stage::verify::{ChangeWork, DecidedFrame, ReadyFrame, VerifyStage, VerifyWorkspace};
 use crate::transport::{keys, Transport};
 
 use super::ack::Resender;
@@ -1239,7 +1238,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             let decided_tx = decided_tx.clone();
             let registration = &config.registration;
             scope.spawn(move || {
-                let mut workspace = RefineWorkspace::default();
+                let mut workspace = VerifyWorkspace::default();
                 loop {
                     let next = match ready_rx.lock() {
                         Ok(queue) => queue.recv(),

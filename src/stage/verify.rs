@@ -159,6 +159,14 @@ pub struct VerifyStage<'m> {
     pose_lenders: BTreeMap<u64, PoseLender>,
 }
 
+/// Buffers of a thread that decides frames ([`ReadyFrame::decide`]), reused across frames: the
+/// final refinement's and step "neighbour"'s.
+#[derive(Default)]
+pub struct VerifyWorkspace {
+    refine: RefineWorkspace,
+    neighbour: NeighbourWorkspace,
+}
+
 /// A frame with every hypothesis (and its query, or timed out waiting for it): what deciding it
 /// needs, owned, so that it can be decided on another thread.
 pub struct ReadyFrame {
@@ -193,7 +201,7 @@ impl ReadyFrame {
         self,
         mesh: &Mesh,
         config: &RegistrationConfig,
-        workspace: &mut RefineWorkspace,
+        workspace: &mut VerifyWorkspace,
     ) -> DecidedFrame {
         let started = Instant::now();
         let ReadyFrame {
@@ -229,10 +237,17 @@ impl ReadyFrame {
             frame.query.as_ref().map(|query| query.view()),
             frame.intrinsics,
             config,
-            workspace,
+            &mut workspace.refine,
             &coarse_points,
         );
-        let lender_steps = decide_with_neighbours(mesh, &frame, &neighbours, config, &mut decision);
+        let lender_steps = decide_with_neighbours(
+            mesh,
+            &frame,
+            &neighbours,
+            config,
+            &mut decision,
+            &mut workspace.neighbour,
+        );
         DecidedFrame {
             frame_id,
             frame,
@@ -252,6 +267,7 @@ fn decide_with_neighbours(
     neighbours: &[PoseLender],
     config: &RegistrationConfig,
     decision: &mut Decision,
+    workspace: &mut NeighbourWorkspace,
 ) -> Option<usize> {
     let own_steps = decision.verdict.accepted().then_some(0);
     let Some(query) = frame.query.as_ref() else {
@@ -282,10 +298,10 @@ fn decide_with_neighbours(
         &registered,
         config,
         frame.info.seed,
-        &mut NeighbourWorkspace::default(),
+        workspace,
     );
-    let (Some(last), Some(lender)) = (tries.last(), neighbours.get(tries.len().wrapping_sub(1)))
-    else {
+    // `try_neighbours` stops at the first confirmed pose: the last try decides, if any does.
+    let Some((last, lender)) = tries.iter().zip(neighbours).next_back() else {
         return own_steps;
     };
     if !last.confirmed() {
@@ -1029,7 +1045,7 @@ mod tests {
         assert_eq!(names, ["near"]);
         let decided = ready
             .remove(0)
-            .decide(&mesh, &config, &mut RefineWorkspace::default());
+            .decide(&mesh, &config, &mut VerifyWorkspace::default());
         assert!(
             decided.decision.verdict.accepted(),
             "{:?}",

@@ -195,8 +195,7 @@ pub fn check_neighbour_pose(
     workspace: &mut NeighbourWorkspace,
 ) -> (NeighbourCheck, NeighbourDecision) {
     let min_apart_px = config.pose_search.centre_agreement_share
-        * config.verify.compatible_fraction_of_long_side
-        * f64::from(hypothesis.camera.longest_side_px());
+        * config.verify.compatibility_threshold_px(&hypothesis.camera);
     let own_pose = match own {
         Ok(pose) => Some(pose),
         Err(candidate) => candidate,
@@ -211,13 +210,7 @@ pub fn check_neighbour_pose(
             &mut ReprojectionWorkspace::new(),
         )
     });
-    let mut check = NeighbourCheck {
-        hypothesis: *hypothesis,
-        peak: None,
-        apart_px,
-        confirmed: Ok(()),
-    };
-    check.confirmed = confirm(
+    let (peak, confirmed) = match confirm(
         mesh,
         query,
         intrinsics,
@@ -225,12 +218,16 @@ pub fn check_neighbour_pose(
         min_apart_px,
         config,
         workspace,
-    )
-    .map(|peak| check.peak = Some(peak))
-    .map_err(|(peak, why)| {
-        check.peak = peak;
-        why
-    });
+    ) {
+        Ok(peak) => (Some(peak), Ok(())),
+        Err((peak, why)) => (peak, Err(why)),
+    };
+    let check = NeighbourCheck {
+        hypothesis: *hypothesis,
+        peak,
+        apart_px,
+        confirmed,
+    };
     let decision = match (own, &check.confirmed) {
         (_, Err(_)) => NeighbourDecision::Keep,
         (Err(_), Ok(())) => NeighbourDecision::Accept,

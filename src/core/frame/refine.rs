@@ -571,11 +571,7 @@ pub fn support_at_pose(
 ) -> Result<SupportPeak, String> {
     let align = &config.edge_align;
     let evaluated = evaluate_start(mesh, camera, query, cam_from_world, config, workspace)?;
-    let rounding_m = if align.estimate_rounding {
-        fit_rounding(&evaluated.samples, &query, camera, cam_from_world, align)
-    } else {
-        0.0
-    };
+    let rounding_m = own_rounding(align, &evaluated.samples, &query, camera, cam_from_world);
     let mut samples = Vec::new();
     sharpened_samples(
         &evaluated.samples,
@@ -925,10 +921,23 @@ fn judged_rounding(
     match align.rounding_judge {
         RoundingJudge::Shared => estimated_m,
         RoundingJudge::AsRendered => 0.0,
-        RoundingJudge::EachOwn if align.estimate_rounding => {
-            fit_rounding(samples, query, camera, cam_from_world, align)
-        }
-        RoundingJudge::EachOwn => 0.0,
+        RoundingJudge::EachOwn => own_rounding(align, samples, query, camera, cam_from_world),
+    }
+}
+
+/// The rounding radius fitted at the pose `cam_from_world` itself (its `samples`), m, when
+/// `align.estimate_rounding` is on; 0 otherwise.
+fn own_rounding(
+    align: &EdgeAlignConfig,
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+) -> f64 {
+    if align.estimate_rounding {
+        fit_rounding(samples, query, camera, cam_from_world, align)
+    } else {
+        0.0
     }
 }
 
