@@ -11,9 +11,10 @@ use serde::{Deserialize, Serialize};
 use crate::core::camera::Camera;
 use crate::core::confidence::FrameEvidence;
 use crate::core::frame::{
-    nearest_neighbours, query_gradient, register_frame, try_neighbours, FrameInput, IntrinsicsMode,
-    NeighbourCheck, NeighbourDecision, NeighbourWorkspace, Pass, PoseRefinement,
-    RegisteredNeighbour, RegistrationConfig, StageTimings,
+    feed_neighbours, nearest_neighbours, query_gradient, register_frame, try_neighbours,
+    FeedLender, FrameInput, IntrinsicsMode, NeighbourCheck, NeighbourDecision, NeighbourOrder,
+    NeighbourWorkspace, Pass, PoseRefinement, RegisteredNeighbour, RegistrationConfig,
+    StageTimings,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
@@ -295,14 +296,22 @@ struct LoadedQuery {
 }
 
 /// Step "neighbour" over a batch already registered frame by frame (`reports[i]` is
-/// `frames[i]`'s): each frame's pose from its nearest accepted frames
-/// ([`nearest_neighbours`], [`try_neighbours`]), checked by the model: a frame not accepted is accepted at a confirmed neighbour's
-/// pose; an accepted frame a confirmed neighbour's pose contradicts is rejected. Round `r`
-/// lends the poses of frames accepted `r − 1` neighbours away from one the model accepted on
-/// its own, up to `neighbour.max_steps`; every frame of a round is decided on the reports as
-/// they were when the round began, so the order of the frames does not matter. Frames with
-/// unknown intrinsics, and those whose files cannot be read, are left as they are. Returns the
-/// indices of the frames whose decision changed.
+/// `frames[i]`'s), in the order `config.neighbour_pose.order` says: a frame is tried against
+/// the poses of accepted frames ([`try_neighbours`]), checked by the model; a frame not accepted
+/// is accepted at a confirmed neighbour's pose and lends it in turn (up to `max_steps` from a
+/// frame the model accepted on its own); an accepted frame a confirmed neighbour's pose
+/// contradicts is rejected.
+///
+/// - [`NeighbourOrder::Feed`]: frame `i` borrows from the frames before it
+///   ([`feed_neighbours`]), each decided before the next — the rule the pipeline's verify
+///   follows, so `register` and `run` give one result.
+/// - [`NeighbourOrder::Set`]: a collection without an order; round `r` lends the poses of frames
+///   accepted `r − 1` neighbours away from one the model accepted on its own to every other
+///   frame ([`nearest_neighbours`]), each round decided on the reports as they were when it
+///   began, so the order of the frames does not matter.
+///
+/// Frames with unknown intrinsics, and those whose files cannot be read, are left as they
+/// are. Returns the indices of the frames whose decision changed, ascending.
 pub fn neighbour_pass(
     mesh: &Mesh,
     frames: &[BatchFrame],
@@ -311,132 +320,203 @@ pub fn neighbour_pass(
     config: &RegistrationConfig,
     seed: u64,
 ) -> Vec<usize> {
+    let mut pass = NeighbourPass {
+        mesh,
+        frames,
+        loader,
+        config,
+        seed,
+        steps: reports
+            .iter()
+            .map(|report| report.accepted.then_some(0))
+            .collect(),
+        loaded: frames.iter().map(|_| None).collect(),
+        workspace: NeighbourWorkspace::default(),
+        changed: Vec::new(),
+    };
     let settings = &config.neighbour_pose;
-    let mut steps: Vec<Option<usize>> = reports
-        .iter()
-        .map(|report| report.accepted.then_some(0))
-        .collect();
-    let mut loaded: Vec<Option<LoadedQuery>> = frames.iter().map(|_| None).collect();
-    let mut changed = Vec::new();
-    let mut workspace = NeighbourWorkspace::default();
-    for round in 1..=settings.max_steps {
-        let lenders: Vec<(usize, Rigid3)> = (0..frames.len())
-            .filter(|&index| steps[index] == Some(round - 1))
-            .filter_map(|index| Some((index, reports[index].cam_from_world?)))
-            .filter(|&(index, _)| frames[index].intrinsics == IntrinsicsMode::Known)
-            .collect();
-        if lenders.is_empty() {
-            break;
-        }
-        let mut decided: Vec<(usize, NeighbourReport)> = Vec::new();
-        for index in 0..frames.len() {
-            let frame = &frames[index];
-            // Round 1 checks every frame; later rounds only those still not accepted.
-            if frame.intrinsics != IntrinsicsMode::Known || (round > 1 && steps[index].is_some()) {
-                continue;
-            }
-            let others: Vec<(usize, Rigid3)> = lenders
-                .iter()
-                .copied()
-                .filter(|&(i, _)| i != index)
-                .collect();
-            let candidates = nearest_neighbours(&frame.initial_cam_from_world, &others, settings);
-            if candidates.is_empty()
-                || load_query(frame, loader, config, &mut loaded[index]).is_err()
-            {
-                continue;
-            }
-            let candidates: Vec<usize> = candidates
-                .into_iter()
-                .filter(|&c| load_query(&frames[c], loader, config, &mut loaded[c]).is_ok())
-                .collect();
-            let Some(own) = &loaded[index] else {
-                continue;
-            };
-            let neighbours: Vec<RegisteredNeighbour> = candidates
-                .iter()
-                .filter_map(|&c| {
-                    let lender = loaded[c].as_ref()?;
-                    Some(RegisteredNeighbour {
-                        query: lender.query.view(),
-                        camera: &lender.files.camera,
-                        cam_from_world: reports[c].cam_from_world?,
+    let known = |index: usize| frames[index].intrinsics == IntrinsicsMode::Known;
+    match settings.order {
+        NeighbourOrder::Feed => {
+            for index in (0..frames.len()).filter(|&i| known(i)) {
+                let lenders = (0..index).filter(|&i| known(i)).filter_map(|i| {
+                    Some(FeedLender {
+                        index: i,
+                        cam_from_world: reports[i].cam_from_world?,
+                        steps: pass.steps[i]?,
                     })
-                })
-                .collect();
-            let (accepted, candidate) = own_poses(&reports[index], frame, own.files.camera);
-            let own_pose = match (&accepted, &candidate) {
-                (Some(pose), _) => Ok(pose),
-                (None, candidate) => Err(candidate.as_ref()),
-            };
-            let tries = try_neighbours(
-                mesh,
-                &own.files.camera,
-                frame.intrinsics,
-                own.query.view(),
-                own_pose,
-                &neighbours,
-                config,
-                crate::frame_files::frame_seed(seed, frame.image_id),
-                &mut workspace,
-            );
-            for (tried, &c) in tries.into_iter().zip(&candidates) {
-                let confirmed = tried.confirmed();
-                let report = NeighbourReport {
-                    neighbour: frames[c].name.clone(),
-                    steps: round,
-                    check: tried.check,
-                    decision: tried.decision,
-                };
-                reports[index].neighbours.push(report.clone());
-                if confirmed {
-                    decided.push((index, report));
+                });
+                let prior = &frames[index].initial_cam_from_world;
+                let candidates = feed_neighbours(index, prior, lenders, settings);
+                if let Some(tried) = pass.try_frame(index, &candidates, reports) {
+                    pass.apply(index, tried, reports);
+                }
+                // Query images no later frame can borrow are dropped.
+                if let Some(old) = (index + 1).checked_sub(settings.window_frames + 1) {
+                    pass.loaded[old] = None;
                 }
             }
         }
-        for (index, tried) in decided {
-            let report = &mut reports[index];
-            match (tried.decision, tried.check) {
-                (NeighbourDecision::Accept, Ok(check)) => {
-                    report.accepted = true;
-                    report.reason = None;
-                    report.camera = Some(frames[index].camera);
-                    report.cam_from_world = Some(check.hypothesis.cam_from_world);
-                    report.consensus = check.hypothesis.consensus;
-                    report.inlier_rms_px = Some(check.hypothesis.inlier_rms_px);
-                    report.rejected_candidate = None;
-                    steps[index] = Some(round);
-                    changed.push(index);
+        NeighbourOrder::Set => {
+            for round in 1..=settings.max_steps {
+                let lenders: Vec<(usize, Rigid3)> = (0..frames.len())
+                    .filter(|&index| known(index) && pass.steps[index] == Some(round - 1))
+                    .filter_map(|index| Some((index, reports[index].cam_from_world?)))
+                    .collect();
+                if lenders.is_empty() {
+                    break;
                 }
-                (NeighbourDecision::Contradicted { apart_px }, _) => {
-                    report.accepted = false;
-                    report.reason = Some(
-                        RejectionReason::ContradictedByNeighbour {
-                            neighbour: tried.neighbour.clone(),
-                            apart_px,
-                        }
-                        .to_string(),
+                let mut decided = Vec::new();
+                for index in (0..frames.len()).filter(|&i| known(i)) {
+                    // Round 1 checks every frame; later rounds only those still not accepted.
+                    if round > 1 && pass.steps[index].is_some() {
+                        continue;
+                    }
+                    let others: Vec<(usize, Rigid3)> = lenders
+                        .iter()
+                        .copied()
+                        .filter(|&(i, _)| i != index)
+                        .collect();
+                    let prior = &frames[index].initial_cam_from_world;
+                    let candidates = nearest_neighbours(prior, &others, settings);
+                    decided.extend(
+                        pass.try_frame(index, &candidates, reports)
+                            .map(|tried| (index, tried)),
                     );
-                    report.rejected_candidate =
-                        report
-                            .camera
-                            .zip(report.cam_from_world)
-                            .map(|(camera, cam_from_world)| RejectedCandidate {
-                                camera,
-                                cam_from_world,
-                            });
-                    report.camera = None;
-                    report.cam_from_world = None;
-                    steps[index] = None;
-                    changed.push(index);
                 }
-                _ => {}
+                for (index, tried) in decided {
+                    pass.apply(index, tried, reports);
+                }
             }
         }
     }
+    let mut changed = pass.changed;
     changed.sort_unstable();
     changed.dedup();
     changed
+}
+
+/// The state of one [`neighbour_pass`].
+struct NeighbourPass<'a> {
+    mesh: &'a Mesh,
+    frames: &'a [BatchFrame],
+    loader: &'a FrameLoader,
+    config: &'a RegistrationConfig,
+    seed: u64,
+    /// Per frame: steps from a frame the model accepted on its own (`None`: not accepted).
+    steps: Vec<Option<usize>>,
+    /// Per frame: its files and query image, once loaded.
+    loaded: Vec<Option<LoadedQuery>>,
+    workspace: NeighbourWorkspace,
+    changed: Vec<usize>,
+}
+
+impl NeighbourPass<'_> {
+    /// Tries frame `index` against `candidates` (nearest first; [`try_neighbours`]), each try
+    /// recorded in its report; returns the confirmed one, if any.
+    fn try_frame(
+        &mut self,
+        index: usize,
+        candidates: &[usize],
+        reports: &mut [FrameReport],
+    ) -> Option<NeighbourReport> {
+        let (frames, config) = (self.frames, self.config);
+        let frame = &frames[index];
+        if candidates.is_empty()
+            || load_query(frame, self.loader, config, &mut self.loaded[index]).is_err()
+        {
+            return None;
+        }
+        let candidates: Vec<usize> = candidates
+            .iter()
+            .copied()
+            .filter(|&c| load_query(&frames[c], self.loader, config, &mut self.loaded[c]).is_ok())
+            .collect();
+        let own = self.loaded[index].as_ref()?;
+        let neighbours: Vec<RegisteredNeighbour> = candidates
+            .iter()
+            .filter_map(|&c| {
+                let lender = self.loaded[c].as_ref()?;
+                Some(RegisteredNeighbour {
+                    query: lender.query.view(),
+                    camera: &lender.files.camera,
+                    cam_from_world: reports[c].cam_from_world?,
+                })
+            })
+            .collect();
+        let (accepted, candidate) = own_poses(&reports[index], frame, own.files.camera);
+        let own_pose = match (&accepted, &candidate) {
+            (Some(pose), _) => Ok(pose),
+            (None, candidate) => Err(candidate.as_ref()),
+        };
+        let tries = try_neighbours(
+            self.mesh,
+            &own.files.camera,
+            frame.intrinsics,
+            own.query.view(),
+            own_pose,
+            &neighbours,
+            config,
+            crate::frame_files::frame_seed(self.seed, frame.image_id),
+            &mut self.workspace,
+        );
+        let mut decisive = None;
+        for (tried, &c) in tries.into_iter().zip(&candidates) {
+            let confirmed = tried.confirmed();
+            let report = NeighbourReport {
+                neighbour: frames[c].name.clone(),
+                steps: self.steps[c].unwrap_or(0) + 1,
+                check: tried.check,
+                decision: tried.decision,
+            };
+            reports[index].neighbours.push(report.clone());
+            if confirmed {
+                decisive = Some(report);
+            }
+        }
+        decisive
+    }
+
+    /// A confirmed try's decision applied to frame `index`'s report.
+    fn apply(&mut self, index: usize, tried: NeighbourReport, reports: &mut [FrameReport]) {
+        let report = &mut reports[index];
+        match (tried.decision, tried.check) {
+            (NeighbourDecision::Accept, Ok(check)) => {
+                report.accepted = true;
+                report.reason = None;
+                report.camera = Some(self.frames[index].camera);
+                report.cam_from_world = Some(check.hypothesis.cam_from_world);
+                report.consensus = check.hypothesis.consensus;
+                report.inlier_rms_px = Some(check.hypothesis.inlier_rms_px);
+                report.rejected_candidate = None;
+                self.steps[index] = Some(tried.steps);
+                self.changed.push(index);
+            }
+            (NeighbourDecision::Contradicted { apart_px }, _) => {
+                report.accepted = false;
+                report.reason = Some(
+                    RejectionReason::ContradictedByNeighbour {
+                        neighbour: tried.neighbour.clone(),
+                        apart_px,
+                    }
+                    .to_string(),
+                );
+                report.rejected_candidate =
+                    report
+                        .camera
+                        .zip(report.cam_from_world)
+                        .map(|(camera, cam_from_world)| RejectedCandidate {
+                            camera,
+                            cam_from_world,
+                        });
+                report.camera = None;
+                report.cam_from_world = None;
+                self.steps[index] = None;
+                self.changed.push(index);
+            }
+            _ => {}
+        }
+    }
 }
 
 /// Loads `frame`'s files and query image into `slot` once.

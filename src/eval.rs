@@ -32,7 +32,7 @@ pub struct EvalFrame {
     /// and frames that were not registered).
     #[serde(default)]
     pub timings: Option<StageTimings>,
-    /// Step "neighbour" (`--neighbours`): each registered neighbour tried for the frame.
+    /// Step "neighbour" (on unless `--no-neighbours`): each registered neighbour tried for the frame.
     #[serde(default)]
     pub neighbours: Vec<NeighbourEval>,
 }

@@ -1505,7 +1505,7 @@ pub fn register_scene_frame(
     (report, final_delta_px)
 }
 
-/// One cell's registered frames kept for step "neighbour" (`--neighbours`), which runs over the
+/// One cell's registered frames kept for step "neighbour" (on unless `--no-neighbours`), which runs over the
 /// cell once every frame is registered ([`neighbour_pass`]).
 #[derive(Default)]
 struct NeighbourBatch {

@@ -464,12 +464,13 @@ pub struct CoarseArgs {
     /// at least as well rejects the chosen pose).
     #[arg(long)]
     pub no_rival_centres: bool,
-    /// Step "neighbour" after the frames are registered one by one: each frame's pose also from
-    /// its nearest accepted frames' photos (photo-to-photo flow, lifted on the model at the
-    /// neighbour's pose), checked by the model's edges; accepts a frame not accepted on its
-    /// own, rejects an accepted one it contradicts (known intrinsics only).
+    /// Without step "neighbour" (on by default: after the frames are registered one by one,
+    /// each frame's pose also from its nearest accepted frames' photos (photo-to-photo flow,
+    /// lifted on the model at the neighbour's pose), checked by the model's edges; it accepts a
+    /// frame not accepted on its own and rejects an accepted one it contradicts; known
+    /// intrinsics only).
     #[arg(long)]
-    pub neighbours: bool,
+    pub no_neighbours: bool,
     /// Step "neighbour": how many neighbours away from a frame the model accepted on its own a
     /// pose may be lent (1: only those frames lend).
     #[arg(long, default_value_t = NeighbourPoseConfig::default().max_steps)]
@@ -477,6 +478,11 @@ pub struct CoarseArgs {
     /// Step "neighbour": the nearest this many accepted frames are tried, nearest first.
     #[arg(long, default_value_t = NeighbourPoseConfig::default().candidates)]
     pub neighbour_candidates: usize,
+    /// Step "neighbour": `feed` — a frame borrows from the frames before it in images.txt (as
+    /// the pipeline does, so `register` and `run` agree); `set` — photos without an order,
+    /// every accepted frame lends to every other (in rounds of steps).
+    #[arg(long, value_enum, default_value_t = NeighbourOrderArg::Feed)]
+    pub neighbour_order: NeighbourOrderArg,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
     pub rival_reach_px: f64,
@@ -573,9 +579,10 @@ impl Default for CoarseArgs {
             min_support_above_chance: ConfidenceConfig::default().min_support_above_chance,
             rival_directions: EdgeAlignConfig::default().rival_directions,
             no_rival_centres: !EdgeAlignConfig::default().rival_centres,
-            neighbours: NeighbourPoseConfig::default().enabled,
+            no_neighbours: !NeighbourPoseConfig::default().enabled,
             neighbour_steps: NeighbourPoseConfig::default().max_steps,
             neighbour_candidates: NeighbourPoseConfig::default().candidates,
+            neighbour_order: NeighbourOrderArg::Feed,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -583,6 +590,21 @@ impl Default for CoarseArgs {
 }
 
 /// What decides whether the final refinement's aligned pose is kept.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NeighbourOrderArg {
+    Feed,
+    Set,
+}
+
+impl From<NeighbourOrderArg> for asgreg::core::frame::NeighbourOrder {
+    fn from(arg: NeighbourOrderArg) -> Self {
+        match arg {
+            NeighbourOrderArg::Feed => Self::Feed,
+            NeighbourOrderArg::Set => Self::Set,
+        }
+    }
+}
+
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum KeepRuleArg {
     Support,
@@ -807,9 +829,10 @@ pub fn registration_config(
         }
         .with_trusted_tilt_deg(coarse.prior_tilt_deg),
         neighbour_pose: NeighbourPoseConfig {
-            enabled: coarse.neighbours,
+            enabled: !coarse.no_neighbours,
             max_steps: coarse.neighbour_steps,
             candidates: coarse.neighbour_candidates,
+            order: coarse.neighbour_order.into(),
             ..defaults.neighbour_pose
         },
         ..defaults

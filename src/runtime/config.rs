@@ -11,7 +11,7 @@ use crate::core::change::stereo::{
     NeighbourConfig, StereoConfig, DEFAULT_DISPARITY_SIGMA_PX, MAX_NEIGHBOURS,
 };
 use crate::core::change::ChangeConfig;
-use crate::core::frame::RegistrationConfig;
+use crate::core::frame::{NeighbourOrder, RegistrationConfig};
 use crate::stage::ingest::SourceConfig;
 use crate::transport::zenoh::ZenohSettings;
 use crate::transport::{Backend, TransportConfig};
@@ -397,6 +397,14 @@ impl PipelineConfig {
             return Err(invalid(
                 "workers.render",
                 "each render worker feeds its own flow workers (flow worker w serves render worker w % render): at most workers.flow".to_string(),
+            ));
+        }
+        if self.registration.neighbour_pose.enabled
+            && self.registration.neighbour_pose.order != NeighbourOrder::Feed
+        {
+            return Err(invalid(
+                "registration.neighbour_pose.order",
+                "a pipeline is a feed: a frame borrows only from the frames before it; set \"feed\" (\"set\" is for `register` over photos without an order)".to_string(),
             ));
         }
         if self.workers.verify_threads == 0 {

@@ -221,6 +221,10 @@ struct Recovery {
     kept: std::collections::BTreeMap<u64, KeptFrame>,
     /// `timeouts.redo_unanswered_after_s`; `None`: never.
     redo_unanswered_after: Option<Duration>,
+    /// With step "neighbour": its window (`registration.neighbour_pose.window_frames`). Verify
+    /// holds a frame's result until every frame of its window has one, so a frame with an
+    /// earlier frame of its window unanswered is waiting for it, not lost.
+    neighbour_window_frames: Option<u64>,
     /// When a frame last got all its results (or the start).
     last_finished_at: Instant,
     /// Frames with both results out (the pose result alone without change detection).
@@ -264,6 +268,11 @@ impl Recovery {
             kept: std::collections::BTreeMap::new(),
             redo_unanswered_after: (config.timeouts.redo_unanswered_after_s > 0.0)
                 .then(|| Duration::from_secs_f64(config.timeouts.redo_unanswered_after_s)),
+            neighbour_window_frames: config
+                .registration
+                .neighbour_pose
+                .enabled
+                .then_some(config.registration.neighbour_pose.window_frames as u64),
             last_finished_at: Instant::now(),
             finished: std::collections::BTreeSet::new(),
             posed: std::collections::BTreeSet::new(),
@@ -430,7 +439,9 @@ impl Recovery {
     /// verify never heard of it and nothing else would ever give it a result (the acks test's
     /// launch ran into its deadline with 39 of 40 results). A frame still on its way only costs
     /// a repeat that verify ignores; the wait doubles each time. A frame posed but without its
-    /// change result is not sent again: that is verify's `ChangeRecovery`.
+    /// change result is not sent again: that is verify's `ChangeRecovery`. With step
+    /// "neighbour", neither is a frame with an unanswered earlier frame in its window: verify
+    /// holds it for that frame (only the oldest of such a chain can be lost).
     fn redo_unanswered(
         &mut self,
         dispatcher: &mut Dispatcher,
@@ -442,8 +453,16 @@ impl Recovery {
         };
         let now = Instant::now();
         let quiet = now.duration_since(self.last_finished_at);
+        let mut unposed_before: Option<u64> = None;
         for (&frame_id, frame) in &mut self.kept {
             if self.posed.contains(&frame_id) {
+                continue;
+            }
+            let held = unposed_before
+                .zip(self.neighbour_window_frames)
+                .is_some_and(|(earlier, window)| frame_id - earlier <= window);
+            unposed_before = Some(frame_id);
+            if held {
                 continue;
             }
             let Some(handed_on) = frame.handed_on else {
@@ -1225,6 +1244,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     let (mut journal, journaled, mut health) = open_journal(config, journal::Kind::Pose, "verify");
     let mut acks = AckJournal::open(config, journal::Kind::PoseAcked, "verify");
     let mut published: std::collections::BTreeSet<u64> = journaled.keys().copied().collect();
+    stage.published_before_restart(published.iter().copied());
     restore_unacked(&mut results_ack, &journaled, &acks, journal.path());
     // Complete frames are decided by a pool of threads (each with its own refinement
     // workspace) and concluded here, one result per frame as before.
@@ -1303,7 +1323,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 let _ = ready_tx.send(ready);
             }
             while let Ok(decided) = decided_rx.try_recv() {
-                produced.push(stage.conclude(decided));
+                produced.extend(stage.conclude(decided));
             }
             // Durable before the results go out: a frame with both results is not sent again.
             if let Some(views) = &mut views {

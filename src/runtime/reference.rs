@@ -3,8 +3,9 @@
 //! split must not change what a frame's result says. The soak (`asgreg soak`) and the pipeline
 //! tests use it, so both hold a pipeline to the same standard.
 
-use crate::batch::register_batch_frame;
+use crate::batch::{neighbour_pass, register_batch_frame};
 use crate::core::mesh::Mesh;
+use crate::frame_files::FrameLoader;
 use crate::msg::{PoseNumbers, PoseResult};
 use crate::stage::ingest::{FolderSource, SourceError};
 
@@ -28,16 +29,32 @@ impl std::fmt::Display for Mismatch {
 /// Registers every frame of `config.source` in this process as `register` does and compares
 /// each with the pipeline's result of that frame (`results`, any order): accepted or not, the
 /// confidence, the number of refined poses and the output pose must be equal (bit for bit: the
-/// same steps on the same inputs). Frames without a result are mismatches too. Costs one
-/// registration per frame.
+/// same steps on the same inputs). With step "neighbour" on, `register`'s runs it too
+/// ([`neighbour_pass`], the feed's rule the pipeline's verify follows). Frames without a result
+/// are mismatches too. Costs one registration per frame.
 pub fn differences_from_register(
     config: &PipelineConfig,
     mesh: &Mesh,
     results: &[PoseResult],
 ) -> Result<Vec<Mismatch>, SourceError> {
     let source = FolderSource::open(&config.source)?;
+    let (frame_ids, frames): (Vec<u64>, Vec<_>) = source.batch_frames().into_iter().unzip();
+    let mut references: Vec<_> = frames
+        .iter()
+        .map(|frame| register_batch_frame(mesh, frame, &config.registration, config.source.seed))
+        .collect();
+    if config.registration.neighbour_pose.enabled {
+        neighbour_pass(
+            mesh,
+            &frames,
+            &mut references,
+            &FrameLoader::default(),
+            &config.registration,
+            config.source.seed,
+        );
+    }
     let mut mismatches = Vec::new();
-    for (frame_id, frame) in source.batch_frames() {
+    for ((frame_id, frame), reference) in frame_ids.into_iter().zip(&frames).zip(references) {
         let mismatch = |what: String| Mismatch {
             frame_id,
             name: frame.name.clone(),
@@ -47,8 +64,6 @@ pub fn differences_from_register(
             mismatches.push(mismatch("no pipeline result".to_string()));
             continue;
         };
-        let reference =
-            register_batch_frame(mesh, &frame, &config.registration, config.source.seed);
         let pose = reference.cam_from_world.as_ref().map(PoseNumbers::from);
         let differences = [
             (result.name != reference.name)

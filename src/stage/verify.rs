@@ -12,8 +12,8 @@ use crate::core::camera::Camera;
 use crate::core::change::pose_sigma_px_of_registration;
 use crate::core::change::stereo::{neighbour_candidates, NeighbourConfig, PosedCamera};
 use crate::core::frame::{
-    apply_to_verdict, coarse_points, decide_frame, nearest_neighbours, try_neighbours,
-    CoarseOutcome, Decision, IntrinsicsMode, NeighbourDecision, NeighbourPoseConfig,
+    apply_to_verdict, coarse_points, decide_frame, feed_neighbours, try_neighbours, CoarseOutcome,
+    Decision, FeedLender, IntrinsicsMode, NeighbourDecision, NeighbourPoseConfig,
     NeighbourWorkspace, RefineWorkspace, RegisteredNeighbour, RegistrationConfig,
 };
 use crate::core::image::Image;
@@ -68,7 +68,7 @@ impl RegisteredView {
     }
 }
 
-/// An accepted frame kept to lend its pose to later frames (step "neighbour",
+/// An accepted frame kept to lend its pose to the frames after it (step "neighbour",
 /// `registration.neighbour_pose`): its query image, camera and pose, and how many neighbours
 /// away from a frame the model accepted on its own it is (0: it is one).
 #[derive(Clone)]
@@ -153,10 +153,23 @@ pub struct VerifyStage<'m> {
     deciding: BTreeSet<u64>,
     /// `bench pipeline --simulate`: sleep per frame's decision.
     simulated: Option<SimulatedWork>,
-    /// Step "neighbour" (when `enabled`): its settings, and the accepted frames that lend their
-    /// poses (the latest `lenders_kept`, by frame id).
+    /// Step "neighbour" (when `enabled`): its settings, the accepted frames that may still lend
+    /// their poses (those within `window_frames` before a frame without its result), and the
+    /// frames decided on their own that wait for every frame of their window to have its result
+    /// ([`feed_neighbours`]: then a frame's lenders do not depend on the order frames complete
+    /// in).
     neighbour_pose: NeighbourPoseConfig,
     pose_lenders: BTreeMap<u64, PoseLender>,
+    awaiting_neighbours: BTreeMap<u64, AwaitingNeighbours>,
+    /// Frames whose result was published before this stage restarted: they count as having
+    /// their result for step "neighbour"'s windows even when their messages do not come again.
+    published_before: BTreeSet<u64>,
+}
+
+/// A frame decided on its own, waiting for the frames of its window (step "neighbour").
+struct AwaitingNeighbours {
+    decided: DecidedFrame,
+    since: Instant,
 }
 
 /// Buffers of a thread that decides frames ([`ReadyFrame::decide`]), reused across frames: the
@@ -171,10 +184,19 @@ pub struct VerifyWorkspace {
 /// needs, owned, so that it can be decided on another thread.
 pub struct ReadyFrame {
     frame_id: u64,
-    frame: PendingFrame,
     simulated: Option<SimulatedWork>,
-    /// Step "neighbour": the accepted frames to try, nearest first (empty when off).
-    neighbours: Vec<PoseLender>,
+    step: DecideStep,
+}
+
+/// What deciding a ready frame runs.
+enum DecideStep {
+    /// The frame's own decision (`core::frame::decide_frame`).
+    Own(Box<PendingFrame>),
+    /// Step "neighbour" on the frame's own decision: the accepted frames to try, nearest first.
+    Neighbours {
+        own: Box<DecidedFrame>,
+        lenders: Vec<PoseLender>,
+    },
 }
 
 /// A frame's decision, to be concluded by the stage ([`VerifyStage::conclude`]).
@@ -186,6 +208,8 @@ pub struct DecidedFrame {
     /// When accepted: neighbours away from a frame the model accepted on its own (0: accepted
     /// on its own; step "neighbour").
     lender_steps: Option<usize>,
+    /// Whether step "neighbour" has run on the decision (or cannot: then the decision is final).
+    neighbours_tried: bool,
 }
 
 impl ReadyFrame {
@@ -206,10 +230,26 @@ impl ReadyFrame {
         let started = Instant::now();
         let ReadyFrame {
             frame_id,
-            frame,
             simulated,
-            neighbours,
+            step,
         } = self;
+        let frame = match step {
+            DecideStep::Own(frame) => *frame,
+            DecideStep::Neighbours { own, lenders } => {
+                let mut decided = *own;
+                decided.lender_steps = decide_with_neighbours(
+                    mesh,
+                    &decided.frame,
+                    &lenders,
+                    config,
+                    &mut decided.decision,
+                    &mut workspace.neighbour,
+                );
+                decided.neighbours_tried = true;
+                decided.verify_ms += elapsed_ms(started);
+                return decided;
+            }
+        };
         if let Some(work) = simulated {
             spend_ms(work.verify_frame_ms);
         }
@@ -230,7 +270,7 @@ impl ReadyFrame {
             })
             .collect();
         let coarse_points = coarse_points(mesh, &frame.camera, &samples);
-        let mut decision = decide_frame(
+        let decision = decide_frame(
             mesh,
             &frame.camera,
             &outcomes,
@@ -240,20 +280,18 @@ impl ReadyFrame {
             &mut workspace.refine,
             &coarse_points,
         );
-        let lender_steps = decide_with_neighbours(
-            mesh,
-            &frame,
-            &neighbours,
-            config,
-            &mut decision,
-            &mut workspace.neighbour,
-        );
+        // Step "neighbour" needs the query and known intrinsics; without them this is final.
+        let neighbours_tried = !(config.neighbour_pose.enabled
+            && simulated.is_none()
+            && frame.query.is_some()
+            && frame.intrinsics == IntrinsicsMode::Known);
         DecidedFrame {
             frame_id,
+            lender_steps: decision.verdict.accepted().then_some(0),
             frame,
             decision,
             verify_ms: elapsed_ms(started),
-            lender_steps,
+            neighbours_tried,
         }
     }
 }
@@ -350,6 +388,8 @@ impl<'m> VerifyStage<'m> {
             simulated: None,
             neighbour_pose: NeighbourPoseConfig::default(),
             pose_lenders: BTreeMap::new(),
+            awaiting_neighbours: BTreeMap::new(),
+            published_before: BTreeSet::new(),
         }
     }
 
@@ -359,41 +399,84 @@ impl<'m> VerifyStage<'m> {
         self
     }
 
-    /// Runs step "neighbour" after each frame's own decision (`config.enabled`): a frame is
-    /// also tried against the accepted frames concluded before it is handed out (the nearest
-    /// `candidates` of the latest `lenders_kept`, [`nearest_neighbours`]). Which frames those
-    /// are depends on the order frames complete in, so with it on a frame's result can differ
-    /// between runs (never its count: one per frame).
+    /// Runs step "neighbour" after each frame's own decision (`config.enabled`; not in a
+    /// simulated pipeline): once every frame of its window has its result, a frame is tried
+    /// against the accepted frames before it ([`feed_neighbours`], as batch registration
+    /// does), so its result does not depend on the order frames complete in. A frame whose
+    /// window is still incomplete after the frame timeout is tried against the lenders there
+    /// are (a warning says so).
     pub fn with_neighbour_poses(mut self, config: NeighbourPoseConfig) -> Self {
         self.neighbour_pose = config;
         self
+    }
+
+    /// After a restart: the frames whose results were published before it (the journal's).
+    /// Step "neighbour" does not wait for them.
+    pub fn published_before_restart(&mut self, frame_ids: impl IntoIterator<Item = u64>) {
+        self.published_before.extend(frame_ids);
     }
 
     /// The complete frames waiting to be decided; each must come back to
     /// [`VerifyStage::conclude`] (a frame counts as pending until then). With step
     /// "neighbour" each carries its candidate neighbours.
     pub fn take_ready(&mut self) -> Vec<ReadyFrame> {
-        let mut ready = std::mem::take(&mut self.ready);
+        self.release_awaiting(Instant::now());
+        let ready = std::mem::take(&mut self.ready);
         self.deciding.extend(ready.iter().map(|r| r.frame_id));
-        if self.neighbour_pose.enabled {
-            let lenders: Vec<(usize, crate::core::rigid::Rigid3)> = self
-                .pose_lenders
-                .iter()
-                .filter(|(_, lender)| lender.steps < self.neighbour_pose.max_steps)
-                .map(|(&id, lender)| (id as usize, lender.cam_from_world))
-                .collect();
-            for frame in &mut ready {
-                frame.neighbours = nearest_neighbours(
-                    &frame.frame.info.initial_cam_from_world,
-                    &lenders,
-                    &self.neighbour_pose,
-                )
-                .into_iter()
-                .filter_map(|id| self.pose_lenders.get(&(id as u64)).cloned())
-                .collect();
-            }
-        }
         ready
+    }
+
+    /// The frames decided on their own whose window has every result (or that waited longer
+    /// than the frame timeout) go to be tried against their lenders.
+    fn release_awaiting(&mut self, now: Instant) {
+        let window = self.neighbour_pose.window_frames as u64;
+        let releasable: Vec<u64> = self
+            .awaiting_neighbours
+            .iter()
+            .filter(|(&frame_id, awaiting)| {
+                let complete = (frame_id.saturating_sub(window)..frame_id)
+                    .all(|id| self.is_finished(id) || self.published_before.contains(&id));
+                if !complete && now.duration_since(awaiting.since) > self.frame_timeout {
+                    tracing::warn!(
+                        "frame {frame_id} '{}': frames before it still have no result after {:.0} s; step \"neighbour\" tries the neighbours there are (its result may differ from a run without the delay)",
+                        awaiting.decided.frame.name,
+                        self.frame_timeout.as_secs_f64()
+                    );
+                    return true;
+                }
+                complete
+            })
+            .map(|(&frame_id, _)| frame_id)
+            .collect();
+        for frame_id in releasable {
+            let Some(AwaitingNeighbours { decided, .. }) =
+                self.awaiting_neighbours.remove(&frame_id)
+            else {
+                continue;
+            };
+            let lenders = self.pose_lenders.iter().map(|(&id, lender)| FeedLender {
+                index: id as usize,
+                cam_from_world: lender.cam_from_world,
+                steps: lender.steps,
+            });
+            let lenders = feed_neighbours(
+                frame_id as usize,
+                &decided.frame.info.initial_cam_from_world,
+                lenders,
+                &self.neighbour_pose,
+            )
+            .into_iter()
+            .filter_map(|id| self.pose_lenders.get(&(id as u64)).cloned())
+            .collect();
+            self.ready.push(ReadyFrame {
+                frame_id,
+                simulated: None,
+                step: DecideStep::Neighbours {
+                    own: Box::new(decided),
+                    lenders,
+                },
+            });
+        }
     }
 
     /// Makes every decided frame also give its change work (`change_work`). A frame without a
@@ -624,6 +707,7 @@ impl<'m> VerifyStage<'m> {
     fn is_taken(&self, frame_id: u64) -> bool {
         self.is_finished(frame_id)
             || self.deciding.contains(&frame_id)
+            || self.awaiting_neighbours.contains_key(&frame_id)
             || self.ready.iter().any(|r| r.frame_id == frame_id)
     }
 
@@ -637,7 +721,7 @@ impl<'m> VerifyStage<'m> {
 
     /// Frames still waiting for hypotheses or for their decision.
     pub fn pending_frames(&self) -> usize {
-        self.pending.len() + self.ready.len() + self.deciding.len()
+        self.pending.len() + self.ready.len() + self.deciding.len() + self.awaiting_neighbours.len()
     }
 
     /// One coarse pose's hypothesis; the frame waits in [`VerifyStage::take_ready`] when it was
@@ -806,6 +890,7 @@ impl<'m> VerifyStage<'m> {
             Some(earlier) => format!("{reason} (the frame was rejected: {earlier})"),
             None => reason.to_string(),
         });
+        self.pose_lenders.remove(&frame_id);
         if self.changes {
             self.registered_views.remove(&frame_id);
             self.stereo_waiting.remove(&frame_id);
@@ -842,6 +927,7 @@ impl<'m> VerifyStage<'m> {
                 && self.pending.is_empty()
                 && self.ready.is_empty()
                 && self.deciding.is_empty()
+                && self.awaiting_neighbours.is_empty()
         })
     }
 
@@ -849,14 +935,26 @@ impl<'m> VerifyStage<'m> {
     fn queue_ready(&mut self, frame_id: u64, frame: PendingFrame) {
         self.ready.push(ReadyFrame {
             frame_id,
-            frame,
             simulated: self.simulated,
-            neighbours: Vec::new(),
+            step: DecideStep::Own(Box::new(frame)),
         });
     }
 
-    /// A decided frame's one result (and its change work); the frame is finished.
-    pub fn conclude(&mut self, decided: DecidedFrame) -> PoseResult {
+    /// A decided frame's one result (and its change work); the frame is finished. A frame
+    /// decided on its own that step "neighbour" is still to try waits for its window instead
+    /// (`None`; [`VerifyStage::take_ready`] hands it out again).
+    pub fn conclude(&mut self, decided: DecidedFrame) -> Option<PoseResult> {
+        self.deciding.remove(&decided.frame_id);
+        if !decided.neighbours_tried {
+            self.awaiting_neighbours.insert(
+                decided.frame_id,
+                AwaitingNeighbours {
+                    decided,
+                    since: Instant::now(),
+                },
+            );
+            return None;
+        }
         let DecidedFrame {
             frame_id,
             frame,
@@ -868,8 +966,8 @@ impl<'m> VerifyStage<'m> {
                 },
             verify_ms,
             lender_steps,
+            ..
         } = decided;
-        self.deciding.remove(&frame_id);
         self.mark_finished(frame_id);
         if let Err(why) = &refinement {
             tracing::debug!(
@@ -942,18 +1040,19 @@ impl<'m> VerifyStage<'m> {
                 photo,
             }),
         );
-        result
+        Some(result)
     }
 }
 
 impl VerifyStage<'_> {
-    /// Keeps an accepted frame as a lender of its pose (step "neighbour"), the latest
-    /// `lenders_kept` by frame id.
+    /// Keeps an accepted frame as a lender of its pose (step "neighbour") while a frame without
+    /// its result may borrow it (every such frame is at or above `finished_below`).
     fn lend_pose(&mut self, frame_id: u64, lender: PoseLender) {
         self.pose_lenders.insert(frame_id, lender);
-        while self.pose_lenders.len() > self.neighbour_pose.lenders_kept {
-            self.pose_lenders.pop_first();
-        }
+        let oldest_borrowable = self
+            .finished_below
+            .saturating_sub(self.neighbour_pose.window_frames as u64);
+        self.pose_lenders = self.pose_lenders.split_off(&oldest_borrowable);
     }
 }
 
@@ -993,17 +1092,28 @@ mod tests {
         }
     }
 
+    /// The names of the lenders a ready frame is to try (empty for its own decision).
+    fn lender_names(ready: &ReadyFrame) -> Vec<&str> {
+        match &ready.step {
+            DecideStep::Own(_) => Vec::new(),
+            DecideStep::Neighbours { lenders, .. } => {
+                lenders.iter().map(|n| n.name.as_str()).collect()
+            }
+        }
+    }
+
     /// Step "neighbour" in verify: a frame whose own registration gave nothing (no hypotheses)
-    /// is handed out with the nearest lender looking its way (not the one facing away, nor one
-    /// dropped beyond `lenders_kept`), and accepted at the pose from that neighbour, one step
-    /// from a frame accepted on its own; concluded, it lends its own pose in turn.
+    /// is decided on its own, then handed out again with the nearest lender looking its way
+    /// (not the one facing away, nor one before its window), and accepted at the pose from
+    /// that neighbour, one step from a frame accepted on its own; concluded, it lends its own
+    /// pose in turn.
     #[test]
     fn a_frame_without_hypotheses_is_accepted_at_its_neighbours_pose() {
         let (mesh, camera, truth, _) = house_and_poses();
         let config = RegistrationConfig {
             neighbour_pose: NeighbourPoseConfig {
                 enabled: true,
-                lenders_kept: 2,
+                window_frames: 2,
                 ..NeighbourPoseConfig::default()
             },
             ..RegistrationConfig::default()
@@ -1025,24 +1135,34 @@ mod tests {
         );
         let mut stage = VerifyStage::new(&mesh, Duration::from_secs(60))
             .with_neighbour_poses(config.neighbour_pose.clone());
-        stage.lend_pose(1, lender_at("dropped", near));
-        stage.lend_pose(2, lender_at("near", near));
-        stage.lend_pose(3, lender_at("away", away));
-        assert_eq!(stage.pose_lenders.len(), 2);
+        stage.mark_finished(0);
+        for (id, name, pose) in [(1, "dropped", near), (2, "near", near), (3, "away", away)] {
+            stage.mark_finished(id);
+            stage.lend_pose(id, lender_at(name, pose));
+        }
+        assert_eq!(
+            stage.pose_lenders.len(),
+            2,
+            "frame 1 is before every window"
+        );
         let mut frame = PendingFrame::new(&info("frame", camera, truth));
         frame.query = Some(ideal_query(&mesh, &camera, &truth, &config));
-        stage
-            .pending
-            .insert(4, PendingFrame::new(&info("frame", camera, truth)));
         stage.queue_ready(4, frame);
         let mut ready = stage.take_ready();
         assert_eq!(ready.len(), 1);
-        let names: Vec<&str> = ready[0]
-            .neighbours
-            .iter()
-            .map(|n| n.name.as_str())
-            .collect();
-        assert_eq!(names, ["near"]);
+        assert!(lender_names(&ready[0]).is_empty());
+        let own = ready
+            .remove(0)
+            .decide(&mesh, &config, &mut VerifyWorkspace::default());
+        assert!(!own.decision.verdict.accepted());
+        assert!(
+            stage.conclude(own).is_none(),
+            "it waits for step \"neighbour\""
+        );
+        assert_eq!(stage.pending_frames(), 1);
+        let mut ready = stage.take_ready();
+        assert_eq!(ready.len(), 1);
+        assert_eq!(lender_names(&ready[0]), ["near"]);
         let decided = ready
             .remove(0)
             .decide(&mesh, &config, &mut VerifyWorkspace::default());
@@ -1052,8 +1172,66 @@ mod tests {
             decided.decision.verdict.rejection()
         );
         assert_eq!(decided.lender_steps, Some(1));
-        let result = stage.conclude(decided);
+        let result = stage.conclude(decided).expect("the frame's result");
         assert!(result.accepted && result.cam_from_world.is_some());
         assert_eq!(stage.pose_lenders.get(&4).map(|l| l.steps), Some(1));
+        assert_eq!(stage.pending_frames(), 0);
+    }
+
+    /// A frame decided on its own waits for step "neighbour" until every frame of its window
+    /// has its result (then its lenders do not depend on the order frames complete in), or,
+    /// with a frame missing, until the frame timeout; frames published before a restart count
+    /// as having their result.
+    #[test]
+    fn step_neighbour_waits_for_the_frames_of_its_window() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig {
+            neighbour_pose: NeighbourPoseConfig {
+                enabled: true,
+                window_frames: 3,
+                ..NeighbourPoseConfig::default()
+            },
+            ..RegistrationConfig::default()
+        };
+        let own_decision = |stage: &mut VerifyStage, frame_id: u64| {
+            let mut frame = PendingFrame::new(&info("frame", camera, truth));
+            frame.query = Some(Image::filled(
+                camera.width_px as usize,
+                camera.height_px as usize,
+                0.0,
+            ));
+            stage.queue_ready(frame_id, frame);
+            let mut ready = stage.take_ready();
+            assert_eq!(ready.len(), 1);
+            let own = ready
+                .remove(0)
+                .decide(&mesh, &config, &mut VerifyWorkspace::default());
+            assert!(stage.conclude(own).is_none());
+        };
+        let failure = FrameFailed {
+            name: "lost".into(),
+            stage: "render".into(),
+            reason: "test".into(),
+        };
+
+        let mut stage = VerifyStage::new(&mesh, Duration::from_secs(60))
+            .with_neighbour_poses(config.neighbour_pose.clone());
+        stage.published_before_restart([2]);
+        own_decision(&mut stage, 4);
+        assert!(
+            stage.take_ready().is_empty(),
+            "frames 1 and 3 have no result"
+        );
+        assert!(stage.on_failure(3, &failure).is_some());
+        assert!(stage.take_ready().is_empty(), "frame 1 has no result");
+        assert!(stage.on_failure(1, &failure).is_some());
+        let ready = stage.take_ready();
+        assert_eq!(ready.iter().map(|r| r.frame_id).collect::<Vec<_>>(), [4]);
+
+        let mut stage = VerifyStage::new(&mesh, Duration::ZERO)
+            .with_neighbour_poses(config.neighbour_pose.clone());
+        own_decision(&mut stage, 4);
+        std::thread::sleep(Duration::from_millis(2));
+        assert_eq!(stage.take_ready().len(), 1, "released after the timeout");
     }
 }

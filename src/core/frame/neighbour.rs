@@ -31,8 +31,9 @@ use crate::core::verify::{PoseHypothesis, RejectionReason, Verdict};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct NeighbourPoseConfig {
-    /// Whether the step runs: after a batch is registered (`register`, `eval`: `--neighbours`),
-    /// and in the pipeline's verify (`registration.neighbour_pose.enabled`).
+    /// Whether the step runs (by default): after a batch is registered (`register`, `eval`;
+    /// `--no-neighbours` turns it off), and in the pipeline's verify
+    /// (`registration.neighbour_pose.enabled`).
     pub enabled: bool,
     /// A registered frame is a candidate neighbour when its optical axis is within this angle of
     /// the frame's prior axis, degrees.
@@ -50,21 +51,40 @@ pub struct NeighbourPoseConfig {
     pub min_consensus: usize,
     /// ... and this share of its matches as inliers.
     pub min_inlier_share: f64,
-    /// The pipeline's verify keeps the latest this many accepted frames as lenders (their
-    /// query images: 0.5 MB each at 505 × 275).
-    pub lenders_kept: usize,
+    /// A frame may take the pose of the accepted frames at most this many frames before it in
+    /// the feed ([`feed_neighbours`]); the pipeline's verify keeps their query images (0.5 MB
+    /// each at 505 × 275) and decides a frame's step once every frame of its window has its
+    /// result.
+    pub window_frames: usize,
+    /// In which order batch registration offers frames as neighbours
+    /// (`batch::neighbour_pass`); the pipeline's verify always follows [`NeighbourOrder::Feed`].
+    pub order: NeighbourOrder,
+}
+
+/// The order in which a batch's frames lend their poses (step "neighbour").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NeighbourOrder {
+    /// A feed: a frame borrows from the frames before it ([`feed_neighbours`]), as the
+    /// pipeline's verify does, so `register` and `run` give one result.
+    #[default]
+    Feed,
+    /// A collection without an order: every accepted frame lends to every other, in rounds of
+    /// steps from the frames the model accepted on their own.
+    Set,
 }
 
 impl Default for NeighbourPoseConfig {
     fn default() -> Self {
         Self {
-            enabled: false,
+            enabled: true,
             max_axis_angle_deg: 40.0,
             candidates: 2,
             max_steps: 2,
             min_consensus: 60,
             min_inlier_share: 0.25,
-            lenders_kept: 64,
+            window_frames: 64,
+            order: NeighbourOrder::Feed,
         }
     }
 }
@@ -446,6 +466,36 @@ pub fn nearest_neighbours(
         .collect()
 }
 
+/// A frame that may lend its pose: its place in the feed, its registered pose and its steps from
+/// a frame the model accepted on its own (0: it is one).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FeedLender {
+    pub index: usize,
+    pub cam_from_world: Rigid3,
+    pub steps: usize,
+}
+
+/// The rule batch registration and the pipeline share (one result whatever the order frames
+/// complete in): frame `index` of a feed may take the pose of the accepted frames before it,
+/// at most `config.window_frames` before, whose chain to a frame the model accepted on its own
+/// is shorter than `config.max_steps`; the nearest looking its way first
+/// ([`nearest_neighbours`]). Every frame of the window must have its final result before the
+/// frame's step runs: then the lenders, and so the frame's result, do not depend on timing.
+pub fn feed_neighbours(
+    index: usize,
+    prior: &Rigid3,
+    accepted: impl IntoIterator<Item = FeedLender>,
+    config: &NeighbourPoseConfig,
+) -> Vec<usize> {
+    let first = index.saturating_sub(config.window_frames);
+    let lenders: Vec<(usize, Rigid3)> = accepted
+        .into_iter()
+        .filter(|lender| (first..index).contains(&lender.index) && lender.steps < config.max_steps)
+        .map(|lender| (lender.index, lender.cam_from_world))
+        .collect();
+    nearest_neighbours(prior, &lenders, config)
+}
+
 #[cfg(test)]
 mod tests {
     use nalgebra::{UnitQuaternion, Vector3};
@@ -612,5 +662,33 @@ mod tests {
             ..NeighbourPoseConfig::default()
         };
         assert_eq!(nearest_neighbours(&prior, &registered, &config), vec![1, 3]);
+    }
+
+    /// A feed's frame borrows only from accepted frames before it within the window whose chain
+    /// is shorter than `max_steps`, nearest first.
+    #[test]
+    fn feed_neighbours_come_from_the_window_before_the_frame() {
+        let at = |x: f64| Rigid3::new(UnitQuaternion::identity(), Vector3::new(-x, 0.0, 0.0));
+        let lender = |index: usize, x: f64, steps: usize| FeedLender {
+            index,
+            cam_from_world: at(x),
+            steps,
+        };
+        let accepted = [
+            lender(2, 0.1, 0),  // before the window (10 − 3 = 7)
+            lender(7, 4.0, 0),  // first of the window
+            lender(8, 0.2, 2),  // too many steps
+            lender(9, 1.0, 1),  // nearest allowed
+            lender(10, 0.0, 0), // the frame itself
+            lender(11, 0.3, 0), // after the frame
+        ];
+        let config = NeighbourPoseConfig {
+            window_frames: 3,
+            max_steps: 2,
+            candidates: 3,
+            ..NeighbourPoseConfig::default()
+        };
+        assert_eq!(feed_neighbours(10, &at(0.0), accepted, &config), vec![9, 7]);
+        assert!(feed_neighbours(0, &at(0.0), accepted, &config).is_empty());
     }
 }
