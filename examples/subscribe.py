@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
 """Print asgreg's pose results, change results and fused change sets as they arrive, from any host that reaches the zenoh router.
 
-asgreg publishes every frame's result as JSON on ``asgreg/v8/<pipeline>/results/json``, and,
+asgreg publishes every frame's result as JSON on ``asgreg/v9/<pipeline>/results/json``, and,
 when the pipeline runs change detection (``workers.change`` > 0), every frame's change result on
-``asgreg/v8/<pipeline>/changes/json`` and the fused change set on
-``asgreg/v8/<pipeline>/changeset/json`` (now and then, and once with ``complete: true``)
-(src/transport/keys.rs; fields: src/msg/json.rs, schemas/v8/*.schema.json). This script joins
+``asgreg/v9/<pipeline>/changes/json`` and the fused change set on
+``asgreg/v9/<pipeline>/changeset/json`` (now and then, and once with ``complete: true``)
+(src/transport/keys.rs; fields: src/msg/json.rs, schemas/v9/*.schema.json). This script joins
 the ground station's router as a zenoh client with scouting off (no multicast, no gossip) and
 prints one line per message; with --changes-out it also writes the final change set as GeoJSON.
 
@@ -124,7 +124,7 @@ def main():
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("scouting/gossip/enabled", "false")
 
-    prefix = f"asgreg/v8/{args.pipeline}"
+    prefix = f"asgreg/v9/{args.pipeline}"
     keys = {f"{prefix}/results/json": "pose", f"{prefix}/changes/json": "change",
             f"{prefix}/changeset/json": "change_set"}
     try:

@@ -681,6 +681,9 @@ fn decode_and_use(bytes: &[u8]) -> Result<(), String> {
         Body::ChangeSight(sight) => {
             crate::stage::fusion::seen_frame(sight)?;
         }
+        Body::PoseLender(lender) => {
+            lender.query().map_err(display_error)?;
+        }
         Body::Hypothesis(_)
         | Body::FrameFailed(_)
         | Body::Credit(_)

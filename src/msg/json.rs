@@ -1,5 +1,5 @@
 //! PoseResults, ChangeResults and ChangeSets as JSON for subscribers that do not speak bincode
-//! (Python, C, a web page); the shapes are `schemas/v8/pose_result.schema.json`,
+//! (Python, C, a web page); the shapes are `schemas/v9/pose_result.schema.json`,
 //! `change_result.schema.json` and `change_set.schema.json`.
 
 use serde::Serialize;

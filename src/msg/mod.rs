@@ -1,5 +1,5 @@
 //! The wire types of the bus and the one place that encodes and decodes them (docs/design.md §5).
-//! `schemas/v8/` describes the same layout for subscribers in other languages.
+//! `schemas/v9/` describes the same layout for subscribers in other languages.
 //!
 //! Layout of every message (all integers little-endian):
 //! ```text
@@ -44,4 +44,6 @@ pub use wire::{decode, encode, same_body, DecodeError, EncodeError, Encoded, HEA
 /// v8: Correspondences and Hypothesis carry the coarse view's rendering sampled on δ's grid
 /// (`GridArrays`: face index and depth, the stride in their meta), so that verify's convergence
 /// test does not render the coarse poses again.
-pub const SCHEMA_VERSION: u16 = 8;
+/// v9: a new kind, PoseLender (15): an accepted frame verify keeps for step "neighbour" (its
+/// query image, registered camera and pose, steps), written to verify's state folder only.
+pub const SCHEMA_VERSION: u16 = 9;

@@ -242,6 +242,15 @@ fn every_kind() -> Vec<Body<'static>> {
             photo_depth_m: Cow::Owned(Vec::new()),
             model_depth_m: Cow::Owned(Vec::new()),
         }),
+        Body::PoseLender(PoseLender {
+            meta: PoseLenderMeta {
+                info: info(),
+                camera: info().camera,
+                cam_from_world: info().initial_cam_from_world,
+                steps: 1,
+            },
+            query: Cow::Owned(image.clone()),
+        }),
     ]
 }
 
@@ -332,7 +341,7 @@ fn golden_bytes_of_every_kind() {
             path.display()
         );
     }
-    let every_kind: Vec<u16> = (1..=14).collect();
+    let every_kind: Vec<u16> = (1..=15).collect();
     assert_eq!(
         kinds_seen.into_iter().collect::<Vec<_>>(),
         every_kind,
@@ -524,7 +533,7 @@ fn pose_result_json_carries_header_and_result() {
 #[test]
 fn pose_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v8/pose_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v9/pose_result.schema.json")).unwrap();
     let keys = |value: &serde_json::Value| -> Vec<String> {
         let mut keys: Vec<String> = value.as_object().unwrap().keys().cloned().collect();
         keys.sort();
@@ -588,7 +597,7 @@ fn assert_matches_schema(json: &serde_json::Value, schema: &serde_json::Value) {
 #[test]
 fn change_result_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v8/change_result.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v9/change_result.schema.json")).unwrap();
     let json: serde_json::Value =
         serde_json::from_str(&change_result_json(&header(), &change_result_example())).unwrap();
     assert_eq!(json["schema_version"], SCHEMA_VERSION);
@@ -607,7 +616,7 @@ fn change_result_json_has_exactly_the_schema_properties() {
 #[test]
 fn change_set_json_has_exactly_the_schema_properties() {
     let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../schemas/v8/change_set.schema.json")).unwrap();
+        serde_json::from_str(include_str!("../../schemas/v9/change_set.schema.json")).unwrap();
     let set = every_kind()
         .into_iter()
         .find_map(|body| match body {

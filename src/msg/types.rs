@@ -51,6 +51,7 @@ pub enum MessageKind {
     ChangeResult = 12,
     ChangeSet = 13,
     ChangeSight = 14,
+    PoseLender = 15,
 }
 
 impl MessageKind {
@@ -70,6 +71,7 @@ impl MessageKind {
             12 => Self::ChangeResult,
             13 => Self::ChangeSet,
             14 => Self::ChangeSight,
+            15 => Self::PoseLender,
             _ => return None,
         })
     }
@@ -99,6 +101,7 @@ pub enum Body<'a> {
     ChangeResult(ChangeResult),
     ChangeSet(ChangeSet),
     ChangeSight(ChangeSight<'a>),
+    PoseLender(PoseLender<'a>),
 }
 
 impl Body<'_> {
@@ -118,6 +121,7 @@ impl Body<'_> {
             Body::ChangeResult(_) => MessageKind::ChangeResult,
             Body::ChangeSet(_) => MessageKind::ChangeSet,
             Body::ChangeSight(_) => MessageKind::ChangeSight,
+            Body::PoseLender(_) => MessageKind::PoseLender,
         }
     }
 }
@@ -301,6 +305,37 @@ pub struct ChangeJobMeta {
     pub pose_sigma_px: f64,
 }
 
+/// An accepted frame verify keeps to lend its pose (step "neighbour"), written to verify's state
+/// folder (`runtime::lenders`) so that a restarted verify still has it; never on the bus.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PoseLender<'a> {
+    pub meta: PoseLenderMeta,
+    /// The frame's query image (0..1, as render sent it in its FrameQuery), `info.camera`'s size.
+    pub query: Blob<'a, f32>,
+}
+
+impl PoseLender<'_> {
+    /// The query image of the frame's camera size.
+    pub fn query(&self) -> Result<ImageView<'_, f32>, ImageError> {
+        let camera = &self.meta.info.camera;
+        ImageView::new(
+            camera.width_px as usize,
+            camera.height_px as usize,
+            &self.query,
+        )
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseLenderMeta {
+    pub info: FrameInfo,
+    /// The registered camera and pose (the frame's PoseResult).
+    pub camera: Camera,
+    pub cam_from_world: Rigid3,
+    /// Neighbours away from a frame the model accepted on its own (0: it is one).
+    pub steps: u32,
+}
+
 /// A registered frame of the stream sent with a change job as a candidate stereo neighbour.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct NeighbourMeta {
@@ -313,7 +348,7 @@ pub struct NeighbourMeta {
 
 /// One frame's change detection (verify for a frame without a pose, change workers inside a
 /// [`ChangeSight`] → fusion → subscribers); also published as JSON
-/// (`schemas/v8/change_result.schema.json`).
+/// (`schemas/v9/change_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeResult {
     pub frame_id: u64,
@@ -333,7 +368,7 @@ pub struct ChangeResult {
 
 /// The changes of every frame so far fused into objects (fusion → subscribers); published now
 /// and then while frames arrive and once, `complete`, when every frame has its change result.
-/// Also published as JSON (`schemas/v8/change_set.schema.json`).
+/// Also published as JSON (`schemas/v9/change_set.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChangeSet {
     /// Whether every frame of the stream has its change result (the final set).
@@ -717,7 +752,7 @@ pub struct StageTimesMs {
 }
 
 /// The one result of a frame (verify → subscribers); also published as JSON
-/// (`schemas/v8/pose_result.schema.json`).
+/// (`schemas/v9/pose_result.schema.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseResult {
     pub frame_id: u64,

@@ -191,6 +191,10 @@ pub fn encode<'m>(message: &'m Envelope<'_>) -> Result<Encoded<'m>, EncodeError>
                 bytemuck::cast_slice(&sight.model_depth_m),
             ],
         ),
+        Body::PoseLender(lender) => (
+            meta_bytes(kind, &lender.meta)?,
+            vec![bytemuck::cast_slice(&lender.query)],
+        ),
     };
     let header = &message.header;
     let mut fixed = [0u8; HEADER_BYTES];
@@ -526,6 +530,15 @@ pub fn decode(bytes: &[u8]) -> Result<Envelope<'_>, DecodeError> {
             Body::ChangeSight(ChangeSight {
                 photo_depth_m: reader.array(0, "photo_depth_m", Some(len))?,
                 model_depth_m: reader.array(1, "model_depth_m", Some(len))?,
+                meta,
+            })
+        }
+        MessageKind::PoseLender => {
+            reader.expect_arrays(1)?;
+            let meta: PoseLenderMeta = reader.meta()?;
+            let len = reader.image_len(&meta.info)?;
+            Body::PoseLender(PoseLender {
+                query: reader.array(0, "query", Some(len))?,
                 meta,
             })
         }

@@ -14,6 +14,7 @@ pub mod frame_folder;
 pub mod heap;
 pub mod journal;
 pub mod launch;
+pub mod lenders;
 pub mod nodes;
 pub mod reference;
 pub mod sights;

@@ -28,6 +28,7 @@ use super::bus::{encode_to_vec, unix_time_ns, BusError, Inbox, Outbox};
 use super::config::{BackpressurePolicy, PipelineConfig};
 use super::dispatch::{Dispatcher, WorkerPort};
 use super::journal::{self, Journal, JournalError};
+use super::lenders::LenderStore;
 use super::sights::{self, SightStore};
 use super::views::ViewStore;
 
@@ -1230,6 +1231,16 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
         }
         store
     });
+    // The pose lenders accepted before a restart lend again (runtime::lenders).
+    let mut lenders = config.registration.neighbour_pose.enabled.then(|| {
+        let (store, restored) = LenderStore::open_and_restore(config, &mut stage);
+        if restored > 0 {
+            tracing::info!(
+                "verify: {restored} pose lenders of frames accepted before a restart restored"
+            );
+        }
+        store
+    });
     let mut fusion_told_end: Option<Instant> = None;
     let mut capture_times: HashMap<u64, u64> = HashMap::new();
     let mut stream_ended: Option<Instant> = None;
@@ -1328,6 +1339,9 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             // Durable before the results go out: a frame with both results is not sent again.
             if let Some(views) = &mut views {
                 views.sync(&stage);
+            }
+            if let Some(lenders) = &mut lenders {
+                lenders.sync(&stage);
             }
             let mut change_captures = Vec::new();
             for mut result in produced {

@@ -73,7 +73,7 @@ impl RegisteredView {
 /// away from a frame the model accepted on its own it is (0: it is one).
 #[derive(Clone)]
 struct PoseLender {
-    name: String,
+    info: FrameInfo,
     query: Arc<Image<f32>>,
     camera: Camera,
     cam_from_world: crate::core::rigid::Rigid3,
@@ -345,13 +345,13 @@ fn decide_with_neighbours(
     if !last.confirmed() {
         return own_steps;
     }
-    apply_to_verdict(&mut decision.verdict, last, &lender.name);
+    apply_to_verdict(&mut decision.verdict, last, &lender.info.name);
     match last.decision {
         NeighbourDecision::Accept => {
             tracing::info!(
                 "frame '{}': accepted at the pose from its neighbour '{}' (step \"neighbour\")",
                 frame.name,
-                lender.name
+                lender.info.name
             );
             Some(lender.steps + 1)
         }
@@ -359,7 +359,7 @@ fn decide_with_neighbours(
             tracing::info!(
                 "frame '{}': rejected, its neighbour '{}' gives a pose {apart_px:.0} px away",
                 frame.name,
-                lender.name
+                lender.info.name
             );
             None
         }
@@ -699,6 +699,52 @@ impl<'m> VerifyStage<'m> {
         Ok(())
     }
 
+    /// The frames kept as lenders of their poses (step "neighbour"), for
+    /// `runtime::lenders` to keep on disk.
+    pub fn lender_ids(&self) -> impl Iterator<Item = u64> + '_ {
+        self.pose_lenders.keys().copied()
+    }
+
+    /// A kept lender as the message `runtime::lenders` writes (`None`: not kept).
+    pub fn lender(&self, frame_id: u64) -> Option<crate::msg::PoseLender<'static>> {
+        let lender = self.pose_lenders.get(&frame_id)?;
+        Some(crate::msg::PoseLender {
+            meta: crate::msg::PoseLenderMeta {
+                info: lender.info.clone(),
+                camera: lender.camera,
+                cam_from_world: lender.cam_from_world,
+                steps: lender.steps as u32,
+            },
+            query: std::borrow::Cow::Owned(lender.query.data().to_vec()),
+        })
+    }
+
+    /// After a restart: a frame kept as a lender before it (from [`VerifyStage::lender`]) lends
+    /// its pose again. A lender the stage already has is kept; a query image that is not its
+    /// camera's size is an error.
+    pub fn restore_lender(
+        &mut self,
+        frame_id: u64,
+        lender: &crate::msg::PoseLender<'_>,
+    ) -> Result<(), String> {
+        if self.pose_lenders.contains_key(&frame_id) {
+            return Ok(());
+        }
+        let query = lender.query().map_err(|error| error.to_string())?;
+        let meta = &lender.meta;
+        self.pose_lenders.insert(
+            frame_id,
+            PoseLender {
+                info: meta.info.clone(),
+                query: Arc::new(query.to_image()),
+                camera: meta.camera,
+                cam_from_world: meta.cam_from_world,
+                steps: meta.steps as usize,
+            },
+        );
+        Ok(())
+    }
+
     fn is_finished(&self, frame_id: u64) -> bool {
         frame_id < self.finished_below || self.finished_above.contains(&frame_id)
     }
@@ -1022,7 +1068,7 @@ impl<'m> VerifyStage<'m> {
             self.lend_pose(
                 frame_id,
                 PoseLender {
-                    name: result.name.clone(),
+                    info: info.clone(),
                     query: Arc::new(query),
                     camera,
                     cam_from_world,
@@ -1046,12 +1092,16 @@ impl<'m> VerifyStage<'m> {
 
 impl VerifyStage<'_> {
     /// Keeps an accepted frame as a lender of its pose (step "neighbour") while a frame without
-    /// its result may borrow it (every such frame is at or above `finished_below`).
+    /// its result may borrow it.
     fn lend_pose(&mut self, frame_id: u64, lender: PoseLender) {
         self.pose_lenders.insert(frame_id, lender);
-        let oldest_borrowable = self
-            .finished_below
-            .saturating_sub(self.neighbour_pose.window_frames as u64);
+        // The first frame without its result (published before a restart counts as having it).
+        let mut first_without = self.finished_below;
+        while self.is_finished(first_without) || self.published_before.contains(&first_without) {
+            first_without += 1;
+        }
+        let oldest_borrowable =
+            first_without.saturating_sub(self.neighbour_pose.window_frames as u64);
         self.pose_lenders = self.pose_lenders.split_off(&oldest_borrowable);
     }
 }
@@ -1097,7 +1147,7 @@ mod tests {
         match &ready.step {
             DecideStep::Own(_) => Vec::new(),
             DecideStep::Neighbours { lenders, .. } => {
-                lenders.iter().map(|n| n.name.as_str()).collect()
+                lenders.iter().map(|n| n.info.name.as_str()).collect()
             }
         }
     }
@@ -1119,7 +1169,7 @@ mod tests {
             ..RegistrationConfig::default()
         };
         let lender_at = |name: &str, pose: Rigid3| PoseLender {
-            name: name.to_string(),
+            info: info(name, camera, pose),
             query: Arc::new(ideal_query(&mesh, &camera, &pose, &config)),
             camera,
             cam_from_world: pose,
@@ -1176,6 +1226,58 @@ mod tests {
         assert!(result.accepted && result.cam_from_world.is_some());
         assert_eq!(stage.pose_lenders.get(&4).map(|l| l.steps), Some(1));
         assert_eq!(stage.pending_frames(), 0);
+    }
+
+    /// A lender written as its message and read back (what `runtime::lenders` does across a
+    /// restart) lends the same pose, query and steps.
+    #[test]
+    fn a_lender_survives_its_message() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = NeighbourPoseConfig::default();
+        let mut query = Image::filled(camera.width_px as usize, camera.height_px as usize, 0.0);
+        query.data_mut()[17] = 0.5;
+        let mut before =
+            VerifyStage::new(&mesh, Duration::from_secs(60)).with_neighbour_poses(config.clone());
+        before.lend_pose(
+            3,
+            PoseLender {
+                info: info("lender", camera, truth),
+                query: Arc::new(query),
+                camera,
+                cam_from_world: truth,
+                steps: 1,
+            },
+        );
+        let bytes = crate::msg::encode(&crate::msg::Envelope {
+            header: crate::msg::Header {
+                frame_id: 3,
+                sequence: 0,
+                capture_time_ns: 0,
+                sent_time_ns: 0,
+            },
+            body: crate::msg::Body::PoseLender(before.lender(3).unwrap()),
+        })
+        .unwrap()
+        .to_vec();
+        let decoded = crate::msg::decode(&bytes).unwrap();
+        let crate::msg::Body::PoseLender(message) = &decoded.body else {
+            panic!("{:?}", decoded.body.kind());
+        };
+        let mut after =
+            VerifyStage::new(&mesh, Duration::from_secs(60)).with_neighbour_poses(config);
+        after.restore_lender(3, message).unwrap();
+        assert_eq!(after.lender_ids().collect::<Vec<_>>(), [3]);
+        let (was, now) = (&before.pose_lenders[&3], &after.pose_lenders[&3]);
+        assert_eq!(now.info, was.info);
+        assert_eq!(now.query.data(), was.query.data());
+        assert_eq!(
+            (now.camera, now.cam_from_world),
+            (was.camera, was.cam_from_world)
+        );
+        assert_eq!(now.steps, 1);
+        let mut short = message.clone();
+        short.query = std::borrow::Cow::Owned(vec![0.0; 5]);
+        assert!(after.restore_lender(4, &short).is_err());
     }
 
     /// A frame decided on its own waits for step "neighbour" until every frame of its window

@@ -4,7 +4,7 @@
 //! memory).
 //!
 //! Each topic is three iceoryx2 services named after its key (`keys::key`,
-//! `asgreg/v8/<pipeline>/<topic>`): the publish-subscribe service that carries the messages
+//! `asgreg/v9/<pipeline>/<topic>`): the publish-subscribe service that carries the messages
 //! (payload `[u64]`, user header [`MessageBytes`] with the message's length in bytes), an event
 //! service of the same name (the messaging pattern is part of a service's identity, so they do
 //! not collide) and a small publish-subscribe service `<key>!attached` for the attach handshake

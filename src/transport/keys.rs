@@ -1,17 +1,17 @@
 //! Every topic name and every zenoh key expression of the bus, in one place and versioned
-//! (`asgreg/v8/...`): a subscriber in any language builds its keys from this file's rules.
+//! (`asgreg/v9/...`): a subscriber in any language builds its keys from this file's rules.
 //!
 //! A topic is a `/`-separated name relative to a pipeline (`results`, `flow/jobs/3`); its key is
-//! `asgreg/v8/<pipeline>/<topic>`. iceoryx2 service names are the same string.
+//! `asgreg/v9/<pipeline>/<topic>`. iceoryx2 service names are the same string.
 
 /// The version segment of every key; it changes with `msg::SCHEMA_VERSION`.
-pub const KEY_VERSION: &str = "v8";
+pub const KEY_VERSION: &str = "v9";
 /// The first segment of every key.
 pub const KEY_ROOT: &str = "asgreg";
 
 /// Final results, one `PoseResult` per frame (bincode).
 pub const RESULTS: &str = "results";
-/// The same results as JSON (`schemas/v8/pose_result.schema.json`) for non-Rust subscribers.
+/// The same results as JSON (`schemas/v9/pose_result.schema.json`) for non-Rust subscribers.
 pub const RESULTS_JSON: &str = "results/json";
 /// Acknowledgements of the results by the station's collector (a `Credit` message whose
 /// `completed` lists the frames it holds): verify sends each PoseResult again, with backoff,
@@ -33,9 +33,9 @@ pub const VERIFY_IN: &str = "verify/in";
 pub const FUSION_IN: &str = "fusion/in";
 /// Change results (one per frame), fused change sets and the end of the change stream (bincode).
 pub const CHANGES: &str = "changes";
-/// The change results as JSON (`schemas/v8/change_result.schema.json`).
+/// The change results as JSON (`schemas/v9/change_result.schema.json`).
 pub const CHANGES_JSON: &str = "changes/json";
-/// The fused change sets as JSON (`schemas/v8/change_set.schema.json`).
+/// The fused change sets as JSON (`schemas/v9/change_set.schema.json`).
 pub const CHANGE_SET_JSON: &str = "changeset/json";
 /// Acknowledgements of the change results by the station's collector (as [`RESULTS_ACK`]):
 /// fusion sends each ChangeResult again until it is acknowledged here.
@@ -75,7 +75,7 @@ pub fn credits(link: &str) -> String {
     format!("{link}/credits")
 }
 
-/// The full key of a topic in a pipeline: `asgreg/v8/<pipeline>/<topic>`.
+/// The full key of a topic in a pipeline: `asgreg/v9/<pipeline>/<topic>`.
 pub fn key(pipeline: &str, topic: &str) -> String {
     format!("{KEY_ROOT}/{KEY_VERSION}/{pipeline}/{topic}")
 }
@@ -91,19 +91,19 @@ mod tests {
 
     #[test]
     fn keys_are_versioned_and_scoped_by_pipeline() {
-        assert_eq!(key("gs1", RESULTS), "asgreg/v8/gs1/results");
-        assert_eq!(key("gs1", &jobs("flow", 3)), "asgreg/v8/gs1/flow/jobs/3");
-        assert_eq!(key("gs1", &credits("flow")), "asgreg/v8/gs1/flow/credits");
-        assert_eq!(pipeline_wildcard("gs1"), "asgreg/v8/gs1/**");
-        assert_eq!(key("gs1", RESULTS_ACK), "asgreg/v8/gs1/results/ack");
-        assert_eq!(key("gs1", CHANGES_ACK), "asgreg/v8/gs1/changes/ack");
+        assert_eq!(key("gs1", RESULTS), "asgreg/v9/gs1/results");
+        assert_eq!(key("gs1", &jobs("flow", 3)), "asgreg/v9/gs1/flow/jobs/3");
+        assert_eq!(key("gs1", &credits("flow")), "asgreg/v9/gs1/flow/credits");
+        assert_eq!(pipeline_wildcard("gs1"), "asgreg/v9/gs1/**");
+        assert_eq!(key("gs1", RESULTS_ACK), "asgreg/v9/gs1/results/ack");
+        assert_eq!(key("gs1", CHANGES_ACK), "asgreg/v9/gs1/changes/ack");
         assert_eq!(flow_link(0), FLOW_LINK);
         assert_eq!(
             key("gs1", &jobs(&flow_link(2), 5)),
-            "asgreg/v8/gs1/flow/r2/jobs/5"
+            "asgreg/v9/gs1/flow/r2/jobs/5"
         );
         assert_eq!(flow_link_of_worker(5, 2), flow_link(1));
         assert_eq!(flow_link_of_worker(5, 1), FLOW_LINK);
-        assert_eq!(key("gs1", &pose_in(3)), "asgreg/v8/gs1/pose/in/3");
+        assert_eq!(key("gs1", &pose_in(3)), "asgreg/v9/gs1/pose/in/3");
     }
 }

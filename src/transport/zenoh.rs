@@ -1,6 +1,6 @@
 //! Network transport between hosts (zenoh): the stages of one pipeline spread over several
 //! machines (a ground station and remote flow-worker hosts), and any outside subscriber (Python,
-//! C, ROS 2 via zenoh) reading the results as `asgreg/v8/<pipeline>/results/json` (docs/design.md §5).
+//! C, ROS 2 via zenoh) reading the results as `asgreg/v9/<pipeline>/results/json` (docs/design.md §5).
 //!
 //! **Topology.** The ground station runs one zenoh *router* (the launcher runs it as a process of
 //! its own that calls [`open_router`]; `deploy/zenoh/router.json5` is the same as a file). Every
@@ -937,7 +937,7 @@ mod tests {
                 b"allowed"
             ))
             .unwrap());
-        // A key outside asgreg/v8/** is not routed.
+        // A key outside asgreg/v9/** is not routed.
         let outside = subscriber_side
             .session
             .declare_subscriber("other/results")
