@@ -46,6 +46,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         heading_min_deg: asgreg::synth::initial::HeadingNoise::default().heading_min_deg,
         heading_max_deg: asgreg::synth::initial::HeadingNoise::default().heading_max_deg,
         heading_flip_every: asgreg::synth::initial::HeadingNoise::default().flip_every,
+        flight_path: false,
     };
     println!("1/4 making a synthetic scene: a town block seen obliquely from 30–60 m, {} photos at 505x275", args.images);
     let started = std::time::Instant::now();

@@ -237,6 +237,7 @@ pub(super) fn synthetic_scene_with(
         heading_min_deg: asgreg::synth::initial::HeadingNoise::default().heading_min_deg,
         heading_max_deg: asgreg::synth::initial::HeadingNoise::default().heading_max_deg,
         heading_flip_every: asgreg::synth::initial::HeadingNoise::default().flip_every,
+        flight_path: false,
     };
     asgreg::synth::generate_scene(&args.config(), &scene)?;
     Ok(scene)

@@ -50,6 +50,15 @@ pub struct SynthArgs {
     /// `--scene city`: triangles of the city mesh (10^7 for a district).
     #[arg(long, default_value_t = 1_000_000)]
     pub triangles: u64,
+    /// Take the photos in flight order along a continuous path, consecutive ones a few metres
+    /// apart, as a drone shooting every second or two: house, nine passes (front, left gable,
+    /// back at 2, 8 and 15 m, 12–25 m away) flown around the house, 2.5–3.5 m between photos;
+    /// block, arcs of an orbit of up to 16 photos each at 30–60 m height and 40–70 m out, 3–5 m
+    /// apart, starting all around the block. Recorded as `flight_path` in `scene.json`. Without
+    /// it each photo is placed on its own: consecutive ones are tens of metres apart (house s1:
+    /// 17–52 m, block s1: 5–137 m). Not for `--scene city`.
+    #[arg(long)]
+    pub flight_path: bool,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -74,6 +83,7 @@ impl SynthArgs {
             },
             initial_levels_px: self.levels.clone(),
             changes: self.changes,
+            flight_path: self.flight_path,
             heading_level: !self.no_heading_level,
             heading_noise: asgreg::synth::initial::HeadingNoise {
                 heading_min_deg: self.heading_min_deg,
@@ -99,6 +109,23 @@ pub fn print_summary(summary: &SceneSummary, out: &std::path::Path, seconds: f64
         summary.model_holes,
         summary.model_mean_deviation_m
     );
+    if summary.config.flight_path {
+        let mut sorted_m: Vec<f64> = summary
+            .images
+            .windows(2)
+            .map(|pair| {
+                let [a, b] = [pair[0].camera_centre_m, pair[1].camera_centre_m];
+                ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+            })
+            .collect();
+        sorted_m.sort_by(f64::total_cmp);
+        if let (Some(first), Some(last)) = (sorted_m.first(), sorted_m.last()) {
+            println!(
+                "    along a flight path: consecutive photos {:.1} m apart (median), {first:.1}..{last:.1} m",
+                sorted_m[sorted_m.len() / 2]
+            );
+        }
+    }
     println!("    initial poses, mean δ to ground truth (target → achieved, range):");
     for level in &summary.initial_levels {
         println!(
@@ -175,6 +202,9 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         );
     }
     if args.scene == SceneArg::City {
+        if args.flight_path {
+            anyhow::bail!("--flight-path is for --scene house and block, not city");
+        }
         let summary = generate_city_scene(&city_config(args), &args.out)?;
         print_city_summary(&summary, &args.out);
         return Ok(());

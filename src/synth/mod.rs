@@ -112,6 +112,16 @@ pub struct SynthConfig {
     /// extensions in the photos only, demolished buildings in the model only), with the true
     /// change masks and objects written (`changes.rs`).
     pub changes: bool,
+    /// Whether the photos are taken in flight order along a continuous path, consecutive ones a
+    /// few metres apart (`synth --flight-path`, [`viewpoints::flight_path_viewpoints`]), instead
+    /// of each drawn on its own. Left out of `scene.json` when false, so that the scenes made
+    /// without it are byte for byte those made before it existed.
+    #[serde(skip_serializing_if = "is_false")]
+    pub flight_path: bool,
+}
+
+fn is_false(value: &bool) -> bool {
+    !*value
 }
 
 impl Default for SynthConfig {
@@ -147,6 +157,7 @@ impl Default for SynthConfig {
             model_hole_radius_m: 0.9,
             model_ground_margin_m: 6.0,
             changes: false,
+            flight_path: false,
         }
     }
 }
@@ -367,26 +378,14 @@ pub fn generate_scene(config: &SynthConfig, out_dir: &Path) -> Result<SceneSumma
         SceneKind::House => geometry::build_house(&mut scene_rng),
         SceneKind::Block => geometry::build_block(&mut scene_rng),
     };
-    let mut view_rng = stream_rng(2);
-    let mut views = Vec::with_capacity(config.image_count);
-    for index in 0..config.image_count {
-        let mut attempt = 0;
-        let view = loop {
-            attempt += 1;
-            if let Some(view) =
-                viewpoints::draw_viewpoint(&scene, config.scene, index, &mut view_rng)
-            {
-                break Some(view);
-            }
-            if attempt > 50 {
-                break None;
-            }
-        };
-        let view = view.ok_or_else(|| {
-            SynthError::InvalidConfig(format!("no valid viewpoint found for image {index}"))
-        })?;
-        views.push(view);
-    }
+    let views = viewpoints::plan_viewpoints(
+        &scene,
+        config.scene,
+        config.image_count,
+        config.flight_path,
+        &mut stream_rng(2),
+    )
+    .map_err(SynthError::InvalidConfig)?;
     let eyes: Vec<Vec3> = views.iter().map(|v| v.eye_m).collect();
     let placed_changes = if config.changes {
         geometry::add_change_objects(
@@ -942,6 +941,22 @@ mod tests {
         let a = std::fs::read(runs[0].path().join("images/view_000.jpg")).unwrap();
         let b = std::fs::read(other.path().join("images/view_000.jpg")).unwrap();
         assert_ne!(a, b);
+    }
+
+    #[test]
+    fn flight_path_is_recorded_when_set_and_left_out_of_older_configs() {
+        // Scenes made without it write the config they wrote before the option existed.
+        let plain = serde_json::to_string(&SynthConfig::default()).unwrap();
+        assert!(!plain.contains("flight_path"));
+        let old: SynthConfig = serde_json::from_str(r#"{"seed": 3}"#).unwrap();
+        assert!(!old.flight_path);
+        let path = SynthConfig {
+            flight_path: true,
+            ..SynthConfig::default()
+        };
+        let written = serde_json::to_string(&path).unwrap();
+        assert!(written.contains(r#""flight_path":true"#));
+        assert_eq!(serde_json::from_str::<SynthConfig>(&written).unwrap(), path);
     }
 
     #[test]
