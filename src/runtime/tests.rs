@@ -188,6 +188,60 @@ fn several_render_pose_workers_and_verify_threads_give_the_batch_results() {
     assert_eq!(pose_workers.len(), 2, "{pose_workers:?}");
 }
 
+/// Step "neighbour" (on by default) in the pipeline: on a block photographed along a flight
+/// path at the 104 px level, frames the model does not accept on their own are accepted at the
+/// pose from an earlier frame, and every result is `register`'s (which runs the step over the
+/// frames in the same feed order), whatever order the frames complete in.
+#[test]
+fn frames_accepted_from_their_neighbours_give_the_batch_results() {
+    use crate::stage::ingest::FolderSource;
+    let dir = tempfile::tempdir().unwrap();
+    let synth = SynthConfig {
+        seed: 1,
+        width_px: 505,
+        height_px: 275,
+        image_count: 8,
+        initial_levels_px: vec![104.0],
+        heading_level: false,
+        scene: SceneKind::Block,
+        flight_path: true,
+        ..SynthConfig::default()
+    };
+    generate_scene(&synth, dir.path()).unwrap();
+    let mut config = PipelineConfig {
+        mesh: dir.path().join("model_lod.ply"),
+        source: SourceConfig::scene(dir.path(), 104),
+        ..PipelineConfig::default()
+    };
+    assert!(config.registration.neighbour_pose.enabled);
+    config.transport.pipeline = crate::transport::conformance::unique_pipeline("neighbours");
+    config.timeouts.frame_timeout_s = 300.0;
+    config.workers.verify_threads = 2;
+    let (mesh, collected) = run_on_crossbeam(&config);
+    assert_eq!(collected.results.len(), 8);
+    assert!(collected.duplicates.is_empty() && collected.missing().is_empty());
+    let mismatches =
+        reference::differences_from_register(&config, &mesh, &collected.results).unwrap();
+    assert!(mismatches.is_empty(), "{mismatches:?}");
+    // The step decided some frame: accepted in the pipeline, rejected on its own.
+    let source = FolderSource::open(&config.source).unwrap();
+    let lent = source.batch_frames().into_iter().find(|(frame_id, frame)| {
+        let accepted = collected
+            .results
+            .iter()
+            .any(|r| r.frame_id == *frame_id && r.accepted);
+        accepted
+            && !crate::batch::register_batch_frame(
+                &mesh,
+                frame,
+                &config.registration,
+                config.source.seed,
+            )
+            .accepted
+    });
+    assert!(lent.is_some(), "no frame was accepted through a neighbour");
+}
+
 #[test]
 fn a_simulated_pipeline_gives_one_result_per_frame_through_the_same_loops() {
     let dir = tempfile::tempdir().unwrap();
