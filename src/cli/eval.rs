@@ -675,7 +675,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                     config,
                     ..NeighbourBatch::default()
                 })
-                .push(cell.len(), frame, report, gt.cam_from_world, camera);
+                .push(
+                    cell.len(),
+                    page_frames.len() - 1,
+                    frame,
+                    report,
+                    gt.cam_from_world,
+                    camera,
+                );
         }
         cell.push(EvalFrame {
             name: initial.name.clone(),
@@ -694,7 +701,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     for (key, batch) in neighbour_batches {
         if let Some(frames) = results.get_mut(&key) {
-            batch.run(&mesh, &loader, args.seed, frames, &mut workspace);
+            batch.run(
+                &mesh,
+                &loader,
+                args.seed,
+                frames,
+                &mut page_frames,
+                &mut workspace,
+            );
         }
     }
 
@@ -1510,23 +1524,28 @@ pub fn register_scene_frame(
 #[derive(Default)]
 struct NeighbourBatch {
     config: RegistrationConfig,
-    /// Each frame's position in the cell's results, inputs, report, true pose and camera.
+    /// Each frame's position in the cell's results and its row of the page, inputs, report,
+    /// true pose and camera.
     positions: Vec<usize>,
+    page_rows: Vec<usize>,
     frames: Vec<BatchFrame>,
     reports: Vec<FrameReport>,
     truths: Vec<(Rigid3, Camera)>,
 }
 
 impl NeighbourBatch {
+    #[allow(clippy::too_many_arguments)]
     fn push(
         &mut self,
         position: usize,
+        page_row: usize,
         frame: BatchFrame,
         report: FrameReport,
         truth: Rigid3,
         camera: Camera,
     ) {
         self.positions.push(position);
+        self.page_rows.push(page_row);
         self.frames.push(frame);
         self.reports.push(report);
         self.truths.push((truth, camera));
@@ -1534,13 +1553,15 @@ impl NeighbourBatch {
 
     /// Runs step "neighbour" over the cell and writes what it decided into the cell's results
     /// (`frames`): every frame's neighbour tries (with δ of each neighbour's pose to the truth),
-    /// and the new decision of those it changed.
+    /// and the new decision of those it changed, also in their rows of the page (`page`; the
+    /// pictures stay those of the frame's own pose, as a detail says).
     fn run(
         mut self,
         mesh: &Mesh,
         loader: &FrameLoader,
         seed: u64,
         frames: &mut [EvalFrame],
+        page: &mut [ReportFrame],
         workspace: &mut ReprojectionWorkspace,
     ) {
         let changed = neighbour_pass(
@@ -1609,6 +1630,30 @@ impl NeighbourBatch {
                         .map_or("-".to_string(), |d| format!("{d:.2} px"))
                 );
                 println!("{line}");
+                if let Some(row) = page.get_mut(self.page_rows[index]) {
+                    row.verdict = if frame.accepted {
+                        FrameVerdict::Accepted
+                    } else {
+                        FrameVerdict::Rejected
+                    };
+                    row.reason = frame.reason.clone();
+                    row.delta_px = frame.final_delta_px;
+                    let lender = report
+                        .neighbours
+                        .last()
+                        .map_or("-", |n| n.neighbour.as_str());
+                    row.details.push((
+                        "step \"neighbour\"".to_string(),
+                        format!(
+                            "{} by the pose from {lender}; the pictures show the frame's own pose",
+                            if frame.accepted {
+                                "accepted"
+                            } else {
+                                "rejected"
+                            }
+                        ),
+                    ));
+                }
             }
         }
     }
