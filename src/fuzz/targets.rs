@@ -591,7 +591,7 @@ pub fn all_targets(repo: &Path, scratch: &Path) -> Result<Vec<Target>, SeedError
     Ok(targets)
 }
 
-const MESSAGE_KINDS: [MessageKind; 14] = [
+const MESSAGE_KINDS: [MessageKind; 15] = [
     MessageKind::Frame,
     MessageKind::FlowJob,
     MessageKind::Correspondences,
@@ -606,6 +606,7 @@ const MESSAGE_KINDS: [MessageKind; 14] = [
     MessageKind::ChangeResult,
     MessageKind::ChangeSet,
     MessageKind::ChangeSight,
+    MessageKind::PoseLender,
 ];
 
 /// The golden wire files of one kind (`tests/data/wire/v<SCHEMA_VERSION>/NN_<Kind>.bin`).

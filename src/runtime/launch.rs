@@ -232,6 +232,13 @@ pub fn launch(
             return Err(error);
         }
     };
+    let _held_topics = match hold_topics(config, transport) {
+        Ok(held) => held,
+        Err(error) => {
+            stop_all(&mut processes, config);
+            return Err(error);
+        }
+    };
     for (stage, worker) in local_stages(config) {
         // A stage that cannot start stops those already started (router included): nothing is
         // left running behind an error.
@@ -362,6 +369,49 @@ fn hold_outputs(
             transport
                 .publisher(topic)
                 .map_err(|error| RuntimeError::Launch(format!("cannot hold {topic} open: {error}")))
+        })
+        .collect()
+}
+
+/// Makes (and the caller holds for the run) the services of every topic the stages open
+/// ([`crate::transport::Transport::hold_topic`]), so that a stage SIGKILLed while it starts
+/// never leaves one half made: found by the soak over iceoryx2, a change worker killed while it
+/// made `change/jobs/0!attached` left it so, and every restart failed on it until the launch
+/// gave up.
+fn hold_topics(
+    config: &PipelineConfig,
+    transport: &dyn Transport,
+) -> Result<Vec<Box<dyn std::any::Any>>, RuntimeError> {
+    use crate::transport::keys;
+    let workers = &config.workers;
+    let mut topics: Vec<String> = [
+        keys::RESULTS,
+        keys::RESULTS_ACK,
+        keys::VERIFY_IN,
+        keys::METRICS,
+    ]
+    .map(String::from)
+    .to_vec();
+    topics.extend((0..workers.pose).map(keys::pose_in));
+    topics.extend((0..workers.render).map(|w| keys::jobs(keys::FRAMES_LINK, w)));
+    topics.push(keys::credits(keys::FRAMES_LINK));
+    for render in 0..workers.render.max(1) {
+        topics.push(keys::credits(&keys::flow_link(render)));
+    }
+    topics.extend(
+        (0..workers.flow).map(|w| keys::jobs(&keys::flow_link_of_worker(w, workers.render), w)),
+    );
+    if config.changes_enabled() {
+        topics.extend([keys::FUSION_IN, keys::CHANGES, keys::CHANGES_ACK].map(String::from));
+        topics.extend((0..workers.change).map(|w| keys::jobs(keys::CHANGE_LINK, w)));
+        topics.push(keys::credits(keys::CHANGE_LINK));
+    }
+    topics
+        .iter()
+        .map(|topic| {
+            transport.hold_topic(topic).map_err(|error| {
+                RuntimeError::Launch(format!("cannot hold the services of {topic}: {error}"))
+            })
         })
         .collect()
 }

@@ -397,6 +397,16 @@ impl Transport for Iceoryx2Transport {
         BACKEND
     }
 
+    fn hold_topic(&self, topic: &str) -> Result<Box<dyn std::any::Any>, TransportError> {
+        let topic_services = self
+            .open_topic(topic)
+            .map_err(|detail| TransportError::Setup {
+                backend: BACKEND,
+                detail: format!("topic '{topic}': could not hold its services: {detail}"),
+            })?;
+        Ok(Box::new(topic_services))
+    }
+
     fn publisher(&self, topic: &str) -> Result<Box<dyn Publisher>, TransportError> {
         let open_error = |detail: String| TransportError::OpenPublisher {
             backend: BACKEND,

@@ -155,6 +155,14 @@ pub trait Transport: Send + Sync {
     fn backend(&self) -> &'static str;
     fn publisher(&self, topic: &str) -> Result<Box<dyn Publisher>, TransportError>;
     fn subscriber(&self, topic: &str) -> Result<Box<dyn Subscriber>, TransportError>;
+    /// Keeps `topic`'s services in existence while the returned value lives, with no publisher
+    /// or subscriber. iceoryx2: a process SIGKILLed while it creates a service leaves it half
+    /// made, and every later open fails (`HangsInCreation`) until the launch gives up; the
+    /// launcher makes every topic's services first and holds them, so a stage only opens them.
+    /// The other backends have nothing to hold.
+    fn hold_topic(&self, _topic: &str) -> Result<Box<dyn std::any::Any>, TransportError> {
+        Ok(Box::new(()))
+    }
 }
 
 /// Which backend carries the pipeline's messages.
