@@ -224,3 +224,65 @@ impl FrameFolder {
         &self.dir
     }
 }
+
+/// A frame folder kept equal to the frames a stage keeps (verify's stereo views and pose
+/// lenders): restored into the stage when a restarted stage opens it, then synced before each
+/// batch of results goes out.
+pub struct MirrorFolder {
+    folder: FrameFolder,
+    /// The frames written (or found) in the folder.
+    on_disk: BTreeSet<u64>,
+}
+
+impl MirrorFolder {
+    /// Opens the configuration's folder of `kind` and hands each message of this run to
+    /// `restore` ([`FrameFolder::open_and_restore`]); returns the folder with how many were
+    /// restored.
+    pub fn open_and_restore(
+        config: &PipelineConfig,
+        kind: FolderKind,
+        restore: &mut dyn FnMut(u64, &Body<'_>) -> Result<(), String>,
+    ) -> (Self, usize) {
+        let mut on_disk = BTreeSet::new();
+        let folder = FrameFolder::open_and_restore(config, kind, &mut |frame_id, body| {
+            restore(frame_id, body)?;
+            on_disk.insert(frame_id);
+            Ok(())
+        });
+        let restored = on_disk.len();
+        (Self { folder, on_disk }, restored)
+    }
+
+    /// Makes the folder hold the frames `kept`: writes the new ones (`message` of each; `None`:
+    /// skipped), removes those no longer kept. Call it before publishing the results of the
+    /// frames concluded since the last call (a frame whose results are out is not sent again
+    /// after a restart, so its file must be on disk by then).
+    pub fn sync(
+        &mut self,
+        kept: BTreeSet<u64>,
+        message: &mut dyn FnMut(u64) -> Option<Body<'static>>,
+    ) {
+        let new: Vec<u64> = kept.difference(&self.on_disk).copied().collect();
+        for frame_id in new {
+            let Some(body) = message(frame_id) else {
+                continue;
+            };
+            if self.folder.write(frame_id, body) {
+                self.on_disk.insert(frame_id);
+            }
+        }
+        let gone: Vec<u64> = self.on_disk.difference(&kept).copied().collect();
+        for frame_id in gone {
+            match self.folder.remove(frame_id) {
+                Err(error) => tracing::debug!(
+                    "{}: {} of frame {frame_id} not removed: {error}",
+                    self.folder.kind.stage,
+                    self.folder.kind.what
+                ),
+                Ok(()) => {
+                    self.on_disk.remove(&frame_id);
+                }
+            }
+        }
+    }
+}

@@ -11,14 +11,13 @@
 //! once no frame without its result can borrow it. Writing is best effort: a lender that cannot
 //! be written costs only a neighbour after a restart, so it is a warning, not a failed frame.
 
-use std::collections::BTreeSet;
 use std::path::PathBuf;
 
 use crate::msg::Body;
 use crate::stage::verify::VerifyStage;
 
 use super::config::PipelineConfig;
-use super::frame_folder::{self, FolderKind, FrameFolder};
+use super::frame_folder::{self, FolderKind, MirrorFolder};
 
 const LENDERS: FolderKind = FolderKind {
     stage: "verify",
@@ -40,9 +39,7 @@ pub fn reset(config: &PipelineConfig) -> std::io::Result<()> {
 
 /// Verify's durable pose lenders.
 pub struct LenderStore {
-    folder: FrameFolder,
-    /// The lenders written (or found) in the folder.
-    on_disk: BTreeSet<u64>,
+    folder: MirrorFolder,
 }
 
 impl LenderStore {
@@ -50,44 +47,19 @@ impl LenderStore {
     /// file that cannot be read is removed with a warning) and returns the store with how many
     /// were restored. Another run's lenders are removed.
     pub fn open_and_restore(config: &PipelineConfig, stage: &mut VerifyStage<'_>) -> (Self, usize) {
-        let mut on_disk = BTreeSet::new();
-        let folder = FrameFolder::open_and_restore(config, LENDERS, &mut |frame_id, body| {
-            match body {
-                Body::PoseLender(lender) => stage.restore_lender(frame_id, lender)?,
-                other => return Err(format!("it holds a {:?} message", other.kind())),
-            }
-            on_disk.insert(frame_id);
-            Ok(())
-        });
-        let restored = on_disk.len();
-        (Self { folder, on_disk }, restored)
+        let (folder, restored) =
+            MirrorFolder::open_and_restore(config, LENDERS, &mut |frame_id, body| match body {
+                Body::PoseLender(lender) => stage.restore_lender(frame_id, lender),
+                other => Err(format!("it holds a {:?} message", other.kind())),
+            });
+        (Self { folder }, restored)
     }
 
-    /// Makes the folder hold the lenders `stage` keeps: writes the new ones, removes those it no
-    /// longer keeps. Call it before publishing the results of the frames concluded since the
-    /// last call (a frame whose result is out is not sent again after a restart, so its lender
-    /// must be on disk by then).
+    /// Makes the folder hold the lenders `stage` keeps ([`MirrorFolder::sync`]).
     pub fn sync(&mut self, stage: &VerifyStage<'_>) {
-        let kept: BTreeSet<u64> = stage.lender_ids().collect();
-        let new: Vec<u64> = kept.difference(&self.on_disk).copied().collect();
-        for frame_id in new {
-            let Some(lender) = stage.lender(frame_id) else {
-                continue;
-            };
-            if self.folder.write(frame_id, Body::PoseLender(lender)) {
-                self.on_disk.insert(frame_id);
-            }
-        }
-        let gone: Vec<u64> = self.on_disk.difference(&kept).copied().collect();
-        for frame_id in gone {
-            match self.folder.remove(frame_id) {
-                Err(error) => {
-                    tracing::debug!("verify: pose lender of frame {frame_id} not removed: {error}");
-                }
-                Ok(()) => {
-                    self.on_disk.remove(&frame_id);
-                }
-            }
-        }
+        self.folder
+            .sync(stage.lender_ids().collect(), &mut |frame_id| {
+                stage.lender(frame_id).map(Body::PoseLender)
+            });
     }
 }

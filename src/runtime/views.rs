@@ -13,14 +13,13 @@
 //! waiting. Writing is best effort: a view that cannot be written costs
 //! only stereo neighbours after a restart, so it is a warning, not a failed frame.
 
-use std::collections::BTreeSet;
 use std::path::PathBuf;
 
 use crate::msg::Body;
 use crate::stage::verify::VerifyStage;
 
 use super::config::PipelineConfig;
-use super::frame_folder::{self, FolderKind, FrameFolder};
+use super::frame_folder::{self, FolderKind, MirrorFolder};
 
 const VIEWS: FolderKind = FolderKind {
     stage: "verify",
@@ -42,9 +41,7 @@ pub fn reset(config: &PipelineConfig) -> std::io::Result<()> {
 
 /// Verify's durable stereo views.
 pub struct ViewStore {
-    folder: FrameFolder,
-    /// The views written (or found) in the folder.
-    on_disk: BTreeSet<u64>,
+    folder: MirrorFolder,
 }
 
 impl ViewStore {
@@ -52,44 +49,19 @@ impl ViewStore {
     /// (as neighbours; a view that cannot be read is removed with a warning) and returns the
     /// store with how many were restored. Another run's views are removed.
     pub fn open_and_restore(config: &PipelineConfig, stage: &mut VerifyStage<'_>) -> (Self, usize) {
-        let mut on_disk = BTreeSet::new();
-        let folder = FrameFolder::open_and_restore(config, VIEWS, &mut |frame_id, body| {
-            match body {
-                Body::ChangeJob(job) => stage.restore_stereo_view(frame_id, job)?,
-                other => return Err(format!("it holds a {:?} message", other.kind())),
-            }
-            on_disk.insert(frame_id);
-            Ok(())
-        });
-        let restored = on_disk.len();
-        (Self { folder, on_disk }, restored)
+        let (folder, restored) =
+            MirrorFolder::open_and_restore(config, VIEWS, &mut |frame_id, body| match body {
+                Body::ChangeJob(job) => stage.restore_stereo_view(frame_id, job),
+                other => Err(format!("it holds a {:?} message", other.kind())),
+            });
+        (Self { folder }, restored)
     }
 
-    /// Makes the folder hold the views `stage` keeps: writes the new ones, removes those it no
-    /// longer keeps. Call it before publishing the results of the frames concluded since the
-    /// last call (a frame whose results are out is not sent again after a restart, so its view
-    /// must be on disk by then).
+    /// Makes the folder hold the views `stage` keeps ([`MirrorFolder::sync`]).
     pub fn sync(&mut self, stage: &VerifyStage<'_>) {
-        let kept: BTreeSet<u64> = stage.stereo_view_ids().collect();
-        let new: Vec<u64> = kept.difference(&self.on_disk).copied().collect();
-        for frame_id in new {
-            let Some(job) = stage.stereo_view(frame_id) else {
-                continue;
-            };
-            if self.folder.write(frame_id, Body::ChangeJob(job)) {
-                self.on_disk.insert(frame_id);
-            }
-        }
-        let gone: Vec<u64> = self.on_disk.difference(&kept).copied().collect();
-        for frame_id in gone {
-            match self.folder.remove(frame_id) {
-                Err(error) => {
-                    tracing::debug!("verify: stereo view of frame {frame_id} not removed: {error}");
-                }
-                Ok(()) => {
-                    self.on_disk.remove(&frame_id);
-                }
-            }
-        }
+        self.folder
+            .sync(stage.stereo_view_ids().collect(), &mut |frame_id| {
+                stage.stereo_view(frame_id).map(Body::ChangeJob)
+            });
     }
 }

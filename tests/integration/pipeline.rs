@@ -405,7 +405,8 @@ fn a_stage_process_rejects_a_wrong_schema_version_and_keeps_running() {
         }),
     )
     .unwrap();
-    bytes[4..6].copy_from_slice(&9u16.to_le_bytes());
+    let wrong_version = asgreg::msg::SCHEMA_VERSION + 1;
+    bytes[4..6].copy_from_slice(&wrong_version.to_le_bytes());
     outbox.send_raw(&bytes).unwrap();
     outbox.send_raw(b"ASGR garbage").unwrap();
     std::thread::sleep(Duration::from_millis(1500));
@@ -429,7 +430,7 @@ fn a_stage_process_rejects_a_wrong_schema_version_and_keeps_running() {
         "no final report after SIGTERM:\n{log}"
     );
     assert!(
-        log.contains("schema version 9") && log.contains("rejected"),
+        log.contains(&format!("schema version {wrong_version}")) && log.contains("rejected"),
         "no clear log line for the wrong schema version:\n{log}"
     );
     assert!(
