@@ -207,15 +207,8 @@ fn frames_accepted_from_their_neighbours_give_the_batch_results() {
         flight_path: true,
         ..SynthConfig::default()
     };
-    generate_scene(&synth, dir.path()).unwrap();
-    let mut config = PipelineConfig {
-        mesh: dir.path().join("model_lod.ply"),
-        source: SourceConfig::scene(dir.path(), 104),
-        ..PipelineConfig::default()
-    };
+    let mut config = full_size_scene(dir.path(), &synth, "neighbours");
     assert!(config.registration.neighbour_pose.enabled);
-    config.transport.pipeline = crate::transport::conformance::unique_pipeline("neighbours");
-    config.timeouts.frame_timeout_s = 300.0;
     config.workers.verify_threads = 2;
     let (mesh, collected) = run_on_crossbeam(&config);
     assert_eq!(collected.results.len(), 8);
@@ -987,6 +980,20 @@ fn a_frame_after_a_verify_restart_gets_its_stereo_change_map_from_frames_accepte
     assert_eq!(set.frames_with_result, 9);
 }
 
+/// A pipeline over `synth`'s scene made in `dir` (its LoD model, its first initial level), on a
+/// pipeline of its own, with a frame timeout that full-size frames on a loaded machine meet.
+fn full_size_scene(dir: &Path, synth: &SynthConfig, name: &str) -> PipelineConfig {
+    generate_scene(synth, dir).unwrap();
+    let mut config = PipelineConfig {
+        mesh: dir.join("model_lod.ply"),
+        source: SourceConfig::scene(dir, synth.initial_levels_px[0] as u32),
+        ..PipelineConfig::default()
+    };
+    config.transport.pipeline = crate::transport::conformance::unique_pipeline(name);
+    config.timeouts.frame_timeout_s = 300.0;
+    config
+}
+
 /// At the working size (505 × 275) with the pose search on, on the clean LoD house: the
 /// pipeline's results are `register`'s (the tiny scene above runs without the search).
 #[test]
@@ -1001,14 +1008,7 @@ fn full_size_house_frames_give_the_batch_results() {
         scene: SceneKind::House,
         ..SynthConfig::default()
     };
-    generate_scene(&synth, dir.path()).unwrap();
-    let mut config = PipelineConfig {
-        mesh: dir.path().join("model_lod.ply"),
-        source: SourceConfig::scene(dir.path(), 30),
-        ..PipelineConfig::default()
-    };
-    config.transport.pipeline = crate::transport::conformance::unique_pipeline("full-size");
-    config.timeouts.frame_timeout_s = 300.0;
+    let config = full_size_scene(dir.path(), &synth, "full-size");
     let (mesh, collected) = run_on_crossbeam(&config);
     assert_eq!(collected.results.len(), 3);
     let mismatches =
