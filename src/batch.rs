@@ -302,9 +302,9 @@ struct LoadedQuery {
 /// frame the model accepted on its own); an accepted frame a confirmed neighbour's pose
 /// contradicts is rejected.
 ///
-/// - [`NeighbourOrder::Feed`]: frame `i` borrows from the frames before it
-///   ([`feed_neighbours`]), each decided before the next — the rule the pipeline's verify
-///   follows, so `register` and `run` give one result.
+/// - [`NeighbourOrder::Feed`]: frame `i` borrows from the frames before it and from the own
+///   accepts of the few after it ([`feed_neighbours`]), each decided before the next — the
+///   rule the pipeline's verify follows, so `register` and `run` give one result.
 /// - [`NeighbourOrder::Set`]: a collection without an order; round `r` lends the poses of frames
 ///   accepted `r − 1` neighbours away from one the model accepted on its own to every other
 ///   frame ([`nearest_neighbours`]), each round decided on the reports as they were when it
@@ -339,7 +339,8 @@ pub fn neighbour_pass(
     match settings.order {
         NeighbourOrder::Feed => {
             for index in (0..frames.len()).filter(|&i| known(i)) {
-                let lenders = (0..index).filter(|&i| known(i)).filter_map(|i| {
+                // Frames after `index` have only their own decision yet.
+                let lenders = (0..frames.len()).filter(|&i| known(i)).filter_map(|i| {
                     Some(FeedLender {
                         index: i,
                         cam_from_world: reports[i].cam_from_world?,

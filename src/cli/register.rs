@@ -478,11 +478,17 @@ pub struct CoarseArgs {
     /// Step "neighbour": the nearest this many accepted frames are tried, nearest first.
     #[arg(long, default_value_t = NeighbourPoseConfig::default().candidates)]
     pub neighbour_candidates: usize,
-    /// Step "neighbour": `feed` — a frame borrows from the frames before it in images.txt (as
-    /// the pipeline does, so `register` and `run` agree); `set` — photos without an order,
-    /// every accepted frame lends to every other (in rounds of steps).
+    /// Step "neighbour": `feed` — a frame borrows from the frames before it in images.txt and
+    /// from the own accepts of the few after it (as the pipeline does, so `register` and `run`
+    /// agree); `set` — photos without an order, every accepted frame lends to every other (in
+    /// rounds of steps).
     #[arg(long, value_enum, default_value_t = NeighbourOrderArg::Feed)]
     pub neighbour_order: NeighbourOrderArg,
+    /// Step "neighbour" in feed order: a frame may also borrow the pose of the frames at most
+    /// this many after it that the model accepted on their own (the pipeline's latency, in
+    /// frames).
+    #[arg(long, default_value_t = NeighbourPoseConfig::default().lookahead_frames)]
+    pub neighbour_lookahead: usize,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
     pub rival_reach_px: f64,
@@ -583,6 +589,7 @@ impl Default for CoarseArgs {
             neighbour_steps: NeighbourPoseConfig::default().max_steps,
             neighbour_candidates: NeighbourPoseConfig::default().candidates,
             neighbour_order: NeighbourOrderArg::Feed,
+            neighbour_lookahead: NeighbourPoseConfig::default().lookahead_frames,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -833,6 +840,7 @@ pub fn registration_config(
             max_steps: coarse.neighbour_steps,
             candidates: coarse.neighbour_candidates,
             order: coarse.neighbour_order.into(),
+            lookahead_frames: coarse.neighbour_lookahead,
             ..defaults.neighbour_pose
         },
         ..defaults

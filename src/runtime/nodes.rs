@@ -222,10 +222,12 @@ struct Recovery {
     kept: std::collections::BTreeMap<u64, KeptFrame>,
     /// `timeouts.redo_unanswered_after_s`; `None`: never.
     redo_unanswered_after: Option<Duration>,
-    /// With step "neighbour": its window (`registration.neighbour_pose.window_frames`). Verify
-    /// holds a frame's result until every frame of its window has one, so a frame with an
-    /// earlier frame of its window unanswered is waiting for it, not lost.
-    neighbour_window_frames: Option<u64>,
+    /// With step "neighbour": its window and look-ahead
+    /// (`registration.neighbour_pose.window_frames`, `lookahead_frames`). Verify holds a frame's
+    /// result until every frame of its window has one, so a frame with an earlier frame of its
+    /// window unanswered is waiting for it, not lost — unless that frame waits for it in turn
+    /// (its look-ahead).
+    neighbour_frames: Option<(u64, u64)>,
     /// When a frame last got all its results (or the start).
     last_finished_at: Instant,
     /// Frames with both results out (the pose result alone without change detection).
@@ -269,11 +271,10 @@ impl Recovery {
             kept: std::collections::BTreeMap::new(),
             redo_unanswered_after: (config.timeouts.redo_unanswered_after_s > 0.0)
                 .then(|| Duration::from_secs_f64(config.timeouts.redo_unanswered_after_s)),
-            neighbour_window_frames: config
-                .registration
-                .neighbour_pose
-                .enabled
-                .then_some(config.registration.neighbour_pose.window_frames as u64),
+            neighbour_frames: config.registration.neighbour_pose.enabled.then_some((
+                config.registration.neighbour_pose.window_frames as u64,
+                config.registration.neighbour_pose.lookahead_frames as u64,
+            )),
             last_finished_at: Instant::now(),
             finished: std::collections::BTreeSet::new(),
             posed: std::collections::BTreeSet::new(),
@@ -442,7 +443,8 @@ impl Recovery {
     /// a repeat that verify ignores; the wait doubles each time. A frame posed but without its
     /// change result is not sent again: that is verify's `ChangeRecovery`. With step
     /// "neighbour", neither is a frame with an unanswered earlier frame in its window: verify
-    /// holds it for that frame (only the oldest of such a chain can be lost).
+    /// holds it for that frame (only the oldest of such a chain can be lost, and the frames of
+    /// its look-ahead, whose own decisions it waits for).
     fn redo_unanswered(
         &mut self,
         dispatcher: &mut Dispatcher,
@@ -455,13 +457,21 @@ impl Recovery {
         let now = Instant::now();
         let quiet = now.duration_since(self.last_finished_at);
         let mut unposed_before: Option<u64> = None;
+        let mut oldest_of_chain = 0;
         for (&frame_id, frame) in &mut self.kept {
             if self.posed.contains(&frame_id) {
                 continue;
             }
-            let held = unposed_before
-                .zip(self.neighbour_window_frames)
-                .is_some_and(|(earlier, window)| frame_id - earlier <= window);
+            let in_chain = unposed_before
+                .zip(self.neighbour_frames)
+                .is_some_and(|(earlier, (window, _))| frame_id - earlier <= window);
+            if !in_chain {
+                oldest_of_chain = frame_id;
+            }
+            let held = in_chain
+                && self
+                    .neighbour_frames
+                    .is_some_and(|(_, lookahead)| frame_id - oldest_of_chain > lookahead);
             unposed_before = Some(frame_id);
             if held {
                 continue;

@@ -458,7 +458,11 @@ fn a_frame_whose_every_message_was_lost_in_flight_is_sent_again_and_gets_its_res
         .filter(|((stage, _), _)| stage == "ingest")
         .map(|(_, m)| m.redispatched)
         .sum();
-    assert_eq!(redone, 1);
+    // Frame 1, and the frames that wait for it; with step "neighbour", also those whose
+    // look-ahead it is (frame 0) and those of frame 0's look-ahead, which frame 0 waits for:
+    // ingest cannot tell them from lost ones (verify ignores a frame it has).
+    let lookahead = config.registration.neighbour_pose.lookahead_frames as u64;
+    assert!((1..=2 + lookahead).contains(&redone), "{redone} frames redone");
     // Its result is the one `register` gives, as every other frame's.
     assert_same_as_batch(&config, &mesh, &collected);
 }

@@ -92,7 +92,7 @@ struct PendingFrame {
     /// coarse index: the convergence test's coarse poses, not rendered again.
     grids: BTreeMap<u32, GridSamples>,
     /// The frame's query gradient image (render sends it before the flow jobs).
-    query: Option<Image<f32>>,
+    query: Option<Arc<Image<f32>>>,
     /// The photo's depth map (render sends it with the query), for the change stage.
     depth_m: Option<Image<f32>>,
     /// Without a depth map: the grey photo (render sends it with the query), for stereo.
@@ -210,6 +210,20 @@ pub struct DecidedFrame {
     lender_steps: Option<usize>,
     /// Whether step "neighbour" has run on the decision (or cannot: then the decision is final).
     neighbours_tried: bool,
+}
+
+impl DecidedFrame {
+    /// The frame as a lender of its pose as decided so far (accepted, with its query image).
+    fn as_lender(&self) -> Option<PoseLender> {
+        let pose = self.decision.verdict.accepted_pose()?;
+        Some(PoseLender {
+            info: self.frame.info.clone(),
+            query: self.frame.query.clone()?,
+            camera: pose.camera,
+            cam_from_world: pose.cam_from_world,
+            steps: self.lender_steps?,
+        })
+    }
 }
 
 impl ReadyFrame {
@@ -426,19 +440,26 @@ impl<'m> VerifyStage<'m> {
         ready
     }
 
-    /// The frames decided on their own whose window has every result (or that waited longer
-    /// than the frame timeout) go to be tried against their lenders.
+    /// The frames decided on their own whose window has every result, and whose look-ahead
+    /// every own decision (or that waited longer than the frame timeout), go to be tried
+    /// against their lenders ([`feed_neighbours`]).
     fn release_awaiting(&mut self, now: Instant) {
         let window = self.neighbour_pose.window_frames as u64;
+        let lookahead = self.neighbour_pose.lookahead_frames as u64;
+        let last = self.stream_frame_count.map(|count| count.saturating_sub(1));
+        let has_result = |id: u64| self.is_finished(id) || self.published_before.contains(&id);
         let releasable: Vec<u64> = self
             .awaiting_neighbours
             .iter()
             .filter(|(&frame_id, awaiting)| {
-                let complete = (frame_id.saturating_sub(window)..frame_id)
-                    .all(|id| self.is_finished(id) || self.published_before.contains(&id));
+                let until = frame_id.saturating_add(lookahead);
+                let until = last.map_or(until, |last| until.min(last));
+                let complete = (frame_id.saturating_sub(window)..frame_id).all(has_result)
+                    && (frame_id + 1..=until)
+                        .all(|id| has_result(id) || self.awaiting_neighbours.contains_key(&id));
                 if !complete && now.duration_since(awaiting.since) > self.frame_timeout {
                     tracing::warn!(
-                        "frame {frame_id} '{}': frames before it still have no result after {:.0} s; step \"neighbour\" tries the neighbours there are (its result may differ from a run without the delay)",
+                        "frame {frame_id} '{}': frames of its window still have no result (or, after it, no decision) after {:.0} s; step \"neighbour\" tries the neighbours there are (its result may differ from a run without the delay)",
                         awaiting.decided.frame.name,
                         self.frame_timeout.as_secs_f64()
                     );
@@ -454,11 +475,24 @@ impl<'m> VerifyStage<'m> {
             else {
                 continue;
             };
-            let lenders = self.pose_lenders.iter().map(|(&id, lender)| FeedLender {
-                index: id as usize,
-                cam_from_world: lender.cam_from_world,
-                steps: lender.steps,
-            });
+            // The frames after it lend their own decisions (`feed_neighbours` takes only
+            // their own accepts).
+            let ahead = |id: u64| self.awaiting_neighbours.get(&id)?.decided.as_lender();
+            let lenders = self
+                .pose_lenders
+                .iter()
+                .map(|(&id, lender)| (id, lender.steps, lender.cam_from_world))
+                .chain(self.awaiting_neighbours.range(frame_id + 1..).filter_map(
+                    |(&id, awaiting)| {
+                        let lender = awaiting.decided.as_lender()?;
+                        Some((id, lender.steps, lender.cam_from_world))
+                    },
+                ))
+                .map(|(id, steps, cam_from_world)| FeedLender {
+                    index: id as usize,
+                    cam_from_world,
+                    steps,
+                });
             let lenders = feed_neighbours(
                 frame_id as usize,
                 &decided.frame.info.initial_cam_from_world,
@@ -466,7 +500,10 @@ impl<'m> VerifyStage<'m> {
                 &self.neighbour_pose,
             )
             .into_iter()
-            .filter_map(|id| self.pose_lenders.get(&(id as u64)).cloned())
+            .filter_map(|id| {
+                let id = id as u64;
+                self.pose_lenders.get(&id).cloned().or_else(|| ahead(id))
+            })
             .collect();
             self.ready.push(ReadyFrame {
                 frame_id,
@@ -819,7 +856,7 @@ impl<'m> VerifyStage<'m> {
             .pending
             .entry(frame_id)
             .or_insert_with(|| PendingFrame::new(&query.info));
-        if pending.query.replace(image).is_some() {
+        if pending.query.replace(Arc::new(image)).is_some() {
             self.late_messages += 1;
         }
         if self.changes {
@@ -1069,7 +1106,7 @@ impl<'m> VerifyStage<'m> {
                 frame_id,
                 PoseLender {
                     info: info.clone(),
-                    query: Arc::new(query),
+                    query,
                     camera,
                     cam_from_world,
                     steps,
@@ -1195,8 +1232,10 @@ mod tests {
             2,
             "frame 1 is before every window"
         );
+        // The stream ends with the frame: no frame after it to wait for.
+        stage.on_stream_end(5, &[]);
         let mut frame = PendingFrame::new(&info("frame", camera, truth));
-        frame.query = Some(ideal_query(&mesh, &camera, &truth, &config));
+        frame.query = Some(Arc::new(ideal_query(&mesh, &camera, &truth, &config)));
         stage.queue_ready(4, frame);
         let mut ready = stage.take_ready();
         assert_eq!(ready.len(), 1);
@@ -1281,9 +1320,9 @@ mod tests {
     }
 
     /// A frame decided on its own waits for step "neighbour" until every frame of its window
-    /// has its result (then its lenders do not depend on the order frames complete in), or,
-    /// with a frame missing, until the frame timeout; frames published before a restart count
-    /// as having their result.
+    /// has its result and every frame of its look-ahead its own decision (then its lenders do
+    /// not depend on the order frames complete in), or, with a frame missing, until the frame
+    /// timeout; frames published before a restart count as having their result.
     #[test]
     fn step_neighbour_waits_for_the_frames_of_its_window() {
         let (mesh, camera, truth, _) = house_and_poses();
@@ -1291,17 +1330,18 @@ mod tests {
             neighbour_pose: NeighbourPoseConfig {
                 enabled: true,
                 window_frames: 3,
+                lookahead_frames: 2,
                 ..NeighbourPoseConfig::default()
             },
             ..RegistrationConfig::default()
         };
         let own_decision = |stage: &mut VerifyStage, frame_id: u64| {
             let mut frame = PendingFrame::new(&info("frame", camera, truth));
-            frame.query = Some(Image::filled(
+            frame.query = Some(Arc::new(Image::filled(
                 camera.width_px as usize,
                 camera.height_px as usize,
                 0.0,
-            ));
+            )));
             stage.queue_ready(frame_id, frame);
             let mut ready = stage.take_ready();
             assert_eq!(ready.len(), 1);
@@ -1327,6 +1367,13 @@ mod tests {
         assert!(stage.on_failure(3, &failure).is_some());
         assert!(stage.take_ready().is_empty(), "frame 1 has no result");
         assert!(stage.on_failure(1, &failure).is_some());
+        assert!(
+            stage.take_ready().is_empty(),
+            "frames 5 and 6 have no decision"
+        );
+        own_decision(&mut stage, 5);
+        assert!(stage.take_ready().is_empty(), "frame 6 has no decision");
+        stage.on_stream_end(6, &[]);
         let ready = stage.take_ready();
         assert_eq!(ready.iter().map(|r| r.frame_id).collect::<Vec<_>>(), [4]);
 
@@ -1335,5 +1382,87 @@ mod tests {
         own_decision(&mut stage, 4);
         std::thread::sleep(Duration::from_millis(2));
         assert_eq!(stage.take_ready().len(), 1, "released after the timeout");
+    }
+    /// Step "neighbour"'s look-ahead in verify: a frame borrows the pose of a frame after it
+    /// that the model accepted on its own, once that frame is decided on its own (and before
+    /// its step, which waits for the frame); the pose it is accepted at lends in turn to the
+    /// frame after it.
+    #[test]
+    fn a_frame_borrows_the_own_accept_of_a_frame_after_it() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = RegistrationConfig {
+            neighbour_pose: NeighbourPoseConfig {
+                enabled: true,
+                window_frames: 2,
+                lookahead_frames: 2,
+                ..NeighbourPoseConfig::default()
+            },
+            ..RegistrationConfig::default()
+        };
+        let near = Rigid3::new(
+            truth.rotation,
+            truth.translation + Vector3::new(0.3, 0.12, -0.18),
+        );
+        let mut stage = VerifyStage::new(&mesh, Duration::from_secs(60))
+            .with_neighbour_poses(config.neighbour_pose.clone());
+        for id in 0..4 {
+            stage.mark_finished(id);
+        }
+        // Frames 4 (at the truth) and 5 (near it) decided on their own: neither has
+        // hypotheses, so both are rejected; frame 5 is then taken as accepted on its own at its
+        // pose (its own decision is not this test's subject).
+        let own_decision =
+            |stage: &mut VerifyStage, frame_id: u64, name: &str, pose: Rigid3, accept: bool| {
+                let mut frame = PendingFrame::new(&info(name, camera, pose));
+                frame.query = Some(Arc::new(ideal_query(&mesh, &camera, &pose, &config)));
+                stage.queue_ready(frame_id, frame);
+                let mut ready = stage.take_ready();
+                assert_eq!(ready.len(), 1);
+                let mut own =
+                    ready
+                        .remove(0)
+                        .decide(&mesh, &config, &mut VerifyWorkspace::default());
+                assert!(!own.decision.verdict.accepted());
+                if accept {
+                    own.decision.verdict.decision = Ok(crate::core::verify::PoseHypothesis {
+                        camera,
+                        cam_from_world: pose,
+                        consensus: 500,
+                        inlier_rms_px: 1.0,
+                        correspondence_count: 800,
+                        coarse_cam_from_world: pose,
+                    });
+                    own.lender_steps = Some(0);
+                }
+                assert!(stage.conclude(own).is_none());
+            };
+        own_decision(&mut stage, 4, "frame", truth, false);
+        assert!(stage.take_ready().is_empty(), "frames 5 and 6 undecided");
+        own_decision(&mut stage, 5, "after", near, true);
+        assert!(stage.take_ready().is_empty(), "frame 6 undecided");
+        stage.on_stream_end(7, &[]);
+        assert!(stage.take_ready().is_empty(), "frame 6 undecided");
+        let failure = FrameFailed {
+            name: "lost".into(),
+            stage: "render".into(),
+            reason: "test".into(),
+        };
+        assert!(stage.on_failure(6, &failure).is_some());
+        let mut ready = stage.take_ready();
+        assert_eq!(ready.len(), 1, "frame 5 waits for frame 4's result");
+        assert_eq!(lender_names(&ready[0]), ["after"]);
+        let decided = ready
+            .remove(0)
+            .decide(&mesh, &config, &mut VerifyWorkspace::default());
+        assert!(
+            decided.decision.verdict.accepted(),
+            "{:?}",
+            decided.decision.verdict.rejection()
+        );
+        assert_eq!(decided.lender_steps, Some(1));
+        assert!(stage.conclude(decided).expect("frame 4's result").accepted);
+        let ready = stage.take_ready();
+        assert_eq!(ready.iter().map(|r| r.frame_id).collect::<Vec<_>>(), [5]);
+        assert_eq!(lender_names(&ready[0]), ["frame"]);
     }
 }

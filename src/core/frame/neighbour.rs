@@ -56,6 +56,13 @@ pub struct NeighbourPoseConfig {
     /// each at 505 × 275) and decides a frame's step once every frame of its window has its
     /// result.
     pub window_frames: usize,
+    /// A frame may also take the pose of the frames at most this many after it that the model
+    /// accepted on its own ([`feed_neighbours`]): their own decisions do not depend on step
+    /// "neighbour", so the rule stays one result whatever the order frames complete in. The
+    /// pipeline's verify holds a frame's result until those frames are decided on their own:
+    /// this many frames of latency. Without it a pass whose first frames fail and later ones
+    /// register lends nothing to its first frames.
+    pub lookahead_frames: usize,
     /// In which order batch registration offers frames as neighbours
     /// (`batch::neighbour_pass`); the pipeline's verify always follows [`NeighbourOrder::Feed`].
     pub order: NeighbourOrder,
@@ -84,6 +91,7 @@ impl Default for NeighbourPoseConfig {
             min_consensus: 60,
             min_inlier_share: 0.25,
             window_frames: 64,
+            lookahead_frames: 4,
             order: NeighbourOrder::Feed,
         }
     }
@@ -478,9 +486,12 @@ pub struct FeedLender {
 /// The rule batch registration and the pipeline share (one result whatever the order frames
 /// complete in): frame `index` of a feed may take the pose of the accepted frames before it,
 /// at most `config.window_frames` before, whose chain to a frame the model accepted on its own
-/// is shorter than `config.max_steps`; the nearest looking its way first
-/// ([`nearest_neighbours`]). Every frame of the window must have its final result before the
-/// frame's step runs: then the lenders, and so the frame's result, do not depend on timing.
+/// is shorter than `config.max_steps`, and of the frames at most `config.lookahead_frames`
+/// after it that the model accepted on their own (steps 0); the nearest looking its way first
+/// ([`nearest_neighbours`]). Every frame of the window must have its final result, and every
+/// frame of the look-ahead its own decision, before the frame's step runs: then the lenders,
+/// and so the frame's result, do not depend on timing. `accepted` holds the frames' current
+/// steps: a frame after `index` has only its own decision yet.
 pub fn feed_neighbours(
     index: usize,
     prior: &Rigid3,
@@ -488,9 +499,15 @@ pub fn feed_neighbours(
     config: &NeighbourPoseConfig,
 ) -> Vec<usize> {
     let first = index.saturating_sub(config.window_frames);
+    let last = index.saturating_add(config.lookahead_frames);
+    let lends = |lender: &FeedLender| {
+        let before = (first..index).contains(&lender.index) && lender.steps < config.max_steps;
+        let after = (index + 1..=last).contains(&lender.index) && lender.steps == 0;
+        before || after
+    };
     let lenders: Vec<(usize, Rigid3)> = accepted
         .into_iter()
-        .filter(|lender| (first..index).contains(&lender.index) && lender.steps < config.max_steps)
+        .filter(lends)
         .map(|lender| (lender.index, lender.cam_from_world))
         .collect();
     nearest_neighbours(prior, &lenders, config)
@@ -667,7 +684,7 @@ mod tests {
     /// A feed's frame borrows only from accepted frames before it within the window whose chain
     /// is shorter than `max_steps`, nearest first.
     #[test]
-    fn feed_neighbours_come_from_the_window_before_the_frame() {
+    fn feed_neighbours_come_from_the_window_before_the_frame_and_own_accepts_after_it() {
         let at = |x: f64| Rigid3::new(UnitQuaternion::identity(), Vector3::new(-x, 0.0, 0.0));
         let lender = |index: usize, x: f64, steps: usize| FeedLender {
             index,
@@ -675,20 +692,35 @@ mod tests {
             steps,
         };
         let accepted = [
-            lender(2, 0.1, 0),  // before the window (10 − 3 = 7)
-            lender(7, 4.0, 0),  // first of the window
-            lender(8, 0.2, 2),  // too many steps
-            lender(9, 1.0, 1),  // nearest allowed
-            lender(10, 0.0, 0), // the frame itself
-            lender(11, 0.3, 0), // after the frame
+            lender(2, 0.1, 0),   // before the window (10 − 3 = 7)
+            lender(7, 4.0, 0),   // first of the window
+            lender(8, 0.2, 2),   // too many steps
+            lender(9, 1.0, 1),   // nearest allowed before
+            lender(10, 0.0, 0),  // the frame itself
+            lender(11, 0.3, 1),  // after the frame, accepted through a neighbour
+            lender(12, 2.0, 0),  // after the frame, accepted on its own
+            lender(13, 0.05, 0), // beyond the look-ahead (10 + 2)
         ];
         let config = NeighbourPoseConfig {
             window_frames: 3,
+            lookahead_frames: 2,
             max_steps: 2,
             candidates: 3,
             ..NeighbourPoseConfig::default()
         };
-        assert_eq!(feed_neighbours(10, &at(0.0), accepted, &config), vec![9, 7]);
-        assert!(feed_neighbours(0, &at(0.0), accepted, &config).is_empty());
+        assert_eq!(
+            feed_neighbours(10, &at(0.0), accepted, &config),
+            vec![9, 12, 7]
+        );
+        let no_lookahead = NeighbourPoseConfig {
+            lookahead_frames: 0,
+            ..config.clone()
+        };
+        assert_eq!(
+            feed_neighbours(10, &at(0.0), accepted, &no_lookahead),
+            vec![9, 7]
+        );
+        // The first frame of a feed: only the look-ahead.
+        assert_eq!(feed_neighbours(0, &at(0.0), accepted, &config), vec![2]);
     }
 }
