@@ -172,6 +172,14 @@ pub struct BenchArgs {
     /// Verify's deciding threads (0: enough for the flow workers by the simulated times).
     #[arg(long, default_value_t = 1)]
     pub verify_threads: u32,
+    /// Without step "neighbour" (`registration.neighbour_pose.enabled = false`): its cost in
+    /// frames/s and latency, against a run with it.
+    #[arg(long)]
+    pub no_neighbours: bool,
+    /// Step "neighbour"'s look-ahead, frames (`registration.neighbour_pose.lookahead_frames`: a
+    /// frame's result waits for that many frames after it).
+    #[arg(long, default_value_t = asgreg::core::frame::NeighbourPoseConfig::default().lookahead_frames)]
+    pub neighbour_lookahead: usize,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -737,11 +745,20 @@ pub fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let scene = absolute(&scene);
     let mut base = scene_config(&scene);
     base.source.max_frames = args.frames;
+    base.registration.neighbour_pose.enabled = !args.no_neighbours;
+    base.registration.neighbour_pose.lookahead_frames = args.neighbour_lookahead;
     let mesh = read_mesh(&base.mesh)?;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let step = &base.registration.neighbour_pose;
     println!(
-        "whole-pipeline runs (crossbeam: threads of one process; iceoryx2, zenoh: one process per stage worker), {} frames at 505x275, {} coarse poses each, on {cores} cores",
-        args.frames, base.registration.coarse_pose_count
+        "whole-pipeline runs (crossbeam: threads of one process; iceoryx2, zenoh: one process per stage worker), {} frames at 505x275, {} coarse poses each, step \"neighbour\" {}, on {cores} cores",
+        args.frames,
+        base.registration.coarse_pose_count,
+        if step.enabled {
+            format!("on (look-ahead {} frames)", step.lookahead_frames)
+        } else {
+            "off".to_string()
+        }
     );
     let simulated = args.simulate.then(|| simulated_work(args));
     if let Some(work) = &simulated {

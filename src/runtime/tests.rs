@@ -462,7 +462,10 @@ fn a_frame_whose_every_message_was_lost_in_flight_is_sent_again_and_gets_its_res
     // look-ahead it is (frame 0) and those of frame 0's look-ahead, which frame 0 waits for:
     // ingest cannot tell them from lost ones (verify ignores a frame it has).
     let lookahead = config.registration.neighbour_pose.lookahead_frames as u64;
-    assert!((1..=2 + lookahead).contains(&redone), "{redone} frames redone");
+    assert!(
+        (1..=2 + lookahead).contains(&redone),
+        "{redone} frames redone"
+    );
     // Its result is the one `register` gives, as every other frame's.
     assert_same_as_batch(&config, &mesh, &collected);
 }
