@@ -43,7 +43,7 @@ use asgreg::report_html::{write_report_html, FrameVerdict, Picture, ReportFrame,
 
 use super::register::{
     frame_overlays, progress_bar, registration_config, report_frame, CoarseArgs, IntrinsicsArg,
-    QueryArg, REPORT_HTML,
+    NeighbourOrderArg, QueryArg, REPORT_HTML,
 };
 
 /// The scene model registration is given ([`EvalArgs::model`]).
@@ -266,6 +266,42 @@ fn check_frames_exist(frames: &[String], images: &[ImagePose], path: &Path) -> a
 
 /// The coarse settings `level` registers with: the heading level's trusted tilt
 /// ([`heading_level_tilt_deg`]) on it, the command line's elsewhere.
+/// Step "neighbour"'s order for the scene (`--neighbour-order` when given): `feed` for a scene
+/// made along a flight path (scene.json's `config.flight_path`, `synth --flight-path`: its
+/// images.txt is the order the photos were taken in), else `set` — the photos of the other
+/// scenes are drawn one by one, a collection without an order, and a scene without that key
+/// says nothing of one.
+fn scene_neighbour_order(args: &EvalArgs) -> anyhow::Result<NeighbourOrderArg> {
+    if let Some(order) = args.coarse.neighbour_order {
+        return Ok(order);
+    }
+    let path = args.scene.join("scene.json");
+    let flight_path = match std::fs::read_to_string(&path) {
+        Ok(text) => {
+            let summary: serde_json::Value = serde_json::from_str(&text)
+                .with_context(|| format!("{} is not JSON", path.display()))?;
+            summary["config"]["flight_path"].as_bool().unwrap_or(false)
+        }
+        Err(error) if error.kind() == std::io::ErrorKind::NotFound => false,
+        Err(error) => return Err(error).with_context(|| format!("reading {}", path.display())),
+    };
+    let order = if flight_path {
+        NeighbourOrderArg::Feed
+    } else {
+        NeighbourOrderArg::Set
+    };
+    eprintln!(
+        "step \"neighbour\": {} order ({}; --neighbour-order to choose)",
+        if flight_path { "feed" } else { "set" },
+        if flight_path {
+            "the scene's photos were taken along a flight path, in images.txt's order"
+        } else {
+            "the scene's photos are a collection without an order: scene.json has no flight_path"
+        }
+    );
+    Ok(order)
+}
+
 fn level_coarse(coarse: &CoarseArgs, level: Level, heading_tilt_deg: Option<f64>) -> CoarseArgs {
     match (level, heading_tilt_deg) {
         (Level::Heading, Some(tilt_deg)) => CoarseArgs {
@@ -323,6 +359,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let false_accept_px = 0.05 * f64::from(longest_side_px);
 
     let heading_tilt_deg = heading_level_tilt_deg(args)?;
+    let neighbour_order = scene_neighbour_order(args)?;
     let mut jobs = Vec::new();
     for &level in &args.levels {
         let poses_path = args.scene.join(format!("initial/{level}/images.txt"));
@@ -362,7 +399,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let mut page_frames: Vec<ReportFrame> = Vec::new();
     let mut neighbour_batches: BTreeMap<(Level, &'static str), NeighbourBatch> = BTreeMap::new();
     for (level, method, initial) in jobs {
-        let coarse = level_coarse(&args.coarse, level, heading_tilt_deg);
+        let coarse = CoarseArgs {
+            neighbour_order: Some(neighbour_order),
+            ..level_coarse(&args.coarse, level, heading_tilt_deg)
+        };
         if !methods_seen.contains(&method) {
             methods_seen.push(method);
         }
@@ -2063,6 +2103,31 @@ mod tests {
         ];
         argv.extend_from_slice(extra);
         Command::try_parse_from(argv).unwrap().eval
+    }
+
+    /// Step "neighbour" follows the scene: a flight's photos in their order (`feed`, as the
+    /// pipeline), a collection's in rounds (`set`); `--neighbour-order` overrides it.
+    #[test]
+    fn step_neighbour_follows_the_scenes_order() {
+        let scene = tempfile::tempdir().unwrap();
+        let order =
+            |extra: &[&str]| scene_neighbour_order(&eval_args(scene.path(), extra)).unwrap();
+        assert_eq!(order(&[]), NeighbourOrderArg::Set, "no scene.json");
+        std::fs::write(
+            scene.path().join("scene.json"),
+            r#"{"config": {"flight_path": true}}"#,
+        )
+        .unwrap();
+        assert_eq!(order(&[]), NeighbourOrderArg::Feed);
+        assert_eq!(order(&["--neighbour-order", "set"]), NeighbourOrderArg::Set);
+        std::fs::write(scene.path().join("scene.json"), r#"{"config": {}}"#).unwrap();
+        assert_eq!(order(&[]), NeighbourOrderArg::Set);
+        assert_eq!(
+            order(&["--neighbour-order", "feed"]),
+            NeighbourOrderArg::Feed
+        );
+        std::fs::write(scene.path().join("scene.json"), "not json").unwrap();
+        assert!(scene_neighbour_order(&eval_args(scene.path(), &[])).is_err());
     }
 
     /// The heading level, a drone's prior, registers with the IMU tilt the scene was made with;

@@ -481,9 +481,10 @@ pub struct CoarseArgs {
     /// Step "neighbour": `feed` — a frame borrows from the frames before it in images.txt and
     /// from the own accepts of the few after it (as the pipeline does, so `register` and `run`
     /// agree); `set` — photos without an order, every accepted frame lends to every other (in
-    /// rounds of steps).
-    #[arg(long, value_enum, default_value_t = NeighbourOrderArg::Feed)]
-    pub neighbour_order: NeighbourOrderArg,
+    /// rounds of steps). Default: `feed` in `register`; in `eval`, `feed` for a scene made
+    /// along a flight path and `set` for one whose photos were drawn one by one (scene.json).
+    #[arg(long, value_enum)]
+    pub neighbour_order: Option<NeighbourOrderArg>,
     /// Step "neighbour" in feed order: a frame may also borrow the pose of the frames at most
     /// this many after it that the model accepted on their own (the pipeline's latency, in
     /// frames).
@@ -588,7 +589,7 @@ impl Default for CoarseArgs {
             no_neighbours: !NeighbourPoseConfig::default().enabled,
             neighbour_steps: NeighbourPoseConfig::default().max_steps,
             neighbour_candidates: NeighbourPoseConfig::default().candidates,
-            neighbour_order: NeighbourOrderArg::Feed,
+            neighbour_order: None,
             neighbour_lookahead: NeighbourPoseConfig::default().lookahead_frames,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
@@ -596,7 +597,7 @@ impl Default for CoarseArgs {
     }
 }
 
-/// What decides whether the final refinement's aligned pose is kept.
+/// The order step "neighbour" lends poses in (`--neighbour-order`; `core::frame::NeighbourOrder`).
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum NeighbourOrderArg {
     Feed,
@@ -839,7 +840,10 @@ pub fn registration_config(
             enabled: !coarse.no_neighbours,
             max_steps: coarse.neighbour_steps,
             candidates: coarse.neighbour_candidates,
-            order: coarse.neighbour_order.into(),
+            order: coarse
+                .neighbour_order
+                .unwrap_or(NeighbourOrderArg::Feed)
+                .into(),
             lookahead_frames: coarse.neighbour_lookahead,
             ..defaults.neighbour_pose
         },
