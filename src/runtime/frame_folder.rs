@@ -257,10 +257,10 @@ impl MirrorFolder {
     /// skipped), removes those no longer kept. Call it before publishing the results of the
     /// frames concluded since the last call (a frame whose results are out is not sent again
     /// after a restart, so its file must be on disk by then).
-    pub fn sync(
+    pub fn sync<'a>(
         &mut self,
         kept: BTreeSet<u64>,
-        message: &mut dyn FnMut(u64) -> Option<Body<'static>>,
+        message: &mut dyn FnMut(u64) -> Option<Body<'a>>,
     ) {
         let new: Vec<u64> = kept.difference(&self.on_disk).copied().collect();
         for frame_id in new {

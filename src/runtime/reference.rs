@@ -3,7 +3,7 @@
 //! split must not change what a frame's result says. The soak (`asgreg soak`) and the pipeline
 //! tests use it, so both hold a pipeline to the same standard.
 
-use crate::batch::{neighbour_pass, register_batch_frame};
+use crate::batch::{neighbour_pass, register_batch_frame, FrameReport};
 use crate::core::mesh::Mesh;
 use crate::frame_files::FrameLoader;
 use crate::msg::{PoseNumbers, PoseResult};
@@ -27,16 +27,23 @@ impl std::fmt::Display for Mismatch {
 }
 
 /// Registers every frame of `config.source` in this process as `register` does and compares
-/// each with the pipeline's result of that frame (`results`, any order): accepted or not, the
-/// confidence, the number of refined poses and the output pose must be equal (bit for bit: the
-/// same steps on the same inputs). With step "neighbour" on, `register`'s runs it too
-/// ([`neighbour_pass`], the feed's rule the pipeline's verify follows). Frames without a result
-/// are mismatches too. Costs one registration per frame.
+/// each with the pipeline's result of that frame (`results`, any order; [`differences`]).
+/// Costs one registration per frame.
 pub fn differences_from_register(
     config: &PipelineConfig,
     mesh: &Mesh,
     results: &[PoseResult],
 ) -> Result<Vec<Mismatch>, SourceError> {
+    Ok(differences(&register_reference(config, mesh)?, results))
+}
+
+/// Every frame of `config.source` registered in this process as `register` does (with step
+/// "neighbour" when on: [`neighbour_pass`], the feed's rule the pipeline's verify follows), by
+/// frame id.
+pub fn register_reference(
+    config: &PipelineConfig,
+    mesh: &Mesh,
+) -> Result<Vec<(u64, FrameReport)>, SourceError> {
     let source = FolderSource::open(&config.source)?;
     let (frame_ids, frames): (Vec<u64>, Vec<_>) = source.batch_frames().into_iter().unzip();
     let mut references: Vec<_> = frames
@@ -53,11 +60,19 @@ pub fn differences_from_register(
             config.source.seed,
         );
     }
+    Ok(frame_ids.into_iter().zip(references).collect())
+}
+
+/// Each frame's pipeline result against its reference ([`register_reference`]): accepted or
+/// not, the confidence, the number of refined poses and the output pose must be equal (bit for
+/// bit: the same steps on the same inputs). Frames without a result are mismatches too.
+pub fn differences(references: &[(u64, FrameReport)], results: &[PoseResult]) -> Vec<Mismatch> {
     let mut mismatches = Vec::new();
-    for ((frame_id, frame), reference) in frame_ids.into_iter().zip(&frames).zip(references) {
+    for (frame_id, reference) in references {
+        let frame_id = *frame_id;
         let mismatch = |what: String| Mismatch {
             frame_id,
-            name: frame.name.clone(),
+            name: reference.name.clone(),
             what,
         };
         let Some(result) = results.iter().find(|r| r.frame_id == frame_id) else {
@@ -98,5 +113,5 @@ pub fn differences_from_register(
             mismatches.push(mismatch(what.join("; ")));
         }
     }
-    Ok(mismatches)
+    mismatches
 }

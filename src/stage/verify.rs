@@ -691,7 +691,7 @@ impl<'m> VerifyStage<'m> {
     /// A kept stereo view as a change job without neighbours (its frame, registered camera and
     /// pose, and grey photo): what a restart of this stage needs to have the frame as a stereo
     /// neighbour again (the runtime keeps it durable, [`VerifyStage::restore_stereo_view`]).
-    pub fn stereo_view(&self, frame_id: u64) -> Option<ChangeJob<'static>> {
+    pub fn stereo_view(&self, frame_id: u64) -> Option<ChangeJob<'_>> {
         let view = self.registered_views.get(&frame_id)?;
         Some(ChangeJob {
             meta: ChangeJobMeta {
@@ -702,7 +702,7 @@ impl<'m> VerifyStage<'m> {
                 pose_sigma_px: view.pose_sigma_px,
             },
             depth_m: std::borrow::Cow::Owned(Vec::new()),
-            photo: std::borrow::Cow::Owned(view.photo.data().to_vec()),
+            photo: std::borrow::Cow::Borrowed(view.photo.data()),
             neighbour_photos: std::borrow::Cow::Owned(Vec::new()),
         })
     }
@@ -743,7 +743,7 @@ impl<'m> VerifyStage<'m> {
     }
 
     /// A kept lender as the message `runtime::lenders` writes (`None`: not kept).
-    pub fn lender(&self, frame_id: u64) -> Option<crate::msg::PoseLender<'static>> {
+    pub fn lender(&self, frame_id: u64) -> Option<crate::msg::PoseLender<'_>> {
         let lender = self.pose_lenders.get(&frame_id)?;
         Some(crate::msg::PoseLender {
             meta: crate::msg::PoseLenderMeta {
@@ -752,7 +752,7 @@ impl<'m> VerifyStage<'m> {
                 cam_from_world: lender.cam_from_world,
                 steps: lender.steps as u32,
             },
-            query: std::borrow::Cow::Owned(lender.query.data().to_vec()),
+            query: std::borrow::Cow::Borrowed(lender.query.data()),
         })
     }
 
