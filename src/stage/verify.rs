@@ -1189,6 +1189,56 @@ mod tests {
         }
     }
 
+    /// Registration with step "neighbour" on, its window and look-ahead as given.
+    fn neighbour_config(window_frames: usize, lookahead_frames: usize) -> RegistrationConfig {
+        RegistrationConfig {
+            neighbour_pose: NeighbourPoseConfig {
+                enabled: true,
+                window_frames,
+                lookahead_frames,
+                ..NeighbourPoseConfig::default()
+            },
+            ..RegistrationConfig::default()
+        }
+    }
+
+    /// `frame` queued as frame `frame_id`, taken and decided on its own (not concluded).
+    fn decide_own(
+        stage: &mut VerifyStage,
+        config: &RegistrationConfig,
+        frame_id: u64,
+        frame: PendingFrame,
+    ) -> DecidedFrame {
+        stage.queue_ready(frame_id, frame);
+        let mut ready = stage.take_ready();
+        assert_eq!(ready.len(), 1);
+        ready
+            .remove(0)
+            .decide(stage.mesh, config, &mut VerifyWorkspace::default())
+    }
+
+    /// The one frame ready for step "neighbour", with `lender` its only lender, decided: it is
+    /// accepted at the pose from it, one step from a frame accepted on its own.
+    fn accepted_through(
+        stage: &mut VerifyStage,
+        config: &RegistrationConfig,
+        lender: &str,
+    ) -> DecidedFrame {
+        let mut ready = stage.take_ready();
+        assert_eq!(ready.len(), 1);
+        assert_eq!(lender_names(&ready[0]), [lender]);
+        let decided = ready
+            .remove(0)
+            .decide(stage.mesh, config, &mut VerifyWorkspace::default());
+        assert!(
+            decided.decision.verdict.accepted(),
+            "{:?}",
+            decided.decision.verdict.rejection()
+        );
+        assert_eq!(decided.lender_steps, Some(1));
+        decided
+    }
+
     /// Step "neighbour" in verify: a frame whose own registration gave nothing (no hypotheses)
     /// is decided on its own, then handed out again with the nearest lender looking its way
     /// (not the one facing away, nor one before its window), and accepted at the pose from
@@ -1197,14 +1247,7 @@ mod tests {
     #[test]
     fn a_frame_without_hypotheses_is_accepted_at_its_neighbours_pose() {
         let (mesh, camera, truth, _) = house_and_poses();
-        let config = RegistrationConfig {
-            neighbour_pose: NeighbourPoseConfig {
-                enabled: true,
-                window_frames: 2,
-                ..NeighbourPoseConfig::default()
-            },
-            ..RegistrationConfig::default()
-        };
+        let config = neighbour_config(2, NeighbourPoseConfig::default().lookahead_frames);
         let lender_at = |name: &str, pose: Rigid3| PoseLender {
             info: info(name, camera, pose),
             query: Arc::new(ideal_query(&mesh, &camera, &pose, &config)),
@@ -1249,18 +1292,7 @@ mod tests {
             "it waits for step \"neighbour\""
         );
         assert_eq!(stage.pending_frames(), 1);
-        let mut ready = stage.take_ready();
-        assert_eq!(ready.len(), 1);
-        assert_eq!(lender_names(&ready[0]), ["near"]);
-        let decided = ready
-            .remove(0)
-            .decide(&mesh, &config, &mut VerifyWorkspace::default());
-        assert!(
-            decided.decision.verdict.accepted(),
-            "{:?}",
-            decided.decision.verdict.rejection()
-        );
-        assert_eq!(decided.lender_steps, Some(1));
+        let decided = accepted_through(&mut stage, &config, "near");
         let result = stage.conclude(decided).expect("the frame's result");
         assert!(result.accepted && result.cam_from_world.is_some());
         assert_eq!(stage.pose_lenders.get(&4).map(|l| l.steps), Some(1));
@@ -1326,15 +1358,7 @@ mod tests {
     #[test]
     fn step_neighbour_waits_for_the_frames_of_its_window() {
         let (mesh, camera, truth, _) = house_and_poses();
-        let config = RegistrationConfig {
-            neighbour_pose: NeighbourPoseConfig {
-                enabled: true,
-                window_frames: 3,
-                lookahead_frames: 2,
-                ..NeighbourPoseConfig::default()
-            },
-            ..RegistrationConfig::default()
-        };
+        let config = neighbour_config(3, 2);
         let own_decision = |stage: &mut VerifyStage, frame_id: u64| {
             let mut frame = PendingFrame::new(&info("frame", camera, truth));
             frame.query = Some(Arc::new(Image::filled(
@@ -1342,12 +1366,7 @@ mod tests {
                 camera.height_px as usize,
                 0.0,
             )));
-            stage.queue_ready(frame_id, frame);
-            let mut ready = stage.take_ready();
-            assert_eq!(ready.len(), 1);
-            let own = ready
-                .remove(0)
-                .decide(&mesh, &config, &mut VerifyWorkspace::default());
+            let own = decide_own(stage, &config, frame_id, frame);
             assert!(stage.conclude(own).is_none());
         };
         let failure = FrameFailed {
@@ -1383,6 +1402,7 @@ mod tests {
         std::thread::sleep(Duration::from_millis(2));
         assert_eq!(stage.take_ready().len(), 1, "released after the timeout");
     }
+
     /// Step "neighbour"'s look-ahead in verify: a frame borrows the pose of a frame after it
     /// that the model accepted on its own, once that frame is decided on its own (and before
     /// its step, which waits for the frame); the pose it is accepted at lends in turn to the
@@ -1390,15 +1410,7 @@ mod tests {
     #[test]
     fn a_frame_borrows_the_own_accept_of_a_frame_after_it() {
         let (mesh, camera, truth, _) = house_and_poses();
-        let config = RegistrationConfig {
-            neighbour_pose: NeighbourPoseConfig {
-                enabled: true,
-                window_frames: 2,
-                lookahead_frames: 2,
-                ..NeighbourPoseConfig::default()
-            },
-            ..RegistrationConfig::default()
-        };
+        let config = neighbour_config(2, 2);
         let near = Rigid3::new(
             truth.rotation,
             truth.translation + Vector3::new(0.3, 0.12, -0.18),
@@ -1415,13 +1427,7 @@ mod tests {
             |stage: &mut VerifyStage, frame_id: u64, name: &str, pose: Rigid3, accept: bool| {
                 let mut frame = PendingFrame::new(&info(name, camera, pose));
                 frame.query = Some(Arc::new(ideal_query(&mesh, &camera, &pose, &config)));
-                stage.queue_ready(frame_id, frame);
-                let mut ready = stage.take_ready();
-                assert_eq!(ready.len(), 1);
-                let mut own =
-                    ready
-                        .remove(0)
-                        .decide(&mesh, &config, &mut VerifyWorkspace::default());
+                let mut own = decide_own(stage, &config, frame_id, frame);
                 assert!(!own.decision.verdict.accepted());
                 if accept {
                     own.decision.verdict.decision = Ok(crate::core::verify::PoseHypothesis {
@@ -1448,18 +1454,8 @@ mod tests {
             reason: "test".into(),
         };
         assert!(stage.on_failure(6, &failure).is_some());
-        let mut ready = stage.take_ready();
-        assert_eq!(ready.len(), 1, "frame 5 waits for frame 4's result");
-        assert_eq!(lender_names(&ready[0]), ["after"]);
-        let decided = ready
-            .remove(0)
-            .decide(&mesh, &config, &mut VerifyWorkspace::default());
-        assert!(
-            decided.decision.verdict.accepted(),
-            "{:?}",
-            decided.decision.verdict.rejection()
-        );
-        assert_eq!(decided.lender_steps, Some(1));
+        // Frame 4 only: frame 5 waits for frame 4's result.
+        let decided = accepted_through(&mut stage, &config, "after");
         assert!(stage.conclude(decided).expect("frame 4's result").accepted);
         let ready = stage.take_ready();
         assert_eq!(ready.iter().map(|r| r.frame_id).collect::<Vec<_>>(), [5]);
