@@ -213,8 +213,12 @@ pub struct DecidedFrame {
 }
 
 impl DecidedFrame {
-    /// The frame as a lender of its pose as decided so far (accepted, with its query image).
+    /// The frame as a lender of its pose as decided so far (accepted, with its query image and
+    /// known intrinsics, as in batch registration).
     fn as_lender(&self) -> Option<PoseLender> {
+        if self.frame.intrinsics != IntrinsicsMode::Known {
+            return None;
+        }
         let pose = self.decision.verdict.accepted_pose()?;
         Some(PoseLender {
             info: self.frame.info.clone(),
@@ -1094,13 +1098,16 @@ impl<'m> VerifyStage<'m> {
         };
         let PendingFrame {
             info,
+            intrinsics,
             depth_m,
             photo,
             query,
             ..
         } = frame;
+        // Only frames with known intrinsics lend, as in batch registration (`neighbour_pass`).
+        let lends = self.neighbour_pose.enabled && intrinsics == IntrinsicsMode::Known;
         if let (true, Some(steps), Some(query), Some((camera, cam_from_world))) =
-            (self.neighbour_pose.enabled, lender_steps, query, registered)
+            (lends, lender_steps, query, registered)
         {
             self.lend_pose(
                 frame_id,
@@ -1215,6 +1222,19 @@ mod tests {
         ready
             .remove(0)
             .decide(stage.mesh, config, &mut VerifyWorkspace::default())
+    }
+
+    /// `own` (a frame decided on its own) taken as accepted on its own at `pose`.
+    fn accept_on_its_own(own: &mut DecidedFrame, pose: Rigid3) {
+        own.decision.verdict.decision = Ok(crate::core::verify::PoseHypothesis {
+            camera: own.frame.camera,
+            cam_from_world: pose,
+            consensus: 500,
+            inlier_rms_px: 1.0,
+            correspondence_count: 800,
+            coarse_cam_from_world: pose,
+        });
+        own.lender_steps = Some(0);
     }
 
     /// The one frame ready for step "neighbour", with `lender` its only lender, decided: it is
@@ -1430,15 +1450,7 @@ mod tests {
                 let mut own = decide_own(stage, &config, frame_id, frame);
                 assert!(!own.decision.verdict.accepted());
                 if accept {
-                    own.decision.verdict.decision = Ok(crate::core::verify::PoseHypothesis {
-                        camera,
-                        cam_from_world: pose,
-                        consensus: 500,
-                        inlier_rms_px: 1.0,
-                        correspondence_count: 800,
-                        coarse_cam_from_world: pose,
-                    });
-                    own.lender_steps = Some(0);
+                    accept_on_its_own(&mut own, pose);
                 }
                 assert!(stage.conclude(own).is_none());
             };
@@ -1460,5 +1472,24 @@ mod tests {
         let ready = stage.take_ready();
         assert_eq!(ready.iter().map(|r| r.frame_id).collect::<Vec<_>>(), [5]);
         assert_eq!(lender_names(&ready[0]), ["frame"]);
+    }
+    /// A frame registered with unknown intrinsics lends no pose (batch registration offers only
+    /// frames with known intrinsics): not kept when concluded, not offered while held.
+    #[test]
+    fn a_frame_with_unknown_intrinsics_does_not_lend() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let config = neighbour_config(2, 2);
+        let mut stage = VerifyStage::new(&mesh, Duration::from_secs(60))
+            .with_neighbour_poses(config.neighbour_pose.clone());
+        let mut unknown = info("unknown", camera, truth);
+        unknown.intrinsics_known = false;
+        let mut frame = PendingFrame::new(&unknown);
+        frame.query = Some(Arc::new(ideal_query(&mesh, &camera, &truth, &config)));
+        let mut own = decide_own(&mut stage, &config, 0, frame);
+        assert!(own.neighbours_tried, "no step without known intrinsics");
+        accept_on_its_own(&mut own, truth);
+        assert!(own.as_lender().is_none());
+        assert!(stage.conclude(own).expect("its result").accepted);
+        assert!(stage.pose_lenders.is_empty());
     }
 }
