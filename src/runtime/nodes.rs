@@ -456,6 +456,29 @@ impl Recovery {
         };
         let now = Instant::now();
         let quiet = now.duration_since(self.last_finished_at);
+        // With step "neighbour"'s look-ahead a frame's result cannot come before the frames
+        // after it were through (verify waits for their own decisions): its wait counts from
+        // the last of them that render took; none while one is still to be taken.
+        let lookahead = self.neighbour_frames.map_or(0, |(_, lookahead)| lookahead);
+        let handed_on: std::collections::BTreeMap<u64, Option<Instant>> = self
+            .kept
+            .iter()
+            .map(|(&frame_id, frame)| (frame_id, frame.handed_on))
+            .collect();
+        let last_ahead_handed_on = |frame_id: u64| {
+            let until = frame_id
+                .saturating_add(lookahead)
+                .min(self.frame_count.saturating_sub(1));
+            (frame_id..=until).try_fold(None, |latest: Option<Instant>, id| {
+                match handed_on.get(&id) {
+                    Some(Some(at)) => Some(Some(latest.map_or(*at, |l| l.max(*at)))),
+                    // Finished (no longer kept): through.
+                    None if self.finished.contains(&id) => Some(latest),
+                    // Still with the dispatcher, or not read from the source yet.
+                    _ => None,
+                }
+            })
+        };
         let mut unposed_before: Option<u64> = None;
         let mut oldest_of_chain = 0;
         for (&frame_id, frame) in &mut self.kept {
@@ -476,19 +499,22 @@ impl Recovery {
             if held {
                 continue;
             }
-            let Some(handed_on) = frame.handed_on else {
+            if frame.handed_on.is_none() {
                 if !dispatcher.holds(frame_id) {
                     frame.handed_on = Some(now);
                 }
                 continue;
+            }
+            let Some(Some(expected_from)) = last_ahead_handed_on(frame_id) else {
+                continue;
             };
-            let waited = now.duration_since(handed_on);
+            let waited = now.duration_since(expected_from);
             let overtaken = self.finished.range(frame_id + 1..).next().is_some();
             if waited < frame.wait || !(overtaken || quiet >= frame.wait) {
                 continue;
             }
             tracing::warn!(
-                "ingest: frame {frame_id} has no result {:.0} s after render took it and {}; its messages were lost in flight: sending it again",
+                "ingest: frame {frame_id} has no result {:.0} s after render took it (and the frames of its look-ahead) and {}; its messages were lost in flight: sending it again",
                 waited.as_secs_f64(),
                 if overtaken {
                     "a later frame has its result"
