@@ -213,19 +213,24 @@ pub struct DecidedFrame {
 }
 
 impl DecidedFrame {
-    /// The frame as a lender of its pose as decided so far (accepted, with its query image and
-    /// known intrinsics, as in batch registration).
-    fn as_lender(&self) -> Option<PoseLender> {
-        if self.frame.intrinsics != IntrinsicsMode::Known {
+    /// Whether the frame lends its pose as decided so far, and as what: accepted, with its query
+    /// image and known intrinsics (as in batch registration); its steps and accepted pose.
+    fn lends(&self) -> Option<(usize, &crate::core::verify::PoseHypothesis)> {
+        if self.frame.intrinsics != IntrinsicsMode::Known || self.frame.query.is_none() {
             return None;
         }
-        let pose = self.decision.verdict.accepted_pose()?;
+        Some((self.lender_steps?, self.decision.verdict.accepted_pose()?))
+    }
+
+    /// The frame as a lender of its pose ([`DecidedFrame::lends`]).
+    fn as_lender(&self) -> Option<PoseLender> {
+        let (steps, pose) = self.lends()?;
         Some(PoseLender {
             info: self.frame.info.clone(),
             query: self.frame.query.clone()?,
             camera: pose.camera,
             cam_from_world: pose.cam_from_world,
-            steps: self.lender_steps?,
+            steps,
         })
     }
 }
@@ -488,8 +493,8 @@ impl<'m> VerifyStage<'m> {
                 .map(|(&id, lender)| (id, lender.steps, lender.cam_from_world))
                 .chain(self.awaiting_neighbours.range(frame_id + 1..).filter_map(
                     |(&id, awaiting)| {
-                        let lender = awaiting.decided.as_lender()?;
-                        Some((id, lender.steps, lender.cam_from_world))
+                        let (steps, pose) = awaiting.decided.lends()?;
+                        Some((id, steps, pose.cam_from_world))
                     },
                 ))
                 .map(|(id, steps, cam_from_world)| FeedLender {
@@ -1042,6 +1047,11 @@ impl<'m> VerifyStage<'m> {
             );
             return None;
         }
+        let lender = self
+            .neighbour_pose
+            .enabled
+            .then(|| decided.as_lender())
+            .flatten();
         let DecidedFrame {
             frame_id,
             frame,
@@ -1052,7 +1062,6 @@ impl<'m> VerifyStage<'m> {
                     ..
                 },
             verify_ms,
-            lender_steps,
             ..
         } = decided;
         self.mark_finished(frame_id);
@@ -1098,27 +1107,12 @@ impl<'m> VerifyStage<'m> {
         };
         let PendingFrame {
             info,
-            intrinsics,
             depth_m,
             photo,
-            query,
             ..
         } = frame;
-        // Only frames with known intrinsics lend, as in batch registration (`neighbour_pass`).
-        let lends = self.neighbour_pose.enabled && intrinsics == IntrinsicsMode::Known;
-        if let (true, Some(steps), Some(query), Some((camera, cam_from_world))) =
-            (lends, lender_steps, query, registered)
-        {
-            self.lend_pose(
-                frame_id,
-                PoseLender {
-                    info: info.clone(),
-                    query,
-                    camera,
-                    cam_from_world,
-                    steps,
-                },
-            );
+        if let Some(lender) = lender {
+            self.lend_pose(frame_id, lender);
         }
         self.queue_change_work(
             &result,
