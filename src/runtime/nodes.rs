@@ -460,18 +460,13 @@ impl Recovery {
         // after it were through (verify waits for their own decisions): its wait counts from
         // the last of them that render took; none while one is still to be taken.
         let lookahead = self.neighbour_frames.map_or(0, |(_, lookahead)| lookahead);
-        let handed_on: std::collections::BTreeMap<u64, Option<Instant>> = self
-            .kept
-            .iter()
-            .map(|(&frame_id, frame)| (frame_id, frame.handed_on))
-            .collect();
         let last_ahead_handed_on = |frame_id: u64| {
             let until = frame_id
                 .saturating_add(lookahead)
                 .min(self.frame_count.saturating_sub(1));
             (frame_id..=until).try_fold(None, |latest: Option<Instant>, id| {
-                match handed_on.get(&id) {
-                    Some(Some(at)) => Some(Some(latest.map_or(*at, |l| l.max(*at)))),
+                match self.kept.get(&id).map(|frame| frame.handed_on) {
+                    Some(Some(at)) => Some(Some(latest.map_or(at, |l| l.max(at)))),
                     // Finished (no longer kept): through.
                     None if self.finished.contains(&id) => Some(latest),
                     // Still with the dispatcher, or not read from the source yet.
@@ -479,9 +474,13 @@ impl Recovery {
                 }
             })
         };
+        // Decided on the frames as they are, then applied: (frame, how long it waited and
+        // whether a later frame has its result, when it is to be sent again; `None`: render has
+        // just taken it).
+        let mut due: Vec<(u64, Option<(Duration, bool)>)> = Vec::new();
         let mut unposed_before: Option<u64> = None;
         let mut oldest_of_chain = 0;
-        for (&frame_id, frame) in &mut self.kept {
+        for (&frame_id, frame) in &self.kept {
             if self.posed.contains(&frame_id) {
                 continue;
             }
@@ -501,7 +500,7 @@ impl Recovery {
             }
             if frame.handed_on.is_none() {
                 if !dispatcher.holds(frame_id) {
-                    frame.handed_on = Some(now);
+                    due.push((frame_id, None));
                 }
                 continue;
             }
@@ -510,9 +509,18 @@ impl Recovery {
             };
             let waited = now.duration_since(expected_from);
             let overtaken = self.finished.range(frame_id + 1..).next().is_some();
-            if waited < frame.wait || !(overtaken || quiet >= frame.wait) {
-                continue;
+            if waited >= frame.wait && (overtaken || quiet >= frame.wait) {
+                due.push((frame_id, Some((waited, overtaken))));
             }
+        }
+        for (frame_id, waited) in due {
+            let Some(frame) = self.kept.get_mut(&frame_id) else {
+                continue;
+            };
+            let Some((waited, overtaken)) = waited else {
+                frame.handed_on = Some(now);
+                continue;
+            };
             tracing::warn!(
                 "ingest: frame {frame_id} has no result {:.0} s after render took it (and the frames of its look-ahead) and {}; its messages were lost in flight: sending it again",
                 waited.as_secs_f64(),
