@@ -264,8 +264,6 @@ fn check_frames_exist(frames: &[String], images: &[ImagePose], path: &Path) -> a
     Ok(())
 }
 
-/// The coarse settings `level` registers with: the heading level's trusted tilt
-/// ([`heading_level_tilt_deg`]) on it, the command line's elsewhere.
 /// Step "neighbour"'s order for the scene (`--neighbour-order` when given): `feed` for a scene
 /// made along a flight path (scene.json's `config.flight_path`, `synth --flight-path`: its
 /// images.txt is the order the photos were taken in), else `set` — the photos of the other
@@ -285,23 +283,25 @@ fn scene_neighbour_order(args: &EvalArgs) -> anyhow::Result<NeighbourOrderArg> {
         Err(error) if error.kind() == std::io::ErrorKind::NotFound => false,
         Err(error) => return Err(error).with_context(|| format!("reading {}", path.display())),
     };
-    let order = if flight_path {
-        NeighbourOrderArg::Feed
+    let (order, name, why) = if flight_path {
+        (
+            NeighbourOrderArg::Feed,
+            "feed",
+            "the scene's photos were taken along a flight path, in images.txt's order",
+        )
     } else {
-        NeighbourOrderArg::Set
+        (
+            NeighbourOrderArg::Set,
+            "set",
+            "the scene's photos are a collection without an order: scene.json has no flight_path",
+        )
     };
-    eprintln!(
-        "step \"neighbour\": {} order ({}; --neighbour-order to choose)",
-        if flight_path { "feed" } else { "set" },
-        if flight_path {
-            "the scene's photos were taken along a flight path, in images.txt's order"
-        } else {
-            "the scene's photos are a collection without an order: scene.json has no flight_path"
-        }
-    );
+    eprintln!("step \"neighbour\": {name} order ({why}; --neighbour-order to choose)");
     Ok(order)
 }
 
+/// The coarse settings `level` registers with: the heading level's trusted tilt
+/// ([`heading_level_tilt_deg`]) on it, the command line's elsewhere.
 fn level_coarse(coarse: &CoarseArgs, level: Level, heading_tilt_deg: Option<f64>) -> CoarseArgs {
     match (level, heading_tilt_deg) {
         (Level::Heading, Some(tilt_deg)) => CoarseArgs {
