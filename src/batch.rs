@@ -13,8 +13,8 @@ use crate::core::confidence::FrameEvidence;
 use crate::core::frame::{
     feed_neighbours, nearest_neighbours, query_gradient, register_frame, try_neighbours,
     FeedLender, FrameInput, IntrinsicsMode, NeighbourCheck, NeighbourDecision, NeighbourOrder,
-    NeighbourWorkspace, Pass, PoseRefinement, RegisteredNeighbour, RegistrationConfig,
-    StageTimings,
+    NeighbourView, NeighbourWorkspace, Pass, PoseRefinement, RegisteredNeighbour,
+    RegistrationConfig, StageTimings,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
@@ -91,6 +91,9 @@ pub struct NeighbourReport {
     /// Neighbours between this frame and one the model accepted on its own (1: the neighbour
     /// was).
     pub steps: usize,
+    /// Where the neighbour's photo was matched from (files written before it: as photographed).
+    #[serde(default)]
+    pub view: NeighbourView,
     /// The neighbour's pose of this frame and what the model said of it, or why there is none.
     pub check: Result<NeighbourCheck, String>,
     pub decision: NeighbourDecision,
@@ -434,17 +437,20 @@ impl NeighbourPass<'_> {
             .filter(|&c| load_query(&frames[c], self.loader, config, &mut self.loaded[c]).is_ok())
             .collect();
         let own = self.loaded[index].as_ref()?;
-        let neighbours: Vec<RegisteredNeighbour> = candidates
+        let (lenders, neighbours): (Vec<usize>, Vec<RegisteredNeighbour>) = candidates
             .iter()
             .filter_map(|&c| {
                 let lender = self.loaded[c].as_ref()?;
-                Some(RegisteredNeighbour {
-                    query: lender.query.view(),
-                    camera: &lender.files.camera,
-                    cam_from_world: reports[c].cam_from_world?,
-                })
+                Some((
+                    c,
+                    RegisteredNeighbour {
+                        query: lender.query.view(),
+                        camera: &lender.files.camera,
+                        cam_from_world: reports[c].cam_from_world?,
+                    },
+                ))
             })
-            .collect();
+            .unzip();
         let (accepted, candidate) = own_poses(&reports[index], frame, own.files.camera);
         let own_pose = match (&accepted, &candidate) {
             (Some(pose), _) => Ok(pose),
@@ -462,11 +468,13 @@ impl NeighbourPass<'_> {
             &mut self.workspace,
         );
         let mut decisive = None;
-        for (tried, &c) in tries.into_iter().zip(&candidates) {
+        for tried in tries {
+            let c = lenders[tried.neighbour];
             let confirmed = tried.confirmed();
             let report = NeighbourReport {
                 neighbour: frames[c].name.clone(),
                 steps: self.steps[c].unwrap_or(0) + 1,
+                view: tried.view,
                 check: tried.check,
                 decision: tried.decision,
             };

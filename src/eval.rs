@@ -43,6 +43,9 @@ pub struct NeighbourEval {
     pub neighbour: String,
     /// Neighbours away from a frame the model accepted on its own.
     pub steps: usize,
+    /// Where the neighbour's photo was matched from.
+    #[serde(default)]
+    pub view: crate::core::frame::NeighbourView,
     /// δ of the neighbour's pose of the frame to the truth, px (None without a pose).
     pub delta_px: Option<f64>,
     /// δ between it and the frame's own pose, px.

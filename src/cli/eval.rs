@@ -1626,6 +1626,7 @@ impl NeighbourBatch {
                 .map(|tried| NeighbourEval {
                     neighbour: tried.neighbour.clone(),
                     steps: tried.steps,
+                    view: tried.view,
                     delta_px: tried.check.as_ref().ok().and_then(|check| {
                         delta_to_truth(&check.hypothesis.camera, &check.hypothesis.cam_from_world)
                     }),

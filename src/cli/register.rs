@@ -12,7 +12,8 @@ use asgreg::core::confidence::ConfidenceConfig;
 use asgreg::core::edge_align::{AlignedKinds, EdgeAlignConfig};
 use asgreg::core::flow_consistency::MatchConfig;
 use asgreg::core::frame::{
-    IntrinsicsMode, NeighbourPoseConfig, QueryMode, RegistrationConfig, UnknownIntrinsics,
+    IntrinsicsMode, NeighbourPoseConfig, NeighbourWarp, QueryMode, RegistrationConfig,
+    UnknownIntrinsics,
 };
 use asgreg::core::image::Image;
 use asgreg::core::pose_search::PoseSearchConfig;
@@ -490,6 +491,12 @@ pub struct CoarseArgs {
     /// frames).
     #[arg(long, default_value_t = NeighbourPoseConfig::default().lookahead_frames)]
     pub neighbour_lookahead: usize,
+    /// Step "neighbour": `off` — the neighbour's photo matched as photographed only; when its
+    /// pose is not confirmed, also seen from a pose of the frame (projected onto the model):
+    /// `own-pose` — the frame's own (would-be) pose; `own-and-neighbour-pose` — also the pose the
+    /// photo as photographed gave.
+    #[arg(long, value_enum, default_value_t = NeighbourWarpArg::from(NeighbourPoseConfig::default().warp))]
+    pub neighbour_warp: NeighbourWarpArg,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
     pub rival_reach_px: f64,
@@ -591,6 +598,7 @@ impl Default for CoarseArgs {
             neighbour_candidates: NeighbourPoseConfig::default().candidates,
             neighbour_order: None,
             neighbour_lookahead: NeighbourPoseConfig::default().lookahead_frames,
+            neighbour_warp: NeighbourPoseConfig::default().warp.into(),
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -609,6 +617,33 @@ impl From<NeighbourOrderArg> for asgreg::core::frame::NeighbourOrder {
         match arg {
             NeighbourOrderArg::Feed => Self::Feed,
             NeighbourOrderArg::Set => Self::Set,
+        }
+    }
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NeighbourWarpArg {
+    Off,
+    OwnPose,
+    OwnAndNeighbourPose,
+}
+
+impl From<NeighbourWarpArg> for NeighbourWarp {
+    fn from(arg: NeighbourWarpArg) -> Self {
+        match arg {
+            NeighbourWarpArg::Off => Self::Off,
+            NeighbourWarpArg::OwnPose => Self::OwnPose,
+            NeighbourWarpArg::OwnAndNeighbourPose => Self::OwnAndNeighbourPose,
+        }
+    }
+}
+
+impl From<NeighbourWarp> for NeighbourWarpArg {
+    fn from(warp: NeighbourWarp) -> Self {
+        match warp {
+            NeighbourWarp::Off => Self::Off,
+            NeighbourWarp::OwnPose => Self::OwnPose,
+            NeighbourWarp::OwnAndNeighbourPose => Self::OwnAndNeighbourPose,
         }
     }
 }
@@ -845,6 +880,7 @@ pub fn registration_config(
                 .unwrap_or(NeighbourOrderArg::Feed)
                 .into(),
             lookahead_frames: coarse.neighbour_lookahead,
+            warp: coarse.neighbour_warp.into(),
             ..defaults.neighbour_pose
         },
         ..defaults

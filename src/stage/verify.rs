@@ -362,9 +362,10 @@ fn decide_with_neighbours(
         workspace,
     );
     // `try_neighbours` stops at the first confirmed pose: the last try decides, if any does.
-    let Some((last, lender)) = tries.iter().zip(neighbours).next_back() else {
+    let Some(last) = tries.last() else {
         return own_steps;
     };
+    let lender = &neighbours[last.neighbour];
     if !last.confirmed() {
         return own_steps;
     }

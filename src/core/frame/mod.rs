@@ -48,7 +48,8 @@ pub use decide::{decide_frame, decide_frame_and_centres, Decision};
 pub use neighbour::{
     apply_to_verdict, check_neighbour_pose, feed_neighbours, nearest_neighbours,
     pose_from_neighbour, try_neighbours, FeedLender, NeighbourCheck, NeighbourDecision,
-    NeighbourOrder, NeighbourPoseConfig, NeighbourTry, NeighbourWorkspace, RegisteredNeighbour,
+    NeighbourOrder, NeighbourPoseConfig, NeighbourTry, NeighbourView, NeighbourWarp,
+    NeighbourWorkspace, RegisteredNeighbour,
 };
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{
