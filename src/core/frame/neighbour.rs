@@ -180,8 +180,9 @@ pub struct WarpedView {
 /// threshold, [`super::correspond::DEPTH_EDGE_RELATIVE_STEP`], doubled for the nearest-pixel lookup).
 const WARP_VISIBILITY_RELATIVE_DEPTH: f64 = 2.0 * DEPTH_EDGE_RELATIVE_STEP as f64;
 
-/// Brings `neighbour`'s query image to the view `render` (the model rendered through `camera` at
-/// `cam_from_world`): each pixel's model point is projected into the neighbour; where the
+/// Brings `neighbour`'s query image to the view of `out.render` (the caller's rendering of the
+/// model through `camera` at `cam_from_world`): each pixel's model point is projected into the
+/// neighbour; where the
 /// neighbour sees that point (its rendering `neighbour_render` has it in front, within
 /// [`WARP_VISIBILITY_RELATIVE_DEPTH`]) the pixel takes the neighbour's query image there
 /// (bilinear), elsewhere 0 and no face. Returns how many pixels the neighbour sees.
@@ -839,41 +840,8 @@ mod tests {
             shift_m: Vector3<f64>,
             workspace: &mut NeighbourWorkspace,
         ) -> (PoseHypothesis, f64) {
-            let neighbour_pose = Rigid3::new(
-                UnitQuaternion::from_scaled_axis(Vector3::new(0.0, turn_rad, 0.0))
-                    * self.truth.rotation,
-                self.truth.translation + shift_m,
-            );
-            let neighbour_query =
-                ideal_query(&self.mesh, &self.camera, &neighbour_pose, &self.config);
-            let features = query_features(self.query.view(), &self.config).unwrap();
-            let neighbour = RegisteredNeighbour {
-                query: neighbour_query.view(),
-                camera: &self.camera,
-                cam_from_world: neighbour_pose,
-            };
-            let pose = pose_from_neighbour(
-                &self.mesh,
-                &self.camera,
-                IntrinsicsMode::Known,
-                &features,
-                &neighbour,
-                None,
-                &self.config,
-                7,
-                workspace,
-            )
-            .unwrap();
-            let delta_px = mutual_reprojection_error_px(
-                &self.mesh,
-                &self.camera,
-                &pose.cam_from_world,
-                &self.camera,
-                &self.truth,
-                &mut ReprojectionWorkspace::new(),
-            )
-            .unwrap();
-            (pose, delta_px)
+            self.pose_seen_from(turn_rad, shift_m, None, workspace)
+                .unwrap()
         }
 
         /// As [`Self::pose_from`], the neighbour's photo seen from `seen_from` (as photographed
@@ -885,6 +853,18 @@ mod tests {
             seen_from: Option<&Rigid3>,
             workspace: &mut NeighbourWorkspace,
         ) -> Option<f64> {
+            self.pose_seen_from(turn_rad, shift_m, seen_from, workspace)
+                .map(|(_, delta_px)| delta_px)
+        }
+
+        /// The pose and its δ of [`Self::pose_from`] and [`Self::delta_from`].
+        fn pose_seen_from(
+            &self,
+            turn_rad: f64,
+            shift_m: Vector3<f64>,
+            seen_from: Option<&Rigid3>,
+            workspace: &mut NeighbourWorkspace,
+        ) -> Option<(PoseHypothesis, f64)> {
             let neighbour_pose = Rigid3::new(
                 UnitQuaternion::from_scaled_axis(Vector3::new(0.0, turn_rad, 0.0))
                     * self.truth.rotation,
@@ -910,14 +890,15 @@ mod tests {
                 workspace,
             )
             .ok()?;
-            mutual_reprojection_error_px(
+            let delta_px = mutual_reprojection_error_px(
                 &self.mesh,
                 &self.camera,
                 &pose.cam_from_world,
                 &self.camera,
                 &self.truth,
                 &mut ReprojectionWorkspace::new(),
-            )
+            )?;
+            Some((pose, delta_px))
         }
 
         fn decide(
