@@ -1468,6 +1468,7 @@ mod tests {
         assert_eq!(ready.iter().map(|r| r.frame_id).collect::<Vec<_>>(), [5]);
         assert_eq!(lender_names(&ready[0]), ["frame"]);
     }
+
     /// A frame registered with unknown intrinsics lends no pose (batch registration offers only
     /// frames with known intrinsics): not kept when concluded, not offered while held.
     #[test]

@@ -16,8 +16,8 @@ use super::correspond::DEPTH_EDGE_RELATIVE_STEP;
 use super::decide::{reject, rival_rejection, EdgeGates};
 use super::refine::{rival_ends, support_at_pose, RefineWorkspace};
 use super::{
-    correspond_view, query_features, render_coarse_view, solve_view, CoarseView,
-    CorrespondWorkspace, IntrinsicsMode, RegistrationConfig, ViewRef,
+    correspond_view, query_features, solve_view, CorrespondWorkspace, IntrinsicsMode,
+    RegistrationConfig, ViewRef,
 };
 use crate::core::camera::{nearest_pixel, pixel_center, Camera};
 use crate::core::edge_align::{bilinear, SupportPeak};
@@ -155,13 +155,26 @@ pub const NEIGHBOUR_VIEW_INDEX: usize = 1000;
 pub const WARPED_NEIGHBOUR_VIEW_INDEX: usize = 1001;
 
 /// Buffers of step "neighbour", reused across frames.
-#[derive(Default)]
 pub struct NeighbourWorkspace {
+    /// Depth and faces only: the step reads no normal map and no ASG of its renderings.
     rasterizer: Rasterizer,
-    view: CoarseView,
+    /// The model rendered at the neighbour's pose.
+    neighbour_render: RenderBuffers,
     correspond: CorrespondWorkspace,
     refine: RefineWorkspace,
     warped: WarpedView,
+}
+
+impl Default for NeighbourWorkspace {
+    fn default() -> Self {
+        Self {
+            rasterizer: Rasterizer::depth_and_faces_only(),
+            neighbour_render: RenderBuffers::default(),
+            correspond: CorrespondWorkspace::default(),
+            refine: RefineWorkspace::default(),
+            warped: WarpedView::default(),
+        }
+    }
 }
 
 /// The neighbour's photo seen from a pose of the frame ([`warp_to_view`]).
@@ -182,10 +195,9 @@ const WARP_VISIBILITY_RELATIVE_DEPTH: f64 = 2.0 * DEPTH_EDGE_RELATIVE_STEP as f6
 
 /// Brings `neighbour`'s query image to the view of `out.render` (the caller's rendering of the
 /// model through `camera` at `cam_from_world`): each pixel's model point is projected into the
-/// neighbour; where the
-/// neighbour sees that point (its rendering `neighbour_render` has it in front, within
-/// [`WARP_VISIBILITY_RELATIVE_DEPTH`]) the pixel takes the neighbour's query image there
-/// (bilinear), elsewhere 0 and no face. Returns how many pixels the neighbour sees.
+/// neighbour; where the neighbour sees that point (its rendering `neighbour_render` has it in
+/// front, within [`WARP_VISIBILITY_RELATIVE_DEPTH`]) the pixel takes the neighbour's query image
+/// there (bilinear), elsewhere 0 and no face. Returns how many pixels the neighbour sees.
 pub fn warp_to_view(
     camera: &Camera,
     cam_from_world: &Rigid3,
@@ -259,26 +271,13 @@ pub fn pose_from_neighbour(
     workspace: &mut NeighbourWorkspace,
 ) -> Result<PoseHypothesis, String> {
     render_neighbour(mesh, camera, neighbour, config, workspace)?;
-    match seen_from {
-        None => as_photographed(
-            mesh, camera, intrinsics, features, neighbour, config, seed, workspace,
-        ),
-        Some(cam_from_world) => seen_from_pose(
-            mesh,
-            camera,
-            intrinsics,
-            features,
-            neighbour,
-            cam_from_world,
-            config,
-            seed,
-            workspace,
-        ),
-    }
+    pose_from_rendered_neighbour(
+        mesh, camera, intrinsics, features, neighbour, seen_from, config, seed, workspace,
+    )
 }
 
-/// The model rendered at the neighbour's pose into `workspace.view`, after checking that the
-/// neighbour shares the frame's working size.
+/// The model rendered at the neighbour's pose into `workspace.neighbour_render`, after checking
+/// that the neighbour shares the frame's working size.
 fn render_neighbour(
     mesh: &Mesh,
     camera: &Camera,
@@ -303,103 +302,81 @@ fn render_neighbour(
             size.1
         ));
     }
-    render_coarse_view(
+    workspace
+        .neighbour_render
+        .resize(neighbour_size.0, neighbour_size.1);
+    workspace.rasterizer.render(
         mesh,
-        neighbour.camera,
-        NEIGHBOUR_VIEW_INDEX,
+        &neighbour.camera.intrinsics,
         &neighbour.cam_from_world,
-        config,
-        &mut workspace.rasterizer,
-        &mut workspace.view,
+        &config.render,
+        &mut workspace.neighbour_render,
     );
     Ok(())
 }
 
-/// [`pose_from_neighbour`] with the neighbour's photo as photographed (`workspace.view` holds
-/// the model rendered at the neighbour's pose).
+/// [`pose_from_neighbour`] once the neighbour is rendered ([`render_neighbour`]): its photo as
+/// photographed (`seen_from` `None`: lifted on the neighbour's rendering) or seen from
+/// `seen_from` ([`warp_to_view`]: lifted on the model rendered there).
 #[allow(clippy::too_many_arguments)]
-fn as_photographed(
+fn pose_from_rendered_neighbour(
     mesh: &Mesh,
     camera: &Camera,
     intrinsics: IntrinsicsMode,
     features: &QueryFeatures,
     neighbour: &RegisteredNeighbour<'_>,
+    seen_from: Option<&Rigid3>,
     config: &RegistrationConfig,
     seed: u64,
     workspace: &mut NeighbourWorkspace,
 ) -> Result<PoseHypothesis, String> {
-    let view = ViewRef::new(
-        NEIGHBOUR_VIEW_INDEX,
-        neighbour.cam_from_world,
-        neighbour.query,
-        workspace.view.render.depth_m().view(),
-        workspace.view.render.face_index().view(),
-    )
-    .map_err(|e| e.to_string())?;
-    let correspondences = correspond_view(
-        mesh,
-        neighbour.camera,
-        features,
-        &view,
-        config,
-        &mut workspace.correspond,
-    )
-    .map_err(|e| e.to_string())?;
-    solve_view(&correspondences, camera, intrinsics, config, seed).hypothesis
-}
-
-/// [`pose_from_neighbour`] with the neighbour's photo seen from `cam_from_world`
-/// ([`warp_to_view`]; `workspace.view` holds the model rendered at the neighbour's pose).
-#[allow(clippy::too_many_arguments)]
-fn seen_from_pose(
-    mesh: &Mesh,
-    camera: &Camera,
-    intrinsics: IntrinsicsMode,
-    features: &QueryFeatures,
-    neighbour: &RegisteredNeighbour<'_>,
-    cam_from_world: &Rigid3,
-    config: &RegistrationConfig,
-    seed: u64,
-    workspace: &mut NeighbourWorkspace,
-) -> Result<PoseHypothesis, String> {
-    let warped = &mut workspace.warped;
-    warped
-        .render
-        .resize(camera.width_px as usize, camera.height_px as usize);
-    workspace.rasterizer.render(
-        mesh,
-        &camera.intrinsics,
-        cam_from_world,
-        &config.render,
-        &mut warped.render,
-    );
-    if warp_to_view(
-        camera,
-        cam_from_world,
-        neighbour,
-        &workspace.view.render,
+    let NeighbourWorkspace {
+        rasterizer,
+        neighbour_render,
+        correspond,
         warped,
-    ) == 0
-    {
-        return Err("the neighbour sees none of the model seen from there".to_string());
-    }
-    let view = ViewRef::new(
-        WARPED_NEIGHBOUR_VIEW_INDEX,
-        *cam_from_world,
-        warped.image.view(),
-        warped.render.depth_m().view(),
-        warped.face_index.view(),
-    )
-    .map_err(|e| e.to_string())?;
-    let correspondences = correspond_view(
-        mesh,
-        camera,
-        features,
-        &view,
-        config,
-        &mut workspace.correspond,
-    )
-    .map_err(|e| e.to_string())?;
+        ..
+    } = workspace;
+    let (view, lift_camera) = match seen_from {
+        None => (
+            ViewRef::new(
+                NEIGHBOUR_VIEW_INDEX,
+                neighbour.cam_from_world,
+                neighbour.query,
+                neighbour_render.depth_m().view(),
+                neighbour_render.face_index().view(),
+            ),
+            neighbour.camera,
+        ),
+        Some(cam_from_world) => {
+            warped
+                .render
+                .resize(camera.width_px as usize, camera.height_px as usize);
+            rasterizer.render(
+                mesh,
+                &camera.intrinsics,
+                cam_from_world,
+                &config.render,
+                &mut warped.render,
+            );
+            if warp_to_view(camera, cam_from_world, neighbour, neighbour_render, warped) == 0 {
+                return Err("the neighbour sees none of the model seen from there".to_string());
+            }
+            (
+                ViewRef::new(
+                    WARPED_NEIGHBOUR_VIEW_INDEX,
+                    *cam_from_world,
+                    warped.image.view(),
+                    warped.render.depth_m().view(),
+                    warped.face_index.view(),
+                ),
+                camera,
+            )
+        }
+    };
+    let view = view.map_err(|e| e.to_string())?;
+    let correspondences = correspond_view(mesh, lift_camera, features, &view, config, correspond)
+        .map_err(|e| e.to_string())?;
     solve_view(&correspondences, camera, intrinsics, config, seed).hypothesis
 }
 
@@ -589,6 +566,16 @@ pub struct NeighbourTry {
 }
 
 impl NeighbourTry {
+    /// A try of neighbour `neighbour` from `view` that gave no pose, and why.
+    fn failed(neighbour: usize, view: NeighbourView, why: String) -> Self {
+        Self {
+            neighbour,
+            view,
+            check: Err(why),
+            decision: NeighbourDecision::Keep,
+        }
+    }
+
     pub fn confirmed(&self) -> bool {
         self.check
             .as_ref()
@@ -621,12 +608,11 @@ pub fn try_neighbours(
     let features = match query_features(query, config) {
         Ok(features) => features,
         Err(error) => {
-            tries.push(NeighbourTry {
-                neighbour: 0,
-                view: NeighbourView::AsPhotographed,
-                check: Err(error.to_string()),
-                decision: NeighbourDecision::Keep,
-            });
+            tries.push(NeighbourTry::failed(
+                0,
+                NeighbourView::AsPhotographed,
+                error.to_string(),
+            ));
             return tries;
         }
     };
@@ -636,33 +622,20 @@ pub fn try_neighbours(
     };
     let warp = config.neighbour_pose.warp;
     for (index, neighbour) in neighbours.iter().enumerate() {
-        // The neighbour's rendering stays in `workspace.view` for all its views.
+        // The neighbour's rendering serves all its views.
         if let Err(why) = render_neighbour(mesh, camera, neighbour, config, workspace) {
-            tries.push(NeighbourTry {
-                neighbour: index,
-                view: NeighbourView::AsPhotographed,
-                check: Err(why),
-                decision: NeighbourDecision::Keep,
-            });
+            tries.push(NeighbourTry::failed(
+                index,
+                NeighbourView::AsPhotographed,
+                why,
+            ));
             continue;
         }
+        // Tries the neighbour from `view`; whether it is confirmed, and its pose if any.
         let mut attempt = |view: NeighbourView, seen_from: Option<&Rigid3>| {
-            let tried = match match seen_from {
-                None => as_photographed(
-                    mesh, camera, intrinsics, &features, neighbour, config, seed, workspace,
-                ),
-                Some(cam_from_world) => seen_from_pose(
-                    mesh,
-                    camera,
-                    intrinsics,
-                    &features,
-                    neighbour,
-                    cam_from_world,
-                    config,
-                    seed,
-                    workspace,
-                ),
-            } {
+            let tried = match pose_from_rendered_neighbour(
+                mesh, camera, intrinsics, &features, neighbour, seen_from, config, seed, workspace,
+            ) {
                 Ok(hypothesis) => {
                     let (check, decision) = check_neighbour_pose(
                         mesh,
@@ -680,12 +653,7 @@ pub fn try_neighbours(
                         decision,
                     }
                 }
-                Err(why) => NeighbourTry {
-                    neighbour: index,
-                    view,
-                    check: Err(why),
-                    decision: NeighbourDecision::Keep,
-                },
+                Err(why) => NeighbourTry::failed(index, view, why),
             };
             let confirmed = tried.confirmed();
             let pose = tried
