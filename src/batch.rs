@@ -314,7 +314,7 @@ struct LoadedQuery {
 ///   began, so the order of the frames does not matter.
 ///
 /// Frames with unknown intrinsics, and those whose files cannot be read, are left as they
-/// are. Returns the indices of the frames whose decision changed, ascending.
+/// are. Returns the indices of the frames whose decision or pose changed, ascending.
 pub fn neighbour_pass(
     mesh: &Mesh,
     frames: &[BatchFrame],
@@ -499,6 +499,10 @@ impl NeighbourPass<'_> {
                 report.inlier_rms_px = Some(check.hypothesis.inlier_rms_px);
                 report.rejected_candidate = None;
                 self.steps[index] = Some(tried.steps);
+                self.changed.push(index);
+            }
+            (NeighbourDecision::Combine { cam_from_world }, _) => {
+                report.cam_from_world = Some(cam_from_world);
                 self.changed.push(index);
             }
             (NeighbourDecision::Contradicted { apart_px }, _) => {

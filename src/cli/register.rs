@@ -12,8 +12,8 @@ use asgreg::core::confidence::ConfidenceConfig;
 use asgreg::core::edge_align::{AlignedKinds, EdgeAlignConfig};
 use asgreg::core::flow_consistency::MatchConfig;
 use asgreg::core::frame::{
-    IntrinsicsMode, NeighbourPoseConfig, NeighbourWarp, QueryMode, RegistrationConfig,
-    UnknownIntrinsics,
+    IntrinsicsMode, NeighbourAgreement, NeighbourPoseConfig, NeighbourWarp, QueryMode,
+    RegistrationConfig, UnknownIntrinsics,
 };
 use asgreg::core::image::Image;
 use asgreg::core::pose_search::PoseSearchConfig;
@@ -497,6 +497,11 @@ pub struct CoarseArgs {
     /// photo as photographed gave.
     #[arg(long, value_enum, default_value_t = NeighbourWarpArg::from(NeighbourPoseConfig::default().warp))]
     pub neighbour_warp: NeighbourWarpArg,
+    /// Step "neighbour", an accepted frame whose pose a confirmed neighbour's pose agrees with:
+    /// `keep` — the own pose stays; `mean` — halfway between the two; `least-seen` — the own
+    /// pose moved along the direction its edges see least to the neighbour's.
+    #[arg(long, value_enum, default_value_t = NeighbourAgreementArg::from(NeighbourPoseConfig::default().agreement))]
+    pub neighbour_agreement: NeighbourAgreementArg,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
     pub rival_reach_px: f64,
@@ -599,6 +604,7 @@ impl Default for CoarseArgs {
             neighbour_order: None,
             neighbour_lookahead: NeighbourPoseConfig::default().lookahead_frames,
             neighbour_warp: NeighbourPoseConfig::default().warp.into(),
+            neighbour_agreement: NeighbourPoseConfig::default().agreement.into(),
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -617,6 +623,33 @@ impl From<NeighbourOrderArg> for asgreg::core::frame::NeighbourOrder {
         match arg {
             NeighbourOrderArg::Feed => Self::Feed,
             NeighbourOrderArg::Set => Self::Set,
+        }
+    }
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NeighbourAgreementArg {
+    Keep,
+    Mean,
+    LeastSeen,
+}
+
+impl From<NeighbourAgreementArg> for NeighbourAgreement {
+    fn from(arg: NeighbourAgreementArg) -> Self {
+        match arg {
+            NeighbourAgreementArg::Keep => Self::Keep,
+            NeighbourAgreementArg::Mean => Self::Mean,
+            NeighbourAgreementArg::LeastSeen => Self::LeastSeen,
+        }
+    }
+}
+
+impl From<NeighbourAgreement> for NeighbourAgreementArg {
+    fn from(agreement: NeighbourAgreement) -> Self {
+        match agreement {
+            NeighbourAgreement::Keep => Self::Keep,
+            NeighbourAgreement::Mean => Self::Mean,
+            NeighbourAgreement::LeastSeen => Self::LeastSeen,
         }
     }
 }
@@ -881,6 +914,7 @@ pub fn registration_config(
                 .into(),
             lookahead_frames: coarse.neighbour_lookahead,
             warp: coarse.neighbour_warp.into(),
+            agreement: coarse.neighbour_agreement.into(),
             ..defaults.neighbour_pose
         },
         ..defaults

@@ -1651,6 +1651,14 @@ pub fn apply_pose_step(pose: &Rigid3, step: &Vector6<f64>) -> Rigid3 {
     )
 }
 
+/// The step that [`apply_pose_step`] takes from `from` to `to` exactly (its inverse).
+pub fn pose_step_between(from: &Rigid3, to: &Rigid3) -> Vector6<f64> {
+    let rotation_step = to.rotation * from.rotation.inverse();
+    let turn = rotation_step.scaled_axis();
+    let shift = to.translation - rotation_step * from.translation;
+    Vector6::new(turn.x, turn.y, turn.z, shift.x, shift.y, shift.z)
+}
+
 /// The direction across a ridge of `image` at pixel `(col, row)`: the eigenvector of the Hessian
 /// with the most negative eigenvalue, when the ridge is line-like (that curvature at least twice
 /// the other's magnitude). The pixel must be at least one pixel from the border.
@@ -2027,6 +2035,22 @@ mod tests {
             assert!((numeric.x - row_u[axis]).abs() < 1e-2 * (1.0 + row_u[axis].abs()));
             assert!((numeric.y - row_v[axis]).abs() < 1e-2 * (1.0 + row_v[axis].abs()));
         }
+    }
+
+    #[test]
+    fn the_step_between_two_poses_takes_one_to_the_other() {
+        let from = Rigid3::new(
+            UnitQuaternion::from_euler_angles(0.2, -0.4, 1.1),
+            Vector3::new(0.3, -0.1, 4.0),
+        );
+        let to = Rigid3::new(
+            UnitQuaternion::from_euler_angles(0.25, -0.38, 1.0),
+            Vector3::new(0.5, 0.2, 3.7),
+        );
+        let reached = apply_pose_step(&from, &pose_step_between(&from, &to));
+        assert!(reached.rotation_angle_to_rad(&to) < 1e-12);
+        assert!((reached.translation - to.translation).norm() < 1e-12);
+        assert!(pose_step_between(&to, &to).norm() < 1e-12);
     }
 
     /// The keep rules: support alone follows the support; the correlation vetoes a pose it

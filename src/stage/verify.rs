@@ -387,7 +387,7 @@ fn decide_with_neighbours(
             );
             None
         }
-        NeighbourDecision::Keep => own_steps,
+        NeighbourDecision::Keep | NeighbourDecision::Combine { .. } => own_steps,
     }
 }
 

@@ -47,9 +47,9 @@ pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWork
 pub use decide::{decide_frame, decide_frame_and_centres, Decision};
 pub use neighbour::{
     apply_to_verdict, check_neighbour_pose, feed_neighbours, nearest_neighbours,
-    pose_from_neighbour, try_neighbours, FeedLender, NeighbourCheck, NeighbourDecision,
-    NeighbourOrder, NeighbourPoseConfig, NeighbourTry, NeighbourView, NeighbourWarp,
-    NeighbourWorkspace, RegisteredNeighbour,
+    pose_from_neighbour, try_neighbours, FeedLender, NeighbourAgreement, NeighbourCheck,
+    NeighbourDecision, NeighbourOrder, NeighbourPoseConfig, NeighbourTry, NeighbourView,
+    NeighbourWarp, NeighbourWorkspace, RegisteredNeighbour,
 };
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{

@@ -3,7 +3,7 @@
 //! than the verified pose's; both are reported. Runs after verification, on the output pose of
 //! an accepted frame and on the would-be pose of a rejected one.
 
-use nalgebra::Matrix6;
+use nalgebra::{Matrix6, Vector6};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -12,9 +12,9 @@ use crate::core::camera::Camera;
 use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
     align_level, blurred_query, edge_evidence, fit_rounding, image_motion_metric,
-    least_seen_starts, model_edge_samples, sharpened_samples, support_peak, AlignedParameters,
-    EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary, RoundingJudge, SupportPeak,
-    MOTION_METRIC_STRIDE_PX,
+    least_seen_starts, model_edge_samples, sharpened_samples, support_peak, supported_seen_steps,
+    AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary, RoundingJudge,
+    SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
 use crate::core::feature_align::{align_dense_level, dense_samples, DenseSample};
 use crate::core::image::{Image, ImageView};
@@ -570,6 +570,60 @@ pub fn support_at_pose(
     workspace: &mut RefineWorkspace,
 ) -> Result<SupportPeak, String> {
     let align = &config.edge_align;
+    let (samples, metric) =
+        sharpened_at_pose(mesh, camera, query, cam_from_world, config, workspace)?;
+    let at_pose = edge_evidence(&samples, &query, camera, cam_from_world, align);
+    Ok(support_peak(
+        &samples,
+        &query,
+        camera,
+        cam_from_world,
+        &at_pose,
+        metric.as_ref(),
+        align,
+    ))
+}
+
+/// The pose steps the photo's edges see at `cam_from_world` as it is (no alignment), least seen
+/// first, each moving the visible model by 1 px RMS ([`supported_seen_steps`]; the samples as
+/// [`support_at_pose`] judges them). `Err` as [`support_at_pose`], or when the model's
+/// image-motion metric cannot be factorised.
+pub fn seen_steps_at_pose(
+    mesh: &Mesh,
+    camera: &Camera,
+    query: ImageView<'_, f32>,
+    cam_from_world: &Rigid3,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Result<Vec<Vector6<f64>>, String> {
+    let (samples, metric) =
+        sharpened_at_pose(mesh, camera, query, cam_from_world, config, workspace)?;
+    metric
+        .and_then(|metric| {
+            supported_seen_steps(
+                &samples,
+                &query,
+                camera,
+                cam_from_world,
+                &metric,
+                &config.edge_align,
+            )
+        })
+        .ok_or_else(|| "the model's image motion at the pose cannot be factorised".to_string())
+}
+
+/// The model's edge samples at `cam_from_world` (rendered there), with the edge rounding fitted
+/// at the pose undone when `edge_align.estimate_rounding` is on, and the model's image-motion
+/// metric there.
+fn sharpened_at_pose(
+    mesh: &Mesh,
+    camera: &Camera,
+    query: ImageView<'_, f32>,
+    cam_from_world: &Rigid3,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Result<(Vec<EdgeSample>, Option<Matrix6<f64>>), String> {
+    let align = &config.edge_align;
     let evaluated = evaluate_start(mesh, camera, query, cam_from_world, config, workspace)?;
     let rounding_m = own_rounding(align, &evaluated.samples, &query, camera, cam_from_world);
     let mut samples = Vec::new();
@@ -579,16 +633,7 @@ pub fn support_at_pose(
         align.rounding_kinds,
         &mut samples,
     );
-    let at_pose = edge_evidence(&samples, &query, camera, cam_from_world, align);
-    Ok(support_peak(
-        &samples,
-        &query,
-        camera,
-        cam_from_world,
-        &at_pose,
-        evaluated.metric.as_ref(),
-        align,
-    ))
+    Ok((samples, evaluated.metric))
 }
 
 /// Renders `camera` at `start` (`workspace`'s view then holds it) and evaluates it: its model
