@@ -514,10 +514,10 @@ fn combined(
     workspace: &mut NeighbourWorkspace,
 ) -> Option<Rigid3> {
     let own = &accepted.cam_from_world;
-    let step = pose_step_between(own, &neighbours.cam_from_world);
+    let step = || pose_step_between(own, &neighbours.cam_from_world);
     match config.neighbour_pose.agreement {
         NeighbourAgreement::Keep => None,
-        NeighbourAgreement::Mean => Some(apply_pose_step(own, &(step * 0.5))),
+        NeighbourAgreement::Mean => Some(apply_pose_step(own, &(step() * 0.5))),
         NeighbourAgreement::LeastSeen => {
             let steps = seen_steps_at_pose(
                 mesh,
@@ -529,7 +529,7 @@ fn combined(
             )
             .ok()?;
             let basis = nalgebra::Matrix6::from_columns(&steps);
-            let along = basis.try_inverse()? * step;
+            let along = basis.try_inverse()? * step();
             Some(apply_pose_step(own, &(steps[0] * along[0])))
         }
     }
@@ -928,15 +928,20 @@ mod tests {
                 workspace,
             )
             .ok()?;
-            let delta_px = mutual_reprojection_error_px(
+            let delta_px = self.delta_to_truth(&pose.cam_from_world)?;
+            Some((pose, delta_px))
+        }
+
+        /// δ between `cam_from_world` and the true pose, px.
+        fn delta_to_truth(&self, cam_from_world: &Rigid3) -> Option<f64> {
+            mutual_reprojection_error_px(
                 &self.mesh,
                 &self.camera,
-                &pose.cam_from_world,
+                cam_from_world,
                 &self.camera,
                 &self.truth,
                 &mut ReprojectionWorkspace::new(),
-            )?;
-            Some((pose, delta_px))
+            )
         }
 
         fn decide(
@@ -1080,15 +1085,7 @@ mod tests {
             UnitQuaternion::from_scaled_axis(Vector3::new(0.035, 0.0, 0.0)) * scene.truth.rotation,
             scene.truth.translation,
         );
-        let start_px = mutual_reprojection_error_px(
-            &scene.mesh,
-            &scene.camera,
-            &own,
-            &scene.camera,
-            &scene.truth,
-            &mut ReprojectionWorkspace::new(),
-        )
-        .unwrap();
+        let start_px = scene.delta_to_truth(&own).unwrap();
         assert!(
             start_px > 5.0,
             "the frame's own pose is {start_px:.2} px off"
@@ -1221,18 +1218,7 @@ mod tests {
             cam_from_world: apply_pose_step(&scene.truth, &(steps[0] * 3.0)),
             ..pose
         };
-        let delta_px = |cam_from_world: &Rigid3| {
-            mutual_reprojection_error_px(
-                &scene.mesh,
-                &scene.camera,
-                cam_from_world,
-                &scene.camera,
-                &scene.truth,
-                &mut ReprojectionWorkspace::new(),
-            )
-            .unwrap()
-        };
-        let own_delta_px = delta_px(&own.cam_from_world);
+        let own_delta_px = scene.delta_to_truth(&own.cam_from_world).unwrap();
         // 3 px RMS of the visible model's motion; δ (the mutual reprojection) reads 2.2 px.
         assert!(own_delta_px > 1.5, "δ {own_delta_px:.2} px");
         scene.config.neighbour_pose.agreement = NeighbourAgreement::Keep;
@@ -1246,7 +1232,7 @@ mod tests {
             let NeighbourDecision::Combine { cam_from_world } = decision else {
                 panic!("{agreement:?}: {decision:?} {check:?}");
             };
-            let combined_px = delta_px(&cam_from_world);
+            let combined_px = scene.delta_to_truth(&cam_from_world).unwrap();
             assert!(
                 combined_px < 0.7 * own_delta_px,
                 "{agreement:?}: δ {combined_px:.2} px from {own_delta_px:.2} px"
