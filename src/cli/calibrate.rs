@@ -1,7 +1,8 @@
 //! `asgreg calibrate`: fits the confidence model ([`asgreg::core::confidence`]) on `asgreg eval`
 //! results with ground truth and chooses the accept threshold so that the measured false-accept
 //! rate among accepted frames stays below a bound (issue #11 item 4). Prints the calibration
-//! table of the fit and of held-out results; writes the model as JSON.
+//! table of the fit and of held-out results, and what the paper's check alone would accept in
+//! its strictest form (`confidence.max_convergence_at_chance`); writes the model as JSON.
 
 use std::path::PathBuf;
 
@@ -171,6 +172,7 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
             &format!("the default model on {}", path.display()),
         );
     }
+    report_agreement_alone(&train);
     println!("\nthreshold (the highest of the in-sample and held-out ones): {threshold:.2}");
     if let Some(out) = &args.out {
         let json = serde_json::json!({
@@ -187,6 +189,42 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
         println!("wrote {}", out.display());
     }
     Ok(())
+}
+
+/// The paper's check alone, in the strictest form `confidence.max_convergence_at_chance` accepts
+/// on where the photo shows none of the model's edges (`FrameEvidence::agreed_by_every_coarse_pose`),
+/// measured on `frames` with their edge evidence withheld: per bound on the convergence, the
+/// frames it would accept on the agreement alone and how far off they are.
+fn report_agreement_alone(frames: &[&Labelled]) {
+    let default_bound = ConfidenceConfig::default().max_convergence_at_chance;
+    println!(
+        "\n## The paper's check alone, strictest form (edge evidence withheld)\n\nEvery coarse pose refined, all in one agreeing group converged to at most the bound (the default bound: {default_bound}).\n"
+    );
+    println!("| convergence at most | frames | within 2 px | beyond 5 px | false accepts | their δ (px) |\n|---|---|---|---|---|---|");
+    for bound in [0.25, 0.5, 0.75, 0.9] {
+        let agreed: Vec<&&Labelled> = frames
+            .iter()
+            .filter(|l| {
+                l.frame
+                    .evidence
+                    .is_some_and(|e| e.agreed_by_every_coarse_pose(bound))
+            })
+            .collect();
+        let delta = |l: &&&Labelled| l.frame.final_delta_px.unwrap_or(f64::INFINITY);
+        let within = agreed.iter().filter(|l| delta(l) <= 2.0).count();
+        let beyond = agreed.iter().filter(|l| delta(l) > 5.0).count();
+        let wrong: Vec<String> = agreed
+            .iter()
+            .filter(|l| !l.correct)
+            .map(|l| format!("{:.1}", delta(l)))
+            .collect();
+        println!(
+            "| {bound:.2} | {} | {within} | {beyond} | {} | {} |",
+            agreed.len(),
+            wrong.len(),
+            wrong.join(", ")
+        );
+    }
 }
 
 /// The model fitted on `frames` with the features not `kept` held at 0 (so their weight is 0).

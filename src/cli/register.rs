@@ -453,6 +453,12 @@ pub struct CoarseArgs {
     /// the frame's refined poses agree on (0..1; 0: off).
     #[arg(long, default_value_t = ConfidenceConfig::default().min_support_above_chance)]
     pub min_support_above_chance: f64,
+    /// Where the photo shows none of the model's edges (at chance at the pose, near it and over
+    /// shifts of 64 px), accept a pose on the paper's check alone when every coarse pose refined
+    /// into one agreeing group that converged to at most this share of its coarse spread (0..1;
+    /// 0: never).
+    #[arg(long, default_value_t = ConfidenceConfig::default().max_convergence_at_chance)]
+    pub max_convergence_at_chance: f64,
     /// The rival-basin test of an accepted pose: the alignment also runs from the output moved
     /// by --rival-reach-px of δ either way along this many directions its edges see least, and
     /// a distinct end that keeps --rival-share of the output's edge support above chance
@@ -596,6 +602,7 @@ impl Default for CoarseArgs {
             min_least_seen_near_drop: ConfidenceConfig::default().min_least_seen_near_drop,
             min_overrule_margin: ConfidenceConfig::default().min_overrule_margin,
             min_support_above_chance: ConfidenceConfig::default().min_support_above_chance,
+            max_convergence_at_chance: ConfidenceConfig::default().max_convergence_at_chance,
             rival_directions: EdgeAlignConfig::default().rival_directions,
             no_rival_centres: !EdgeAlignConfig::default().rival_centres,
             no_neighbours: !NeighbourPoseConfig::default().enabled,
@@ -860,6 +867,7 @@ pub fn registration_config(
             min_least_seen_near_drop: coarse.min_least_seen_near_drop,
             min_overrule_margin: coarse.min_overrule_margin,
             min_support_above_chance: coarse.min_support_above_chance,
+            max_convergence_at_chance: coarse.max_convergence_at_chance,
             ..defaults.confidence
         },
         asg: AsgOptions {

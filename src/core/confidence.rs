@@ -42,6 +42,18 @@ pub struct FrameEvidence {
 }
 
 impl FrameEvidence {
+    /// The paper's check passed in its strictest form: every coarse pose gave a refined pose,
+    /// all of them in one agreeing group, which converged to at most `max_convergence` of its
+    /// coarse poses' spread.
+    pub fn agreed_by_every_coarse_pose(&self, max_convergence: f64) -> bool {
+        self.check_passed
+            && self.component_size == self.hypotheses
+            && self.hypotheses == self.coarse_poses
+            && self
+                .convergence_ratio
+                .is_some_and(|ratio| ratio <= max_convergence)
+    }
+
     /// The edge support's excess over chance at the output pose (`at_pose − far` of its
     /// [`SupportPeak`]; 0 without edge evidence): a feature of the model and what
     /// [`ConfidenceConfig::min_overrule_margin`] bounds.
@@ -236,6 +248,24 @@ pub struct ConfidenceConfig {
     /// from (degraded houses s4 and s6 and block s2 at 30 px, the change scene block s1): 48 →
     /// 40 accepts, mean δ 2.45 → 1.28 px, the eight it removes 4.6–16.1 px off.
     pub min_support_above_chance: f64,
+    /// Where the photo shows none of the model's edges — the support at the pose, near it and
+    /// over image shifts within `at_chance_reach_px` all within `min_support_above_chance` of
+    /// chance ([`crate::core::edge_align::SupportPeak::at_chance_everywhere`]) — the edges can
+    /// neither confirm nor contradict a pose, and the paper's check decides alone, in its
+    /// strictest form: every coarse pose refined, all in one agreeing group, which converged to
+    /// at most this share of its coarse poses' spread (0..1; 0: such a frame is never
+    /// accepted). A model whose creases the photo does not show (a beach's terrain mesh:
+    /// Brighton's correct candidates are unanimous at 0.12–0.24 with edges at chance) is then
+    /// not rejected for it. 0.5 was read on the synthetic cells with the edge evidence withheld
+    /// (thirty-third session, docs/measurements.md): of the frames whose every coarse pose
+    /// refined into one group, those converged to 0.5 or less were none beyond 25 px (57
+    /// frames, 8 beyond 5 px), those up to the check's 0.9 two (42.7 and 44.0 px).
+    pub max_convergence_at_chance: f64,
+    /// Half-width of the image shifts over which a pose's edges are searched before the photo
+    /// is said to show none of them, px ([`crate::core::edge_align::widest_support`]): beyond
+    /// the compatibility distance of the paper's check (5 % of the long side, 25 px at 505 px),
+    /// so that a unanimous pose that wrong finds the model's edges where the photo shows them.
+    pub at_chance_reach_px: f64,
 }
 
 impl Default for ConfidenceConfig {
@@ -267,6 +297,8 @@ impl Default for ConfidenceConfig {
             min_least_seen_near_drop: 0.1,
             min_overrule_margin: 0.4,
             min_support_above_chance: 0.23,
+            max_convergence_at_chance: 0.5,
+            at_chance_reach_px: 64.0,
         }
     }
 }
@@ -308,6 +340,8 @@ impl ConfidenceConfig {
         share("min_least_seen_near_drop", self.min_least_seen_near_drop)?;
         share("min_overrule_margin", self.min_overrule_margin)?;
         share("min_support_above_chance", self.min_support_above_chance)?;
+        share("max_convergence_at_chance", self.max_convergence_at_chance)?;
+        positive_px("at_chance_reach_px", self.at_chance_reach_px)?;
         if !(self.model.bias.is_finite() && self.model.weights.iter().all(|w| w.is_finite())) {
             return Err(ConfidenceConfigError {
                 field: "model",
@@ -485,6 +519,7 @@ mod tests {
                 delta_uncertainty_px: 0.5,
                 least_seen_near: 0.25,
                 least_seen_far: 0.25,
+                widest: None,
             }),
             correlation: Some(CorrelationPeak {
                 at_pose: 0.44,
@@ -542,6 +577,7 @@ mod tests {
                 delta_uncertainty_px: 0.5,
                 least_seen_near: 0.25,
                 least_seen_far: 0.25,
+                widest: None,
             }),
             check_passed: false,
             ..evidence
@@ -591,6 +627,7 @@ mod tests {
                     delta_uncertainty_px: 0.5,
                     least_seen_near: 0.25,
                     least_seen_far: 0.25,
+                    widest: None,
                 }),
                 correlation: None,
             };

@@ -3,8 +3,8 @@
 //! chosen pose against the query ([`super::refine`]); the verdict carries the chosen pose itself.
 
 use super::refine::{
-    refine_from_other_centres, refine_verdict, rival_basin, rival_ends, PoseRefinement,
-    RefineWorkspace, RivalEnd,
+    refine_from_other_centres, refine_verdict, rival_basin, rival_ends, support_at_pose_within,
+    PoseRefinement, RefineWorkspace, RivalEnd,
 };
 use super::{process_cpu_ms, CoarseOutcome, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
@@ -166,6 +166,11 @@ fn reject_a_local_maximum(
     let (Some(output), Some(peak)) = (chosen.verdict.accepted_pose(), chosen.evidence.edges) else {
         return;
     };
+    // A pose accepted where the photo shows none of the model's edges has no edge basin for a
+    // rival to match (the test compares support above chance).
+    if peak.at_pose - peak.far < config.confidence.min_support_above_chance {
+        return;
+    }
     let min_apart_px = config.pose_search.centre_agreement_share * chosen.verdict.threshold_px;
     let min_share = config.edge_align.rival_share_above_chance;
     chosen.rival_ends = rival_ends(mesh, query, intrinsics, output, config, workspace);
@@ -368,7 +373,7 @@ fn refine_centre(
     );
     let group: Vec<PoseHypothesis> = verdict.component.iter().map(|&i| hypotheses[i]).collect();
     let refine_started_ms = process_cpu_ms();
-    let refinement = match query {
+    let mut refinement = match query {
         Some(query) => refine_verdict(
             mesh,
             query,
@@ -380,12 +385,85 @@ fn refine_centre(
         ),
         None => Err("the frame's query is not at hand".to_string()),
     };
+    if let (Some(query), Ok(refinement)) = (query, refinement.as_mut()) {
+        measure_the_widest_support(
+            mesh,
+            query,
+            &verdict,
+            outcomes.len(),
+            refinement,
+            config,
+            workspace,
+        );
+    }
     RefinedCentre {
         verdict,
         refinement,
         outcomes: outcomes.len(),
         refine_cpu_ms: process_cpu_ms() - refine_started_ms,
     }
+}
+
+/// For a centre the paper's check passed in its strictest form
+/// ([`FrameEvidence::agreed_by_every_coarse_pose`]) while the photo's edges are at chance near
+/// its output ([`SupportPeak::at_chance_near`]), the output's edge support measured once more
+/// with the wide search ([`SupportPeak::widest`], over `confidence.at_chance_reach_px`, around
+/// the output and, when the alignment moved it, around the check's own pose too; the
+/// refinement's peak is replaced by this one): whether the photo shows the model's edges
+/// anywhere ([`confirm`] reads it). Other centres are left as
+/// they are: the search costs a few thousand evaluations of the evidence.
+fn measure_the_widest_support(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    verdict: &Verdict,
+    coarse_poses: usize,
+    refinement: &mut PoseRefinement,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) {
+    let confidence = &config.confidence;
+    let evidence = FrameEvidence::new(verdict, coarse_poses, Some(refinement.peak), None);
+    let (Some(output), true) = (
+        verdict.chosen(),
+        confidence.max_convergence_at_chance > 0.0
+            && evidence.agreed_by_every_coarse_pose(confidence.max_convergence_at_chance)
+            && refinement
+                .peak
+                .at_chance_near(confidence.min_support_above_chance),
+    ) else {
+        return;
+    };
+    let reach_px = Some(confidence.at_chance_reach_px);
+    let Ok(mut peak) = support_at_pose_within(
+        mesh,
+        &output.camera,
+        query,
+        &output.cam_from_world,
+        reach_px,
+        config,
+        workspace,
+    ) else {
+        return;
+    };
+    // The alignment may have moved the output off the flow's agreed pose, also by translation,
+    // which no turn of the camera undoes: the agreed pose is searched around too.
+    if refinement.kept {
+        if let Ok(verified) = support_at_pose_within(
+            mesh,
+            &refinement.verified_camera,
+            query,
+            &refinement.verified_cam_from_world,
+            reach_px,
+            config,
+            workspace,
+        ) {
+            peak.widest = match (peak.widest, verified.widest) {
+                (Some(own), Some(agreed)) => Some(own.max(agreed)),
+                (own, agreed) => own.or(agreed),
+            };
+        }
+    }
+    refinement.peak = peak;
 }
 
 /// Verification across the pose search's hypotheses (issue #12 item 2): among the centres'
@@ -479,7 +557,14 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
         least_seen_drop,
         least_seen_near_drop,
     } = EdgeGates::of(evidence.edges.as_ref(), config);
-    let confirmed = confidence >= config.accept_above && clear && fixed;
+    // Where the photo shows none of the model's edges, the paper's check decides alone, in its
+    // strictest form (`max_convergence_at_chance`).
+    let agreed_at_chance = config.max_convergence_at_chance > 0.0
+        && evidence.agreed_by_every_coarse_pose(config.max_convergence_at_chance)
+        && evidence
+            .edges
+            .is_some_and(|peak| peak.at_chance_everywhere(config.min_support_above_chance));
+    let confirmed = (confidence >= config.accept_above && clear && fixed) || agreed_at_chance;
     match &verdict.decision {
         Ok(chosen) if !confirmed => {
             let reason = if confidence >= config.accept_above && clear {
@@ -718,6 +803,12 @@ mod tests {
         let wrong = Rigid3::new(turn * truth.rotation, turn * truth.translation);
         let decision = house.decide(&agreeing_outcomes(&camera, &wrong), &config, &mut workspace);
         assert!(decision.evidence.check_passed, "{:?}", decision.evidence);
+        // The photo shows the model's edges, only not here: not a photo without them.
+        let peak = decision.evidence.edges.expect("edge evidence");
+        assert!(
+            !peak.at_chance_everywhere(config.confidence.min_support_above_chance),
+            "{peak:?}"
+        );
         assert!(
             matches!(
                 decision.verdict.rejection(),
@@ -737,6 +828,92 @@ mod tests {
         let decision = house.decide(&agreeing_outcomes(&camera, &truth), &config, &mut workspace);
         assert!(decision.verdict.accepted(), "{:?}", decision.evidence);
         assert!(decision.verdict.confidence >= config.confidence.accept_above);
+    }
+
+    /// A photo of the test house's size that shows none of the model's edges: smooth random
+    /// texture (uniform noise blurred with σ 1.5 px), whose ridges lie anywhere.
+    fn photo_without_the_model(camera: &Camera) -> Image<f32> {
+        use rand::{Rng, SeedableRng};
+        let (width_px, height_px) = (camera.width_px as usize, camera.height_px as usize);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(33);
+        let noise = Image::new(
+            width_px,
+            height_px,
+            (0..width_px * height_px)
+                .map(|_| rng.random::<f32>())
+                .collect(),
+        )
+        .unwrap();
+        let mut photo = Image::default();
+        crate::core::edge_align::blurred_query(noise.view(), 6.0, &mut photo);
+        photo
+    }
+
+    /// Where the photo shows none of the model's edges (near the pose and over the wide search's
+    /// reach), a pose every coarse pose refined to and agreed on is accepted on the paper's check
+    /// alone; with one refined pose outside the group, or with `max_convergence_at_chance` 0,
+    /// it is not. (A unanimous pose 54 px off on a photo that does show the model stays
+    /// rejected: `an_agreed_pose_the_photo_does_not_confirm_is_rejected`.)
+    #[test]
+    fn a_unanimous_pose_is_accepted_on_the_check_alone_only_where_the_photo_shows_no_model_edge() {
+        let config = RegistrationConfig::default();
+        let (mesh, camera, truth, _) = house_and_poses();
+        let photo = photo_without_the_model(&camera);
+        let mut workspace = RefineWorkspace::default();
+        let decide = |outcomes: &[CoarseOutcome],
+                      config: &RegistrationConfig,
+                      workspace: &mut RefineWorkspace| {
+            decide_frame(
+                &mesh,
+                &camera,
+                outcomes,
+                Some(photo.view()),
+                IntrinsicsMode::Known,
+                config,
+                workspace,
+                &[],
+            )
+        };
+        let unanimous = agreeing_outcomes(&camera, &truth);
+        let decision = decide(&unanimous, &config, &mut workspace);
+        let peak = decision.evidence.edges.expect("edge evidence");
+        assert!(peak.widest.is_some(), "{peak:?}");
+        assert!(
+            peak.at_chance_everywhere(config.confidence.min_support_above_chance),
+            "{peak:?}"
+        );
+        assert!(
+            decision.verdict.accepted(),
+            "{:?} {:?}",
+            decision.verdict.rejection(),
+            decision.evidence
+        );
+        assert!(decision.verdict.confidence < config.confidence.accept_above);
+
+        let off = RegistrationConfig {
+            confidence: ConfidenceConfig {
+                max_convergence_at_chance: 0.0,
+                ..config.confidence
+            },
+            ..config.clone()
+        };
+        let decision = decide(&unanimous, &off, &mut workspace);
+        assert!(!decision.verdict.accepted(), "{:?}", decision.evidence);
+        assert!(decision
+            .evidence
+            .edges
+            .is_some_and(|peak| peak.widest.is_none()));
+
+        // One refined pose turned far from the others: 14 of 15 agree.
+        let mut one_astray = unanimous.clone();
+        let turn = UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.2, 0.0));
+        if let Ok(hypothesis) = one_astray[14].hypothesis.as_mut() {
+            hypothesis.cam_from_world =
+                Rigid3::new(turn * truth.rotation, turn * truth.translation);
+        }
+        let decision = decide(&one_astray, &config, &mut workspace);
+        assert_eq!(group_of(&decision), (14, 15));
+        assert!(!decision.verdict.accepted(), "{:?}", decision.evidence);
     }
 
     /// A pose the check rejects (its group did not converge) but the photo confirms is accepted
@@ -902,12 +1079,15 @@ mod tests {
 
     /// The photo's margin asked of every accept: asked for a larger excess of edge support over
     /// chance than it has, the same agreement no longer confirms the truth (the flow's agreement
-    /// alone never does), and the reason says so with the minimum.
+    /// alone does not: the photo shows the model's edges; with so large a margin asked, every
+    /// support would count as "at chance", so the path for photos without the model's edges is
+    /// off here), and the reason says so with the minimum.
     #[test]
     fn an_agreed_pose_whose_edges_barely_exceed_chance_is_not_confirmed() {
         let (evidence, decision) =
             accepted_truth_decided_again(|evidence, confidence| ConfidenceConfig {
                 min_support_above_chance: (evidence.edge_support_above_chance() + 0.01).min(1.0),
+                max_convergence_at_chance: 0.0,
                 ..confidence
             });
         let margin = evidence.edge_support_above_chance();

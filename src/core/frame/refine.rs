@@ -13,8 +13,8 @@ use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWor
 use crate::core::edge_align::{
     align_level, blurred_query, edge_evidence, fit_rounding, image_motion_metric,
     least_seen_starts, model_edge_samples, sharpened_samples, support_peak, supported_seen_steps,
-    AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary, RoundingJudge,
-    SupportPeak, MOTION_METRIC_STRIDE_PX,
+    widest_support, AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary,
+    RoundingJudge, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
 use crate::core::feature_align::{align_dense_level, dense_samples, DenseSample};
 use crate::core::image::{Image, ImageView};
@@ -569,11 +569,25 @@ pub fn support_at_pose(
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) -> Result<SupportPeak, String> {
+    support_at_pose_within(mesh, camera, query, cam_from_world, None, config, workspace)
+}
+
+/// [`support_at_pose`], with [`SupportPeak::widest`] measured over image shifts within
+/// `widest_reach_px` when given ([`widest_support`], the same samples).
+pub fn support_at_pose_within(
+    mesh: &Mesh,
+    camera: &Camera,
+    query: ImageView<'_, f32>,
+    cam_from_world: &Rigid3,
+    widest_reach_px: Option<f64>,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Result<SupportPeak, String> {
     let align = &config.edge_align;
     let (samples, metric) =
         sharpened_at_pose(mesh, camera, query, cam_from_world, config, workspace)?;
     let at_pose = edge_evidence(&samples, &query, camera, cam_from_world, align);
-    Ok(support_peak(
+    let mut peak = support_peak(
         &samples,
         &query,
         camera,
@@ -581,7 +595,10 @@ pub fn support_at_pose(
         &at_pose,
         metric.as_ref(),
         align,
-    ))
+    );
+    peak.widest = widest_reach_px
+        .map(|reach_px| widest_support(&samples, &query, camera, cam_from_world, reach_px, align));
+    Ok(peak)
 }
 
 /// The pose steps the photo's edges see at `cam_from_world` as it is (no alignment), least seen
