@@ -249,8 +249,8 @@ pub struct ConfidenceConfig {
     /// 40 accepts, mean δ 2.45 → 1.28 px, the eight it removes 4.6–16.1 px off.
     pub min_support_above_chance: f64,
     /// Where the photo shows none of the model's edges — the support at the pose, near it and
-    /// over image shifts within `at_chance_reach_px` all within `min_support_above_chance` of
-    /// chance ([`crate::core::edge_align::SupportPeak::at_chance_everywhere`]) — the edges can
+    /// over image shifts within `at_chance_reach_px` all within the noise of chance
+    /// ([`crate::core::edge_align::SupportPeak::at_chance_everywhere`]) — the edges can
     /// neither confirm nor contradict a pose, and the paper's check decides alone, in its
     /// strictest form: every coarse pose refined, all in one agreeing group, which converged to
     /// at most this share of its coarse poses' spread (0..1; 0: such a frame is never

@@ -458,7 +458,7 @@ fn measure_the_widest_support(
             workspace,
         ) {
             peak.widest = match (peak.widest, verified.widest) {
-                (Some(own), Some(agreed)) => Some(own.max(agreed)),
+                (Some(own), Some(agreed)) if agreed.support > own.support => Some(agreed),
                 (own, agreed) => own.or(agreed),
             };
         }
@@ -563,7 +563,7 @@ fn confirm(verdict: &mut Verdict, evidence: &FrameEvidence, config: &ConfidenceC
         && evidence.agreed_by_every_coarse_pose(config.max_convergence_at_chance)
         && evidence
             .edges
-            .is_some_and(|peak| peak.at_chance_everywhere(config.min_support_above_chance));
+            .is_some_and(|peak| peak.at_chance_everywhere());
     let confirmed = (confidence >= config.accept_above && clear && fixed) || agreed_at_chance;
     match &verdict.decision {
         Ok(chosen) if !confirmed => {
@@ -805,10 +805,7 @@ mod tests {
         assert!(decision.evidence.check_passed, "{:?}", decision.evidence);
         // The photo shows the model's edges, only not here: not a photo without them.
         let peak = decision.evidence.edges.expect("edge evidence");
-        assert!(
-            !peak.at_chance_everywhere(config.confidence.min_support_above_chance),
-            "{peak:?}"
-        );
+        assert!(!peak.at_chance_everywhere(), "{peak:?}");
         assert!(
             matches!(
                 decision.verdict.rejection(),
@@ -878,10 +875,7 @@ mod tests {
         let decision = decide(&unanimous, &config, &mut workspace);
         let peak = decision.evidence.edges.expect("edge evidence");
         assert!(peak.widest.is_some(), "{peak:?}");
-        assert!(
-            peak.at_chance_everywhere(config.confidence.min_support_above_chance),
-            "{peak:?}"
-        );
+        assert!(peak.at_chance_everywhere(), "{peak:?}");
         assert!(
             decision.verdict.accepted(),
             "{:?} {:?}",
