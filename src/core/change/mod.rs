@@ -152,7 +152,13 @@ pub struct ChangeConfig {
     /// fattening), which makes the photo nearer than the model there, never farther, so
     /// `removed` pixels are not touched. 0 compares pixel by pixel. 5 px: half a 7-px MVS
     /// window plus 2 px of edge noise, or the plane-sweep's 5-px window at half resolution
-    /// (docs/measurements.md: 3 px left roof-edge bands on the block).
+    /// (docs/measurements.md: 3 px left roof-edge bands on the block). Only pixels this close
+    /// to a depth edge of the model ([`model_depth_edges`]: a step between neighbouring pixels
+    /// larger than the change threshold) are explained so: fattening spreads a foreground over
+    /// its occlusion edge, and away from one the model's depth a few pixels off is that of the
+    /// same smooth surface, which says nothing about the photo's nearer surface (an extension
+    /// against a wall, seen in front of the wall: docs/measurements.md, issue #13, branch
+    /// `change33`).
     pub edge_tolerance_px: usize,
     /// The registered pose's error as an image displacement, px (u): each pixel's threshold
     /// gets the depth difference a pose `u` px off could cause, [`pose_error_sigma_m`], in
@@ -823,8 +829,62 @@ fn pixel_class(
     }
 }
 
-/// `added` pixels whose photo depth agrees with the model's depth within
-/// `config.edge_tolerance_px` become `unchanged` (see [`ChangeConfig::edge_tolerance_px`]).
+/// The model's depth edges: pixels whose model depth and an 8-neighbour's (both surfaces) differ
+/// by more than the change threshold at the nearer of the two under an exact pose
+/// ([`ChangeConfig::threshold_m`]): a step the depth comparison could mistake for a change when
+/// the photo's depth spreads over it. A smooth surface's depth changes far less from one pixel
+/// to the next (a plane seen 5° from grazing: 3 % of the depth per pixel at f = 360 px).
+pub fn model_depth_edges(model_depth_m: ImageView<'_, f32>, config: &ChangeConfig) -> Vec<bool> {
+    let (w, h) = model_depth_m.size();
+    let model = model_depth_m.data();
+    let surface = |d: f32| d.is_finite() && d > 0.0;
+    let mut edges = vec![false; w * h];
+    for row in 0..h {
+        for col in 0..w {
+            let a = model[row * w + col];
+            if !surface(a) {
+                continue;
+            }
+            // Each unordered pair once: right, and the three below.
+            for (dr, dc) in [(0i64, 1i64), (1, -1), (1, 0), (1, 1)] {
+                let (rr, cc) = (row as i64 + dr, col as i64 + dc);
+                if rr >= h as i64 || cc < 0 || cc >= w as i64 {
+                    continue;
+                }
+                let other = rr as usize * w + cc as usize;
+                let b = model[other];
+                if surface(b) && (a - b).abs() > config.threshold_m(a.min(b)) {
+                    edges[row * w + col] = true;
+                    edges[other] = true;
+                }
+            }
+        }
+    }
+    edges
+}
+
+/// `mask` dilated by a square of side 2r+1 (separable: rows, then columns).
+fn dilate(mask: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
+    let mut rows = vec![false; w * h];
+    for row in 0..h {
+        for col in 0..w {
+            let (from, to) = (col.saturating_sub(r), (col + r + 1).min(w));
+            rows[row * w + col] = mask[row * w + from..row * w + to].iter().any(|&m| m);
+        }
+    }
+    let mut out = vec![false; w * h];
+    for row in 0..h {
+        for col in 0..w {
+            out[row * w + col] =
+                (row.saturating_sub(r)..(row + r + 1).min(h)).any(|rr| rows[rr * w + col]);
+        }
+    }
+    out
+}
+
+/// `added` pixels within `config.edge_tolerance_px` of a depth edge of the model
+/// ([`model_depth_edges`]) whose photo depth agrees (within its threshold) with the model's
+/// depth that close become `unchanged` (see [`ChangeConfig::edge_tolerance_px`]).
 fn explain_by_nearby_model(
     classes: &mut Image<ChangeClass>,
     photo_depth_m: ImageView<'_, f32>,
@@ -834,11 +894,12 @@ fn explain_by_nearby_model(
 ) {
     let (w, h) = classes.size();
     let r = config.edge_tolerance_px;
+    let near_edge = dilate(&model_depth_edges(model_depth_m, config), w, h, r);
     let (photo, model) = (photo_depth_m.data(), model_depth_m.data());
     for row in 0..h {
         for col in 0..w {
             let index = row * w + col;
-            if classes.data()[index] != ChangeClass::Added {
+            if classes.data()[index] != ChangeClass::Added || !near_edge[index] {
                 continue;
             }
             let dp = photo[index];
@@ -1656,6 +1717,54 @@ pub(crate) mod tests {
         }
         // Farther than the tolerance from the model's foreground, the spread depth is a change.
         assert_eq!(count(&classify(2), ChangeClass::Added, 42..43), h);
+    }
+
+    #[test]
+    fn an_object_in_front_of_a_smooth_oblique_surface_is_not_explained_by_the_surface_nearby() {
+        // Model: an oblique wall, 20 m + 0.5 m per column (no depth edge: each step is under the
+        // threshold). The photo sees an extension 2 m in front of it (over the threshold,
+        // 3 × (0.1 + 0.01 d) = 1.3–1.6 m); the wall 4 columns nearer has its depth, but
+        // that is the same smooth surface seen a few pixels off, not a foreground spread over
+        // an occlusion edge.
+        let (w, h) = (80usize, 40usize);
+        let model = Image::from_fn(w, h, |col, _| 20.0 + 0.5 * col as f32);
+        let inside = |col: usize, row: usize| (30..50).contains(&col) && (10..30).contains(&row);
+        let photo = Image::from_fn(w, h, |col, row| {
+            let wall = 20.0 + 0.5 * col as f32;
+            if inside(col, row) {
+                wall - 2.0
+            } else {
+                wall
+            }
+        });
+        let config = ChangeConfig {
+            opening_radius_px: 0,
+            edge_tolerance_px: 5,
+            ..ChangeConfig::default()
+        };
+        assert!(!model_depth_edges(model.view(), &config).contains(&true));
+        let mut classes = Image::from_fn(1, 1, |_, _| ChangeClass::Unknown);
+        classify_pixels(
+            photo.view(),
+            model.view(),
+            None,
+            &DepthEvidence::default(),
+            &config,
+            &mut classes,
+            &mut Vec::new(),
+        )
+        .expect("same sizes");
+        let added = (0..h)
+            .flat_map(|row| (0..w).map(move |col| (col, row)))
+            .filter(|&(col, row)| classes.data()[row * w + col] == ChangeClass::Added)
+            .collect::<Vec<_>>();
+        assert_eq!(added.len(), 20 * 20);
+        assert!(added.iter().all(|&(col, row)| inside(col, row)));
+        // The building's edge of the fattening test is a model depth edge, on both sides.
+        let step = Image::from_fn(w, h, |col, _| if col < 40 { 10.0f32 } else { 20.0 });
+        let edges = model_depth_edges(step.view(), &config);
+        assert!((0..h).all(|row| edges[row * w + 39] && edges[row * w + 40]));
+        assert_eq!(edges.iter().filter(|&&e| e).count(), 2 * h);
     }
 
     #[test]
