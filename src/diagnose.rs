@@ -33,8 +33,8 @@ use crate::core::correlation::{
 };
 use crate::core::edge_align::{
     apply_pose_step, edge_evidence, image_motion_metric, model_edge_samples, pose_jacobian_rows,
-    search_ridge, supported_edge_observability, supported_seen_steps, AlignedParameters,
-    EdgeEvidence, EdgeKind, EdgeSample, SupportPeak, MOTION_METRIC_STRIDE_PX,
+    pose_step_between, search_ridge, supported_edge_observability, supported_seen_steps,
+    AlignedParameters, EdgeEvidence, EdgeKind, EdgeSample, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::refine::{aligned_parameters, short_schedule_config};
@@ -1490,17 +1490,7 @@ fn truth_along_seen(
     let metric = image_motion_metric(&view.render, camera, MOTION_METRIC_STRIDE_PX)?;
     let steps = supported_seen_steps(&samples, query, camera, pose, &metric, align)?;
     // The step ξ with apply_pose_step(pose, ξ) = truth.
-    let rotation_step = truth_pose.rotation * pose.rotation.inverse();
-    let translation_step = truth_pose.translation - rotation_step * pose.translation;
-    let omega = rotation_step.scaled_axis();
-    let step = Vector6::new(
-        omega.x,
-        omega.y,
-        omega.z,
-        translation_step.x,
-        translation_step.y,
-        translation_step.z,
-    );
+    let step = pose_step_between(pose, truth_pose);
     // The steps are metric-orthonormal: the component along s is sᵀ M ξ.
     let components_px: Vec<f64> = steps.iter().map(|s| s.dot(&(metric * step))).collect();
     let support =

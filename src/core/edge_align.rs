@@ -1110,9 +1110,10 @@ fn turned_by_image_shift(
 }
 
 /// At most this many of a pose's edge samples (evenly taken) are moved by [`widest_support`]: a
-/// share over 512 samples has a standard error of at most 0.022, a tenth of the margin over
-/// chance the decision asks (`confidence.min_support_above_chance`, 0.23), at a fraction of the
-/// cost of thousands (Brighton's frames: 6–9 s of CPU a frame with all their samples).
+/// share over 512 samples has a standard error of at most 0.022, so the [`AT_CHANCE_SIGMAS`]
+/// bound is at most 0.13 above chance, well below the 0.23 an accept asks of the edges, at a
+/// fraction of the cost of thousands (Brighton's frames: 6–9 s of CPU a frame with all their
+/// samples).
 pub const WIDEST_SUPPORT_MAX_SAMPLES: usize = 512;
 
 /// The highest edge support of `samples` (lifted at `cam_from_world`; at most

@@ -1639,6 +1639,27 @@ pub(crate) mod tests {
         (changes, classes)
     }
 
+    /// [`classify_pixels`] of `photo` against `model` (given depth: no model-plausible pixels,
+    /// exact pose).
+    fn classified(
+        photo: &Image<f32>,
+        model: &Image<f32>,
+        config: &ChangeConfig,
+    ) -> Image<ChangeClass> {
+        let mut classes = Image::from_fn(1, 1, |_, _| ChangeClass::Unknown);
+        classify_pixels(
+            photo.view(),
+            model.view(),
+            None,
+            &DepthEvidence::default(),
+            config,
+            &mut classes,
+            &mut Vec::new(),
+        )
+        .expect("same sizes");
+        classes
+    }
+
     #[test]
     fn a_box_in_the_photo_only_is_one_added_region_with_its_area_and_height() {
         let (intrinsics, pose) = nadir();
@@ -1863,18 +1884,7 @@ pub(crate) mod tests {
                 edge_tolerance_px,
                 ..ChangeConfig::default()
             };
-            let mut classes = Image::from_fn(1, 1, |_, _| ChangeClass::Unknown);
-            classify_pixels(
-                photo.view(),
-                model.view(),
-                None,
-                &DepthEvidence::default(),
-                &config,
-                &mut classes,
-                &mut Vec::new(),
-            )
-            .expect("same sizes");
-            classes
+            classified(&photo, &model, &config)
         };
         let count = |classes: &Image<ChangeClass>, class, cols: std::ops::Range<usize>| {
             (0..h)
@@ -1918,17 +1928,7 @@ pub(crate) mod tests {
             ..ChangeConfig::default()
         };
         assert!(!model_depth_edges(model.view(), &config).contains(&true));
-        let mut classes = Image::from_fn(1, 1, |_, _| ChangeClass::Unknown);
-        classify_pixels(
-            photo.view(),
-            model.view(),
-            None,
-            &DepthEvidence::default(),
-            &config,
-            &mut classes,
-            &mut Vec::new(),
-        )
-        .expect("same sizes");
+        let classes = classified(&photo, &model, &config);
         let added = (0..h)
             .flat_map(|row| (0..w).map(move |col| (col, row)))
             .filter(|&(col, row)| classes.data()[row * w + col] == ChangeClass::Added)
