@@ -23,7 +23,8 @@
 //! photo's ridges at the true pose by kind of edge, depth and orientation, and the floor's pose
 //! error split into its part along the view axis and the rest.
 
-use nalgebra::{Vector2, Vector3, Vector6};
+use nalgebra::{Vector2, Vector3};
+use rand::SeedableRng;
 use serde::Serialize;
 
 use crate::core::camera::{nearest_pixel, Camera};
@@ -36,6 +37,7 @@ use crate::core::edge_align::{
     pose_step_between, search_ridge, supported_edge_observability, supported_seen_steps,
     AlignedParameters, EdgeEvidence, EdgeKind, EdgeSample, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
+use crate::core::edge_consensus::{consensus_step, ridge_constraints};
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::refine::{aligned_parameters, short_schedule_config};
 use crate::core::frame::search::{
@@ -257,7 +259,8 @@ pub struct TruthAlongSeen {
     pub grid_nearest_truth_support: f64,
     pub grid_nearest_truth_delta_px: Option<f64>,
     /// Where a consensus over every candidate ridge of each of the output's samples moves the
-    /// output ([`consensus_step`]: RANSAC over the linearised 1-D constraints, no re-render):
+    /// output ([`consensus_step`]: the final refinement's consensus step, here without re-render
+    /// or alignment after it):
     /// its δ to the truth, its support (the output's samples moved) and how many samples have a
     /// candidate within 1 px of the step's predicted motion. An experiment of the thirty-third
     /// session (docs/measurements.md): whether an association other than "the ridge the search
@@ -265,132 +268,6 @@ pub struct TruthAlongSeen {
     pub consensus_delta_px: Option<f64>,
     pub consensus_support: f64,
     pub consensus_inliers: usize,
-}
-
-/// Every ridge peak of `query` along the line through `at_px` along `normal` within `radius_px`
-/// (offsets, px): local maxima of at least `min_ridge` curved across the line.
-fn ridge_candidates(
-    query: &ImageView<'_, f32>,
-    at_px: Vector2<f64>,
-    normal: Vector2<f64>,
-    radius_px: f64,
-    min_ridge: f32,
-) -> Vec<f64> {
-    const STEP_PX: f64 = 0.5;
-    let steps = (radius_px / STEP_PX).ceil() as i32 + 1;
-    let values: Vec<f32> = (-steps..=steps)
-        .map(|i| {
-            crate::core::edge_align::bilinear(query, at_px + normal * (f64::from(i) * STEP_PX))
-                .unwrap_or(f32::NAN)
-        })
-        .collect();
-    let mut out = Vec::new();
-    for index in 1..values.len() - 1 {
-        let (before, centre, after) = (values[index - 1], values[index], values[index + 1]);
-        if !(centre >= min_ridge && centre >= before && centre > after) {
-            continue;
-        }
-        let t = (index as i32 - steps) as f64 * STEP_PX;
-        if t.abs() <= radius_px {
-            out.push(t);
-        }
-    }
-    out
-}
-
-/// Search half-length of [`consensus_step`]'s candidate ridges, px (the alignment's first level).
-const CONSENSUS_RADIUS_PX: f64 = 10.0;
-/// [`consensus_step`]'s draws (enough for 6 samples with one of ~3 candidates right each).
-const CONSENSUS_DRAWS: usize = 20_000;
-
-/// RANSAC over the candidate ridges ([`ridge_candidates`]) of `samples` at `pose`: 6 samples, a
-/// random candidate each (seeded RNG), the linearised pose step (`pose_jacobian_rows` along each
-/// sample's normal) solved exactly, scored by the samples with a candidate within 1 px of the
-/// motion the step predicts; the best step then refitted by least squares on its inliers. The
-/// step and its inlier count; `None` with fewer than 12 samples that see a ridge.
-fn consensus_step(
-    samples: &[EdgeSample],
-    query: &ImageView<'_, f32>,
-    camera: &Camera,
-    pose: &Rigid3,
-    config: &RegistrationConfig,
-) -> Option<(Vector6<f64>, usize)> {
-    use nalgebra::Matrix6;
-    use rand::{Rng, SeedableRng};
-    let mut rows: Vec<(Vector6<f64>, Vec<f64>)> = Vec::new();
-    for sample in samples {
-        let point_cam = pose.transform_point(&sample.world_m);
-        let Some(projected) = camera.project(&point_cam) else {
-            continue;
-        };
-        let candidates = ridge_candidates(
-            query,
-            projected,
-            sample.normal,
-            CONSENSUS_RADIUS_PX,
-            config.edge_align.min_query_ridge,
-        );
-        if candidates.is_empty() {
-            continue;
-        }
-        let (ju, jv) = pose_jacobian_rows(&camera.intrinsics, &point_cam);
-        rows.push((ju * sample.normal.x + jv * sample.normal.y, candidates));
-    }
-    if rows.len() < 12 {
-        return None;
-    }
-    let score = |step: &Vector6<f64>| -> usize {
-        rows.iter()
-            .filter(|(j, c)| {
-                let predicted = j.dot(step);
-                c.iter().any(|o| (o - predicted).abs() <= 1.0)
-            })
-            .count()
-    };
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-    let mut best = (Vector6::zeros(), score(&Vector6::zeros()));
-    for _ in 0..CONSENSUS_DRAWS {
-        let mut a = Matrix6::zeros();
-        let mut b = Vector6::zeros();
-        for r in 0..6 {
-            let (j, c) = &rows[rng.random_range(0..rows.len())];
-            let o = c[rng.random_range(0..c.len())];
-            a.set_row(r, &j.transpose());
-            b[r] = o;
-        }
-        let Some(step) = a.lu().solve(&b) else {
-            continue;
-        };
-        if step.iter().any(|v| !v.is_finite()) {
-            continue;
-        }
-        let n = score(&step);
-        if n > best.1 {
-            best = (step, n);
-        }
-    }
-    // Least squares on the inliers (each sample's candidate nearest the prediction), thrice.
-    let mut step = best.0;
-    for _ in 0..3 {
-        let mut h = Matrix6::zeros();
-        let mut g = Vector6::zeros();
-        for (j, c) in &rows {
-            let predicted = j.dot(&step);
-            if let Some(o) = c
-                .iter()
-                .copied()
-                .filter(|o| (o - predicted).abs() <= 1.0)
-                .min_by(|x, y| (x - predicted).abs().total_cmp(&(y - predicted).abs()))
-            {
-                h += j * j.transpose();
-                g += j * o;
-            }
-        }
-        if let Some(s) = h.lu().solve(&g) {
-            step = s;
-        }
-    }
-    Some((step, score(&step)))
 }
 
 /// Half-width and step of [`TruthAlongSeen`]'s grid, px of δ.
@@ -1528,11 +1405,23 @@ fn truth_along_seen(
             * SEEN_GRID_STEP_PX
     };
     let nearest = along(snap(components_px[0]), snap(components_px[1]));
+    let consensus = &align.consensus;
+    let mut constraints = Vec::new();
+    ridge_constraints(
+        &samples,
+        query,
+        camera,
+        pose,
+        consensus.radius_px,
+        align.min_query_ridge,
+        &mut constraints,
+    );
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(consensus.seed);
     let (consensus_delta_px, consensus_support, consensus_inliers) =
-        match consensus_step(&samples, query, camera, pose, config) {
-            Some((step, inliers)) => {
-                let moved = apply_pose_step(pose, &step);
-                (delta(&moved), support(&moved), inliers)
+        match consensus_step(&constraints, consensus, &mut rng) {
+            Some(found) => {
+                let moved = apply_pose_step(pose, &found.step);
+                (delta(&moved), support(&moved), found.inliers)
             }
             None => (None, 0.0, 0),
         };

@@ -459,6 +459,10 @@ pub struct CoarseArgs {
     /// 0: never).
     #[arg(long, default_value_t = ConfidenceConfig::default().max_convergence_at_chance)]
     pub max_convergence_at_chance: f64,
+    /// No consensus step after the final refinement (the pose step most model edges agree with
+    /// over every photo ridge near them, aligned from there; on by default).
+    #[arg(long)]
+    pub no_edge_consensus: bool,
     /// The rival-basin test of an accepted pose: the alignment also runs from the output moved
     /// by --rival-reach-px of δ either way along this many directions its edges see least, and
     /// a distinct end that keeps --rival-share of the output's edge support above chance
@@ -603,6 +607,7 @@ impl Default for CoarseArgs {
             min_overrule_margin: ConfidenceConfig::default().min_overrule_margin,
             min_support_above_chance: ConfidenceConfig::default().min_support_above_chance,
             max_convergence_at_chance: ConfidenceConfig::default().max_convergence_at_chance,
+            no_edge_consensus: !EdgeAlignConfig::default().consensus.enabled,
             rival_directions: EdgeAlignConfig::default().rival_directions,
             no_rival_centres: !EdgeAlignConfig::default().rival_centres,
             no_neighbours: !NeighbourPoseConfig::default().enabled,
@@ -895,6 +900,10 @@ pub fn registration_config(
             rival_centres: !coarse.no_rival_centres,
             rival_reach_px: coarse.rival_reach_px,
             rival_share_above_chance: coarse.rival_share,
+            consensus: asgreg::core::edge_consensus::EdgeConsensusConfig {
+                enabled: !coarse.no_edge_consensus,
+                ..defaults.edge_align.consensus
+            },
             ..defaults.edge_align
         },
         pose_search: PoseSearchConfig {

@@ -100,6 +100,11 @@ pub struct EdgeAlignConfig {
     /// trades rotation against lateral translation (started at the truth of the house, the 16 px
     /// level moved it 3–11° and 1–3 m); the pose search's beams are rotations too.
     pub coarse_rotation_only: bool,
+    /// The consensus step after the alignment's ends are decided ([`super::edge_consensus`]):
+    /// from the output, the pose step most model edges agree with over every photo ridge near
+    /// them, aligned from there with the final level; its end replaces the output as
+    /// `short_schedule_rule` says.
+    pub consensus: super::edge_consensus::EdgeConsensusConfig,
     /// What decides whether the aligned pose replaces the one the alignment started from.
     pub keep_rule: KeepRule,
     /// The first search radius of a second, shorter schedule from the same start, px (0: none):
@@ -297,6 +302,7 @@ impl Default for EdgeAlignConfig {
             ridge_choice: RidgeChoice::Strongest,
             distinct_weights: false,
             coarse_rotation_only: false,
+            consensus: super::edge_consensus::EdgeConsensusConfig::default(),
             keep_rule: KeepRule::Support,
             short_schedule_radius_px: 8.0,
             short_schedule_rule: KeepRule::SupportAndCorrelation,
@@ -366,6 +372,15 @@ impl EdgeAlignConfig {
         if self.starts == 0 {
             return bad("starts", "must be at least 1 (the chosen pose)".into());
         }
+        if let Some((field, why)) = self.consensus.invalid() {
+            return bad(field, why);
+        }
+        if self.consensus.then_search_radius_px < self.final_search_radius_px {
+            return bad(
+                "consensus.then_search_radius_px",
+                "must not be below final_search_radius_px".into(),
+            );
+        }
         let short_px = self.short_schedule_radius_px;
         if !(short_px == 0.0
             || (short_px >= self.final_search_radius_px
@@ -390,6 +405,16 @@ impl EdgeAlignConfig {
             short_schedule_radius_px: 0.0,
             ..*self
         })
+    }
+
+    /// The settings of the alignment from the consensus step's pose: the levels from
+    /// `consensus.then_search_radius_px` down, no second schedule.
+    pub fn after_consensus(&self) -> EdgeAlignConfig {
+        EdgeAlignConfig {
+            initial_search_radius_px: self.consensus.then_search_radius_px,
+            short_schedule_radius_px: 0.0,
+            ..*self
+        }
     }
 
     /// The search half-lengths of the levels, coarse to fine (px).

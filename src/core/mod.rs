@@ -8,6 +8,7 @@ pub mod confidence;
 pub mod correlation;
 pub mod dense_sift;
 pub mod edge_align;
+pub mod edge_consensus;
 pub mod feature_align;
 pub mod flow_consistency;
 pub mod frame;

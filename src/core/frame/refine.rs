@@ -4,6 +4,7 @@
 //! an accepted frame and on the would-be pose of a rejected one.
 
 use nalgebra::{Matrix6, Vector6};
+use rand::SeedableRng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -11,11 +12,12 @@ use super::{render_coarse_view, CoarseView, IntrinsicsMode, RegistrationConfig};
 use crate::core::camera::Camera;
 use crate::core::correlation::{correlation_peak, CorrelationPeak, CorrelationWorkspace};
 use crate::core::edge_align::{
-    align_level, blurred_query, edge_evidence, fit_rounding, image_motion_metric,
+    align_level, apply_pose_step, blurred_query, edge_evidence, fit_rounding, image_motion_metric,
     least_seen_starts, model_edge_samples, sharpened_samples, support_peak, supported_seen_steps,
     widest_support, AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary,
     RoundingJudge, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
+use crate::core::edge_consensus::{consensus_step, ridge_constraints};
 use crate::core::feature_align::{align_dense_level, dense_samples, DenseSample};
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
@@ -171,6 +173,17 @@ pub fn refine_verdict(
     workspace.spare = Some(spare);
     for other in short_end.into_iter().chain(other_ends) {
         refinement.take_if_better(other, align);
+    }
+    if let Some(end) = consensus_end(
+        mesh,
+        query,
+        parameters,
+        chosen,
+        &refinement,
+        config,
+        workspace,
+    ) {
+        refinement.take_if_better(end, align);
     }
     if refinement.kept {
         chosen.cam_from_world = refinement.aligned_cam_from_world;
@@ -394,6 +407,50 @@ fn aligned_from_start(
         run_config,
         workspace,
     ))
+}
+
+/// The consensus step from `refinement`'s output ([`crate::core::edge_consensus`]): the output's
+/// model edge samples against every photo ridge near them, the step most agree with, then the
+/// alignment's final levels from the stepped pose ([`EdgeAlignConfig::after_consensus`]).
+/// `None` when the step is off, finds no step better than staying, or the output cannot be
+/// evaluated. Seeded from the settings, so every process takes the same step.
+fn consensus_end(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    parameters: AlignedParameters,
+    chosen: &PoseHypothesis,
+    refinement: &PoseRefinement,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Option<PoseRefinement> {
+    let settings = &config.edge_align.consensus;
+    if !settings.enabled {
+        return None;
+    }
+    let (camera, cam_from_world) = refinement.output_pose();
+    let output = evaluate_start(mesh, &camera, query, &cam_from_world, config, workspace).ok()?;
+    let mut constraints = Vec::new();
+    ridge_constraints(
+        &output.samples,
+        &query,
+        &camera,
+        &cam_from_world,
+        settings.radius_px,
+        config.edge_align.min_query_ridge,
+        &mut constraints,
+    );
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(settings.seed);
+    let found = consensus_step(&constraints, settings, &mut rng)?;
+    let start = PoseHypothesis {
+        camera,
+        cam_from_world: apply_pose_step(&cam_from_world, &found.step),
+        ..*chosen
+    };
+    let then = RegistrationConfig {
+        edge_align: config.edge_align.after_consensus(),
+        ..config.clone()
+    };
+    aligned_from_start(mesh, query, parameters, &start, &then, workspace)
 }
 
 /// `config` with the short schedule as its alignment; `None` without a short schedule.
@@ -1539,6 +1596,60 @@ mod tests {
 
     /// The house at `truth` turned by `scale` times a fixed small rotation and shifted by `scale`
     /// times a fixed offset (scale 1: a few px off).
+    /// `config` without the consensus step: tests of the other ends, each end known.
+    fn without_consensus(mut config: RegistrationConfig) -> RegistrationConfig {
+        config.edge_align.consensus.enabled = false;
+        config
+    }
+
+    /// The consensus step from an output the alignment left where it started (its steps off,
+    /// so that the end is known): on an ideal query the step most model edges agree with brings
+    /// that output back to the truth, and replaces it; without the step the output stays.
+    #[test]
+    fn the_consensus_step_brings_back_an_output_the_alignment_left_off() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let base = RegistrationConfig::default();
+        let query = ideal_query(&mesh, &camera, &truth, &base);
+        let start = hypothesis_at(camera, off_by(&truth, 1.0), 90);
+        let delta = |pose: &Rigid3| delta_px(&mesh, &camera, pose, &truth);
+        let output_delta_px = |consensus: bool| {
+            let mut config = RegistrationConfig {
+                edge_align: EdgeAlignConfig {
+                    starts: 1,
+                    iterations_per_level: 0,
+                    ..base.edge_align
+                },
+                ..base.clone()
+            };
+            config.edge_align.consensus.enabled = consensus;
+            let mut verdict = verdict_of(&mesh, &camera, &[start], &config);
+            let refinement = refine_verdict(
+                &mesh,
+                query.view(),
+                IntrinsicsMode::Known,
+                &[start],
+                &mut verdict,
+                &config,
+                &mut RefineWorkspace::default(),
+            )
+            .unwrap();
+            let chosen = verdict.chosen().unwrap().cam_from_world;
+            assert_eq!(refinement.output_pose().1, chosen);
+            (delta(&chosen), refinement.kept)
+        };
+        let start_px = delta(&start.cam_from_world);
+        let (without_px, without_kept) = output_delta_px(false);
+        let (with_px, with_kept) = output_delta_px(true);
+        println!(
+            "start δ {start_px:.2} px: without the step {without_px:.2} px, with {with_px:.3} px"
+        );
+        assert!(start_px > 3.0, "{start_px}");
+        assert!(!without_kept);
+        assert_eq!(without_px, start_px);
+        assert!(with_kept);
+        assert!(with_px < 0.5, "{with_px}");
+    }
+
     fn off_by(truth: &Rigid3, scale: f64) -> Rigid3 {
         Rigid3::new(
             UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006) * scale)
@@ -1646,7 +1757,7 @@ mod tests {
     #[test]
     fn a_second_start_from_the_agreeing_group_reaches_the_truth_the_first_cannot() {
         let (mesh, camera, truth, _) = house_and_poses();
-        let config = RegistrationConfig::default();
+        let config = without_consensus(RegistrationConfig::default());
         let query = ideal_query(&mesh, &camera, &truth, &config);
         let hypothesis = |pose: Rigid3, consensus: usize| hypothesis_at(camera, pose, consensus);
         let far = hypothesis(off_by(&truth, -8.0), 90);
@@ -1699,7 +1810,7 @@ mod tests {
     #[test]
     fn another_centres_output_within_reach_is_one_more_start() {
         let (mesh, camera, truth, _) = house_and_poses();
-        let base = RegistrationConfig::default();
+        let base = without_consensus(RegistrationConfig::default());
         let config = RegistrationConfig {
             edge_align: EdgeAlignConfig {
                 starts: 1,
@@ -1777,7 +1888,7 @@ mod tests {
     #[test]
     fn the_start_evaluated_once_gives_the_refinement_of_independent_runs() {
         let (mesh, camera, truth, _) = house_and_poses();
-        let base = RegistrationConfig::default();
+        let base = without_consensus(RegistrationConfig::default());
         let query = ideal_query(&mesh, &camera, &truth, &base);
         let chosen = hypothesis_at(camera, few_px_off(&truth), 90);
         let other = PoseHypothesis {
