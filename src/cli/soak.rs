@@ -386,16 +386,13 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     config.launch.max_restarts = 20;
     config.launch.restart_window_s = 60.0;
     config.launch.deadline_s = 60.0 + 10.0 * args.frames as f64;
-    // A frame whose hypotheses died with pose or verify is sent again by ingest, so no frame
-    // needs the frame timeout to get its result; here it is the deadline itself. Below it, a
-    // frame whose window waited that long for kills and redone jobs was decided with the
-    // neighbours there were (verify warns that its result may differ from a run without the
-    // delay). A CI soak that took 278 s with 269 kills under a 120 s timeout had 6 of 40 results
-    // a few mm from `register`'s, most likely so (not reproduced; docs/measurements.md,
-    // thirty-fourth session). The soak
-    // checks that kills change no result, so a frame must wait for its window as long as the
-    // run may last; a frame that is lost, not slow, fails the soak at the deadline.
-    config.timeouts.frame_timeout_s = config.launch.deadline_s;
+    // A frame whose hypotheses died with pose or verify is sent again by ingest; the timeout is
+    // the last resort, far above a small frame's seconds. Not yet only that: with the timeout at
+    // the deadline, a CI zenoh soak had 18 of 40 results at its 462 s deadline (452 kills, 3
+    // redone jobs), so some lost frame is completed by this timeout rather than redone, and a
+    // frame decided under it may differ from `register` (docs/measurements.md, thirty-fourth
+    // session; issue #14's hardening).
+    config.timeouts.frame_timeout_s = 120.0;
     config.timeouts.worker_silence_s = 20.0;
     let router_port = if backend == Backend::Zenoh {
         let port = std::net::TcpListener::bind("127.0.0.1:0")?
