@@ -24,7 +24,6 @@
 //! error split into its part along the view axis and the rest.
 
 use nalgebra::{Vector2, Vector3};
-use rand::SeedableRng;
 use serde::Serialize;
 
 use crate::core::camera::{nearest_pixel, Camera};
@@ -37,7 +36,7 @@ use crate::core::edge_align::{
     pose_step_between, search_ridge, supported_edge_observability, supported_seen_steps,
     AlignedParameters, EdgeEvidence, EdgeKind, EdgeSample, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
-use crate::core::edge_consensus::{consensus_step, ridge_constraints};
+use crate::core::edge_consensus::consensus_step_at;
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::refine::{aligned_parameters, short_schedule_config};
 use crate::core::frame::search::{
@@ -259,7 +258,7 @@ pub struct TruthAlongSeen {
     pub grid_nearest_truth_support: f64,
     pub grid_nearest_truth_delta_px: Option<f64>,
     /// Where a consensus over every candidate ridge of each of the output's samples moves the
-    /// output ([`consensus_step`]: the final refinement's consensus step, here without re-render
+    /// output ([`consensus_step_at`]: the final refinement's consensus step, here without re-render
     /// or alignment after it):
     /// its δ to the truth, its support (the output's samples moved) and how many samples have a
     /// candidate within 1 px of the step's predicted motion. An experiment of the thirty-third
@@ -1405,26 +1404,21 @@ fn truth_along_seen(
             * SEEN_GRID_STEP_PX
     };
     let nearest = along(snap(components_px[0]), snap(components_px[1]));
-    let consensus = &align.consensus;
-    let mut constraints = Vec::new();
-    ridge_constraints(
+    let (consensus_delta_px, consensus_support, consensus_inliers) = match consensus_step_at(
         &samples,
         query,
         camera,
         pose,
-        consensus.radius_px,
+        &align.consensus,
         align.min_query_ridge,
-        &mut constraints,
-    );
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(consensus.seed);
-    let (consensus_delta_px, consensus_support, consensus_inliers) =
-        match consensus_step(&constraints, consensus, &mut rng) {
-            Some(found) => {
-                let moved = apply_pose_step(pose, &found.step);
-                (delta(&moved), support(&moved), found.inliers)
-            }
-            None => (None, 0.0, 0),
-        };
+        &mut Vec::new(),
+    ) {
+        Some(found) => {
+            let moved = apply_pose_step(pose, &found.step);
+            (delta(&moved), support(&moved), found.inliers)
+        }
+        None => (None, 0.0, 0),
+    };
     Some(TruthAlongSeen {
         consensus_delta_px,
         consensus_support,

@@ -23,12 +23,13 @@
 //! and aligns from there (visibility and contours move with the pose).
 
 use nalgebra::{Matrix6, Vector2, Vector6};
-use rand::Rng;
+use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
 use super::camera::Camera;
 use super::edge_align::{bilinear, pose_jacobian_rows, EdgeSample};
 use super::image::ImageView;
+use super::pose::ransac::{Sampler, UniformSampler};
 use super::rigid::Rigid3;
 
 /// Settings of the consensus step of the final refinement.
@@ -202,22 +203,16 @@ pub struct ConsensusStep {
     pub inliers: usize,
     /// How many constraints agreed with no step at all.
     pub inliers_at_rest: usize,
-    pub constraints: usize,
 }
 
-/// The sampler: 6 distinct constraints, one offset of each (uniform), as a 6×6 system.
+/// The sampler: 6 distinct constraints (the pose RANSAC's [`UniformSampler`]), one offset of
+/// each (uniform), as a 6×6 system.
 fn draw_system<R: Rng + ?Sized>(
     constraints: &[RidgeConstraint],
     rng: &mut R,
     indices: &mut Vec<usize>,
 ) -> (Matrix6<f64>, Vector6<f64>) {
-    indices.clear();
-    while indices.len() < 6 {
-        let index = rng.random_range(0..constraints.len());
-        if !indices.contains(&index) {
-            indices.push(index);
-        }
-    }
+    UniformSampler.sample(constraints.len(), 6, rng, indices);
     let mut a = Matrix6::zeros();
     let mut b = Vector6::zeros();
     for (row, &index) in indices.iter().enumerate() {
@@ -242,17 +237,21 @@ fn solve_system(a: Matrix6<f64>, b: &Vector6<f64>) -> Option<Vector6<f64>> {
 /// wins and a refit on the inliers is judged by how well it fits, not by a count at the band's
 /// edge. The cost and the count of constraints within the band.
 fn cost(constraints: &[RidgeConstraint], step: &Vector6<f64>, inlier_px: f64) -> (f64, usize) {
-    let ceiling = inlier_px * inlier_px;
     constraints
         .iter()
         .fold((0.0, 0), |(total, inliers), constraint| {
-            match constraint.agreeing_offset(step, inlier_px) {
-                Some(offset) => {
-                    let residual = offset - constraint.jacobian.dot(step);
-                    (total + residual * residual, inliers + 1)
-                }
-                None => (total + ceiling, inliers),
-            }
+            let predicted = constraint.jacobian.dot(step);
+            let nearest_px = constraint
+                .offsets_px
+                .iter()
+                .map(|offset| (offset - predicted).abs())
+                .fold(f64::INFINITY, f64::min);
+            let agrees = nearest_px <= inlier_px;
+            let charged_px = nearest_px.min(inlier_px);
+            (
+                total + charged_px * charged_px,
+                inliers + usize::from(agrees),
+            )
         })
 }
 
@@ -307,8 +306,32 @@ pub fn consensus_step<R: Rng + ?Sized>(
         step: best.0,
         inliers: best.1 .1,
         inliers_at_rest: at_rest.1,
-        constraints: constraints.len(),
     })
+}
+
+/// The consensus step of `samples` at `cam_from_world`: their constraints
+/// ([`ridge_constraints`], written into `constraints`) and the step ([`consensus_step`]) with
+/// an RNG seeded from `settings.seed`, so every process and the diagnosis take the same step.
+pub fn consensus_step_at(
+    samples: &[EdgeSample],
+    query: &ImageView<'_, f32>,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    settings: &EdgeConsensusConfig,
+    min_ridge: f32,
+    constraints: &mut Vec<RidgeConstraint>,
+) -> Option<ConsensusStep> {
+    ridge_constraints(
+        samples,
+        query,
+        camera,
+        cam_from_world,
+        settings.radius_px,
+        min_ridge,
+        constraints,
+    );
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(settings.seed);
+    consensus_step(constraints, settings, &mut rng)
 }
 
 #[cfg(test)]

@@ -4,7 +4,6 @@
 //! an accepted frame and on the would-be pose of a rejected one.
 
 use nalgebra::{Matrix6, Vector6};
-use rand::SeedableRng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -17,7 +16,7 @@ use crate::core::edge_align::{
     widest_support, AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary,
     RoundingJudge, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
-use crate::core::edge_consensus::{consensus_step, ridge_constraints};
+use crate::core::edge_consensus::{consensus_step_at, RidgeConstraint};
 use crate::core::feature_align::{align_dense_level, dense_samples, DenseSample};
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
@@ -77,6 +76,8 @@ pub struct RefineWorkspace {
     blurred_asg: Image<f32>,
     dense: Vec<DenseSample>,
     correlation: CorrelationWorkspace,
+    /// The consensus step's constraints ([`consensus_end`]).
+    constraints: Vec<RidgeConstraint>,
     /// A second workspace for the runs [`refine_verdict`] makes beside this one's.
     spare: Option<Box<RefineWorkspace>>,
 }
@@ -429,18 +430,15 @@ fn consensus_end(
     }
     let (camera, cam_from_world) = refinement.output_pose();
     let output = evaluate_start(mesh, &camera, query, &cam_from_world, config, workspace).ok()?;
-    let mut constraints = Vec::new();
-    ridge_constraints(
+    let found = consensus_step_at(
         &output.samples,
         &query,
         &camera,
         &cam_from_world,
-        settings.radius_px,
+        settings,
         config.edge_align.min_query_ridge,
-        &mut constraints,
-    );
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(settings.seed);
-    let found = consensus_step(&constraints, settings, &mut rng)?;
+        &mut workspace.constraints,
+    )?;
     let start = PoseHypothesis {
         camera,
         cam_from_world: apply_pose_step(&cam_from_world, &found.step),
@@ -1594,8 +1592,6 @@ mod tests {
         assert!(why.contains("no pose"), "{why}");
     }
 
-    /// The house at `truth` turned by `scale` times a fixed small rotation and shifted by `scale`
-    /// times a fixed offset (scale 1: a few px off).
     /// `config` without the consensus step: tests of the other ends, each end known.
     fn without_consensus(mut config: RegistrationConfig) -> RegistrationConfig {
         config.edge_align.consensus.enabled = false;
@@ -1650,6 +1646,8 @@ mod tests {
         assert!(with_px < 0.5, "{with_px}");
     }
 
+    /// The house at `truth` turned by `scale` times a fixed small rotation and shifted by `scale`
+    /// times a fixed offset (scale 1: a few px off).
     fn off_by(truth: &Rigid3, scale: f64) -> Rigid3 {
         Rigid3::new(
             UnitQuaternion::from_scaled_axis(Vector3::new(0.008, -0.012, 0.006) * scale)
