@@ -75,6 +75,11 @@ pub struct SoakArgs {
     /// Largest allowed growth of the resident memory from after warm-up to the end (0.10: 10 %).
     #[arg(long, default_value_t = 0.10)]
     pub max_rss_growth: f64,
+    /// Verify's frame timeout, seconds (`timeouts.frame_timeout_s`): a frame whose window still
+    /// lacks results after it is decided with the neighbours there are, and may then differ
+    /// from `register`. 0: the launch deadline (only ingest's redo completes a lost frame).
+    #[arg(long, default_value_t = 120.0)]
+    pub frame_timeout_s: f64,
 }
 
 /// The soak's photo size and initial pose error: see "Soak that registers" in
@@ -348,6 +353,12 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
             args.min_accepted
         );
     }
+    if args.frame_timeout_s.is_nan() || args.frame_timeout_s < 0.0 {
+        bail!(
+            "--frame-timeout-s must be 0 (the deadline) or a number of seconds, got {}",
+            args.frame_timeout_s
+        );
+    }
     let scene = synthetic_scene_with(
         &out.join(format!(
             "scene-{}x{}-{}-{}px",
@@ -392,7 +403,11 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     // redone jobs), so some lost frame is completed by this timeout rather than redone, and a
     // frame decided under it may differ from `register` (docs/measurements.md, thirty-fourth
     // session; issue #14's hardening).
-    config.timeouts.frame_timeout_s = 120.0;
+    config.timeouts.frame_timeout_s = if args.frame_timeout_s > 0.0 {
+        args.frame_timeout_s
+    } else {
+        config.launch.deadline_s
+    };
     config.timeouts.worker_silence_s = 20.0;
     let router_port = if backend == Backend::Zenoh {
         let port = std::net::TcpListener::bind("127.0.0.1:0")?

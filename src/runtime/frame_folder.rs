@@ -2,8 +2,9 @@
 //! old file or the new one, never half of one (a temporary name, then a rename), and tied to its
 //! run by a `header` file (another run's files are removed). What a restarted stage needs back
 //! that is too large for a results journal's line: verify's stereo views (`views`, the photos of
-//! its stereo neighbours) and fusion's sights (`sights`, the frames' depths for the free-space
-//! test). One implementation, so both keep the same crash rules and the same warnings: writing
+//! its stereo neighbours), pose lenders (`lenders`) and received messages (`received`, a frame's
+//! query and hypotheses as parts of one frame) and fusion's sights (`sights`, the frames' depths
+//! for the free-space test). One implementation, so both keep the same crash rules and the same warnings: writing
 //! is best effort (a file that cannot be written costs only what a restart would get back, so it
 //! is a warning, once until writing works again), and a file that cannot be read back is removed
 //! with a warning.
@@ -76,6 +77,14 @@ pub fn read_message(
     take(frame_id, &message.body)
 }
 
+/// Removes the file `path` (none is fine).
+fn remove_file(path: &Path) -> std::io::Result<()> {
+    match std::fs::remove_file(path) {
+        Err(error) if error.kind() != std::io::ErrorKind::NotFound => Err(error),
+        _ => Ok(()),
+    }
+}
+
 impl FrameFolder {
     /// Opens the configuration's folder of `kind` and hands each message of this run to
     /// `restore` (frame id and body; an error: the file is removed with a warning). Another
@@ -113,8 +122,7 @@ impl FrameFolder {
                 return folder;
             }
         }
-        for frame_id in folder.listed() {
-            let path = folder.path(frame_id);
+        for (frame_id, path) in folder.listed() {
             if let Err(error) = read_message(&path, frame_id, restore) {
                 tracing::warn!(
                     "{}: {}: not a {} ({error}); removed (this restart loses {})",
@@ -123,7 +131,7 @@ impl FrameFolder {
                     kind.what,
                     kind.loss
                 );
-                let _ = folder.remove(frame_id);
+                let _ = remove_file(&path);
             }
         }
         folder
@@ -134,22 +142,32 @@ impl FrameFolder {
         path_in(&self.dir, &self.kind, frame_id)
     }
 
-    /// The frame ids of the messages in the folder.
-    fn listed(&self) -> BTreeSet<u64> {
+    /// The file of part `part` of `frame_id`'s messages.
+    pub fn part_path(&self, frame_id: u64, part: &str) -> PathBuf {
+        self.dir
+            .join(format!("{frame_id}.{part}.{}", self.kind.extension))
+    }
+
+    /// The messages in the folder, frame by frame: each file's frame id and path (a frame's
+    /// one message, `<frame id>.<extension>`, or its parts, `<frame id>.<part>.<extension>`).
+    fn listed(&self) -> Vec<(u64, PathBuf)> {
         let Ok(entries) = std::fs::read_dir(&self.dir) else {
-            return BTreeSet::new();
+            return Vec::new();
         };
-        entries
+        let mut files: Vec<(u64, PathBuf)> = entries
             .filter_map(|entry| entry.ok())
             .filter_map(|entry| {
                 let name = entry.file_name();
-                name.to_str()?
+                let stem = name
+                    .to_str()?
                     .strip_suffix(self.kind.extension)?
-                    .strip_suffix('.')?
-                    .parse::<u64>()
-                    .ok()
+                    .strip_suffix('.')?;
+                let frame = stem.split_once('.').map_or(stem, |(frame, _)| frame);
+                Some((frame.parse::<u64>().ok()?, entry.path()))
             })
-            .collect()
+            .collect();
+        files.sort();
+        files
     }
 
     /// Whether the folder is this run's (its `header` file holds `header`). When it is not, its
@@ -159,8 +177,8 @@ impl FrameFolder {
         if std::fs::read_to_string(&header_path).is_ok_and(|found| found == header) {
             return Ok(true);
         }
-        for frame_id in self.listed() {
-            let _ = std::fs::remove_file(self.path(frame_id));
+        for (_, path) in self.listed() {
+            let _ = std::fs::remove_file(path);
         }
         std::fs::create_dir_all(&self.dir)?;
         std::fs::write(&header_path, header.as_bytes())?;
@@ -170,15 +188,24 @@ impl FrameFolder {
     /// Writes `body` as `frame_id`'s message (replacing any earlier one whole); best effort:
     /// whether it was written (a failure is warned once until a write works again).
     pub fn write(&mut self, frame_id: u64, body: Body<'_>) -> bool {
+        self.write_to(frame_id, self.path(frame_id), body)
+    }
+
+    /// Writes `body` as part `part` (letters and digits) of `frame_id`'s messages, as
+    /// [`FrameFolder::write`] does a frame's one message.
+    pub fn write_part(&mut self, frame_id: u64, part: &str, body: Body<'_>) -> bool {
+        self.write_to(frame_id, self.part_path(frame_id, part), body)
+    }
+
+    fn write_to(&mut self, frame_id: u64, path: PathBuf, body: Body<'_>) -> bool {
         let written = super::bus::encode_to_vec(frame_id, 0, body)
             .map_err(|error| error.to_string())
             .and_then(|bytes| {
-                let partial = self
-                    .dir
-                    .join(format!("{frame_id}.{}.partial", self.kind.extension));
+                let mut partial = path.clone().into_os_string();
+                partial.push(".partial");
                 std::fs::create_dir_all(&self.dir)
                     .and_then(|()| std::fs::write(&partial, &bytes))
-                    .and_then(|()| std::fs::rename(&partial, self.path(frame_id)))
+                    .and_then(|()| std::fs::rename(&partial, &path))
                     .map_err(|error| error.to_string())
             });
         let kind = &self.kind;
@@ -214,10 +241,15 @@ impl FrameFolder {
 
     /// Removes `frame_id`'s message (none is fine).
     pub fn remove(&self, frame_id: u64) -> std::io::Result<()> {
-        match std::fs::remove_file(self.path(frame_id)) {
-            Err(error) if error.kind() != std::io::ErrorKind::NotFound => Err(error),
-            _ => Ok(()),
+        remove_file(&self.path(frame_id))
+    }
+
+    /// Removes every part of `frame_id`'s messages (none is fine).
+    pub fn remove_parts(&self, frame_id: u64) -> std::io::Result<()> {
+        for (_, path) in self.listed().into_iter().filter(|(id, _)| *id == frame_id) {
+            remove_file(&path)?;
         }
+        Ok(())
     }
 
     pub fn dir(&self) -> &Path {
@@ -284,5 +316,67 @@ impl MirrorFolder {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::msg::StreamEnd;
+
+    const KIND: FolderKind = FolderKind {
+        stage: "test",
+        name: "parts-test",
+        extension: "msg",
+        what: "test message",
+        loss: "nothing",
+    };
+
+    fn end(frame_count: u64) -> Body<'static> {
+        Body::StreamEnd(StreamEnd {
+            frame_count,
+            finished_frames: Vec::new(),
+        })
+    }
+
+    fn restored(config: &PipelineConfig) -> (FrameFolder, Vec<(u64, u64)>) {
+        let mut seen = Vec::new();
+        let folder =
+            FrameFolder::open_and_restore(config, KIND, &mut |frame_id, body| match body {
+                Body::StreamEnd(end) => {
+                    seen.push((frame_id, end.frame_count));
+                    Ok(())
+                }
+                other => Err(format!("{:?}", other.kind())),
+            });
+        (folder, seen)
+    }
+
+    /// A frame's parts are restored with the frame's id beside a frame's one message, removed
+    /// together (not another frame's), and another run's files are removed, not restored.
+    #[test]
+    fn parts_of_a_frame_are_restored_and_removed_together() {
+        let state = tempfile::tempdir().unwrap();
+        let mut config = PipelineConfig {
+            state_dir: Some(state.path().to_path_buf()),
+            ..PipelineConfig::default()
+        };
+        config.transport.pipeline = "parts-test".to_string();
+        let (mut folder, seen) = restored(&config);
+        assert!(seen.is_empty());
+        assert!(folder.write_part(3, "query", end(30)));
+        assert!(folder.write_part(3, "h1", end(31)));
+        assert!(folder.write_part(12, "h0", end(120)));
+        assert!(folder.write(4, end(40)));
+        let (folder, mut seen) = restored(&config);
+        seen.sort();
+        assert_eq!(seen, vec![(3, 30), (3, 31), (4, 40), (12, 120)]);
+        folder.remove_parts(3).unwrap();
+        let (_, mut seen) = restored(&config);
+        seen.sort();
+        assert_eq!(seen, vec![(4, 40), (12, 120)]);
+        config.source.max_frames = 7;
+        let (_, seen) = restored(&config);
+        assert!(seen.is_empty(), "another run's files: {seen:?}");
     }
 }

@@ -497,13 +497,19 @@ pub fn absolute(path: &Path) -> PathBuf {
     std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf())
 }
 
-/// Starts a run over (or ends a complete one): verify's stereo views and pose lenders and
-/// fusion's sights go with the journals.
+/// Starts a run over (or ends a complete one): verify's stereo views, pose lenders and received
+/// messages and fusion's sights go with the journals.
 fn reset_views(config: &PipelineConfig) -> Result<(), RuntimeError> {
     super::lenders::reset(config).map_err(|error| {
         RuntimeError::Launch(format!(
             "{}: cannot remove the pose lenders of an earlier run: {error}",
             super::lenders::dir(config).display()
+        ))
+    })?;
+    super::received::reset(config).map_err(|error| {
+        RuntimeError::Launch(format!(
+            "{}: cannot remove the received messages of an earlier run: {error}",
+            super::received::dir(config).display()
         ))
     })?;
     super::views::reset(config).map_err(|error| {

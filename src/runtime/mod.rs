@@ -2,7 +2,8 @@
 //! (`dispatch`), the bus wrappers (`bus`), the results collector and summary (`collect`), the
 //! one-process runner (`run_in_process`), the process supervisor (`launch`), the results
 //! journal that makes "has a result" survive a crash (`journal`), verify's durable stereo views
-//! (`views`) and fusion's durable sights (`sights`), both in a `frame_folder`, the end-to-end acks that make a result lost in flight be sent again (`ack`) and the
+//! (`views`), pose lenders (`lenders`) and received messages (`received`) and fusion's durable
+//! sights (`sights`), all in a `frame_folder`, the end-to-end acks that make a result lost in flight be sent again (`ack`) and the
 //! process's heap settings (`heap`).
 
 pub mod ack;
@@ -16,6 +17,7 @@ pub mod journal;
 pub mod launch;
 pub mod lenders;
 pub mod nodes;
+pub mod received;
 pub mod reference;
 pub mod sights;
 pub mod views;

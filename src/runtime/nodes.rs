@@ -29,6 +29,7 @@ use super::config::{BackpressurePolicy, PipelineConfig};
 use super::dispatch::{Dispatcher, WorkerPort};
 use super::journal::{self, Journal, JournalError};
 use super::lenders::LenderStore;
+use super::received::ReceivedStore;
 use super::sights::{self, SightStore};
 use super::views::ViewStore;
 
@@ -1301,6 +1302,14 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
     let mut published: std::collections::BTreeSet<u64> = journaled.keys().copied().collect();
     stage.published_before_restart(published.iter().copied());
     restore_unacked(&mut results_ack, &journaled, &acks, journal.path());
+    // The queries and hypotheses received before a restart, of frames without a published
+    // result, come back as if they had just arrived (runtime::received).
+    let (mut received, restored) = ReceivedStore::open_and_restore(config, &mut stage, &published);
+    if restored > 0 {
+        tracing::info!(
+            "verify: the received messages of {restored} frames without a published result restored"
+        );
+    }
     // Complete frames are decided by a pool of threads (each with its own refinement
     // workspace) and concluded here, one result per frame as before.
     let (ready_tx, ready_rx) = std::sync::mpsc::channel::<ReadyFrame>();
@@ -1330,6 +1339,9 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
             });
         }
         drop(decided_tx);
+        let mut waiting_for_pool: std::collections::BTreeMap<u64, ReadyFrame> =
+            std::collections::BTreeMap::new();
+        let mut in_pool = 0usize;
         while !ctx.stopped() {
             let mut produced = Vec::new();
             // Everything waiting is taken before the bookkeeping below (results, acks, change
@@ -1347,7 +1359,11 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                             capture_times
                                 .entry(frame_id)
                                 .or_insert(message.header.capture_time_ns);
+                            let takes = stage.takes_messages_of(frame_id);
                             stage.on_hypothesis(frame_id, &hypothesis);
+                            if takes {
+                                received.keep(frame_id, Body::Hypothesis(hypothesis));
+                            }
                         }
                         Body::FrameFailed(failure) => {
                             capture_times
@@ -1359,7 +1375,11 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                             capture_times
                                 .entry(frame_id)
                                 .or_insert(message.header.capture_time_ns);
+                            let takes = stage.takes_messages_of(frame_id);
                             stage.on_query(frame_id, &query);
+                            if takes {
+                                received.keep(frame_id, Body::FrameQuery(query));
+                            }
                         }
                         Body::StreamEnd(end) => {
                             stage.on_stream_end(end.frame_count, &end.finished_frames)
@@ -1373,11 +1393,24 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 taken += 1;
             }
             produced.extend(stage.expire(Instant::now()));
+            // The pool takes the lowest frame first, one more than it has threads: a frame's
+            // step "neighbour" (its result) comes before the own decisions of frames after its
+            // look-ahead. In arrival order, a restarted verify that got back a few dozen frames
+            // at once decided them all before publishing the first, and one killed sooner
+            // published nothing (runtime::received).
             for ready in stage.take_ready() {
+                waiting_for_pool.insert(ready.frame_id(), ready);
+            }
+            while in_pool <= threads as usize {
+                let Some((_, ready)) = waiting_for_pool.pop_first() else {
+                    break;
+                };
                 // The pool's threads end only with this loop.
                 let _ = ready_tx.send(ready);
+                in_pool += 1;
             }
             while let Ok(decided) = decided_rx.try_recv() {
+                in_pool = in_pool.saturating_sub(1);
                 produced.extend(stage.conclude(decided));
             }
             // Durable before the results go out: a frame with both results is not sent again.
@@ -1428,6 +1461,7 @@ pub fn run_verify(ctx: &NodeContext, mesh: &Mesh) -> Result<StageMetrics, NodeEr
                 results.send_encoded(&bytes, &mut metrics)?;
                 results_json.send_raw(json.as_bytes())?;
                 published.insert(frame_id);
+                received.forget(frame_id);
                 let first_after = results_ack.first_after();
                 results_ack.track(frame_id, bytes, json, first_after);
             }

@@ -461,6 +461,133 @@ fn a_frame_whose_every_message_was_lost_in_flight_is_sent_again_and_gets_its_res
     assert_same_as_batch(&config, &mesh, &collected);
 }
 
+/// Crossbeam, except that the queries and hypotheses sent to verify are recorded (`deaf`:
+/// and lost instead of delivered).
+struct VerifyTap {
+    inner: CrossbeamTransport,
+    deaf: bool,
+    /// The recorded messages, as sent.
+    sent: std::sync::Arc<std::sync::Mutex<Vec<Vec<u8>>>>,
+}
+
+struct TapPublisher {
+    inner: Box<dyn crate::transport::Publisher>,
+    deaf: bool,
+    /// Set on verify's topic.
+    sent: Option<std::sync::Arc<std::sync::Mutex<Vec<Vec<u8>>>>>,
+}
+
+impl crate::transport::Publisher for TapPublisher {
+    fn topic(&self) -> &str {
+        self.inner.topic()
+    }
+    fn send_with(
+        &mut self,
+        len: usize,
+        write: &mut dyn FnMut(&mut [u8]),
+    ) -> Result<(), crate::transport::TransportError> {
+        let mut bytes = vec![0; len];
+        write(&mut bytes);
+        if let (Some(sent), Ok(message)) = (&self.sent, crate::msg::decode(&bytes)) {
+            if matches!(
+                message.body,
+                crate::msg::Body::FrameQuery(_) | crate::msg::Body::Hypothesis(_)
+            ) {
+                sent.lock().unwrap().push(bytes.clone());
+                if self.deaf {
+                    return Ok(());
+                }
+            }
+        }
+        self.inner.send(&bytes)
+    }
+    fn wait_for_subscriber(
+        &mut self,
+        timeout: Duration,
+    ) -> Result<bool, crate::transport::TransportError> {
+        self.inner.wait_for_subscriber(timeout)
+    }
+}
+
+impl crate::transport::Transport for VerifyTap {
+    fn backend(&self) -> &'static str {
+        "crossbeam"
+    }
+    fn publisher(
+        &self,
+        topic: &str,
+    ) -> Result<Box<dyn crate::transport::Publisher>, crate::transport::TransportError> {
+        Ok(Box::new(TapPublisher {
+            inner: self.inner.publisher(topic)?,
+            deaf: self.deaf,
+            sent: (topic == keys::VERIFY_IN).then(|| std::sync::Arc::clone(&self.sent)),
+        }))
+    }
+    fn subscriber(
+        &self,
+        topic: &str,
+    ) -> Result<Box<dyn crate::transport::Subscriber>, crate::transport::TransportError> {
+        self.inner.subscriber(topic)
+    }
+}
+
+/// Verify restarted after it had received every frame's query and hypotheses, before it
+/// published any result, decides them from its state folder (`runtime::received`): in the
+/// second run every query and hypothesis sent to verify is lost, and every frame still gets
+/// its result, `register`'s, and the folder is empty at the end.
+#[test]
+fn a_restarted_verify_decides_the_frames_it_had_received_from_its_state_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = tiny_scene(dir.path());
+    let state = dir.path().join("state");
+    config.state_dir = Some(state.clone());
+    let mesh = read_mesh(&config.mesh).unwrap();
+    let recording = VerifyTap {
+        inner: CrossbeamTransport::new(config.transport.clone()),
+        deaf: false,
+        sent: Default::default(),
+    };
+    run_stage_threads(
+        &config,
+        &recording,
+        &mesh,
+        Duration::from_secs(300),
+        &mut |_| {},
+    )
+    .unwrap();
+    let sent = std::mem::take(&mut *recording.sent.lock().unwrap());
+    assert!(sent.len() >= 4 * 6, "{} messages to verify", sent.len());
+    let folder = received::dir(&config);
+    assert_eq!(
+        std::fs::read_dir(&folder).unwrap().count(),
+        1,
+        "only the header is left once every result is out"
+    );
+    // The state of a verify killed after receiving all of it: no journal, the messages kept.
+    std::fs::remove_dir_all(&state).unwrap();
+    {
+        let mut stage = crate::stage::verify::VerifyStage::new(&mesh, Duration::from_secs(120));
+        let (mut store, restored) =
+            received::ReceivedStore::open_and_restore(&config, &mut stage, &Default::default());
+        assert_eq!(restored, 0);
+        for bytes in &sent {
+            let message = crate::msg::decode(bytes).unwrap();
+            if stage.takes_messages_of(message.header.frame_id) {
+                store.keep(message.header.frame_id, message.body);
+            }
+        }
+    }
+    let deaf = VerifyTap {
+        inner: CrossbeamTransport::new(config.transport.clone()),
+        deaf: true,
+        sent: Default::default(),
+    };
+    let collected =
+        run_stage_threads(&config, &deaf, &mesh, Duration::from_secs(120), &mut |_| {}).unwrap();
+    assert!(!deaf.sent.lock().unwrap().is_empty(), "nothing was lost");
+    assert_same_as_batch(&config, &mesh, &collected);
+}
+
 #[test]
 fn drop_oldest_backpressure_reports_every_dropped_frame_as_its_result() {
     let dir = tempfile::tempdir().unwrap();

@@ -796,6 +796,13 @@ impl<'m> VerifyStage<'m> {
         frame_id < self.finished_below || self.finished_above.contains(&frame_id)
     }
 
+    /// Whether a query or hypothesis of the frame arriving now is taken in (the frame is neither
+    /// complete nor finished here, nor published before a restart): what is worth keeping
+    /// across a restart (`runtime::received`); later copies are late.
+    pub fn takes_messages_of(&self, frame_id: u64) -> bool {
+        !self.is_taken(frame_id) && !self.published_before.contains(&frame_id)
+    }
+
     /// Finished, or complete and waiting for (or in) its decision: later messages are late.
     fn is_taken(&self, frame_id: u64) -> bool {
         self.is_finished(frame_id)
