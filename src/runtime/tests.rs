@@ -333,33 +333,23 @@ fn bad_messages_are_rejected_and_the_pipeline_goes_on() {
     assert!(rejected("flow") >= 1);
 }
 
-/// Crossbeam, except that every message of frame `frame_id` to verify and to the pose workers
-/// is lost while render passes it the first time (its query and its correspondences: what a
-/// zenoh router restart can take), so verify never hears of that pass.
-struct LosingFirstPass {
+/// What a [`Tapped`] transport does with a message published on a topic (its topic and bytes):
+/// true delivers it, false loses it.
+type Tap = dyn Fn(&str, &[u8]) -> bool + Send + Sync;
+
+/// Crossbeam, except that every message published goes through a tap first, which may record or
+/// lose it (what a zenoh router restart or a killed stage can take).
+struct Tapped {
     inner: CrossbeamTransport,
-    /// The pose workers (`keys::pose_in` topics) whose messages are lost too.
-    pose_workers: u32,
-    lost: std::sync::Arc<LostFrame>,
+    tap: std::sync::Arc<Tap>,
 }
 
-/// The frame [`LosingFirstPass`] loses and what it lost.
-#[derive(Default)]
-struct LostFrame {
-    frame_id: u64,
-    /// The frame's queries sent to verify so far (one per render pass).
-    passes: std::sync::atomic::AtomicU32,
-    /// Messages lost.
-    dropped: std::sync::atomic::AtomicU32,
-}
-
-struct LosingPublisher {
+struct TappedPublisher {
     inner: Box<dyn crate::transport::Publisher>,
-    /// Set on the topics that lose the frame (verify's and the pose workers').
-    lost: Option<std::sync::Arc<LostFrame>>,
+    tap: std::sync::Arc<Tap>,
 }
 
-impl crate::transport::Publisher for LosingPublisher {
+impl crate::transport::Publisher for TappedPublisher {
     fn topic(&self) -> &str {
         self.inner.topic()
     }
@@ -370,16 +360,8 @@ impl crate::transport::Publisher for LosingPublisher {
     ) -> Result<(), crate::transport::TransportError> {
         let mut bytes = vec![0; len];
         write(&mut bytes);
-        if let (Some(lost), Ok(message)) = (&self.lost, crate::msg::decode(&bytes)) {
-            if message.header.frame_id == lost.frame_id {
-                if matches!(message.body, crate::msg::Body::FrameQuery(_)) {
-                    lost.passes.fetch_add(1, Ordering::SeqCst);
-                }
-                if lost.passes.load(Ordering::SeqCst) <= 1 {
-                    lost.dropped.fetch_add(1, Ordering::SeqCst);
-                    return Ok(());
-                }
-            }
+        if !(self.tap)(self.inner.topic(), &bytes) {
+            return Ok(());
         }
         self.inner.send(&bytes)
     }
@@ -391,7 +373,7 @@ impl crate::transport::Publisher for LosingPublisher {
     }
 }
 
-impl crate::transport::Transport for LosingFirstPass {
+impl crate::transport::Transport for Tapped {
     fn backend(&self) -> &'static str {
         "crossbeam"
     }
@@ -399,11 +381,9 @@ impl crate::transport::Transport for LosingFirstPass {
         &self,
         topic: &str,
     ) -> Result<Box<dyn crate::transport::Publisher>, crate::transport::TransportError> {
-        let loses =
-            topic == keys::VERIFY_IN || (0..self.pose_workers).any(|w| topic == keys::pose_in(w));
-        Ok(Box::new(LosingPublisher {
+        Ok(Box::new(TappedPublisher {
             inner: self.inner.publisher(topic)?,
-            lost: loses.then(|| std::sync::Arc::clone(&self.lost)),
+            tap: std::sync::Arc::clone(&self.tap),
         }))
     }
     fn subscriber(
@@ -414,18 +394,51 @@ impl crate::transport::Transport for LosingFirstPass {
     }
 }
 
+/// The frame a tap loses while render passes it the first time, and what it lost.
+#[derive(Default)]
+struct LostFrame {
+    frame_id: u64,
+    /// The frame's queries sent to verify so far (one per render pass).
+    passes: std::sync::atomic::AtomicU32,
+    /// Messages lost.
+    dropped: std::sync::atomic::AtomicU32,
+}
+
 #[test]
 fn a_frame_whose_every_message_was_lost_in_flight_is_sent_again_and_gets_its_result() {
     let dir = tempfile::tempdir().unwrap();
     let mut config = tiny_scene(dir.path());
     config.timeouts.redo_unanswered_after_s = 1.0;
     let mesh = read_mesh(&config.mesh).unwrap();
-    let transport = LosingFirstPass {
+    // Every message of frame 1 to verify and to the pose workers is lost while render passes it
+    // the first time (its query and its correspondences), so verify never hears of that pass.
+    let lost = std::sync::Arc::new(LostFrame {
+        frame_id: 1,
+        ..LostFrame::default()
+    });
+    let pose_workers = config.workers.pose.max(1);
+    let transport = Tapped {
         inner: CrossbeamTransport::new(config.transport.clone()),
-        pose_workers: config.workers.pose.max(1),
-        lost: std::sync::Arc::new(LostFrame {
-            frame_id: 1,
-            ..LostFrame::default()
+        tap: std::sync::Arc::new({
+            let lost = std::sync::Arc::clone(&lost);
+            move |topic: &str, bytes: &[u8]| {
+                let loses = topic == keys::VERIFY_IN
+                    || (0..pose_workers).any(|w| topic == keys::pose_in(w));
+                let Ok(message) = crate::msg::decode(bytes) else {
+                    return true;
+                };
+                if !loses || message.header.frame_id != lost.frame_id {
+                    return true;
+                }
+                if matches!(message.body, crate::msg::Body::FrameQuery(_)) {
+                    lost.passes.fetch_add(1, Ordering::SeqCst);
+                }
+                if lost.passes.load(Ordering::SeqCst) <= 1 {
+                    lost.dropped.fetch_add(1, Ordering::SeqCst);
+                    return false;
+                }
+                true
+            }
         }),
     };
     let collected = run_in_process(
@@ -437,9 +450,9 @@ fn a_frame_whose_every_message_was_lost_in_flight_is_sent_again_and_gets_its_res
     )
     .unwrap();
     // The query and the five coarse poses' correspondences of the first pass were lost.
-    assert_eq!(transport.lost.dropped.load(Ordering::SeqCst), 6);
+    assert_eq!(lost.dropped.load(Ordering::SeqCst), 6);
     assert_eq!(
-        transport.lost.passes.load(Ordering::SeqCst),
+        lost.passes.load(Ordering::SeqCst),
         2,
         "frame 1 was not sent again"
     );
@@ -461,74 +474,31 @@ fn a_frame_whose_every_message_was_lost_in_flight_is_sent_again_and_gets_its_res
     assert_same_as_batch(&config, &mesh, &collected);
 }
 
-/// Crossbeam, except that the queries and hypotheses sent to verify are recorded (`deaf`:
-/// and lost instead of delivered).
-struct VerifyTap {
-    inner: CrossbeamTransport,
+/// A transport whose tap records the queries and hypotheses sent to verify (`deaf`: and loses
+/// them instead of delivering them), with what it recorded.
+fn verify_tap(
+    config: &PipelineConfig,
     deaf: bool,
-    /// The recorded messages, as sent.
-    sent: std::sync::Arc<std::sync::Mutex<Vec<Vec<u8>>>>,
-}
-
-struct TapPublisher {
-    inner: Box<dyn crate::transport::Publisher>,
-    deaf: bool,
-    /// Set on verify's topic.
-    sent: Option<std::sync::Arc<std::sync::Mutex<Vec<Vec<u8>>>>>,
-}
-
-impl crate::transport::Publisher for TapPublisher {
-    fn topic(&self) -> &str {
-        self.inner.topic()
-    }
-    fn send_with(
-        &mut self,
-        len: usize,
-        write: &mut dyn FnMut(&mut [u8]),
-    ) -> Result<(), crate::transport::TransportError> {
-        let mut bytes = vec![0; len];
-        write(&mut bytes);
-        if let (Some(sent), Ok(message)) = (&self.sent, crate::msg::decode(&bytes)) {
-            if matches!(
-                message.body,
-                crate::msg::Body::FrameQuery(_) | crate::msg::Body::Hypothesis(_)
-            ) {
-                sent.lock().unwrap().push(bytes.clone());
-                if self.deaf {
-                    return Ok(());
-                }
+) -> (Tapped, std::sync::Arc<std::sync::Mutex<Vec<Vec<u8>>>>) {
+    let sent: std::sync::Arc<std::sync::Mutex<Vec<Vec<u8>>>> = Default::default();
+    let recorded = std::sync::Arc::clone(&sent);
+    let transport = Tapped {
+        inner: CrossbeamTransport::new(config.transport.clone()),
+        tap: std::sync::Arc::new(move |topic: &str, bytes: &[u8]| {
+            let to_verify = topic == keys::VERIFY_IN
+                && crate::msg::decode(bytes).is_ok_and(|message| {
+                    matches!(
+                        message.body,
+                        crate::msg::Body::FrameQuery(_) | crate::msg::Body::Hypothesis(_)
+                    )
+                });
+            if to_verify {
+                recorded.lock().unwrap().push(bytes.to_vec());
             }
-        }
-        self.inner.send(&bytes)
-    }
-    fn wait_for_subscriber(
-        &mut self,
-        timeout: Duration,
-    ) -> Result<bool, crate::transport::TransportError> {
-        self.inner.wait_for_subscriber(timeout)
-    }
-}
-
-impl crate::transport::Transport for VerifyTap {
-    fn backend(&self) -> &'static str {
-        "crossbeam"
-    }
-    fn publisher(
-        &self,
-        topic: &str,
-    ) -> Result<Box<dyn crate::transport::Publisher>, crate::transport::TransportError> {
-        Ok(Box::new(TapPublisher {
-            inner: self.inner.publisher(topic)?,
-            deaf: self.deaf,
-            sent: (topic == keys::VERIFY_IN).then(|| std::sync::Arc::clone(&self.sent)),
-        }))
-    }
-    fn subscriber(
-        &self,
-        topic: &str,
-    ) -> Result<Box<dyn crate::transport::Subscriber>, crate::transport::TransportError> {
-        self.inner.subscriber(topic)
-    }
+            !(to_verify && deaf)
+        }),
+    };
+    (transport, sent)
 }
 
 /// Verify restarted after it had received every frame's query and hypotheses, before it
@@ -542,11 +512,7 @@ fn a_restarted_verify_decides_the_frames_it_had_received_from_its_state_folder()
     let state = dir.path().join("state");
     config.state_dir = Some(state.clone());
     let mesh = read_mesh(&config.mesh).unwrap();
-    let recording = VerifyTap {
-        inner: CrossbeamTransport::new(config.transport.clone()),
-        deaf: false,
-        sent: Default::default(),
-    };
+    let (recording, sent) = verify_tap(&config, false);
     run_stage_threads(
         &config,
         &recording,
@@ -555,7 +521,7 @@ fn a_restarted_verify_decides_the_frames_it_had_received_from_its_state_folder()
         &mut |_| {},
     )
     .unwrap();
-    let sent = std::mem::take(&mut *recording.sent.lock().unwrap());
+    let sent = std::mem::take(&mut *sent.lock().unwrap());
     assert!(sent.len() >= 4 * 6, "{} messages to verify", sent.len());
     let folder = received::dir(&config);
     assert_eq!(
@@ -577,14 +543,10 @@ fn a_restarted_verify_decides_the_frames_it_had_received_from_its_state_folder()
             }
         }
     }
-    let deaf = VerifyTap {
-        inner: CrossbeamTransport::new(config.transport.clone()),
-        deaf: true,
-        sent: Default::default(),
-    };
+    let (deaf, lost) = verify_tap(&config, true);
     let collected =
         run_stage_threads(&config, &deaf, &mesh, Duration::from_secs(120), &mut |_| {}).unwrap();
-    assert!(!deaf.sent.lock().unwrap().is_empty(), "nothing was lost");
+    assert!(!lost.lock().unwrap().is_empty(), "nothing was lost");
     assert_same_as_batch(&config, &mesh, &collected);
 }
 
