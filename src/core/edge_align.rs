@@ -787,16 +787,9 @@ pub fn find_ridge(
     min_ridge: f32,
     choice: RidgeChoice,
 ) -> Option<RidgeMatch> {
-    const STEP_PX: f64 = 0.5;
-    let steps = (radius_px / STEP_PX).ceil() as i32 + 1;
-    let mut values = [f32::NAN; 2 * 64 + 3];
-    let count = (2 * steps + 1) as usize;
-    if count > values.len() {
+    // The lattice of the search line ends within 2·64 + 3 values (radius 32 px).
+    if 2 * ridge_lattice_steps(radius_px) + 1 > 2 * 64 + 3 {
         return None;
-    }
-    for (index, value) in values.iter_mut().take(count).enumerate() {
-        let t = (index as i32 - steps) as f64 * STEP_PX;
-        *value = bilinear(query, at_px + normal * t).unwrap_or(f32::NAN);
     }
     let tangent = Vector2::new(-normal.y, normal.x);
     // (score, offset) of the strongest and second-strongest ridges, and the nearest's offset.
@@ -804,47 +797,51 @@ pub fn find_ridge(
     let mut second_score = 0.0_f64;
     let mut nearest: Option<f64> = None;
     let width = 0.5 * radius_px;
-    for index in 1..count - 1 {
-        let (before, centre, after) = (values[index - 1], values[index], values[index + 1]);
-        if !(centre >= min_ridge && centre >= before && centre > after) {
-            continue;
-        }
-        let t = (index as i32 - steps) as f64 * STEP_PX;
-        if t.abs() > radius_px {
-            continue;
-        }
-        // Line-like: curved across the search line, flatter along the ridge (1 px either way).
-        let peak = at_px + normal * t;
-        let (Some(across_a), Some(across_b), Some(along_a), Some(along_b)) = (
-            bilinear(query, peak + normal),
-            bilinear(query, peak - normal),
-            bilinear(query, peak + tangent),
-            bilinear(query, peak - tangent),
-        ) else {
-            continue;
-        };
-        let curvature_across = across_a + across_b - 2.0 * centre;
-        let curvature_along = along_a + along_b - 2.0 * centre;
-        if !(curvature_across < 0.0 && curvature_across < 2.0 * curvature_along.min(0.0)) {
-            continue;
-        }
-        // Sub-pixel: a parabola through the logarithms 1 px either side (exact for a Gaussian
-        // profile, which a blurred step's gradient magnitude is close to).
-        let offset = t + log_parabola_peak(across_b, centre, across_a).clamp(-0.5, 0.5);
-        let score = f64::from(centre) * (-(offset * offset) / (2.0 * width * width)).exp();
-        match best {
-            Some((best_score, _)) if score <= best_score => second_score = second_score.max(score),
-            _ => {
-                if let Some((best_score, _)) = best {
-                    second_score = second_score.max(best_score);
-                }
-                best = Some((score, offset));
+    for_each_lattice_peak(
+        query,
+        at_px,
+        normal,
+        radius_px,
+        min_ridge,
+        |t, _, centre, _| {
+            if t.abs() > radius_px {
+                return;
             }
-        }
-        if nearest.is_none_or(|n: f64| offset.abs() < n.abs()) {
-            nearest = Some(offset);
-        }
-    }
+            // Line-like: curved across the search line, flatter along the ridge (1 px either way).
+            let peak = at_px + normal * t;
+            let (Some(across_a), Some(across_b), Some(along_a), Some(along_b)) = (
+                bilinear(query, peak + normal),
+                bilinear(query, peak - normal),
+                bilinear(query, peak + tangent),
+                bilinear(query, peak - tangent),
+            ) else {
+                return;
+            };
+            let curvature_across = across_a + across_b - 2.0 * centre;
+            let curvature_along = along_a + along_b - 2.0 * centre;
+            if !(curvature_across < 0.0 && curvature_across < 2.0 * curvature_along.min(0.0)) {
+                return;
+            }
+            // Sub-pixel: a parabola through the logarithms 1 px either side (exact for a Gaussian
+            // profile, which a blurred step's gradient magnitude is close to).
+            let offset = t + log_parabola_peak(across_b, centre, across_a).clamp(-0.5, 0.5);
+            let score = f64::from(centre) * (-(offset * offset) / (2.0 * width * width)).exp();
+            match best {
+                Some((best_score, _)) if score <= best_score => {
+                    second_score = second_score.max(score)
+                }
+                _ => {
+                    if let Some((best_score, _)) = best {
+                        second_score = second_score.max(best_score);
+                    }
+                    best = Some((score, offset));
+                }
+            }
+            if nearest.is_none_or(|n: f64| offset.abs() < n.abs()) {
+                nearest = Some(offset);
+            }
+        },
+    );
     let (best_score, strongest) = best?;
     let offset_px = match choice {
         RidgeChoice::Strongest => strongest,
@@ -854,6 +851,45 @@ pub fn find_ridge(
         offset_px,
         distinctiveness: (1.0 - second_score / best_score).clamp(0.0, 1.0),
     })
+}
+
+/// Step of the lattice the ridge searches sample along a search line, px.
+pub const RIDGE_LATTICE_STEP_PX: f64 = 0.5;
+
+/// Lattice points either side of the search line's centre for a search within `radius_px`.
+fn ridge_lattice_steps(radius_px: f64) -> i32 {
+    (radius_px / RIDGE_LATTICE_STEP_PX).ceil() as i32 + 1
+}
+
+/// The one scan of a search line for ridges ([`find_ridge`], `edge_consensus::ridge_offsets`):
+/// `query` sampled every [`RIDGE_LATTICE_STEP_PX`] along the line through `at_px` along `normal`
+/// out to just beyond `radius_px`, and `visit(t_px, before, centre, after)` called for each local
+/// maximum at least `min_ridge` strong (its lattice offset and the three values around it);
+/// values off the image are NaN, so no peak lies next to the border.
+pub fn for_each_lattice_peak(
+    query: &ImageView<'_, f32>,
+    at_px: Vector2<f64>,
+    normal: Vector2<f64>,
+    radius_px: f64,
+    min_ridge: f32,
+    mut visit: impl FnMut(f64, f32, f32, f32),
+) {
+    let steps = ridge_lattice_steps(radius_px);
+    let value = |i: i32| {
+        bilinear(
+            query,
+            at_px + normal * (f64::from(i) * RIDGE_LATTICE_STEP_PX),
+        )
+        .unwrap_or(f32::NAN)
+    };
+    let (mut before, mut centre) = (value(-steps), value(-steps + 1));
+    for i in -steps + 1..steps {
+        let after = value(i + 1);
+        if centre >= min_ridge && centre >= before && centre > after {
+            visit(f64::from(i) * RIDGE_LATTICE_STEP_PX, before, centre, after);
+        }
+        (before, centre) = (centre, after);
+    }
 }
 
 /// Each sample of `samples` that projects into the image at `cam_from_world`, with its point in

@@ -16,9 +16,9 @@
 //! within `radius_px` ([`ridge_offsets`]): moving the pose by the left step `ξ` moves the sample's
 //! projection along its normal by `jᵀξ` to first order. RANSAC as estimator / sampler / consensus:
 //! the sampler draws 6 constraints and one offset of each (the RNG is the caller's), the estimator
-//! solves the 6×6 system exactly, the consensus counts the constraints with an offset within
-//! `inlier_px` of what the step predicts; the best step is refitted by least squares on its
-//! inliers (each one's nearest offset). Preconditions: a pinhole camera; the linearisation holds
+//! solves the 6×6 system exactly, the consensus is MSAC's truncated quadratic (each constraint
+//! charged its squared distance to its nearest offset, at most `inlier_px`²); the best step is
+//! refitted by least squares on its inliers (each one's nearest offset) while the cost falls. Preconditions: a pinhole camera; the linearisation holds
 //! for steps of a few pixels (the radius bounds them); the caller re-renders at the stepped pose
 //! and aligns from there (visibility and contours move with the pose).
 
@@ -27,7 +27,9 @@ use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
 use super::camera::Camera;
-use super::edge_align::{bilinear, pose_jacobian_rows, EdgeSample};
+use super::edge_align::{
+    for_each_lattice_peak, pose_jacobian_rows, EdgeSample, RIDGE_LATTICE_STEP_PX,
+};
 use super::image::ImageView;
 use super::pose::ransac::{Sampler, UniformSampler};
 use super::rigid::Rigid3;
@@ -107,23 +109,27 @@ pub struct RidgeConstraint {
 }
 
 impl RidgeConstraint {
-    /// The offset nearest the motion `step` predicts, when within `inlier_px`.
-    fn agreeing_offset(&self, step: &Vector6<f64>, inlier_px: f64) -> Option<f64> {
+    /// The offset nearest the motion `step` predicts, and its distance from it, px (`None`
+    /// without offsets).
+    fn nearest_offset(&self, step: &Vector6<f64>) -> Option<(f64, f64)> {
         let predicted = self.jacobian.dot(step);
         self.offsets_px
             .iter()
-            .copied()
-            .filter(|offset| (offset - predicted).abs() <= inlier_px)
-            .min_by(|a, b| (a - predicted).abs().total_cmp(&(b - predicted).abs()))
+            .map(|&offset| (offset, (offset - predicted).abs()))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+    }
+
+    /// The offset nearest the motion `step` predicts, when within `inlier_px`.
+    fn agreeing_offset(&self, step: &Vector6<f64>, inlier_px: f64) -> Option<f64> {
+        self.nearest_offset(step)
+            .filter(|&(_, distance_px)| distance_px <= inlier_px)
+            .map(|(offset, _)| offset)
     }
 }
 
-/// Step of the search along a normal, px.
-const RIDGE_STEP_PX: f64 = 0.5;
-
-/// Every ridge of `query` on the line through `at_px` along `normal` within `radius_px`: local
-/// maxima at least `min_ridge` strong on a 0.5 px lattice, each refined by the parabola through
-/// its neighbours, as offsets along `normal`, px.
+/// Every ridge of `query` on the line through `at_px` along `normal` within `radius_px`: the
+/// lattice peaks at least `min_ridge` strong ([`for_each_lattice_peak`], the alignment's scan),
+/// each refined by the parabola through its lattice neighbours, as offsets along `normal`, px.
 pub fn ridge_offsets(
     query: &ImageView<'_, f32>,
     at_px: Vector2<f64>,
@@ -133,15 +139,13 @@ pub fn ridge_offsets(
     out: &mut Vec<f64>,
 ) {
     out.clear();
-    let steps = (radius_px / RIDGE_STEP_PX).ceil() as i32 + 1;
-    let value = |i: i32| {
-        bilinear(query, at_px + normal * (f64::from(i) * RIDGE_STEP_PX)).unwrap_or(f32::NAN)
-    };
-    let (mut before, mut centre) = (value(-steps), value(-steps + 1));
-    for i in -steps + 1..steps {
-        let after = value(i + 1);
-        // NaN (off the image) compares false: no ridge next to the border.
-        if centre >= min_ridge && centre >= before && centre > after {
+    for_each_lattice_peak(
+        query,
+        at_px,
+        normal,
+        radius_px,
+        min_ridge,
+        |t_px, before, centre, after| {
             // Sub-lattice by the parabola through the three values (its vertex within ±½ step).
             let curvature = f64::from(before) - 2.0 * f64::from(centre) + f64::from(after);
             let vertex = if curvature < 0.0 {
@@ -149,13 +153,12 @@ pub fn ridge_offsets(
             } else {
                 0.0
             };
-            let offset_px = (f64::from(i) + vertex) * RIDGE_STEP_PX;
+            let offset_px = t_px + vertex * RIDGE_LATTICE_STEP_PX;
             if offset_px.abs() <= radius_px {
                 out.push(offset_px);
             }
-        }
-        (before, centre) = (centre, after);
-    }
+        },
+    );
 }
 
 /// The constraints of `samples` at `cam_from_world`: one per sample in front of the camera with
@@ -240,12 +243,9 @@ fn cost(constraints: &[RidgeConstraint], step: &Vector6<f64>, inlier_px: f64) ->
     constraints
         .iter()
         .fold((0.0, 0), |(total, inliers), constraint| {
-            let predicted = constraint.jacobian.dot(step);
             let nearest_px = constraint
-                .offsets_px
-                .iter()
-                .map(|offset| (offset - predicted).abs())
-                .fold(f64::INFINITY, f64::min);
+                .nearest_offset(step)
+                .map_or(f64::INFINITY, |(_, distance_px)| distance_px);
             let agrees = nearest_px <= inlier_px;
             let charged_px = nearest_px.min(inlier_px);
             (

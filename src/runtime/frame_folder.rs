@@ -4,7 +4,7 @@
 //! that is too large for a results journal's line: verify's stereo views (`views`, the photos of
 //! its stereo neighbours), pose lenders (`lenders`) and received messages (`received`, a frame's
 //! query and hypotheses as parts of one frame) and fusion's sights (`sights`, the frames' depths
-//! for the free-space test). One implementation, so both keep the same crash rules and the same warnings: writing
+//! for the free-space test). One implementation, so all keep the same crash rules and the same warnings: writing
 //! is best effort (a file that cannot be written costs only what a restart would get back, so it
 //! is a warning, once until writing works again), and a file that cannot be read back is removed
 //! with a warning.
@@ -244,12 +244,9 @@ impl FrameFolder {
         remove_file(&self.path(frame_id))
     }
 
-    /// Removes every part of `frame_id`'s messages (none is fine).
-    pub fn remove_parts(&self, frame_id: u64) -> std::io::Result<()> {
-        for (_, path) in self.listed().into_iter().filter(|(id, _)| *id == frame_id) {
-            remove_file(&path)?;
-        }
-        Ok(())
+    /// Removes part `part` of `frame_id`'s messages (none is fine).
+    pub fn remove_part(&self, frame_id: u64, part: &str) -> std::io::Result<()> {
+        remove_file(&self.part_path(frame_id, part))
     }
 
     pub fn dir(&self) -> &Path {
@@ -353,7 +350,7 @@ mod tests {
     }
 
     /// A frame's parts are restored with the frame's id beside a frame's one message, removed
-    /// together (not another frame's), and another run's files are removed, not restored.
+    /// one by one (not another frame's), and another run's files are removed, not restored.
     #[test]
     fn parts_of_a_frame_are_restored_and_removed_together() {
         let state = tempfile::tempdir().unwrap();
@@ -371,7 +368,8 @@ mod tests {
         let (folder, mut seen) = restored(&config);
         seen.sort();
         assert_eq!(seen, vec![(3, 30), (3, 31), (4, 40), (12, 120)]);
-        folder.remove_parts(3).unwrap();
+        folder.remove_part(3, "query").unwrap();
+        folder.remove_part(3, "h1").unwrap();
         let (_, mut seen) = restored(&config);
         seen.sort();
         assert_eq!(seen, vec![(4, 40), (12, 120)]);

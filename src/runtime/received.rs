@@ -14,6 +14,7 @@
 //! cannot be written costs only its redo after a restart (ingest sends a frame again when verify
 //! restarts), so it is a warning, not a failed frame.
 
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
 
 use crate::msg::Body;
@@ -52,6 +53,9 @@ fn part_of(body: &Body<'_>) -> Option<String> {
 /// Verify's durable received messages.
 pub struct ReceivedStore {
     folder: FrameFolder,
+    /// The parts on disk, by frame (restored or written), so that a published frame's files are
+    /// removed without listing the folder.
+    on_disk: BTreeMap<u64, BTreeSet<String>>,
 }
 
 impl ReceivedStore {
@@ -61,28 +65,32 @@ impl ReceivedStore {
     pub fn open_and_restore(
         config: &PipelineConfig,
         stage: &mut VerifyStage<'_>,
-        published: &std::collections::BTreeSet<u64>,
+        published: &BTreeSet<u64>,
     ) -> (Self, usize) {
-        let mut restored = std::collections::BTreeSet::new();
-        let mut done = Vec::new();
+        let mut on_disk: BTreeMap<u64, BTreeSet<String>> = BTreeMap::new();
         let folder = FrameFolder::open_and_restore(config, RECEIVED, &mut |frame_id, body| {
-            if published.contains(&frame_id) {
-                done.push(frame_id);
-                return Ok(());
+            let part =
+                part_of(body).ok_or_else(|| format!("it holds a {:?} message", body.kind()))?;
+            if !published.contains(&frame_id) {
+                match body {
+                    Body::FrameQuery(query) => stage.on_query(frame_id, query),
+                    Body::Hypothesis(hypothesis) => stage.on_hypothesis(frame_id, hypothesis),
+                    _ => {}
+                }
             }
-            match body {
-                Body::FrameQuery(query) => stage.on_query(frame_id, query),
-                Body::Hypothesis(hypothesis) => stage.on_hypothesis(frame_id, hypothesis),
-                other => return Err(format!("it holds a {:?} message", other.kind())),
-            }
-            restored.insert(frame_id);
+            on_disk.entry(frame_id).or_default().insert(part);
             Ok(())
         });
-        let store = Self { folder };
-        for frame_id in done {
-            store.forget(frame_id);
+        let mut store = Self { folder, on_disk };
+        let restored = store
+            .on_disk
+            .keys()
+            .filter(|frame_id| !published.contains(frame_id))
+            .count();
+        for frame_id in published {
+            store.forget(*frame_id);
         }
-        (store, restored.len())
+        (store, restored)
     }
 
     /// Keeps `body`, a message verify received for `frame_id` and took in
@@ -90,17 +98,21 @@ impl ReceivedStore {
     /// (a query or a hypothesis).
     pub fn keep(&mut self, frame_id: u64, body: Body<'_>) {
         if let Some(part) = part_of(&body) {
-            self.folder.write_part(frame_id, &part, body);
+            if self.folder.write_part(frame_id, &part, body) {
+                self.on_disk.entry(frame_id).or_default().insert(part);
+            }
         }
     }
 
     /// Drops `frame_id`'s messages: its result is out.
-    pub fn forget(&self, frame_id: u64) {
-        if let Err(error) = self.folder.remove_parts(frame_id) {
-            tracing::debug!(
-                "verify: received messages of frame {frame_id} not removed from {}: {error}",
-                self.folder.dir().display()
-            );
+    pub fn forget(&mut self, frame_id: u64) {
+        for part in self.on_disk.remove(&frame_id).unwrap_or_default() {
+            if let Err(error) = self.folder.remove_part(frame_id, &part) {
+                tracing::debug!(
+                    "verify: received message {part} of frame {frame_id} not removed from {}: {error}",
+                    self.folder.dir().display()
+                );
+            }
         }
     }
 }

@@ -411,7 +411,7 @@ fn aligned_from_start(
 }
 
 /// The consensus step from `refinement`'s output ([`crate::core::edge_consensus`]): the output's
-/// model edge samples against every photo ridge near them, the step most agree with, then the
+/// model edge samples ([`samples_at`]) against every photo ridge near them, the step most agree with, then the
 /// alignment's final levels from the stepped pose ([`EdgeAlignConfig::after_consensus`]).
 /// `None` when the step is off, finds no step better than staying, or the output cannot be
 /// evaluated. Seeded from the settings, so every process takes the same step.
@@ -429,9 +429,9 @@ fn consensus_end(
         return None;
     }
     let (camera, cam_from_world) = refinement.output_pose();
-    let output = evaluate_start(mesh, &camera, query, &cam_from_world, config, workspace).ok()?;
+    let samples = samples_at(mesh, &camera, query, &cam_from_world, config, workspace).ok()?;
     let found = consensus_step_at(
-        &output.samples,
+        &samples,
         &query,
         &camera,
         &cam_from_world,
@@ -720,6 +720,33 @@ fn evaluate_start(
     config: &RegistrationConfig,
     workspace: &mut RefineWorkspace,
 ) -> Result<EvaluatedStart, String> {
+    let samples = samples_at(mesh, camera, query, start, config, workspace)?;
+    let view = &workspace.view;
+    let verified = edge_evidence(&samples, &query, camera, start, &config.edge_align);
+    let metric = image_motion_metric(&view.render, camera, MOTION_METRIC_STRIDE_PX);
+    Ok(EvaluatedStart {
+        camera: *camera,
+        cam_from_world: *start,
+        samples,
+        verified,
+        metric,
+        asg: view.asg.clone(),
+        faces: view.render.face_index().clone(),
+        correlation: None,
+        peak: None,
+    })
+}
+
+/// Renders `camera` at `pose` (`workspace`'s view then holds it) and returns the model edge
+/// samples there; `Err` as [`evaluate_start`]'s (the query's size, too few samples).
+fn samples_at(
+    mesh: &Mesh,
+    camera: &Camera,
+    query: ImageView<'_, f32>,
+    pose: &Rigid3,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Result<Vec<EdgeSample>, String> {
     let align = &config.edge_align;
     let (width_px, height_px) = (camera.width_px as usize, camera.height_px as usize);
     if query.size() != (width_px, height_px) {
@@ -735,14 +762,14 @@ fn evaluate_start(
         rendered,
         ..
     } = workspace;
-    render_coarse_view(mesh, camera, 0, start, config, rasterizer, view);
-    *rendered = Some((*camera, *start));
+    render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
+    *rendered = Some((*camera, *pose));
     let mut samples = Vec::new();
     model_edge_samples(
         view.asg.view(),
         &view.render,
         camera,
-        start,
+        pose,
         align,
         &mut samples,
     );
@@ -753,19 +780,7 @@ fn evaluate_start(
             align.min_samples
         ));
     }
-    let verified = edge_evidence(&samples, &query, camera, start, align);
-    let metric = image_motion_metric(&view.render, camera, MOTION_METRIC_STRIDE_PX);
-    Ok(EvaluatedStart {
-        camera: *camera,
-        cam_from_world: *start,
-        samples,
-        verified,
-        metric,
-        asg: view.asg.clone(),
-        faces: view.render.face_index().clone(),
-        correlation: None,
-        peak: None,
-    })
+    Ok(samples)
 }
 
 /// Aligns from an evaluated `start` with the schedule of `config` (its search radii), coarse to
