@@ -9,8 +9,9 @@
 //! triangles per second. `cargo bench --bench render -- no_such_bench` prints only the summary.
 //!
 //! Scene mode: `RENDER_BENCH_SCENE=<folder of asgreg synth>` renders that scene's model at the
-//! poses of its `gt` and `initial/*` models instead (the meshes and poses a frame renders), and
-//! prints the CPU ms per rendering (full: depth, normals, face index; + ASG; depth and faces only)
+//! poses of its `gt` and `initial/*` models instead (the meshes and poses a frame renders;
+//! `RENDER_BENCH_MODEL=model_lod.ply` for the simplified model `eval --model lod` registers to),
+//! and prints the CPU ms per rendering (full: depth, normals, face index; + ASG; depth and faces only)
 //! and a hash of every output bit per pose and in all (`RENDER_BENCH_HASHES=1` per pose), so that
 //! two builds can be checked to render the very same bits. Run it with `RAYON_NUM_THREADS=1` for
 //! the CPU of one rendering without the threads' overhead.
@@ -239,7 +240,8 @@ fn render_hash(buffers: &RenderBuffers, asg: &Image<f32>) -> u64 {
 /// Scene mode (see the module doc): the synthetic scene's model at its ground-truth and initial
 /// poses.
 fn scene_bench(scene: &std::path::Path) {
-    let mesh = match read_mesh(&scene.join("model.ply")) {
+    let model = std::env::var("RENDER_BENCH_MODEL").unwrap_or_else(|_| "model.ply".into());
+    let mesh = match read_mesh(&scene.join(&model)) {
         Ok(mesh) => mesh,
         Err(error) => panic!("{}: {error}", scene.display()),
     };
@@ -320,7 +322,7 @@ fn scene_bench(scene: &std::path::Path) {
     });
     let (width, height) = (buffers.width_px(), buffers.height_px());
     println!(
-        "scene {}: {} triangles, {} poses at {width}x{height}, {} rayon threads, coverage {:.0} %",
+        "scene {} ({model}): {} triangles, {} poses at {width}x{height}, {} rayon threads, coverage {:.0} %",
         scene.display(),
         mesh.face_count(),
         views.len(),
