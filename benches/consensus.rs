@@ -17,7 +17,7 @@ use std::time::Instant;
 
 use asgreg::core::camera::PinholeIntrinsics;
 use asgreg::core::edge_align::pose_jacobian_rows;
-use asgreg::core::edge_consensus::{consensus_step, EdgeConsensusConfig, RidgeConstraint};
+use asgreg::core::edge_consensus::{consensus_step, EdgeConsensusConfig, RidgeConstraints};
 use asgreg::core::frame::process_cpu_ms;
 use criterion::Criterion;
 use nalgebra::{Vector2, Vector3, Vector6};
@@ -44,43 +44,39 @@ fn jacobian_row(point_cam: Vector3<f64>, normal: Vector2<f64>) -> Vector6<f64> {
 }
 
 /// The constraint set and the step it was made from (about 4 px of image motion).
-fn constraints() -> (Vec<RidgeConstraint>, Vector6<f64>) {
+fn constraints() -> (RidgeConstraints, Vector6<f64>) {
     let mut rng = ChaCha8Rng::seed_from_u64(36);
     let truth = Vector6::new(0.004, -0.006, 0.003, 0.3, -0.2, 0.4);
-    let set = (0..CONSTRAINTS)
-        .map(|_| {
-            let point_cam = Vector3::new(
-                rng.random_range(-15.0..15.0),
-                rng.random_range(-8.0..8.0),
-                rng.random_range(20.0..40.0),
-            );
-            let angle: f64 = rng.random_range(0.0..std::f64::consts::TAU);
-            let jacobian = jacobian_row(point_cam, Vector2::new(angle.cos(), angle.sin()));
-            let mut offsets_px: Vec<f64> = (0..rng.random_range(1..=3))
-                .map(|_| rng.random_range(-10.0..10.0))
-                .collect();
-            if rng.random_bool(INLIER_SHARE) {
-                let predicted = jacobian.dot(&truth) + rng.random_range(-0.3..0.3);
-                if predicted.abs() <= 10.0 {
-                    offsets_px.push(predicted);
-                }
+    let mut set = RidgeConstraints::default();
+    for _ in 0..CONSTRAINTS {
+        let point_cam = Vector3::new(
+            rng.random_range(-15.0..15.0),
+            rng.random_range(-8.0..8.0),
+            rng.random_range(20.0..40.0),
+        );
+        let angle: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+        let jacobian = jacobian_row(point_cam, Vector2::new(angle.cos(), angle.sin()));
+        let mut offsets_px: Vec<f64> = (0..rng.random_range(1..=3))
+            .map(|_| rng.random_range(-10.0..10.0))
+            .collect();
+        if rng.random_bool(INLIER_SHARE) {
+            let predicted = jacobian.dot(&truth) + rng.random_range(-0.3..0.3);
+            if predicted.abs() <= 10.0 {
+                offsets_px.push(predicted);
             }
-            offsets_px.sort_by(f64::total_cmp);
-            RidgeConstraint {
-                jacobian,
-                offsets_px,
-            }
-        })
-        .collect();
+        }
+        offsets_px.sort_by(f64::total_cmp);
+        set.push(jacobian, &offsets_px);
+    }
     (set, truth)
 }
 
-fn step(set: &[RidgeConstraint], config: &EdgeConsensusConfig) -> Option<Vector6<f64>> {
+fn step(set: &RidgeConstraints, config: &EdgeConsensusConfig) -> Option<Vector6<f64>> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     consensus_step(set, config, &mut rng).map(|found| found.step)
 }
 
-fn summary(set: &[RidgeConstraint], truth: &Vector6<f64>, config: &EdgeConsensusConfig) {
+fn summary(set: &RidgeConstraints, truth: &Vector6<f64>, config: &EdgeConsensusConfig) {
     let repeats = 20;
     let mut times_ms: Vec<f64> = (0..repeats)
         .map(|_| {

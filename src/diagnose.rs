@@ -36,7 +36,7 @@ use crate::core::edge_align::{
     pose_step_between, search_ridge, supported_edge_observability, supported_seen_steps,
     AlignedParameters, EdgeEvidence, EdgeKind, EdgeSample, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
-use crate::core::edge_consensus::consensus_step_at;
+use crate::core::edge_consensus::{consensus_step_at, RidgeConstraints};
 use crate::core::frame::correspond::{is_near_depth_edge, DEPTH_EDGE_RELATIVE_STEP};
 use crate::core::frame::refine::{aligned_parameters, short_schedule_config};
 use crate::core::frame::search::{
@@ -1411,7 +1411,7 @@ fn truth_along_seen(
         pose,
         &align.consensus,
         align.min_query_ridge,
-        &mut Vec::new(),
+        &mut RidgeConstraints::default(),
     ) {
         Some(found) => {
             let moved = apply_pose_step(pose, &found.step);

@@ -100,31 +100,106 @@ impl EdgeConsensusConfig {
     }
 }
 
-/// One model edge sample's constraints on the pose step: `jacobian · ξ` is the motion of its
-/// projection along its normal, px; `offsets_px` where the photo has a ridge along that normal.
-#[derive(Clone, Debug, PartialEq)]
-pub struct RidgeConstraint {
-    pub jacobian: Vector6<f64>,
-    pub offsets_px: Vec<f64>,
+/// The model edge samples' constraints on the pose step: for sample `i`, `jacobian(i) · ξ` is
+/// the motion of its projection along its normal, px, and `offsets_px(i)` where the photo has a
+/// ridge along that normal (at least one). Laid out flat — the Jacobian rows side by side and
+/// every offset in one array, `ends[i]` closing sample `i`'s — because every RANSAC draw reads
+/// them all ([`consensus_step`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RidgeConstraints {
+    jacobians: Vec<Vector6<f64>>,
+    offsets_px: Vec<f64>,
+    ends: Vec<usize>,
 }
 
-impl RidgeConstraint {
-    /// The offset nearest the motion `step` predicts, and its distance from it, px (`None`
-    /// without offsets).
-    fn nearest_offset(&self, step: &Vector6<f64>) -> Option<(f64, f64)> {
-        let predicted = self.jacobian.dot(step);
-        self.offsets_px
-            .iter()
-            .map(|&offset| (offset, (offset - predicted).abs()))
-            .min_by(|a, b| a.1.total_cmp(&b.1))
+impl RidgeConstraints {
+    pub fn clear(&mut self) {
+        self.jacobians.clear();
+        self.offsets_px.clear();
+        self.ends.clear();
     }
 
-    /// The offset nearest the motion `step` predicts, when within `inlier_px`.
-    fn agreeing_offset(&self, step: &Vector6<f64>, inlier_px: f64) -> Option<f64> {
-        self.nearest_offset(step)
-            .filter(|&(_, distance_px)| distance_px <= inlier_px)
-            .map(|(offset, _)| offset)
+    /// Adds a sample's constraint; a sample without a ridge on its line constrains nothing
+    /// and is not added.
+    pub fn push(&mut self, jacobian: Vector6<f64>, offsets_px: &[f64]) {
+        if offsets_px.is_empty() {
+            return;
+        }
+        self.jacobians.push(jacobian);
+        self.offsets_px.extend_from_slice(offsets_px);
+        self.ends.push(self.offsets_px.len());
     }
+
+    pub fn len(&self) -> usize {
+        self.jacobians.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.jacobians.is_empty()
+    }
+
+    /// Sample `index`'s Jacobian row and ridge offsets.
+    pub fn get(&self, index: usize) -> (&Vector6<f64>, &[f64]) {
+        let first = index.checked_sub(1).map_or(0, |before| self.ends[before]);
+        (
+            &self.jacobians[index],
+            &self.offsets_px[first..self.ends[index]],
+        )
+    }
+
+    /// Every sample's Jacobian row and ridge offsets, in order.
+    pub fn iter(&self) -> impl Iterator<Item = (&Vector6<f64>, &[f64])> {
+        let starts = std::iter::once(0).chain(self.ends.iter().copied());
+        self.jacobians
+            .iter()
+            .zip(starts.zip(&self.ends))
+            .map(|(jacobian, (first, &end))| (jacobian, &self.offsets_px[first..end]))
+    }
+
+    /// MSAC's truncated quadratic (P. Torr, A. Zisserman, "MLESAC: a new robust estimator with
+    /// application to estimating image geometry", CVIU 78(1), 2000): each constraint costs its
+    /// squared distance from `step`'s motion to its nearest offset, at most `inlier_px`² (the
+    /// cost of an outlier), so that among steps most constraints agree with the tighter fit wins
+    /// and a refit on the inliers is judged by how well it fits, not by a count at the band's
+    /// edge. The cost and the count of constraints within the band; `None` as soon as the cost
+    /// reaches `below` (every term is ≥ 0, so the sum cannot fall back under it: a draw that
+    /// cannot win stops early, one that can is summed as in full).
+    fn cost_below(&self, step: &Vector6<f64>, inlier_px: f64, below: f64) -> Option<(f64, usize)> {
+        let (mut total, mut inliers) = (0.0, 0);
+        for (jacobian, offsets_px) in self.iter() {
+            let (_, nearest_px) = nearest_offset(jacobian, offsets_px, step);
+            let charged_px = nearest_px.min(inlier_px);
+            total += charged_px * charged_px;
+            inliers += usize::from(nearest_px <= inlier_px);
+            if total >= below {
+                return None;
+            }
+        }
+        Some((total, inliers))
+    }
+
+    /// [`Self::cost_below`] in full.
+    fn cost(&self, step: &Vector6<f64>, inlier_px: f64) -> (f64, usize) {
+        self.cost_below(step, inlier_px, f64::INFINITY)
+            .unwrap_or((f64::INFINITY, 0))
+    }
+}
+
+/// The offset of `offsets_px` nearest the motion `jacobian · step` predicts (the first of equals)
+/// and its distance from it, px; distance ∞ without offsets.
+#[inline(always)]
+fn nearest_offset(jacobian: &Vector6<f64>, offsets_px: &[f64], step: &Vector6<f64>) -> (f64, f64) {
+    let predicted = jacobian.dot(step);
+    offsets_px
+        .iter()
+        .fold((f64::NAN, f64::INFINITY), |nearest, &offset| {
+            let distance_px = (offset - predicted).abs();
+            if distance_px < nearest.1 {
+                (offset, distance_px)
+            } else {
+                nearest
+            }
+        })
 }
 
 /// Every ridge of `query` on the line through `at_px` along `normal` within `radius_px`: the
@@ -170,7 +245,7 @@ pub fn ridge_constraints(
     cam_from_world: &Rigid3,
     radius_px: f64,
     min_ridge: f32,
-    out: &mut Vec<RidgeConstraint>,
+    out: &mut RidgeConstraints,
 ) {
     out.clear();
     let mut offsets = Vec::new();
@@ -191,10 +266,7 @@ pub fn ridge_constraints(
             continue;
         }
         let (row_u, row_v) = pose_jacobian_rows(&camera.intrinsics, &point_cam);
-        out.push(RidgeConstraint {
-            jacobian: row_u * sample.normal.x + row_v * sample.normal.y,
-            offsets_px: offsets.clone(),
-        });
+        out.push(row_u * sample.normal.x + row_v * sample.normal.y, &offsets);
     }
 }
 
@@ -211,7 +283,7 @@ pub struct ConsensusStep {
 /// The sampler: 6 distinct constraints (the pose RANSAC's [`UniformSampler`]), one offset of
 /// each (uniform), as a 6×6 system.
 fn draw_system<R: Rng + ?Sized>(
-    constraints: &[RidgeConstraint],
+    constraints: &RidgeConstraints,
     rng: &mut R,
     indices: &mut Vec<usize>,
 ) -> (Matrix6<f64>, Vector6<f64>) {
@@ -219,9 +291,9 @@ fn draw_system<R: Rng + ?Sized>(
     let mut a = Matrix6::zeros();
     let mut b = Vector6::zeros();
     for (row, &index) in indices.iter().enumerate() {
-        let constraint = &constraints[index];
-        a.set_row(row, &constraint.jacobian.transpose());
-        b[row] = constraint.offsets_px[rng.random_range(0..constraint.offsets_px.len())];
+        let (jacobian, offsets_px) = constraints.get(index);
+        a.set_row(row, &jacobian.transpose());
+        b[row] = offsets_px[rng.random_range(0..offsets_px.len())];
     }
     (a, b)
 }
@@ -233,81 +305,20 @@ fn solve_system(a: Matrix6<f64>, b: &Vector6<f64>) -> Option<Vector6<f64>> {
         .filter(|step| step.iter().all(|value| value.is_finite()))
 }
 
-/// The constraints laid out for [`Consensus::cost_below`], which every draw calls: the
-/// Jacobian rows side by side and every offset in one array (`ends[i]` closes constraint `i`'s),
-/// instead of one small heap array per constraint.
-struct Consensus {
-    jacobians: Vec<Vector6<f64>>,
-    offsets_px: Vec<f64>,
-    ends: Vec<usize>,
-    inlier_px: f64,
-}
-
-impl Consensus {
-    fn new(constraints: &[RidgeConstraint], inlier_px: f64) -> Self {
-        let mut offsets_px = Vec::with_capacity(4 * constraints.len());
-        let mut ends = Vec::with_capacity(constraints.len());
-        for constraint in constraints {
-            offsets_px.extend_from_slice(&constraint.offsets_px);
-            ends.push(offsets_px.len());
-        }
-        Self {
-            jacobians: constraints.iter().map(|c| c.jacobian).collect(),
-            offsets_px,
-            ends,
-            inlier_px,
-        }
-    }
-
-    /// MSAC's truncated quadratic (P. Torr, A. Zisserman, "MLESAC: a new robust estimator with
-    /// application to estimating image geometry", CVIU 78(1), 2000): each constraint costs its
-    /// squared distance from `step`'s motion to its nearest offset, at most `inlier_px`² (the
-    /// cost of an outlier), so that among steps most constraints agree with the tighter fit wins
-    /// and a refit on the inliers is judged by how well it fits, not by a count at the band's
-    /// edge. The cost and the count of constraints within the band; `None` as soon as the cost
-    /// reaches `below` (every term is ≥ 0, so the sum cannot fall back under it: a draw that
-    /// cannot win stops early, one that can is summed as in full).
-    fn cost_below(&self, step: &Vector6<f64>, below: f64) -> Option<(f64, usize)> {
-        let (mut total, mut inliers, mut first) = (0.0, 0, 0);
-        for (jacobian, &end) in self.jacobians.iter().zip(&self.ends) {
-            let predicted = jacobian.dot(step);
-            let nearest_px = self.offsets_px[first..end]
-                .iter()
-                .fold(f64::INFINITY, |nearest, &offset| {
-                    nearest.min((offset - predicted).abs())
-                });
-            first = end;
-            let charged_px = nearest_px.min(self.inlier_px);
-            total += charged_px * charged_px;
-            inliers += usize::from(nearest_px <= self.inlier_px);
-            if total >= below {
-                return None;
-            }
-        }
-        Some((total, inliers))
-    }
-
-    /// [`Self::cost_below`] in full.
-    fn cost(&self, step: &Vector6<f64>) -> (f64, usize) {
-        self.cost_below(step, f64::INFINITY)
-            .unwrap_or((f64::INFINITY, 0))
-    }
-}
-
 /// The step most constraints agree with (RANSAC over `config.draws` samples with `rng`, the
-/// lowest [`Consensus::cost_below`], then refitted by least squares on its inliers while that lowers the cost);
+/// lowest [`RidgeConstraints::cost_below`], then refitted by least squares on its inliers while
+/// that lowers the cost);
 /// `None` with fewer than `config.min_constraints` constraints, or when no step costs less than
 /// staying where the pose is.
 pub fn consensus_step<R: Rng + ?Sized>(
-    constraints: &[RidgeConstraint],
+    constraints: &RidgeConstraints,
     config: &EdgeConsensusConfig,
     rng: &mut R,
 ) -> Option<ConsensusStep> {
     if constraints.len() < config.min_constraints.max(6) {
         return None;
     }
-    let consensus = Consensus::new(constraints, config.inlier_px);
-    let at_rest = consensus.cost(&Vector6::zeros());
+    let at_rest = constraints.cost(&Vector6::zeros(), config.inlier_px);
     let mut best = (Vector6::zeros(), at_rest);
     let mut indices = Vec::with_capacity(6);
     for _ in 0..config.draws {
@@ -315,7 +326,7 @@ pub fn consensus_step<R: Rng + ?Sized>(
         let Some(step) = solve_system(a, &b) else {
             continue;
         };
-        if let Some(scored) = consensus.cost_below(&step, best.1 .0) {
+        if let Some(scored) = constraints.cost_below(&step, config.inlier_px, best.1 .0) {
             best = (step, scored);
         }
     }
@@ -326,16 +337,17 @@ pub fn consensus_step<R: Rng + ?Sized>(
     for _ in 0..config.refits {
         let mut normal = Matrix6::zeros();
         let mut rhs = Vector6::zeros();
-        for constraint in constraints {
-            if let Some(offset) = constraint.agreeing_offset(&best.0, config.inlier_px) {
-                normal += constraint.jacobian * constraint.jacobian.transpose();
-                rhs += constraint.jacobian * offset;
+        for (jacobian, offsets_px) in constraints.iter() {
+            let (offset, distance_px) = nearest_offset(jacobian, offsets_px, &best.0);
+            if distance_px <= config.inlier_px {
+                normal += jacobian * jacobian.transpose();
+                rhs += jacobian * offset;
             }
         }
         let Some(step) = solve_system(normal, &rhs) else {
             break;
         };
-        let scored = consensus.cost(&step);
+        let scored = constraints.cost(&step, config.inlier_px);
         if scored.0 >= best.1 .0 {
             break;
         }
@@ -358,7 +370,7 @@ pub fn consensus_step_at(
     cam_from_world: &Rigid3,
     settings: &EdgeConsensusConfig,
     min_ridge: f32,
-    constraints: &mut Vec<RidgeConstraint>,
+    constraints: &mut RidgeConstraints,
 ) -> Option<ConsensusStep> {
     ridge_constraints(
         samples,
@@ -484,12 +496,12 @@ mod tests {
         )
     }
 
-    fn constraints_at(pose: &Rigid3) -> Vec<RidgeConstraint> {
+    fn constraints_at(pose: &Rigid3) -> RidgeConstraints {
         let camera = camera();
         let truth = Rigid3::identity();
         let samples = box_samples(&camera, &truth);
         let query = query_with_decoys(&camera, &truth, &samples, 4.0);
-        let mut constraints = Vec::new();
+        let mut constraints = RidgeConstraints::default();
         ridge_constraints(
             &samples,
             &query.view(),
@@ -512,7 +524,7 @@ mod tests {
         // Most see both ridges (a decoy may fall off the image or onto another edge's ridge).
         let with_decoy = constraints
             .iter()
-            .filter(|c| c.offsets_px.len() >= 2)
+            .filter(|(_, offsets_px)| offsets_px.len() >= 2)
             .count();
         assert!(with_decoy * 5 >= constraints.len() * 4, "{with_decoy}");
         let config = EdgeConsensusConfig::default();
@@ -544,9 +556,9 @@ mod tests {
         assert!(found.inliers * 10 >= constraints.len() * 9, "{found:?}");
     }
 
-    /// The draws that stop early (their partial cost already at the best's) and the flat layout
-    /// change no choice: the straightforward RANSAC — every draw's cost summed in full over each
-    /// constraint's own offsets — takes the very same step, bit for bit, from the same RNG.
+    /// The draws that stop early (their partial cost already at the best's) change no choice:
+    /// the straightforward RANSAC — every draw's cost summed in full — takes the very same step,
+    /// bit for bit, from the same RNG.
     #[test]
     fn the_early_stop_takes_the_step_full_costs_take() {
         let offset = Vector6::new(0.006, -0.009, 0.0045, 0.045, -0.03, 0.075);
@@ -557,14 +569,20 @@ mod tests {
             ..EdgeConsensusConfig::default()
         };
         let full_cost = |step: &Vector6<f64>| {
-            constraints.iter().fold((0.0, 0), |(total, inliers), c| {
-                let nearest_px = c.nearest_offset(step).map_or(f64::INFINITY, |(_, d)| d);
-                let charged_px = nearest_px.min(config.inlier_px);
-                (
-                    total + charged_px * charged_px,
-                    inliers + usize::from(nearest_px <= config.inlier_px),
-                )
-            })
+            constraints
+                .iter()
+                .fold((0.0, 0), |(total, inliers), (jacobian, offsets_px)| {
+                    let predicted = jacobian.dot(step);
+                    let nearest_px = offsets_px
+                        .iter()
+                        .map(|offset| (offset - predicted).abs())
+                        .fold(f64::INFINITY, f64::min);
+                    let charged_px = nearest_px.min(config.inlier_px);
+                    (
+                        total + charged_px * charged_px,
+                        inliers + usize::from(nearest_px <= config.inlier_px),
+                    )
+                })
         };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         let mut best = (Vector6::zeros(), full_cost(&Vector6::zeros()));
@@ -598,7 +616,7 @@ mod tests {
         let moved_px = found.map_or(0.0, |found| {
             constraints
                 .iter()
-                .map(|constraint| constraint.jacobian.dot(&found.step).abs())
+                .map(|(jacobian, _)| jacobian.dot(&found.step).abs())
                 .sum::<f64>()
                 / constraints.len() as f64
         });
@@ -607,17 +625,13 @@ mod tests {
 
     #[test]
     fn too_few_constraints_give_no_step() {
-        let constraint = RidgeConstraint {
-            jacobian: Vector6::new(1.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-            offsets_px: vec![1.0],
-        };
+        let mut constraints = RidgeConstraints::default();
+        for _ in 0..5 {
+            constraints.push(Vector6::new(1.0, 0.0, 0.0, 0.0, 0.0, 0.0), &[1.0]);
+        }
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
         assert_eq!(
-            consensus_step(
-                &vec![constraint; 5],
-                &EdgeConsensusConfig::default(),
-                &mut rng
-            ),
+            consensus_step(&constraints, &EdgeConsensusConfig::default(), &mut rng),
             None
         );
     }

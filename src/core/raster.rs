@@ -481,12 +481,15 @@ impl Rasterizer {
         let vertices_screen = &self.vertices_screen;
         let vertices_in_front = &self.vertices_in_front;
         let chunk_len = visible_faces.len().div_ceil(chunk_count).max(1);
-        // Eight faces at a time where the CPU has AVX2 (the same arithmetic lane by lane, so the
-        // same boxes); the gathers address the projections as floats through i32 offsets.
+        // Where the CPU has AVX2, eight faces' boxes at a time here and eight pixels of a row at
+        // a time when drawing (the same arithmetic lane by lane, so the same bits).
         #[cfg(target_arch = "x86_64")]
-        let eight_at_once = !options.cull_back_faces
-            && slot_count <= i32::MAX as usize / 3
-            && std::arch::is_x86_feature_detected!("avx2");
+        let avx2 = std::arch::is_x86_feature_detected!("avx2");
+        #[cfg(not(target_arch = "x86_64"))]
+        let avx2 = false;
+        // The gathers address the projections as floats through i32 offsets.
+        #[cfg(target_arch = "x86_64")]
+        let eight_at_once = avx2 && !options.cull_back_faces && slot_count <= i32::MAX as usize / 3;
         self.bins
             .par_iter_mut()
             .enumerate()
@@ -554,10 +557,6 @@ impl Rasterizer {
         // surviving pixels only (no shading work for overdrawn pixels).
         let bins = &self.bins;
         let normals_cam = &self.normals_cam;
-        #[cfg(target_arch = "x86_64")]
-        let avx2 = std::arch::is_x86_feature_detected!("avx2");
-        #[cfg(not(target_arch = "x86_64"))]
-        let avx2 = false;
         out.depth_m
             .data_mut()
             .par_chunks_mut(BAND_ROWS * width)

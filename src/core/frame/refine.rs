@@ -16,7 +16,7 @@ use crate::core::edge_align::{
     widest_support, AlignedParameters, EdgeAlignConfig, EdgeEvidence, EdgeSample, LevelSummary,
     RoundingJudge, SupportPeak, MOTION_METRIC_STRIDE_PX,
 };
-use crate::core::edge_consensus::{consensus_step_at, RidgeConstraint};
+use crate::core::edge_consensus::{consensus_step_at, RidgeConstraints};
 use crate::core::feature_align::{align_dense_level, dense_samples, DenseSample};
 use crate::core::image::{Image, ImageView};
 use crate::core::mesh::Mesh;
@@ -77,7 +77,7 @@ pub struct RefineWorkspace {
     dense: Vec<DenseSample>,
     correlation: CorrelationWorkspace,
     /// The consensus step's constraints ([`consensus_end`]).
-    constraints: Vec<RidgeConstraint>,
+    constraints: RidgeConstraints,
     /// A second workspace for the runs [`refine_verdict`] makes beside this one's.
     spare: Option<Box<RefineWorkspace>>,
 }
