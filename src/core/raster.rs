@@ -18,9 +18,11 @@
 //! - binning drops faces whose bounding box holds no pixel centre, and tests the one centre of
 //!   boxes that hold exactly one (most triangles of a dense mesh seen from afar are sub-pixel);
 //!   where the CPU has AVX2 (detected at run time) eight faces' boxes and single-centre tests go
-//!   at once, one face per lane, with the scalar path's very operations (the same bits);
-//!   each face it keeps is stored once, prepared (corners' projections, face index, pixel box),
-//!   in its chunk's list, which the band pass reads in order instead of gathering corners;
+//!   at once, one face per lane, with the scalar path's very operations (the same bits), and
+//!   a single-centre face it keeps leaves only its pixel and depth there, which the band pass
+//!   depth-tests without setting the triangle up again; every other face it keeps is stored
+//!   once, prepared (corners' projections, face index, pixel box), in its chunk's list, which
+//!   the band pass reads in order instead of gathering corners;
 //! - a pixel `(col, row)` is covered when its centre `(col + 0.5, row + 0.5)` lies inside the
 //!   projected triangle (see `camera.rs` for the convention); the depth pass steps affine edge
 //!   functions and `1/z` along each row (perspective-correct depth) and writes only depth and face
@@ -188,6 +190,18 @@ struct PreparedFace {
     clipped: bool,
 }
 
+/// A face whose pixel box holds a single pixel centre, which it covers: the binning's vector
+/// path has already computed its depth there with `draw_triangle`'s arithmetic, so the draw pass
+/// only depth-tests it (most faces of a dense mesh are sub-pixel).
+#[derive(Clone, Copy, Debug)]
+struct SinglePixel {
+    /// The pixel, row-major in the image.
+    pixel: u32,
+    depth: f32,
+    slot: u32,
+    face_index: u32,
+}
+
 /// The binning of a chunk of the visible faces.
 #[derive(Debug, Default)]
 struct FaceChunk {
@@ -195,6 +209,10 @@ struct FaceChunk {
     prepared: Vec<PreparedFace>,
     /// `bands[band]`: positions in `prepared` of the faces that touch the band, ascending.
     bands: Vec<Vec<u32>>,
+    /// `singles[band]`: the chunk's single-pixel faces in the band, already depth-computed
+    /// (not in `prepared`). The depth test keeps the nearest face (ties: the lower face index)
+    /// whatever order faces come in, so these are tested after the band's other faces.
+    singles: Vec<Vec<SinglePixel>>,
 }
 
 impl FaceChunk {
@@ -499,6 +517,11 @@ impl Rasterizer {
                 for band in chunk.bands.iter_mut() {
                     band.clear();
                 }
+                chunk.singles.resize_with(band_count, Vec::new);
+                chunk.singles.truncate(band_count);
+                for band in chunk.singles.iter_mut() {
+                    band.clear();
+                }
                 chunk.prepared.clear();
                 let start = (chunk_index * chunk_len).min(visible_faces.len());
                 let end = (start + chunk_len).min(visible_faces.len());
@@ -534,6 +557,15 @@ impl Rasterizer {
                             )
                         };
                         for (lane, face) in faces.iter().enumerate() {
+                            if let Some((col, row, depth)) = boxes.single_pixel(lane) {
+                                chunk.singles[row as usize / BAND_ROWS].push(SinglePixel {
+                                    pixel: row * width as u32 + col,
+                                    depth,
+                                    slot: (slot + lane) as u32,
+                                    face_index: face.face_index,
+                                });
+                                continue;
+                            }
                             let pixel_box = if boxes.scalar & (1 << lane) != 0 {
                                 scalar_box(face)
                             } else {
@@ -574,7 +606,16 @@ impl Rasterizer {
                     visible_faces,
                     avx2,
                 };
+                let band_start = band * BAND_ROWS * width;
                 for chunk in bins {
+                    for single in chunk.singles.get(band).into_iter().flatten() {
+                        band_target.depth_test(
+                            single.pixel as usize - band_start,
+                            single.depth,
+                            single.slot,
+                            single.face_index,
+                        );
+                    }
                     let Some(band_faces) = chunk.bands.get(band) else {
                         continue;
                     };
@@ -910,6 +951,10 @@ struct EightBoxes {
     scalar: u8,
     /// Bit `lane`: the face covers a pixel centre, within the box below.
     kept: u8,
+    /// Bit `lane`: of the kept faces, one whose box holds a single pixel centre; its depth
+    /// there is in `depth` (`draw_triangle`'s).
+    single: u8,
+    depth: [f32; 8],
     first_col: [i32; 8],
     last_col: [i32; 8],
     first_row: [i32; 8],
@@ -925,6 +970,18 @@ impl EightBoxes {
             cols: [self.first_col[lane] as u32, self.last_col[lane] as u32],
             rows: [self.first_row[lane] as u32, self.last_row[lane] as u32],
             clipped: false,
+        })
+    }
+
+    /// The pixel (column, row) and depth of a kept single-pixel lane.
+    #[inline(always)]
+    fn single_pixel(&self, lane: usize) -> Option<(u32, u32, f32)> {
+        (self.single & (1 << lane) != 0).then(|| {
+            (
+                self.first_col[lane] as u32,
+                self.first_row[lane] as u32,
+                self.depth[lane],
+            )
         })
     }
 }
@@ -1094,8 +1151,13 @@ unsafe fn eight_screen_pixel_boxes_avx2(
             let sum = _mm256_add_ps(inv_depth_start, _mm256_mul_ps(inv_depth_step_x, zero));
             miss = _mm256_or_ps(miss, _mm256_cmp_ps::<_CMP_LE_OQ>(sum, zero));
             rejected = _mm256_or_ps(rejected, _mm256_and_ps(single, miss));
+            // `TriangleSetup::depth`'s `1 / sum` (IEEE division, as the scalar path).
+            let depth = _mm256_div_ps(_mm256_set1_ps(1.0), sum);
+            _mm256_storeu_ps(out.depth.as_mut_ptr(), depth);
+            out.single = _mm256_movemask_ps(_mm256_andnot_ps(rejected, single)) as u8;
         }
         out.kept = !(_mm256_movemask_ps(rejected) as u8) & !out.scalar;
+        out.single &= out.kept;
         _mm256_storeu_si256(out.first_col.as_mut_ptr() as *mut __m256i, first_col);
         _mm256_storeu_si256(out.last_col.as_mut_ptr() as *mut __m256i, last_col);
         _mm256_storeu_si256(out.first_row.as_mut_ptr() as *mut __m256i, first_row);
@@ -1462,7 +1524,37 @@ mod tests {
                 corners: [3 * f, 3 * f + 1, 3 * f + 2],
             })
             .collect();
-        let (mut kept, mut scalar) = (0, 0);
+        let (mut kept, mut scalar, mut single) = (0, 0, 0);
+        // One face drawn alone by `draw_triangle`, pixel by pixel: its depth at `(col, row)`.
+        let drawn_depth = |screen: &[ScreenVertex; 3], pixel_box: &PixelBox, col: u32, row: u32| {
+            let mut depth = vec![0.0f32; width * height];
+            let mut face_slot = vec![NO_FACE; width * height];
+            let visible_faces = [VisibleFace {
+                face_index: 0,
+                corners: [0; 3],
+            }];
+            let mut target = BandTarget {
+                first_row: 0,
+                rows: height,
+                width,
+                height,
+                depth: &mut depth,
+                face_slot: &mut face_slot,
+                visible_faces: &visible_faces,
+                avx2: false,
+            };
+            let face = PreparedFace {
+                screen: *screen,
+                slot: 0,
+                face_index: 0,
+                cols: pixel_box.cols,
+                rows: pixel_box.rows,
+                clipped: false,
+            };
+            draw_triangle(screen, &face, pixel_box.cols, pixel_box.rows, &mut target);
+            let index = row as usize * width + col as usize;
+            (face_slot[index] == 0).then_some(depth[index])
+        };
         for eight in faces.chunks_exact(8) {
             let eight: &[VisibleFace; 8] = eight.try_into().expect("eight faces");
             // SAFETY: AVX2 was detected above; 3 × 18 000 slots fit an i32.
@@ -1484,10 +1576,33 @@ mod tests {
                     "face {} {screen:?}",
                     face.face_index
                 );
+                // A single-pixel face carries the depth `draw_triangle` writes there, bit for
+                // bit; every other kept face's box holds more than one pixel centre.
+                if let (Some((col, row, depth)), Some(pixel_box)) = (boxes.single_pixel(lane), got)
+                {
+                    single += 1;
+                    assert_eq!((pixel_box.cols, pixel_box.rows), ([col; 2], [row; 2]));
+                    assert_eq!(
+                        drawn_depth(&screen, &pixel_box, col, row).map(f32::to_bits),
+                        Some(depth.to_bits()),
+                        "face {} {screen:?}",
+                        face.face_index
+                    );
+                } else if let Some(pixel_box) = got {
+                    assert!(
+                        pixel_box.cols[0] != pixel_box.cols[1]
+                            || pixel_box.rows[0] != pixel_box.rows[1],
+                        "face {}: a single-pixel box without its depth",
+                        face.face_index
+                    );
+                }
             }
         }
         // Both paths and both answers were exercised.
-        assert!(kept > 1000 && scalar > 100, "kept {kept}, scalar {scalar}");
+        assert!(
+            kept > 1000 && scalar > 100 && single > 200,
+            "kept {kept}, scalar {scalar}, single {single}"
+        );
     }
 
     /// Rows of triangles drawn eight pixels at a time give the depths and winners of the pixel
