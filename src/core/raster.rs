@@ -1236,6 +1236,25 @@ fn draw_triangle(
         return;
     }
 
+    // A box of at most eight pixels (a small triangle of a dense mesh): every pixel of it in
+    // one vector, as the rows below would test them.
+    #[cfg(target_arch = "x86_64")]
+    if target.avx2 && (row_end - row_start + 1) * (col_end - col_start + 1) <= 8 {
+        // SAFETY: `target.avx2` only when the CPU has AVX2; the box's rows are the band's and
+        // its columns the image's (clamped above).
+        unsafe {
+            draw_small_box_avx2(
+                &setup,
+                [col_start, col_end],
+                [row_start, row_end],
+                slot,
+                face_index,
+                target,
+            )
+        };
+        return;
+    }
+
     let span_first = col_start as f32;
     let span_last = col_end as f32;
 
@@ -1387,6 +1406,92 @@ unsafe fn draw_span_avx2(
         col += 8;
     }
     col
+}
+
+/// [`draw_triangle`]'s rows of a pixel box of at most eight pixels (narrower than
+/// [`NARROW_SPAN_PX`], so every pixel is tested), one pixel per AVX2 lane in row-major order:
+/// each lane's row start ([`TriangleSetup::at`]) and its column's step
+/// ([`TriangleSetup::depth`]) with the same f32 operations in the same order (no fused
+/// multiply-adds; IEEE division), then the scalar depth test of each covered pixel.
+///
+/// # Safety
+/// The CPU must have AVX2; `rows` must be rows of the band and `cols` columns of the image, and
+/// the box at most eight pixels.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn draw_small_box_avx2(
+    setup: &TriangleSetup,
+    cols: [usize; 2],
+    rows: [usize; 2],
+    slot: u32,
+    face_index: u32,
+    target: &mut BandTarget,
+) {
+    use std::arch::x86_64::*;
+    let box_cols = cols[1] + 1 - cols[0];
+    let pixels = (rows[1] + 1 - rows[0]) * box_cols;
+    debug_assert!(pixels <= 8);
+    let mut centre_y = [0.0f32; 8];
+    let mut offset = [0.0f32; 8];
+    for lane in 0..pixels {
+        centre_y[lane] = (rows[0] + lane / box_cols) as f32 + 0.5;
+        offset[lane] = (lane % box_cols) as f32;
+    }
+    // SAFETY (whole body): AVX2 is present (the caller's contract); the loads read the
+    // eight-lane arrays above and the store writes `depth` below.
+    unsafe {
+        let centre_y = _mm256_loadu_ps(centre_y.as_ptr());
+        let offset = _mm256_loadu_ps(offset.as_ptr());
+        let centre_x = _mm256_set1_ps(cols[0] as f32 + 0.5);
+        let zero = _mm256_setzero_ps();
+        let orientation = _mm256_set1_ps(setup.orientation);
+        let mut w_start = [zero; 3];
+        for (edge, &(a, b)) in setup.edges.iter().enumerate() {
+            // `edge_function(a, b, centre)`, then the orientation.
+            let across = _mm256_mul_ps(
+                _mm256_set1_ps(b.x - a.x),
+                _mm256_sub_ps(centre_y, _mm256_set1_ps(a.y)),
+            );
+            let along = _mm256_mul_ps(
+                _mm256_set1_ps(b.y - a.y),
+                _mm256_sub_ps(centre_x, _mm256_set1_ps(a.x)),
+            );
+            w_start[edge] = _mm256_mul_ps(_mm256_sub_ps(across, along), orientation);
+        }
+        let inv_depth = setup.inv_depth.map(|v| _mm256_set1_ps(v));
+        let inv_depth_start = _mm256_add_ps(
+            _mm256_add_ps(
+                _mm256_mul_ps(w_start[0], inv_depth[0]),
+                _mm256_mul_ps(w_start[1], inv_depth[1]),
+            ),
+            _mm256_mul_ps(w_start[2], inv_depth[2]),
+        );
+        let mut outside = _mm256_setzero_ps();
+        for (edge, &step) in setup.step_x.iter().enumerate() {
+            let w = _mm256_add_ps(w_start[edge], _mm256_mul_ps(_mm256_set1_ps(step), offset));
+            outside = _mm256_or_ps(outside, _mm256_cmp_ps::<_CMP_LT_OQ>(w, zero));
+        }
+        let sum = _mm256_add_ps(
+            inv_depth_start,
+            _mm256_mul_ps(_mm256_set1_ps(setup.inv_depth_step_x), offset),
+        );
+        outside = _mm256_or_ps(outside, _mm256_cmp_ps::<_CMP_LE_OQ>(sum, zero));
+        let inside = !(_mm256_movemask_ps(outside) as u32) & ((1u32 << pixels) - 1);
+        if inside == 0 {
+            return;
+        }
+        let mut depth = [0.0f32; 8];
+        _mm256_storeu_ps(depth.as_mut_ptr(), _mm256_div_ps(_mm256_set1_ps(1.0), sum));
+        let mut lanes = inside;
+        while lanes != 0 {
+            let lane = lanes.trailing_zeros() as usize;
+            lanes &= lanes - 1;
+            let row = rows[0] + lane / box_cols;
+            let col = cols[0] + lane % box_cols;
+            let index = (row - target.first_row) * target.width + col;
+            target.depth_test(index, depth[lane], slot, face_index);
+        }
+    }
 }
 
 /// Fills the normals of a rasterised band from the winning face of each pixel: the face normal,
