@@ -11,7 +11,8 @@
 //! Scene mode: `RENDER_BENCH_SCENE=<folder of asgreg synth>` renders that scene's model at the
 //! poses of its `gt` and `initial/*` models instead (the meshes and poses a frame renders;
 //! `RENDER_BENCH_MODEL=model_lod.ply` for the simplified model `eval --model lod` registers to),
-//! and prints the CPU ms per rendering (full: depth, normals, face index; + ASG; depth and faces only)
+//! and prints the CPU ms per rendering (full: depth, normals, face index; + ASG; depth and faces
+//! only; depth and faces at the 4-px grid of δ's visible points only)
 //! and a hash of every output bit per pose and in all (`RENDER_BENCH_HASHES=1` per pose), so that
 //! two builds can be checked to render the very same bits. Run it with `RAYON_NUM_THREADS=1` for
 //! the CPU of one rendering without the threads' overhead.
@@ -320,6 +321,20 @@ fn scene_bench(scene: &std::path::Path) {
     let geometry_timing = cycle(&mut |camera, pose| {
         geometry.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
     });
+    // The visibility rendering of δ (`reprojection::visible_points`): the 4-px grid's pixels.
+    let mut grid_hash = 0xcbf2_9ce4_8422_2325u64;
+    for (camera, pose) in &views {
+        buffers.resize(camera.width_px as usize, camera.height_px as usize);
+        geometry.render_grid_points(&mesh, &camera.intrinsics, pose, &options, 4, &mut buffers);
+        let hash = render_hash(&buffers, &Image::filled(0, 0, 0.0));
+        hash_words(
+            &mut grid_hash,
+            [hash as u32, (hash >> 32) as u32].into_iter(),
+        );
+    }
+    let grid_timing = cycle(&mut |camera, pose| {
+        geometry.render_grid_points(&mesh, &camera.intrinsics, pose, &options, 4, &mut buffers);
+    });
     let (width, height) = (buffers.width_px(), buffers.height_px());
     println!(
         "scene {} ({model}): {} triangles, {} poses at {width}x{height}, {} rayon threads, coverage {:.0} %",
@@ -332,7 +347,10 @@ fn scene_bench(scene: &std::path::Path) {
     println!("  full rendering        {full_timing}");
     println!("  full rendering + ASG  {asg_timing}");
     println!("  depth and faces only  {geometry_timing}");
-    println!("  output hash (all poses, full and depth-only) {all:016x}");
+    println!("  4-px grid points only {grid_timing}");
+    println!(
+        "  output hash (all poses, full and depth-only) {all:016x}, grid points {grid_hash:016x}"
+    );
 }
 
 fn main() {

@@ -391,7 +391,37 @@ impl Rasterizer {
         options: &RenderOptions,
         out: &mut RenderBuffers,
     ) {
-        let with_normals = !self.skip_normals;
+        self.render_into(mesh, intrinsics, cam_from_world, options, None, out);
+    }
+
+    /// [`Rasterizer::render`]'s depth and face index at the pixels of a grid only: rows and
+    /// columns `stride_px / 2 + k · stride_px` (the visible points' grid, `reprojection`), each
+    /// the very value a full rendering has there, every other pixel left empty (no face, depth 0)
+    /// and no normals. Faces whose pixel box holds no grid pixel are dropped at binning, so a
+    /// dense mesh's sub-pixel triangles cost their box test only.
+    pub fn render_grid_points(
+        &mut self,
+        mesh: &Mesh,
+        intrinsics: &PinholeIntrinsics,
+        cam_from_world: &Rigid3,
+        options: &RenderOptions,
+        stride_px: usize,
+        out: &mut RenderBuffers,
+    ) {
+        let grid = SampleGrid::new(stride_px);
+        self.render_into(mesh, intrinsics, cam_from_world, options, Some(grid), out);
+    }
+
+    fn render_into(
+        &mut self,
+        mesh: &Mesh,
+        intrinsics: &PinholeIntrinsics,
+        cam_from_world: &Rigid3,
+        options: &RenderOptions,
+        grid: Option<SampleGrid>,
+        out: &mut RenderBuffers,
+    ) {
+        let with_normals = !self.skip_normals && grid.is_none();
         self.renderings += 1;
         let width = out.width_px();
         let height = out.height_px();
@@ -433,10 +463,10 @@ impl Rasterizer {
         // Frustum culling: only the vertices and faces of grid cells whose box the frustum can
         // see; each kept cell's vertex list becomes a run of slots.
         let frustum = Frustum::new(&projector, width, height);
-        let grid = mesh.grid();
+        let face_grid = mesh.grid();
         self.visible_faces.clear();
         self.visible_vertices.clear();
-        for cell in grid.cells() {
+        for cell in face_grid.cells() {
             if frustum.may_see_box(
                 cell.min_local_m,
                 cell.max_local_m,
@@ -445,11 +475,12 @@ impl Rasterizer {
             ) {
                 let base = self.visible_vertices.len() as u32;
                 self.visible_vertices
-                    .extend_from_slice(grid.cell_vertices(cell));
+                    .extend_from_slice(face_grid.cell_vertices(cell));
                 self.visible_faces.extend(
-                    grid.cell_faces(cell)
+                    face_grid
+                        .cell_faces(cell)
                         .iter()
-                        .zip(grid.cell_corners(cell))
+                        .zip(face_grid.cell_corners(cell))
                         .map(|(&face_index, corners)| VisibleFace {
                             face_index,
                             corners: corners.map(|c| base + u32::from(c)),
@@ -538,6 +569,10 @@ impl Rasterizer {
                         face_pixel_box(&corners, &screen, &projector, options, width, height)
                     }
                 };
+                // A grid-points rendering keeps only the faces whose box holds a grid pixel.
+                let on_grid = |pixel_box: &PixelBox| {
+                    grid.is_none_or(|g| g.meets(pixel_box.cols) & g.meets(pixel_box.rows))
+                };
                 let mut slot = start;
                 #[cfg(target_arch = "x86_64")]
                 if eight_at_once {
@@ -558,12 +593,14 @@ impl Rasterizer {
                         };
                         for (lane, face) in faces.iter().enumerate() {
                             if let Some((col, row, depth)) = boxes.single_pixel(lane) {
-                                chunk.singles[row as usize / BAND_ROWS].push(SinglePixel {
-                                    pixel: row * width as u32 + col,
-                                    depth,
-                                    slot: (slot + lane) as u32,
-                                    face_index: face.face_index,
-                                });
+                                if grid.is_none_or(|g| g.holds(col) & g.holds(row)) {
+                                    chunk.singles[row as usize / BAND_ROWS].push(SinglePixel {
+                                        pixel: row * width as u32 + col,
+                                        depth,
+                                        slot: (slot + lane) as u32,
+                                        face_index: face.face_index,
+                                    });
+                                }
                                 continue;
                             }
                             let pixel_box = if boxes.scalar & (1 << lane) != 0 {
@@ -571,7 +608,7 @@ impl Rasterizer {
                             } else {
                                 boxes.pixel_box(lane)
                             };
-                            if let Some(pixel_box) = pixel_box {
+                            if let Some(pixel_box) = pixel_box.filter(on_grid) {
                                 chunk.keep(slot + lane, face, pixel_box, vertices_screen);
                             }
                         }
@@ -579,7 +616,7 @@ impl Rasterizer {
                     }
                 }
                 for (slot, face) in (slot..end).zip(&visible_faces[slot..end]) {
-                    if let Some(pixel_box) = scalar_box(face) {
+                    if let Some(pixel_box) = scalar_box(face).filter(on_grid) {
                         chunk.keep(slot, face, pixel_box, vertices_screen);
                     }
                 }
@@ -605,6 +642,7 @@ impl Rasterizer {
                     face_slot: face_out,
                     visible_faces,
                     avx2,
+                    grid,
                 };
                 let band_start = band * BAND_ROWS * width;
                 for chunk in bins {
@@ -674,6 +712,49 @@ struct BandTarget<'a> {
     /// The CPU has AVX2: rows of triangles are drawn eight pixels at a time.
     #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
     avx2: bool,
+    /// A grid-points rendering ([`Rasterizer::render_grid_points`]): only these pixels are drawn.
+    grid: Option<SampleGrid>,
+}
+
+/// The pixels a grid-points rendering draws: rows and columns `first + k · stride`.
+#[derive(Clone, Copy, Debug)]
+struct SampleGrid {
+    first: u32,
+    stride: u32,
+}
+
+impl SampleGrid {
+    /// The visible points' grid of `stride_px` (≥ 1; from `stride_px / 2`).
+    fn new(stride_px: usize) -> Self {
+        let stride = stride_px.clamp(1, u32::MAX as usize) as u32;
+        Self {
+            first: stride / 2,
+            stride,
+        }
+    }
+
+    /// Whether row (or column) `at` is one of the grid's.
+    #[inline(always)]
+    fn holds(&self, at: u32) -> bool {
+        at >= self.first && (at - self.first) % self.stride == 0
+    }
+
+    /// The grid's first row (or column) at or after `at`.
+    #[inline(always)]
+    fn first_from(&self, at: usize) -> usize {
+        let (first, stride) = (self.first as usize, self.stride as usize);
+        if at <= first {
+            first
+        } else {
+            first + (at - first).div_ceil(stride) * stride
+        }
+    }
+
+    /// Whether the rows (or columns) `[first, last]` hold one of the grid's.
+    #[inline(always)]
+    fn meets(&self, range: [u32; 2]) -> bool {
+        self.first_from(range[0] as usize) <= range[1] as usize
+    }
 }
 
 impl BandTarget<'_> {
@@ -1239,7 +1320,10 @@ fn draw_triangle(
     // A box of at most eight pixels (a small triangle of a dense mesh): every pixel of it in
     // one vector, as the rows below would test them.
     #[cfg(target_arch = "x86_64")]
-    if target.avx2 && (row_end - row_start + 1) * (col_end - col_start + 1) <= 8 {
+    if target.avx2
+        && target.grid.is_none()
+        && (row_end - row_start + 1) * (col_end - col_start + 1) <= 8
+    {
         // SAFETY: `target.avx2` only when the CPU has AVX2; the box's rows are the band's and
         // its columns the image's (clamped above).
         unsafe {
@@ -1258,7 +1342,12 @@ fn draw_triangle(
     let span_first = col_start as f32;
     let span_last = col_end as f32;
 
-    for row in row_start..=row_end {
+    // A grid-points rendering visits the grid's rows and, below, columns only: each pixel's
+    // value depends on the box's first column and its own row and column alone.
+    let (first_row, row_step) = target.grid.map_or((row_start, 1), |g| {
+        (g.first_from(row_start), g.stride as usize)
+    });
+    for row in (first_row..=row_end).step_by(row_step) {
         let start = Vec2::new(col_start as f32 + 0.5, row as f32 + 0.5);
         let (w_start, inv_depth_start) = setup.at(start);
         // Columns where every edge function is >= 0, widened by one column against rounding
@@ -1291,6 +1380,12 @@ fn draw_triangle(
             col_start,
             line,
         };
+        if let Some(grid) = target.grid {
+            for col in (grid.first_from(first)..=last).step_by(grid.stride as usize) {
+                span.draw_pixel(&setup, col, slot, face_index, target);
+            }
+            continue;
+        }
         let mut col = first;
         #[cfg(target_arch = "x86_64")]
         if target.avx2 && last + 1 - first >= 8 {
@@ -1647,6 +1742,7 @@ mod tests {
                 face_slot: &mut face_slot,
                 visible_faces: &visible_faces,
                 avx2: false,
+                grid: None,
             };
             let face = PreparedFace {
                 screen: *screen,
@@ -1758,6 +1854,7 @@ mod tests {
                 face_slot: &mut face_slot,
                 visible_faces: &visible_faces,
                 avx2,
+                grid: None,
             };
             // In order: each copy meets its original (the lower index) already drawn and loses.
             for (slot, screen) in triangles.iter().enumerate() {
@@ -2147,6 +2244,77 @@ mod tests {
         assert_eq!(culled.depth_m, all.depth_m);
         assert_eq!(culled.face_index, all.face_index);
         assert_eq!(culled.normal_cam, all.normal_cam);
+    }
+
+    /// A grid-points rendering holds, at each grid pixel, the full rendering's depth and face bit
+    /// for bit, and nothing elsewhere: a dense ground of sub-pixel triangles seen from afar and
+    /// from just above it (faces through the near plane), with a cube, at several strides.
+    #[test]
+    fn grid_points_are_the_full_renderings_pixels() {
+        let cells = 240;
+        let row = cells + 1;
+        let positions: Vec<Vector3<f64>> = (0..row * row)
+            .map(|k| {
+                let (x, y) = ((k % row) as f64 * 0.5, (k / row) as f64 * 0.5);
+                Vector3::new(x, y, 0.8 * (x * 0.3).sin() * (y * 0.2).cos())
+            })
+            .collect();
+        let faces: Vec<[u32; 3]> = (0..cells * cells)
+            .flat_map(|k| {
+                let v = ((k / cells) * row + k % cells) as u32;
+                let r = row as u32;
+                [[v, v + 1, v + r + 1], [v, v + r + 1, v + r]]
+            })
+            .collect();
+        let mut mesh = Mesh::from_world(&positions, faces, None).unwrap();
+        mesh.append(&cube(Vector3::new(60.0, 60.0, 4.0), 5.0));
+        mesh.compute_vertex_normals();
+        let target = Vector3::new(60.0, 60.0, 0.0);
+        let poses = [
+            Rigid3::look_at(&Vector3::new(-60.0, -40.0, 90.0), &target, &Vector3::z()).unwrap(),
+            Rigid3::look_at(&Vector3::new(20.0, 15.0, 0.9), &target, &Vector3::z()).unwrap(),
+        ];
+        let intrinsics = PinholeIntrinsics::centered(150.0, 161, 119);
+        let options = RenderOptions::default();
+        let mut full = RenderBuffers::new(161, 119);
+        let mut points = RenderBuffers::new(161, 119);
+        let mut sampled = Rasterizer::depth_and_faces_only();
+        let mut drawn = 0;
+        for pose in &poses {
+            Rasterizer::new().render(&mesh, &intrinsics, pose, &options, &mut full);
+            for stride in [1, 3, 4, 5] {
+                sampled.render_grid_points(&mesh, &intrinsics, pose, &options, stride, &mut points);
+                let grid = SampleGrid::new(stride);
+                for row in 0..119 {
+                    for col in 0..161 {
+                        let index = row * 161 + col;
+                        let (depth, face) = (
+                            points.depth_m.data()[index],
+                            points.face_index.data()[index],
+                        );
+                        if grid.holds(row as u32) && grid.holds(col as u32) {
+                            drawn += usize::from(face != NO_FACE);
+                            assert_eq!(
+                                (depth.to_bits(), face),
+                                (
+                                    full.depth_m.data()[index].to_bits(),
+                                    full.face_index.data()[index]
+                                ),
+                                "stride {stride}, pixel ({col}, {row})"
+                            );
+                        } else {
+                            assert_eq!(
+                                (depth, face),
+                                (0.0, NO_FACE),
+                                "stride {stride}, ({col}, {row})"
+                            );
+                        }
+                    }
+                }
+                assert!(points.normal_cam.data().iter().all(|n| *n == Vec3::ZERO));
+            }
+        }
+        assert!(drawn > 161 * 119, "{drawn} grid pixels with a face");
     }
 
     #[test]

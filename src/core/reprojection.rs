@@ -203,11 +203,13 @@ pub fn visible_points_into(
 ) {
     let buffers = &mut workspace.buffers;
     buffers.resize(camera.width_px as usize, camera.height_px as usize);
-    workspace.rasterizer.render(
+    // Only the grid's pixels are read: the rendering draws those alone (the same values).
+    workspace.rasterizer.render_grid_points(
         mesh,
         &camera.intrinsics,
         cam_from_world,
         &workspace.options.render_options,
+        workspace.options.grid_stride_px,
         buffers,
     );
     let grid = Grid::new(
