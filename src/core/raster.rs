@@ -1733,25 +1733,15 @@ mod tests {
                 face_index: 0,
                 corners: [0; 3],
             }];
-            let mut target = BandTarget {
-                first_row: 0,
-                rows: height,
+            let mut target = whole_image(
                 width,
                 height,
-                depth: &mut depth,
-                face_slot: &mut face_slot,
-                visible_faces: &visible_faces,
-                avx2: false,
-                grid: None,
-            };
-            let face = PreparedFace {
-                screen: *screen,
-                slot: 0,
-                face_index: 0,
-                cols: pixel_box.cols,
-                rows: pixel_box.rows,
-                clipped: false,
-            };
+                &mut depth,
+                &mut face_slot,
+                &visible_faces,
+                false,
+            );
+            let face = prepared(screen, 0, pixel_box);
             draw_triangle(screen, &face, pixel_box.cols, pixel_box.rows, &mut target);
             let index = row as usize * width + col as usize;
             (face_slot[index] == 0).then_some(depth[index])
@@ -1845,30 +1835,20 @@ mod tests {
         let draw = |avx2: bool| {
             let mut depth = vec![f32::INFINITY; width * height];
             let mut face_slot = vec![NO_FACE; width * height];
-            let mut target = BandTarget {
-                first_row: 0,
-                rows: height,
+            let mut target = whole_image(
                 width,
                 height,
-                depth: &mut depth,
-                face_slot: &mut face_slot,
-                visible_faces: &visible_faces,
+                &mut depth,
+                &mut face_slot,
+                &visible_faces,
                 avx2,
-                grid: None,
-            };
+            );
             // In order: each copy meets its original (the lower index) already drawn and loses.
             for (slot, screen) in triangles.iter().enumerate() {
                 let Some(pixel_box) = screen_pixel_box(screen, width, height) else {
                     continue;
                 };
-                let face = PreparedFace {
-                    screen: *screen,
-                    slot: slot as u32,
-                    face_index: slot as u32,
-                    cols: pixel_box.cols,
-                    rows: pixel_box.rows,
-                    clipped: false,
-                };
+                let face = prepared(screen, slot as u32, &pixel_box);
                 draw_triangle(screen, &face, pixel_box.cols, pixel_box.rows, &mut target);
             }
             (depth, face_slot)
@@ -2200,16 +2180,49 @@ mod tests {
         );
     }
 
-    #[test]
-    fn culling_changes_no_pixel_of_depth_face_index_or_interpolated_normals() {
-        // A hilly 300 m × 300 m ground of 2 m quads (45 000 faces, many grid cells) with a cube,
-        // vertex normals, seen obliquely from one corner: most cells are culled.
-        let cells = 150;
+    /// A whole image (one band) for `draw_triangle`.
+    fn whole_image<'a>(
+        width: usize,
+        height: usize,
+        depth: &'a mut [f32],
+        face_slot: &'a mut [u32],
+        visible_faces: &'a [VisibleFace],
+        avx2: bool,
+    ) -> BandTarget<'a> {
+        BandTarget {
+            first_row: 0,
+            rows: height,
+            width,
+            height,
+            depth,
+            face_slot,
+            visible_faces,
+            avx2,
+            grid: None,
+        }
+    }
+
+    /// A face wholly in front of the near plane, slot and face index `slot`, as the binning
+    /// prepares it.
+    fn prepared(screen: &[ScreenVertex; 3], slot: u32, pixel_box: &PixelBox) -> PreparedFace {
+        PreparedFace {
+            screen: *screen,
+            slot,
+            face_index: slot,
+            cols: pixel_box.cols,
+            rows: pixel_box.rows,
+            clipped: false,
+        }
+    }
+
+    /// A ground of `cells` × `cells` square quads `quad_m` wide (two triangles each) at
+    /// heights `height_m(x, y)`.
+    fn ground(cells: usize, quad_m: f64, height_m: impl Fn(f64, f64) -> f64) -> Mesh {
         let row = cells + 1;
         let positions: Vec<Vector3<f64>> = (0..row * row)
             .map(|k| {
-                let (x, y) = ((k % row) as f64 * 2.0, (k / row) as f64 * 2.0);
-                Vector3::new(x, y, 3.0 * (x * 0.05).sin() * (y * 0.04).cos())
+                let (x, y) = ((k % row) as f64 * quad_m, (k / row) as f64 * quad_m);
+                Vector3::new(x, y, height_m(x, y))
             })
             .collect();
         let faces: Vec<[u32; 3]> = (0..cells * cells)
@@ -2219,7 +2232,14 @@ mod tests {
                 [[v, v + 1, v + r + 1], [v, v + r + 1, v + r]]
             })
             .collect();
-        let mut mesh = Mesh::from_world(&positions, faces, None).unwrap();
+        Mesh::from_world(&positions, faces, None).unwrap()
+    }
+
+    #[test]
+    fn culling_changes_no_pixel_of_depth_face_index_or_interpolated_normals() {
+        // A hilly 300 m × 300 m ground of 2 m quads (45 000 faces, many grid cells) with a cube,
+        // vertex normals, seen obliquely from one corner: most cells are culled.
+        let mut mesh = ground(150, 2.0, |x, y| 3.0 * (x * 0.05).sin() * (y * 0.04).cos());
         mesh.append(&cube(Vector3::new(40.0, 40.0, 8.0), 6.0));
         mesh.compute_vertex_normals();
         let eye = Vector3::new(-10.0, -10.0, 40.0);
@@ -2251,22 +2271,7 @@ mod tests {
     /// from just above it (faces through the near plane), with a cube, at several strides.
     #[test]
     fn grid_points_are_the_full_renderings_pixels() {
-        let cells = 240;
-        let row = cells + 1;
-        let positions: Vec<Vector3<f64>> = (0..row * row)
-            .map(|k| {
-                let (x, y) = ((k % row) as f64 * 0.5, (k / row) as f64 * 0.5);
-                Vector3::new(x, y, 0.8 * (x * 0.3).sin() * (y * 0.2).cos())
-            })
-            .collect();
-        let faces: Vec<[u32; 3]> = (0..cells * cells)
-            .flat_map(|k| {
-                let v = ((k / cells) * row + k % cells) as u32;
-                let r = row as u32;
-                [[v, v + 1, v + r + 1], [v, v + r + 1, v + r]]
-            })
-            .collect();
-        let mut mesh = Mesh::from_world(&positions, faces, None).unwrap();
+        let mut mesh = ground(240, 0.5, |x, y| 0.8 * (x * 0.3).sin() * (y * 0.2).cos());
         mesh.append(&cube(Vector3::new(60.0, 60.0, 4.0), 5.0));
         mesh.compute_vertex_normals();
         let target = Vector3::new(60.0, 60.0, 0.0);
