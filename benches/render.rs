@@ -22,7 +22,8 @@ use std::time::Instant;
 use asgreg::core::camera::{Camera, PinholeIntrinsics};
 use asgreg::core::image::Image;
 use asgreg::core::mesh::Mesh;
-use asgreg::core::raster::{Rasterizer, RenderBuffers, RenderOptions};
+use asgreg::core::raster::{Rasterizer, RenderBuffers, RenderOptions, SampleGrid};
+use asgreg::core::reprojection::ReprojectionOptions;
 use asgreg::core::rigid::Rigid3;
 use asgreg::core::shading::{asg_from_normals, AsgOptions};
 use asgreg::io::colmap::ColmapModel;
@@ -321,11 +322,19 @@ fn scene_bench(scene: &std::path::Path) {
     let geometry_timing = cycle(&mut |camera, pose| {
         geometry.render(&mesh, &camera.intrinsics, pose, &options, &mut buffers);
     });
-    // The visibility rendering of δ (`reprojection::visible_points`): the 4-px grid's pixels.
+    // The visibility rendering of δ (`reprojection::visible_points`): its grid's pixels (4 px).
+    let grid = SampleGrid::centred(ReprojectionOptions::default().grid_stride_px);
     let mut grid_hash = 0xcbf2_9ce4_8422_2325u64;
     for (camera, pose) in &views {
         buffers.resize(camera.width_px as usize, camera.height_px as usize);
-        geometry.render_grid_points(&mesh, &camera.intrinsics, pose, &options, 4, &mut buffers);
+        geometry.render_grid_points(
+            &mesh,
+            &camera.intrinsics,
+            pose,
+            &options,
+            grid,
+            &mut buffers,
+        );
         let hash = render_hash(&buffers, &Image::filled(0, 0, 0.0));
         hash_words(
             &mut grid_hash,
@@ -333,7 +342,14 @@ fn scene_bench(scene: &std::path::Path) {
         );
     }
     let grid_timing = cycle(&mut |camera, pose| {
-        geometry.render_grid_points(&mesh, &camera.intrinsics, pose, &options, 4, &mut buffers);
+        geometry.render_grid_points(
+            &mesh,
+            &camera.intrinsics,
+            pose,
+            &options,
+            grid,
+            &mut buffers,
+        );
     });
     let (width, height) = (buffers.width_px(), buffers.height_px());
     println!(

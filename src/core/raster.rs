@@ -202,6 +202,15 @@ struct SinglePixel {
     face_index: u32,
 }
 
+/// Makes `bands` hold `count` empty lists, keeping their storage.
+fn empty_bands<T>(bands: &mut Vec<Vec<T>>, count: usize) {
+    bands.resize_with(count, Vec::new);
+    bands.truncate(count);
+    for band in bands.iter_mut() {
+        band.clear();
+    }
+}
+
 /// The binning of a chunk of the visible faces.
 #[derive(Debug, Default)]
 struct FaceChunk {
@@ -211,7 +220,7 @@ struct FaceChunk {
     bands: Vec<Vec<u32>>,
     /// `singles[band]`: the chunk's single-pixel faces in the band, already depth-computed
     /// (not in `prepared`). The depth test keeps the nearest face (ties: the lower face index)
-    /// whatever order faces come in, so these are tested after the band's other faces.
+    /// whatever order faces come in, so the band pass tests these before the chunk's others.
     singles: Vec<Vec<SinglePixel>>,
 }
 
@@ -394,21 +403,20 @@ impl Rasterizer {
         self.render_into(mesh, intrinsics, cam_from_world, options, None, out);
     }
 
-    /// [`Rasterizer::render`]'s depth and face index at the pixels of a grid only: rows and
-    /// columns `stride_px / 2 + k · stride_px` (the visible points' grid, `reprojection`), each
-    /// the very value a full rendering has there, every other pixel left empty (no face, depth 0)
-    /// and no normals. Faces whose pixel box holds no grid pixel are dropped at binning, so a
-    /// dense mesh's sub-pixel triangles cost their box test only.
+    /// [`Rasterizer::render`]'s depth and face index at the pixels of `grid` only (the visible
+    /// points' grid, `reprojection`), each the very value a full rendering has there, every
+    /// other pixel left empty (no face, depth 0) and no normals. Faces whose pixel box holds no
+    /// grid pixel are dropped at binning, so a dense mesh's sub-pixel triangles cost their box
+    /// test only.
     pub fn render_grid_points(
         &mut self,
         mesh: &Mesh,
         intrinsics: &PinholeIntrinsics,
         cam_from_world: &Rigid3,
         options: &RenderOptions,
-        stride_px: usize,
+        grid: SampleGrid,
         out: &mut RenderBuffers,
     ) {
-        let grid = SampleGrid::new(stride_px);
         self.render_into(mesh, intrinsics, cam_from_world, options, Some(grid), out);
     }
 
@@ -543,16 +551,8 @@ impl Rasterizer {
             .par_iter_mut()
             .enumerate()
             .for_each(|(chunk_index, chunk)| {
-                chunk.bands.resize_with(band_count, Vec::new);
-                chunk.bands.truncate(band_count);
-                for band in chunk.bands.iter_mut() {
-                    band.clear();
-                }
-                chunk.singles.resize_with(band_count, Vec::new);
-                chunk.singles.truncate(band_count);
-                for band in chunk.singles.iter_mut() {
-                    band.clear();
-                }
+                empty_bands(&mut chunk.bands, band_count);
+                empty_bands(&mut chunk.singles, band_count);
                 chunk.prepared.clear();
                 let start = (chunk_index * chunk_len).min(visible_faces.len());
                 let end = (start + chunk_len).min(visible_faces.len());
@@ -716,21 +716,33 @@ struct BandTarget<'a> {
     grid: Option<SampleGrid>,
 }
 
-/// The pixels a grid-points rendering draws: rows and columns `first + k · stride`.
-#[derive(Clone, Copy, Debug)]
-struct SampleGrid {
+/// A grid of pixels: rows and columns `first + k · stride`. The visible points of δ are
+/// sampled on one (`reprojection`), and [`Rasterizer::render_grid_points`] draws only its
+/// pixels.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SampleGrid {
     first: u32,
     stride: u32,
 }
 
 impl SampleGrid {
-    /// The visible points' grid of `stride_px` (≥ 1; from `stride_px / 2`).
-    fn new(stride_px: usize) -> Self {
+    /// The grid every `stride_px` pixels (at least 1) centred in its cells: from `stride_px / 2`.
+    pub fn centred(stride_px: usize) -> Self {
         let stride = stride_px.clamp(1, u32::MAX as usize) as u32;
         Self {
             first: stride / 2,
             stride,
         }
+    }
+
+    /// The first row (and column) of the grid, px.
+    pub fn first_px(&self) -> usize {
+        self.first as usize
+    }
+
+    /// Pixels between neighbouring rows (and columns) of the grid.
+    pub fn stride_px(&self) -> usize {
+        self.stride as usize
     }
 
     /// Whether row (or column) `at` is one of the grid's.
@@ -2288,8 +2300,8 @@ mod tests {
         for pose in &poses {
             Rasterizer::new().render(&mesh, &intrinsics, pose, &options, &mut full);
             for stride in [1, 3, 4, 5] {
-                sampled.render_grid_points(&mesh, &intrinsics, pose, &options, stride, &mut points);
-                let grid = SampleGrid::new(stride);
+                let grid = SampleGrid::centred(stride);
+                sampled.render_grid_points(&mesh, &intrinsics, pose, &options, grid, &mut points);
                 for row in 0..119 {
                     for col in 0..161 {
                         let index = row * 161 + col;

@@ -34,7 +34,7 @@ use serde::{Deserialize, Serialize};
 use super::camera::Camera;
 use super::image::ImageView;
 use super::mesh::Mesh;
-use super::raster::{Rasterizer, RenderBuffers, RenderOptions, NO_FACE};
+use super::raster::{Rasterizer, RenderBuffers, RenderOptions, SampleGrid, NO_FACE};
 use super::rigid::Rigid3;
 
 /// Errors of the reprojection-error configuration.
@@ -201,21 +201,18 @@ pub fn visible_points_into(
     workspace: &mut ReprojectionWorkspace,
     out: &mut VisiblePoints,
 ) {
+    let (width_px, height_px) = (camera.width_px as usize, camera.height_px as usize);
+    let grid = Grid::new(width_px, height_px, workspace.options.grid_stride_px);
     let buffers = &mut workspace.buffers;
-    buffers.resize(camera.width_px as usize, camera.height_px as usize);
+    buffers.resize(width_px, height_px);
     // Only the grid's pixels are read: the rendering draws those alone (the same values).
     workspace.rasterizer.render_grid_points(
         mesh,
         &camera.intrinsics,
         cam_from_world,
         &workspace.options.render_options,
-        workspace.options.grid_stride_px,
+        grid.sample,
         buffers,
-    );
-    let grid = Grid::new(
-        buffers.width_px(),
-        buffers.height_px(),
-        workspace.options.grid_stride_px,
     );
     let (face_index, depth_m) = (buffers.face_index().data(), buffers.depth_m().data());
     sample_visible_points(mesh, camera, cam_from_world, &grid, out, |pixel, _| {
@@ -269,13 +266,13 @@ pub fn visible_points_from_samples(
     Some(visible)
 }
 
-/// The pixel grid visible points are sampled on: the pixel centres every `stride_px` along rows
-/// and columns of a `width_px × height_px` rendering, from `stride_px / 2`, row by row.
+/// The pixel grid visible points are sampled on: the pixel centres of a `width_px × height_px`
+/// rendering on the centred [`SampleGrid`] of `stride_px`, row by row.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 struct Grid {
     width_px: usize,
     height_px: usize,
-    stride_px: usize,
+    sample: SampleGrid,
 }
 
 impl Grid {
@@ -283,15 +280,15 @@ impl Grid {
         Self {
             width_px,
             height_px,
-            stride_px: stride_px.max(1),
+            sample: SampleGrid::centred(stride_px),
         }
     }
 
     /// The rows (or columns) of the grid along a side of `side_px` pixels.
     fn count(&self, side_px: usize) -> usize {
         side_px
-            .saturating_sub(self.stride_px / 2)
-            .div_ceil(self.stride_px)
+            .saturating_sub(self.sample.first_px())
+            .div_ceil(self.sample.stride_px())
     }
 
     /// Grid points in all.
@@ -301,7 +298,8 @@ impl Grid {
 
     /// Each grid point's `(row, col, pixel index, sample index)`, row by row.
     fn points(&self) -> impl Iterator<Item = (usize, usize, usize, usize)> + '_ {
-        let (first, stride, width) = (self.stride_px / 2, self.stride_px, self.width_px);
+        let (first, stride) = (self.sample.first_px(), self.sample.stride_px());
+        let width = self.width_px;
         let cols = self.count(width);
         (first..self.height_px)
             .step_by(stride)
@@ -398,7 +396,7 @@ impl GridSamples {
     }
 
     pub fn stride_px(&self) -> usize {
-        self.grid.stride_px
+        self.grid.sample.stride_px()
     }
 
     /// Face per sample ([`NO_FACE`] where nothing was hit), row by row.
