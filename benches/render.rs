@@ -325,16 +325,15 @@ fn scene_bench(scene: &std::path::Path) {
     // The visibility rendering of δ (`reprojection::visible_points`): its grid's pixels (4 px).
     let grid = SampleGrid::centred(ReprojectionOptions::default().grid_stride_px);
     let mut grid_hash = 0xcbf2_9ce4_8422_2325u64;
+    let grid_points = |rasterizer: &mut Rasterizer,
+                       buffers: &mut RenderBuffers,
+                       camera: &Camera,
+                       pose: &Rigid3| {
+        rasterizer.render_grid_points(&mesh, &camera.intrinsics, pose, &options, grid, buffers);
+    };
     for (camera, pose) in &views {
         buffers.resize(camera.width_px as usize, camera.height_px as usize);
-        geometry.render_grid_points(
-            &mesh,
-            &camera.intrinsics,
-            pose,
-            &options,
-            grid,
-            &mut buffers,
-        );
+        grid_points(&mut geometry, &mut buffers, camera, pose);
         let hash = render_hash(&buffers, &Image::filled(0, 0, 0.0));
         hash_words(
             &mut grid_hash,
@@ -342,14 +341,7 @@ fn scene_bench(scene: &std::path::Path) {
         );
     }
     let grid_timing = cycle(&mut |camera, pose| {
-        geometry.render_grid_points(
-            &mesh,
-            &camera.intrinsics,
-            pose,
-            &options,
-            grid,
-            &mut buffers,
-        );
+        grid_points(&mut geometry, &mut buffers, camera, pose);
     });
     let (width, height) = (buffers.width_px(), buffers.height_px());
     println!(
