@@ -921,7 +921,11 @@ fn explain_by_nearby_model(
 }
 
 /// Opening (erosion then dilation, square of side 2r+1) of one class; pixels of the class that
-/// do not survive become `unchanged`.
+/// do not survive become `unchanged`. The erosion asks the square's pixels that have evidence:
+/// an `unknown` pixel (no photo depth) neither keeps nor removes a changed pixel beside it, so a
+/// sparse depth map's changed spots (MVS measures only textured spots of a plain surface, a few
+/// pixels each between holes) survive as they would on a dense map; what removes a pixel is an
+/// `unchanged` pixel, the other changed class or the image border.
 fn open_class(
     classes: &mut Image<ChangeClass>,
     class: ChangeClass,
@@ -931,7 +935,13 @@ fn open_class(
     let (w, h) = classes.size();
     let r = radius as i64;
     let member: Vec<bool> = classes.data().iter().map(|c| *c == class).collect();
-    // Erosion: all of the square in the class (outside the image counts as not).
+    let neutral: Vec<bool> = classes
+        .data()
+        .iter()
+        .map(|c| *c == ChangeClass::Unknown)
+        .collect();
+    // Erosion: all of the square in the class or without evidence (outside the image counts
+    // as not in the class).
     scratch.clear();
     scratch.resize(w * h, 0);
     for row in 0..h {
@@ -946,7 +956,8 @@ fn open_class(
                         && cc >= 0
                         && rr < h as i64
                         && cc < w as i64
-                        && member[rr as usize * w + cc as usize]
+                        && (member[rr as usize * w + cc as usize]
+                            || neutral[rr as usize * w + cc as usize])
                 })
             });
             if inside {
@@ -1804,6 +1815,49 @@ pub(crate) mod tests {
         assert!(changes.regions.is_empty(), "{:?}", changes.regions);
         assert_eq!(changes.counts.added, 0);
         assert!(!classes.data().contains(&ChangeClass::Added));
+    }
+
+    #[test]
+    fn the_opening_drops_a_changed_pixel_for_evidence_not_for_holes() {
+        // Model 20 m away everywhere; the photo sees 25 m (through the model) only along
+        // 2-px lines between holes, as a plain road's painted edges give an MVS depth map.
+        let (w, h) = (40, 30);
+        let model = Image::filled(w, h, 20.0f32);
+        let mut photo = Image::filled(w, h, 0.0f32);
+        for col in 5..35 {
+            for row in [10, 11] {
+                *photo.get_mut(col, row).expect("inside") = 25.0;
+            }
+        }
+        // A single far pixel among pixels that agree with the model: noise.
+        for row in 20..27 {
+            for col in 10..17 {
+                *photo.get_mut(col, row).expect("inside") = 20.0;
+            }
+        }
+        *photo.get_mut(13, 23).expect("inside") = 25.0;
+        let config = ChangeConfig::default();
+        let mut classes = Image::default();
+        classify_pixels(
+            photo.view(),
+            model.view(),
+            None,
+            &DepthEvidence::default(),
+            &config,
+            &mut classes,
+            &mut Vec::new(),
+        )
+        .expect("same sizes");
+        let class = |col: usize, row: usize| *classes.get(col, row).expect("inside");
+        // The line survives: the holes around it are no evidence against it…
+        for col in 6..34 {
+            assert_eq!(class(col, 10), ChangeClass::Removed, "col {col}");
+            assert_eq!(class(col, 11), ChangeClass::Removed, "col {col}");
+        }
+        assert_eq!(class(20, 12), ChangeClass::Unknown);
+        // …while a pixel the photo's agreeing depths surround is dropped.
+        assert_eq!(class(13, 23), ChangeClass::Unchanged);
+        assert_eq!(class(12, 23), ChangeClass::Unchanged);
     }
 
     #[test]
