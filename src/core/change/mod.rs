@@ -1015,39 +1015,95 @@ pub const HOLE_BRIDGE_PX: usize = 10;
 /// wall still join (docs/measurements.md, issue #13).
 const BRIDGE_CONTINUITY_RELATIVE: f32 = 0.02;
 
+/// The longest band of `unknown` pixels a `removed` region grows across, pixels, whatever its
+/// length in metres: a bound on the work of one pixel's eight searches.
+const MAX_SURFACE_BRIDGE_PX: usize = 64;
+
+/// How far a region may grow across a band of `unknown` pixels from a pixel whose changed
+/// surface lies `depth_m` away. An `added` region's surface is the photo's, unknown in the
+/// holes: at most [`HOLE_BRIDGE_PX`], its two ends in depth within
+/// [`BRIDGE_CONTINUITY_RELATIVE`]. A `removed` region's surface is the model's, which is
+/// rendered in the holes too: the band may be as long as `min_extent_m` on that surface (two
+/// pieces of evidence of one missing surface closer than the least extent of an object cannot
+/// be told apart as two objects; a plain road seen through a demolished building gives only its
+/// painted edges, 1–2 px lines 15–25 px apart at 20 m), at least [`HOLE_BRIDGE_PX`] and at most
+/// [`MAX_SURFACE_BRIDGE_PX`], when every pixel of the band has a model depth continuous with the
+/// one before it (one surface, no depth edge crossed).
+#[derive(Clone, Copy)]
+struct HoleBridge {
+    /// The changed surface's depth is known in the holes (`removed`: the model's).
+    surface_in_holes: bool,
+    /// `min_extent_m` × the focal length, metre·px: the band's limit in px at a depth.
+    extent_px_m: f32,
+}
+
+impl HoleBridge {
+    fn max_band_px(&self, depth_m: f32) -> usize {
+        if !self.surface_in_holes || !(depth_m > 0.0) {
+            return HOLE_BRIDGE_PX;
+        }
+        ((self.extent_px_m / depth_m) as usize).clamp(HOLE_BRIDGE_PX, MAX_SURFACE_BRIDGE_PX)
+    }
+}
+
 /// Where a region grows from `index` across a band of `unknown` pixels in `classes`: in each of
-/// the 8 directions, the first pixel past 1..=[`HOLE_BRIDGE_PX`] `unknown` pixels, if it is of
-/// `class` and continuous in depth with `index` (`changed_depth`); `visit(target, gap)` with
-/// the pixels of the band (`gap`, in order from `index`).
+/// the 8 directions, the first pixel past 1..=[`HoleBridge::max_band_px`] `unknown` pixels, if
+/// it is of `class` and continuous in depth with `index` (`changed_depth`; for a surface known
+/// in the holes, each pixel with the one before it); `visit(target, gap)` with the pixels of the
+/// band (`gap`, in order from `index`).
 fn across_holes(
     classes: &[ChangeClass],
     (w, h): (usize, usize),
     index: usize,
     class: ChangeClass,
     changed_depth: &dyn Fn(usize) -> f32,
+    bridge: HoleBridge,
     gap: &mut Vec<usize>,
     mut visit: impl FnMut(usize, &[usize]),
 ) {
     let (row, col) = ((index / w) as i64, (index % w) as i64);
+    let max_band_px = bridge.max_band_px(changed_depth(index));
+    let continuous_step = |a: f32, b: f32| {
+        a.is_finite() && b.is_finite() && a > 0.0 && b > 0.0 && {
+            (a - b).abs() <= CONTINUITY_RELATIVE * a.min(b) + CONTINUITY_M
+        }
+    };
     for dr in -1..=1i64 {
         for dc in -1..=1i64 {
             if dr == 0 && dc == 0 {
                 continue;
             }
             gap.clear();
-            for step in 1..=(HOLE_BRIDGE_PX as i64 + 1) {
+            let mut previous = changed_depth(index);
+            for step in 1..=(max_band_px as i64 + 1) {
                 let (rr, cc) = (row + step * dr, col + step * dc);
                 if rr < 0 || cc < 0 || rr >= h as i64 || cc >= w as i64 {
                     break;
                 }
                 let target = rr as usize * w + cc as usize;
+                let depth = changed_depth(target);
                 if classes[target] == ChangeClass::Unknown {
+                    if gap.len() >= HOLE_BRIDGE_PX {
+                        // Past the matcher's window only on the known surface.
+                        if !(bridge.surface_in_holes && continuous_step(previous, depth)) {
+                            break;
+                        }
+                    } else if bridge.surface_in_holes && !continuous_step(previous, depth) {
+                        break;
+                    }
+                    previous = depth;
                     gap.push(target);
                     continue;
                 }
                 if !gap.is_empty() && classes[target] == class {
-                    let (a, b) = (changed_depth(index), changed_depth(target));
-                    if (a - b).abs() <= BRIDGE_CONTINUITY_RELATIVE * a.min(b) + CONTINUITY_M {
+                    let a = changed_depth(index);
+                    let joined = if bridge.surface_in_holes {
+                        continuous_step(previous, depth)
+                    } else {
+                        (a - depth).abs()
+                            <= BRIDGE_CONTINUITY_RELATIVE * a.min(depth) + CONTINUITY_M
+                    };
+                    if joined {
                         visit(target, gap);
                     }
                 }
@@ -1096,7 +1152,7 @@ pub fn extract_regions(
     let pixel_area = 1.0 / (intrinsics.fx_px * intrinsics.fy_px).abs().max(1e-12);
     let mut regions = Vec::new();
     let mut members: Vec<usize> = Vec::new();
-    let mut gap: Vec<usize> = Vec::with_capacity(HOLE_BRIDGE_PX);
+    let mut gap: Vec<usize> = Vec::with_capacity(MAX_SURFACE_BRIDGE_PX);
     let mut next_label = 0u32;
     for seed in 0..w * h {
         let class = classes.data()[seed];
@@ -1114,6 +1170,10 @@ pub fn extract_regions(
             ChangeKind::Added => photo_depth_m.data()[index],
             ChangeKind::Removed => model_depth_m.data()[index],
         };
+        let bridge = HoleBridge {
+            surface_in_holes: kind == ChangeKind::Removed,
+            extent_px_m: (config.min_extent_m * intrinsics.fx_px.abs()) as f32,
+        };
         members.clear();
         stack.clear();
         stack.push(seed);
@@ -1127,6 +1187,7 @@ pub fn extract_regions(
                 index,
                 class,
                 &changed_depth,
+                bridge,
                 &mut gap,
                 |target, band| {
                     let depth_m = 0.5 * f64::from(changed_depth(index) + changed_depth(target));
@@ -1805,6 +1866,47 @@ pub(crate) mod tests {
             .filter(|r| r.centroid_m[0] < 0.0)
             .count();
         assert_eq!(left, 1, "{:?}", changes.regions);
+    }
+
+    /// An 8 × 8 m roof 4 m high in the model only (demolished), seen from the nadir camera: the
+    /// photo's depth (the ground behind it) is measured only on 2-px columns every
+    /// `line_every_px` px, as a plain surface's painted lines give it.
+    fn removed_regions_through_lines(line_every_px: usize) -> (FrameChanges, Image<ChangeClass>) {
+        let (intrinsics, pose) = nadir();
+        let model = mesh_of(&[ground([0.0, 0.0]), rect(0.0, 0.0, 8.0, 8.0, 4.0)]);
+        let world = mesh_of(&[ground([0.0, 0.0])]);
+        let mut photo_depth = depth_of(&world, &intrinsics, &pose);
+        for (index, d) in photo_depth.data_mut().iter_mut().enumerate() {
+            if index % 200 % line_every_px >= 2 {
+                *d = 0.0;
+            }
+        }
+        detect_on(
+            &model,
+            &intrinsics,
+            &pose,
+            &photo_depth,
+            &ChangeConfig::default(),
+        )
+    }
+
+    #[test]
+    fn a_removed_surface_seen_through_lines_is_one_region_across_holes_up_to_its_least_extent() {
+        // Lines 18 px apart on the roof 16 m away (1.44 m at 0.08 m a pixel: under the least
+        // extent, 2 m): the model's roof is continuous across the holes, one region of about
+        // the roof's size. Each line alone (0.16 × 8 m) has one extent over 2 m.
+        let (changes, _) = removed_regions_through_lines(20);
+        assert_eq!(changes.regions.len(), 1, "{:?}", changes.regions);
+        let region = &changes.regions[0];
+        assert_eq!(region.kind, ChangeKind::Removed);
+        assert!(
+            region.footprint_width_m > 5.5 && region.footprint_length_m > 5.5,
+            "{region:?}"
+        );
+        // Lines 38 px apart (3.04 m): pieces of evidence that far apart are not joined.
+        let (changes, classes) = removed_regions_through_lines(40);
+        assert!(changes.regions.is_empty(), "{:?}", changes.regions);
+        assert!(!classes.data().contains(&ChangeClass::Removed));
     }
 
     #[test]
