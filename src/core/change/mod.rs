@@ -1031,15 +1031,19 @@ const MAX_SURFACE_BRIDGE_PX: usize = 64;
 /// one before it (one surface, no depth edge crossed).
 #[derive(Clone, Copy)]
 struct HoleBridge {
-    /// The changed surface's depth is known in the holes (`removed`: the model's).
-    surface_in_holes: bool,
+    /// The region's class: `removed`'s surface (the model's) is known in the holes.
+    class: ChangeClass,
     /// `min_extent_m` × the focal length, metre·px: the band's limit in px at a depth.
     extent_px_m: f32,
 }
 
 impl HoleBridge {
+    fn surface_in_holes(&self) -> bool {
+        self.class == ChangeClass::Removed
+    }
+
     fn max_band_px(&self, depth_m: f32) -> usize {
-        if !self.surface_in_holes || !(depth_m > 0.0) {
+        if !self.surface_in_holes() || depth_m.is_nan() || depth_m <= 0.0 {
             return HOLE_BRIDGE_PX;
         }
         ((self.extent_px_m / depth_m) as usize).clamp(HOLE_BRIDGE_PX, MAX_SURFACE_BRIDGE_PX)
@@ -1048,20 +1052,20 @@ impl HoleBridge {
 
 /// Where a region grows from `index` across a band of `unknown` pixels in `classes`: in each of
 /// the 8 directions, the first pixel past 1..=[`HoleBridge::max_band_px`] `unknown` pixels, if
-/// it is of `class` and continuous in depth with `index` (`changed_depth`; for a surface known
+/// it is of the region's class (`bridge.class`) and continuous in depth with `index` (`changed_depth`; for a surface known
 /// in the holes, each pixel with the one before it); `visit(target, gap)` with the pixels of the
 /// band (`gap`, in order from `index`).
 fn across_holes(
     classes: &[ChangeClass],
     (w, h): (usize, usize),
     index: usize,
-    class: ChangeClass,
     changed_depth: &dyn Fn(usize) -> f32,
     bridge: HoleBridge,
     gap: &mut Vec<usize>,
     mut visit: impl FnMut(usize, &[usize]),
 ) {
     let (row, col) = ((index / w) as i64, (index % w) as i64);
+    let (class, surface_in_holes) = (bridge.class, bridge.surface_in_holes());
     let max_band_px = bridge.max_band_px(changed_depth(index));
     let continuous_step = |a: f32, b: f32| {
         a.is_finite() && b.is_finite() && a > 0.0 && b > 0.0 && {
@@ -1085,10 +1089,10 @@ fn across_holes(
                 if classes[target] == ChangeClass::Unknown {
                     if gap.len() >= HOLE_BRIDGE_PX {
                         // Past the matcher's window only on the known surface.
-                        if !(bridge.surface_in_holes && continuous_step(previous, depth)) {
+                        if !(surface_in_holes && continuous_step(previous, depth)) {
                             break;
                         }
-                    } else if bridge.surface_in_holes && !continuous_step(previous, depth) {
+                    } else if surface_in_holes && !continuous_step(previous, depth) {
                         break;
                     }
                     previous = depth;
@@ -1097,7 +1101,7 @@ fn across_holes(
                 }
                 if !gap.is_empty() && classes[target] == class {
                     let a = changed_depth(index);
-                    let joined = if bridge.surface_in_holes {
+                    let joined = if surface_in_holes {
                         continuous_step(previous, depth)
                     } else {
                         (a - depth).abs()
@@ -1171,7 +1175,7 @@ pub fn extract_regions(
             ChangeKind::Removed => model_depth_m.data()[index],
         };
         let bridge = HoleBridge {
-            surface_in_holes: kind == ChangeKind::Removed,
+            class,
             extent_px_m: (config.min_extent_m * intrinsics.fx_px.abs()) as f32,
         };
         members.clear();
@@ -1185,7 +1189,6 @@ pub fn extract_regions(
                 classes.data(),
                 (w, h),
                 index,
-                class,
                 &changed_depth,
                 bridge,
                 &mut gap,
