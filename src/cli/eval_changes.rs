@@ -23,7 +23,10 @@ use serde::Serialize;
 
 use super::changes::{detect_all, mask_path, stereo_depth_path, ChangesArgs};
 use super::eval::{DepthSourceArg, EvalArgs};
+use super::inputs::load_posed_inputs;
 use asgreg::core::change::stereo::{depth_errors, DepthErrors};
+use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
+use asgreg::io::colmap_model::read_images_at;
 use asgreg::io::pfm::read_pfm;
 
 /// A detection matches a true object of its kind when their footprints are this close, m.
@@ -71,6 +74,64 @@ fn matches(detection: &FusedChange, truth: &TrueChange) -> bool {
         && convex_distance(&centroid, &truth.footprint_m) <= MATCH_DISTANCE_M
         && detection.footprint_area_m2
             <= MATCH_AREA_RATIO * truth.footprint_area_m2 + MATCH_AREA_MARGIN_M2
+}
+
+/// One frame's pose term against the truth: the error its change map allowed for (u, px,
+/// `ChangeConfig::pose_sigma_px` as the frame used it) and the true error of the pose it was
+/// detected under (δ to the ground-truth pose, paper eq. 5, on the detection's model).
+#[derive(Clone, Debug, Serialize)]
+struct PoseTermRow {
+    name: String,
+    u_px: f32,
+    true_delta_px: f64,
+}
+
+/// The pose term of every frame with a change map under `poses` against the scene's truth
+/// (`gt/images.txt`): what the threshold allowed for a pose error, and what the error was.
+fn pose_term_against_truth(
+    mesh_path: &Path,
+    cameras_path: &Path,
+    poses_path: &Path,
+    truth_path: &Path,
+    frames: &[(String, f32)],
+) -> anyhow::Result<Vec<PoseTermRow>> {
+    let inputs = load_posed_inputs(mesh_path, cameras_path, poses_path)?;
+    let (truth, _) = read_images_at(truth_path)
+        .with_context(|| format!("cannot read the true poses {}", truth_path.display()))?;
+    let mut workspace = ReprojectionWorkspace::default();
+    let mut rows = Vec::new();
+    for (name, u_px) in frames {
+        let (posed, camera) = inputs.find_image(name, poses_path, cameras_path)?;
+        let true_pose = truth
+            .iter()
+            .find(|t| &t.name == name)
+            .with_context(|| format!("{name} is not in the true poses {}", truth_path.display()))?;
+        let true_delta_px = mutual_reprojection_error_px(
+            &inputs.mesh,
+            camera,
+            &posed.cam_from_world,
+            camera,
+            &true_pose.cam_from_world,
+            &mut workspace,
+        )
+        .unwrap_or(f64::NAN);
+        rows.push(PoseTermRow {
+            name: name.clone(),
+            u_px: *u_px,
+            true_delta_px,
+        });
+    }
+    Ok(rows)
+}
+
+/// The median of `values` (NaN left out); NaN when none.
+fn median(mut values: Vec<f64>) -> f64 {
+    values.retain(|v| !v.is_nan());
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
@@ -155,6 +216,24 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         }
         frames_with_result.push(frame.name.clone());
     }
+
+    // Under poses other than the truth: the pose term each change map allowed for, against the
+    // pose's true error (how far u is from what it stands for).
+    let pose_term = match &args.changes_poses {
+        Some(poses) => Some(pose_term_against_truth(
+            &detect_args.mesh,
+            &detect_args.cameras,
+            poses,
+            &scene.join("gt/images.txt"),
+            &report
+                .frames
+                .iter()
+                .filter(|f| f.failure.is_none())
+                .map(|f| (f.name.clone(), f.pose_sigma_px))
+                .collect::<Vec<_>>(),
+        )?),
+        None => None,
+    };
 
     // Stereo depth against the scene's given (MVS-like) depth, over the frames with a result.
     let mut stereo_errors: Option<DepthErrors> = None;
@@ -258,6 +337,25 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             100.0 * e.valid_share
         )?;
     }
+    if let Some(rows) = pose_term.as_ref().filter(|rows| !rows.is_empty()) {
+        let covered = rows
+            .iter()
+            .filter(|r| f64::from(r.u_px) >= r.true_delta_px)
+            .count();
+        writeln!(
+            text,
+            "pose term (the pose error u each change map allowed for, against the pose's true δ), {} frames: u median {:.2} px, true δ median {:.2} px, u ≥ δ in {covered}, u / δ median {:.2}\n",
+            rows.len(),
+            median(rows.iter().map(|r| f64::from(r.u_px)).collect()),
+            median(rows.iter().map(|r| r.true_delta_px).collect()),
+            median(
+                rows.iter()
+                    .filter(|r| r.true_delta_px > 0.0)
+                    .map(|r| f64::from(r.u_px) / r.true_delta_px)
+                    .collect()
+            ),
+        )?;
+    }
     writeln!(text, "| pixels | precision | recall | IoU | TP | FP | FN |")?;
     writeln!(text, "|---|---|---|---|---|---|---|")?;
     for (kind, s) in &pixels {
@@ -358,6 +456,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         "depth_source": report.depth_source,
         "mean_stereo_ms": report.mean_stereo_ms,
         "stereo_depth_errors": stereo_errors,
+        "pose_term": pose_term,
         "pixels": pixels.iter().map(|(k, s)| (k.name(), serde_json::json!({
             "precision": s.precision(), "recall": s.recall(), "iou": s.iou(), "counts": s,
         }))).collect::<BTreeMap<_, _>>(),

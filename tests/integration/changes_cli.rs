@@ -152,3 +152,63 @@ fn changes_finds_the_new_and_the_demolished_buildings_of_a_synth_changes_scene()
         assert!(!frame["stereo"]["neighbours"].as_array().unwrap().is_empty());
     }
 }
+
+#[test]
+fn eval_changes_under_other_poses_measures_each_frames_pose_term_against_its_true_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let output = asgreg(&[
+        "synth",
+        "--out",
+        path_str(&scene),
+        "--width",
+        "240",
+        "--height",
+        "132",
+        "--images",
+        "6",
+        "--levels",
+        "30",
+        "--no-heading-level",
+        "--seed",
+        "3",
+        "--changes",
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    // The initial poses (30 px off on average) as the poses to detect under, with no
+    // registration report beside them: each frame allows for no pose error (u = 0), and the
+    // table says how far each pose really was.
+    let out = dir.path().join("eval");
+    let output = asgreg(&[
+        "eval",
+        "--changes",
+        "--scene",
+        path_str(&scene),
+        "--changes-poses",
+        path_str(&scene.join("initial/30/images.txt")),
+        "--out",
+        path_str(&out),
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    assert!(stdout(&output).contains("pose term"), "{}", stdout(&output));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("changes_eval.json")).unwrap())
+            .unwrap();
+    let rows = json["pose_term"].as_array().unwrap();
+    assert_eq!(
+        rows.len() as u64,
+        json["frames"].as_u64().unwrap(),
+        "{json}"
+    );
+    assert!(!rows.is_empty());
+    let mut deltas: Vec<f64> = rows
+        .iter()
+        .map(|r| {
+            assert_eq!(r["u_px"].as_f64().unwrap(), 0.0, "{r}");
+            r["true_delta_px"].as_f64().unwrap()
+        })
+        .collect();
+    deltas.sort_by(f64::total_cmp);
+    assert!(deltas[0] > 1.0, "{deltas:?}");
+    assert!(deltas[deltas.len() / 2] > 10.0, "{deltas:?}");
+}
