@@ -397,8 +397,11 @@ pub fn mask_path(out: &Path, image_name: &str) -> PathBuf {
         .join(Path::new(image_name).with_extension("png"))
 }
 
-/// Runs change detection over every posed image and writes the outputs into `args.out`.
-pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
+/// Runs change detection over every posed image and writes the outputs into `args.out`; the
+/// report, and the mesh, cameras and poses it read (for a caller that measures them further).
+pub fn detect_all(
+    args: &ChangesArgs,
+) -> anyhow::Result<(ChangesReport, super::inputs::PosedInputs)> {
     let config = args.change_config();
     config
         .validate()
@@ -730,7 +733,7 @@ pub fn detect_all(args: &ChangesArgs) -> anyhow::Result<ChangesReport> {
         &args.out.join(REPORT_HTML),
         &report_page(args, &report, page_pictures),
     )?;
-    Ok(report)
+    Ok((report, inputs))
 }
 
 /// Each frame's pose error u (px) from the report.json of the `asgreg register` run that made
@@ -952,7 +955,7 @@ fn geojson(report: &ChangesReport) -> serde_json::Value {
 
 pub fn run(args: &ChangesArgs) -> anyhow::Result<()> {
     let started = Instant::now();
-    let report = detect_all(args)?;
+    let (report, _) = detect_all(args)?;
     let failed = report.frames.iter().filter(|f| f.failure.is_some()).count();
     println!(
         "{} frames ({} without a result), {:.1} ms per frame for the change map; {} objects ({} confirmed) in {:.1} s",

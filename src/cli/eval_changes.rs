@@ -23,7 +23,7 @@ use serde::Serialize;
 
 use super::changes::{detect_all, mask_path, stereo_depth_path, ChangesArgs};
 use super::eval::{DepthSourceArg, EvalArgs};
-use super::inputs::load_posed_inputs;
+use super::inputs::PosedInputs;
 use asgreg::core::change::stereo::{depth_errors, DepthErrors};
 use asgreg::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 use asgreg::io::colmap_model::read_images_at;
@@ -86,16 +86,16 @@ struct PoseTermRow {
     true_delta_px: f64,
 }
 
-/// The pose term of every frame with a change map under `poses` against the scene's truth
-/// (`gt/images.txt`): what the threshold allowed for a pose error, and what the error was.
+/// The pose term of every frame with a change map under `inputs`' poses (read from
+/// `poses_path`) against the scene's truth (`gt/images.txt`): what the threshold allowed for a
+/// pose error, and what the error was.
 fn pose_term_against_truth(
-    mesh_path: &Path,
+    inputs: &PosedInputs,
     cameras_path: &Path,
     poses_path: &Path,
     truth_path: &Path,
     frames: &[(String, f32)],
 ) -> anyhow::Result<Vec<PoseTermRow>> {
-    let inputs = load_posed_inputs(mesh_path, cameras_path, poses_path)?;
     let (truth, _) = read_images_at(truth_path)
         .with_context(|| format!("cannot read the true poses {}", truth_path.display()))?;
     let mut workspace = ReprojectionWorkspace::default();
@@ -176,7 +176,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             report.display()
         );
     }
-    let report = detect_all(&detect_args)?;
+    let (report, inputs) = detect_all(&detect_args)?;
 
     // Pixels.
     let mut pixels: BTreeMap<ChangeKind, PixelScores> = BTreeMap::new();
@@ -221,7 +221,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     // pose's true error (how far u is from what it stands for).
     let pose_term = match &args.changes_poses {
         Some(poses) => Some(pose_term_against_truth(
-            &detect_args.mesh,
+            &inputs,
             &detect_args.cameras,
             poses,
             &scene.join("gt/images.txt"),

@@ -106,20 +106,27 @@ pub fn path_str(path: &Path) -> &str {
 /// Writes a synthetic scene (`asgreg synth`, 30 px initial poses) of `frames` photos at
 /// `width`×`height` into `dir/scene` and returns that folder.
 pub fn synth_scene(dir: &Path, width: u32, height: u32, frames: usize) -> PathBuf {
+    synth_scene_with(
+        dir,
+        &[
+            "--width",
+            &width.to_string(),
+            "--height",
+            &height.to_string(),
+            "--images",
+            &frames.to_string(),
+            "--levels",
+            "30",
+        ],
+    )
+}
+
+/// Writes `asgreg synth <args>` into `dir/scene` and returns that folder.
+pub fn synth_scene_with(dir: &Path, args: &[&str]) -> PathBuf {
     let scene = dir.join("scene");
-    let output = asgreg(&[
-        "synth",
-        "--out",
-        path_str(&scene),
-        "--width",
-        &width.to_string(),
-        "--height",
-        &height.to_string(),
-        "--images",
-        &frames.to_string(),
-        "--levels",
-        "30",
-    ]);
+    let mut all = vec!["synth", "--out", path_str(&scene)];
+    all.extend_from_slice(args);
+    let output = asgreg(&all);
     assert!(output.status.success(), "{}", stderr(&output));
     scene
 }

@@ -934,19 +934,14 @@ fn open_class(
 ) {
     let (w, h) = classes.size();
     let r = radius as i64;
-    let member: Vec<bool> = classes.data().iter().map(|c| *c == class).collect();
-    let neutral: Vec<bool> = classes
-        .data()
-        .iter()
-        .map(|c| *c == ChangeClass::Unknown)
-        .collect();
     // Erosion: all of the square in the class or without evidence (outside the image counts
     // as not in the class).
+    let data = classes.data();
     scratch.clear();
     scratch.resize(w * h, 0);
     for row in 0..h {
         for col in 0..w {
-            if !member[row * w + col] {
+            if data[row * w + col] != class {
                 continue;
             }
             let inside = (-r..=r).all(|dr| {
@@ -956,8 +951,10 @@ fn open_class(
                         && cc >= 0
                         && rr < h as i64
                         && cc < w as i64
-                        && (member[rr as usize * w + cc as usize]
-                            || neutral[rr as usize * w + cc as usize])
+                        && matches!(
+                            data[rr as usize * w + cc as usize],
+                            c if c == class || c == ChangeClass::Unknown
+                        )
                 })
             });
             if inside {
@@ -965,12 +962,13 @@ fn open_class(
             }
         }
     }
-    // Dilation of the eroded set, kept within the class.
+    // Dilation of the eroded set, kept within the class (a pixel's own class is read before it
+    // changes).
     let data = classes.data_mut();
     for row in 0..h {
         for col in 0..w {
             let index = row * w + col;
-            if !member[index] {
+            if data[index] != class {
                 continue;
             }
             let kept = (-r..=r).any(|dr| {
@@ -994,6 +992,12 @@ fn open_class(
 const CONTINUITY_RELATIVE: f32 = 0.04;
 /// …plus this, metres.
 const CONTINUITY_M: f32 = 0.3;
+
+/// Whether two depths of one surface a pixel apart are continuous ([`CONTINUITY_RELATIVE`],
+/// [`CONTINUITY_M`]).
+fn continuous_m(a: f32, b: f32) -> bool {
+    (a - b).abs() <= CONTINUITY_RELATIVE * a.min(b) + CONTINUITY_M
+}
 
 /// Widest run of `unknown` pixels (no depth: no evidence either way) a region grows across,
 /// pixels of the depth map, along a row, a column or a diagonal: about the depth matcher's
@@ -1052,9 +1056,9 @@ impl HoleBridge {
 
 /// Where a region grows from `index` across a band of `unknown` pixels in `classes`: in each of
 /// the 8 directions, the first pixel past 1..=[`HoleBridge::max_band_px`] `unknown` pixels, if
-/// it is of the region's class (`bridge.class`) and continuous in depth with `index` (`changed_depth`; for a surface known
-/// in the holes, each pixel with the one before it); `visit(target, gap)` with the pixels of the
-/// band (`gap`, in order from `index`).
+/// it is of the region's class (`bridge.class`) and continuous in depth with `index`
+/// (`changed_depth`; for a surface known in the holes, each pixel with the one before it);
+/// `visit(target, gap)` with the pixels of the band (`gap`, in order from `index`).
 fn across_holes(
     classes: &[ChangeClass],
     (w, h): (usize, usize),
@@ -1066,19 +1070,17 @@ fn across_holes(
 ) {
     let (row, col) = ((index / w) as i64, (index % w) as i64);
     let (class, surface_in_holes) = (bridge.class, bridge.surface_in_holes());
-    let max_band_px = bridge.max_band_px(changed_depth(index));
-    let continuous_step = |a: f32, b: f32| {
-        a.is_finite() && b.is_finite() && a > 0.0 && b > 0.0 && {
-            (a - b).abs() <= CONTINUITY_RELATIVE * a.min(b) + CONTINUITY_M
-        }
-    };
+    let origin = changed_depth(index);
+    let max_band_px = bridge.max_band_px(origin);
+    let surface = |d: f32| d.is_finite() && d > 0.0;
+    let continuous_step = |a: f32, b: f32| surface(a) && surface(b) && continuous_m(a, b);
     for dr in -1..=1i64 {
         for dc in -1..=1i64 {
             if dr == 0 && dc == 0 {
                 continue;
             }
             gap.clear();
-            let mut previous = changed_depth(index);
+            let mut previous = origin;
             for step in 1..=(max_band_px as i64 + 1) {
                 let (rr, cc) = (row + step * dr, col + step * dc);
                 if rr < 0 || cc < 0 || rr >= h as i64 || cc >= w as i64 {
@@ -1087,12 +1089,8 @@ fn across_holes(
                 let target = rr as usize * w + cc as usize;
                 let depth = changed_depth(target);
                 if classes[target] == ChangeClass::Unknown {
-                    if gap.len() >= HOLE_BRIDGE_PX {
-                        // Past the matcher's window only on the known surface.
-                        if !(surface_in_holes && continuous_step(previous, depth)) {
-                            break;
-                        }
-                    } else if surface_in_holes && !continuous_step(previous, depth) {
+                    // A known surface must continue through every hole of the band.
+                    if surface_in_holes && !continuous_step(previous, depth) {
                         break;
                     }
                     previous = depth;
@@ -1100,12 +1098,11 @@ fn across_holes(
                     continue;
                 }
                 if !gap.is_empty() && classes[target] == class {
-                    let a = changed_depth(index);
                     let joined = if surface_in_holes {
                         continuous_step(previous, depth)
                     } else {
-                        (a - depth).abs()
-                            <= BRIDGE_CONTINUITY_RELATIVE * a.min(depth) + CONTINUITY_M
+                        (origin - depth).abs()
+                            <= BRIDGE_CONTINUITY_RELATIVE * origin.min(depth) + CONTINUITY_M
                     };
                     if joined {
                         visit(target, gap);
@@ -1215,11 +1212,9 @@ pub fn extract_regions(
                         continue;
                     }
                     let neighbour = rr as usize * w + cc as usize;
-                    let (a, b) = (changed_depth(index), changed_depth(neighbour));
-                    let continuous = (a - b).abs() <= CONTINUITY_RELATIVE * a.min(b) + CONTINUITY_M;
                     if labels[neighbour] == u32::MAX
                         && classes.data()[neighbour] == class
-                        && continuous
+                        && continuous_m(changed_depth(index), changed_depth(neighbour))
                     {
                         labels[neighbour] = next_label;
                         stack.push(neighbour);
@@ -1812,30 +1807,43 @@ pub(crate) mod tests {
     /// through a sparse depth map: holes (depth 0) in vertical bands 6 px wide every 10 px (a
     /// plain surface a matcher measures only on textured spots), and the photo's depth set to
     /// the ground's (the model agrees: `unchanged`) on the columns `agree_cols`.
-    fn added_regions_through_hole_bands(
-        roof: [[f64; 3]; 4],
-        agree_cols: std::ops::Range<usize>,
+    /// Change detection with the default settings from the nadir camera on `model`, the photo's
+    /// depth at each pixel `photo_m(col, world's depth, model's depth)` (0: a hole).
+    fn detect_nadir(
+        model: &Mesh,
+        world: &Mesh,
+        photo_m: impl Fn(usize, f32, f32) -> f32,
     ) -> (FrameChanges, Image<ChangeClass>) {
         let (intrinsics, pose) = nadir();
-        let model = mesh_of(&[ground([0.0, 0.0])]);
-        let world = mesh_of(&[ground([0.0, 0.0]), roof]);
-        let model_depth = depth_of(&model, &intrinsics, &pose);
-        let mut photo_depth = depth_of(&world, &intrinsics, &pose);
+        let model_depth = depth_of(model, &intrinsics, &pose);
+        let mut photo_depth = depth_of(world, &intrinsics, &pose);
         for (index, d) in photo_depth.data_mut().iter_mut().enumerate() {
-            let col = index % 200;
-            if col % 10 < 6 {
-                *d = 0.0;
-            } else if agree_cols.contains(&col) {
-                *d = model_depth.data()[index];
-            }
+            *d = photo_m(index % 200, *d, model_depth.data()[index]);
         }
         detect_on(
-            &model,
+            model,
             &intrinsics,
             &pose,
             &photo_depth,
             &ChangeConfig::default(),
         )
+    }
+
+    fn added_regions_through_hole_bands(
+        roof: [[f64; 3]; 4],
+        agree_cols: std::ops::Range<usize>,
+    ) -> (FrameChanges, Image<ChangeClass>) {
+        let model = mesh_of(&[ground([0.0, 0.0])]);
+        let world = mesh_of(&[ground([0.0, 0.0]), roof]);
+        detect_nadir(&model, &world, |col, world_m, model_m| {
+            if col % 10 < 6 {
+                0.0
+            } else if agree_cols.contains(&col) {
+                model_m
+            } else {
+                world_m
+            }
+        })
     }
 
     #[test]
@@ -1875,22 +1883,15 @@ pub(crate) mod tests {
     /// photo's depth (the ground behind it) is measured only on 2-px columns every
     /// `line_every_px` px, as a plain surface's painted lines give it.
     fn removed_regions_through_lines(line_every_px: usize) -> (FrameChanges, Image<ChangeClass>) {
-        let (intrinsics, pose) = nadir();
         let model = mesh_of(&[ground([0.0, 0.0]), rect(0.0, 0.0, 8.0, 8.0, 4.0)]);
         let world = mesh_of(&[ground([0.0, 0.0])]);
-        let mut photo_depth = depth_of(&world, &intrinsics, &pose);
-        for (index, d) in photo_depth.data_mut().iter_mut().enumerate() {
-            if index % 200 % line_every_px >= 2 {
-                *d = 0.0;
+        detect_nadir(&model, &world, |col, world_m, _| {
+            if col % line_every_px < 2 {
+                world_m
+            } else {
+                0.0
             }
-        }
-        detect_on(
-            &model,
-            &intrinsics,
-            &pose,
-            &photo_depth,
-            &ChangeConfig::default(),
-        )
+        })
     }
 
     #[test]
