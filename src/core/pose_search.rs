@@ -46,7 +46,11 @@ pub struct PoseSearchConfig {
     pub enabled: bool,
     /// Headings searched either side of the prior's, degrees.
     pub yaw_half_range_deg: f64,
-    /// Also search the same range around the prior's heading + 180° (a flipped compass).
+    /// Also search the same range around the prior's heading + 180° (a flipped compass); and
+    /// when the photo's edges show the model nowhere in the region (the search is blind,
+    /// `core::frame::search::is_blind`), make the prior's flip a centre of its own coarse poses
+    /// (within `max_centres`), so that the flow's verified agreement decides the heading the
+    /// edges could not.
     pub include_flipped_heading: bool,
     pub yaw_step_deg: f64,
     /// Pitch (about the camera's x axis) searched either side of the prior's, degrees.

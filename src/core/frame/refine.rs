@@ -656,6 +656,34 @@ pub fn support_at_pose_within(
     Ok(peak)
 }
 
+/// The dense correlation peak of the model's rendering at `cam_from_world` with `query`
+/// ([`correlation_peak`], as the refinement measures it at its output); `None` when the model
+/// shows no pixel there.
+pub fn correlation_at_pose(
+    mesh: &Mesh,
+    camera: &Camera,
+    query: ImageView<'_, f32>,
+    cam_from_world: &Rigid3,
+    config: &RegistrationConfig,
+    workspace: &mut RefineWorkspace,
+) -> Option<CorrelationPeak> {
+    let RefineWorkspace {
+        rasterizer,
+        view,
+        rendered,
+        correlation,
+        ..
+    } = workspace;
+    render_coarse_view(mesh, camera, 0, cam_from_world, config, rasterizer, view);
+    *rendered = Some((*camera, *cam_from_world));
+    correlation_peak(
+        view.asg.view(),
+        view.render.face_index().view(),
+        query,
+        correlation,
+    )
+}
+
 /// The pose steps the photo's edges see at `cam_from_world` as it is (no alignment), least seen
 /// first, each moving the visible model by 1 px RMS ([`supported_seen_steps`]; the samples as
 /// [`support_at_pose`] judges them). `Err` as [`support_at_pose`], or when the model's

@@ -55,6 +55,11 @@ pub struct Beam {
     /// `max_image_uncertainty_px` cannot replace the prior nor be its rival.
     #[serde(default)]
     pub image_uncertainty_px: f64,
+    /// The support the photo's edges give this pose's model edges by chance: the mean share
+    /// where the image is moved by the far ring's shift ([`crate::core::edge_align::SupportPeak::far`]; 0 in files
+    /// written before it existed).
+    #[serde(default)]
+    pub chance: f64,
 }
 
 /// What the search found.
@@ -73,6 +78,11 @@ pub struct PoseSearchOutcome {
     pub beams: Vec<Beam>,
     /// Why the search could not choose on the photo's edges alone, when it could not.
     pub ambiguous: Option<String>,
+    /// Whether the photo's edges showed the model nowhere in the region
+    /// ([`is_blind`]): the prior stayed, and with
+    /// `include_flipped_heading` its flipped heading became a centre too.
+    #[serde(default)]
+    pub blind: bool,
     /// The search's own wall time, ms.
     pub search_ms: f64,
     /// The process's CPU time during the search, ms (the search's own where nothing else runs in
@@ -113,44 +123,50 @@ pub fn search_pose(
         },
         ..config.clone()
     };
-    let refine = |workspace: &mut RefineWorkspace, start: &Rigid3| -> (Rigid3, f64, f64, f64) {
-        match refine_pose(
-            mesh,
-            camera,
-            query,
-            start,
-            AlignedParameters::Pose,
-            &refine_config,
-            workspace,
-        ) {
-            Ok(r) => {
-                let before = r.verified.support_fraction();
-                let uncertainty_px = r.peak.image_uncertainty_px;
-                if r.kept {
-                    (
-                        r.aligned_cam_from_world,
-                        r.aligned.support_fraction(),
-                        before,
-                        uncertainty_px,
-                    )
-                } else {
-                    (*start, before, before, uncertainty_px)
+    // (pose, its support, the start's support, image uncertainty, support by chance)
+    let refine =
+        |workspace: &mut RefineWorkspace, start: &Rigid3| -> (Rigid3, f64, f64, f64, f64) {
+            match refine_pose(
+                mesh,
+                camera,
+                query,
+                start,
+                AlignedParameters::Pose,
+                &refine_config,
+                workspace,
+            ) {
+                Ok(r) => {
+                    let before = r.verified.support_fraction();
+                    let uncertainty_px = r.peak.image_uncertainty_px;
+                    // The peak is measured at the output: the aligned pose when kept.
+                    let chance = r.peak.far;
+                    if r.kept {
+                        (
+                            r.aligned_cam_from_world,
+                            r.aligned.support_fraction(),
+                            before,
+                            uncertainty_px,
+                            chance,
+                        )
+                    } else {
+                        (*start, before, before, uncertainty_px, chance)
+                    }
                 }
+                Err(_) => (*start, 0.0, 0.0, UNBOUNDED_IMAGE_UNCERTAINTY_PX, 0.0),
             }
-            Err(_) => (*start, 0.0, 0.0, UNBOUNDED_IMAGE_UNCERTAINTY_PX),
-        }
-    };
+        };
     // The prior and each beam, refined side by side (independent runs), in that order.
     let starts: Vec<&Rigid3> = std::iter::once(prior)
         .chain(grid_beams.iter().map(|(_, screened_pose, _)| screened_pose))
         .collect();
-    let refined: Vec<(Rigid3, f64, f64, f64)> = starts
+    let refined: Vec<(Rigid3, f64, f64, f64, f64)> = starts
         .par_iter()
         .map_init(RefineWorkspace::default, |workspace, start| {
             refine(workspace, start)
         })
         .collect();
-    let (prior_refined, prior_refined_support, prior_support, prior_uncertainty_px) = refined[0];
+    let (prior_refined, prior_refined_support, prior_support, prior_uncertainty_px, prior_chance) =
+        refined[0];
     let mut beams = vec![Beam {
         yaw_deg: 0.0,
         pitch_deg: 0.0,
@@ -160,8 +176,9 @@ pub fn search_pose(
         cam_from_world: prior_refined,
         support: prior_refined_support,
         image_uncertainty_px: prior_uncertainty_px,
+        chance: prior_chance,
     }];
-    for ((candidate, _, screened_support), (pose, support, _, image_uncertainty_px)) in
+    for ((candidate, _, screened_support), (pose, support, _, image_uncertainty_px, chance)) in
         grid_beams.iter().zip(&refined[1..])
     {
         beams.push(Beam {
@@ -173,6 +190,7 @@ pub fn search_pose(
             cam_from_world: *pose,
             support: *support,
             image_uncertainty_px: *image_uncertainty_px,
+            chance: *chance,
         });
     }
 
@@ -253,15 +271,37 @@ pub fn search_pose(
             }
         }
     }
+    // A photo that shows the model's edges nowhere in the region cannot tell the prior's
+    // heading from its flip (a compass or gimbal yaw recorded 180° off, issue #12): the flip
+    // becomes a centre of its own and the flow's agreement, verified, decides between them.
+    let blind = is_blind(moved, &beams, config.confidence.min_support_above_chance);
+    if blind && search.include_flipped_heading && centres.len() < search.max_centres {
+        centres.push(turned_pose(prior, 180.0, 0.0, 0.0));
+    }
     Some(PoseSearchOutcome {
         centres,
         moved,
         prior_support,
         beams,
         ambiguous,
+        blind,
         search_ms: started.elapsed().as_secs_f64() * 1e3,
         search_cpu_ms: process_cpu_ms() - started_cpu_ms,
     })
+}
+
+/// Whether the photo's edges showed the model nowhere in the search's region: the search did not
+/// move, and neither the refined prior nor any refined beam has an edge support
+/// `min_above_chance` above the support its own edges get by chance (the confidence's
+/// `min_support_above_chance`, the margin below which verification too reads the edges as at
+/// chance, [`crate::core::edge_align::SupportPeak::at_chance_near`]). On such a photo the search's ranking is noise
+/// (Brighton's mesh creases are not edges of its photos: beams 250–360 px off score above the
+/// truth), so it cannot have rejected a hypothesis the prior holds, such as its flip.
+pub(crate) fn is_blind(moved: bool, beams: &[Beam], min_above_chance: f64) -> bool {
+    !moved
+        && beams
+            .iter()
+            .all(|beam| beam.support - beam.chance < min_above_chance)
 }
 
 /// The grid of a search and what its screening made of it.
@@ -597,7 +637,7 @@ mod tests {
     use nalgebra::Vector3;
 
     use super::*;
-    use crate::core::frame::tests::{house_and_poses, ideal_query};
+    use crate::core::frame::tests::{house_and_poses, ideal_query, photo_without_the_model};
     use crate::core::pose_search::PoseSearchConfig;
     use crate::core::reprojection::{mutual_reprojection_error_px, ReprojectionWorkspace};
 
@@ -745,6 +785,58 @@ mod tests {
         let (angle_deg, delta_px) = first_centre(&default);
         assert!(angle_deg < 2.0, "{angle_deg}°");
         assert!(delta_px < 5.0, "{delta_px} px");
+    }
+
+    /// On a photo that shows none of the model's edges the search cannot rank headings: it does
+    /// not move, says it was blind, and the prior's flipped heading becomes the second centre
+    /// (with `include_flipped_heading`, the default; without, the prior stays alone). On the
+    /// ideal query from the truth the search is not blind and the prior is the only centre.
+    #[test]
+    fn a_photo_without_the_models_edges_makes_the_priors_flip_a_centre() {
+        let (mesh, camera, truth, _) = house_and_poses();
+        let default = RegistrationConfig::default();
+        let no_flip = RegistrationConfig {
+            pose_search: PoseSearchConfig {
+                include_flipped_heading: false,
+                ..default.pose_search
+            },
+            ..default.clone()
+        };
+        let mut rasterizer = Rasterizer::new();
+        let search =
+            |query: &Image<f32>, config: &RegistrationConfig, rasterizer: &mut Rasterizer| {
+                search_pose(
+                    &mesh,
+                    &camera,
+                    &truth,
+                    query.view(),
+                    config,
+                    rasterizer,
+                    &mut CoarseView::default(),
+                )
+                .expect("the search is enabled by default")
+            };
+        let blank = photo_without_the_model(&camera);
+        let outcome = search(&blank, &default, &mut rasterizer);
+        let supports: Vec<(f64, f64)> = outcome
+            .beams
+            .iter()
+            .map(|b| (b.support, b.chance))
+            .collect();
+        assert!(!outcome.moved, "{supports:?}");
+        assert!(outcome.blind, "{supports:?}");
+        assert_eq!(
+            outcome.centres,
+            vec![truth, turned_pose(&truth, 180.0, 0.0, 0.0)]
+        );
+        let outcome = search(&blank, &no_flip, &mut rasterizer);
+        assert!(outcome.blind);
+        assert_eq!(outcome.centres, vec![truth]);
+
+        let query = ideal_query(&mesh, &camera, &truth, &default);
+        let outcome = search(&query, &default, &mut rasterizer);
+        assert!(!outcome.blind, "{:?}", outcome.beams[0]);
+        assert_eq!(outcome.centres, vec![truth]);
     }
 
     /// With `keep_prior_centre` (the default), a search that moves keeps the prior as its second

@@ -59,6 +59,25 @@ pub(crate) fn view_at(
     view
 }
 
+/// A photo of the test house's size that shows none of the model's edges: smooth random
+/// texture (uniform noise blurred with σ 1.5 px), whose ridges lie anywhere.
+pub(crate) fn photo_without_the_model(camera: &Camera) -> Image<f32> {
+    use rand::{Rng, SeedableRng};
+    let (width_px, height_px) = (camera.width_px as usize, camera.height_px as usize);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(33);
+    let noise = Image::new(
+        width_px,
+        height_px,
+        (0..width_px * height_px)
+            .map(|_| rng.random::<f32>())
+            .collect(),
+    )
+    .unwrap();
+    let mut photo = Image::default();
+    crate::core::edge_align::blurred_query(noise.view(), 6.0, &mut photo);
+    photo
+}
+
 /// The ideal query of a pose: the model's own ASG rendered there.
 pub(crate) fn ideal_query(
     mesh: &Mesh,
