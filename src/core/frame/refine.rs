@@ -674,8 +674,11 @@ pub fn correlation_at_pose(
         correlation,
         ..
     } = workspace;
-    render_coarse_view(mesh, camera, 0, cam_from_world, config, rasterizer, view);
-    *rendered = Some((*camera, *cam_from_world));
+    // The pose a measurement just rendered (`support_at_pose_within`) is not rendered again.
+    if *rendered != Some((*camera, *cam_from_world)) {
+        render_coarse_view(mesh, camera, 0, cam_from_world, config, rasterizer, view);
+        *rendered = Some((*camera, *cam_from_world));
+    }
     correlation_peak(
         view.asg.view(),
         view.render.face_index().view(),
