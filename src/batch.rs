@@ -775,7 +775,7 @@ mod tests {
     /// prior's flip becomes a centre whose fifteen refined poses agree; the check's own pose is
     /// the output (the alignment's gain there is chance). Before the flip centre the frame was
     /// rejected 548 px off (docs/measurements.md, thirty-ninth session). A sane-heading frame
-    /// (DJI_0032) stays accepted with the flip as its second centre.
+    /// (DJI_0032), whose search is blind too, stays accepted beside its flip centre.
     #[test]
     #[ignore = "needs ../shared/data/brighton_beach (the shared data set beside the repo)"]
     fn shared_data_brighton_flipped_heading_registers_from_its_exif_prior() {

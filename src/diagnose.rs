@@ -669,6 +669,9 @@ pub struct SearchDiagnosis {
     #[serde(default)]
     pub centres_apart_px: Vec<Option<f64>>,
     pub moved: bool,
+    /// Whether the search was blind (`core::frame::search::is_blind`: no beam's support above
+    /// chance; then the prior's flip is a centre).
+    pub blind: bool,
     /// Edge support at the true pose (0..1), measured as the search measures its beams'.
     pub truth_support: Option<f64>,
     /// The grid score (0..1) of a candidate exactly at the truth, and of the true rotation at the
@@ -729,6 +732,8 @@ pub struct SearchBeamDiagnosis {
     /// Edge support after the search's render-free screening alignment (NaN for the prior).
     pub screened_support: f64,
     pub support: f64,
+    /// Its support by chance (the far ring's share at its refined pose).
+    pub chance: f64,
     /// Its image uncertainty (px per px of edge noise); above the confidence's
     /// `max_image_uncertainty_px` the search ignores the beam.
     pub image_uncertainty_px: f64,
@@ -1618,6 +1623,7 @@ fn search_diagnosis(
                 grid_score: beam.grid_score,
                 screened_support: beam.screened_support,
                 support: beam.support,
+                chance: beam.chance,
                 image_uncertainty_px: beam.image_uncertainty_px,
                 delta_px: delta(&beam.cam_from_world),
                 start_delta_px: beam_starts.get(index).and_then(&mut delta),
@@ -1640,6 +1646,7 @@ fn search_diagnosis(
             })
             .collect(),
         moved: outcome.moved,
+        blind: outcome.blind,
         truth_support,
         truth_grid_score: grid_score_at(
             mesh,
@@ -2003,6 +2010,7 @@ mod tests {
                     grid_score: 0.2,
                     screened_support: 0.5,
                     support: 0.5,
+                    chance: 0.2,
                     image_uncertainty_px: 1.0,
                     delta_px: Some(end),
                     start_delta_px: Some(start),
@@ -2011,6 +2019,7 @@ mod tests {
             centres_delta_px: centres.iter().map(|&d| Some(d)).collect(),
             centres_apart_px: Vec::new(),
             moved: true,
+            blind: false,
             truth_support: Some(0.7),
             truth_grid_score: 0.3,
             rotation_reach_grid_score: 0.2,

@@ -246,7 +246,9 @@ pub struct ConfidenceConfig {
     /// the two frames behind the twenty-fourth session's false `removed` object), the first
     /// good one (≤ 2 px) at 0.246. Validated on runs it was not read
     /// from (degraded houses s4 and s6 and block s2 at 30 px, the change scene block s1): 48 →
-    /// 40 accepts, mean δ 2.45 → 1.28 px, the eight it removes 4.6–16.1 px off.
+    /// 40 accepts, mean δ 2.45 → 1.28 px, the eight it removes 4.6–16.1 px off. The pose search
+    /// reads the same margin to tell a photo whose edges show the model nowhere (its blind
+    /// search, `core::frame::search::is_blind`; at 0 never blind).
     pub min_support_above_chance: f64,
     /// Where the photo shows none of the model's edges — the support at the pose, near it and
     /// over image shifts within `at_chance_reach_px` all within the noise of chance

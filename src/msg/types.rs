@@ -725,7 +725,8 @@ pub struct RefinementNumbers {
     /// pose and at the aligned one (0..1).
     pub verified_edge_support: f64,
     pub aligned_edge_support: f64,
-    /// Whether the aligned pose is the output (its support is higher).
+    /// Whether the aligned pose is the output (its support is higher, and the photo shows the
+    /// model's edges at one of the two poses).
     pub kept: bool,
 }
 

@@ -272,7 +272,9 @@ fn decide_centres(
 
 /// Each refined centre's refinement continued from the other centres' outputs
 /// ([`refine_from_other_centres`]); the outputs are taken before any centre moves, so the order
-/// of the centres does not matter. A centre without a refinement neither starts nor lends a start.
+/// of the centres does not matter. A centre without a refinement neither starts nor lends a start;
+/// one whose photo shows the model's edges nowhere ([`SupportPeak::at_chance_everywhere`]) does
+/// not start from the others.
 fn start_from_each_others_outputs(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
@@ -295,6 +297,12 @@ fn start_from_each_others_outputs(
         let Ok(refinement) = centre.refinement.as_mut() else {
             continue;
         };
+        // Where the photo shows none of the model's edges, another start's higher support is
+        // chance too: the centre keeps its output (the check's own pose,
+        // `measure_the_widest_support`).
+        if refinement.peak.at_chance_everywhere() {
+            continue;
+        }
         let others: Vec<PoseHypothesis> = outputs
             .iter()
             .enumerate()
@@ -413,7 +421,7 @@ fn refine_centre(
 /// anywhere ([`confirm`] reads it). Where they show it at neither pose, the alignment's gain in
 /// edge support, which made it keep its end, was chance: the check's own pose (the flow's, the
 /// paper's output) is the output again, with its own peak and correlation (Brighton: the
-/// aligned ends of the eight unanimous accepts were 2.6–8.7 px off, the check's poses 2.1–3.0
+/// aligned ends of the eight unanimous accepts were 2.6–8.6 px off, the check's poses 2.1–2.9
 /// px but one, docs/measurements.md). Other centres are left as they are: the search costs a
 /// few thousand evaluations of the evidence.
 fn measure_the_widest_support(
@@ -469,9 +477,8 @@ fn measure_the_widest_support(
             let verified = SupportPeak { widest, ..verified };
             if peak.at_chance_everywhere() && verified.at_chance_everywhere() {
                 if let Some(chosen) = verdict.chosen_mut() {
-                    chosen.cam_from_world = refinement.verified_cam_from_world;
-                    chosen.camera = refinement.verified_camera;
                     refinement.kept = false;
+                    (chosen.camera, chosen.cam_from_world) = refinement.output_pose();
                     refinement.correlation = correlation_at_pose(
                         mesh,
                         &refinement.verified_camera,
@@ -898,6 +905,30 @@ mod tests {
             decision.verdict.chosen().map(|c| c.cam_from_world),
             Some(refinement.verified_cam_from_world)
         );
+        // ... with its own correlation and edge peak.
+        assert_eq!(
+            refinement.correlation,
+            correlation_at_pose(
+                &mesh,
+                &refinement.verified_camera,
+                photo.view(),
+                &refinement.verified_cam_from_world,
+                &config,
+                &mut RefineWorkspace::default(),
+            )
+        );
+        let verified_peak = support_at_pose_within(
+            &mesh,
+            &refinement.verified_camera,
+            photo.view(),
+            &refinement.verified_cam_from_world,
+            None,
+            &config,
+            &mut RefineWorkspace::default(),
+        )
+        .expect("edge samples");
+        assert_eq!(refinement.peak.at_pose, verified_peak.at_pose);
+        assert_eq!(refinement.peak.far, verified_peak.far);
 
         let off = RegistrationConfig {
             confidence: ConfidenceConfig {

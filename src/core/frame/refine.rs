@@ -44,7 +44,8 @@ pub struct PoseRefinement {
     pub verified: EdgeEvidence,
     /// Evidence of the aligned pose.
     pub aligned: EdgeEvidence,
-    /// Whether the aligned pose replaced the verified one (its evidence is better).
+    /// Whether the aligned pose replaced the verified one (its evidence is better; not where the
+    /// photo shows the model's edges at neither pose, `decide::measure_the_widest_support`).
     pub kept: bool,
     /// How sharply the edge support peaks at the output pose (aligned when kept, else verified).
     pub peak: SupportPeak,
@@ -658,8 +659,9 @@ pub fn support_at_pose_within(
 
 /// The dense correlation peak of the model's rendering at `cam_from_world` with `query`
 /// ([`correlation_peak`], as the refinement measures it at its output); `None` when the model
-/// shows no pixel there.
-pub fn correlation_at_pose(
+/// shows no pixel there. Renders unless `workspace` holds that camera and pose's rendering
+/// already (as right after [`support_at_pose_within`] at it, for the same mesh and settings).
+pub(super) fn correlation_at_pose(
     mesh: &Mesh,
     camera: &Camera,
     query: ImageView<'_, f32>,
@@ -674,17 +676,38 @@ pub fn correlation_at_pose(
         correlation,
         ..
     } = workspace;
-    // The pose a measurement just rendered (`support_at_pose_within`) is not rendered again.
-    if *rendered != Some((*camera, *cam_from_world)) {
-        render_coarse_view(mesh, camera, 0, cam_from_world, config, rasterizer, view);
-        *rendered = Some((*camera, *cam_from_world));
-    }
+    render_once(
+        mesh,
+        camera,
+        cam_from_world,
+        config,
+        rasterizer,
+        view,
+        rendered,
+    );
     correlation_peak(
         view.asg.view(),
         view.render.face_index().view(),
         query,
         correlation,
     )
+}
+
+/// Renders `camera` at `pose` into `view` unless `rendered` says `view` holds that rendering;
+/// records it in `rendered`.
+fn render_once(
+    mesh: &Mesh,
+    camera: &Camera,
+    pose: &Rigid3,
+    config: &RegistrationConfig,
+    rasterizer: &mut Rasterizer,
+    view: &mut CoarseView,
+    rendered: &mut Option<(Camera, Rigid3)>,
+) {
+    if *rendered != Some((*camera, *pose)) {
+        render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
+        *rendered = Some((*camera, *pose));
+    }
 }
 
 /// The pose steps the photo's edges see at `cam_from_world` as it is (no alignment), least seen
@@ -847,10 +870,7 @@ fn align_from_start(
                      camera: &Camera,
                      pose: &Rigid3,
                      rendered: &mut Option<(Camera, Rigid3)>| {
-        if *rendered != Some((*camera, *pose)) {
-            render_coarse_view(mesh, camera, 0, pose, config, rasterizer, view);
-            *rendered = Some((*camera, *pose));
-        }
+        render_once(mesh, camera, pose, config, rasterizer, view, rendered)
     };
     let sample_at = |rasterizer: &mut Rasterizer,
                      view: &mut CoarseView,

@@ -8,7 +8,9 @@
 //! beat a weak prior's support); when another distinct beam is about as good, the search does
 //! not toss a coin: the
 //! best beam, the prior and the rivals each become the centre of their own coarse poses, and
-//! verification with the calibrated confidence decides among them ([`super::decide`]).
+//! verification with the calibrated confidence decides among them ([`super::decide`]). When the
+//! photo's edges show the model nowhere in the region (the search is blind, [`is_blind`]), the
+//! prior's flipped heading becomes a second centre: the edges could not rule it out.
 
 use std::time::Instant;
 
@@ -56,8 +58,9 @@ pub struct Beam {
     #[serde(default)]
     pub image_uncertainty_px: f64,
     /// The support the photo's edges give this pose's model edges by chance: the mean share
-    /// where the image is moved by the far ring's shift ([`crate::core::edge_align::SupportPeak::far`]; 0 in files
-    /// written before it existed).
+    /// where the image is moved by the far ring's shift
+    /// ([`crate::core::edge_align::SupportPeak::far`]; 0 when its refinement failed, and in
+    /// files written before it existed).
     #[serde(default)]
     pub chance: f64,
 }
@@ -66,7 +69,8 @@ pub struct Beam {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseSearchOutcome {
     /// The centres of the coarse poses, best first: the prior or the beam that replaced it; when
-    /// the search is ambiguous also the prior and the rivals (at most
+    /// the search is ambiguous also the prior and the rivals; when it is blind the prior's
+    /// flipped heading (at most
     /// [`crate::core::pose_search::PoseSearchConfig::max_centres`]). Each gets its own
     /// `coarse_pose_count` coarse poses and verification decides among them.
     pub centres: Vec<Rigid3>,
@@ -78,9 +82,9 @@ pub struct PoseSearchOutcome {
     pub beams: Vec<Beam>,
     /// Why the search could not choose on the photo's edges alone, when it could not.
     pub ambiguous: Option<String>,
-    /// Whether the photo's edges showed the model nowhere in the region
-    /// ([`is_blind`]): the prior stayed, and with
-    /// `include_flipped_heading` its flipped heading became a centre too.
+    /// Whether the photo's edges showed the model nowhere in the region (`is_blind`): the prior
+    /// stayed, and with `include_flipped_heading` (and `max_centres` ≥ 2) its flipped heading
+    /// became a centre too. Reported by the diagnosis (`search_diagnosis.json`).
     #[serde(default)]
     pub blind: bool,
     /// The search's own wall time, ms.
@@ -291,12 +295,14 @@ pub fn search_pose(
 }
 
 /// Whether the photo's edges showed the model nowhere in the search's region: the search did not
-/// move, and neither the refined prior nor any refined beam has an edge support
+/// move, and neither the refined prior nor any refined beam has an edge support at its pose
 /// `min_above_chance` above the support its own edges get by chance (the confidence's
-/// `min_support_above_chance`, the margin below which verification too reads the edges as at
-/// chance, [`crate::core::edge_align::SupportPeak::at_chance_near`]). On such a photo the search's ranking is noise
-/// (Brighton's mesh creases are not edges of its photos: beams 250–360 px off score above the
-/// truth), so it cannot have rejected a hypothesis the prior holds, such as its flip.
+/// `min_support_above_chance`, the margin of verification's "at chance near",
+/// [`crate::core::edge_align::SupportPeak::at_chance_near`], read here at the pose only). A
+/// pose whose refinement failed (too few model edge samples) counts as at chance. On such a
+/// photo the search's ranking is noise (Brighton's mesh creases are not edges of its photos:
+/// beams 250–360 px off score above the truth), so it cannot have ruled out a hypothesis the
+/// prior holds, such as its flip.
 pub(crate) fn is_blind(moved: bool, beams: &[Beam], min_above_chance: f64) -> bool {
     !moved
         && beams
