@@ -9,7 +9,7 @@
 //! not toss a coin: the
 //! best beam, the prior and the rivals each become the centre of their own coarse poses, and
 //! verification with the calibrated confidence decides among them ([`super::decide`]). When the
-//! photo's edges show the model nowhere in the region (the search is blind, [`is_blind`]), the
+//! photo's edges show the model nowhere in the region (the search is blind, `is_blind`), the
 //! prior's flipped heading becomes a second centre: the edges could not rule it out.
 
 use std::time::Instant;
