@@ -46,10 +46,11 @@ pub struct PoseSearchConfig {
     pub enabled: bool,
     /// Headings searched either side of the prior's, degrees.
     pub yaw_half_range_deg: f64,
-    /// Also search the same range around the prior's heading + 180° (a flipped compass); and
-    /// when the photo's edges show the model nowhere in the region (the search is blind,
-    /// `core::frame::search::is_blind`), make the prior's flip a centre of its own coarse poses
-    /// (within `max_centres`), so that the flow's verified agreement decides the heading the
+    /// Also search the same range around the prior's heading + 180° (a flipped compass). Where
+    /// the flip is searched (so, or by the full-circle fallback) but the photo's edges show the
+    /// model nowhere in the region (the search is blind, `core::frame::search::is_blind`), the
+    /// prior's flip becomes a centre of its own coarse poses (within `max_centres`, and when the
+    /// model is in view from it), so that the flow's verified agreement decides the heading the
     /// edges could not.
     pub include_flipped_heading: bool,
     pub yaw_step_deg: f64,

@@ -83,8 +83,8 @@ pub struct PoseSearchOutcome {
     /// Why the search could not choose on the photo's edges alone, when it could not.
     pub ambiguous: Option<String>,
     /// Whether the photo's edges showed the model nowhere in the region (`is_blind`): the prior
-    /// stayed, and with `include_flipped_heading` (and `max_centres` ≥ 2) its flipped heading
-    /// became a centre too. Reported by the diagnosis (`search_diagnosis.json`).
+    /// stayed, and where the flip was searched and the model is in view from it (and
+    /// `max_centres` ≥ 2) its flipped heading became a centre too. Reported by the diagnosis (`search_diagnosis.json`).
     #[serde(default)]
     pub blind: bool,
     /// The search's own wall time, ms.
@@ -113,8 +113,11 @@ pub fn search_pose(
     let started = Instant::now();
     let started_cpu_ms = process_cpu_ms();
     let map = OrientedEdgeMap::build(query, search);
-    let ScreenedGrid { screened, .. } =
+    let ScreenedGrid { grid, screened } =
         screen_grid(mesh, camera, prior, query, &map, config, rasterizer, view);
+    // The model shows edges from the prior's flipped heading (its grid rendering had enough
+    // samples; an oblique camera turned around may look away from it).
+    let flip_in_view = group_of(&grid.groups, 180.0, search.render_heading_step_deg).is_some();
     let grid_beams = beams_of(screened, search);
 
     // Each beam, and the prior, refined by edge alignment from a wide first search.
@@ -277,9 +280,11 @@ pub fn search_pose(
     }
     // A photo that shows the model's edges nowhere in the region cannot tell the prior's
     // heading from its flip (a compass or gimbal yaw recorded 180° off, issue #12): the flip
-    // becomes a centre of its own and the flow's agreement, verified, decides between them.
+    // becomes a centre of its own and the flow's agreement, verified, decides between them —
+    // when the model is in view from it (the grid rendered it with edges: with
+    // `include_flipped_heading`).
     let blind = is_blind(moved, &beams, config.confidence.min_support_above_chance);
-    if blind && search.include_flipped_heading && centres.len() < search.max_centres {
+    if blind && flip_in_view && centres.len() < search.max_centres {
         centres.push(turned_pose(prior, 180.0, 0.0, 0.0));
     }
     Some(PoseSearchOutcome {
@@ -795,8 +800,9 @@ mod tests {
 
     /// On a photo that shows none of the model's edges the search cannot rank headings: it does
     /// not move, says it was blind, and the prior's flipped heading becomes the second centre
-    /// (with `include_flipped_heading`, the default; without, the prior stays alone). On the
-    /// ideal query from the truth the search is not blind and the prior is the only centre.
+    /// (with `include_flipped_heading`, the default; without, the prior stays alone), unless the
+    /// model is out of view from the flip. On the ideal query from the truth the search is not
+    /// blind and the prior is the only centre.
     #[test]
     fn a_photo_without_the_models_edges_makes_the_priors_flip_a_centre() {
         let (mesh, camera, truth, _) = house_and_poses();
@@ -843,6 +849,27 @@ mod tests {
         let outcome = search(&query, &default, &mut rasterizer);
         assert!(!outcome.blind, "{:?}", outcome.beams[0]);
         assert_eq!(outcome.centres, vec![truth]);
+
+        // A camera looking up at the house: turned around it sees only sky, and a flip the
+        // model is not in view from is no centre.
+        let upward = Rigid3::look_at(
+            &Vector3::new(12.0, 0.0, 1.5),
+            &Vector3::new(0.0, 0.0, 9.0),
+            &Vector3::z(),
+        )
+        .unwrap();
+        let outcome = search_pose(
+            &mesh,
+            &camera,
+            &upward,
+            blank.view(),
+            &default,
+            &mut rasterizer,
+            &mut CoarseView::default(),
+        )
+        .expect("the search is enabled by default");
+        assert!(outcome.blind);
+        assert_eq!(outcome.centres, vec![upward], "{:?}", outcome.beams);
     }
 
     /// With `keep_prior_centre` (the default), a search that moves keeps the prior as its second
