@@ -459,8 +459,8 @@ fn measure_the_widest_support(
     };
     // The alignment may have moved the output off the flow's agreed pose, also by translation,
     // which no turn of the camera undoes: the agreed pose is searched around too.
-    if refinement.kept {
-        if let Ok(verified) = support_at_pose_within(
+    let verified = if refinement.kept {
+        support_at_pose_within(
             mesh,
             &refinement.verified_camera,
             query,
@@ -468,28 +468,31 @@ fn measure_the_widest_support(
             reach_px,
             config,
             workspace,
-        ) {
-            let widest = match (peak.widest, verified.widest) {
-                (Some(own), Some(agreed)) if agreed.support > own.support => Some(agreed),
-                (own, agreed) => own.or(agreed),
-            };
-            peak.widest = widest;
-            let verified = SupportPeak { widest, ..verified };
-            if peak.at_chance_everywhere() && verified.at_chance_everywhere() {
-                if let Some(chosen) = verdict.chosen_mut() {
-                    refinement.kept = false;
-                    (chosen.camera, chosen.cam_from_world) = refinement.output_pose();
-                    refinement.correlation = correlation_at_pose(
-                        mesh,
-                        &refinement.verified_camera,
-                        query,
-                        &refinement.verified_cam_from_world,
-                        config,
-                        workspace,
-                    );
-                    peak = verified;
-                }
-            }
+        )
+        .ok()
+    } else {
+        None
+    };
+    if let Some(verified) = verified {
+        let widest = match (peak.widest, verified.widest) {
+            (Some(own), Some(agreed)) if agreed.support > own.support => Some(agreed),
+            (own, agreed) => own.or(agreed),
+        };
+        peak.widest = widest;
+        let verified = SupportPeak { widest, ..verified };
+        let at_chance_at_both = peak.at_chance_everywhere() && verified.at_chance_everywhere();
+        if let (true, Some(chosen)) = (at_chance_at_both, verdict.chosen_mut()) {
+            refinement.kept = false;
+            (chosen.camera, chosen.cam_from_world) = refinement.output_pose();
+            refinement.correlation = correlation_at_pose(
+                mesh,
+                &refinement.verified_camera,
+                query,
+                &refinement.verified_cam_from_world,
+                config,
+                workspace,
+            );
+            peak = verified;
         }
     }
     refinement.peak = peak;

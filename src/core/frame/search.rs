@@ -130,74 +130,68 @@ pub fn search_pose(
         },
         ..config.clone()
     };
-    // (pose, its support, the start's support, image uncertainty, support by chance)
-    let refine =
-        |workspace: &mut RefineWorkspace, start: &Rigid3| -> (Rigid3, f64, f64, f64, f64) {
-            match refine_pose(
-                mesh,
-                camera,
-                query,
-                start,
-                AlignedParameters::Pose,
-                &refine_config,
-                workspace,
-            ) {
-                Ok(r) => {
-                    let before = r.verified.support_fraction();
-                    let uncertainty_px = r.peak.image_uncertainty_px;
-                    // The peak is measured at the output: the aligned pose when kept.
-                    let chance = r.peak.far;
-                    if r.kept {
-                        (
-                            r.aligned_cam_from_world,
-                            r.aligned.support_fraction(),
-                            before,
-                            uncertainty_px,
-                            chance,
-                        )
-                    } else {
-                        (*start, before, before, uncertainty_px, chance)
-                    }
-                }
-                Err(_) => (*start, 0.0, 0.0, UNBOUNDED_IMAGE_UNCERTAINTY_PX, 0.0),
+    // A start refined: where it ended as a beam (grid fields as for the prior) and the start's
+    // own support.
+    let refine = |workspace: &mut RefineWorkspace, start: &Rigid3| -> (Beam, f64) {
+        let beam =
+            |cam_from_world: Rigid3, support: f64, image_uncertainty_px: f64, chance: f64| Beam {
+                yaw_deg: 0.0,
+                pitch_deg: 0.0,
+                roll_deg: 0.0,
+                grid_score: f64::NAN,
+                screened_support: f64::NAN,
+                cam_from_world,
+                support,
+                image_uncertainty_px,
+                chance,
+            };
+        match refine_pose(
+            mesh,
+            camera,
+            query,
+            start,
+            AlignedParameters::Pose,
+            &refine_config,
+            workspace,
+        ) {
+            Ok(r) => {
+                let before = r.verified.support_fraction();
+                // The peak is measured at the output: the aligned pose when kept.
+                let (pose, support) = if r.kept {
+                    (r.aligned_cam_from_world, r.aligned.support_fraction())
+                } else {
+                    (*start, before)
+                };
+                (
+                    beam(pose, support, r.peak.image_uncertainty_px, r.peak.far),
+                    before,
+                )
             }
-        };
+            Err(_) => (beam(*start, 0.0, UNBOUNDED_IMAGE_UNCERTAINTY_PX, 0.0), 0.0),
+        }
+    };
     // The prior and each beam, refined side by side (independent runs), in that order.
     let starts: Vec<&Rigid3> = std::iter::once(prior)
         .chain(grid_beams.iter().map(|(_, screened_pose, _)| screened_pose))
         .collect();
-    let refined: Vec<(Rigid3, f64, f64, f64, f64)> = starts
+    let mut refined: Vec<(Beam, f64)> = starts
         .par_iter()
         .map_init(RefineWorkspace::default, |workspace, start| {
             refine(workspace, start)
         })
         .collect();
-    let (prior_refined, prior_refined_support, prior_support, prior_uncertainty_px, prior_chance) =
-        refined[0];
-    let mut beams = vec![Beam {
-        yaw_deg: 0.0,
-        pitch_deg: 0.0,
-        roll_deg: 0.0,
-        grid_score: f64::NAN,
-        screened_support: f64::NAN,
-        cam_from_world: prior_refined,
-        support: prior_refined_support,
-        image_uncertainty_px: prior_uncertainty_px,
-        chance: prior_chance,
-    }];
-    for ((candidate, _, screened_support), (pose, support, _, image_uncertainty_px, chance)) in
-        grid_beams.iter().zip(&refined[1..])
-    {
+    let prior_support = refined[0].1;
+    let prior_refined_support = refined[0].0.support;
+    let mut beams: Vec<Beam> = Vec::with_capacity(refined.len());
+    beams.push(refined.remove(0).0);
+    for ((candidate, _, screened_support), (refined_beam, _)) in grid_beams.iter().zip(refined) {
         beams.push(Beam {
             yaw_deg: candidate.yaw_deg,
             pitch_deg: candidate.pitch_deg,
             roll_deg: candidate.roll_deg,
             grid_score: candidate.score,
             screened_support: *screened_support,
-            cam_from_world: *pose,
-            support: *support,
-            image_uncertainty_px: *image_uncertainty_px,
-            chance: *chance,
+            ..refined_beam
         });
     }
 
