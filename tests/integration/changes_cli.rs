@@ -8,22 +8,7 @@ use crate::util::*;
 #[test]
 fn changes_finds_the_new_and_the_demolished_buildings_of_a_synth_changes_scene() {
     let dir = tempfile::tempdir().unwrap();
-    let scene = synth_scene_with(
-        dir.path(),
-        &[
-            "--width",
-            "240",
-            "--height",
-            "132",
-            "--images",
-            "9",
-            "--levels",
-            "30",
-            "--seed",
-            "2",
-            "--changes",
-        ],
-    );
+    let scene = small_changes_scene(dir.path(), 9, 30, 2, &[]);
     let truth: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(scene.join("changes.json")).unwrap())
             .unwrap();
@@ -154,23 +139,7 @@ fn changes_finds_the_new_and_the_demolished_buildings_of_a_synth_changes_scene()
 #[test]
 fn eval_changes_under_other_poses_measures_each_frames_pose_term_against_its_true_error() {
     let dir = tempfile::tempdir().unwrap();
-    let scene = synth_scene_with(
-        dir.path(),
-        &[
-            "--width",
-            "240",
-            "--height",
-            "132",
-            "--images",
-            "6",
-            "--levels",
-            "30",
-            "--no-heading-level",
-            "--seed",
-            "3",
-            "--changes",
-        ],
-    );
+    let scene = small_changes_scene(dir.path(), 6, 30, 3, &["--no-heading-level"]);
     // The initial poses (30 px off on average) as the poses to detect under, with no
     // registration report beside them: each frame allows for no pose error (u = 0), and the
     // table says how far each pose really was.

@@ -489,24 +489,7 @@ fn change_stage_run_and_launch_with_killed_change_verify_and_fusion_give_the_sam
     // A block at 240x132: registration honestly accepts a frame there (view_000, 2.15 px). The
     // house at 160x88 this test used before gave its one accepted frame by a false accept
     // (65.6 px), which the edge rounding and the image-uncertainty gate no longer accept.
-    let scene = synth_scene_with(
-        dir.path(),
-        &[
-            "--scene",
-            "block",
-            "--width",
-            "240",
-            "--height",
-            "132",
-            "--images",
-            "5",
-            "--levels",
-            "30",
-            "--seed",
-            "2",
-            "--changes",
-        ],
-    );
+    let scene = small_changes_scene(dir.path(), 5, 30, 2, &["--scene", "block"]);
     let depth = format!("[source]\ndepth = \"{}\"\n", scene.join("depth").display());
     // Without step "neighbour"'s look-ahead: with it, the first result waits for the own
     // decisions of the 4 frames after it — here the whole stream — and the stages would be
@@ -698,22 +681,7 @@ fn change_stage_run_and_launch_with_killed_change_verify_and_fusion_give_the_sam
 #[test]
 fn run_without_depth_gives_the_change_results_of_batch_stereo() {
     let dir = tempfile::tempdir().unwrap();
-    let scene = synth_scene_with(
-        dir.path(),
-        &[
-            "--width",
-            "240",
-            "--height",
-            "132",
-            "--images",
-            "9",
-            "--levels",
-            "8",
-            "--seed",
-            "2",
-            "--changes",
-        ],
-    );
+    let scene = small_changes_scene(dir.path(), 9, 8, 2, &[]);
     let body = format!(
         "{}\n[stereo]\nwindow_frames = 8\n",
         common(&unique("chg-stereo"), 2, "change = 2")

@@ -121,6 +121,33 @@ pub fn synth_scene(dir: &Path, width: u32, height: u32, frames: usize) -> PathBu
     )
 }
 
+/// The integration tests' small change scene: `asgreg synth --changes` at 240×132 with `images`
+/// photos, initial poses at `levels` (px) and `seed`, plus `extra` arguments, into `dir/scene`.
+pub fn small_changes_scene(
+    dir: &Path,
+    images: usize,
+    levels: u32,
+    seed: u64,
+    extra: &[&str],
+) -> PathBuf {
+    let (images, levels, seed) = (images.to_string(), levels.to_string(), seed.to_string());
+    let mut args = vec![
+        "--width",
+        "240",
+        "--height",
+        "132",
+        "--images",
+        &images,
+        "--levels",
+        &levels,
+        "--seed",
+        &seed,
+        "--changes",
+    ];
+    args.extend_from_slice(extra);
+    synth_scene_with(dir, &args)
+}
+
 /// Writes `asgreg synth <args>` into `dir/scene` and returns that folder.
 pub fn synth_scene_with(dir: &Path, args: &[&str]) -> PathBuf {
     let scene = dir.join("scene");
