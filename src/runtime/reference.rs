@@ -103,8 +103,10 @@ pub fn differences(references: &[(u64, FrameReport)], results: &[PoseResult]) ->
             }),
             (result.cam_from_world != pose).then(|| {
                 format!(
-                    "pose {:?} against register's {:?}",
-                    result.cam_from_world, pose
+                    "pose {:?} against register's {:?} ({})",
+                    result.cam_from_world,
+                    pose,
+                    how_each_decided(reference, result)
                 )
             }),
         ];
@@ -114,4 +116,40 @@ pub fn differences(references: &[(u64, FrameReport)], results: &[PoseResult]) ->
         }
     }
     mismatches
+}
+
+/// What a frame's two decisions rested on, for a pose that differs: register's tries of step
+/// "neighbour" (lender, view, decision, whether the photo confirmed it) and both sides' own
+/// evidence, so that a soak's failure on a machine that is gone says which step differed.
+fn how_each_decided(reference: &FrameReport, result: &PoseResult) -> String {
+    let tries: Vec<String> = reference
+        .neighbours
+        .iter()
+        .map(|tried| {
+            let check = match &tried.check {
+                Ok(check) => match &check.confirmed {
+                    Ok(()) => "confirmed".to_string(),
+                    Err(why) => format!("not confirmed: {why}"),
+                },
+                Err(why) => format!("no pose: {why}"),
+            };
+            format!(
+                "{} {:?} {:?} ({check})",
+                tried.neighbour, tried.view, tried.decision
+            )
+        })
+        .collect();
+    let evidence = &result.evidence;
+    format!(
+        "register's own: component {}, refinement kept {:?}, rejected candidate {:?}; its step \"neighbour\" tried [{}]; the pipeline's own: component {}, refinement {:?}",
+        reference.component_size,
+        reference.refinement.as_ref().map(|r| r.kept).ok(),
+        reference
+            .rejected_candidate
+            .as_ref()
+            .map(|c| PoseNumbers::from(&c.cam_from_world)),
+        tries.join("; "),
+        evidence.component_size,
+        evidence.refinement,
+    )
 }

@@ -387,7 +387,15 @@ fn decide_with_neighbours(
             );
             None
         }
-        NeighbourDecision::Keep | NeighbourDecision::Combine { .. } => own_steps,
+        NeighbourDecision::Combine { .. } => {
+            tracing::info!(
+                "frame '{}': its pose combined with the pose from its neighbour '{}' (step \"neighbour\")",
+                frame.name,
+                lender.info.name
+            );
+            own_steps
+        }
+        NeighbourDecision::Keep => own_steps,
     }
 }
 
