@@ -348,8 +348,8 @@ pub fn run(args: &SoakArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let out = asgreg::runtime::launch::absolute(&args.out);
-    // The stage processes inherit this: besides warnings, verify says which neighbour accepted
-    // or rejected a frame (step "neighbour"), so that a result that differs from `register`'s
+    // The stage processes inherit this: besides warnings, verify says which neighbour accepted,
+    // rejected or combined with a frame (step "neighbour"), so that a result that differs from `register`'s
     // can be traced in the log of a run that is gone (a CI machine's).
     if std::env::var_os("RUST_LOG").is_none() {
         std::env::set_var("RUST_LOG", "warn,asgreg::stage::verify=info");

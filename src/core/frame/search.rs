@@ -84,7 +84,8 @@ pub struct PoseSearchOutcome {
     pub ambiguous: Option<String>,
     /// Whether the photo's edges showed the model nowhere in the region (`is_blind`): the prior
     /// stayed, and where the flip was searched and the model is in view from it (and
-    /// `max_centres` ≥ 2) its flipped heading became a centre too. Reported by the diagnosis (`search_diagnosis.json`).
+    /// `max_centres` ≥ 2) its flipped heading became a centre too. Reported by the diagnosis
+    /// (`search_diagnosis.json`).
     #[serde(default)]
     pub blind: bool,
     /// The search's own wall time, ms.

@@ -37,8 +37,8 @@ pub struct RenderedViews {
 /// number of views. `view` is rendered into again for the next one: `emit` reads it, or takes it
 /// (`std::mem::take`) to keep it, and the next view is then rendered into fresh buffers.
 /// The views come in groups of `config.coarse_pose_count`, one group per centre of the search
-/// (one centre unless the search moved, was ambiguous or was blind, [`super::decide`] splits them the same
-/// way; the second of two centres has `other_centre_coarse_pose_count` when set); a
+/// (one centre unless the search moved, was ambiguous or was blind, [`super::decide`] splits
+/// them the same way; the second of two centres has `other_centre_coarse_pose_count` when set); a
 /// group's first view is its centre itself (the initial pose unless the search moved it). Each
 /// centre's rendering gives the scene depth that scales its coarse poses and is its group's first
 /// view (each view is rendered once).
