@@ -1640,6 +1640,10 @@ impl NeighbourBatch {
                     }),
                     outcome: match &tried.check {
                         Ok(check) => match &check.confirmed {
+                            Ok(()) if check.agreeing_neighbour.is_some() => format!(
+                                "confirmed by another lender's agreeing pose: {:?}",
+                                tried.decision
+                            ),
                             Ok(()) => format!("confirmed: {:?}", tried.decision),
                             Err(why) => format!("not confirmed: {why}"),
                         },

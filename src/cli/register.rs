@@ -512,6 +512,11 @@ pub struct CoarseArgs {
     /// pose moved along the direction its edges see least to the neighbour's.
     #[arg(long, value_enum, default_value_t = NeighbourAgreementArg::from(NeighbourPoseConfig::default().agreement))]
     pub neighbour_agreement: NeighbourAgreementArg,
+    /// Step "neighbour": a pose the photo's edges clear of chance but do not fix is no longer
+    /// confirmed by another lender's agreeing pose (by default it is: two photos matched
+    /// independently place the frame at one pose along what the model's edges leave open).
+    #[arg(long)]
+    pub no_two_lenders: bool,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
     pub rival_reach_px: f64,
@@ -617,6 +622,7 @@ impl Default for CoarseArgs {
             neighbour_lookahead: NeighbourPoseConfig::default().lookahead_frames,
             neighbour_warp: NeighbourPoseConfig::default().warp.into(),
             neighbour_agreement: NeighbourPoseConfig::default().agreement.into(),
+            no_two_lenders: !NeighbourPoseConfig::default().two_lenders_confirm,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -932,6 +938,7 @@ pub fn registration_config(
             lookahead_frames: coarse.neighbour_lookahead,
             warp: coarse.neighbour_warp.into(),
             agreement: coarse.neighbour_agreement.into(),
+            two_lenders_confirm: !coarse.no_two_lenders,
             ..defaults.neighbour_pose
         },
         ..defaults

@@ -6,8 +6,10 @@
 //! same world photographed twice, so the model's missing details do not bias the matches (house
 //! s1: photo-to-photo flow 67 % within 2 px, photo-to-ASG 30 %). The model still decides
 //! ([`check_neighbour_pose`]): the pose must pass the edge gates every accept passes and the
-//! rival-basin test. It accepts a frame its own registration did not, and rejects an accepted
-//! frame whose pose it contradicts; it never replaces an accepted pose.
+//! rival-basin test, or, where the edges clear chance but do not fix the pose, agree with another
+//! lender's pose (two photos matched independently: [`NeighbourPoseConfig::two_lenders_confirm`],
+//! docs/measurements.md, forty-first session). It accepts a frame its own registration did not,
+//! and rejects an accepted frame whose pose it contradicts; it never replaces an accepted pose.
 
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -82,6 +84,13 @@ pub struct NeighbourPoseConfig {
     /// (`LeastSeen`, over the 13 cells it finished: 125 within 2 px and 1.50 px against 127 and
     /// 1.55 px keeping, 131 and 1.42 px `Mean`).
     pub agreement: NeighbourAgreement,
+    /// Whether two lenders that agree confirm a pose the photo's edges clear of chance but do
+    /// not fix ([`try_neighbours`]): the pose from one lender, failing only the gate that the
+    /// edges fix it, is confirmed when the pose from another lender, failing only that gate
+    /// too, lies within the centres' agreement distance of it and no rival basin is supported
+    /// about as well. Two photos matched independently place the frame at one pose along the
+    /// directions the model's edges leave open.
+    pub two_lenders_confirm: bool,
 }
 
 /// What an accepted pose becomes when a confirmed neighbour's pose agrees with it (within the
@@ -161,6 +170,7 @@ impl Default for NeighbourPoseConfig {
             order: NeighbourOrder::Feed,
             warp: NeighbourWarp::OwnAndNeighbourPose,
             agreement: NeighbourAgreement::Mean,
+            two_lenders_confirm: true,
         }
     }
 }
@@ -416,6 +426,10 @@ pub struct NeighbourCheck {
     pub apart_px: Option<f64>,
     /// Confirmed, or the first gate it failed.
     pub confirmed: Result<(), String>,
+    /// `Some(k)` when confirmed by neighbour `k`'s agreeing pose rather than by the photo's
+    /// edges alone ([`NeighbourPoseConfig::two_lenders_confirm`]).
+    #[serde(default)]
+    pub agreeing_neighbour: Option<usize>,
 }
 
 /// What a neighbour's pose does to the frame's own decision.
@@ -452,8 +466,28 @@ pub fn check_neighbour_pose(
     config: &RegistrationConfig,
     workspace: &mut NeighbourWorkspace,
 ) -> (NeighbourCheck, NeighbourDecision) {
-    let min_apart_px = config.pose_search.centre_agreement_share
-        * config.verify.compatibility_threshold_px(&hypothesis.camera);
+    let (check, _) =
+        measure_neighbour_pose(mesh, query, intrinsics, hypothesis, own, config, workspace);
+    let decision = neighbour_decision(mesh, query, own, &check, config, workspace);
+    (check, decision)
+}
+
+/// Two poses of a frame at least this far apart (mutual reprojection, px) are distinct: the
+/// pose search's centres' agreement distance.
+fn min_apart_px(config: &RegistrationConfig, camera: &Camera) -> f64 {
+    config.pose_search.centre_agreement_share * config.verify.compatibility_threshold_px(camera)
+}
+
+/// [`check_neighbour_pose`]'s measurements and gates, and the gate it failed first, if any.
+fn measure_neighbour_pose(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    intrinsics: IntrinsicsMode,
+    hypothesis: &PoseHypothesis,
+    own: Result<&PoseHypothesis, Option<&PoseHypothesis>>,
+    config: &RegistrationConfig,
+    workspace: &mut NeighbourWorkspace,
+) -> (NeighbourCheck, Option<FailedGate>) {
     let own_pose = match own {
         Ok(pose) => Some(pose),
         Err(candidate) => candidate,
@@ -468,38 +502,150 @@ pub fn check_neighbour_pose(
             &mut ReprojectionWorkspace::new(),
         )
     });
-    let (peak, confirmed) = match confirm(
+    let (peak, confirmed) = confirm(
         mesh,
         query,
         intrinsics,
         hypothesis,
-        min_apart_px,
+        min_apart_px(config, &hypothesis.camera),
         config,
         workspace,
-    ) {
-        Ok(peak) => (Some(peak), Ok(())),
-        Err((peak, why)) => (peak, Err(why)),
+    );
+    let (confirmed, failed) = match confirmed {
+        Ok(()) => (Ok(()), None),
+        Err((why, gate)) => (Err(why), Some(gate)),
     };
     let check = NeighbourCheck {
         hypothesis: *hypothesis,
         peak,
         apart_px,
         confirmed,
+        agreeing_neighbour: None,
     };
-    let decision = match (own, &check.confirmed) {
+    (check, failed)
+}
+
+/// What a checked neighbour's pose does to the frame's own decision `own`.
+fn neighbour_decision(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    own: Result<&PoseHypothesis, Option<&PoseHypothesis>>,
+    check: &NeighbourCheck,
+    config: &RegistrationConfig,
+    workspace: &mut NeighbourWorkspace,
+) -> NeighbourDecision {
+    match (own, &check.confirmed) {
         (_, Err(_)) => NeighbourDecision::Keep,
         (Err(_), Ok(())) => NeighbourDecision::Accept,
-        (Ok(accepted), Ok(())) => match apart_px {
-            Some(apart_px) if apart_px >= min_apart_px => {
+        (Ok(accepted), Ok(())) => match check.apart_px {
+            Some(apart_px) if apart_px >= min_apart_px(config, &check.hypothesis.camera) => {
                 NeighbourDecision::Contradicted { apart_px }
             }
-            _ => combined(mesh, query, accepted, hypothesis, config, workspace)
+            // A pose the photo's edges do not fix does not move one they fix.
+            _ if check.agreeing_neighbour.is_some() => NeighbourDecision::Keep,
+            _ => combined(mesh, query, accepted, &check.hypothesis, config, workspace)
                 .map_or(NeighbourDecision::Keep, |cam_from_world| {
                     NeighbourDecision::Combine { cam_from_world }
                 }),
         },
+    }
+}
+
+/// The gate of [`confirm`] a neighbour's pose failed first.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum FailedGate {
+    /// Too few RANSAC inliers, no measurable edge support, or the photo's edges at it are not
+    /// clear of chance.
+    Evidence,
+    /// The photo's edges are clear of chance at it but do not fix it.
+    NotFixed,
+    /// A distinct pose the alignment reaches from around it is supported about as well.
+    Rival,
+}
+
+/// [`NeighbourPoseConfig::two_lenders_confirm`] for `check`, the pose from neighbour `lender`
+/// that the photo's edges clear of chance but do not fix: confirmed when such a pose from
+/// another lender (`witnesses`, the earlier tries of this frame) lies within the centres'
+/// agreement distance of it and no distinct pose the alignment reaches from around it is
+/// supported about as well (the rival test every confirmed pose passes); else it joins
+/// `witnesses`.
+#[allow(clippy::too_many_arguments)]
+fn confirm_by_agreement(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    intrinsics: IntrinsicsMode,
+    lender: usize,
+    check: &mut NeighbourCheck,
+    witnesses: &mut Vec<(usize, PoseHypothesis)>,
+    config: &RegistrationConfig,
+    workspace: &mut NeighbourWorkspace,
+) {
+    let hypothesis = check.hypothesis;
+    let min_apart_px = min_apart_px(config, &hypothesis.camera);
+    let agreeing = witnesses
+        .iter()
+        .filter(|(other, _)| *other != lender)
+        .find_map(|(other, pose)| {
+            let apart_px = mutual_reprojection_error_px(
+                mesh,
+                &pose.camera,
+                &pose.cam_from_world,
+                &hypothesis.camera,
+                &hypothesis.cam_from_world,
+                &mut ReprojectionWorkspace::new(),
+            )?;
+            (apart_px < min_apart_px).then_some(*other)
+        });
+    let (Some(other), Some(peak)) = (agreeing, check.peak.as_ref()) else {
+        witnesses.push((lender, hypothesis));
+        return;
     };
-    (check, decision)
+    match rival_reason(
+        mesh,
+        query,
+        intrinsics,
+        &hypothesis,
+        min_apart_px,
+        peak,
+        config,
+        workspace,
+    ) {
+        Some(why) => check.confirmed = Err(why),
+        None => {
+            check.confirmed = Ok(());
+            check.agreeing_neighbour = Some(other);
+        }
+    }
+}
+
+/// Why `hypothesis` (whose edge support peaks as `peak`) is not confirmed for a rival basin
+/// ([`rival_ends`], [`rival_rejection`]), if it is not.
+#[allow(clippy::too_many_arguments)]
+fn rival_reason(
+    mesh: &Mesh,
+    query: ImageView<'_, f32>,
+    intrinsics: IntrinsicsMode,
+    hypothesis: &PoseHypothesis,
+    min_apart_px: f64,
+    peak: &SupportPeak,
+    config: &RegistrationConfig,
+    workspace: &mut NeighbourWorkspace,
+) -> Option<String> {
+    let ends = rival_ends(
+        mesh,
+        query,
+        intrinsics,
+        hypothesis,
+        config,
+        &mut workspace.refine,
+    );
+    rival_rejection(
+        &ends,
+        min_apart_px,
+        peak,
+        config.edge_align.rival_share_above_chance,
+    )
+    .map(|reason| reason.to_string())
 }
 
 /// The accepted pose combined with the agreeing confirmed neighbour's pose as
@@ -542,7 +688,8 @@ fn combined(
 /// against 164) but fewer within 2 px (125 against 127), at a mean δ of 2.01 against 1.60 px
 /// (docs/measurements.md, twenty-eighth session): the gates at the pose keep only the
 /// neighbour poses that are precise.
-/// Returns the support peak when confirmed, else what was measured and the first gate failed.
+/// Returns the support peak when measured, and whether confirmed, else why and the first gate
+/// failed.
 #[allow(clippy::too_many_arguments)]
 fn confirm(
     mesh: &Mesh,
@@ -552,31 +699,31 @@ fn confirm(
     min_apart_px: f64,
     config: &RegistrationConfig,
     workspace: &mut NeighbourWorkspace,
-) -> Result<SupportPeak, (Option<SupportPeak>, String)> {
+) -> (Option<SupportPeak>, Result<(), (String, FailedGate)>) {
     let settings = &config.neighbour_pose;
     let inlier_share = hypothesis.consensus as f64 / hypothesis.correspondence_count.max(1) as f64;
     if hypothesis.consensus < settings.min_consensus || inlier_share < settings.min_inlier_share {
-        return Err((
-            None,
-            format!(
-                "{} of {} matches agree with it ({:.0} %); at least {} and {:.0} % asked",
-                hypothesis.consensus,
-                hypothesis.correspondence_count,
-                100.0 * inlier_share,
-                settings.min_consensus,
-                100.0 * settings.min_inlier_share
-            ),
-        ));
+        let why = format!(
+            "{} of {} matches agree with it ({:.0} %); at least {} and {:.0} % asked",
+            hypothesis.consensus,
+            hypothesis.correspondence_count,
+            100.0 * inlier_share,
+            settings.min_consensus,
+            100.0 * settings.min_inlier_share
+        );
+        return (None, Err((why, FailedGate::Evidence)));
     }
-    let peak = support_at_pose(
+    let peak = match support_at_pose(
         mesh,
         &hypothesis.camera,
         query,
         &hypothesis.cam_from_world,
         config,
         &mut workspace.refine,
-    )
-    .map_err(|why| (None, why))?;
+    ) {
+        Ok(peak) => peak,
+        Err(why) => return (None, Err((why, FailedGate::Evidence))),
+    };
     let gates = EdgeGates::of(Some(&peak), &config.confidence);
     if !gates.clear {
         let why = format!(
@@ -586,7 +733,7 @@ fn confirm(
             100.0 * peak.far,
             100.0 * config.confidence.min_support_above_chance
         );
-        return Err((Some(peak), why));
+        return (Some(peak), Err((why, FailedGate::Evidence)));
     }
     if !gates.fixed {
         let why = format!(
@@ -597,25 +744,22 @@ fn confirm(
             gates.least_seen_drop,
             gates.least_seen_near_drop
         );
-        return Err((Some(peak), why));
+        return (Some(peak), Err((why, FailedGate::NotFixed)));
     }
-    let ends = rival_ends(
+    let rival = rival_reason(
         mesh,
         query,
         intrinsics,
         hypothesis,
-        config,
-        &mut workspace.refine,
-    );
-    if let Some(reason) = rival_rejection(
-        &ends,
         min_apart_px,
         &peak,
-        config.edge_align.rival_share_above_chance,
-    ) {
-        return Err((Some(peak), reason.to_string()));
-    }
-    Ok(peak)
+        config,
+        workspace,
+    );
+    (
+        Some(peak),
+        rival.map_or(Ok(()), |why| Err((why, FailedGate::Rival))),
+    )
 }
 
 /// One neighbour tried by [`try_neighbours`], from one view: its pose of the frame and the
@@ -651,9 +795,11 @@ impl NeighbourTry {
 /// Step "neighbour" for one frame: `neighbours` (nearest first, [`nearest_neighbours`]) tried in
 /// order until one's pose is confirmed ([`pose_from_neighbour`], [`check_neighbour_pose`]); each
 /// neighbour's photo as photographed first, then from the views `neighbour_pose.warp` adds
-/// ([`NeighbourView`]) while none is confirmed. Every try, the deciding one last. `query` is the
-/// frame's query image, `own` its own decision's pose (accepted, or would-be when rejected). The
-/// one sequence that batch registration and the pipeline's verify run.
+/// ([`NeighbourView`]) while none is confirmed. A pose that fails only the gate that the photo's
+/// edges fix it is also confirmed when another lender's pose failing only that gate agrees with
+/// it ([`NeighbourPoseConfig::two_lenders_confirm`]). Every try, the deciding one last. `query`
+/// is the frame's query image, `own` its own decision's pose (accepted, or would-be when
+/// rejected). The one sequence that batch registration and the pipeline's verify run.
 #[allow(clippy::too_many_arguments)]
 pub fn try_neighbours(
     mesh: &Mesh,
@@ -686,6 +832,8 @@ pub fn try_neighbours(
         Err(candidate) => candidate.map(|pose| pose.cam_from_world),
     };
     let warp = config.neighbour_pose.warp;
+    // Poses the photo's edges clear of chance but do not fix, with their lender.
+    let mut witnesses: Vec<(usize, PoseHypothesis)> = Vec::new();
     for (index, neighbour) in neighbours.iter().enumerate() {
         // The neighbour's rendering serves all its views.
         if let Err(why) = render_neighbour(mesh, camera, neighbour, config, workspace) {
@@ -702,7 +850,7 @@ pub fn try_neighbours(
                 mesh, camera, intrinsics, &features, neighbour, seen_from, config, seed, workspace,
             ) {
                 Ok(hypothesis) => {
-                    let (check, decision) = check_neighbour_pose(
+                    let (mut check, failed) = measure_neighbour_pose(
                         mesh,
                         query,
                         intrinsics,
@@ -711,6 +859,21 @@ pub fn try_neighbours(
                         config,
                         workspace,
                     );
+                    if failed == Some(FailedGate::NotFixed)
+                        && config.neighbour_pose.two_lenders_confirm
+                    {
+                        confirm_by_agreement(
+                            mesh,
+                            query,
+                            intrinsics,
+                            index,
+                            &mut check,
+                            &mut witnesses,
+                            config,
+                            workspace,
+                        );
+                    }
+                    let decision = neighbour_decision(mesh, query, own, &check, config, workspace);
                     NeighbourTry {
                         neighbour: index,
                         view,
@@ -1195,6 +1358,112 @@ mod tests {
             matches!(decision, NeighbourDecision::Contradicted { apart_px } if apart_px > 15.0),
             "{decision:?} {check:?}"
         );
+    }
+
+    /// Two lenders near the frame, registered at their true poses, each give the frame's pose to
+    /// a pixel or two. With a confidence whose "fixed" gate no pose passes (0 px of image
+    /// uncertainty asked), the first lender's pose alone is not confirmed and the second's,
+    /// agreeing with it, is: a frame rejected on its own is accepted at it, an accepted pose 16 px
+    /// away is contradicted, an agreeing accepted pose is kept as it is (a pose the edges do not
+    /// fix does not move one they fix). Without `two_lenders_confirm`, or with the second lender
+    /// registered 0.2 rad off (its pose of the frame far from the first's), none is confirmed.
+    #[test]
+    fn two_lenders_that_agree_confirm_a_pose_the_edges_do_not_fix() {
+        let mut scene = Scene::new();
+        scene.config.confidence.max_image_uncertainty_px = 0.0;
+        let mut workspace = NeighbourWorkspace::default();
+        let at = |shift_m: Vector3<f64>| {
+            Rigid3::new(scene.truth.rotation, scene.truth.translation + shift_m)
+        };
+        let (first, second) = (
+            at(Vector3::new(0.3, 0.12, -0.18)),
+            at(Vector3::new(-0.3, 0.1, 0.15)),
+        );
+        let photos = [first, second]
+            .map(|pose| ideal_query(&scene.mesh, &scene.camera, &pose, &scene.config));
+        let lenders = |registered: [Rigid3; 2]| {
+            [0, 1].map(|i| RegisteredNeighbour {
+                query: photos[i].view(),
+                camera: &scene.camera,
+                cam_from_world: registered[i],
+            })
+        };
+        let run = |config: &RegistrationConfig,
+                   own: Result<&PoseHypothesis, Option<&PoseHypothesis>>,
+                   neighbours: &[RegisteredNeighbour<'_>],
+                   workspace: &mut NeighbourWorkspace| {
+            let mut config = config.clone();
+            config.neighbour_pose.warp = NeighbourWarp::Off;
+            try_neighbours(
+                &scene.mesh,
+                &scene.camera,
+                IntrinsicsMode::Known,
+                scene.query.view(),
+                own,
+                neighbours,
+                &config,
+                7,
+                workspace,
+            )
+        };
+        let both = lenders([first, second]);
+        let tries = run(&scene.config, Err(None), &both, &mut workspace);
+        assert_eq!(tries.len(), 2, "{tries:?}");
+        assert!(!tries[0].confirmed(), "{:?}", tries[0]);
+        let check = tries[0].check.as_ref().unwrap();
+        assert!(
+            check.confirmed.as_ref().unwrap_err().contains("do not fix"),
+            "{check:?}"
+        );
+        assert!(tries[1].confirmed(), "{:?}", tries[1]);
+        let confirmed = tries[1].check.as_ref().unwrap();
+        assert_eq!(confirmed.agreeing_neighbour, Some(0));
+        assert_eq!(tries[1].decision, NeighbourDecision::Accept);
+        let delta_px = scene
+            .delta_to_truth(&confirmed.hypothesis.cam_from_world)
+            .unwrap();
+        assert!(delta_px < 2.0, "δ {delta_px:.2} px");
+
+        // An accepted pose 16 px away is contradicted; the true pose is kept.
+        let far = PoseHypothesis {
+            cam_from_world: Rigid3::new(
+                UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.1, 0.0))
+                    * scene.truth.rotation,
+                scene.truth.translation,
+            ),
+            ..confirmed.hypothesis
+        };
+        let tries = run(&scene.config, Ok(&far), &both, &mut workspace);
+        assert!(
+            matches!(tries.last().unwrap().decision, NeighbourDecision::Contradicted { apart_px } if apart_px > 15.0),
+            "{tries:?}"
+        );
+        let agreeing = PoseHypothesis {
+            cam_from_world: scene.truth,
+            ..confirmed.hypothesis
+        };
+        let tries = run(&scene.config, Ok(&agreeing), &both, &mut workspace);
+        assert!(tries[1].confirmed(), "{tries:?}");
+        assert_eq!(tries[1].decision, NeighbourDecision::Keep);
+
+        // Off: neither is confirmed.
+        let mut off = scene.config.clone();
+        off.neighbour_pose.two_lenders_confirm = false;
+        let tries = run(&off, Err(None), &both, &mut workspace);
+        assert!(tries.iter().all(|tried| !tried.confirmed()), "{tries:?}");
+
+        // The second lender registered 0.2 rad off: its pose of the frame disagrees.
+        let wrong = Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.2, 0.0)) * second.rotation,
+            second.translation,
+        );
+        let tries = run(
+            &scene.config,
+            Err(None),
+            &lenders([first, wrong]),
+            &mut workspace,
+        );
+        assert!(tries.iter().all(|tried| !tried.confirmed()), "{tries:?}");
     }
 
     /// An accepted pose 2 px off along the direction its edges see least, and an agreeing
