@@ -563,29 +563,49 @@ enum FailedGate {
     Rival,
 }
 
-/// [`NeighbourPoseConfig::two_lenders_confirm`] for `check`, the pose from neighbour `lender`
-/// that the photo's edges clear of chance but do not fix: confirmed when such a pose from
-/// another lender (`witnesses`, the earlier tries of this frame) lies within the centres'
-/// agreement distance of it and no distinct pose the alignment reaches from around it is
-/// supported about as well (the rival test every confirmed pose passes); else it joins
-/// `witnesses`.
+/// A pose of the frame from one lender's photo that the photo's edges clear of chance but do
+/// not fix ([`NeighbourPoseConfig::two_lenders_confirm`]).
+#[derive(Clone, Copy, Debug)]
+struct Witness {
+    lender: usize,
+    view: NeighbourView,
+    hypothesis: PoseHypothesis,
+}
+
+impl Witness {
+    /// Whether `self` and `other` are independent witnesses: from two lenders, and not both
+    /// matched from the frame's own pose ([`NeighbourView::OwnPose`]: where the flow bridges
+    /// nothing, both end at the own pose, so their agreement would only repeat it).
+    fn independent_of(&self, other: &Witness) -> bool {
+        self.lender != other.lender
+            && !(self.view == NeighbourView::OwnPose && other.view == NeighbourView::OwnPose)
+    }
+}
+
+/// [`NeighbourPoseConfig::two_lenders_confirm`] for `check`, the pose of `witness` (its
+/// lender's try from its view), which the photo's edges clear of chance but do not fix:
+/// confirmed when an independent such pose ([`Witness::independent_of`]; `witnesses`, the
+/// earlier tries of this frame) lies within the centres' agreement distance of it and no
+/// distinct pose the alignment reaches from around it is supported about as well (the rival
+/// test every confirmed pose passes); else it joins `witnesses`.
 #[allow(clippy::too_many_arguments)]
 fn confirm_by_agreement(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
     intrinsics: IntrinsicsMode,
-    lender: usize,
+    witness: Witness,
     check: &mut NeighbourCheck,
-    witnesses: &mut Vec<(usize, PoseHypothesis)>,
+    witnesses: &mut Vec<Witness>,
     config: &RegistrationConfig,
     workspace: &mut NeighbourWorkspace,
 ) {
-    let hypothesis = check.hypothesis;
+    let hypothesis = witness.hypothesis;
     let min_apart_px = min_apart_px(config, &hypothesis.camera);
     let agreeing = witnesses
         .iter()
-        .filter(|(other, _)| *other != lender)
-        .find_map(|(other, pose)| {
+        .filter(|other| other.independent_of(&witness))
+        .find_map(|other| {
+            let pose = &other.hypothesis;
             let apart_px = mutual_reprojection_error_px(
                 mesh,
                 &pose.camera,
@@ -594,10 +614,10 @@ fn confirm_by_agreement(
                 &hypothesis.cam_from_world,
                 &mut ReprojectionWorkspace::new(),
             )?;
-            (apart_px < min_apart_px).then_some(*other)
+            (apart_px < min_apart_px).then_some(other.lender)
         });
     let (Some(other), Some(peak)) = (agreeing, check.peak.as_ref()) else {
-        witnesses.push((lender, hypothesis));
+        witnesses.push(witness);
         return;
     };
     match rival_reason(
@@ -833,7 +853,7 @@ pub fn try_neighbours(
     };
     let warp = config.neighbour_pose.warp;
     // Poses the photo's edges clear of chance but do not fix, with their lender.
-    let mut witnesses: Vec<(usize, PoseHypothesis)> = Vec::new();
+    let mut witnesses: Vec<Witness> = Vec::new();
     for (index, neighbour) in neighbours.iter().enumerate() {
         // The neighbour's rendering serves all its views.
         if let Err(why) = render_neighbour(mesh, camera, neighbour, config, workspace) {
@@ -862,11 +882,16 @@ pub fn try_neighbours(
                     if failed == Some(FailedGate::NotFixed)
                         && config.neighbour_pose.two_lenders_confirm
                     {
+                        let witness = Witness {
+                            lender: index,
+                            view,
+                            hypothesis,
+                        };
                         confirm_by_agreement(
                             mesh,
                             query,
                             intrinsics,
-                            index,
+                            witness,
                             &mut check,
                             &mut witnesses,
                             config,
@@ -1464,6 +1489,24 @@ mod tests {
             &mut workspace,
         );
         assert!(tries.iter().all(|tried| !tried.confirmed()), "{tries:?}");
+    }
+
+    /// Witnesses are independent only from two lenders and not both matched from the frame's own
+    /// pose.
+    #[test]
+    fn witnesses_from_one_lender_or_both_from_the_own_pose_are_not_independent() {
+        let (scene, mut workspace) = (Scene::new(), NeighbourWorkspace::default());
+        let (hypothesis, _) = scene.pose_from(0.0, Vector3::new(0.3, 0.12, -0.18), &mut workspace);
+        let witness = |lender, view| Witness {
+            lender,
+            view,
+            hypothesis,
+        };
+        use NeighbourView::{AsPhotographed, NeighbourPose, OwnPose};
+        assert!(witness(0, AsPhotographed).independent_of(&witness(1, OwnPose)));
+        assert!(witness(0, OwnPose).independent_of(&witness(1, NeighbourPose)));
+        assert!(!witness(0, AsPhotographed).independent_of(&witness(0, NeighbourPose)));
+        assert!(!witness(0, OwnPose).independent_of(&witness(1, OwnPose)));
     }
 
     /// An accepted pose 2 px off along the direction its edges see least, and an agreeing
