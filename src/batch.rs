@@ -14,7 +14,7 @@ use crate::core::frame::{
     feed_neighbours, nearest_neighbours, query_gradient, register_frame, try_neighbours,
     FeedLender, FrameInput, IntrinsicsMode, NeighbourCheck, NeighbourDecision, NeighbourOrder,
     NeighbourView, NeighbourWorkspace, Pass, PoseRefinement, RegisteredNeighbour,
-    RegistrationConfig, StageTimings,
+    RegistrationConfig, StageTimings, Witness,
 };
 use crate::core::image::Image;
 use crate::core::mesh::Mesh;
@@ -97,6 +97,10 @@ pub struct NeighbourReport {
     /// The neighbour's pose of this frame and what the model said of it, or why there is none.
     pub check: Result<NeighbourCheck, String>,
     pub decision: NeighbourDecision,
+    /// The other lender whose agreeing pose confirmed this one, by name
+    /// (`NeighbourCheck::agreeing_neighbour`; `NeighbourPoseConfig::two_lenders_confirm`).
+    #[serde(default)]
+    pub agreeing_neighbour: Option<String>,
 }
 
 /// What the full-circle heading fallback did for a frame (`core::frame::HeadingSweepOutcome`
@@ -335,6 +339,7 @@ pub fn neighbour_pass(
             .collect(),
         loaded: frames.iter().map(|_| None).collect(),
         workspace: NeighbourWorkspace::default(),
+        witnesses: frames.iter().map(|_| Vec::new()).collect(),
         changed: Vec::new(),
     };
     let settings = &config.neighbour_pose;
@@ -412,6 +417,9 @@ struct NeighbourPass<'a> {
     /// Per frame: its files and query image, once loaded.
     loaded: Vec<Option<LoadedQuery>>,
     workspace: NeighbourWorkspace,
+    /// Per frame: the lenders' poses of it the edges cleared but did not fix, over its rounds
+    /// (`NeighbourOrder::Set` tries a frame once per round; `Feed` once).
+    witnesses: Vec<Vec<Witness>>,
     changed: Vec<usize>,
 }
 
@@ -444,6 +452,7 @@ impl NeighbourPass<'_> {
                 Some((
                     c,
                     RegisteredNeighbour {
+                        id: c,
                         query: lender.query.view(),
                         camera: &lender.files.camera,
                         cam_from_world: reports[c].cam_from_world?,
@@ -463,6 +472,7 @@ impl NeighbourPass<'_> {
             own.query.view(),
             own_pose,
             &neighbours,
+            &mut self.witnesses[index],
             config,
             crate::frame_files::frame_seed(self.seed, frame.image_id),
             &mut self.workspace,
@@ -471,7 +481,14 @@ impl NeighbourPass<'_> {
         for tried in tries {
             let c = lenders[tried.neighbour];
             let confirmed = tried.confirmed();
+            let agreeing_neighbour = tried
+                .check
+                .as_ref()
+                .ok()
+                .and_then(|check| check.agreeing_neighbour)
+                .map(|id| frames[id].name.clone());
             let report = NeighbourReport {
+                agreeing_neighbour,
                 neighbour: frames[c].name.clone(),
                 steps: self.steps[c].unwrap_or(0) + 1,
                 view: tried.view,

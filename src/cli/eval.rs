@@ -1640,8 +1640,9 @@ impl NeighbourBatch {
                     }),
                     outcome: match &tried.check {
                         Ok(check) => match &check.confirmed {
-                            Ok(()) if check.agreeing_neighbour.is_some() => format!(
-                                "confirmed by another lender's agreeing pose: {:?}",
+                            Ok(()) if tried.agreeing_neighbour.is_some() => format!(
+                                "confirmed by {}'s agreeing pose: {:?}",
+                                tried.agreeing_neighbour.as_deref().unwrap_or_default(),
                                 tried.decision
                             ),
                             Ok(()) => format!("confirmed: {:?}", tried.decision),

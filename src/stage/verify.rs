@@ -339,7 +339,9 @@ fn decide_with_neighbours(
     }
     let registered: Vec<RegisteredNeighbour> = neighbours
         .iter()
-        .map(|lender| RegisteredNeighbour {
+        .enumerate()
+        .map(|(id, lender)| RegisteredNeighbour {
+            id,
             query: lender.query.view(),
             camera: &lender.camera,
             cam_from_world: lender.cam_from_world,
@@ -357,6 +359,7 @@ fn decide_with_neighbours(
         query.view(),
         own,
         &registered,
+        &mut Vec::new(),
         config,
         frame.info.seed,
         workspace,
@@ -370,10 +373,21 @@ fn decide_with_neighbours(
         return own_steps;
     }
     apply_to_verdict(&mut decision.verdict, last, &lender.info.name);
+    let agreeing = last
+        .check
+        .as_ref()
+        .ok()
+        .and_then(|check| check.agreeing_neighbour)
+        .map_or(String::new(), |id| {
+            format!(
+                ", confirmed by '{}''s agreeing pose",
+                neighbours[id].info.name
+            )
+        });
     match last.decision {
         NeighbourDecision::Accept => {
             tracing::info!(
-                "frame '{}': accepted at the pose from its neighbour '{}' (step \"neighbour\")",
+                "frame '{}': accepted at the pose from its neighbour '{}'{agreeing} (step \"neighbour\")",
                 frame.name,
                 lender.info.name
             );
@@ -381,7 +395,7 @@ fn decide_with_neighbours(
         }
         NeighbourDecision::Contradicted { apart_px } => {
             tracing::info!(
-                "frame '{}': rejected, its neighbour '{}' gives a pose {apart_px:.0} px away",
+                "frame '{}': rejected, its neighbour '{}' gives a pose {apart_px:.0} px away{agreeing}",
                 frame.name,
                 lender.info.name
             );

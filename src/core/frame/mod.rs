@@ -49,7 +49,7 @@ pub use neighbour::{
     apply_to_verdict, check_neighbour_pose, feed_neighbours, nearest_neighbours,
     pose_from_neighbour, try_neighbours, FeedLender, NeighbourAgreement, NeighbourCheck,
     NeighbourDecision, NeighbourOrder, NeighbourPoseConfig, NeighbourTry, NeighbourView,
-    NeighbourWarp, NeighbourWorkspace, RegisteredNeighbour,
+    NeighbourWarp, NeighbourWorkspace, RegisteredNeighbour, Witness,
 };
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{
