@@ -103,6 +103,21 @@ pub struct NeighbourReport {
     pub agreeing_neighbour: Option<String>,
 }
 
+impl NeighbourReport {
+    /// What became of the try, in words: "confirmed" (by the photo's edges, or by the named
+    /// lender's agreeing pose), "not confirmed: …" or "no pose: …".
+    pub fn outcome(&self) -> String {
+        match &self.check {
+            Ok(check) => match (&check.confirmed, &self.agreeing_neighbour) {
+                (Err(why), _) => format!("not confirmed: {why}"),
+                (Ok(()), Some(lender)) => format!("confirmed by {lender}'s agreeing pose"),
+                (Ok(()), None) => "confirmed".to_string(),
+            },
+            Err(why) => format!("no pose: {why}"),
+        }
+    }
+}
+
 /// What the full-circle heading fallback did for a frame (`core::frame::HeadingSweepOutcome`
 /// with the frame's reported cameras).
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -481,12 +496,7 @@ impl NeighbourPass<'_> {
         for tried in tries {
             let c = lenders[tried.neighbour];
             let confirmed = tried.confirmed();
-            let agreeing_neighbour = tried
-                .check
-                .as_ref()
-                .ok()
-                .and_then(|check| check.agreeing_neighbour)
-                .map(|id| frames[id].name.clone());
+            let agreeing_neighbour = tried.agreeing_neighbour().map(|id| frames[id].name.clone());
             let report = NeighbourReport {
                 agreeing_neighbour,
                 neighbour: frames[c].name.clone(),

@@ -1638,17 +1638,10 @@ impl NeighbourBatch {
                             check.hypothesis.correspondence_count,
                         )
                     }),
-                    outcome: match &tried.check {
-                        Ok(check) => match &check.confirmed {
-                            Ok(()) if tried.agreeing_neighbour.is_some() => format!(
-                                "confirmed by {}'s agreeing pose: {:?}",
-                                tried.agreeing_neighbour.as_deref().unwrap_or_default(),
-                                tried.decision
-                            ),
-                            Ok(()) => format!("confirmed: {:?}", tried.decision),
-                            Err(why) => format!("not confirmed: {why}"),
-                        },
-                        Err(why) => format!("no pose: {why}"),
+                    outcome: if tried.check.as_ref().is_ok_and(|c| c.confirmed.is_ok()) {
+                        format!("{}: {:?}", tried.outcome(), tried.decision)
+                    } else {
+                        tried.outcome()
                     },
                 })
                 .collect();

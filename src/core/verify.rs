@@ -248,7 +248,7 @@ pub enum RejectionReason {
         apart_px: f64,
     },
     /// A registered neighbour's photo gives a pose of the frame that the photo's edges confirm
-    /// ([`crate::core::frame::neighbour::check_neighbour_pose`]) `apart_px` from the accepted one
+    /// ([`crate::core::frame::neighbour::try_neighbours`]) `apart_px` from the accepted one
     /// (at least the centres' agreement distance): two witnesses contradict each other.
     ContradictedByNeighbour { neighbour: String, apart_px: f64 },
 }

@@ -126,16 +126,12 @@ fn how_each_decided(reference: &FrameReport, result: &PoseResult) -> String {
         .neighbours
         .iter()
         .map(|tried| {
-            let check = match &tried.check {
-                Ok(check) => match &check.confirmed {
-                    Ok(()) => "confirmed".to_string(),
-                    Err(why) => format!("not confirmed: {why}"),
-                },
-                Err(why) => format!("no pose: {why}"),
-            };
             format!(
-                "{} {:?} {:?} ({check})",
-                tried.neighbour, tried.view, tried.decision
+                "{} {:?} {:?} ({})",
+                tried.neighbour,
+                tried.view,
+                tried.decision,
+                tried.outcome()
             )
         })
         .collect();

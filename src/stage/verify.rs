@@ -373,17 +373,12 @@ fn decide_with_neighbours(
         return own_steps;
     }
     apply_to_verdict(&mut decision.verdict, last, &lender.info.name);
-    let agreeing = last
-        .check
-        .as_ref()
-        .ok()
-        .and_then(|check| check.agreeing_neighbour)
-        .map_or(String::new(), |id| {
-            format!(
-                ", confirmed by '{}''s agreeing pose",
-                neighbours[id].info.name
-            )
-        });
+    let agreeing = last.agreeing_neighbour().map_or(String::new(), |id| {
+        format!(
+            ", confirmed by '{}''s agreeing pose",
+            neighbours[id].info.name
+        )
+    });
     match last.decision {
         NeighbourDecision::Accept => {
             tracing::info!(

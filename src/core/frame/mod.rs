@@ -9,7 +9,7 @@
 //! | match + lift | per coarse view | [`correspond::correspond_view`] | flow (N workers) |
 //! | solve | per coarse view | [`solve::solve_view`] | pose |
 //! | verify + refine | once per frame, over all views | [`decide::decide_frame`] (plausibility check, then [`refine::refine_verdict`]) | verify |
-//! | neighbour | once per frame, after its decision, with a registered neighbour | [`neighbour::pose_from_neighbour`], [`neighbour::check_neighbour_pose`] | batch (`batch::neighbour_pass`) and verify (`stage::verify`), on by default |
+//! | neighbour | once per frame, after its decision, with a registered neighbour | [`neighbour::pose_from_neighbour`], [`neighbour::try_neighbours`] | batch (`batch::neighbour_pass`) and verify (`stage::verify`), on by default |
 //!
 //! [`register_frame`] (one process), the stage adapters (`stage::*`) and batch registration all
 //! call these functions and nothing else; none re-derives a step. A new step is one function
@@ -46,10 +46,10 @@ pub use config::{
 pub use correspond::{correspond_view, lift_pixel, query_features, CorrespondWorkspace, ViewRef};
 pub use decide::{decide_frame, decide_frame_and_centres, Decision};
 pub use neighbour::{
-    apply_to_verdict, check_neighbour_pose, feed_neighbours, nearest_neighbours,
-    pose_from_neighbour, try_neighbours, FeedLender, NeighbourAgreement, NeighbourCheck,
-    NeighbourDecision, NeighbourOrder, NeighbourPoseConfig, NeighbourTry, NeighbourView,
-    NeighbourWarp, NeighbourWorkspace, RegisteredNeighbour, Witness,
+    apply_to_verdict, feed_neighbours, nearest_neighbours, pose_from_neighbour, try_neighbours,
+    FeedLender, NeighbourAgreement, NeighbourCheck, NeighbourDecision, NeighbourOrder,
+    NeighbourPoseConfig, NeighbourTry, NeighbourView, NeighbourWarp, NeighbourWorkspace,
+    RegisteredNeighbour, Witness,
 };
 pub use query::{query_gradient, smooth_depth};
 pub use refine::{

@@ -458,39 +458,24 @@ pub enum NeighbourDecision {
     Contradicted { apart_px: f64 },
 }
 
-/// Checks one neighbour's pose `hypothesis` of a frame, alone (no other lender's pose confirms
-/// it: [`try_neighbours`] does that), against the model and the frame's own
-/// decision (`own`: its accepted pose, or its would-be pose when rejected, `None` without one).
-/// Confirmed when its RANSAC consensus reaches `neighbour_pose.min_consensus` and
-/// `neighbour_pose.min_inlier_share`, the photo's edges at it pass the gates every accept
-/// passes ([`EdgeGates`]: clear of chance, fixing the pose; [`confirm`]) and no distinct pose
-/// the alignment reaches from around it is supported about as well ([`rival_rejection`], the
-/// same test as an accepted pose's). Distinct means at least `pose_search.centre_agreement_share` of the compatibility
-/// threshold apart, as across the pose search's centres.
-#[allow(clippy::too_many_arguments)]
-pub fn check_neighbour_pose(
-    mesh: &Mesh,
-    query: ImageView<'_, f32>,
-    intrinsics: IntrinsicsMode,
-    hypothesis: &PoseHypothesis,
-    own: Result<&PoseHypothesis, Option<&PoseHypothesis>>,
-    config: &RegistrationConfig,
-    workspace: &mut NeighbourWorkspace,
-) -> (NeighbourCheck, NeighbourDecision) {
-    let (check, _) =
-        measure_neighbour_pose(mesh, query, intrinsics, hypothesis, own, config, workspace);
-    let decision = neighbour_decision(mesh, query, own, &check, config, workspace);
-    (check, decision)
-}
-
 /// Two poses of a frame at least this far apart (mutual reprojection, px) are distinct: the
 /// pose search's centres' agreement distance.
 fn min_apart_px(config: &RegistrationConfig, camera: &Camera) -> f64 {
     config.pose_search.centre_agreement_share * config.verify.compatibility_threshold_px(camera)
 }
 
-/// [`check_neighbour_pose`]'s measurements and gates, and the gate it failed first, if any.
-fn measure_neighbour_pose(
+/// Checks one neighbour's pose `hypothesis` of a frame, alone (another lender's agreeing pose
+/// may still confirm it: [`confirm_by_agreement`]), against the model and the frame's own
+/// decision (`own`: its accepted pose, or its would-be pose when rejected, `None` without one);
+/// returns the check and the gate it failed first, if any ([`neighbour_decision`] says what it
+/// does to the frame).
+/// Confirmed when its RANSAC consensus reaches `neighbour_pose.min_consensus` and
+/// `neighbour_pose.min_inlier_share`, the photo's edges at it pass the gates every accept
+/// passes ([`EdgeGates`]: clear of chance, fixing the pose; [`confirm`]) and no distinct pose
+/// the alignment reaches from around it is supported about as well ([`rival_rejection`], the
+/// same test as an accepted pose's). Distinct means at least `pose_search.centre_agreement_share`
+/// of the compatibility threshold apart, as across the pose search's centres.
+fn check_neighbour_pose(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
     intrinsics: IntrinsicsMode,
@@ -837,6 +822,15 @@ impl NeighbourTry {
             .as_ref()
             .is_ok_and(|check| check.confirmed.is_ok())
     }
+
+    /// The [`RegisteredNeighbour::id`] of the lender whose agreeing pose confirmed this one
+    /// ([`NeighbourCheck::agreeing_neighbour`]), if any.
+    pub fn agreeing_neighbour(&self) -> Option<usize> {
+        self.check
+            .as_ref()
+            .ok()
+            .and_then(|check| check.agreeing_neighbour)
+    }
 }
 
 /// Step "neighbour" for one frame: `neighbours` (nearest first, [`nearest_neighbours`]) tried in
@@ -898,7 +892,7 @@ pub fn try_neighbours(
                 mesh, camera, intrinsics, &features, neighbour, seen_from, config, seed, workspace,
             ) {
                 Ok(hypothesis) => {
-                    let (mut check, failed) = measure_neighbour_pose(
+                    let (mut check, failed) = check_neighbour_pose(
                         mesh,
                         query,
                         intrinsics,
@@ -1161,7 +1155,7 @@ mod tests {
             own: Result<&PoseHypothesis, Option<&PoseHypothesis>>,
             workspace: &mut NeighbourWorkspace,
         ) -> (NeighbourCheck, NeighbourDecision) {
-            check_neighbour_pose(
+            let (check, _) = check_neighbour_pose(
                 &self.mesh,
                 self.query.view(),
                 IntrinsicsMode::Known,
@@ -1169,7 +1163,16 @@ mod tests {
                 own,
                 &self.config,
                 workspace,
-            )
+            );
+            let decision = neighbour_decision(
+                &self.mesh,
+                self.query.view(),
+                own,
+                &check,
+                &self.config,
+                workspace,
+            );
+            (check, decision)
         }
     }
 
