@@ -458,6 +458,19 @@ pub enum NeighbourDecision {
     Contradicted { apart_px: f64 },
 }
 
+/// δ between two poses of the frame ([`mutual_reprojection_error_px`]), px; `None` when
+/// neither sees the model.
+fn apart_px(mesh: &Mesh, a: &PoseHypothesis, b: &PoseHypothesis) -> Option<f64> {
+    mutual_reprojection_error_px(
+        mesh,
+        &a.camera,
+        &a.cam_from_world,
+        &b.camera,
+        &b.cam_from_world,
+        &mut ReprojectionWorkspace::new(),
+    )
+}
+
 /// Two poses of a frame at least this far apart (mutual reprojection, px) are distinct: the
 /// pose search's centres' agreement distance.
 fn min_apart_px(config: &RegistrationConfig, camera: &Camera) -> f64 {
@@ -488,16 +501,7 @@ fn check_neighbour_pose(
         Ok(pose) => Some(pose),
         Err(candidate) => candidate,
     };
-    let apart_px = own_pose.and_then(|pose| {
-        mutual_reprojection_error_px(
-            mesh,
-            &pose.camera,
-            &pose.cam_from_world,
-            &hypothesis.camera,
-            &hypothesis.cam_from_world,
-            &mut ReprojectionWorkspace::new(),
-        )
-    });
+    let apart_px = own_pose.and_then(|pose| apart_px(mesh, pose, hypothesis));
     let (peak, confirmed) = confirm(
         mesh,
         query,
@@ -616,15 +620,7 @@ fn confirm_by_agreement(
         .iter()
         .filter(|other| other.independent_of(&witness))
         .find_map(|other| {
-            let pose = &other.hypothesis;
-            let apart_px = mutual_reprojection_error_px(
-                mesh,
-                &pose.camera,
-                &pose.cam_from_world,
-                &hypothesis.camera,
-                &hypothesis.cam_from_world,
-                &mut ReprojectionWorkspace::new(),
-            )?;
+            let apart_px = apart_px(mesh, &other.hypothesis, &hypothesis)?;
             (apart_px < min_apart_px).then_some(other.lender)
         });
     // A try that failed "fixed" had its edge support measured: `peak` is there.
