@@ -517,6 +517,14 @@ pub struct CoarseArgs {
     /// independently place the frame at one pose along what the model's edges leave open).
     #[arg(long)]
     pub no_two_lenders: bool,
+    /// Step "neighbour": how many agreeing lenders confirm a pose the photo's edges see above
+    /// chance but not clear of it (0: never).
+    #[arg(long, default_value_t = NeighbourPoseConfig::default().quorum_lenders)]
+    pub quorum_lenders: usize,
+    /// Step "neighbour": the share of the margin above chance one pose needs alone that each
+    /// pose of such a quorum keeps.
+    #[arg(long, default_value_t = NeighbourPoseConfig::default().quorum_support_share)]
+    pub quorum_support_share: f64,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
     pub rival_reach_px: f64,
@@ -623,6 +631,8 @@ impl Default for CoarseArgs {
             neighbour_warp: NeighbourPoseConfig::default().warp.into(),
             neighbour_agreement: NeighbourPoseConfig::default().agreement.into(),
             no_two_lenders: !NeighbourPoseConfig::default().two_lenders_confirm,
+            quorum_lenders: NeighbourPoseConfig::default().quorum_lenders,
+            quorum_support_share: NeighbourPoseConfig::default().quorum_support_share,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -939,6 +949,8 @@ pub fn registration_config(
             warp: coarse.neighbour_warp.into(),
             agreement: coarse.neighbour_agreement.into(),
             two_lenders_confirm: !coarse.no_two_lenders,
+            quorum_lenders: coarse.quorum_lenders,
+            quorum_support_share: coarse.quorum_support_share,
             ..defaults.neighbour_pose
         },
         ..defaults

@@ -259,6 +259,18 @@ impl RegistrationConfig {
                 format!("{} is outside 0..=1", neighbour.min_inlier_share),
             );
         }
+        if neighbour.quorum_lenders == 1 {
+            return bad(
+                "neighbour_pose.quorum_lenders",
+                "is 1: a quorum needs at least 2 lenders (0 turns it off)".into(),
+            );
+        }
+        if !(0.0..=1.0).contains(&neighbour.quorum_support_share) {
+            return bad(
+                "neighbour_pose.quorum_support_share",
+                format!("{} is outside 0..=1", neighbour.quorum_support_share),
+            );
+        }
         if neighbour.enabled && (neighbour.candidates == 0 || neighbour.max_steps == 0) {
             return bad(
                 "neighbour_pose",

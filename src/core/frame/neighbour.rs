@@ -8,7 +8,9 @@
 //! ([`check_neighbour_pose`]): the pose must pass the edge gates every accept passes and the
 //! rival-basin test, or, where the edges clear chance but do not fix the pose, agree with another
 //! lender's pose (two photos matched independently: [`NeighbourPoseConfig::two_lenders_confirm`],
-//! docs/measurements.md, forty-first session). It accepts a frame its own registration did not,
+//! docs/measurements.md, forty-first session), or, where they are above chance but not clear of
+//! it, with two more lenders' poses ([`NeighbourPoseConfig::quorum_lenders`], forty-second
+//! session). It accepts a frame its own registration did not,
 //! and rejects an accepted frame whose pose it contradicts; it never replaces an accepted pose.
 
 use nalgebra::Vector3;
@@ -94,6 +96,22 @@ pub struct NeighbourPoseConfig {
     /// forty-first session): 193 → 226 accepted, 167 → 185 within 2 px, mean δ 1.22 → 1.39 px,
     /// no false accept.
     pub two_lenders_confirm: bool,
+    /// How many lenders whose poses agree confirm a pose the photo's edges see above chance but
+    /// not clear of it (0: never; at least 2 otherwise): each pose from its own lender, at most
+    /// one matched from the frame's own pose, every two within the centres' agreement distance,
+    /// each with its edge support above chance by at least `quorum_support_share` of the margin
+    /// one pose needs alone (`confidence.min_support_above_chance`), and no rival basin
+    /// supported about as well. Independent photos that agree stand in for the margin each
+    /// lacks alone: wrong lender poses scatter, correct ones gather at the truth. Measured over
+    /// 14 cells (docs/measurements.md, forty-second session): 3 lenders 226 → 229 accepted,
+    /// 185 → 186 within 2 px, no false accept; 2 lenders 232 accepted but 184 within 2 px and
+    /// mean δ 1.39 → 1.48 px. In batch's `set` order the lenders of every round count; in
+    /// `feed` order (the pipeline, `register` by default) a frame meets `candidates` lenders,
+    /// so 3 needs `candidates` ≥ 3.
+    pub quorum_lenders: usize,
+    /// The share of `confidence.min_support_above_chance` each pose of a quorum
+    /// (`quorum_lenders`) keeps above chance.
+    pub quorum_support_share: f64,
 }
 
 /// What an accepted pose becomes when a confirmed neighbour's pose agrees with it (within the
@@ -174,6 +192,8 @@ impl Default for NeighbourPoseConfig {
             warp: NeighbourWarp::OwnAndNeighbourPose,
             agreement: NeighbourAgreement::Mean,
             two_lenders_confirm: true,
+            quorum_lenders: 3,
+            quorum_support_share: 0.5,
         }
     }
 }
@@ -497,11 +517,7 @@ fn check_neighbour_pose(
     config: &RegistrationConfig,
     workspace: &mut NeighbourWorkspace,
 ) -> (NeighbourCheck, Option<FailedGate>) {
-    let own_pose = match own {
-        Ok(pose) => Some(pose),
-        Err(candidate) => candidate,
-    };
-    let apart_px = own_pose.and_then(|pose| apart_px(mesh, pose, hypothesis));
+    let apart_px = own_pose(own).and_then(|pose| apart_px(mesh, pose, hypothesis));
     let (peak, confirmed) = confirm(
         mesh,
         query,
@@ -554,23 +570,27 @@ fn neighbour_decision(
 /// The gate of [`confirm`] a neighbour's pose failed first.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum FailedGate {
-    /// Too few RANSAC inliers, no measurable edge support, or the photo's edges at it are not
-    /// clear of chance.
+    /// Too few RANSAC inliers, or no measurable edge support.
     Evidence,
+    /// The photo's edges at it are not clear of chance.
+    NotClear,
     /// The photo's edges are clear of chance at it but do not fix it.
     NotFixed,
     /// A distinct pose the alignment reaches from around it is supported about as well.
     Rival,
 }
 
-/// A pose of the frame from one lender's photo that the photo's edges clear of chance but do
-/// not fix ([`NeighbourPoseConfig::two_lenders_confirm`]); `lender` is the
+/// A pose of the frame from one lender's photo that the photo's edges support but do not
+/// confirm alone: clear of chance but not fixed ([`NeighbourPoseConfig::two_lenders_confirm`]),
+/// or only above chance ([`NeighbourPoseConfig::quorum_lenders`]); `lender` is the
 /// [`RegisteredNeighbour::id`].
 #[derive(Clone, Copy, Debug)]
 pub struct Witness {
     lender: usize,
     view: NeighbourView,
     hypothesis: PoseHypothesis,
+    /// Whether the photo's edges are clear of chance at it (it failed only the "fixed" gate).
+    clear: bool,
 }
 
 impl Witness {
@@ -583,15 +603,106 @@ impl Witness {
     }
 }
 
-/// [`NeighbourPoseConfig::two_lenders_confirm`] for `check`, the pose of `witness` (its
-/// lender's try from its view), which the photo's edges clear of chance but do not fix:
-/// confirmed when an independent such pose ([`Witness::independent_of`]; `witnesses`, the
-/// earlier tries of this frame) lies within the centres' agreement distance of it and no
-/// distinct pose the alignment reaches from around it is supported about as well (the rival
-/// test every confirmed pose passes); else it joins `witnesses` (unless the rival test
-/// rejected it). A witness within the centres' agreement distance of an accepted own pose
-/// (`own`) is never confirmed: it could only keep that pose, and the lenders after it may still
-/// give a pose the edges fix.
+/// The witness `check` makes, if any: a pose that failed only the "fixed" gate (when
+/// `two_lenders_confirm`), or failed the "clear of chance" gate with its support above chance
+/// by the quorum's share of the margin (when `quorum_lenders` is set).
+fn witness_of(
+    check: &NeighbourCheck,
+    failed: Option<FailedGate>,
+    lender: usize,
+    view: NeighbourView,
+    config: &RegistrationConfig,
+) -> Option<Witness> {
+    let settings = &config.neighbour_pose;
+    let clear = match failed? {
+        FailedGate::NotFixed if settings.two_lenders_confirm || settings.quorum_lenders >= 2 => {
+            true
+        }
+        FailedGate::NotClear if settings.quorum_lenders >= 2 => {
+            let peak = check.peak.as_ref()?;
+            let margin = settings.quorum_support_share * config.confidence.min_support_above_chance;
+            if peak.at_pose - peak.far < margin {
+                return None;
+            }
+            false
+        }
+        _ => return None,
+    };
+    Some(Witness {
+        lender,
+        view,
+        hypothesis: check.hypothesis,
+        clear,
+    })
+}
+
+/// A group of independent witnesses from `witnesses` that agree with `witness` and with each
+/// other (every two within `min_apart_px`), `witness` first:
+/// each from its own lender, at most one matched from the frame's own pose. Taken in the order
+/// given (earliest first); when `clear_only`, only clear witnesses join.
+fn agreeing_group(
+    mesh: &Mesh,
+    witness: &Witness,
+    witnesses: &[Witness],
+    min_apart_px: f64,
+    clear_only: bool,
+    wanted: usize,
+) -> Vec<Witness> {
+    let mut group = vec![*witness];
+    for other in witnesses {
+        if group.len() >= wanted {
+            break;
+        }
+        if clear_only && !other.clear {
+            continue;
+        }
+        // Pairwise independence also keeps at most one view matched from the own pose.
+        let joins = group.iter().all(|member| {
+            member.independent_of(other)
+                && apart_px(mesh, &member.hypothesis, &other.hypothesis)
+                    .is_some_and(|apart_px| apart_px < min_apart_px)
+        });
+        if joins {
+            group.push(*other);
+        }
+    }
+    group
+}
+
+/// The mean of a group's poses: each pose's step from the first ([`pose_step_between`]),
+/// averaged and applied to it; `None` for an empty group.
+fn mean_pose(group: &[Witness]) -> Option<Rigid3> {
+    let first = group.first()?.hypothesis.cam_from_world;
+    let sum = group
+        .iter()
+        .map(|member| pose_step_between(&first, &member.hypothesis.cam_from_world))
+        .fold(nalgebra::Vector6::zeros(), |sum, step| sum + step);
+    Some(apply_pose_step(&first, &(sum / group.len() as f64)))
+}
+
+/// The frame's own pose: accepted, or would-be when rejected; `None` without one.
+fn own_pose<'a>(
+    own: Result<&'a PoseHypothesis, Option<&'a PoseHypothesis>>,
+) -> Option<&'a PoseHypothesis> {
+    match own {
+        Ok(pose) => Some(pose),
+        Err(candidate) => candidate,
+    }
+}
+
+/// Confirmation by agreement for `check`, the pose of `witness` (its lender's try from its
+/// view), which the photo's edges support but do not confirm alone: confirmed when independent
+/// witnesses that agree with it and with each other (`witnesses`, the earlier tries of this
+/// frame; [`agreeing_group`]) make a group of two clear ones
+/// ([`NeighbourPoseConfig::two_lenders_confirm`]) or of `quorum_lenders` of any
+/// ([`NeighbourPoseConfig::quorum_lenders`]), and no distinct pose the alignment reaches from
+/// around it is supported about as well (the rival test every confirmed pose passes): the
+/// check's pose becomes the group's mean ([`mean_pose`]; over 14 cells, against the last
+/// witness's own pose: mean δ 1.42 → 1.33 px, 217 → 222 within 5 px, one accept fewer;
+/// docs/measurements.md, forty-second session). Else it joins `witnesses` (unless the rival
+/// test rejected it). A witness within the centres'
+/// agreement distance of an accepted own pose (`own`) is never confirmed: it could only keep
+/// that pose, and the lenders after it may still give a pose the edges fix.
 #[allow(clippy::too_many_arguments)]
 fn confirm_by_agreement(
     mesh: &Mesh,
@@ -616,15 +727,26 @@ fn confirm_by_agreement(
         witnesses.push(witness);
         return;
     }
-    let agreeing = witnesses
-        .iter()
-        .filter(|other| other.independent_of(&witness))
-        .find_map(|other| {
-            let apart_px = apart_px(mesh, &other.hypothesis, &hypothesis)?;
-            (apart_px < min_apart_px).then_some(other.lender)
-        });
-    // A try that failed "fixed" had its edge support measured: `peak` is there.
-    let (Some(other), Some(peak)) = (agreeing, check.peak.as_ref()) else {
+    let settings = &config.neighbour_pose;
+    let pair = (witness.clear && settings.two_lenders_confirm)
+        .then(|| agreeing_group(mesh, &witness, witnesses, min_apart_px, true, 2))
+        .filter(|group| group.len() >= 2);
+    let group = pair.or_else(|| {
+        (settings.quorum_lenders >= 2)
+            .then(|| {
+                agreeing_group(
+                    mesh,
+                    &witness,
+                    witnesses,
+                    min_apart_px,
+                    false,
+                    settings.quorum_lenders,
+                )
+            })
+            .filter(|group| group.len() >= settings.quorum_lenders)
+    });
+    // A try that failed "fixed" or "clear" had its edge support measured: `peak` is there.
+    let (Some(group), Some(peak)) = (group, check.peak.as_ref()) else {
         witnesses.push(witness);
         return;
     };
@@ -641,7 +763,13 @@ fn confirm_by_agreement(
         Some(why) => check.confirmed = Err(why),
         None => {
             check.confirmed = Ok(());
-            check.agreeing_neighbour = Some(other);
+            check.agreeing_neighbour = group.get(1).map(|member| member.lender);
+            // Independent poses of one frame, averaged: the output is their mean.
+            if let Some(mean) = mean_pose(&group) {
+                check.hypothesis.cam_from_world = mean;
+                check.apart_px =
+                    own_pose(own).and_then(|pose| apart_px(mesh, pose, &check.hypothesis));
+            }
         }
     }
 }
@@ -761,7 +889,7 @@ fn confirm(
             100.0 * peak.far,
             100.0 * config.confidence.min_support_above_chance
         );
-        return (Some(peak), Err((why, FailedGate::Evidence)));
+        return (Some(peak), Err((why, FailedGate::NotClear)));
     }
     if !gates.fixed {
         let why = format!(
@@ -867,10 +995,7 @@ pub fn try_neighbours(
             return tries;
         }
     };
-    let own_pose = match own {
-        Ok(pose) => Some(pose.cam_from_world),
-        Err(candidate) => candidate.map(|pose| pose.cam_from_world),
-    };
+    let own_pose = own_pose(own).map(|pose| pose.cam_from_world);
     let warp = config.neighbour_pose.warp;
     for (index, neighbour) in neighbours.iter().enumerate() {
         // The neighbour's rendering serves all its views.
@@ -897,14 +1022,7 @@ pub fn try_neighbours(
                         config,
                         workspace,
                     );
-                    if failed == Some(FailedGate::NotFixed)
-                        && config.neighbour_pose.two_lenders_confirm
-                    {
-                        let witness = Witness {
-                            lender: neighbour.id,
-                            view,
-                            hypothesis,
-                        };
+                    if let Some(witness) = witness_of(&check, failed, neighbour.id, view, config) {
                         confirm_by_agreement(
                             mesh, query, intrinsics, own, witness, &mut check, witnesses, config,
                             workspace,
@@ -1547,6 +1665,81 @@ mod tests {
         );
     }
 
+    /// Three lenders whose poses agree confirm a pose the photo's edges see above chance but not
+    /// clear of it (here nothing is clear: the margin one pose needs alone is set to 1); two do
+    /// not, nor three when the quorum is off or asks each pose for the whole margin.
+    #[test]
+    fn three_lenders_that_agree_confirm_a_pose_the_edges_do_not_clear() {
+        let scene = Scene::new();
+        let mut workspace = NeighbourWorkspace::default();
+        let at = |shift_m: Vector3<f64>| {
+            Rigid3::new(scene.truth.rotation, scene.truth.translation + shift_m)
+        };
+        let registered = [
+            at(Vector3::new(0.3, 0.12, -0.18)),
+            at(Vector3::new(-0.3, 0.1, 0.15)),
+            at(Vector3::new(0.1, -0.25, 0.1)),
+        ];
+        let photos =
+            registered.map(|pose| ideal_query(&scene.mesh, &scene.camera, &pose, &scene.config));
+        let lenders: Vec<RegisteredNeighbour<'_>> = (0..3)
+            .map(|i| RegisteredNeighbour {
+                id: i,
+                query: photos[i].view(),
+                camera: &scene.camera,
+                cam_from_world: registered[i],
+            })
+            .collect();
+        let mut strict = scene.config.clone();
+        strict.neighbour_pose.warp = NeighbourWarp::Off;
+        strict.confidence.min_support_above_chance = 1.0;
+        strict.neighbour_pose.quorum_support_share = 0.0;
+        let mut run = |config: &RegistrationConfig, neighbours: &[RegisteredNeighbour<'_>]| {
+            try_neighbours(
+                &scene.mesh,
+                &scene.camera,
+                IntrinsicsMode::Known,
+                scene.query.view(),
+                Err(None),
+                neighbours,
+                &mut Vec::new(),
+                config,
+                7,
+                &mut workspace,
+            )
+        };
+        let tries = run(&strict, &lenders);
+        assert_eq!(tries.len(), 3, "{tries:?}");
+        for tried in &tries[..2] {
+            let check = tried.check.as_ref().unwrap();
+            let why = check.confirmed.as_ref().unwrap_err();
+            assert!(why.contains("does not confirm"), "{why}");
+            let peak = check.peak.as_ref().unwrap();
+            assert!(peak.at_pose > peak.far, "{peak:?}");
+        }
+        assert!(tries[2].confirmed(), "{:?}", tries[2]);
+        assert_eq!(tries[2].decision, NeighbourDecision::Accept);
+        let confirmed = tries[2].check.as_ref().unwrap();
+        assert_eq!(confirmed.agreeing_neighbour, Some(0));
+        let delta_px = scene
+            .delta_to_truth(&confirmed.hypothesis.cam_from_world)
+            .unwrap();
+        assert!(delta_px < 2.0, "δ {delta_px:.2} px");
+
+        // Two lenders are not a quorum of three.
+        let tries = run(&strict, &lenders[..2]);
+        assert!(tries.iter().all(|tried| !tried.confirmed()), "{tries:?}");
+        // Off, or each pose asked for the whole margin: none is confirmed.
+        let mut off = strict.clone();
+        off.neighbour_pose.quorum_lenders = 0;
+        let mut whole = strict.clone();
+        whole.neighbour_pose.quorum_support_share = 1.0;
+        for config in [off, whole] {
+            let tries = run(&config, &lenders);
+            assert!(tries.iter().all(|tried| !tried.confirmed()), "{tries:?}");
+        }
+    }
+
     /// Witnesses are independent only from two lenders and not both matched from the frame's own
     /// pose.
     #[test]
@@ -1564,6 +1757,7 @@ mod tests {
             lender,
             view,
             hypothesis,
+            clear: true,
         };
         use NeighbourView::{AsPhotographed, NeighbourPose, OwnPose};
         assert!(witness(0, AsPhotographed).independent_of(&witness(1, OwnPose)));
