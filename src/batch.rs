@@ -432,7 +432,8 @@ struct NeighbourPass<'a> {
     /// Per frame: its files and query image, once loaded.
     loaded: Vec<Option<LoadedQuery>>,
     workspace: NeighbourWorkspace,
-    /// Per frame: the lenders' poses of it the edges cleared but did not fix, over its rounds
+    /// Per frame: the lenders' poses of it the edges support but do not confirm alone
+    /// (`neighbour::Witness`), over its rounds
     /// (`NeighbourOrder::Set` tries a frame once per round; `Feed` once).
     witnesses: Vec<Vec<Witness>>,
     changed: Vec<usize>,

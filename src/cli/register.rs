@@ -514,7 +514,8 @@ pub struct CoarseArgs {
     pub neighbour_agreement: NeighbourAgreementArg,
     /// Step "neighbour": a pose the photo's edges clear of chance but do not fix is no longer
     /// confirmed by another lender's agreeing pose (by default it is: two photos matched
-    /// independently place the frame at one pose along what the model's edges leave open).
+    /// independently place the frame at one pose along what the model's edges leave open);
+    /// such poses still count towards `--quorum-lenders` (0 turns that off too).
     #[arg(long)]
     pub no_two_lenders: bool,
     /// Step "neighbour": how many agreeing lenders confirm a pose the photo's edges see above

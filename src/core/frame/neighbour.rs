@@ -103,9 +103,12 @@ pub struct NeighbourPoseConfig {
     /// one pose needs alone (`confidence.min_support_above_chance`), and no rival basin
     /// supported about as well. Independent photos that agree stand in for the margin each
     /// lacks alone: wrong lender poses scatter, correct ones gather at the truth. Measured over
-    /// 14 cells (docs/measurements.md, forty-second session): 3 lenders 226 → 229 accepted,
-    /// 185 → 186 within 2 px, no false accept; 2 lenders 232 accepted but 184 within 2 px and
-    /// mean δ 1.39 → 1.48 px. In batch's `set` order the lenders of every round count; in
+    /// 14 cells (docs/measurements.md, forty-second session), with the group's mean as output:
+    /// 226 → 228 accepted, 185 → 186 within 2 px, 215 → 222 within 5 px, mean δ 1.39 → 1.33
+    /// px, no false accept (3 lenders, the last witness's pose as output: 229 / 186 / 217 /
+    /// 1.42 px; 2 lenders: 232 accepted but 184 within 2 px, 1.48 px). Clear witnesses (failing
+    /// only "fixed") count too, so `two_lenders_confirm` false and `quorum_lenders` 2 still
+    /// confirm two clear ones. In batch's `set` order the lenders of every round count; in
     /// `feed` order (the pipeline, `register` by default) a frame meets `candidates` lenders,
     /// so 3 needs `candidates` ≥ 3.
     pub quorum_lenders: usize,
@@ -960,10 +963,11 @@ impl NeighbourTry {
 /// Step "neighbour" for one frame: `neighbours` (nearest first, [`nearest_neighbours`]) tried in
 /// order until one's pose is confirmed ([`pose_from_neighbour`], [`check_neighbour_pose`]); each
 /// neighbour's photo as photographed first, then from the views `neighbour_pose.warp` adds
-/// ([`NeighbourView`]) while none is confirmed. A pose that fails only the gate that the photo's
-/// edges fix it is also confirmed when another lender's pose failing only that gate agrees with
-/// it ([`NeighbourPoseConfig::two_lenders_confirm`]): `witnesses` holds those poses of the
-/// frame's earlier calls (batch's rounds in [`NeighbourOrder::Set`]; a frame tried once starts
+/// ([`NeighbourView`]) while none is confirmed. A pose the photo's edges support but do not
+/// confirm alone is a [`Witness`] ([`witness_of`]), confirmed when independent lenders' witnesses
+/// agree with it ([`confirm_by_agreement`]: [`NeighbourPoseConfig::two_lenders_confirm`],
+/// [`NeighbourPoseConfig::quorum_lenders`]): `witnesses` holds those poses of the frame's
+/// earlier calls (batch's rounds in [`NeighbourOrder::Set`]; a frame tried once starts
 /// empty) and gets this call's. Every try, the deciding one last. `query` is the frame's query
 /// image, `own` its own decision's pose (accepted, or would-be when rejected). The one sequence
 /// that batch registration and the pipeline's verify run.
