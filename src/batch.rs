@@ -104,6 +104,13 @@ pub struct NeighbourReport {
 }
 
 impl NeighbourReport {
+    /// Whether the try's pose was confirmed.
+    pub fn confirmed(&self) -> bool {
+        self.check
+            .as_ref()
+            .is_ok_and(|check| check.confirmed.is_ok())
+    }
+
     /// What became of the try, in words: "confirmed" (by the photo's edges, or by the named
     /// lender's agreeing pose), "not confirmed: …" or "no pose: …".
     pub fn outcome(&self) -> String {

@@ -1638,7 +1638,7 @@ impl NeighbourBatch {
                             check.hypothesis.correspondence_count,
                         )
                     }),
-                    outcome: if tried.check.as_ref().is_ok_and(|c| c.confirmed.is_ok()) {
+                    outcome: if tried.confirmed() {
                         format!("{}: {:?}", tried.outcome(), tried.decision)
                     } else {
                         tried.outcome()

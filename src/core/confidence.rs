@@ -58,7 +58,7 @@ impl FrameEvidence {
     /// [`SupportPeak`]; 0 without edge evidence): a feature of the model and what
     /// [`ConfidenceConfig::min_overrule_margin`] bounds.
     pub fn edge_support_above_chance(&self) -> f64 {
-        self.edges.map_or(0.0, |peak| peak.at_pose - peak.far)
+        self.edges.map_or(0.0, |peak| peak.above_chance())
     }
 }
 

@@ -1075,10 +1075,15 @@ impl SupportPeak {
         self.drop_to(self.least_seen_near)
     }
 
+    /// The support at the pose above chance (the far ring's): the margin the edge gates judge.
+    pub fn above_chance(&self) -> f64 {
+        self.at_pose - self.far
+    }
+
     /// The share of the support above chance lost where the support is `moved`; 0 without
     /// support above chance.
     fn drop_to(&self, moved: f64) -> f64 {
-        let above_chance = self.at_pose - self.far;
+        let above_chance = self.above_chance();
         if above_chance <= 0.0 {
             return 0.0;
         }

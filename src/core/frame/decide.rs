@@ -168,7 +168,7 @@ fn reject_a_local_maximum(
     };
     // A pose accepted where the photo shows none of the model's edges has no edge basin for a
     // rival to match (the test compares support above chance).
-    if peak.at_pose - peak.far < config.confidence.min_support_above_chance {
+    if peak.above_chance() < config.confidence.min_support_above_chance {
         return;
     }
     let min_apart_px = config.pose_search.centre_agreement_share * chosen.verdict.threshold_px;
@@ -669,8 +669,7 @@ impl EdgeGates {
                 )
             });
         Self {
-            clear: peak.map_or(0.0, |peak| peak.at_pose - peak.far)
-                >= config.min_support_above_chance,
+            clear: peak.map_or(0.0, SupportPeak::above_chance) >= config.min_support_above_chance,
             fixed: image_uncertainty_px <= config.max_image_uncertainty_px
                 && delta_uncertainty_px <= config.max_delta_uncertainty_px
                 && least_seen_drop >= config.min_least_seen_drop

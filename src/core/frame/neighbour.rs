@@ -624,7 +624,7 @@ fn witness_of(
         FailedGate::NotClear if settings.quorum_lenders >= 2 => {
             let peak = check.peak.as_ref()?;
             let margin = settings.quorum_support_share * config.confidence.min_support_above_chance;
-            if peak.at_pose - peak.far < margin {
+            if peak.above_chance() < margin {
                 return None;
             }
             false
