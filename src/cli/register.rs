@@ -507,6 +507,10 @@ pub struct CoarseArgs {
     /// photo as photographed gave.
     #[arg(long, value_enum, default_value_t = NeighbourWarpArg::from(NeighbourPoseConfig::default().warp))]
     pub neighbour_warp: NeighbourWarpArg,
+    /// Step "neighbour": how many times at most a warped view is matched, each round seen from
+    /// the pose the last gave, while that pose still moves a pixel (1: once).
+    #[arg(long, default_value_t = NeighbourPoseConfig::default().warp_rounds)]
+    pub neighbour_warp_rounds: usize,
     /// Step "neighbour", an accepted frame whose pose a confirmed neighbour's pose agrees with:
     /// `keep` — the own pose stays; `mean` — halfway between the two; `least-seen` — the own
     /// pose moved along the direction its edges see least to the neighbour's.
@@ -526,6 +530,12 @@ pub struct CoarseArgs {
     /// pose of such a quorum keeps.
     #[arg(long, default_value_t = NeighbourPoseConfig::default().quorum_support_share)]
     pub quorum_support_share: f64,
+    /// Step "neighbour": lenders whose poses the photo's edges each see clear of chance no
+    /// longer confirm their agreeing pose without the rival-basin test (by default
+    /// `--quorum-lenders` of them do: independent photos decide between two basins the edges
+    /// support about as well).
+    #[arg(long)]
+    pub no_quorum_over_rival: bool,
     /// How far the rival-basin test's starts lie from the output, px of δ.
     #[arg(long, default_value_t = EdgeAlignConfig::default().rival_reach_px)]
     pub rival_reach_px: f64,
@@ -630,10 +640,12 @@ impl Default for CoarseArgs {
             neighbour_order: None,
             neighbour_lookahead: NeighbourPoseConfig::default().lookahead_frames,
             neighbour_warp: NeighbourPoseConfig::default().warp.into(),
+            neighbour_warp_rounds: NeighbourPoseConfig::default().warp_rounds,
             neighbour_agreement: NeighbourPoseConfig::default().agreement.into(),
             no_two_lenders: !NeighbourPoseConfig::default().two_lenders_confirm,
             quorum_lenders: NeighbourPoseConfig::default().quorum_lenders,
             quorum_support_share: NeighbourPoseConfig::default().quorum_support_share,
+            no_quorum_over_rival: !NeighbourPoseConfig::default().quorum_outweighs_rival,
             rival_reach_px: EdgeAlignConfig::default().rival_reach_px,
             rival_share: EdgeAlignConfig::default().rival_share_above_chance,
         }
@@ -948,10 +960,12 @@ pub fn registration_config(
                 .into(),
             lookahead_frames: coarse.neighbour_lookahead,
             warp: coarse.neighbour_warp.into(),
+            warp_rounds: coarse.neighbour_warp_rounds,
             agreement: coarse.neighbour_agreement.into(),
             two_lenders_confirm: !coarse.no_two_lenders,
             quorum_lenders: coarse.quorum_lenders,
             quorum_support_share: coarse.quorum_support_share,
+            quorum_outweighs_rival: !coarse.no_quorum_over_rival,
             ..defaults.neighbour_pose
         },
         ..defaults

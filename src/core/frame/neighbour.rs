@@ -10,7 +10,10 @@
 //! lender's pose (two photos matched independently: [`NeighbourPoseConfig::two_lenders_confirm`],
 //! docs/measurements.md, forty-first session), or, where they are above chance but not clear of
 //! it, with two more lenders' poses ([`NeighbourPoseConfig::quorum_lenders`], forty-second
-//! session). It accepts a frame its own registration did not,
+//! session; such a quorum also outweighs a rival basin the edges support as well,
+//! [`NeighbourPoseConfig::quorum_outweighs_rival`], forty-third). A neighbour's photo seen from
+//! a pose of the frame is seen again from the pose it gave until that stops moving
+//! ([`NeighbourPoseConfig::warp_rounds`]). It accepts a frame its own registration did not,
 //! and rejects an accepted frame whose pose it contradicts; it never replaces an accepted pose.
 
 use nalgebra::Vector3;
@@ -79,6 +82,13 @@ pub struct NeighbourPoseConfig {
     /// 1.55 px, no false accept, against 169 / 131 / 1.60 px without (`OwnPose` alone: 178 /
     /// 140 / 1.56 px), for 3 % more CPU.
     pub warp: NeighbourWarp,
+    /// How many times, at most, a warped view is matched ([`NeighbourWarp`]): seen from the
+    /// pose it starts from, then from the pose that gave, while the pose moves at least
+    /// [`WARP_STILL_PX`] (1: once). The flow bridges only part of the start's error, so the
+    /// pose a warped view gives lies between its start and the truth. Measured over 14 cells
+    /// (docs/measurements.md, forty-third session), 3 rounds against 1: 228 → 240 accepted,
+    /// 186 → 199 within 2 px, 222 → 234 within 5 px, mean δ 1.33 → 1.26 px, no false accept.
+    pub warp_rounds: usize,
     /// What an accepted frame's pose becomes when a confirmed neighbour's pose agrees with it
     /// ([`NeighbourAgreement`]). Default [`NeighbourAgreement::Mean`]: measured over 14 cells
     /// (docs/measurements.md, thirty-second session) 185 accepted, 153 within 2 px, mean δ
@@ -115,6 +125,14 @@ pub struct NeighbourPoseConfig {
     /// The share of `confidence.min_support_above_chance` each pose of a quorum
     /// (`quorum_lenders`) keeps above chance.
     pub quorum_support_share: f64,
+    /// Whether a quorum (`quorum_lenders` lenders whose poses agree) confirms its pose without
+    /// the rival-basin test, and a try failing only that test (a distinct pose the alignment
+    /// reaches from around it is supported about as well) is a witness too. The rival test says
+    /// the photo's edges cannot tell two basins apart; independent photos that place the frame
+    /// in one of them can. Measured over 14 cells (docs/measurements.md, forty-third session),
+    /// with `warp_rounds` 3: 240 → 252 accepted, 199 → 202 within 2 px, 234 → 241 within 5 px,
+    /// mean δ 1.26 → 1.41 px (the frames it adds are 2–10 px off), no false accept.
+    pub quorum_outweighs_rival: bool,
 }
 
 /// What an accepted pose becomes when a confirmed neighbour's pose agrees with it (within the
@@ -193,10 +211,12 @@ impl Default for NeighbourPoseConfig {
             lookahead_frames: 4,
             order: NeighbourOrder::Feed,
             warp: NeighbourWarp::OwnAndNeighbourPose,
+            warp_rounds: 3,
             agreement: NeighbourAgreement::Mean,
             two_lenders_confirm: true,
             quorum_lenders: 3,
             quorum_support_share: 0.5,
+            quorum_outweighs_rival: true,
         }
     }
 }
@@ -380,11 +400,11 @@ fn render_neighbour(
     Ok(())
 }
 
-/// [`pose_from_neighbour`] once the neighbour is rendered ([`render_neighbour`]): its photo as
-/// photographed (`seen_from` `None`: lifted on the neighbour's rendering) or seen from
-/// `seen_from` ([`warp_to_view`]: lifted on the model rendered there).
+/// One match of [`pose_from_rendered_neighbour`]: the neighbour's photo as photographed
+/// (`seen_from` `None`: lifted on the neighbour's rendering) or seen from `seen_from`
+/// ([`warp_to_view`]: lifted on the model rendered there).
 #[allow(clippy::too_many_arguments)]
-fn pose_from_rendered_neighbour(
+fn pose_from_view_once(
     mesh: &Mesh,
     camera: &Camera,
     intrinsics: IntrinsicsMode,
@@ -443,6 +463,58 @@ fn pose_from_rendered_neighbour(
     let correspondences = correspond_view(mesh, lift_camera, features, &view, config, correspond)
         .map_err(|e| e.to_string())?;
     solve_view(&correspondences, camera, intrinsics, config, seed).hypothesis
+}
+
+/// A warped view's pose that moved less than this from the pose it was seen from (mutual
+/// reprojection, px) ends its rounds ([`NeighbourPoseConfig::warp_rounds`]).
+pub const WARP_STILL_PX: f64 = 1.0;
+
+/// [`pose_from_neighbour`] once the neighbour is rendered ([`render_neighbour`]): its photo as
+/// photographed (`seen_from` `None`), or seen from `seen_from`, then from the pose that gave,
+/// and so on while the pose moves at least [`WARP_STILL_PX`], at most
+/// `neighbour_pose.warp_rounds` rounds in all: the last pose a round gave (a round without one
+/// ends the rounds).
+#[allow(clippy::too_many_arguments)]
+fn pose_from_rendered_neighbour(
+    mesh: &Mesh,
+    camera: &Camera,
+    intrinsics: IntrinsicsMode,
+    features: &QueryFeatures,
+    neighbour: &RegisteredNeighbour<'_>,
+    seen_from: Option<&Rigid3>,
+    config: &RegistrationConfig,
+    seed: u64,
+    workspace: &mut NeighbourWorkspace,
+) -> Result<PoseHypothesis, String> {
+    let once = |from: Option<&Rigid3>, workspace: &mut NeighbourWorkspace| {
+        pose_from_view_once(
+            mesh, camera, intrinsics, features, neighbour, from, config, seed, workspace,
+        )
+    };
+    let Some(seen_from) = seen_from else {
+        return once(None, workspace);
+    };
+    let mut from = *seen_from;
+    let mut last = once(Some(&from), workspace)?;
+    for _ in 1..config.neighbour_pose.warp_rounds {
+        let moved_px = mutual_reprojection_error_px(
+            mesh,
+            camera,
+            &from,
+            camera,
+            &last.cam_from_world,
+            &mut ReprojectionWorkspace::new(),
+        );
+        if moved_px.is_none_or(|moved_px| moved_px < WARP_STILL_PX) {
+            break;
+        }
+        from = last.cam_from_world;
+        match once(Some(&from), workspace) {
+            Ok(hypothesis) => last = hypothesis,
+            Err(_) => break,
+        }
+    }
+    Ok(last)
 }
 
 /// What the model says of a neighbour's pose ([`check_neighbour_pose`]).
@@ -592,8 +664,20 @@ pub struct Witness {
     lender: usize,
     view: NeighbourView,
     hypothesis: PoseHypothesis,
-    /// Whether the photo's edges are clear of chance at it (it failed only the "fixed" gate).
-    clear: bool,
+    /// What the photo's edges say of its pose alone.
+    support: WitnessSupport,
+}
+
+/// What the photo's edges say of a witness's pose alone: the gate of [`confirm`] it failed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum WitnessSupport {
+    /// Above chance by `quorum_support_share` of the margin, not clear of chance.
+    AboveChance,
+    /// Clear of chance, not fixed.
+    Clear,
+    /// Clear of chance and fixed, but a distinct pose the alignment reaches from around it is
+    /// supported about as well (the rival-basin test).
+    Contested,
 }
 
 impl Witness {
@@ -607,8 +691,9 @@ impl Witness {
 }
 
 /// The witness `check` makes, if any: a pose that failed only the "fixed" gate (when
-/// `two_lenders_confirm`), or failed the "clear of chance" gate with its support above chance
-/// by the quorum's share of the margin (when `quorum_lenders` is set).
+/// `two_lenders_confirm` or `quorum_lenders` is set), failed the "clear of chance" gate with
+/// its support above chance by the quorum's share of the margin (when `quorum_lenders` is set),
+/// or failed only the rival-basin test (when `quorum_lenders` and `quorum_outweighs_rival` are).
 fn witness_of(
     check: &NeighbourCheck,
     failed: Option<FailedGate>,
@@ -617,38 +702,38 @@ fn witness_of(
     config: &RegistrationConfig,
 ) -> Option<Witness> {
     let settings = &config.neighbour_pose;
-    let clear = match failed? {
-        FailedGate::NotFixed if settings.two_lenders_confirm || settings.quorum_lenders >= 2 => {
-            true
-        }
-        FailedGate::NotClear if settings.quorum_lenders >= 2 => {
+    let quorum = settings.quorum_lenders >= 2;
+    let support = match failed? {
+        FailedGate::NotFixed if settings.two_lenders_confirm || quorum => WitnessSupport::Clear,
+        FailedGate::NotClear if quorum => {
             let peak = check.peak.as_ref()?;
             let margin = settings.quorum_support_share * config.confidence.min_support_above_chance;
             if peak.above_chance() < margin {
                 return None;
             }
-            false
+            WitnessSupport::AboveChance
         }
+        FailedGate::Rival if quorum && settings.quorum_outweighs_rival => WitnessSupport::Contested,
         _ => return None,
     };
     Some(Witness {
         lender,
         view,
         hypothesis: check.hypothesis,
-        clear,
+        support,
     })
 }
 
 /// A group of independent witnesses from `witnesses` that agree with `witness` and with each
 /// other (every two within `min_apart_px`), `witness` first:
 /// each from its own lender, at most one matched from the frame's own pose. Taken in the order
-/// given (earliest first); when `clear_only`, only clear witnesses join.
+/// given (earliest first); only the witnesses `joins` admits join.
 fn agreeing_group(
     mesh: &Mesh,
     witness: &Witness,
     witnesses: &[Witness],
     min_apart_px: f64,
-    clear_only: bool,
+    admits: impl Fn(WitnessSupport) -> bool,
     wanted: usize,
 ) -> Vec<Witness> {
     let mut group = vec![*witness];
@@ -656,7 +741,7 @@ fn agreeing_group(
         if group.len() >= wanted {
             break;
         }
-        if clear_only && !other.clear {
+        if !admits(other.support) {
             continue;
         }
         // Pairwise independence also keeps at most one view matched from the own pose.
@@ -694,25 +779,30 @@ fn own_pose<'a>(
 }
 
 /// Confirmation by agreement for `check`, the pose of `witness` (its lender's try from its
-/// view), which the photo's edges support but do not confirm alone: confirmed when independent
-/// witnesses that agree with it and with each other (`witnesses`, the earlier tries of this
-/// frame; [`agreeing_group`]) make a group of two clear ones
-/// ([`NeighbourPoseConfig::two_lenders_confirm`]) or of `quorum_lenders` of any
-/// ([`NeighbourPoseConfig::quorum_lenders`]), and no distinct pose the alignment reaches from
-/// around it is supported about as well (the rival test every confirmed pose passes): the
-/// check's pose becomes the group's mean ([`mean_pose`]; over 14 cells, against the last
+/// view), which the photo's edges support but do not confirm alone; `witnesses` holds the
+/// earlier tries' witnesses of this frame. Confirmed, in this order, when independent witnesses
+/// that agree with it and with each other ([`agreeing_group`]) make
+/// - a group of `quorum_lenders` of any witnesses, contested ones included, without the rival
+///   test ([`NeighbourPoseConfig::quorum_outweighs_rival`]);
+/// - a group of two failing only "fixed" ([`NeighbourPoseConfig::two_lenders_confirm`]) or
+///   (without `quorum_outweighs_rival`) of `quorum_lenders` ([`NeighbourPoseConfig::quorum_lenders`]),
+///   when no distinct pose the alignment reaches from around it is supported about as well
+///   (the rival test every confirmed pose passes).
+///
+/// The check's pose becomes the group's mean ([`mean_pose`]; over 14 cells, against the last
 /// witness's own pose: mean δ 1.42 → 1.33 px, 217 → 222 within 5 px, one accept fewer;
-/// docs/measurements.md, forty-second session). Else it joins `witnesses` (unless the rival
-/// test rejected it). A witness within the centres'
-/// agreement distance of an accepted own pose (`own`) is never confirmed: it could only keep
-/// that pose, and the lenders after it may still give a pose the edges fix.
+/// docs/measurements.md, forty-second session). Else it joins `witnesses`, unless the rival
+/// test rejected an above-chance one; a clear one the rival test rejected joins as contested
+/// (with `quorum_outweighs_rival`). A witness within the centres' agreement distance of an
+/// accepted own pose (`own`) is never confirmed: it could only keep that pose, and the lenders
+/// after it may still give a pose the edges fix.
 #[allow(clippy::too_many_arguments)]
 fn confirm_by_agreement(
     mesh: &Mesh,
     query: ImageView<'_, f32>,
     intrinsics: IntrinsicsMode,
     own: Result<&PoseHypothesis, Option<&PoseHypothesis>>,
-    witness: Witness,
+    mut witness: Witness,
     check: &mut NeighbourCheck,
     witnesses: &mut Vec<Witness>,
     config: &RegistrationConfig,
@@ -731,22 +821,53 @@ fn confirm_by_agreement(
         return;
     }
     let settings = &config.neighbour_pose;
-    let pair = (witness.clear && settings.two_lenders_confirm)
-        .then(|| agreeing_group(mesh, &witness, witnesses, min_apart_px, true, 2))
+    let quorum = settings.quorum_lenders;
+    let confirmed_by = |group: &[Witness], check: &mut NeighbourCheck| {
+        check.confirmed = Ok(());
+        check.agreeing_neighbour = group.get(1).map(|member| member.lender);
+        // Independent poses of one frame, averaged: the output is their mean.
+        if let Some(mean) = mean_pose(group) {
+            check.hypothesis.cam_from_world = mean;
+            check.apart_px = own_pose(own).and_then(|pose| apart_px(mesh, pose, &check.hypothesis));
+        }
+    };
+    // Independent photos that place the frame in one basin decide what the edges cannot.
+    if quorum >= 2 && settings.quorum_outweighs_rival {
+        let group = agreeing_group(mesh, &witness, witnesses, min_apart_px, |_| true, quorum);
+        if group.len() >= quorum {
+            confirmed_by(&group, check);
+            return;
+        }
+    }
+    if witness.support == WitnessSupport::Contested {
+        witnesses.push(witness);
+        return;
+    }
+    let pair = (witness.support == WitnessSupport::Clear && settings.two_lenders_confirm)
+        .then(|| {
+            agreeing_group(
+                mesh,
+                &witness,
+                witnesses,
+                min_apart_px,
+                |support| support == WitnessSupport::Clear,
+                2,
+            )
+        })
         .filter(|group| group.len() >= 2);
     let group = pair.or_else(|| {
-        (settings.quorum_lenders >= 2)
+        (quorum >= 2)
             .then(|| {
                 agreeing_group(
                     mesh,
                     &witness,
                     witnesses,
                     min_apart_px,
-                    false,
-                    settings.quorum_lenders,
+                    |support| support != WitnessSupport::Contested,
+                    quorum,
                 )
             })
-            .filter(|group| group.len() >= settings.quorum_lenders)
+            .filter(|group| group.len() >= quorum)
     });
     // A try that failed "fixed" or "clear" had its edge support measured: `peak` is there.
     let (Some(group), Some(peak)) = (group, check.peak.as_ref()) else {
@@ -763,17 +884,14 @@ fn confirm_by_agreement(
         config,
         workspace,
     ) {
-        Some(why) => check.confirmed = Err(why),
-        None => {
-            check.confirmed = Ok(());
-            check.agreeing_neighbour = group.get(1).map(|member| member.lender);
-            // Independent poses of one frame, averaged: the output is their mean.
-            if let Some(mean) = mean_pose(&group) {
-                check.hypothesis.cam_from_world = mean;
-                check.apart_px =
-                    own_pose(own).and_then(|pose| apart_px(mesh, pose, &check.hypothesis));
+        Some(why) => {
+            check.confirmed = Err(why);
+            if witness.support == WitnessSupport::Clear && settings.quorum_outweighs_rival {
+                witness.support = WitnessSupport::Contested;
+                witnesses.push(witness);
             }
         }
+        None => confirmed_by(&group, check),
     }
 }
 
@@ -1435,6 +1553,34 @@ mod tests {
         assert!(warped < 1.0, "seen from the frame's pose: {warped:.2} px");
     }
 
+    /// The far neighbour above, its photo seen from a pose of the frame 12.8 px off: once, the
+    /// flow bridges only part of that (8.2 px left); seen again from the pose each round gave,
+    /// it ends nearer the truth (2.5 px after 3 rounds, 0.9 after 5).
+    #[test]
+    fn a_warped_view_seen_again_from_the_pose_it_gave_ends_nearer_the_truth() {
+        let mut scene = Scene::new();
+        let mut workspace = NeighbourWorkspace::default();
+        let (turn_rad, shift_m) = (0.26, Vector3::new(2.0, 0.3, -0.5));
+        let own = Rigid3::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.08, 0.0, 0.0)) * scene.truth.rotation,
+            scene.truth.translation,
+        );
+        let start_px = scene.delta_to_truth(&own).unwrap();
+        assert!(start_px > 10.0, "seen from {start_px:.2} px off");
+        let mut delta_px = |rounds| {
+            scene.config.neighbour_pose.warp_rounds = rounds;
+            scene
+                .delta_from(turn_rad, shift_m, Some(&own), &mut workspace)
+                .unwrap()
+        };
+        let (once, thrice) = (delta_px(1), delta_px(3));
+        assert!(once > 5.0, "one round: {once:.2} px");
+        assert!(
+            thrice < 0.5 * once,
+            "three rounds: {thrice:.2} px, one: {once:.2} px"
+        );
+    }
+
     /// Step "neighbour" with the far neighbour above: its photo as photographed gives no
     /// confirmed pose, so with [`NeighbourWarp::OwnPose`] it is tried again seen from the frame's
     /// would-be pose, which the model confirms and the frame is accepted at; without the warp
@@ -1744,6 +1890,93 @@ mod tests {
         }
     }
 
+    /// Three lenders whose poses each fail only the rival-basin test and agree confirm their mean
+    /// without it (`quorum_outweighs_rival`); not with it off, nor two lenders (one lending
+    /// twice), nor three whose third pose lies in another basin.
+    #[test]
+    fn three_agreeing_lenders_outweigh_a_rival_basin_the_edges_support_as_well() {
+        let scene = Scene::new();
+        let mut workspace = NeighbourWorkspace::default();
+        let hypothesis = |shift_m: Vector3<f64>| PoseHypothesis {
+            camera: scene.camera,
+            cam_from_world: Rigid3::new(scene.truth.rotation, scene.truth.translation + shift_m),
+            consensus: 100,
+            inlier_rms_px: 1.0,
+            correspondence_count: 200,
+            coarse_cam_from_world: scene.truth,
+        };
+        let near = [
+            Vector3::new(0.1, 0.0, 0.0),
+            Vector3::new(-0.1, 0.05, 0.0),
+            Vector3::new(0.0, -0.05, 0.0),
+        ];
+        // Each try as `try_neighbours` makes it: checked, failed only the rival test.
+        let mut run = |config: &RegistrationConfig, lenders: [(usize, Vector3<f64>); 3]| {
+            let mut witnesses = Vec::new();
+            lenders.map(|(lender, shift_m)| {
+                let mut check = NeighbourCheck {
+                    hypothesis: hypothesis(shift_m),
+                    peak: None,
+                    apart_px: None,
+                    confirmed: Err("a rival basin".to_string()),
+                    agreeing_neighbour: None,
+                };
+                let view = NeighbourView::AsPhotographed;
+                if let Some(witness) =
+                    witness_of(&check, Some(FailedGate::Rival), lender, view, config)
+                {
+                    confirm_by_agreement(
+                        &scene.mesh,
+                        scene.query.view(),
+                        IntrinsicsMode::Known,
+                        Err(None),
+                        witness,
+                        &mut check,
+                        &mut witnesses,
+                        config,
+                        &mut workspace,
+                    );
+                }
+                check
+            })
+        };
+        let checks = run(&scene.config, [(0, near[0]), (1, near[1]), (2, near[2])]);
+        assert!(checks[..2].iter().all(|check| check.confirmed.is_err()));
+        assert_eq!(checks[2].confirmed, Ok(()));
+        assert_eq!(checks[2].agreeing_neighbour, Some(0));
+        let mean_delta_px = scene
+            .delta_to_truth(&checks[2].hypothesis.cam_from_world)
+            .unwrap();
+        let third_delta_px = scene
+            .delta_to_truth(&hypothesis(near[2]).cam_from_world)
+            .unwrap();
+        assert!(
+            mean_delta_px < third_delta_px,
+            "the group's mean {mean_delta_px:.2} px from the truth, its last pose {third_delta_px:.2} px"
+        );
+
+        let mut off = scene.config.clone();
+        off.neighbour_pose.quorum_outweighs_rival = false;
+        let unconfirmed = |checks: [NeighbourCheck; 3]| checks.iter().all(|c| c.confirmed.is_err());
+        assert!(unconfirmed(run(
+            &off,
+            [(0, near[0]), (1, near[1]), (2, near[2])]
+        )));
+        assert!(unconfirmed(run(
+            &scene.config,
+            [(0, near[0]), (0, near[1]), (1, near[2])]
+        )));
+        let elsewhere = Vector3::new(5.0, 0.0, 0.0);
+        let elsewhere_px = scene
+            .delta_to_truth(&hypothesis(elsewhere).cam_from_world)
+            .unwrap();
+        assert!(elsewhere_px > 30.0, "{elsewhere_px:.1} px");
+        assert!(unconfirmed(run(
+            &scene.config,
+            [(0, near[0]), (1, near[1]), (2, elsewhere)]
+        )));
+    }
+
     /// Witnesses are independent only from two lenders and not both matched from the frame's own
     /// pose.
     #[test]
@@ -1761,7 +1994,7 @@ mod tests {
             lender,
             view,
             hypothesis,
-            clear: true,
+            support: WitnessSupport::Clear,
         };
         use NeighbourView::{AsPhotographed, NeighbourPose, OwnPose};
         assert!(witness(0, AsPhotographed).independent_of(&witness(1, OwnPose)));
