@@ -110,8 +110,8 @@ pub struct NeighbourPoseConfig {
     /// not clear of it (0: never; at least 2 otherwise): each pose from its own lender, at most
     /// one matched from the frame's own pose, every two within the centres' agreement distance,
     /// each with its edge support above chance by at least `quorum_support_share` of the margin
-    /// one pose needs alone (`confidence.min_support_above_chance`), and no rival basin
-    /// supported about as well. Independent photos that agree stand in for the margin each
+    /// one pose needs alone (`confidence.min_support_above_chance`), and (without
+    /// `quorum_outweighs_rival`) no rival basin supported about as well. Independent photos that agree stand in for the margin each
     /// lacks alone: wrong lender poses scatter, correct ones gather at the truth. Measured over
     /// 14 cells (docs/measurements.md, forty-second session), with the group's mean as output:
     /// 226 → 228 accepted, 185 → 186 within 2 px, 215 → 222 within 5 px, mean δ 1.39 → 1.33
@@ -727,7 +727,7 @@ fn witness_of(
 /// A group of independent witnesses from `witnesses` that agree with `witness` and with each
 /// other (every two within `min_apart_px`), `witness` first:
 /// each from its own lender, at most one matched from the frame's own pose. Taken in the order
-/// given (earliest first); only the witnesses `joins` admits join.
+/// given (earliest first); only the witnesses whose support `admits` accepts join.
 fn agreeing_group(
     mesh: &Mesh,
     witness: &Witness,
@@ -784,10 +784,11 @@ fn own_pose<'a>(
 /// that agree with it and with each other ([`agreeing_group`]) make
 /// - a group of `quorum_lenders` of any witnesses, contested ones included, without the rival
 ///   test ([`NeighbourPoseConfig::quorum_outweighs_rival`]);
-/// - a group of two failing only "fixed" ([`NeighbourPoseConfig::two_lenders_confirm`]) or
-///   (without `quorum_outweighs_rival`) of `quorum_lenders` ([`NeighbourPoseConfig::quorum_lenders`]),
-///   when no distinct pose the alignment reaches from around it is supported about as well
-///   (the rival test every confirmed pose passes).
+/// - a group of two failing only "fixed" ([`NeighbourPoseConfig::two_lenders_confirm`]) or of
+///   `quorum_lenders` but no contested ones ([`NeighbourPoseConfig::quorum_lenders`]; the
+///   quorum alone without `quorum_outweighs_rival`), when no distinct pose the alignment
+///   reaches from around it is supported about as well (the rival test every confirmed pose
+///   passes).
 ///
 /// The check's pose becomes the group's mean ([`mean_pose`]; over 14 cells, against the last
 /// witness's own pose: mean δ 1.42 → 1.33 px, 217 → 222 within 5 px, one accept fewer;
