@@ -265,6 +265,12 @@ impl RegistrationConfig {
                 "is 1: a quorum needs at least 2 lenders (0 turns it off)".into(),
             );
         }
+        if neighbour.warp_rounds == 0 {
+            return bad(
+                "neighbour_pose.warp_rounds",
+                "is 0: a warped view is matched at least once (1: once, no further rounds)".into(),
+            );
+        }
         if !(0.0..=1.0).contains(&neighbour.quorum_support_share) {
             return bad(
                 "neighbour_pose.quorum_support_share",
@@ -353,5 +359,37 @@ impl RegistrationConfig {
                 why: e.to_string(),
             })?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The step "neighbour" settings a run cannot mean are refused by name: a quorum of one
+    /// lender, a support share outside 0..=1, no match of a warped view.
+    #[test]
+    fn neighbour_settings_that_mean_nothing_are_refused_by_name() {
+        assert!(RegistrationConfig::default().validate().is_ok());
+        let refused = |change: fn(&mut RegistrationConfig)| {
+            let mut config = RegistrationConfig::default();
+            change(&mut config);
+            match config.validate() {
+                Err(RegistrationError::InvalidConfig { field, .. }) => field,
+                other => panic!("{other:?}"),
+            }
+        };
+        assert_eq!(
+            refused(|c| c.neighbour_pose.quorum_lenders = 1),
+            "neighbour_pose.quorum_lenders"
+        );
+        assert_eq!(
+            refused(|c| c.neighbour_pose.quorum_support_share = 1.5),
+            "neighbour_pose.quorum_support_share"
+        );
+        assert_eq!(
+            refused(|c| c.neighbour_pose.warp_rounds = 0),
+            "neighbour_pose.warp_rounds"
+        );
     }
 }

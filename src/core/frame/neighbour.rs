@@ -248,6 +248,8 @@ pub struct NeighbourWorkspace {
     correspond: CorrespondWorkspace,
     refine: RefineWorkspace,
     warped: WarpedView,
+    /// For δ between two poses of the frame ([`apart_px`]; the warped rounds' moves).
+    reprojection: ReprojectionWorkspace,
 }
 
 impl Default for NeighbourWorkspace {
@@ -258,6 +260,7 @@ impl Default for NeighbourWorkspace {
             correspond: CorrespondWorkspace::default(),
             refine: RefineWorkspace::default(),
             warped: WarpedView::default(),
+            reprojection: ReprojectionWorkspace::default(),
         }
     }
 }
@@ -503,7 +506,7 @@ fn pose_from_rendered_neighbour(
             &from,
             camera,
             &last.cam_from_world,
-            &mut ReprojectionWorkspace::new(),
+            &mut workspace.reprojection,
         );
         if moved_px.is_none_or(|moved_px| moved_px < WARP_STILL_PX) {
             break;
@@ -555,14 +558,19 @@ pub enum NeighbourDecision {
 
 /// δ between two poses of the frame ([`mutual_reprojection_error_px`]), px; `None` when
 /// neither sees the model.
-fn apart_px(mesh: &Mesh, a: &PoseHypothesis, b: &PoseHypothesis) -> Option<f64> {
+fn apart_px(
+    mesh: &Mesh,
+    a: &PoseHypothesis,
+    b: &PoseHypothesis,
+    workspace: &mut ReprojectionWorkspace,
+) -> Option<f64> {
     mutual_reprojection_error_px(
         mesh,
         &a.camera,
         &a.cam_from_world,
         &b.camera,
         &b.cam_from_world,
-        &mut ReprojectionWorkspace::new(),
+        workspace,
     )
 }
 
@@ -592,7 +600,8 @@ fn check_neighbour_pose(
     config: &RegistrationConfig,
     workspace: &mut NeighbourWorkspace,
 ) -> (NeighbourCheck, Option<FailedGate>) {
-    let apart_px = own_pose(own).and_then(|pose| apart_px(mesh, pose, hypothesis));
+    let apart_px = own_pose(own)
+        .and_then(|pose| apart_px(mesh, pose, hypothesis, &mut workspace.reprojection));
     let (peak, confirmed) = confirm(
         mesh,
         query,
@@ -735,6 +744,7 @@ fn agreeing_group(
     min_apart_px: f64,
     admits: impl Fn(WitnessSupport) -> bool,
     wanted: usize,
+    reprojection: &mut ReprojectionWorkspace,
 ) -> Vec<Witness> {
     let mut group = vec![*witness];
     for other in witnesses {
@@ -747,7 +757,7 @@ fn agreeing_group(
         // Pairwise independence also keeps at most one view matched from the own pose.
         let joins = group.iter().all(|member| {
             member.independent_of(other)
-                && apart_px(mesh, &member.hypothesis, &other.hypothesis)
+                && apart_px(mesh, &member.hypothesis, &other.hypothesis, reprojection)
                     .is_some_and(|apart_px| apart_px < min_apart_px)
         });
         if joins {
@@ -823,20 +833,34 @@ fn confirm_by_agreement(
     }
     let settings = &config.neighbour_pose;
     let quorum = settings.quorum_lenders;
-    let confirmed_by = |group: &[Witness], check: &mut NeighbourCheck| {
-        check.confirmed = Ok(());
-        check.agreeing_neighbour = group.get(1).map(|member| member.lender);
-        // Independent poses of one frame, averaged: the output is their mean.
-        if let Some(mean) = mean_pose(group) {
-            check.hypothesis.cam_from_world = mean;
-            check.apart_px = own_pose(own).and_then(|pose| apart_px(mesh, pose, &check.hypothesis));
-        }
+    let confirmed_by =
+        |group: &[Witness], check: &mut NeighbourCheck, workspace: &mut NeighbourWorkspace| {
+            check.confirmed = Ok(());
+            check.agreeing_neighbour = group.get(1).map(|member| member.lender);
+            // Independent poses of one frame, averaged: the output is their mean.
+            if let Some(mean) = mean_pose(group) {
+                check.hypothesis.cam_from_world = mean;
+                check.apart_px = own_pose(own).and_then(|pose| {
+                    apart_px(mesh, pose, &check.hypothesis, &mut workspace.reprojection)
+                });
+            }
+        };
+    let mut group_of = |admits: &dyn Fn(WitnessSupport) -> bool, wanted: usize| {
+        let group = agreeing_group(
+            mesh,
+            &witness,
+            witnesses,
+            min_apart_px,
+            admits,
+            wanted,
+            &mut workspace.reprojection,
+        );
+        (group.len() >= wanted).then_some(group)
     };
     // Independent photos that place the frame in one basin decide what the edges cannot.
     if quorum >= 2 && settings.quorum_outweighs_rival {
-        let group = agreeing_group(mesh, &witness, witnesses, min_apart_px, |_| true, quorum);
-        if group.len() >= quorum {
-            confirmed_by(&group, check);
+        if let Some(group) = group_of(&|_| true, quorum) {
+            confirmed_by(&group, check, workspace);
             return;
         }
     }
@@ -845,30 +869,12 @@ fn confirm_by_agreement(
         return;
     }
     let pair = (witness.support == WitnessSupport::Clear && settings.two_lenders_confirm)
-        .then(|| {
-            agreeing_group(
-                mesh,
-                &witness,
-                witnesses,
-                min_apart_px,
-                |support| support == WitnessSupport::Clear,
-                2,
-            )
-        })
-        .filter(|group| group.len() >= 2);
+        .then(|| group_of(&|support| support == WitnessSupport::Clear, 2))
+        .flatten();
     let group = pair.or_else(|| {
         (quorum >= 2)
-            .then(|| {
-                agreeing_group(
-                    mesh,
-                    &witness,
-                    witnesses,
-                    min_apart_px,
-                    |support| support != WitnessSupport::Contested,
-                    quorum,
-                )
-            })
-            .filter(|group| group.len() >= quorum)
+            .then(|| group_of(&|support| support != WitnessSupport::Contested, quorum))
+            .flatten()
     });
     // A try that failed "fixed" or "clear" had its edge support measured: `peak` is there.
     let (Some(group), Some(peak)) = (group, check.peak.as_ref()) else {
@@ -892,7 +898,7 @@ fn confirm_by_agreement(
                 witnesses.push(witness);
             }
         }
-        None => confirmed_by(&group, check),
+        None => confirmed_by(&group, check, workspace),
     }
 }
 
